@@ -1,0 +1,1 @@
+"""calstation's built-in plugins: ordinary plugin modules registered through the same hooks."""

@@ -1,0 +1,3 @@
+"""Registers the built-in fine-tuning strategies."""
+
+from __future__ import annotations

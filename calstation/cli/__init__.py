@@ -1,0 +1,58 @@
+"""The ``calstation`` command line. Thin: parse, validate, call the library.
+
+Each command group lives in its own module of this package with a ``register(app)`` function
+(found by :func:`_build`, so adding a module adds its commands); heavy imports (open3d)
+happen inside the commands so that ``calstation --help`` stays instant. Plugins add commands
+through the ``calstation_register_commands`` hook.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import sys
+
+import typer
+
+from ..errors import CalstationError
+
+app = typer.Typer(
+    name="calstation",
+    help="Calibrate a static line-scanning lidar against a motorised turntable.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def _build() -> None:
+    for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue
+        importlib.import_module(f"{__name__}.{info.name}").register(app)
+    from .. import plugins
+
+    plugins.register_commands(app)
+
+
+@app.callback()
+def _root() -> None:
+    """Calibrate a static line-scanning lidar against a motorised turntable."""
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point of the ``calstation`` script: errors print as one clear message, exit code 2."""
+    from rich.console import Console
+
+    err = Console(stderr=True)
+    try:
+        _build()
+        app(args=argv)
+    except CalstationError as exc:
+        from rich.markup import escape
+
+        err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        err.print("[bold yellow]interrupted[/]")
+        sys.exit(130)

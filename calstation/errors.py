@@ -1,0 +1,63 @@
+"""One root error for calstation, with a subclass per area.
+
+Every error calstation raises on bad input or a failed step derives from :class:`CalstationError`;
+the CLI prints its message (which names the file, field or line) instead of a traceback.
+"""
+
+from __future__ import annotations
+
+
+class CalstationError(Exception):
+    """Root of every error calstation raises on purpose."""
+
+
+class FrameError(CalstationError, ValueError):
+    """Invalid frame, transform or encoder parameters."""
+
+
+class RecipeError(CalstationError):
+    """A recipe file is missing, malformed or fails validation."""
+
+
+class RecordingError(CalstationError):
+    """A recording is missing, unreadable, truncated past use, or inconsistent."""
+
+
+class SimulationError(CalstationError):
+    """The simulated station was configured in a way it cannot simulate."""
+
+
+class DriverError(CalstationError):
+    """A driver could not talk to its device, or the device reported a fault."""
+
+
+class DeviceTimeout(DriverError):
+    """A device did not answer in time."""
+
+
+class CalibrationError(CalstationError):
+    """A calibration stage could not produce a trustworthy result."""
+
+
+class InitialCalibrationError(CalibrationError):
+    """The static target was not found or does not match the recipe geometry."""
+
+
+class FineTuningError(CalibrationError):
+    """A fine-tuning strategy could not run on the data it was given."""
+
+
+class VerificationError(CalstationError):
+    """The QA cube could not be measured."""
+
+
+class PluginError(CalstationError):
+    """A plugin is broken, duplicated or names an unknown hook."""
+
+
+class StationError(CalstationError):
+    """The station state machine was asked to do something it cannot."""
+
+
+class DatabaseError(CalstationError):
+    """The run database is unreachable, out of date or inconsistent."""

@@ -1,0 +1,3 @@
+"""Registers the simulated station's drivers and commands."""
+
+from __future__ import annotations
