@@ -163,16 +163,22 @@ class TurntableStatus:
 
 @dataclass(frozen=True)
 class DriverContext:
-    """What a driver factory gets besides its own settings.
+    """What a driver factory gets besides its own settings; one per run.
 
-    ``clock`` is the station's host clock (drivers stamp data with it). ``station`` is an opaque
-    handle to shared per-run state (the simulated station's scene, for example); drivers that do not
-    need it ignore it. ``recipe`` is the loaded recipe, for drivers that need fixture geometry.
+    - ``clock``: the host clock drivers stamp data with.
+    - ``recipe``: the :class:`~calstation.recipe.LoadedRecipe`, for drivers that need fixture
+      geometry (the simulator).
+    - ``shared``: a per-run dictionary where the drivers of one plugin keep state they share (the
+      simulated lidar, turntable and encoder share one scene through it). Keys are plugin names.
+
+    A driver that runs on a time base of its own (the simulator's, which only advances as data is
+    produced) exposes it as a ``clock`` attribute; the station then waits on the lidar's ``clock``
+    instead of the host clock.
     """
 
     clock: Clock
-    station: Any = None
     recipe: Any = None
+    shared: dict[str, Any] = field(default_factory=dict)
 
 
 # --- protocols -----------------------------------------------------------------------------

@@ -46,11 +46,11 @@ def calstation_register_commands(cli: Any) -> None:
 
 
 @hookspec
-def calstation_fixture_placed(station: Any, fixture: str, geometry: Any) -> None:
+def calstation_fixture_placed(context: Any, fixture: str, geometry: Any) -> None:
     """The operator confirmed that ``fixture`` is on the platter (or ``--yes`` placed it).
 
-    ``station`` is the run's driver context station handle (see
-    :class:`calstation.drivers.DriverContext`), ``fixture`` one of ``"static_target"``,
+    ``context`` is the run's :class:`calstation.drivers.DriverContext` (the simulator finds its
+    scene in ``context.shared``), ``fixture`` one of ``"static_target"``,
     ``"spin_target"``, ``"qa_cube"``, or ``"none"`` when the platter is cleared; ``geometry`` is the
     recipe's model of that fixture. The simulated station uses it to put the fixture into its scene.
     """

@@ -202,10 +202,10 @@ def strategy(name: str) -> Any:
     return found[name]
 
 
-def fixture_placed(station: Any, fixture: str, geometry: Any) -> None:
+def fixture_placed(context: Any, fixture: str, geometry: Any) -> None:
     """Tell plugins that ``fixture`` is now on the platter."""
     hook = load_plugins().hook
-    hook.calstation_fixture_placed(station=station, fixture=fixture, geometry=geometry)
+    hook.calstation_fixture_placed(context=context, fixture=fixture, geometry=geometry)
 
 
 def step_finished(run: Any, step: str, status: str, result: Any) -> None:
