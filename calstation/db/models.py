@@ -1,0 +1,209 @@
+"""The run database's tables: station, run, step, calibration, cube check, artifact.
+
+SQLAlchemy 2 typed models. Only portable column types are used (the same schema runs on SQLite and
+PostgreSQL). Lengths are metres and angles radians, as everywhere in storage; times are UTC.
+Constraints are named through :data:`NAMING_CONVENTION` so SQLite batch migrations can alter them.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    BigInteger,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Integer,
+    MetaData,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+NAMING_CONVENTION: dict[str, str] = {
+    "ix": "ix_%(column_0_label)s",
+    "uq": "uq_%(table_name)s_%(column_0_N_name)s",
+    "ck": "ck_%(table_name)s_%(constraint_name)s",
+    "fk": "fk_%(table_name)s_%(column_0_name)s_%(referred_table_name)s",
+    "pk": "pk_%(table_name)s",
+}
+"""Constraint names (Alembic's recommended convention)."""
+
+PARAMS: tuple[str, ...] = ("tx", "ty", "tz", "rx", "ry", "rz")
+"""The calibration parameters, in storage order (tx, ty, tz metres; rx, ry, rz radians)."""
+
+
+def utcnow() -> dt.datetime:
+    """The current time, timezone-aware UTC."""
+    return dt.datetime.now(dt.UTC)
+
+
+class Base(DeclarativeBase):
+    """Declarative base with the naming convention."""
+
+    metadata = MetaData(naming_convention=NAMING_CONVENTION)
+
+
+class Station(Base):
+    """A calibration station, known by the ``station.id`` of its recipes."""
+
+    __tablename__ = "station"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    name: Mapped[str] = mapped_column(String(100), unique=True)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    runs: Mapped[list[Run]] = relationship(back_populates="station")
+
+
+class Run(Base):
+    """One run of a recipe on a station.
+
+    ``status`` is ``"running"``, ``"passed"``, ``"failed"`` or ``"aborted"``; a run left
+    ``"running"`` by a crashed process is resumed by ``calstation resume``.
+    """
+
+    __tablename__ = "run"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    station_id: Mapped[int] = mapped_column(ForeignKey("station.id"), index=True)
+    recipe_name: Mapped[str] = mapped_column(String(200))
+    recipe_path: Mapped[str | None] = mapped_column(String(1000))
+    recipe_text: Mapped[str] = mapped_column(Text)
+    recipe_sha256: Mapped[str] = mapped_column(String(64))
+    operator: Mapped[str] = mapped_column(String(100))
+    unattended: Mapped[bool] = mapped_column(Boolean, default=False)
+    data_dir: Mapped[str] = mapped_column(String(1000))
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    status: Mapped[str] = mapped_column(String(16), default="running", index=True)
+    error: Mapped[str | None] = mapped_column(Text)
+
+    station: Mapped[Station] = relationship(back_populates="runs")
+    steps: Mapped[list[Step]] = relationship(
+        back_populates="run", order_by="Step.id", cascade="all, delete-orphan"
+    )
+    calibrations: Mapped[list[Calibration]] = relationship(
+        back_populates="run", order_by="Calibration.id", cascade="all, delete-orphan"
+    )
+    cube_checks: Mapped[list[CubeCheckRecord]] = relationship(
+        back_populates="run", order_by="CubeCheckRecord.id", cascade="all, delete-orphan"
+    )
+    artifacts: Mapped[list[Artifact]] = relationship(
+        back_populates="run", order_by="Artifact.id", cascade="all, delete-orphan"
+    )
+
+
+class Step(Base):
+    """One attempt at one step of a run.
+
+    ``status`` is ``"running"`` (started; left so by a crash), ``"passed"``, ``"failed"``,
+    ``"interrupted"`` (found running by ``resume``) or ``"aborted"``. ``result`` is the step's JSON
+    result mapping.
+    """
+
+    __tablename__ = "step"
+    __table_args__ = (UniqueConstraint("run_id", "name", "attempt"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("run.id", ondelete="CASCADE"), index=True)
+    name: Mapped[str] = mapped_column(String(50))
+    attempt: Mapped[int] = mapped_column(Integer, default=1)
+    status: Mapped[str] = mapped_column(String(16), default="running")
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    error: Mapped[str | None] = mapped_column(Text)
+
+    run: Mapped[Run] = relationship(back_populates="steps")
+    artifacts: Mapped[list[Artifact]] = relationship(back_populates="step")
+
+
+class Calibration(Base):
+    """A calibration H produced by a run (initial or fine-tuned).
+
+    tx, ty, tz in metres and rx, ry, rz in radians (DESIGN §2); ``sigma_*`` their 1σ (None when
+    not estimated). ``accepted`` marks the run's final calibration when the run passed.
+    """
+
+    __tablename__ = "calibration"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("run.id", ondelete="CASCADE"), index=True)
+    step_id: Mapped[int | None] = mapped_column(ForeignKey("step.id", ondelete="SET NULL"))
+    stage: Mapped[str] = mapped_column(String(20))
+    strategy: Mapped[str] = mapped_column(String(50))
+    tx: Mapped[float] = mapped_column(Float)
+    ty: Mapped[float] = mapped_column(Float)
+    tz: Mapped[float] = mapped_column(Float)
+    rx: Mapped[float] = mapped_column(Float)
+    ry: Mapped[float] = mapped_column(Float)
+    rz: Mapped[float] = mapped_column(Float)
+    sigma_tx: Mapped[float | None] = mapped_column(Float)
+    sigma_ty: Mapped[float | None] = mapped_column(Float)
+    sigma_tz: Mapped[float | None] = mapped_column(Float)
+    sigma_rx: Mapped[float | None] = mapped_column(Float)
+    sigma_ry: Mapped[float | None] = mapped_column(Float)
+    sigma_rz: Mapped[float | None] = mapped_column(Float)
+    cost: Mapped[float | None] = mapped_column(Float)
+    iterations: Mapped[int | None] = mapped_column(Integer)
+    accepted: Mapped[bool] = mapped_column(Boolean, default=False, index=True)
+    diagnostics: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    run: Mapped[Run] = relationship(back_populates="calibrations")
+
+    def params(self) -> dict[str, float]:
+        """tx, ty, tz (m) and rx, ry, rz (rad)."""
+        return {p: float(getattr(self, p)) for p in PARAMS}
+
+    def sigmas(self) -> dict[str, float | None]:
+        """1σ of each parameter (m / rad), None when not estimated."""
+        return {p: getattr(self, f"sigma_{p}") for p in PARAMS}
+
+
+class CubeCheckRecord(Base):
+    """The QA cube check of a run (lengths in metres, perpendicularity in degrees)."""
+
+    __tablename__ = "cube_check"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("run.id", ondelete="CASCADE"), index=True)
+    step_id: Mapped[int | None] = mapped_column(ForeignKey("step.id", ondelete="SET NULL"))
+    calibration_id: Mapped[int | None] = mapped_column(
+        ForeignKey("calibration.id", ondelete="SET NULL")
+    )
+    obb_edges: Mapped[list[Any]] = mapped_column(JSON)
+    obb_error: Mapped[float] = mapped_column(Float)
+    face_edges: Mapped[list[Any]] = mapped_column(JSON)
+    edge_error: Mapped[float] = mapped_column(Float)
+    flatness_rms: Mapped[float] = mapped_column(Float)
+    perpendicularity_deg: Mapped[float] = mapped_column(Float)
+    passed: Mapped[bool] = mapped_column(Boolean)
+    failures: Mapped[list[Any]] = mapped_column(JSON)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    run: Mapped[Run] = relationship(back_populates="cube_checks")
+
+
+class Artifact(Base):
+    """A file a run produced (a recording, a report): path, size in bytes and sha256."""
+
+    __tablename__ = "artifact"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("run.id", ondelete="CASCADE"), index=True)
+    step_id: Mapped[int | None] = mapped_column(ForeignKey("step.id", ondelete="SET NULL"))
+    kind: Mapped[str] = mapped_column(String(50))
+    path: Mapped[str] = mapped_column(String(1000))
+    size_bytes: Mapped[int] = mapped_column(BigInteger)
+    sha256: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    run: Mapped[Run] = relationship(back_populates="artifacts")
+    step: Mapped[Step | None] = relationship(back_populates="artifacts")

@@ -1,0 +1,230 @@
+"""The run database: migrations match the models, WAL mode, round trips, PostgreSQL."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import shutil
+import socket
+import subprocess
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import inspect, select, text
+
+from calstation.db import (
+    Artifact,
+    Base,
+    Calibration,
+    CubeCheckRecord,
+    Database,
+    Run,
+    Station,
+    Step,
+    alembic_config,
+    default_database_url,
+    head_revision,
+    open_database,
+)
+from calstation.errors import DatabaseError
+
+
+def test_revision_chain_is_linear() -> None:
+    script = ScriptDirectory.from_config(alembic_config())
+    heads = script.get_heads()
+    assert len(heads) == 1, f"several heads: {heads}"
+    bases = script.get_bases()
+    assert len(bases) == 1, f"several bases: {bases}"
+    seen = []
+    for rev in script.walk_revisions():
+        assert not rev.is_merge_point, f"{rev.revision} merges branches"
+        assert not rev.is_branch_point, f"{rev.revision} branches"
+        seen.append(rev.revision)
+    assert seen[0] == heads[0] and seen[-1] == bases[0]
+
+
+def _assert_matches_models(db: Database) -> None:
+    with db.engine.connect() as conn:
+        diff = compare_metadata(
+            MigrationContext.configure(conn, opts={"compare_type": True}), Base.metadata
+        )
+    assert diff == [], f"migrations and models differ: {diff}"
+
+
+def test_upgrade_to_head_matches_models(tmp_path: Path) -> None:
+    db = Database(f"sqlite:///{tmp_path / 'c.db'}")
+    before, after = db.upgrade()
+    assert before is None and after == head_revision()
+    _assert_matches_models(db)
+    # idempotent
+    assert db.upgrade() == (after, after)
+    db.dispose()
+
+
+def test_env_uses_the_given_connection(tmp_path: Path) -> None:
+    from alembic import command
+
+    db = Database(f"sqlite:///{tmp_path / 'conn.db'}")
+    with db.engine.begin() as conn:
+        command.upgrade(alembic_config(conn), "head")
+    assert db.current_revision() == head_revision()
+    with db.engine.begin() as conn:
+        command.downgrade(alembic_config(conn), "base")
+    with db.engine.connect() as conn:
+        assert set(inspect(conn).get_table_names()) <= {"alembic_version"}
+    db.dispose()
+
+
+def test_sqlite_is_in_wal_mode_with_foreign_keys(tmp_path: Path) -> None:
+    db = open_database(f"sqlite:///{tmp_path / 'sub' / 'w.db'}")
+    with db.engine.connect() as conn:
+        assert conn.execute(text("PRAGMA journal_mode")).scalar() == "wal"
+        assert conn.execute(text("PRAGMA foreign_keys")).scalar() == 1
+    db.dispose()
+
+
+def test_default_location_follows_calstation_home(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("CALSTATION_DB_URL", raising=False)
+    monkeypatch.setenv("CALSTATION_HOME", str(tmp_path / "home"))
+    assert default_database_url() == f"sqlite:///{tmp_path / 'home' / 'calstation.db'}"
+    monkeypatch.setenv("CALSTATION_DB_URL", "sqlite:////elsewhere.db")
+    assert default_database_url() == "sqlite:////elsewhere.db"
+
+
+def test_outdated_database_is_refused(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    db = Database(url)
+    db.upgrade()
+    with db.engine.begin() as conn:
+        conn.execute(text("UPDATE alembic_version SET version_num = 'older'"))
+    with pytest.raises(DatabaseError, match="calstation db upgrade"):
+        db.ensure_schema()
+    db.dispose()
+
+
+def test_bad_url_is_a_clear_error() -> None:
+    with pytest.raises(DatabaseError, match="cannot use database URL"):
+        Database("nosuchdialect://x/y")
+
+
+def _fill(db: Database) -> int:
+    with db.session() as s:
+        station = Station(name="st-1")
+        run = Run(
+            station=station,
+            recipe_name="r",
+            recipe_path="/r.yaml",
+            recipe_text="name: r\n",
+            recipe_sha256="0" * 64,
+            operator="ann",
+            data_dir="/tmp/runs/1",
+        )
+        step = Step(run=run, name="static_scan", status="passed", result={"lines": 100})
+        cal = Calibration(
+            run=run, stage="initial", strategy="initial", tx=0.001, ty=1.0, tz=-0.002,
+            rx=0.0, ry=0.003, rz=-0.785, sigma_tx=None, cost=1.5, iterations=3,
+            diagnostics={"segments": [1, 2]},
+        )
+        cube = CubeCheckRecord(
+            run=run, obb_edges=[0.1, 0.1, 0.1], obb_error=0.001, face_edges=[0.1, 0.1, 0.1],
+            edge_error=0.0002, flatness_rms=0.0009, perpendicularity_deg=0.1, passed=True,
+            failures=[],
+        )
+        art = Artifact(run=run, step=step, kind="static", path="/tmp/runs/1/static.mcap",
+                       size_bytes=5_000_000_000, sha256="a" * 64)
+        s.add_all([station, run, step, cal, cube, art])
+        s.flush()
+        return run.id
+
+
+def _check_roundtrip(db: Database, run_id: int) -> None:
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        assert run.station.name == "st-1"
+        assert run.steps[0].result == {"lines": 100}
+        cal = run.calibrations[0]
+        assert cal.params() == {"tx": 0.001, "ty": 1.0, "tz": -0.002, "rx": 0.0, "ry": 0.003,
+                                "rz": -0.785}
+        assert cal.sigma_tx is None and cal.diagnostics == {"segments": [1, 2]}
+        assert run.cube_checks[0].face_edges == [0.1, 0.1, 0.1]
+        assert run.artifacts[0].size_bytes == 5_000_000_000
+        assert run.artifacts[0].step is not None
+        assert isinstance(run.started_at, dt.datetime)
+        assert s.scalars(select(Step).where(Step.run_id == run_id)).one().name == "static_scan"
+
+
+def test_models_round_trip_on_sqlite(tmp_path: Path) -> None:
+    db = open_database(f"sqlite:///{tmp_path / 'rt.db'}")
+    _check_roundtrip(db, _fill(db))
+    db.dispose()
+
+
+# --- PostgreSQL: a throw-away server from Debian's postgresql package, if it is installed ----
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def postgres_url() -> Iterator[str]:
+    """Start a private PostgreSQL server in a temporary folder; skip when that is impossible."""
+    pytest.importorskip("psycopg")
+    bindir = None
+    for candidate in sorted(Path("/usr/lib/postgresql").glob("*/bin"), reverse=True):
+        if (candidate / "initdb").exists():
+            bindir = candidate
+            break
+    if bindir is None and shutil.which("initdb"):
+        bindir = Path(shutil.which("initdb") or "").parent
+    if bindir is None:
+        pytest.skip("no PostgreSQL server installed (Debian: apt-get install postgresql)")
+    prefix: list[str] = []
+    folder = Path(tempfile.mkdtemp(prefix="calstation-pg-"))
+    if os.geteuid() == 0:  # postgres refuses to run as root
+        runuser = shutil.which("runuser")
+        try:
+            import pwd
+
+            pw = pwd.getpwnam("postgres")
+        except KeyError:
+            pw = None
+        if runuser is None or pw is None:
+            pytest.skip("running as root without a postgres user to start the server as")
+        os.chown(folder, pw.pw_uid, pw.pw_gid)
+        prefix = [runuser, "-u", "postgres", "--"]
+    data = folder / "data"
+    port = _free_port()
+    try:
+        subprocess.run([*prefix, str(bindir / "initdb"), "-D", str(data), "-U", "calstation",
+                        "--auth=trust", "-E", "UTF8"], check=True, capture_output=True,
+                       timeout=120)
+        subprocess.run([*prefix, str(bindir / "pg_ctl"), "-D", str(data), "-w", "-t", "60",
+                        "-l", str(folder / "log"), "-o",
+                        f"-p {port} -k {folder} -c listen_addresses=127.0.0.1", "start"],
+                       check=True, capture_output=True, timeout=120)
+    except (subprocess.SubprocessError, OSError) as exc:
+        shutil.rmtree(folder, ignore_errors=True)
+        pytest.skip(f"could not start a PostgreSQL server: {exc}")
+    try:
+        yield f"postgresql+psycopg://calstation@127.0.0.1:{port}/postgres"
+    finally:
+        subprocess.run([*prefix, str(bindir / "pg_ctl"), "-D", str(data), "-m", "immediate",
+                        "stop"], capture_output=True, timeout=60)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_postgresql_upgrade_matches_models_and_round_trips(postgres_url: str) -> None:
+    db = Database(postgres_url)
+    db.upgrade()
+    _assert_matches_models(db)
+    _check_roundtrip(db, _fill(db))
+    db.dispose()
