@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .drivers import EncoderSample, LidarInfo, LidarLine, TurntableState, TurntableStatus
 from .errors import CalstationError, RecordingError
-from .frames import Extrinsics, counts_to_angle, polar_to_lidar
+from .frames import Extrinsics, counts_to_angle
 from .recipe import LoadedRecipe
 
 FORMAT_VERSION: int = 1
@@ -502,11 +502,18 @@ class Recording:
 
         Invalid returns and points outside the encoder's time span (φ NaN) are left out.
         """
-        phi = self.platter_angle(self.t_ns[self.valid])
+        idx = np.flatnonzero(self.valid)
+        phi = self.platter_angle(self.t_ns[idx])
         keep = np.isfinite(phi)
-        rng = self.range_m[self.valid][keep]
-        az = self.azimuth_rad[self.valid][keep]
-        return polar_to_lidar(rng, az), phi[keep]
+        if not keep.all():
+            idx, phi = idx[keep], phi[keep]
+        rng = self.range_m[idx]
+        az = self.azimuth_rad[idx]
+        # same as frames.polar_to_lidar, filled in place (this runs on millions of points)
+        p_L = np.zeros((len(idx), 3))
+        np.multiply(rng, np.sin(az), out=p_L[:, 0])
+        np.multiply(rng, np.cos(az), out=p_L[:, 1])
+        return p_L, phi
 
     def line_bounds(self) -> NDArray[np.int64]:
         """(L+1,) offsets: the points of line i are ``[bounds[i], bounds[i+1])``."""
