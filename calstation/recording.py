@@ -560,12 +560,15 @@ class _ExactReader:
 
     def __init__(self, f: IO[bytes]) -> None:
         self._f = f
+        self.at_boundary = False
 
     def read(self, n: int = -1) -> bytes:
         from mcap.exceptions import EndOfFile
 
         data = self._f.read(n)
         if n >= 0 and len(data) != n:
+            # nothing at all where a record's opcode should be: the file ends between records
+            self.at_boundary = n == 1 and not data
             raise EndOfFile()
         return data
 
@@ -639,7 +642,8 @@ def _collect(p: Path, f: IO[bytes]) -> _Collected:
         raise RecordingError(f"recording {p} {what}")
     f.seek(0)
     channels: dict[int, str] = {}
-    reader = StreamReader(_ExactReader(f), emit_chunks=True)  # type: ignore[arg-type]
+    exact = _ExactReader(f)
+    reader = StreamReader(exact, emit_chunks=True)  # type: ignore[arg-type]
     records = reader.records
     footer_seen = False
     while True:
@@ -648,13 +652,15 @@ def _collect(p: Path, f: IO[bytes]) -> _Collected:
         except StopIteration:
             col.clean = footer_seen
             if not footer_seen:
-                col.problem = "no footer"
+                col.problem = "the file ends without the MCAP footer"
             break
         except (EndOfFile, struct.error, InvalidMagic, McapError, ValueError, MemoryError) as exc:
-            col.problem = (
-                "file ends inside a record" if isinstance(exc, (EndOfFile, struct.error))
-                else f"damaged record: {exc}"
-            )
+            if not isinstance(exc, (EndOfFile, struct.error)):
+                col.problem = f"damaged record: {exc}"
+            elif exact.at_boundary:
+                col.problem = "the file ends after a complete record, without the MCAP footer"
+            else:
+                col.problem = "the file ends inside a record, which was dropped"
             break
         if isinstance(record, Chunk):
             try:
@@ -754,10 +760,10 @@ def _message(p: Path, col: _Collected, topic: str, data: bytes) -> None:
 
 def _assemble(p: Path, col: _Collected) -> Recording:
     meta = col.metadata
+    incomplete = "" if col.clean else f" (the file is incomplete, writer killed? {col.problem})"
     if "calstation" not in meta:
-        extra = "" if col.clean else " (the file is also incomplete: writer killed early?)"
         raise RecordingError(
-            f"recording {p} has no 'calstation' metadata: not a calstation recording{extra}"
+            f"recording {p} has no 'calstation' metadata: not a calstation recording{incomplete}"
         )
     info = meta["calstation"]
     version = info.get("format_version")
@@ -768,7 +774,7 @@ def _assemble(p: Path, col: _Collected) -> Recording:
         )
     for name in ("lidar", "encoder"):
         if name not in meta:
-            raise RecordingError(f"recording {p} has no {name!r} metadata record")
+            raise RecordingError(f"recording {p} has no {name!r} metadata record{incomplete}")
     try:
         lidar_info = LidarInfo.from_dict(meta["lidar"])
     except (KeyError, TypeError, ValueError) as exc:
@@ -786,8 +792,7 @@ def _assemble(p: Path, col: _Collected) -> Recording:
             f"direction={direction} (expected > 0 and ±1)"
         )
     if not col.line_ts:
-        why = "" if col.clean else f" (the file is incomplete: {col.problem})"
-        raise RecordingError(f"recording {p} contains no lidar lines{why}")
+        raise RecordingError(f"recording {p} contains no lidar lines{incomplete}")
 
     counts = np.asarray(col.line_count, dtype=np.int64)
     n_lines = len(counts)

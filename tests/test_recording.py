@@ -1,0 +1,353 @@
+"""MCAP recordings: round trip, crash recovery, bad files, platter angle."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calstation.drivers import (
+    EncoderSample,
+    LidarInfo,
+    LidarLine,
+    TurntableState,
+    TurntableStatus,
+)
+from calstation.errors import RecordingError
+from calstation.frames import Extrinsics, polar_to_lidar
+from calstation.recipe import LoadedRecipe, parse_recipe
+from calstation.recording import (
+    FORMAT_VERSION,
+    RecordingTruncatedWarning,
+    RecordingWriter,
+    read_recording,
+)
+
+T0 = 1_767_225_600_000_000_000
+INFO = LidarInfo("acme", "line-1", "SN42", np.deg2rad(72.0), 100, 1000.0, 0.2, 10.0, {"fw": "1.2"})
+RECIPE_TEXT = textwrap.dedent(
+    """\
+    name: test-recipe
+    station:
+      id: st-7
+      lidar: {driver: replay}
+      turntable: {driver: replay}
+      encoder: {driver: replay, ppr: 1024}
+    """
+)
+
+
+def make_line(i: int, n: int = 100, *, offsets: bool = False, intensity: bool = False) -> LidarLine:
+    """A deterministic line: values depend on the line index so a prefix can be checked."""
+    rng = np.random.default_rng(i)
+    return LidarLine(
+        timestamp_ns=T0 + i * 1_000_000,
+        azimuth_rad=np.linspace(-0.6, 0.6, n) + 1e-12 * i,
+        range_m=1.0 + 0.01 * rng.standard_normal(n),
+        valid=rng.random(n) > 0.05,
+        point_period_ns=1000.0 / 3.0,
+        time_offset_ns=np.arange(n, dtype=np.int64) * 7 if offsets else None,
+        intensity=rng.random(n) * 100 if intensity else None,
+    )
+
+
+def writer(path: Path, **kw: object) -> RecordingWriter:
+    args: dict[str, object] = {
+        "kind": "spin",
+        "lidar_info": INFO,
+        "counts_per_revolution": 4096,
+        "encoder_direction": 1,
+    }
+    args.update(kw)
+    return RecordingWriter(path, **args)  # type: ignore[arg-type]
+
+
+def test_round_trip(tmp_path: Path) -> None:
+    recipe = LoadedRecipe(parse_recipe(RECIPE_TEXT), None, RECIPE_TEXT)
+    lines = [make_line(i, offsets=(i % 3 == 1), intensity=(i % 2 == 0)) for i in range(40)]
+    enc = [EncoderSample(T0 + k * 500_000, 3 * k - 5) for k in range(90)]
+    status = TurntableStatus(T0 + 5, TurntableState.MOVING, 20.0, 1.25, ("warn",))
+    truth = {"tx": 0.01, "ty": 1.2, "tz": -0.003, "rx": 0.0, "ry": 0.002, "rz": -0.78,
+             "fixtures": {"qa_cube": {"y": 0.08, "z": 0.05, "yaw_rad": np.float64(0.3)}},
+             "seed": np.int64(7), "scenario": {"range_m": 1.25, "pitch_deg": 45.0}}
+    path = tmp_path / "r.mcap"
+    with writer(path, station_id="st-7", recipe=recipe, encoder_latency_s=0.002,
+                encoder_direction=-1, metadata={"truth": truth}) as w:
+        w.write_turntable(status)
+        for i, line in enumerate(lines):
+            w.write_line(line)
+            w.write_encoder(enc[2 * i : 2 * i + 2])
+        w.write_encoder(enc[80:])
+        w.add_metadata("notes", {"operator": "ann", "values": [1, 2, 3]})
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rec = read_recording(path)
+    assert not rec.truncated
+    assert rec.kind == "spin"
+    assert rec.lidar_info == INFO
+    assert (rec.counts_per_revolution, rec.encoder_direction) == (4096, -1)
+    assert rec.encoder_latency_s == pytest.approx(0.002)
+    cal = rec.metadata["calstation"]
+    assert cal["format_version"] == FORMAT_VERSION
+    assert cal["station_id"] == "st-7"
+    assert cal["recipe_name"] == "test-recipe"
+    assert cal["recipe_sha256"] == recipe.sha256
+    assert rec.recipe_text == RECIPE_TEXT
+    assert rec.metadata["notes"] == {"operator": "ann", "values": [1, 2, 3]}
+    assert rec.metadata["truth"]["fixtures"]["qa_cube"]["yaw_rad"] == 0.3
+    assert rec.truth == Extrinsics(0.01, 1.2, -0.003, 0.0, 0.002, -0.78)
+    assert rec.turntable == [status]
+
+    assert rec.n_lines == 40 and rec.n_points == 4000
+    np.testing.assert_array_equal(rec.line_timestamp_ns, [ln.timestamp_ns for ln in lines])
+    np.testing.assert_array_equal(rec.line_index, np.repeat(np.arange(40), 100))
+    np.testing.assert_array_equal(rec.azimuth_rad, np.concatenate([ln.azimuth_rad for ln in lines]))
+    np.testing.assert_allclose(
+        rec.range_m, np.concatenate([ln.range_m for ln in lines]), rtol=1e-7
+    )  # stored as float32
+    np.testing.assert_array_equal(rec.valid, np.concatenate([ln.valid for ln in lines]))
+    np.testing.assert_array_equal(rec.t_ns, np.concatenate([ln.point_times_ns() for ln in lines]))
+    assert rec.intensity is not None
+    for i, line in enumerate(lines):
+        got = rec.intensity[i * 100 : (i + 1) * 100]
+        if line.intensity is None:
+            assert np.isnan(got).all()
+        else:
+            np.testing.assert_allclose(got, line.intensity, rtol=1e-6)
+    np.testing.assert_array_equal(rec.encoder_t_ns, [s.timestamp_ns for s in enc])
+    np.testing.assert_array_equal(rec.encoder_count, [s.count for s in enc])
+    assert rec.encoder_samples() == enc
+
+    back = list(rec.lines())
+    assert len(back) == 40
+    for orig, got in zip(lines, back, strict=True):
+        assert got.timestamp_ns == orig.timestamp_ns
+        assert got.point_period_ns == orig.point_period_ns
+        assert (got.time_offset_ns is None) == (orig.time_offset_ns is None)
+        np.testing.assert_array_equal(got.point_times_ns(), orig.point_times_ns())
+        np.testing.assert_array_equal(got.valid, orig.valid)
+
+
+def test_file_is_plain_mcap_with_json(tmp_path: Path) -> None:
+    """Any MCAP reader sees the channels, JSON schemas and JSON-encoded metadata."""
+    from mcap.reader import make_reader
+
+    path = tmp_path / "r.mcap"
+    with writer(path) as w:
+        w.write_line(make_line(0))
+        w.write_encoder([EncoderSample(T0, 1)])
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        topics = {c.topic: c.message_encoding for c in summary.channels.values()}
+        assert topics == {"/lidar/line": "json", "/encoder/count": "json",
+                          "/turntable/status": "json"}
+        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
+        msgs = [(c.topic, m) for _, c, m in reader.iter_messages()]
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+    topic, msg = msgs[0]
+    assert topic == "/lidar/line" and msg.log_time == T0
+    body = json.loads(msg.data)
+    assert body["count"] == 100
+    assert json.loads(meta["encoder"]["counts_per_revolution"]) == 4096
+    assert json.loads(meta["calstation"]["kind"]) == "spin"
+
+
+def test_chunks_are_on_disk_while_writing(tmp_path: Path) -> None:
+    path = tmp_path / "live.mcap"
+    w = writer(path, chunk_size=20_000)
+    size0 = path.stat().st_size
+    for i in range(30):
+        w.write_line(make_line(i))
+    assert path.stat().st_size > size0 + 10_000  # several chunks flushed, writer still open
+    w.close()
+
+
+_KILL_CHILD = textwrap.dedent(
+    """
+    import sys
+    sys.path.insert(0, {tests!r})
+    from test_recording import make_line, writer, EncoderSample, T0
+    from pathlib import Path
+    w = writer(Path({path!r}), chunk_size=30_000)
+    i = 0
+    while True:
+        w.write_line(make_line(i))
+        w.write_encoder([EncoderSample(T0 + i * 1_000_000, i)])
+        i += 1
+        if i % 25 == 0:
+            w.flush()
+            print(i, flush=True)
+    """
+)
+
+
+def test_writer_killed_mid_scan_is_readable(tmp_path: Path) -> None:
+    """A real SIGKILL: the data of every complete chunk is read back, with a warning."""
+    path = tmp_path / "killed.mcap"
+    code = _KILL_CHILD.format(tests=str(Path(__file__).parent), path=str(path))
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        flushed = 0
+        deadline = time.monotonic() + 60
+        while flushed < 100 and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            assert line, "writer process died early"
+            flushed = int(line)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert flushed >= 100
+
+    with pytest.warns(RecordingTruncatedWarning, match=r"not closed cleanly \(writer killed\?\)"
+                      r": read \d+ lines / \d+ encoder samples up to t=") as record:
+        rec = read_recording(path)
+    assert str(path) in str(record[0].message)
+    assert rec.truncated
+    # everything flushed before the kill was seen is there, and it is an exact prefix
+    assert rec.n_lines >= flushed
+    for i, got in enumerate(rec.lines()):
+        want = make_line(i)
+        assert got.timestamp_ns == want.timestamp_ns
+        np.testing.assert_array_equal(got.azimuth_rad, want.azimuth_rad)
+        np.testing.assert_allclose(got.range_m, want.range_m, rtol=1e-7)
+        np.testing.assert_array_equal(got.valid, want.valid)
+    np.testing.assert_array_equal(rec.encoder_count, np.arange(len(rec.encoder_count)))
+    assert len(rec.encoder_count) >= flushed
+
+
+def test_truncated_at_any_byte_never_crashes(tmp_path: Path) -> None:
+    path = tmp_path / "full.mcap"
+    with writer(path, chunk_size=5_000) as w:
+        for i in range(30):
+            w.write_line(make_line(i))
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    seen = []
+    for n in range(0, len(data), max(1, len(data) // 97)):
+        cut.write_bytes(data[:n])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RecordingTruncatedWarning)
+            try:
+                rec = read_recording(cut)
+            except RecordingError as exc:
+                assert str(cut) in str(exc)
+                continue
+        assert rec.truncated
+        seen.append(rec.n_lines)
+    assert seen == sorted(seen) and seen[-1] == 30 and seen[0] < 30
+
+
+def test_bad_files(tmp_path: Path) -> None:
+    with pytest.raises(RecordingError, match="does not exist"):
+        read_recording(tmp_path / "missing.mcap")
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    with pytest.raises(RecordingError, match=r"empty\.mcap is empty"):
+        read_recording(empty)
+    text = tmp_path / "notes.mcap"
+    text.write_text("just some text, not a recording\n")
+    with pytest.raises(RecordingError, match=r"notes\.mcap is not an MCAP file"):
+        read_recording(text)
+    with pytest.raises(RecordingError, match="is not a file"):
+        read_recording(tmp_path)
+
+    from mcap.writer import Writer
+
+    foreign = tmp_path / "foreign.mcap"
+    with open(foreign, "wb") as f:
+        mw = Writer(f)
+        mw.start()
+        mw.add_metadata("something", {"a": "b"})
+        mw.finish()
+    with pytest.raises(RecordingError, match=r"foreign\.mcap has no 'calstation' metadata"):
+        read_recording(foreign)
+
+    no_lines = tmp_path / "nolines.mcap"
+    with writer(no_lines) as w:
+        w.write_encoder([EncoderSample(T0, 0)])
+    with pytest.raises(RecordingError, match=r"nolines\.mcap contains no lidar lines"):
+        read_recording(no_lines)
+
+
+def test_writer_rejects_bad_input(tmp_path: Path) -> None:
+    with pytest.raises(RecordingError, match="reserved"):
+        writer(tmp_path / "a.mcap", metadata={"lidar": {}})
+    with pytest.raises(RecordingError, match="direction"):
+        writer(tmp_path / "b.mcap", encoder_direction=2)
+    with writer(tmp_path / "c.mcap") as w:
+        with pytest.raises(RecordingError, match="negative timestamp"):
+            w.write_encoder([EncoderSample(-5, 0)])
+        with pytest.raises(RecordingError, match="cannot be stored as JSON"):
+            w.add_metadata("truth", {"x": object()})
+    with pytest.raises(RecordingError, match="already closed"):
+        w.write_line(make_line(0))
+
+
+def _encoder_recording(
+    tmp_path: Path, *, direction: int = 1, latency_s: float = 0.0, counts: list[int] | None = None
+) -> Path:
+    path = tmp_path / f"enc{direction}_{latency_s}.mcap"
+    with writer(path, encoder_direction=direction, encoder_latency_s=latency_s) as w:
+        w.write_line(make_line(0))
+        # 1 kHz samples, 4 counts per ms = 4000 counts/s
+        cs = counts if counts is not None else [4 * k for k in range(101)]
+        w.write_encoder([EncoderSample(T0 + k * 1_000_000, c) for k, c in enumerate(cs)])
+    return path
+
+
+def test_platter_angle_interpolates_in_time(tmp_path: Path) -> None:
+    rec = read_recording(_encoder_recording(tmp_path))
+    t = np.array([T0, T0 + 250_000, T0 + 50_500_000, T0 + 100_000_000])
+    expected = 2 * np.pi * np.array([0.0, 1.0, 202.0, 400.0]) / 4096
+    np.testing.assert_allclose(rec.platter_angle(t), expected, rtol=0, atol=1e-12)
+    outside = rec.platter_angle([T0 - 1, T0 + 100_000_001])
+    assert np.isnan(outside).all()
+
+
+def test_platter_angle_direction_and_latency(tmp_path: Path) -> None:
+    rec = read_recording(_encoder_recording(tmp_path, direction=-1))
+    assert rec.platter_angle(T0 + 10_000_000) == pytest.approx(-2 * np.pi * 40 / 4096)
+    # the encoder stamps each reading 3 ms late: the count stamped T0+13 ms was at lidar T0+10 ms
+    rec = read_recording(_encoder_recording(tmp_path, latency_s=0.003))
+    assert rec.platter_angle(T0 + 10_000_000) == pytest.approx(2 * np.pi * 52 / 4096)
+    assert np.isnan(rec.platter_angle(T0 + 99_000_000))  # past the last reading once shifted
+
+
+def test_platter_at_rest_holds_everywhere(tmp_path: Path) -> None:
+    rec = read_recording(_encoder_recording(tmp_path, counts=[1024, 1024]))
+    np.testing.assert_allclose(rec.platter_angle([T0 - 10**9, T0 + 10**10]), np.pi / 2)
+
+
+def test_no_encoder_is_an_error(tmp_path: Path) -> None:
+    path = tmp_path / "noenc.mcap"
+    with writer(path) as w:
+        w.write_line(make_line(0))
+    rec = read_recording(path)
+    with pytest.raises(RecordingError, match="no encoder readings"):
+        rec.platter_angle(T0)
+
+
+def test_points_lidar(tmp_path: Path) -> None:
+    path = _encoder_recording(tmp_path)
+    rec = read_recording(path)
+    p_L, phi = rec.points_lidar()
+    line = make_line(0)
+    v = line.valid
+    np.testing.assert_allclose(p_L, polar_to_lidar(rec.range_m[v], line.azimuth_rad[v]))
+    np.testing.assert_allclose(phi, rec.platter_angle(line.point_times_ns()[v]))
+    assert len(phi) == v.sum()
