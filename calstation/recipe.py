@@ -43,9 +43,13 @@ class EncoderConfig(DriverConfig):
 
 
 class StationConfig(Model):
-    """The station: its identity and its three drivers."""
+    """The station: its identity and its three drivers.
 
-    id: str = Field(min_length=1)
+    ``id`` names the station in the database and in folder names: letters, digits, ``.``, ``_``,
+    ``-``.
+    """
+
+    id: str = Field(min_length=1, max_length=100, pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
     lidar: DriverConfig
     turntable: DriverConfig
     encoder: EncoderConfig
@@ -415,8 +419,14 @@ def _format_loc(loc: tuple[int | str, ...]) -> str:
     return "".join(parts) or "(top level)"
 
 
-def parse_recipe(text: str, source: str = "<recipe>") -> Recipe:
-    """Validate recipe YAML text; :class:`RecipeError` names the field and line of each problem."""
+def parse_recipe(
+    text: str, source: str = "<recipe>", base_dir: Path | None = None
+) -> Recipe:
+    """Validate recipe YAML text; :class:`RecipeError` names the field and line of each problem.
+
+    After the field checks, :func:`cross_field_problems` runs the checks that relate fields to each
+    other (and mesh files to ``base_dir``, the recipe's folder, when given).
+    """
     try:
         data = yaml.safe_load(text)
         node = yaml.compose(text)
@@ -428,7 +438,7 @@ def parse_recipe(text: str, source: str = "<recipe>") -> Recipe:
     if not isinstance(data, dict):
         raise RecipeError(f"{source}: a recipe must be a YAML mapping, got {type(data).__name__}")
     try:
-        return Recipe.model_validate(data)
+        recipe = Recipe.model_validate(data)
     except ValidationError as exc:
         problems = []
         for err in exc.errors():
@@ -440,6 +450,152 @@ def parse_recipe(text: str, source: str = "<recipe>") -> Recipe:
                 msg = "unknown key"
             problems.append(f"{where}: {_format_loc(loc)}: {msg}")
         raise RecipeError("invalid recipe:\n  " + "\n  ".join(problems)) from None
+    cross = cross_field_problems(recipe, base_dir)
+    if cross:
+        raise RecipeError(_format_problems(cross, node, source))
+    return recipe
+
+
+Problem = tuple[tuple[int | str, ...], str]
+"""A validation problem: the field path in the recipe and what is wrong."""
+
+
+def _format_problems(problems: list[Problem], node: yaml.Node | None, source: str) -> str:
+    lines = []
+    for loc, msg in problems:
+        line = _line_of(node, loc)
+        where = f"{source}:{line}" if line else source
+        lines.append(f"{where}: {_format_loc(loc)}: {msg}")
+    return "invalid recipe:\n  " + "\n  ".join(lines)
+
+
+def _footprint_radius(geometry: Any) -> float:
+    """Radius (m) of the circle around the fixture's own centre that holds its base outline."""
+    if isinstance(geometry, CubeGeometry):
+        return geometry.edge / math.sqrt(2.0)
+    if isinstance(geometry, PyramidGeometry):
+        return geometry.base / math.sqrt(2.0)
+    if isinstance(geometry, PrismGeometry):
+        return 0.5 * math.hypot(geometry.edge, geometry.depth)
+    if isinstance(geometry, FrustumGeometry):
+        if geometry.polygon is not None:
+            return max(math.hypot(y, z) for y, z in geometry.polygon)
+        return geometry.circumradius
+    return 0.0
+
+
+def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[Problem]:
+    """Checks that relate fields to each other; each problem names the field it is about.
+
+    Fixtures must stand on the platter; mesh files must exist (relative to ``base_dir``); the
+    spin target's facets must be flatter than the lidar's pitch (else they are seen in one half-turn
+    only); the simulated lidar's range window must be ordered; explicit true extrinsics name only
+    tx..rz; the encoder latency must be plausible.
+    """
+    problems: list[Problem] = []
+    fixtures = recipe.fixtures
+    radius = fixtures.platter.diameter / 2.0
+    named: list[tuple[tuple[int | str, ...], Any]] = [
+        (("fixtures", "static_target"), fixtures.static_target),
+        (("fixtures", "spin_target"), fixtures.spin_target),
+        (("fixtures", "qa_cube"), fixtures.qa_cube),
+    ] + [(("fixtures", "demo", i), g) for i, g in enumerate(fixtures.demo)]
+    for loc, geometry in named:
+        mesh = getattr(geometry, "mesh", None)
+        if mesh:
+            path = Path(mesh)
+            if not path.is_absolute() and base_dir is not None:
+                path = base_dir / path
+            if (base_dir is not None or path.is_absolute()) and not path.is_file():
+                problems.append(((*loc, "mesh"), f"mesh file not found: {path}"))
+        offset = getattr(geometry, "offset", (0.0, 0.0))
+        reach = math.hypot(*offset) + _footprint_radius(geometry)
+        if reach > radius + 1e-9:
+            problems.append(
+                (
+                    (*loc, "offset"),
+                    f"the fixture reaches {reach * 1000:.0f} mm from the axis, off the platter "
+                    f"(radius {radius * 1000:.0f} mm)",
+                )
+            )
+    lt = fixtures.static_target
+    if lt.base_length <= lt.wall_thickness:
+        problems.append(
+            (("fixtures", "static_target", "base_length"), "must be longer than wall_thickness")
+        )
+    sim = recipe.simulation
+    if sim is not None:
+        spin = fixtures.spin_target
+        if isinstance(spin, FrustumGeometry) and spin.slope_deg >= sim.truth.pitch_deg:
+            problems.append(
+                (
+                    ("fixtures", "spin_target", "slope_deg"),
+                    f"facets sloped {spin.slope_deg:g}° are not seen in both half-turns by a "
+                    f"lidar pitched {sim.truth.pitch_deg:g}° (simulation.truth.pitch_deg); "
+                    "the slope must be smaller than the pitch",
+                )
+            )
+        if sim.lidar.range_min >= sim.lidar.range_max:
+            problems.append(
+                (("simulation", "lidar", "range_min"), "must be smaller than range_max")
+            )
+        if sim.truth.H is not None:
+            unknown = sorted(set(sim.truth.H) - {"tx", "ty", "tz", "rx", "ry", "rz"})
+            if unknown:
+                problems.append(
+                    (
+                        ("simulation", "truth", "H", unknown[0]),
+                        f"unknown parameter {unknown[0]!r}; expected tx, ty, tz, rx, ry, rz",
+                    )
+                )
+    if abs(recipe.station.encoder.latency_s) > 1.0:
+        problems.append(
+            (("station", "encoder", "latency_s"), "implausible latency (more than 1 s)")
+        )
+    return problems
+
+
+def plugin_problems(recipe: Recipe) -> list[Problem]:
+    """Checks against the installed plugins: drivers and strategies named must be registered."""
+    from . import plugins
+
+    problems: list[Problem] = []
+    registered = plugins.drivers()
+    for kind in plugins.DRIVER_KINDS:
+        name = getattr(recipe.station, kind).driver
+        if (kind, name) not in registered:
+            known = sorted(n for (k, n) in registered if k == kind)
+            problems.append(
+                (
+                    ("station", kind, "driver"),
+                    f"no {kind} driver named {name!r} is installed; "
+                    f"installed: {', '.join(known) or 'none'}",
+                )
+            )
+    strategies = plugins.strategies()
+    if recipe.calibration.strategy not in strategies:
+        problems.append(
+            (
+                ("calibration", "strategy"),
+                f"no fine-tuning strategy named {recipe.calibration.strategy!r} is installed; "
+                f"installed: {', '.join(sorted(strategies)) or 'none'}",
+            )
+        )
+    for name in recipe.calibration.options:
+        if name not in strategies:
+            problems.append(
+                (("calibration", "options", name), f"options for unknown strategy {name!r}")
+            )
+    return problems
+
+
+def check_plugins(loaded: LoadedRecipe) -> None:
+    """Raise :class:`RecipeError` (field and line of each problem) if a driver or strategy the
+    recipe names is not installed."""
+    problems = plugin_problems(loaded.recipe)
+    if problems:
+        source = str(loaded.path) if loaded.path is not None else "<recipe>"
+        raise RecipeError(_format_problems(problems, yaml.compose(loaded.text), source))
 
 
 _UNION_TAGS = {
@@ -469,4 +625,4 @@ def load_recipe(path: str | Path) -> LoadedRecipe:
         raise RecipeError(f"{p}: recipe file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise RecipeError(f"{p}: cannot read recipe: {exc}") from None
-    return LoadedRecipe(parse_recipe(text, str(p)), p, text)
+    return LoadedRecipe(parse_recipe(text, str(p), p.parent), p, text)
