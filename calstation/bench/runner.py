@@ -1,0 +1,758 @@
+"""Run the paper's experiments in parallel and record every result against the true H.
+
+The run reads top-down: simulate the scenarios, run the initial calibration per scenario, run the
+fine-tuning strategies from the initial calibration and from the perturbed starts, sample the cost
+landscapes, run the ablation. Every task is a small picklable :class:`Task`; workers (separate
+processes, ``spawn``) load a scenario's recordings once and keep them while tasks of the same
+scenario arrive (tasks are ordered by scenario), so no big array is pickled per task. Each finished
+task appends one JSON record to ``records.jsonl``; ``resume`` skips tasks already recorded.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing
+import os
+import platform
+import subprocess
+import sys
+import time
+import traceback
+import warnings
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..frames import PARAMETER_NAMES, Extrinsics
+from . import BenchError
+from .scenarios import (
+    PERTURBATION_SEED,
+    PERTURBATION_SETS,
+    Scenario,
+    is_simulated,
+    load_truth,
+    paper_scenarios,
+    sample_starts,
+    simulate_scenario,
+)
+
+FINE_TUNING_METHODS: tuple[str, ...] = ("shape", "periodicity")
+"""The paper's two fine-tuning strategies, run by name through the plugin registry."""
+
+CONVERGENCE: dict[str, dict[str, float]] = {
+    # the engine issue's acceptance thresholds (DESIGN §8 metrics against the true H)
+    "periodicity": {
+        "axis_offset_m": 0.5e-3,
+        "axis_angle_rad": math.radians(0.1),
+        "rz_rad": math.radians(0.05),
+    },
+    "shape": {"axis_offset_m": 2.0e-3, "axis_angle_rad": math.radians(0.3)},
+    # the initial calibration must land inside the paper's set-A box around the truth
+    "initial": {
+        "tx_m": 0.100,
+        "ty_m": 0.100,
+        "tz_m": 0.100,
+        "ry_rad": math.radians(1.0),
+        "rz_rad": math.radians(1.0),
+    },
+}
+"""Per method, the largest error still counted as converged (metres / radians)."""
+
+ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "no coarse-to-fine": {"calibration": {"periodicity": {"coarse_to_fine": False}}},
+    "gauge ty (paper)": {"calibration": {"periodicity": {"gauge": "ty"}}},
+    "paper (no coarse-to-fine, gauge ty)": {
+        "calibration": {"periodicity": {"coarse_to_fine": False, "gauge": "ty"}}
+    },
+}
+"""Recipe overrides of the periodicity robustness features compared in the ablation."""
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What one bench run does.
+
+    ``starts_per_set`` perturbed starts in each of sets A and B per scenario and method (the paper
+    used 50); the landscape is sampled on a ``landscape_grid`` × ``landscape_grid`` grid for
+    ``landscape_scenario``; the ablation runs periodicity from the initial calibration and the
+    first ``ablation_starts`` set-B starts of ``ablation_scenarios``.
+    """
+
+    recipe: Path
+    out: Path
+    scenarios: tuple[Scenario, ...]
+    starts_per_set: int = 50
+    workers: int = 2
+    methods: tuple[str, ...] = FINE_TUNING_METHODS
+    landscape_scenario: str | None = "D6"
+    landscape_grid: int = 21
+    landscape_translation_m: float = 0.020
+    landscape_rotation_deg: float = 2.0
+    ablation_scenarios: tuple[str, ...] = ("D1", "D9")
+    ablation_starts: int = 10
+    seed: int = PERTURBATION_SEED
+    quick: bool = False
+    command: str = ""
+
+    @classmethod
+    def full(cls, recipe: Path, out: Path, workers: int = 2, command: str = "") -> BenchConfig:
+        """The paper's protocol: nine scenarios, 50 + 50 starts."""
+        return cls(recipe, out, tuple(paper_scenarios()), workers=workers, command=command)
+
+    @classmethod
+    def quick_config(
+        cls, recipe: Path, out: Path, workers: int = 1, command: str = ""
+    ) -> BenchConfig:
+        """A small subset for the test suite: one scenario (D5), one start per set, a coarse
+        landscape, a one-start ablation."""
+        d5 = next(s for s in paper_scenarios() if s.name == "D5")
+        return cls(
+            recipe,
+            out,
+            (d5,),
+            starts_per_set=1,
+            workers=workers,
+            landscape_scenario="D5",
+            landscape_grid=5,
+            ablation_scenarios=("D5",),
+            ablation_starts=1,
+            quick=True,
+            command=command,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description (paths as strings, scenarios as dicts)."""
+        d = asdict(self)
+        d["recipe"] = str(self.recipe)
+        d["out"] = str(self.out)
+        return d
+
+
+@dataclass(frozen=True)
+class Task:
+    """One unit of work for a worker. Carries paths and six numbers, never recordings."""
+
+    id: str
+    kind: str  # "simulate" | "initial" | "finetune" | "landscape"
+    scenario: str
+    directory: str
+    method: str = "initial"
+    start_set: str = "init"  # "init" | "A" | "B"
+    index: int = 0
+    start: tuple[float, ...] | None = None
+    variant: str = "default"
+    overrides: str = "{}"  # JSON recipe overrides
+    landscape: dict[str, Any] = field(default_factory=dict)
+
+
+# --- worker side -----------------------------------------------------------------------------
+_WORKER: dict[str, Any] = {}
+
+
+def _thread_env(threads: int) -> dict[str, str]:
+    return {
+        name: str(threads)
+        for name in (
+            "OMP_NUM_THREADS",
+            "OPENBLAS_NUM_THREADS",
+            "MKL_NUM_THREADS",
+            "NUMEXPR_NUM_THREADS",
+        )
+    }
+
+
+def _init_worker(recipe_path: str) -> None:
+    """Load the recipe and the plugins once per worker process."""
+    warnings.simplefilter("ignore")
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    from .. import plugins
+    from ..recipe import load_recipe
+
+    _WORKER.clear()
+    _WORKER["recipe_path"] = Path(recipe_path)
+    _WORKER["loaded"] = load_recipe(recipe_path)
+    _WORKER["cache_dir"] = None
+    _WORKER["cache"] = {}
+    plugins.load_plugins()
+
+
+def _recording(directory: str, which: str) -> Any:
+    """The scenario's ``which`` recording ("static" | "spin" | "cube"), read once per worker and
+    kept until a task of another scenario arrives."""
+    from ..recording import read_recording
+
+    if _WORKER["cache_dir"] != directory:
+        _WORKER["cache"] = {}
+        _WORKER["cache_dir"] = directory
+    cache: dict[str, Any] = _WORKER["cache"]
+    if which not in cache:
+        if which == "truth":
+            cache[which] = load_truth(Path(directory) / "truth.json")
+        else:
+            cache[which] = read_recording(Path(directory) / f"{which}.mcap")
+    return cache[which]
+
+
+def _recipe(overrides: str) -> Any:
+    """The recipe model, with JSON ``overrides`` deep-merged in and validated."""
+    base = _WORKER["loaded"].recipe
+    patch = json.loads(overrides)
+    if not patch:
+        return base
+    key = f"recipe:{overrides}"
+    if key not in _WORKER:
+        _WORKER[key] = apply_overrides(base, patch)
+    return _WORKER[key]
+
+
+def apply_overrides(recipe: Any, patch: dict[str, Any]) -> Any:
+    """A copy of the recipe model with ``patch`` (nested mapping) deep-merged in, re-validated
+    (so a misspelled setting is an error, not silently ignored)."""
+    from ..recipe import Recipe
+
+    def merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+        out = dict(a)
+        for k, v in b.items():
+            out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        return out
+
+    try:
+        return Recipe.model_validate(merge(recipe.model_dump(), patch))
+    except Exception as exc:
+        raise BenchError(f"recipe override {patch!r} is invalid: {exc}") from None
+
+
+def _h_dict(h: Extrinsics) -> dict[str, float]:
+    return {n: float(getattr(h, n)) for n in PARAMETER_NAMES}
+
+
+def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
+    """Everything measured about an estimate ``H``: errors against the truth, axis errors, the
+    paper's cube check on the QA-cube scan, and the reconstruction distortion of that scan."""
+    from ..cube import check_cube
+    from ..metrics import axis_errors, reconstruction_distortion
+
+    truth: Extrinsics = _recording(directory, "truth")
+    cube_rec = _recording(directory, "cube")
+    out: dict[str, Any] = {
+        "truth": _h_dict(truth),
+        "error": {n: float(getattr(H, n) - getattr(truth, n)) for n in PARAMETER_NAMES},
+    }
+    out["axis"] = {k: float(v) for k, v in axis_errors(H, truth).items()}
+    t0 = time.perf_counter()
+    try:
+        check = check_cube(cube_rec, H, recipe.fixtures.qa_cube, recipe.qa)
+        out["cube"] = _jsonable(check.to_dict())
+    except Exception as exc:
+        out["cube"] = {"failed": f"{type(exc).__name__}: {exc}"}
+    t1 = time.perf_counter()
+    try:
+        out["distortion"] = {
+            k: float(v) for k, v in reconstruction_distortion(cube_rec, H, truth).items()
+        }
+    except Exception as exc:
+        out["distortion"] = {"failed": f"{type(exc).__name__}: {exc}"}
+    t2 = time.perf_counter()
+    out["eval_timings"] = {"cube_check_s": t1 - t0, "distortion_s": t2 - t1}
+    return out
+
+
+def _jsonable(x: Any) -> Any:
+    """Nested data with numpy scalars/arrays turned into plain JSON types."""
+    import numpy as np
+
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None if math.isnan(x) else (1e308 if x > 0 else -1e308)
+    if isinstance(x, str | int | float | bool) or x is None:
+        return x
+    return str(x)
+
+
+def converged(method: str, record: dict[str, Any]) -> bool:
+    """Whether a record meets :data:`CONVERGENCE` for its method (False if it failed)."""
+    if record.get("status") != "ok":
+        return False
+    limits = CONVERGENCE.get(method if method in CONVERGENCE else "shape", {})
+    for key, limit in limits.items():
+        if key.startswith("axis_"):
+            value = record["axis"].get(key)
+        else:
+            value = record["error"].get(key.rsplit("_", 1)[0])
+        if value is None or not abs(float(value)) <= limit:
+            return False
+    return True
+
+
+def run_task(task: Task) -> dict[str, Any]:
+    """Run one task in a worker; never raises: a failure becomes a record with status "failed"
+    and the error message."""
+    record: dict[str, Any] = {
+        "id": task.id,
+        "kind": task.kind,
+        "scenario": task.scenario,
+        "method": task.method,
+        "set": task.start_set,
+        "index": task.index,
+        "variant": task.variant,
+    }
+    t0 = time.perf_counter()
+    try:
+        if task.kind == "simulate":
+            _run_simulate(task, record)
+        elif task.kind == "initial":
+            _run_initial(task, record)
+        elif task.kind == "finetune":
+            _run_finetune(task, record)
+        elif task.kind == "landscape":
+            from .landscape import run_landscape_row
+
+            record.update(run_landscape_row(task, _recording, _recipe(task.overrides)))
+        else:
+            raise BenchError(f"unknown task kind {task.kind!r}")
+        record.setdefault("status", "ok")
+    except Exception as exc:
+        record["status"] = "failed"
+        record["error_message"] = f"{type(exc).__name__}: {exc}"
+        from ..errors import CalstationError
+
+        if not isinstance(exc, CalstationError):
+            record["traceback"] = traceback.format_exc(limit=8)
+    record["wall_s"] = time.perf_counter() - t0
+    if task.kind in ("initial", "finetune"):
+        record["converged"] = converged(task.method, record)
+    return _jsonable(record)  # type: ignore[no-any-return]
+
+
+def _run_simulate(task: Task, record: dict[str, Any]) -> None:
+    scenario = next(s for s in paper_scenarios() if s.name == task.scenario)
+    simulate_scenario(_WORKER["recipe_path"], scenario, Path(task.directory))
+
+
+def _result_fields(result: Any) -> dict[str, Any]:
+    return {
+        "H": _h_dict(result.H),
+        "sigma": {k: float(v) for k, v in dict(result.sigma).items()},
+        "cost": float(result.cost),
+        "iterations": int(result.iterations),
+        "strategy": str(result.strategy),
+        "timings": {k: float(v) for k, v in dict(result.timings).items()},
+        "diagnostics": _jsonable(_small_diagnostics(dict(result.diagnostics))),
+    }
+
+
+def _small_diagnostics(diag: dict[str, Any]) -> dict[str, Any]:
+    """Diagnostics without bulky arrays (keep scalars, short lists)."""
+    out: dict[str, Any] = {}
+    for k, v in diag.items():
+        if isinstance(v, str | int | float | bool) or v is None:
+            out[k] = v
+        elif isinstance(v, list | tuple) and len(v) <= 64:
+            out[k] = list(v)
+        elif hasattr(v, "shape") and getattr(v, "size", 1e9) <= 64:
+            out[k] = v
+    return out
+
+
+def _run_initial(task: Task, record: dict[str, Any]) -> None:
+    from ..initial import initial_calibration
+
+    recipe = _recipe(task.overrides)
+    static = _recording(task.directory, "static")
+    t0 = time.perf_counter()
+    result = initial_calibration(static, recipe.fixtures.static_target, recipe.calibration.initial)
+    record["stage_s"] = time.perf_counter() - t0
+    record.update(_result_fields(result))
+    record.update(_evaluate(task.directory, result.H, recipe))
+
+
+def _run_finetune(task: Task, record: dict[str, Any]) -> None:
+    from .. import plugins
+
+    recipe = _recipe(task.overrides)
+    assert task.start is not None
+    start = Extrinsics(*task.start)
+    record["start"] = _h_dict(start)
+    strategy = plugins.strategy(task.method)
+    fixture = getattr(strategy, "fixture", "spin_target")
+    recording = _recording(task.directory, "cube" if fixture == "qa_cube" else "spin")
+    t0 = time.perf_counter()
+    result = strategy.run(recording, start, recipe)
+    record["stage_s"] = time.perf_counter() - t0
+    record.update(_result_fields(result))
+    record.update(_evaluate(task.directory, result.H, recipe))
+
+
+# --- main process side ---------------------------------------------------------------------------
+class RecordStore:
+    """``records.jsonl`` in the output folder: one JSON record per finished task, appended and
+    flushed at once so an interrupted run keeps what it finished."""
+
+    def __init__(self, path: Path, resume: bool) -> None:
+        self.path = path
+        self.records: dict[str, dict[str, Any]] = {}
+        if resume and path.is_file():
+            for line in path.read_text().splitlines():
+                if line.strip():
+                    try:
+                        rec = json.loads(line)
+                    except ValueError:
+                        continue  # a line cut short by a kill
+                    self.records[rec["id"]] = rec
+            with path.open("w") as fh:  # rewrite without any torn line
+                for rec in self.records.values():
+                    fh.write(json.dumps(rec) + "\n")
+        else:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text("")
+
+    def add(self, record: dict[str, Any]) -> None:
+        """Keep ``record`` and append it to the file."""
+        self.records[record["id"]] = record
+        with self.path.open("a") as fh:
+            fh.write(json.dumps(record) + "\n")
+
+    def of_kind(self, kind: str) -> list[dict[str, Any]]:
+        """Every record of ``kind``."""
+        return [r for r in self.records.values() if r["kind"] == kind]
+
+
+ProgressFactory = Callable[[str, int], "Progress"]
+
+
+class Progress:
+    """A rich progress bar on a terminal; a log line every 20 s (and at the end) otherwise."""
+
+    def __init__(self, console: Any, description: str, total: int) -> None:
+        self.console = console
+        self.description = description
+        self.total = total
+        self.done = 0
+        self.failed = 0
+        self.t0 = time.monotonic()
+        self.last_log = self.t0
+        self._bar: Any = None
+        self._task: Any = None
+
+    def __enter__(self) -> Progress:
+        if self.console.is_terminal:
+            from rich.progress import (
+                BarColumn,
+                MofNCompleteColumn,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
+            from rich.progress import Progress as RichProgress
+
+            self._bar = RichProgress(
+                TextColumn("[bold]{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[failed]} failed"),
+                TimeElapsedColumn(),
+                TimeRemainingColumn(),
+                console=self.console,
+            )
+            self._bar.__enter__()
+            self._task = self._bar.add_task(self.description, total=self.total, failed=0)
+        else:
+            self.console.print(f"{self.description}: {self.total} tasks")
+        return self
+
+    def advance(self, ok: bool) -> None:
+        """One task finished (``ok`` False if it failed)."""
+        self.done += 1
+        self.failed += 0 if ok else 1
+        if self._bar is not None:
+            self._bar.update(self._task, advance=1, failed=self.failed)
+            return
+        now = time.monotonic()
+        if now - self.last_log >= 20.0 or self.done == self.total:
+            self.last_log = now
+            elapsed = now - self.t0
+            eta = elapsed / self.done * (self.total - self.done) if self.done else float("nan")
+            self.console.print(
+                f"{self.description}: {self.done}/{self.total} done, {self.failed} failed, "
+                f"{elapsed:.0f} s elapsed, ~{eta:.0f} s left"
+            )
+
+    def __exit__(self, *exc: object) -> None:
+        if self._bar is not None:
+            self._bar.__exit__(None, None, None)
+
+
+class Executor:
+    """Runs tasks in ``workers`` spawned processes (or in this process when ``workers`` is 1)."""
+
+    def __init__(self, recipe: Path, workers: int) -> None:
+        self.recipe = recipe
+        self.workers = max(1, workers)
+        self._pool: Any = None
+
+    def __enter__(self) -> Executor:
+        if self.workers > 1:
+            threads = max(1, (os.cpu_count() or 1) // self.workers)
+            saved = {k: os.environ.get(k) for k in _thread_env(threads)}
+            os.environ.update(_thread_env(threads))  # inherited by the spawned workers
+            try:
+                ctx = multiprocessing.get_context("spawn")
+                self._pool = ctx.Pool(
+                    self.workers, initializer=_init_worker, initargs=(str(self.recipe),)
+                )
+            finally:
+                for k, v in saved.items():
+                    if v is None:
+                        os.environ.pop(k, None)
+                    else:
+                        os.environ[k] = v
+        else:
+            _init_worker(str(self.recipe))
+        return self
+
+    def map(self, tasks: Sequence[Task]) -> Iterator[dict[str, Any]]:
+        """Results as they finish (any order)."""
+        if self._pool is None:
+            for t in tasks:
+                yield run_task(t)
+        else:
+            yield from self._pool.imap_unordered(run_task, tasks, chunksize=1)
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool is not None:
+            if exc[0] is None:
+                self._pool.close()
+            else:
+                self._pool.terminate()
+            self._pool.join()
+
+
+def _run_phase(
+    executor: Executor,
+    store: RecordStore,
+    tasks: Sequence[Task],
+    description: str,
+    console: Any,
+) -> None:
+    todo = [t for t in tasks if t.id not in store.records]
+    if not todo:
+        return
+    with Progress(console, description, len(todo)) as bar:
+        for rec in executor.map(todo):
+            store.add(rec)
+            bar.advance(rec.get("status") == "ok")
+
+
+def scenario_dir(config: BenchConfig, scenario: Scenario) -> Path:
+    """Where a scenario's recordings live."""
+    return config.out / "scenarios" / scenario.name
+
+
+def initial_tasks(config: BenchConfig) -> list[Task]:
+    """One initial calibration per scenario."""
+    return [
+        Task(f"{s.name}/initial", "initial", s.name, str(scenario_dir(config, s)))
+        for s in config.scenarios
+    ]
+
+
+def finetune_tasks(
+    config: BenchConfig,
+    initial: dict[str, Extrinsics],
+    scenarios: Iterable[Scenario],
+    methods: Iterable[str],
+    starts_per_set: int,
+    variant: str = "default",
+    overrides: dict[str, Any] | None = None,
+    sets: Sequence[str] = ("A", "B"),
+) -> list[Task]:
+    """Fine-tuning tasks, ordered by scenario so each worker reads a scenario once: from the
+    initial calibration, then ``starts_per_set`` starts of each of ``sets``."""
+    tasks: list[Task] = []
+    all_names = [s.name for s in paper_scenarios()]
+    methods = list(methods)
+    suffix = "" if variant == "default" else f"@{variant}"
+    for s in scenarios:
+        if s.name not in initial:
+            continue  # its initial calibration failed: nothing to start from
+        h0 = initial[s.name]
+        starts: list[tuple[str, int, Extrinsics]] = [("init", 0, h0)]
+        for set_name in sets:
+            sampled = sample_starts(
+                h0, PERTURBATION_SETS[set_name], starts_per_set, all_names.index(s.name),
+                config.seed,
+            )
+            starts += [(set_name, i, h) for i, h in enumerate(sampled)]
+        for method in methods:
+            for set_name, i, h in starts:
+                tasks.append(
+                    Task(
+                        f"{s.name}/{method}/{set_name}/{i:03d}{suffix}",
+                        "finetune",
+                        s.name,
+                        str(scenario_dir(config, s)),
+                        method=method,
+                        start_set=set_name,
+                        index=i,
+                        start=tuple(float(x) for x in h.as_vector()),
+                        variant=variant,
+                        overrides=json.dumps(overrides or {}, sort_keys=True),
+                    )
+                )
+    return tasks
+
+
+def git_commit(cwd: Path | None = None) -> str:
+    """``git rev-parse HEAD`` of the source tree (with ``+dirty`` if calstation's sources have
+    uncommitted changes), or ``"unknown"``."""
+    root = cwd or Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "calstation", "plugins", "recipes"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        return head + ("+dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[str, Any]:
+    """Run every phase of the bench; return the run's metadata (also written to ``run.json``).
+
+    Records go to ``config.out / "records.jsonl"``; simulated scenarios are reused when the recipe
+    and seed match.
+    """
+    config.out.mkdir(parents=True, exist_ok=True)
+    store = RecordStore(config.out / "records.jsonl", resume)
+    meta: dict[str, Any] = {
+        "config": config.to_dict(),
+        "command": config.command,
+        "git_commit": git_commit(),
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "phases_s": {},
+    }
+    t_start = time.monotonic()
+    with Executor(config.recipe, config.workers) as ex:
+        t = time.monotonic()
+        _simulate(config, ex, store, console)
+        meta["phases_s"]["simulate"] = time.monotonic() - t
+
+        t = time.monotonic()
+        _run_phase(ex, store, initial_tasks(config), "initial calibration", console)
+        initial = _initial_estimates(store)
+        meta["phases_s"]["initial"] = time.monotonic() - t
+
+        t = time.monotonic()
+        tasks = finetune_tasks(
+            config, initial, config.scenarios, config.methods, config.starts_per_set
+        )
+        _run_phase(ex, store, tasks, "fine-tuning", console)
+        meta["phases_s"]["fine-tuning"] = time.monotonic() - t
+
+        t = time.monotonic()
+        if config.landscape_scenario:
+            from .landscape import landscape_tasks
+
+            _run_phase(
+                ex, store, landscape_tasks(config, store), "cost landscapes", console
+            )
+        meta["phases_s"]["landscape"] = time.monotonic() - t
+
+        t = time.monotonic()
+        _run_phase(ex, store, ablation_tasks(config, initial), "ablation", console)
+        meta["phases_s"]["ablation"] = time.monotonic() - t
+    meta["wall_s"] = time.monotonic() - t_start
+    meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    meta["records"] = len(store.records)
+    (config.out / "run.json").write_text(json.dumps(meta, indent=2))
+    return meta
+
+
+def ablation_tasks(config: BenchConfig, initial: dict[str, Extrinsics]) -> list[Task]:
+    """Periodicity with each robustness feature switched off, on the ablation subset (the
+    default variant reuses the main run's tasks, which have the same ids)."""
+    chosen = [s for s in config.scenarios if s.name in config.ablation_scenarios]
+    tasks: list[Task] = []
+    for variant, overrides in ABLATION_VARIANTS.items():
+        tasks += finetune_tasks(
+            config,
+            initial,
+            chosen,
+            ["periodicity"],
+            config.ablation_starts,
+            variant=variant,
+            overrides=overrides,
+            sets=("B",),
+        )
+    return tasks
+
+
+def _simulate(config: BenchConfig, ex: Executor, store: RecordStore, console: Any) -> None:
+    from ..recipe import load_recipe
+
+    sha = load_recipe(config.recipe).sha256
+    todo = [
+        Task(f"{s.name}/simulate", "simulate", s.name, str(scenario_dir(config, s)))
+        for s in config.scenarios
+        if not is_simulated(s, scenario_dir(config, s), sha)
+    ]
+    # simulations are always redone when missing, even on resume
+    for t in todo:
+        store.records.pop(t.id, None)
+    _run_phase(ex, store, todo, "simulating scenarios", console)
+    bad = [s.name for s in config.scenarios if not is_simulated(s, scenario_dir(config, s), sha)]
+    if bad:
+        msgs = [store.records.get(f"{n}/simulate", {}).get("error_message", "?") for n in bad]
+        detail = ", ".join(f"{n} ({m})" for n, m in zip(bad, msgs, strict=True))
+        raise BenchError(f"simulation failed for {detail}")
+
+
+def _initial_estimates(store: RecordStore) -> dict[str, Extrinsics]:
+    out = {}
+    for rec in store.of_kind("initial"):
+        if rec.get("status") == "ok":
+            out[rec["scenario"]] = Extrinsics(*(rec["H"][n] for n in PARAMETER_NAMES))
+    return out
+
+
+def estimate_wall_time(seconds_per_task: float, config: BenchConfig) -> float:
+    """Rough wall time (s) of the fine-tuning phase for ``seconds_per_task`` per fine-tuning."""
+    n = len(config.scenarios) * len(config.methods) * (1 + 2 * config.starts_per_set)
+    return n * seconds_per_task / max(1, config.workers)
+
+
+__all__ = [
+    "ABLATION_VARIANTS",
+    "CONVERGENCE",
+    "BenchConfig",
+    "Executor",
+    "RecordStore",
+    "Task",
+    "apply_overrides",
+    "converged",
+    "estimate_wall_time",
+    "finetune_tasks",
+    "git_commit",
+    "run_bench",
+    "run_task",
+    "scenario_dir",
+]

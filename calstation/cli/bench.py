@@ -1,0 +1,96 @@
+"""``calstation bench paper``: reproduce the source paper's experiments on the simulated station."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from pathlib import Path
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``bench`` command group."""
+    bench = typer.Typer(
+        help="Benchmarks against the source paper on the simulated station.",
+        no_args_is_help=True,
+    )
+    app.add_typer(bench, name="bench")
+
+    @bench.command("paper")
+    def paper(
+        quick: bool = typer.Option(
+            False, "--quick", help="a small subset (one scenario, one start per set)"
+        ),
+        workers: int = typer.Option(2, "--workers", min=1, help="worker processes"),
+        out: Path = typer.Option(
+            Path("out/bench"), "--out", help="folder for recordings, records and the report"
+        ),
+        recipe: Path = typer.Option(
+            Path("recipes/sim-periodicity.yaml"), "--recipe", help="simulated-station recipe"
+        ),
+        report_dir: Path | None = typer.Option(
+            None, "--report-dir",
+            help="where results.md and results/*.png go (default: the --out folder)",
+        ),
+        scenarios: str | None = typer.Option(
+            None, "--scenarios", help="comma-separated subset, e.g. D5,D6 (default: all nine)"
+        ),
+        starts: int | None = typer.Option(
+            None, "--starts", min=0, help="perturbed starts per set (default 50; quick 1)"
+        ),
+        landscape_grid: int | None = typer.Option(
+            None, "--landscape-grid", min=0, help="landscape grid size per axis (0: skip)"
+        ),
+        ablation_starts: int | None = typer.Option(
+            None, "--ablation-starts", min=0, help="set-B starts per ablation scenario"
+        ),
+        resume: bool = typer.Option(
+            False, "--resume", help="keep records.jsonl in --out and run only missing tasks"
+        ),
+        label: str | None = typer.Option(
+            None, "--label", help="a note printed at the top of results.md (e.g. a reduced run)"
+        ),
+    ) -> None:
+        """Nine scenarios × {initial, shape, periodicity} × {initial start, 50 set-A, 50 set-B
+        starts}, measured against the true H; writes results.md with tables and figures."""
+        from dataclasses import replace
+
+        from rich.console import Console
+
+        from ..bench import BenchError
+        from ..bench.report import write_report
+        from ..bench.runner import BenchConfig, run_bench
+        from ..bench.scenarios import select_scenarios
+
+        if not recipe.is_file():
+            raise BenchError(f"{recipe}: recipe not found (give --recipe)")
+        command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        make = BenchConfig.quick_config if quick else BenchConfig.full
+        config = make(recipe, out, workers=workers, command=command)
+        if scenarios:
+            chosen = tuple(select_scenarios(scenarios.split(",")))
+            config = replace(config, scenarios=chosen)
+            names = {s.name for s in chosen}
+            if config.landscape_scenario not in names:
+                config = replace(config, landscape_scenario=chosen[-1].name)
+            if not names & set(config.ablation_scenarios):
+                config = replace(config, ablation_scenarios=(chosen[0].name,))
+        if starts is not None:
+            config = replace(config, starts_per_set=starts)
+        if landscape_grid is not None:
+            config = replace(
+                config,
+                landscape_grid=landscape_grid,
+                landscape_scenario=config.landscape_scenario if landscape_grid else None,
+            )
+        if ablation_starts is not None:
+            config = replace(config, ablation_starts=ablation_starts)
+        console = Console(stderr=True)
+        console.print(
+            f"bench: {len(config.scenarios)} scenario(s), {config.starts_per_set} start(s) per "
+            f"set, {config.workers} worker(s), output in {out}"
+        )
+        meta = run_bench(config, console, resume=resume)
+        path = write_report(out, report_dir or out, meta, label)
+        console.print(f"bench finished in {meta['wall_s'] / 60.0:.1f} min; report: {path}")
