@@ -3,5 +3,49 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., dict[str, Path]]:
+    """Factory of simulated runs, each simulated once per argument set per test session.
+
+    ``sim_run(range_m=1.25, pitch_deg=45.0, seed=1, recipe="recipes/sim-periodicity.yaml")``
+    returns ``{"static", "spin", "cube", "truth"}`` → paths (``calstation_sim.simulate_run``);
+    ``recipe`` is relative to the repository root (or absolute). Treat the files as read-only:
+    other tests share them.
+    """
+    cache: dict[tuple[float, float, int, str], dict[str, Path]] = {}
+
+    def run(
+        range_m: float = 1.25,
+        pitch_deg: float = 45.0,
+        seed: int = 1,
+        recipe: str | Path = "recipes/sim-periodicity.yaml",
+    ) -> dict[str, Path]:
+        from calstation_sim import simulate_run
+
+        from calstation.recipe import load_recipe
+
+        path = Path(recipe) if Path(recipe).is_absolute() else REPO / recipe
+        key = (float(range_m), float(pitch_deg), int(seed), str(path))
+        if key not in cache:
+            out = tmp_path_factory.mktemp(f"sim-r{range_m:g}-p{pitch_deg:g}-s{seed}")
+            cache[key] = simulate_run(
+                load_recipe(path),
+                out,
+                seed=seed,
+                range_m=range_m,
+                pitch_deg=pitch_deg,
+                progress=False,
+            )
+        return dict(cache[key])
+
+    return run

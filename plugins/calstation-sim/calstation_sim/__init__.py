@@ -1,1 +1,13 @@
-"""The simulated calibration station: a ray-cast scene behind calstation's driver interfaces."""
+"""The simulated calibration station: a ray-cast scene behind calstation's driver interfaces.
+
+Importing this package pulls in Open3D; the plugin module (:mod:`calstation_sim.plugin`) imports
+it lazily so ``calstation --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+from .drivers import SimEncoder, SimLidar, SimTurntable
+from .run import simulate_run
+from .station import SimulatedStation
+
+__all__ = ["SimEncoder", "SimLidar", "SimTurntable", "SimulatedStation", "simulate_run"]

@@ -1,0 +1,124 @@
+"""``simulate_run``: the recordings of a whole simulated run, plus its ground truth."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from calstation.acquisition import acquire_spin, acquire_static
+from calstation.errors import SimulationError
+from calstation.recipe import LoadedRecipe, SpinScanStep
+
+from .drivers import SimEncoder, SimLidar, SimTurntable
+from .station import SimulatedStation
+
+RECORDINGS = (("static", "static_target"), ("spin", "spin_target"), ("cube", "qa_cube"))
+"""(recording kind, fixture on the platter) in the order a run takes them."""
+
+
+@contextmanager
+def _progress_bars(enabled: bool) -> Iterator[Callable[[str, str], Callable[[str, float], None]]]:
+    """Yields ``task(name, title) -> progress(phase, fraction)``; a rich progress display when
+    ``enabled``, silent callbacks otherwise."""
+    if not enabled:
+        yield lambda name, title: lambda phase, fraction: None
+        return
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    columns = (
+        TextColumn("{task.description:<28}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>5.1f}%"),
+        TextColumn("{task.fields[phase]}"),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, transient=False) as bars:
+
+        def task(name: str, title: str) -> Callable[[str, float], None]:
+            tid = bars.add_task(title, total=1.0, phase="")
+
+            def update(phase: str, fraction: float) -> None:
+                bars.update(tid, completed=fraction, phase=phase)
+
+            return update
+
+        yield task
+
+
+def simulate_run(
+    recipe: LoadedRecipe,
+    out_dir: Path,
+    *,
+    seed: int | None = None,
+    range_m: float | None = None,
+    pitch_deg: float | None = None,
+    progress: bool = True,
+) -> dict[str, Path]:
+    """Simulate a whole run of ``recipe`` and write its recordings into ``out_dir``.
+
+    Writes ``static.mcap`` (the L-target at rest, ``steps.static_scan.lines`` lines),
+    ``spin.mcap`` (the spin target, ``steps.spin_scan``), ``cube.mcap`` (the QA cube,
+    ``steps.cube_scan``) and ``truth.json`` (:meth:`SimulatedStation.truth_dict`; also stored as
+    the ``"truth"`` metadata of each recording). Returns ``{"static", "spin", "cube", "truth"}``
+    → paths. ``seed``, ``range_m`` (m) and ``pitch_deg`` override the recipe's simulation.
+    """
+    from calstation.recording import RecordingWriter
+
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise SimulationError(f"cannot create output folder {out}: {exc}") from None
+    station = SimulatedStation(recipe, seed=seed, range_m=range_m, pitch_deg=pitch_deg)
+    lidar, turntable, encoder = SimLidar(station), SimTurntable(station), SimEncoder(station)
+    r = recipe.recipe
+    enc = r.station.encoder
+    paths: dict[str, Path] = {}
+    with _progress_bars(progress) as task:
+        for kind, fixture in RECORDINGS:
+            station.place(fixture)
+            path = out / f"{kind}.mcap"
+            update = task(kind, f"{kind} scan ({fixture})")
+            with RecordingWriter(
+                path,
+                kind=kind,
+                lidar_info=lidar.info(),
+                counts_per_revolution=encoder.counts_per_revolution,
+                encoder_direction=enc.direction,
+                encoder_latency_s=enc.latency_s,
+                station_id=r.station.id,
+                recipe=recipe,
+                metadata={"truth": station.truth_dict()},
+            ) as writer:
+                if kind == "static":
+                    acquire_static(
+                        lidar, encoder, writer, lines=r.steps.static_scan.lines, progress=update
+                    )
+                else:
+                    step: SpinScanStep = r.steps.spin_scan if kind == "spin" else r.steps.cube_scan
+                    acquire_spin(
+                        lidar,
+                        turntable,
+                        encoder,
+                        writer,
+                        rpm=step.rpm,
+                        revolutions=step.revolutions,
+                        settle_s=step.settle_s,
+                        clock=station.clock,
+                        progress=update,
+                    )
+            paths[kind] = path
+    paths["truth"] = write_truth(out / "truth.json", station.truth_dict())
+    return paths
+
+
+def write_truth(path: Path, truth: dict[str, Any]) -> Path:
+    """Write ``truth`` as indented JSON; returns ``path``."""
+    try:
+        path.write_text(json.dumps(truth, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise SimulationError(f"cannot write {path}: {exc}") from None
+    return path
