@@ -57,11 +57,24 @@ def calstation_fixture_placed(context: Any, fixture: str, geometry: Any) -> None
 
 
 @hookspec
+def calstation_run_started(run: Any) -> None:
+    """A run started, or a crashed run was resumed.
+
+    ``run`` is the run's summary mapping (``id``, ``station``, ``recipe_name``,
+    ``recipe_sha256``, ``operator``, ``status``, ``data_dir``, ...), as in
+    ``calstation show --json`` at that moment.
+    """
+
+
+@hookspec
 def calstation_step_finished(run: Any, step: str, status: str, result: Any) -> None:
     """A step of a run finished (its result is already committed to the database).
 
-    ``run`` is the run's record, ``step`` the step name, ``status`` ``"passed"`` or ``"failed"``,
-    ``result`` the step's result mapping. Observers (a factory MES upload, say) implement this.
+    ``run`` is the run's summary mapping (as for :func:`calstation_run_started`), ``step`` the
+    step name (``"preflight"``, ``"place_static_target"``, ``"static_scan"``, ...), ``status``
+    ``"passed"`` or ``"failed"``, ``result`` the step's JSON-ready result mapping (for a failed
+    step: ``{"error": message}``). Observers (a factory MES upload, say) implement this; an
+    exception raised here is reported but does not fail the run.
     """
 
 
@@ -69,5 +82,6 @@ def calstation_step_finished(run: Any, step: str, status: str, result: Any) -> N
 def calstation_run_finished(run: Any, status: str, summary: Any) -> None:
     """A run ended with ``status`` (``"passed"``, ``"failed"`` or ``"aborted"``).
 
-    ``summary`` is the run's summary mapping, as printed by ``calstation show --json``.
+    ``run`` is the run's summary mapping; ``summary`` the full record as printed by
+    ``calstation show --json`` (steps, calibrations, cube check, artifacts).
     """

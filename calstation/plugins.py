@@ -16,8 +16,9 @@ import importlib
 import os
 import sys
 import threading
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from typing import Any
 
 import pluggy
@@ -105,6 +106,12 @@ def _enable_tracing(pm: pluggy.PluginManager) -> None:
     pm.add_hookcall_monitoring(before, after)
 
 
+def _trace(message: str) -> None:
+    """Print a hook-trace line when ``CALSTATION_TRACE_HOOKS=1``."""
+    if os.environ.get("CALSTATION_TRACE_HOOKS") == "1":
+        print(f"[calstation hook] {message}", file=sys.stderr)
+
+
 def reset_for_tests() -> None:
     """Forget loaded plugins and registries (tests only)."""
     global _pm, _loaded
@@ -112,6 +119,69 @@ def reset_for_tests() -> None:
         _pm = None
         _loaded = False
         _registry_cache.clear()
+
+
+@contextmanager
+def isolated(*plugins: object, builtins: bool = True) -> Iterator[pluggy.PluginManager]:
+    """A plugin manager holding only ``plugins`` (and the built-ins), for tests.
+
+    Entry-point plugins are not loaded, so a test sees exactly what it registers; the previous
+    manager is restored on exit, whatever happens.
+    """
+    global _pm, _loaded
+    with _lock:
+        saved = (_pm, _loaded, dict(_registry_cache))
+        pm = pluggy.PluginManager("calstation")
+        pm.add_hookspecs(hookspecs)
+        _pm, _loaded = pm, True
+        _registry_cache.clear()
+    try:
+        if builtins:
+            for modname in DEFAULT_PLUGINS:
+                pm.register(importlib.import_module(modname), name=modname)
+        for plugin in plugins:
+            pm.register(plugin, name=getattr(plugin, "__name__", None))
+        try:
+            pm.check_pending()
+        except pluggy.PluginValidationError as exc:
+            raise PluginError(f"plugin {exc.plugin!r} implements an unknown hook: {exc}") from exc
+        yield pm
+    finally:
+        with _lock:
+            _pm, _loaded = saved[0], saved[1]
+            _registry_cache.clear()
+            _registry_cache.update(saved[2])
+
+
+@dataclass(frozen=True)
+class PluginInfo:
+    """One loaded plugin: its name, where it comes from, and the hooks it implements."""
+
+    name: str
+    source: str
+    version: str | None
+    hooks: tuple[str, ...] = field(default_factory=tuple)
+
+
+def plugin_report() -> list[PluginInfo]:
+    """Every loaded plugin with the hooks it implements, built-ins first."""
+    pm = load_plugins()
+    dists = {id(plugin): dist for plugin, dist in pm.list_plugin_distinfo()}
+    infos = []
+    for name, plugin in pm.list_name_plugin():
+        if plugin is None:  # blocked
+            continue
+        hooks = tuple(sorted(h.name for h in pm.get_hookcallers(plugin) or ()))
+        dist = dists.get(id(plugin))
+        if dist is not None:
+            source = f"entry point of {dist.project_name}"
+            version = str(dist.version)
+        else:
+            source = "built-in" if name in DEFAULT_PLUGINS else "registered"
+            version = None
+        infos.append(PluginInfo(name=name, source=source, version=version, hooks=hooks))
+    infos.sort(key=lambda i: (i.source != "built-in", i.name))
+    return infos
 
 
 # --- registries ----------------------------------------------------------------------------
@@ -153,6 +223,7 @@ def drivers() -> dict[tuple[str, str], DriverEntry]:
                     )
                 found[(kind, name)] = DriverEntry(kind, name, factory, _plugin)
 
+            _trace(f"calstation_register_drivers(register) → {plugin}")
             impl.function(register=register)
         _registry_cache["drivers"] = found
         return dict(found)
@@ -187,6 +258,7 @@ def strategies() -> dict[str, Any]:
                     raise PluginError(f"strategy {name!r} registered twice (second by {_plugin})")
                 found[name] = strategy
 
+            _trace(f"calstation_register_cost_strategies(register) → {plugin}")
             impl.function(register=register)
         _registry_cache["strategies"] = found
         return dict(found)
@@ -206,6 +278,11 @@ def fixture_placed(context: Any, fixture: str, geometry: Any) -> None:
     """Tell plugins that ``fixture`` is now on the platter."""
     hook = load_plugins().hook
     hook.calstation_fixture_placed(context=context, fixture=fixture, geometry=geometry)
+
+
+def run_started(run: Any) -> None:
+    """Tell observers a run started (or was resumed)."""
+    load_plugins().hook.calstation_run_started(run=run)
 
 
 def step_finished(run: Any, step: str, status: str, result: Any) -> None:

@@ -1,0 +1,99 @@
+"""The example plugin's hook implementations.
+
+Set ``CALSTATION_EXAMPLE_LOG`` to a file path to switch the observer on; each event is appended
+as one JSON line (UTF-8), flushed at once so a crash never loses an event already reported.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from calstation import hookimpl
+
+ENV = "CALSTATION_EXAMPLE_LOG"
+
+
+def log_path() -> Path | None:
+    """The JSON-lines file named by ``CALSTATION_EXAMPLE_LOG`` (None: observer off)."""
+    value = os.environ.get(ENV)
+    return Path(value).expanduser() if value else None
+
+
+def append_event(event: str, run: Mapping[str, Any], **fields: Any) -> None:
+    """Append ``{"event", "time", "run_id", "station", ...fields}`` to the log, if switched on."""
+    path = log_path()
+    if path is None:
+        return
+    record = {
+        "event": event,
+        "time": dt.datetime.now(dt.UTC).isoformat(),
+        "run_id": run.get("id"),
+        "station": run.get("station"),
+        **fields,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a", encoding="utf-8") as f:
+        f.write(json.dumps(record, default=str) + "\n")
+        f.flush()
+
+
+def read_events(path: Path) -> list[dict[str, Any]]:
+    """Every event in a log written by :func:`append_event`."""
+    with path.open(encoding="utf-8") as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+@hookimpl
+def calstation_run_started(run: Mapping[str, Any]) -> None:
+    """Log the start (or resumption) of a run."""
+    append_event("run_started", run, recipe=run.get("recipe_name"), operator=run.get("operator"))
+
+
+@hookimpl
+def calstation_step_finished(
+    run: Mapping[str, Any], step: str, status: str, result: Mapping[str, Any]
+) -> None:
+    """Log a finished step with its result."""
+    append_event("step_finished", run, step=step, status=status, result=dict(result or {}))
+
+
+@hookimpl
+def calstation_run_finished(
+    run: Mapping[str, Any], status: str, summary: Mapping[str, Any]
+) -> None:
+    """Log the end of a run with its final calibration, if any."""
+    final = next((c for c in summary.get("calibrations", []) if c.get("accepted")), None)
+    append_event("run_finished", run, status=status, calibration=final)
+
+
+@hookimpl
+def calstation_register_commands(cli: typer.Typer) -> None:
+    """Add ``calstation example-log``."""
+
+    @cli.command("example-log")
+    def example_log(
+        file: Path = typer.Argument(None, help="Log file (default: $CALSTATION_EXAMPLE_LOG)."),
+    ) -> None:
+        """Print the example plugin's run log."""
+        from rich.console import Console
+        from rich.table import Table
+
+        path = file or log_path()
+        if path is None or not path.is_file():
+            typer.echo(f"no run log (set {ENV} and run a recipe)")
+            raise typer.Exit(1)
+        table = Table(title=str(path))
+        for col in ("time", "event", "run", "step", "status"):
+            table.add_column(col)
+        for e in read_events(path):
+            table.add_row(
+                e["time"], e["event"], str(e.get("run_id")), e.get("step", ""), e.get("status", "")
+            )
+        Console().print(table)
