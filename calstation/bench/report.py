@@ -183,7 +183,8 @@ def table_ground_truth(records: Sequence[dict[str, Any]], methods: Sequence[str]
         rows.append(row)
     return _table(
         ["method", "start", "N", "failed", "converged", "axis offset mm (median / p95)",
-         "axis direction ° (median / p95)", "|tx| mm", "|ty| mm", "|tz| mm", "|ry| °", "|rz| °",
+         "axis direction ° (median / p95)", "tx err mm", "ty err mm", "tz err mm", "ry err °",
+         "rz err °",
          "cube distortion mm (RMS / max, median)"],
         rows,
     )
@@ -210,7 +211,7 @@ def table_spread(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> s
             rows.append(row)
     return _table(
         ["method", "set", "tx mm (IQR / max)", "tz mm (IQR / max)", "ry ° (IQR / max)",
-         "rz ° (IQR / max)", "|tx dev| ≤ 1 mm", "paper on tx"],
+         "rz ° (IQR / max)", "tx within ±1 mm of mean", "paper on tx"],
         rows,
     )
 
@@ -267,19 +268,22 @@ def table_timing(records: Sequence[dict[str, Any]], methods: Sequence[str],
     return _table(["stage", "N", "median (s)", "p90 (s)", "max (s)"], rows)
 
 
-def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str]) -> str:
-    """Periodicity with each robustness feature off, on the ablation subset (init + set B)."""
+def _ablation_records(
+    records: Sequence[dict[str, Any]], variant: str, scenarios: Sequence[str], n_starts: int
+) -> list[dict[str, Any]]:
+    return [
+        r for s in ("init", "B") for r in _select(records, "periodicity", s, variant, False)
+        if r["scenario"] in scenarios and (s == "init" or r["index"] < n_starts)
+    ]
+
+
+def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
+                   n_starts: int) -> str:
+    """Periodicity with each robustness feature off, on the ablation subset (init + the first
+    ``n_starts`` set-B starts)."""
     rows = []
     for variant in ABLATION_VARIANTS:
-        every = [
-            r for s in ("init", "B") for r in _select(records, "periodicity", s, variant, False)
-            if r["scenario"] in scenarios
-        ]
-        if variant == "default":
-            n_b = max((len(_select(records, "periodicity", "B", v, False)) for v in
-                       ABLATION_VARIANTS if v != "default"), default=0)
-            per_sc = n_b // max(1, len(scenarios))
-            every = [r for r in every if r["set"] == "init" or r["index"] < per_sc]
+        every = _ablation_records(records, variant, scenarios, n_starts)
         ok = [r for r in every if r.get("status") == "ok"]
         conv = sum(1 for r in every if r.get("converged"))
         off = _values(ok, lambda r: r["axis"]["axis_offset_m"]) * MM
@@ -296,18 +300,31 @@ def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str]) 
         ])
     return _table(
         ["periodicity variant", "N", "failed", "converged", "axis offset mm (median / p95)",
-         "axis direction ° (median / p95)", "|ty| mm (median)", "time s (median)"],
+         "axis direction ° (median / p95)", "ty err mm (median)", "time s (median)"],
         rows,
     )
 
 
-def _ablation_offsets(records: Sequence[dict[str, Any]], scenarios: Sequence[str]
-                      ) -> dict[str, np.ndarray]:
+def _ablation_offsets(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
+                      n_starts: int) -> dict[str, np.ndarray]:
     out = {}
     for variant in ABLATION_VARIANTS:
-        recs = [r for s in ("init", "B") for r in _select(records, "periodicity", s, variant)
-                if r["scenario"] in scenarios]
+        recs = [r for r in _ablation_records(records, variant, scenarios, n_starts)
+                if r.get("status") == "ok"]
         out[variant] = _values(recs, lambda r: r["axis"]["axis_offset_m"]) * MM
+    return out
+
+
+def main_records(records: Sequence[dict[str, Any]], starts: int) -> list[dict[str, Any]]:
+    """The records of the main protocol: everything except ablation variants, and set-A/B
+    starts numbered ``starts`` or more (rounds the run did not complete for every scenario)."""
+    out = []
+    for r in records:
+        if r.get("variant", "default") != "default":
+            continue
+        if r["kind"] == "finetune" and r["set"] in ("A", "B") and r["index"] >= starts:
+            continue
+        out.append(r)
     return out
 
 
@@ -349,11 +366,13 @@ def write_report(
 ) -> Path:
     """Write ``report_dir/results.md`` and ``report_dir/results/*.png`` from the records in
     ``out``; returns the path of results.md."""
-    records = load_records(out)
+    every = load_records(out)
     if meta is None:
         meta_path = out / "run.json"
         meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     cfg = meta.get("config", {})
+    records = main_records(every, int(meta.get("starts_completed", cfg.get("starts_per_set", 0))))
+    n_abl = int(cfg.get("ablation_starts", 0))
     methods = [m for m in cfg.get("methods", FINE_TUNING_METHODS)]
     fig_dir = report_dir / "results"
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -379,12 +398,12 @@ def write_report(
                 "Cost functions: " + "; ".join(f"{m}: `{s}`" for m, s in sources.items())
             )
     abl_sc = [s for s in cfg.get("ablation_scenarios", []) if
-              any(r["scenario"] == s for r in records)]
+              any(r["scenario"] == s for r in every)]
     lim = CONVERGENCE["periodicity"]["axis_offset_m"] * MM
-    ablation_figure(_ablation_offsets(records, abl_sc), fig_dir / "ablation.png", lim,
+    ablation_figure(_ablation_offsets(every, abl_sc, n_abl), fig_dir / "ablation.png", lim,
                     f"Periodicity ablation, scenarios {', '.join(abl_sc)} (init + set B)")
 
-    text = _compose(records, meta, methods, abl_sc, landscape_md, label)
+    text = _compose(records, every, meta, methods, abl_sc, landscape_md, label)
     path = report_dir / "results.md"
     path.write_text(text)
     return path
@@ -392,6 +411,7 @@ def write_report(
 
 def _compose(
     records: Sequence[dict[str, Any]],
+    every: Sequence[dict[str, Any]],
     meta: dict[str, Any],
     methods: Sequence[str],
     abl_sc: Sequence[str],
@@ -400,10 +420,10 @@ def _compose(
 ) -> str:
     cfg = meta.get("config", {})
     scen = cfg.get("scenarios", [])
-    n_starts = cfg.get("starts_per_set", "?")
-    wall = meta.get("wall_s")
+    n_starts = meta.get("starts_completed", cfg.get("starts_per_set", "?"))
+    wall = meta.get("wall_s_total", meta.get("wall_s"))
     phases = meta.get("phases_s", {})
-    failed = [r for r in records if r.get("status") != "ok"]
+    failed = [r for r in every if r.get("status") != "ok"]
     n_fine = sum(
         1 for r in records if r["kind"] == "finetune" and r.get("variant", "default") == "default"
     )
@@ -415,8 +435,21 @@ def _compose(
         "indirect cube metric we report the errors against the truth (DESIGN §8).",
         "",
     ]
+    reduced = []
+    if len(scen) < 9:
+        reduced.append(f"{len(scen)} of the 9 scenarios")
+    if isinstance(n_starts, int) and n_starts < 50:
+        reduced.append(f"{n_starts} instead of 50 perturbed starts per set")
+    if meta.get("cut_by_deadline"):
+        reduced.append("stopped at its deadline")
     if label:
         parts += [f"> **{label}**", ""]
+    if reduced:
+        parts += [
+            "> **Reduced run** (the paper's protocol is 9 scenarios × 50 + 50 starts): "
+            + "; ".join(reduced) + ".",
+            "",
+        ]
     parts += [
         "## Provenance",
         "",
@@ -460,9 +493,10 @@ def _compose(
         "",
         "Axis offset: distance between the estimated and the true rotation axis, perpendicular "
         "to the true axis at the platter centre; axis direction: angle between them "
-        "(`calstation.metrics.axis_errors`). Per-parameter errors are estimate − truth; the "
-        "periodicity gauge (the origin along the axis) comes from the engine's configured gauge, "
-        "so |tx| and |ty| there include the gauge choice, which the axis metrics do not. Cube "
+        "(`calstation.metrics.axis_errors`). Per-parameter columns: median of |estimate − truth|; "
+        "the periodicity gauge (the origin along the axis) comes from the engine's configured "
+        "gauge, so the tx and ty errors include the gauge choice, which the axis metrics do not. "
+        "Cube "
         "distortion: the QA-cube scan reconstructed with the estimated and with the true H, RMS "
         "and maximum point displacement after the best rigid alignment "
         "(`calstation.metrics.reconstruction_distortion`).",
@@ -499,7 +533,7 @@ def _compose(
         f"{cfg.get('ablation_starts', '?')} set-B starts of each. Recipe overrides per variant: "
         + "; ".join(f"{k}: `{json.dumps(v)}`" for k, v in ABLATION_VARIANTS.items()) + ".",
         "",
-        table_ablation(records, abl_sc),
+        table_ablation(every, abl_sc, int(cfg.get("ablation_starts", 0))),
         "",
         "![ablation](results/ablation.png)",
         "",

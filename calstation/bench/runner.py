@@ -94,6 +94,8 @@ class BenchConfig:
     ablation_scenarios: tuple[str, ...] = ("D1", "D9")
     ablation_starts: int = 10
     seed: int = PERTURBATION_SEED
+    round_starts: int = 2
+    deadline: float | None = None
     quick: bool = False
     command: str = ""
 
@@ -231,25 +233,32 @@ def _h_dict(h: Extrinsics) -> dict[str, float]:
 
 def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
     """Everything measured about an estimate ``H``: errors against the truth, axis errors, the
-    paper's cube check on the QA-cube scan, and the reconstruction distortion of that scan."""
-    from ..cube import check_cube
-    from ..metrics import axis_errors, reconstruction_distortion
-
+    paper's cube check on the QA-cube scan, and the reconstruction distortion of that scan. A
+    measurement that fails is recorded as ``{"failed": message}``; the estimate stays valid."""
     truth: Extrinsics = _recording(directory, "truth")
     cube_rec = _recording(directory, "cube")
     out: dict[str, Any] = {
         "truth": _h_dict(truth),
         "error": {n: float(getattr(H, n) - getattr(truth, n)) for n in PARAMETER_NAMES},
     }
-    out["axis"] = {k: float(v) for k, v in axis_errors(H, truth).items()}
+    try:
+        from ..metrics import axis_errors
+
+        out["axis"] = {k: float(v) for k, v in axis_errors(H, truth).items()}
+    except Exception as exc:
+        out["axis"] = {"failed": f"{type(exc).__name__}: {exc}"}
     t0 = time.perf_counter()
     try:
+        from ..cube import check_cube
+
         check = check_cube(cube_rec, H, recipe.fixtures.qa_cube, recipe.qa)
         out["cube"] = _jsonable(check.to_dict())
     except Exception as exc:
         out["cube"] = {"failed": f"{type(exc).__name__}: {exc}"}
     t1 = time.perf_counter()
     try:
+        from ..metrics import reconstruction_distortion
+
         out["distortion"] = {
             k: float(v) for k, v in reconstruction_distortion(cube_rec, H, truth).items()
         }
@@ -543,14 +552,22 @@ def _run_phase(
     tasks: Sequence[Task],
     description: str,
     console: Any,
-) -> None:
+    deadline: float | None = None,
+) -> int:
+    """Run the tasks not yet recorded; returns how many ran. Raises :class:`DeadlineReached`
+    when ``deadline`` (Unix time) passes before they are all done."""
     todo = [t for t in tasks if t.id not in store.records]
     if not todo:
-        return
+        return 0
+    if deadline is not None and time.time() > deadline:
+        raise DeadlineReached
     with Progress(console, description, len(todo)) as bar:
         for rec in executor.map(todo):
             store.add(rec)
             bar.advance(rec.get("status") == "ok")
+            if deadline is not None and time.time() > deadline and bar.done < len(todo):
+                raise DeadlineReached
+    return len(todo)
 
 
 def scenario_dir(config: BenchConfig, scenario: Scenario) -> Path:
@@ -571,13 +588,15 @@ def finetune_tasks(
     initial: dict[str, Extrinsics],
     scenarios: Iterable[Scenario],
     methods: Iterable[str],
-    starts_per_set: int,
+    indices: range,
+    include_init: bool = True,
     variant: str = "default",
     overrides: dict[str, Any] | None = None,
     sets: Sequence[str] = ("A", "B"),
 ) -> list[Task]:
     """Fine-tuning tasks, ordered by scenario so each worker reads a scenario once: from the
-    initial calibration, then ``starts_per_set`` starts of each of ``sets``."""
+    initial calibration (if ``include_init``), then the starts numbered ``indices`` of each of
+    ``sets`` (start i is the same in every run: see :func:`sample_starts`)."""
     tasks: list[Task] = []
     all_names = [s.name for s in paper_scenarios()]
     methods = list(methods)
@@ -586,13 +605,13 @@ def finetune_tasks(
         if s.name not in initial:
             continue  # its initial calibration failed: nothing to start from
         h0 = initial[s.name]
-        starts: list[tuple[str, int, Extrinsics]] = [("init", 0, h0)]
+        starts: list[tuple[str, int, Extrinsics]] = [("init", 0, h0)] if include_init else []
         for set_name in sets:
             sampled = sample_starts(
-                h0, PERTURBATION_SETS[set_name], starts_per_set, all_names.index(s.name),
+                h0, PERTURBATION_SETS[set_name], indices.stop, all_names.index(s.name),
                 config.seed,
             )
-            starts += [(set_name, i, h) for i, h in enumerate(sampled)]
+            starts += [(set_name, i, sampled[i]) for i in indices]
         for method in methods:
             for set_name, i, h in starts:
                 tasks.append(
@@ -632,14 +651,25 @@ def git_commit(cwd: Path | None = None) -> str:
         return "unknown"
 
 
+class DeadlineReached(Exception):
+    """Raised inside :func:`run_bench` when the deadline passes in the middle of a phase."""
+
+
 def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[str, Any]:
     """Run every phase of the bench; return the run's metadata (also written to ``run.json``).
 
+    Phases: simulate; initial calibration; both fine-tunings from the initial calibration; cost
+    landscapes; ablation; then the perturbed starts in rounds of ``config.round_starts`` set-A and
+    set-B starts per scenario and method, until ``config.starts_per_set``. With a
+    ``config.deadline`` (Unix time) no round is started that would not finish in time (estimated
+    from the previous round) and a phase still running at the deadline is cut; the metadata then
+    says how many starts per set were completed (``starts_completed``), which the report uses.
     Records go to ``config.out / "records.jsonl"``; simulated scenarios are reused when the recipe
     and seed match.
     """
     config.out.mkdir(parents=True, exist_ok=True)
     store = RecordStore(config.out / "records.jsonl", resume)
+    previous = _previous_meta(config.out) if resume else None
     meta: dict[str, Any] = {
         "config": config.to_dict(),
         "command": config.command,
@@ -649,47 +679,84 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
         "cpu_count": os.cpu_count(),
         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "phases_s": {},
+        "starts_completed": 0,
+        "cut_by_deadline": False,
     }
+    if previous is not None:
+        meta["previous_runs"] = [*previous.pop("previous_runs", []), previous]
     t_start = time.monotonic()
-    with Executor(config.recipe, config.workers) as ex:
-        t = time.monotonic()
-        _simulate(config, ex, store, console)
-        meta["phases_s"]["simulate"] = time.monotonic() - t
+    phases: dict[str, float] = meta["phases_s"]
 
+    def phase(name: str, tasks: Sequence[Task], ex: Executor) -> float:
         t = time.monotonic()
-        _run_phase(ex, store, initial_tasks(config), "initial calibration", console)
-        initial = _initial_estimates(store)
-        meta["phases_s"]["initial"] = time.monotonic() - t
+        n = _run_phase(ex, store, tasks, name, console, config.deadline)
+        dt = time.monotonic() - t
+        phases[name] = phases.get(name, 0.0) + dt
+        return dt / n if n else 0.0
 
-        t = time.monotonic()
-        tasks = finetune_tasks(
-            config, initial, config.scenarios, config.methods, config.starts_per_set
-        )
-        _run_phase(ex, store, tasks, "fine-tuning", console)
-        meta["phases_s"]["fine-tuning"] = time.monotonic() - t
-
-        t = time.monotonic()
-        if config.landscape_scenario:
-            from .landscape import landscape_tasks
-
-            _run_phase(
-                ex, store, landscape_tasks(config, store), "cost landscapes", console
+    try:
+        with Executor(config.recipe, config.workers) as ex:
+            t = time.monotonic()
+            _simulate(config, ex, store, console)
+            phases["simulate"] = time.monotonic() - t
+            phase("initial calibration", initial_tasks(config), ex)
+            initial = _initial_estimates(store)
+            per_task = phase(
+                "fine-tuning from the initial calibration",
+                finetune_tasks(config, initial, config.scenarios, config.methods, range(0)),
+                ex,
             )
-        meta["phases_s"]["landscape"] = time.monotonic() - t
+            if config.landscape_scenario:
+                from .landscape import landscape_tasks
 
-        t = time.monotonic()
-        _run_phase(ex, store, ablation_tasks(config, initial), "ablation", console)
-        meta["phases_s"]["ablation"] = time.monotonic() - t
+                phase("cost landscapes", landscape_tasks(config, store), ex)
+            phase("ablation", ablation_tasks(config, initial), ex)
+            done = 0
+            while done < config.starts_per_set:
+                nxt = min(config.starts_per_set, done + max(1, config.round_starts))
+                tasks = finetune_tasks(
+                    config, initial, config.scenarios, config.methods, range(done, nxt), False
+                )
+                todo = [t for t in tasks if t.id not in store.records]
+                if config.deadline is not None and per_task > 0 and (
+                    time.time() + per_task * len(todo) > config.deadline
+                ):
+                    console.print(
+                        f"deadline: stopping after {done} start(s) per set "
+                        f"(next round needs ~{per_task * len(todo) / 60:.0f} min)"
+                    )
+                    meta["cut_by_deadline"] = True
+                    break
+                dt = phase(f"perturbed starts {done + 1}-{nxt} of {config.starts_per_set}",
+                           tasks, ex)
+                per_task = dt or per_task
+                done = nxt
+                meta["starts_completed"] = done
+    except DeadlineReached:
+        meta["cut_by_deadline"] = True
+        console.print("deadline reached: the phase in progress was cut")
     meta["wall_s"] = time.monotonic() - t_start
+    meta["wall_s_total"] = meta["wall_s"] + sum(
+        float(p.get("wall_s", 0.0)) for p in meta.get("previous_runs", [])
+    )
     meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     meta["records"] = len(store.records)
     (config.out / "run.json").write_text(json.dumps(meta, indent=2))
     return meta
 
 
+def _previous_meta(out: Path) -> dict[str, Any] | None:
+    path = out / "run.json"
+    try:
+        return dict(json.loads(path.read_text())) if path.is_file() else None
+    except ValueError:
+        return None
+
+
 def ablation_tasks(config: BenchConfig, initial: dict[str, Extrinsics]) -> list[Task]:
-    """Periodicity with each robustness feature switched off, on the ablation subset (the
-    default variant reuses the main run's tasks, which have the same ids)."""
+    """Periodicity with each robustness feature switched off, on the ablation subset: from the
+    initial calibration and the first ``config.ablation_starts`` set-B starts (the default
+    variant's tasks are the main run's, with the same ids, so they run once)."""
     chosen = [s for s in config.scenarios if s.name in config.ablation_scenarios]
     tasks: list[Task] = []
     for variant, overrides in ABLATION_VARIANTS.items():
@@ -698,7 +765,7 @@ def ablation_tasks(config: BenchConfig, initial: dict[str, Extrinsics]) -> list[
             initial,
             chosen,
             ["periodicity"],
-            config.ablation_starts,
+            range(config.ablation_starts),
             variant=variant,
             overrides=overrides,
             sets=("B",),
@@ -744,6 +811,7 @@ __all__ = [
     "ABLATION_VARIANTS",
     "CONVERGENCE",
     "BenchConfig",
+    "DeadlineReached",
     "Executor",
     "RecordStore",
     "Task",

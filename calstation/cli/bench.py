@@ -9,6 +9,20 @@ from pathlib import Path
 import typer
 
 
+def _parse_deadline(text: str) -> float:
+    """``HH:MM`` (UTC, today) → Unix time."""
+    import datetime as dt
+
+    from ..bench import BenchError
+
+    try:
+        hh, mm = (int(x) for x in text.split(":"))
+        now = dt.datetime.now(dt.UTC)
+        return now.replace(hour=hh, minute=mm, second=0, microsecond=0).timestamp()
+    except ValueError:
+        raise BenchError(f"--deadline {text!r}: expected HH:MM (UTC)") from None
+
+
 def register(app: typer.Typer) -> None:
     """Add the ``bench`` command group."""
     bench = typer.Typer(
@@ -48,6 +62,13 @@ def register(app: typer.Typer) -> None:
         resume: bool = typer.Option(
             False, "--resume", help="keep records.jsonl in --out and run only missing tasks"
         ),
+        deadline: str | None = typer.Option(
+            None, "--deadline",
+            help="UTC time HH:MM (today): start no round of starts that would end later",
+        ),
+        round_starts: int = typer.Option(
+            2, "--round-starts", min=1, help="set-A and set-B starts added per round"
+        ),
         label: str | None = typer.Option(
             None, "--label", help="a note printed at the top of results.md (e.g. a reduced run)"
         ),
@@ -86,6 +107,9 @@ def register(app: typer.Typer) -> None:
             )
         if ablation_starts is not None:
             config = replace(config, ablation_starts=ablation_starts)
+        config = replace(config, round_starts=round_starts)
+        if deadline is not None:
+            config = replace(config, deadline=_parse_deadline(deadline))
         console = Console(stderr=True)
         console.print(
             f"bench: {len(config.scenarios)} scenario(s), {config.starts_per_set} start(s) per "
