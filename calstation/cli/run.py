@@ -1,0 +1,88 @@
+"""``calstation run`` and ``calstation resume``: the operator's guided run."""
+
+from __future__ import annotations
+
+import getpass
+import os
+from pathlib import Path
+
+import typer
+
+EXIT_FAILED = 1
+EXIT_ABORTED = 3
+
+
+def _exit_code(status: str) -> int:
+    return {"passed": 0, "failed": EXIT_FAILED}.get(status, EXIT_ABORTED)
+
+
+def _default_operator() -> str:
+    try:
+        return os.environ.get("CALSTATION_OPERATOR") or getpass.getuser()
+    except Exception:
+        return "unknown"
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``run`` and ``resume`` commands."""
+
+    @app.command("run")
+    def run(
+        recipe: Path = typer.Argument(..., help="Recipe YAML file."),
+        yes: bool = typer.Option(
+            False, "--yes", "-y",
+            help="Unattended: never ask; fixtures are placed by the fixture-placed hook "
+            "(the simulator places them itself).",
+        ),
+        operator: str = typer.Option(
+            None, "--operator", help="Operator name (default: $CALSTATION_OPERATOR or login)."
+        ),
+        db: str = typer.Option(
+            None, "--db", help="Database URL (default: $CALSTATION_DB_URL or SQLite)."
+        ),
+        data_dir: Path = typer.Option(
+            None, "--data-dir",
+            help="Folder for run folders (default: $CALSTATION_HOME); "
+            "recordings go to DATA_DIR/runs/RUN_ID/.",
+        ),
+    ) -> None:
+        """Run a recipe on the station: guided (prompts) or unattended (--yes).
+
+        Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted.
+        """
+        from ..db import open_database
+        from ..operator import ConsoleOperator
+        from ..recipe import load_recipe
+        from ..station import start_run
+
+        loaded = load_recipe(recipe)
+        database = open_database(db)
+        try:
+            _, status = start_run(
+                loaded, database, ConsoleOperator(unattended=yes),
+                operator=operator or _default_operator(), data_dir=data_dir,
+            )
+        finally:
+            database.dispose()
+        raise typer.Exit(_exit_code(status))
+
+    @app.command("resume")
+    def resume(
+        run_id: int = typer.Argument(..., help="The run to continue."),
+        yes: bool = typer.Option(False, "--yes", "-y", help="Unattended (see `run`)."),
+        db: str = typer.Option(None, "--db", help="Database URL."),
+    ) -> None:
+        """Continue a crashed or failed run at its first unfinished step, re-using its recordings.
+
+        Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted.
+        """
+        from ..db import open_database
+        from ..operator import ConsoleOperator
+        from ..station import resume_run
+
+        database = open_database(db)
+        try:
+            status = resume_run(run_id, database, ConsoleOperator(unattended=yes))
+        finally:
+            database.dispose()
+        raise typer.Exit(_exit_code(status))

@@ -1,0 +1,200 @@
+"""The operator's side of a run: prompts, progress bars and the final verdict, with rich.
+
+:class:`ConsoleOperator` is the interactive terminal UI; with ``unattended=True`` (``--yes``) it
+never asks: fixtures are placed by the ``calstation_fixture_placed`` hook (the simulator puts them
+into its scene) and a failed step fails the run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import Any, Literal, Protocol
+
+from rich.console import Console
+from rich.markup import escape
+from rich.panel import Panel
+from rich.progress import (
+    BarColumn,
+    Progress,
+    SpinnerColumn,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+)
+from rich.table import Table
+
+ProgressCallback = Callable[[str, float], None]
+"""``progress(phase, fraction)``: a step reports what it does and how far it is (0..1)."""
+
+Decision = Literal["retry", "abort"]
+
+FIXTURE_PROMPTS: dict[str, str] = {
+    "static_target": (
+        "Place the L-shaped static target on the platter: base plate toward the lidar, the "
+        "corner of base and wall over the platter centre. Keep the platter still."
+    ),
+    "spin_target": "Place the heptagonal spin target anywhere on the platter.",
+    "qa_cube": "Place the QA cube anywhere on the platter, standing on one face.",
+    "none": "Clear the platter.",
+}
+
+
+class Operator(Protocol):
+    """What the station needs from whoever runs it."""
+
+    unattended: bool
+
+    def info(self, message: str) -> None:
+        """Show a line of information."""
+        ...
+
+    def warn(self, message: str) -> None:
+        """Show a warning."""
+        ...
+
+    def confirm_fixture(self, fixture: str, description: str) -> bool:
+        """Ask the operator to place ``fixture``; False means the operator aborts the run."""
+        ...
+
+    def on_failure(self, step: str, error: str, attempt: int) -> Decision:
+        """A step failed: retry it, or abort the run."""
+        ...
+
+    def progress(self, title: str) -> Any:
+        """A context manager yielding a :data:`ProgressCallback` for one long step."""
+        ...
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        """Show the run's final PASS/FAIL summary (``summary`` as from ``report.run_summary``)."""
+        ...
+
+
+class ConsoleOperator:
+    """The terminal operator UI (rich). ``unattended`` answers every question itself."""
+
+    def __init__(
+        self, unattended: bool = False, console: Console | None = None, max_retries: int = 3
+    ) -> None:
+        self.unattended = unattended
+        self.console = console or Console()
+        self.max_retries = max_retries
+
+    def info(self, message: str) -> None:
+        """Print a line."""
+        self.console.print(message, highlight=False)
+
+    def warn(self, message: str) -> None:
+        """Print a warning."""
+        self.console.print(f"[yellow]warning:[/] {escape(message)}", highlight=False)
+
+    def confirm_fixture(self, fixture: str, description: str) -> bool:
+        """Prompt "place …, press Enter" (unattended: announce and go on)."""
+        text = FIXTURE_PROMPTS.get(fixture, f"Place the {fixture} on the platter.")
+        if description:
+            text += f"\n[dim]{escape(description)}[/]"
+        if self.unattended:
+            self.console.print(f"[cyan]→ {fixture}[/]: placed automatically (--yes)")
+            return True
+        self.console.print(Panel(text, title=f"operator: {fixture}", border_style="cyan"))
+        answer = self.console.input("Press [bold]Enter[/] when done, or type [bold]a[/] to abort: ")
+        return answer.strip().lower() not in ("a", "abort", "q")
+
+    def on_failure(self, step: str, error: str, attempt: int) -> Decision:
+        """Show the error; ask retry/abort (unattended: abort)."""
+        self.console.print(
+            Panel(
+                escape(error), title=f"step {step} failed (attempt {attempt})", border_style="red"
+            )
+        )
+        if self.unattended or attempt > self.max_retries:
+            return "abort"
+        while True:
+            answer = self.console.input("[bold]r[/]etry the step or [bold]a[/]bort the run? ")
+            a = answer.strip().lower()
+            if a in ("r", "retry", ""):
+                return "retry"
+            if a in ("a", "abort"):
+                return "abort"
+
+    @contextmanager
+    def progress(self, title: str) -> Iterator[ProgressCallback]:
+        """A progress bar for one step; the callback sets its phase and fraction."""
+        with Progress(
+            SpinnerColumn(),
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TaskProgressColumn(),
+            TimeElapsedColumn(),
+            console=self.console,
+            transient=False,
+        ) as bar:
+            task = bar.add_task(title, total=1.0)
+
+            def update(phase: str, fraction: float) -> None:
+                bar.update(
+                    task,
+                    description=f"{title}: {phase}" if phase else title,
+                    completed=max(0.0, min(1.0, float(fraction))),
+                )
+
+            yield update
+            bar.update(task, completed=1.0, description=title)
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        """The final verdict: PASS/FAIL banner, calibration (mm, deg) and cube check."""
+        render_summary(self.console, summary)
+
+
+def render_summary(console: Console, s: dict[str, Any]) -> None:
+    """Print a run summary in display units (mm, deg) with a PASS/FAIL banner."""
+    import math
+
+    status = s["status"]
+    style = {"passed": "bold white on green", "failed": "bold white on red"}.get(
+        status, "bold black on yellow"
+    )
+    verdict = {"passed": "PASS", "failed": "FAIL"}.get(status, status.upper())
+    table = Table(
+        title=f"run {s['id']} — station {s['station']} — recipe {s['recipe_name']}",
+        caption="tx, ty, tz in mm; rx, ry, rz in degrees; ✔ accepted",
+    )
+    table.add_column("")
+    for p in ("tx", "ty", "tz", "rx", "ry", "rz"):
+        table.add_column(p, justify="right")
+    table.add_column("strategy")
+    def shown(p: str, v: float) -> str:
+        return f"{v * 1000:.3f}" if p.startswith("t") else f"{math.degrees(v):.4f}"
+
+    for c in s["calibrations"]:
+        row = [c["stage"] + (" ✔" if c["accepted"] else "")]
+        for p, v in c["H"].items():
+            row.append(shown(p, v))
+        row.append(c["strategy"])
+        table.add_row(*row)
+        sig = c["sigma"]
+        if any(v is not None for v in sig.values()):
+            srow = ["  ±1σ"]
+            for p, v in sig.items():
+                if v is None:
+                    srow.append("—")
+                else:
+                    srow.append(shown(p, v))
+            srow.append("")
+            table.add_row(*srow, style="dim")
+    console.print(table)
+    cube = s.get("cube_check")
+    if cube:
+        edges = ", ".join(f"{e * 1000:.2f}" for e in cube["face_edges"])
+        console.print(
+            f"QA cube: face-fit edges [{edges}] mm, edge error {cube['edge_error'] * 1000:.2f} mm, "
+            f"OBB error {cube['obb_error'] * 1000:.2f} mm, flatness RMS "
+            f"{cube['flatness_rms'] * 1000:.2f} mm, perpendicularity "
+            f"{cube['perpendicularity_deg']:.3f}° → {'pass' if cube['passed'] else 'FAIL'}",
+            highlight=False,
+        )
+        for f in cube.get("failures") or []:
+            console.print(f"  [red]✘[/] {escape(str(f))}")
+    if s.get("error"):
+        console.print(f"[red]{escape(s['error'])}[/]")
+    console.print(Panel(f"{verdict}", style=style, expand=False))

@@ -1,0 +1,921 @@
+"""The station state machine: one guided run of a recipe, step by step, into the database.
+
+The workflow (DESIGN §1)::
+
+    preflight → place_static_target → static_scan (+ initial calibration)
+              → place_spin_target → spin_scan → fine_tune
+              → place_qa_cube → cube_scan (+ cube check) → report
+
+plus the ``failed`` state (a failed step; the operator retries it or gives up), ``aborted``
+(the operator or a signal stopped the run) and ``done``. The states and transitions are a
+``transitions`` machine; :meth:`Station.run` walks it top-down.
+
+Every step attempt gets a ``step`` row when it starts (status ``running``) and is committed the
+moment it ends, together with its recordings (``artifact``: path, size, sha256) and results
+(``calibration``, ``cube_check``), in one transaction. A process killed mid-step therefore leaves
+every earlier step intact, and :func:`resume_run` continues at the first step without a passed
+attempt, re-using the recordings already taken. Recordings are written while scanning into the
+run's folder ``<data dir>/runs/<run id>/`` (``static.mcap``, ``spin.mcap``, ``cube.mcap``), with
+``report.json`` and ``calibration.yaml`` at the end.
+
+The turntable is always stopped when the run ends, however it ends: ``stop()``, and
+``emergency_stop()`` if that fails or the run was aborted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import signal
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from sqlalchemy import select
+from transitions import Machine
+
+from . import plugins
+from .clock import Clock, HostClock
+from .db import (
+    Artifact,
+    Calibration,
+    CubeCheckRecord,
+    Database,
+    Run,
+    Step,
+    calstation_home,
+    utcnow,
+)
+from .db import (
+    Station as StationRow,
+)
+from .drivers import DriverContext
+from .errors import CalstationError, DriverError, StationError
+from .operator import Operator
+from .recipe import LoadedRecipe, check_plugins, parse_recipe
+from .report import previous_accepted, run_brief, run_summary
+
+STEPS: tuple[str, ...] = (
+    "preflight",
+    "place_static_target",
+    "static_scan",
+    "place_spin_target",
+    "spin_scan",
+    "fine_tune",
+    "place_qa_cube",
+    "cube_scan",
+    "report",
+)
+"""The steps of a run, in order (each is a state of the machine)."""
+
+STATES: tuple[str, ...] = ("idle", *STEPS, "failed", "aborted", "done")
+
+SCAN_PLACEMENT: dict[str, str] = {
+    "static_scan": "place_static_target",
+    "spin_scan": "place_spin_target",
+    "cube_scan": "place_qa_cube",
+}
+"""The placement step each scan needs (re-confirmed when a run resumes at the scan)."""
+
+RECORDING_OF: dict[str, str] = {"static_scan": "static", "spin_scan": "spin", "cube_scan": "cube"}
+"""Scan step → recording kind (and file stem in the run folder)."""
+
+PREFLIGHT_LINES = 10
+PREFLIGHT_SPIN_S = 0.5
+PREFLIGHT_RAMP_S = 1.5
+
+
+class AbortRun(CalstationError):
+    """The operator (or a signal) aborted the run."""
+
+
+@dataclass
+class Drivers:
+    """The run's three drivers and their context."""
+
+    lidar: Any
+    turntable: Any
+    encoder: Any
+    context: DriverContext
+
+    @property
+    def clock(self) -> Clock:
+        """The clock the station waits on: the lidar's own (the simulator's), else the host's."""
+        clock = getattr(self.lidar, "clock", None)
+        return clock if clock is not None else self.context.clock
+
+
+def file_sha256(path: Path) -> str:
+    """sha256 (hex) of a file's bytes."""
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def plain(value: Any) -> Any:
+    """JSON-ready copy: numpy → Python, NaN/inf → None, tuples → lists, keys → str."""
+    if isinstance(value, Mapping):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return plain(value.tolist())
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        f = float(value)
+        return f if math.isfinite(f) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def _open_drivers(loaded: LoadedRecipe) -> Drivers:
+    """Build the recipe's drivers through the plugin registry (``factory(settings, context)``)."""
+    context = DriverContext(clock=HostClock(), recipe=loaded)
+    st = loaded.recipe.station
+    made: dict[str, Any] = {}
+    try:
+        for kind in ("lidar", "turntable", "encoder"):
+            cfg = getattr(st, kind)
+            made[kind] = plugins.driver_factory(kind, cfg.driver)(dict(cfg.settings), context)
+    except BaseException:
+        for driver in made.values():
+            _quietly(driver.close)
+        raise
+    return Drivers(made["lidar"], made["turntable"], made["encoder"], context)
+
+
+def _quietly(fn: Callable[[], Any]) -> None:
+    with suppress(Exception):
+        fn()
+
+
+def _scene_truth(context: DriverContext) -> dict[str, Any] | None:
+    """Ground truth of a simulated scene (an object in ``context.shared`` with ``truth_dict``)."""
+    for obj in context.shared.values():
+        truth_dict = getattr(obj, "truth_dict", None)
+        if callable(truth_dict):
+            truth: dict[str, Any] = plain(truth_dict())
+            return truth
+    return None
+
+
+class Station:
+    """Runs (or resumes) one run of a recipe on the station's drivers.
+
+    ``run_id`` must exist in ``db``; ``loaded`` is its recipe; ``ui`` the operator. Call
+    :meth:`run`, which returns the run's final status (``"passed"``, ``"failed"``,
+    ``"aborted"``).
+    """
+
+    state: str
+    trigger: Callable[..., bool]
+
+    def __init__(self, db: Database, run_id: int, loaded: LoadedRecipe, ui: Operator) -> None:
+        self.db = db
+        self.run_id = run_id
+        self.loaded = loaded
+        self.recipe = loaded.recipe
+        self.ui = ui
+        self.failed_step: str | None = None
+        self.drivers: Drivers | None = None
+        with db.session() as s:
+            run = s.get(Run, run_id)
+            if run is None:
+                raise StationError(f"no run {run_id} in the database")
+            self.run_dir = Path(run.data_dir)
+        self.machine = Machine(
+            model=self, states=list(STATES), initial="idle", auto_transitions=False
+        )
+        self.machine.add_ordered_transitions(
+            states=[*STEPS, "done"], trigger="advance", loop=False
+        )
+        for step in STEPS:
+            self.machine.add_transition("begin", "idle", step, conditions=[self._is_first(step)])
+            self.machine.add_transition(
+                "retry", "failed", step, conditions=[self._is_failed(step)]
+            )
+            # a resumed run may re-confirm a placement before the scan that needs it
+            self.machine.add_transition("jump", list(STEPS), step, conditions=[self._is_next(step)])
+        self.machine.add_transition("fail", list(STEPS), "failed")
+        self.machine.add_transition("abort", "*", "aborted")
+        self._plan: list[str] = []
+
+    # --- machine conditions --------------------------------------------------------------
+    def _is_first(self, step: str) -> Callable[[], bool]:
+        return lambda: bool(self._plan) and self._plan[0] == step
+
+    def _is_next(self, step: str) -> Callable[[], bool]:
+        return lambda: bool(self._plan) and self._plan[0] == step
+
+    def _is_failed(self, step: str) -> Callable[[], bool]:
+        return lambda: self.failed_step == step
+
+    # --- the run -----------------------------------------------------------------------------
+    def run(self) -> str:
+        """Execute the remaining steps; returns the final status. The motor is always stopped."""
+        self._plan = self._remaining_steps()
+        self._mark_running()
+        self._notify("run_started", run=self._brief())
+        aborted = False
+        try:
+            self.drivers = _open_drivers(self.loaded)
+            self.trigger("begin")
+            while True:
+                step = self.state
+                if not self._attempt(step):
+                    if self.ui.on_failure(step, self._last_error, self._attempts(step)) == "retry":
+                        self.trigger("retry")
+                        continue
+                    return self._finish("failed", f"step {step} failed: {self._last_error}")
+                self._plan.pop(0)
+                if not self._plan:
+                    break
+                if self._plan[0] == self._next_in_order(step):
+                    self.trigger("advance")
+                else:
+                    self.trigger("jump")
+            return self._finish(self._verdict(), None)
+        except (AbortRun, KeyboardInterrupt) as exc:
+            aborted = True
+            if self.state in STEPS:
+                self._close_running_steps("aborted", str(exc) or "aborted by the operator")
+            self.trigger("abort")
+            return self._finish("aborted", str(exc) or "aborted by the operator")
+        except BaseException as exc:
+            # an unexpected error (not a step failure): the run is failed, never left running
+            self._close_running_steps("failed", f"{type(exc).__name__}: {exc}")
+            self._finish("failed", f"{type(exc).__name__}: {exc}")
+            raise
+        finally:
+            self._stop_hardware(emergency=aborted)
+
+    @staticmethod
+    def _next_in_order(step: str) -> str:
+        i = STEPS.index(step)
+        return STEPS[i + 1] if i + 1 < len(STEPS) else "done"
+
+    def _remaining_steps(self) -> list[str]:
+        """Steps still to do: from the first without a passed attempt; a scan's placement first."""
+        with self.db.session() as s:
+            passed = set(
+                s.scalars(
+                    select(Step.name).where(Step.run_id == self.run_id, Step.status == "passed")
+                )
+            )
+        todo = [step for step in STEPS if step not in passed]
+        if not todo:
+            return ["report"]
+        first = STEPS.index(todo[0])
+        plan = list(STEPS[first:])
+        placement = SCAN_PLACEMENT.get(plan[0])
+        if placement is not None and placement in passed:
+            plan.insert(0, placement)
+        return plan
+
+    def _attempt(self, step: str) -> bool:
+        """One attempt at ``step``: row, work, commit. False (with ``_last_error``) on failure."""
+        step_id, attempt = self._begin_step(step)
+        self.ui.info(f"[bold]▶ {step}[/] (attempt {attempt})")
+        try:
+            handler = getattr(self, f"_step_{step}")
+            outcome: StepOutcome = handler(step_id)
+        except (AbortRun, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # a step failure, whatever raised it, is the operator's call
+            message = str(exc) if isinstance(exc, CalstationError) else (
+                f"{type(exc).__name__}: {exc}"
+            )
+            self._last_error = message
+            self._end_step(step_id, "failed", {"error": message}, message)
+            self._notify("step_finished", run=self._brief(), step=step, status="failed",
+                         result={"error": message})
+            self.failed_step = step
+            self.trigger("fail")
+            return False
+        self._end_step(step_id, "passed", outcome.result, None, outcome)
+        self._notify("step_finished", run=self._brief(), step=step, status="passed",
+                     result=outcome.result)
+        return True
+
+    _last_error: str = ""
+
+    # --- the steps ---------------------------------------------------------------------------
+    def _step_preflight(self, step_id: int) -> StepOutcome:
+        """The lidar returns data, the platter turns, the encoder counts in the configured
+        direction."""
+        d = self._drivers()
+        info = d.lidar.info()
+        lines = valid = points = 0
+        with self.ui.progress("preflight: lidar") as progress:
+            d.lidar.start()
+            try:
+                for line in d.lidar.lines():
+                    lines += 1
+                    points += len(line)
+                    valid += int(np.count_nonzero(line.valid))
+                    progress("reading lines", lines / PREFLIGHT_LINES)
+                    if lines >= PREFLIGHT_LINES:
+                        break
+            finally:
+                d.lidar.stop()
+        if lines < PREFLIGHT_LINES or valid == 0:
+            raise DriverError(
+                f"preflight: the lidar returned {lines} lines with {valid} valid points; "
+                f"expected {PREFLIGHT_LINES} lines with returns"
+            )
+        rpm = self.recipe.steps.spin_scan.rpm
+        enc = self.recipe.station.encoder
+        clock = d.clock
+        with self.ui.progress("preflight: turntable and encoder") as progress:
+            d.turntable.enable()
+            try:
+                d.turntable.spin(rpm)
+                clock.sleep(PREFLIGHT_RAMP_S)
+                progress("spinning up", 0.5)
+                first = d.encoder.read()
+                clock.sleep(PREFLIGHT_SPIN_S)
+                last = d.encoder.read()
+                status = d.turntable.status()
+            finally:
+                d.turntable.stop()
+            progress("stopped", 1.0)
+        if status.faults:
+            raise DriverError(f"preflight: turntable faults: {', '.join(status.faults)}")
+        counts = last.count - first.count
+        cpr = d.encoder.counts_per_revolution
+        dt_s = (last.timestamp_ns - first.timestamp_ns) * 1e-9
+        expected = rpm / 60.0 * dt_s * cpr * enc.direction
+        if counts == 0:
+            raise DriverError(
+                f"preflight: the encoder did not count while the platter was commanded to "
+                f"{rpm:g} rpm for {dt_s:.2f} s (expected about {abs(expected):.0f} counts): is the "
+                "platter turning and the encoder connected?"
+            )
+        if np.sign(counts) != np.sign(expected):
+            raise DriverError(
+                f"preflight: the encoder counted {counts} while the platter turned at {rpm:g} rpm; "
+                f"with station.encoder.direction = {enc.direction} the counts should have the "
+                f"opposite sign: fix the direction in the recipe (or the encoder wiring)"
+            )
+        if abs(counts) < 0.5 * abs(expected):
+            raise DriverError(
+                f"preflight: the encoder counted {counts} in {dt_s:.2f} s, expected about "
+                f"{expected:.0f} at {rpm:g} rpm: check counts per revolution (ppr) and the drive"
+            )
+        return StepOutcome(
+            {
+                "lidar": plain(info.as_dict()),
+                "lines": lines,
+                "valid_fraction": valid / max(points, 1),
+                "encoder_counts": int(counts),
+                "expected_counts": float(expected),
+                "counts_per_revolution": int(cpr),
+                "rpm": rpm,
+            }
+        )
+
+    def _place(self, fixture: str) -> StepOutcome:
+        geometry = getattr(self.recipe.fixtures, fixture)
+        description = f"{geometry.kind}"
+        if not self.ui.confirm_fixture(fixture, description):
+            raise AbortRun(f"aborted by the operator while placing the {fixture}")
+        plugins.fixture_placed(self._drivers().context, fixture, geometry)
+        return StepOutcome({"fixture": fixture, "kind": geometry.kind,
+                            "unattended": self.ui.unattended})
+
+    def _step_place_static_target(self, step_id: int) -> StepOutcome:
+        return self._place("static_target")
+
+    def _step_place_spin_target(self, step_id: int) -> StepOutcome:
+        return self._place(self._strategy().fixture)
+
+    def _step_place_qa_cube(self, step_id: int) -> StepOutcome:
+        return self._place("qa_cube")
+
+    def _step_static_scan(self, step_id: int) -> StepOutcome:
+        from .initial import initial_calibration
+        from .recording import read_recording
+
+        d = self._drivers()
+        lines = self.recipe.steps.static_scan.lines
+        path = self._record("static_scan", step_id, lambda w, p: _acquire_static(d, w, lines, p))
+        recording = read_recording(path)
+        with self.ui.progress("initial calibration") as progress:
+            progress("fitting the L-target", 0.1)
+            result = initial_calibration(
+                recording, self.recipe.fixtures.static_target, self.recipe.calibration.initial
+            )
+        self.ui.info(f"  initial: {_fmt_h(result.H.as_dict())}")
+        return StepOutcome(
+            {"recording": str(path), "lines": lines, "H": result.H.as_dict()},
+            artifacts=[("static", path)],
+            calibration=("initial", result),
+        )
+
+    def _step_spin_scan(self, step_id: int) -> StepOutcome:
+        d = self._drivers()
+        cfg = self.recipe.steps.spin_scan
+        path = self._record("spin_scan", step_id, lambda w, p: _acquire_spin(d, w, cfg, p))
+        return StepOutcome(
+            {"recording": str(path), "rpm": cfg.rpm, "revolutions": cfg.revolutions,
+             "fixture": self._strategy().fixture},
+            artifacts=[("spin", path)],
+        )
+
+    def _step_fine_tune(self, step_id: int) -> StepOutcome:
+        from .frames import Extrinsics
+        from .recording import read_recording
+
+        strategy = self._strategy()
+        start = self._stored_calibration("initial")
+        recording = read_recording(self._artifact_path("spin"))
+        with self.ui.progress(f"fine-tuning ({strategy.name})") as progress:
+            result = strategy.run(
+                recording, Extrinsics.from_dict(start.params()), self.recipe, progress
+            )
+        self.ui.info(f"  {strategy.name}: {_fmt_h(result.H.as_dict())}")
+        return StepOutcome(
+            {"strategy": strategy.name, "H": result.H.as_dict(), "cost": plain(result.cost),
+             "iterations": result.iterations},
+            calibration=("fine", result),
+        )
+
+    def _step_cube_scan(self, step_id: int) -> StepOutcome:
+        from .cube import check_cube
+        from .frames import Extrinsics
+        from .recording import read_recording
+
+        d = self._drivers()
+        cfg = self.recipe.steps.cube_scan
+        path = self._record("cube_scan", step_id, lambda w, p: _acquire_spin(d, w, cfg, p))
+        fine = self._stored_calibration("fine")
+        recording = read_recording(path)
+        with self.ui.progress("cube check") as progress:
+            progress("measuring the cube", 0.1)
+            check = check_cube(
+                recording, Extrinsics.from_dict(fine.params()), self.recipe.fixtures.qa_cube,
+                self.recipe.qa,
+            )
+        cube = plain(check.to_dict())
+        return StepOutcome(
+            {"recording": str(path), "passed": bool(check.passed),
+             "edge_error": cube.get("edge_error"), "obb_error": cube.get("obb_error")},
+            artifacts=[("cube", path)],
+            cube=(fine.id, cube),
+        )
+
+    def _step_report(self, step_id: int) -> StepOutcome:
+        verdict = self._verdict_from_db()
+        with self.db.session() as s:
+            run = s.get(Run, self.run_id)
+            assert run is not None
+            fine = [c for c in run.calibrations if c.stage == "fine"]
+            drift = None
+            if fine:
+                for c in run.calibrations:
+                    c.accepted = False
+                fine[-1].accepted = verdict == "passed"
+                prev = previous_accepted(s, run)
+                if prev is not None:
+                    drift = _drift(fine[-1], prev, self.recipe.qa)
+            s.flush()
+            summary = run_summary(run)
+        summary["status"] = verdict
+        report = self.run_dir / "report.json"
+        report.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        artifacts = [("report", report)]
+        if fine:
+            from .report import export_calibration
+
+            with self.db.session() as s:
+                run = s.get(Run, self.run_id)
+                assert run is not None
+                text = export_calibration(run, "yaml")
+            calib = self.run_dir / "calibration.yaml"
+            calib.write_text(text, encoding="utf-8")
+            artifacts.append(("calibration", calib))
+        result: dict[str, Any] = {"verdict": verdict, "report": str(report)}
+        if drift is not None:
+            result["drift"] = drift
+            if drift["flagged"]:
+                self.ui.warn(
+                    "calibration drifted beyond the recipe's limits since run "
+                    f"{drift['previous_run']}: {', '.join(drift['flagged'])}"
+                )
+        return StepOutcome(result, artifacts=artifacts)
+
+    # --- helpers -------------------------------------------------------------------------
+    def _drivers(self) -> Drivers:
+        if self.drivers is None:
+            raise StationError("the drivers are not open")
+        return self.drivers
+
+    def _strategy(self) -> Any:
+        return plugins.strategy(self.recipe.calibration.strategy)
+
+    def _record(
+        self, step: str, step_id: int, acquire: Callable[[Any, Callable[[str, float], None]], None]
+    ) -> Path:
+        """Write the step's recording while acquiring; returns its path."""
+        from .recording import RecordingWriter
+
+        d = self._drivers()
+        kind = RECORDING_OF[step]
+        path = self.run_dir / f"{kind}.mcap"
+        if path.exists():  # a previous attempt's file (failed or killed): keep it aside
+            n = 1
+            while (aside := path.with_name(f"{kind}.attempt{n}.mcap")).exists():
+                n += 1
+            path.rename(aside)
+        enc = self.recipe.station.encoder
+        metadata: dict[str, dict[str, Any]] = {
+            "run": {"id": self.run_id, "step": step, "step_id": step_id}
+        }
+        truth = _scene_truth(d.context)
+        if truth is not None:
+            metadata["truth"] = truth
+        with (
+            RecordingWriter(
+                path,
+                kind=kind,
+                lidar_info=d.lidar.info(),
+                counts_per_revolution=d.encoder.counts_per_revolution,
+                encoder_direction=enc.direction,
+                encoder_latency_s=enc.latency_s,
+                station_id=self.recipe.station.id,
+                recipe=self.loaded,
+                metadata=metadata,
+            ) as writer,
+            self.ui.progress(f"{kind} scan") as progress,
+        ):
+            acquire(writer, progress)
+        return path
+
+    def _attempts(self, step: str) -> int:
+        with self.db.session() as s:
+            return len(
+                s.scalars(select(Step.id).where(Step.run_id == self.run_id, Step.name == step))
+                .all()
+            )
+
+    def _begin_step(self, step: str) -> tuple[int, int]:
+        with self.db.session() as s:
+            attempt = self._attempts(step) + 1
+            row = Step(run_id=self.run_id, name=step, attempt=attempt, status="running")
+            s.add(row)
+            s.flush()
+            return row.id, attempt
+
+    def _end_step(
+        self,
+        step_id: int,
+        status: str,
+        result: dict[str, Any],
+        error: str | None,
+        outcome: StepOutcome | None = None,
+    ) -> None:
+        """Commit the step's end, its artifacts and results in one transaction."""
+        with self.db.session() as s:
+            row = s.get(Step, step_id)
+            assert row is not None
+            row.status = status
+            row.finished_at = utcnow()
+            row.result = plain(result)
+            row.error = error
+            if outcome is not None:
+                for kind, path in outcome.artifacts:
+                    s.add(
+                        Artifact(
+                            run_id=self.run_id,
+                            step_id=step_id,
+                            kind=kind,
+                            path=str(path),
+                            size_bytes=path.stat().st_size,
+                            sha256=file_sha256(path),
+                        )
+                    )
+                if outcome.calibration is not None:
+                    stage, res = outcome.calibration
+                    s.add(_calibration_row(self.run_id, step_id, stage, res))
+                if outcome.cube is not None:
+                    cal_id, cube = outcome.cube
+                    s.add(_cube_row(self.run_id, step_id, cal_id, cube))
+
+    def _close_running_steps(self, status: str, error: str) -> None:
+        with self.db.session() as s:
+            for row in s.scalars(
+                select(Step).where(Step.run_id == self.run_id, Step.status == "running")
+            ):
+                row.status = status
+                row.error = error
+                row.finished_at = utcnow()
+
+    def _mark_running(self) -> None:
+        with self.db.session() as s:
+            for row in s.scalars(
+                select(Step).where(Step.run_id == self.run_id, Step.status == "running")
+            ):
+                row.status = "interrupted"
+                row.error = "the process ended during this step"
+                row.finished_at = row.finished_at or utcnow()
+            run = s.get(Run, self.run_id)
+            assert run is not None
+            run.status = "running"
+            run.finished_at = None
+            run.error = None
+
+    def _stored_calibration(self, stage: str) -> Calibration:
+        with self.db.session() as s:
+            cal = s.scalars(
+                select(Calibration)
+                .where(Calibration.run_id == self.run_id, Calibration.stage == stage)
+                .order_by(Calibration.id.desc())
+            ).first()
+        if cal is None:
+            raise StationError(f"run {self.run_id} has no {stage} calibration stored")
+        return cal
+
+    def _artifact_path(self, kind: str) -> Path:
+        with self.db.session() as s:
+            art = s.scalars(
+                select(Artifact)
+                .where(Artifact.run_id == self.run_id, Artifact.kind == kind)
+                .order_by(Artifact.id.desc())
+            ).first()
+        if art is None:
+            raise StationError(f"run {self.run_id} has no {kind} recording stored")
+        path = Path(art.path)
+        if not path.is_file():
+            raise StationError(f"the {kind} recording of run {self.run_id} is missing: {path}")
+        digest = file_sha256(path)
+        if digest != art.sha256:
+            raise StationError(
+                f"the {kind} recording {path} changed since it was stored "
+                f"(sha256 {digest[:12]}…, stored {art.sha256[:12]}…)"
+            )
+        return path
+
+    def _verdict_from_db(self) -> str:
+        with self.db.session() as s:
+            check = s.scalars(
+                select(CubeCheckRecord)
+                .where(CubeCheckRecord.run_id == self.run_id)
+                .order_by(CubeCheckRecord.id.desc())
+            ).first()
+        return "passed" if check is not None and check.passed else "failed"
+
+    def _verdict(self) -> str:
+        return self._verdict_from_db()
+
+    def _brief(self) -> dict[str, Any]:
+        with self.db.session() as s:
+            run = s.get(Run, self.run_id)
+            assert run is not None
+            return run_brief(run)
+
+    def _finish(self, status: str, error: str | None) -> str:
+        with self.db.session() as s:
+            run = s.get(Run, self.run_id)
+            assert run is not None
+            run.status = status
+            run.finished_at = utcnow()
+            run.error = error
+            s.flush()
+            summary = run_summary(run)
+        self._notify("run_finished", run=run_brief_from(summary), status=status, summary=summary)
+        self.ui.summary(summary)
+        return status
+
+    def _notify(self, hook: str, **kwargs: Any) -> None:
+        """Call an observer hook; an observer's exception is a warning, never a failed run."""
+        try:
+            getattr(plugins, hook)(**kwargs)
+        except Exception as exc:
+            self.ui.warn(f"a plugin's {hook} observer failed: {type(exc).__name__}: {exc}")
+
+    def _stop_hardware(self, emergency: bool) -> None:
+        d = self.drivers
+        if d is None:
+            return
+        if emergency:
+            _quietly(d.turntable.emergency_stop)
+        try:
+            d.turntable.stop()
+        except Exception:
+            _quietly(d.turntable.emergency_stop)
+        for driver in (d.lidar, d.turntable, d.encoder):
+            _quietly(driver.close)
+        self.drivers = None
+
+
+@dataclass
+class StepOutcome:
+    """What a step produced: its JSON result, files, and database results to store with it."""
+
+    result: dict[str, Any]
+    artifacts: list[tuple[str, Path]] = field(default_factory=list)
+    calibration: tuple[str, Any] | None = None
+    cube: tuple[int, dict[str, Any]] | None = None
+
+
+def run_brief_from(summary: dict[str, Any]) -> dict[str, Any]:
+    """The brief part of a summary (without steps and results)."""
+    return {k: v for k, v in summary.items()
+            if k not in ("steps", "calibrations", "cube_check", "artifacts")}
+
+
+def _acquire_static(d: Drivers, writer: Any, lines: int, progress: Any) -> None:
+    from .acquisition import acquire_static
+
+    acquire_static(d.lidar, d.encoder, writer, lines=lines, progress=progress)
+
+
+def _acquire_spin(d: Drivers, writer: Any, cfg: Any, progress: Any) -> None:
+    from .acquisition import acquire_spin
+
+    acquire_spin(
+        d.lidar, d.turntable, d.encoder, writer, rpm=cfg.rpm, revolutions=cfg.revolutions,
+        settle_s=cfg.settle_s, clock=d.clock, progress=progress,
+    )
+
+
+def _calibration_row(run_id: int, step_id: int, stage: str, res: Any) -> Calibration:
+    H = res.H.as_dict()
+    sigma = {k: plain(float(v)) for k, v in res.sigma.items()}
+    diagnostics = plain(dict(res.diagnostics))
+    if res.timings:
+        diagnostics["timings"] = plain(dict(res.timings))
+    return Calibration(
+        run_id=run_id,
+        step_id=step_id,
+        stage=stage,
+        strategy=res.strategy,
+        **H,
+        **{f"sigma_{p}": sigma.get(p) for p in H},
+        cost=plain(float(res.cost)),
+        iterations=int(res.iterations),
+        accepted=False,
+        diagnostics=diagnostics,
+    )
+
+
+def _cube_row(run_id: int, step_id: int, cal_id: int, c: dict[str, Any]) -> CubeCheckRecord:
+    def number(key: str) -> float:
+        v = c.get(key)
+        return float("nan") if v is None else float(v)
+
+    return CubeCheckRecord(
+        run_id=run_id,
+        step_id=step_id,
+        calibration_id=cal_id,
+        obb_edges=list(c.get("obb_edges") or []),
+        obb_error=number("obb_error"),
+        face_edges=list(c.get("face_edges") or []),
+        edge_error=number("edge_error"),
+        flatness_rms=number("flatness_rms"),
+        perpendicularity_deg=number("perpendicularity_deg"),
+        passed=bool(c.get("passed")),
+        failures=[str(f) for f in c.get("failures") or []],
+    )
+
+
+def _drift(current: Calibration, previous: Calibration, qa: Any) -> dict[str, Any]:
+    """Differences to the previous accepted calibration and which exceed the recipe's limits."""
+    deltas = {p: current.params()[p] - previous.params()[p] for p in current.params()}
+    flagged = [
+        p for p, d in deltas.items()
+        if (p.startswith("t") and abs(d) > qa.drift_translation)
+        or (p.startswith("r") and abs(math.degrees(d)) > qa.drift_rotation_deg)
+    ]
+    return {"previous_run": previous.run_id, "delta": deltas, "flagged": flagged}
+
+
+def _fmt_h(H: Mapping[str, float]) -> str:
+    parts = [
+        f"{k}={v * 1000:.2f} mm" if k.startswith("t") else f"{k}={math.degrees(v):.3f}°"
+        for k, v in H.items()
+    ]
+    return ", ".join(parts)
+
+
+# --- entry points ----------------------------------------------------------------------------
+def data_dir_default() -> Path:
+    """Where run folders go: ``$CALSTATION_HOME`` (see :func:`calstation.db.calstation_home`)."""
+    return calstation_home()
+
+
+def start_run(
+    loaded: LoadedRecipe,
+    db: Database,
+    ui: Operator,
+    *,
+    operator: str,
+    data_dir: Path | None = None,
+) -> tuple[int, str]:
+    """Create a run of ``loaded`` and execute it; returns (run id, final status).
+
+    The recipe is validated against the installed plugins first. The run folder is
+    ``<data_dir>/runs/<run id>/``.
+    """
+    check_plugins(loaded)
+    base = (data_dir or data_dir_default()).expanduser().resolve()
+    with db.session() as s:
+        station = s.scalars(
+            select(StationRow).where(StationRow.name == loaded.recipe.station.id)
+        ).first()
+        if station is None:
+            station = StationRow(name=loaded.recipe.station.id)
+            s.add(station)
+        run = Run(
+            station=station,
+            recipe_name=loaded.recipe.name,
+            recipe_path=str(loaded.path.resolve()) if loaded.path else None,
+            recipe_text=loaded.text,
+            recipe_sha256=loaded.sha256,
+            operator=operator,
+            unattended=ui.unattended,
+            data_dir="",
+            status="running",
+        )
+        s.add(run)
+        s.flush()
+        run_dir = base / "runs" / str(run.id)
+        run.data_dir = str(run_dir)
+        run_id = run.id
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ui.info(f"run [bold]{run_id}[/] of recipe {loaded.recipe.name} on station "
+            f"{loaded.recipe.station.id}; recordings in {run_dir}")
+    with _signals_abort():
+        return run_id, Station(db, run_id, loaded, ui).run()
+
+
+def resume_run(run_id: int, db: Database, ui: Operator) -> str:
+    """Continue run ``run_id`` at its first unfinished step; returns the final status.
+
+    The recipe is the one stored with the run (not the file, which may have changed since).
+    Recordings of finished steps are re-used after their sha256 is checked.
+    """
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        if run is None:
+            raise StationError(f"no run {run_id} in the database")
+        if run.status == "passed":
+            raise StationError(f"run {run_id} already passed; nothing to resume")
+        text, path = run.recipe_text, run.recipe_path
+        run_dir = Path(run.data_dir)
+    source = f"recipe of run {run_id}"
+    base_dir = Path(path).parent if path else None
+    loaded = LoadedRecipe(parse_recipe(text, source, base_dir), Path(path) if path else None, text)
+    check_plugins(loaded)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ui.info(f"resuming run [bold]{run_id}[/]; recordings in {run_dir}")
+    with _signals_abort():
+        return Station(db, run_id, loaded, ui).run()
+
+
+@contextmanager
+def _signals_abort() -> Iterator[None]:
+    """SIGTERM aborts the run like Ctrl-C (so the motor is stopped and the run recorded)."""
+
+    def handler(signum: int, frame: Any) -> None:
+        raise AbortRun(f"aborted by signal {signal.Signals(signum).name}")
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def wait_for_step(
+    db: Database, run_id: int, step: str, timeout_s: float = 60.0, status: str = "running"
+) -> bool:
+    """Poll until ``step`` of ``run_id`` has an attempt with ``status`` (for tests and tools)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with db.session() as s:
+            found = s.scalars(
+                select(Step.id).where(
+                    Step.run_id == run_id, Step.name == step, Step.status == status
+                )
+            ).first()
+        if found is not None:
+            return True
+        time.sleep(0.05)
+    return False
+
