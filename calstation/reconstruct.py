@@ -43,12 +43,18 @@ def lidar_points_to_dynamic(
     a = np.asarray(phi, dtype=np.float64).reshape(-1)
     if p.ndim != 2 or p.shape[1] != 3 or a.shape[0] != p.shape[0]:
         return lidar_to_dynamic(p, a, H)  # lets frames raise its shape errors
-    q = (p - H.t) @ H.R  # rows: Rᵀ·(p_L − t), i.e. points in P
+    # Rᵀ·(p_L − t) column by column: a (N,3)@(3,3) matmul is far slower on tall arrays
+    R, t = H.R, H.t
+    d = [p[:, i] - t[i] for i in range(3)]
+    x = d[0] * R[0, 0] + d[1] * R[1, 0] + d[2] * R[2, 0]
+    y = d[0] * R[0, 1] + d[1] * R[1, 1] + d[2] * R[2, 1]
+    z = d[0] * R[0, 2] + d[1] * R[1, 2] + d[2] * R[2, 2]
     c, s = np.cos(a), np.sin(a)
-    y = q[:, 1].copy()
-    q[:, 1] = c * y + s * q[:, 2]
-    q[:, 2] = c * q[:, 2] - s * y
-    return q
+    out = np.empty_like(p)
+    out[:, 0] = x
+    out[:, 1] = c * y + s * z
+    out[:, 2] = c * z - s * y
+    return out
 
 
 def write_ply(path: str | Path, points: ArrayLike) -> None:
