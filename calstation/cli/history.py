@@ -1,0 +1,310 @@
+"""The QA engineer's commands: ``history``, ``show``, ``export``, ``trend``.
+
+Storage is metres and radians; tables show millimetres and degrees; ``--json`` and exports give
+exactly what is stored.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import itertools
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import typer
+
+H_PARAMS = ("tx", "ty", "tz", "rx", "ry", "rz")
+CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms")
+DB_HELP = "Database URL (default: $CALSTATION_DB_URL or SQLite in $CALSTATION_HOME)."
+
+
+def _display(param: str, value: float | None) -> str:
+    """mm for lengths, degrees for angles."""
+    if value is None:
+        return "—"
+    if param.startswith("r"):
+        return f"{math.degrees(value):.4f}"
+    return f"{value * 1000:.3f}"
+
+
+def _unit(param: str) -> str:
+    return "deg" if param.startswith("r") else "mm"
+
+
+def _parse_since(text: str) -> dt.datetime:
+    from ..errors import CalstationError
+
+    try:
+        t = dt.datetime.fromisoformat(text)
+    except ValueError:
+        raise CalstationError(
+            f"--since {text!r}: expected a date (YYYY-MM-DD) or ISO time (YYYY-MM-DDTHH:MM)"
+        ) from None
+    return t if t.tzinfo else t.replace(tzinfo=dt.UTC)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``history``, ``show``, ``export`` and ``trend``."""
+
+    @app.command("history")
+    def history(
+        station: str = typer.Option(None, "--station", help="Only this station."),
+        since: str = typer.Option(None, "--since", help="Only runs started since DATE (UTC)."),
+        status: str = typer.Option(
+            None, "--status", help="Only runs with this status (running/passed/failed/aborted)."
+        ),
+        limit: int = typer.Option(200, "--limit", help="At most this many runs (newest)."),
+        as_json: bool = typer.Option(False, "--json", help="JSON (stored values: m, rad)."),
+        db: str = typer.Option(None, "--db", help=DB_HELP),
+    ) -> None:
+        """List runs, newest first, with their final calibration and cube check."""
+        from rich.console import Console
+        from rich.table import Table
+        from sqlalchemy import select
+
+        from ..db import Run, Station, open_database
+        from ..report import calibration_dict, cube_dict, run_brief
+
+        database = open_database(db)
+        rows: list[dict[str, Any]] = []
+        with database.session() as s:
+            stmt = select(Run).join(Station).order_by(Run.id.desc()).limit(limit)
+            if station:
+                stmt = stmt.where(Station.name == station)
+            if status:
+                stmt = stmt.where(Run.status == status)
+            if since:
+                stmt = stmt.where(Run.started_at >= _parse_since(since))
+            for run in s.scalars(stmt):
+                item = run_brief(run)
+                fine = [c for c in run.calibrations if c.stage == "fine"]
+                picks = [c for c in run.calibrations if c.accepted] or fine or run.calibrations
+                item["calibration"] = calibration_dict(picks[-1]) if picks else None
+                item["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+                rows.append(item)
+        database.dispose()
+        if as_json:
+            typer.echo(json.dumps(rows, indent=2))
+            return
+        table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error")
+        for col in ("run", "station", "started (UTC)", "status", *H_PARAMS, "edge mm"):
+            table.add_column(col, justify="right" if col in H_PARAMS else "left")
+        for r in rows:
+            cal = r["calibration"]
+            values = [_display(p, cal["H"][p]) if cal else "—" for p in H_PARAMS]
+            cube = r["cube_check"]
+            edge = f"{cube['edge_error'] * 1000:.2f}" if cube else "—"
+            colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
+            started = (r["started_at"] or "")[:16].replace("T", " ")
+            table.add_row(str(r["id"]), r["station"], started, f"[{colour}]{r['status']}[/]",
+                          *values, edge)
+        Console().print(table)
+
+    @app.command("show")
+    def show(
+        run_id: int = typer.Argument(..., help="Run id (see `calstation history`)."),
+        as_json: bool = typer.Option(False, "--json", help="JSON: everything stored."),
+        db: str = typer.Option(None, "--db", help=DB_HELP),
+    ) -> None:
+        """Everything about one run: steps, calibrations, cube check, recordings."""
+        from rich.console import Console
+        from rich.table import Table
+
+        from ..db import open_database
+        from ..operator import render_summary
+        from ..report import get_run, run_summary
+
+        database = open_database(db)
+        with database.session() as s:
+            summary = run_summary(get_run(s, run_id))
+        database.dispose()
+        if as_json:
+            typer.echo(json.dumps(summary, indent=2))
+            return
+        console = Console()
+        console.print(
+            f"run {summary['id']}: recipe {summary['recipe_name']} "
+            f"(sha256 {summary['recipe_sha256'][:12]}…), operator {summary['operator']}"
+            f"{' (unattended)' if summary['unattended'] else ''}, started "
+            f"{summary['started_at']}, finished {summary['finished_at'] or '—'}",
+            highlight=False,
+        )
+        steps = Table(title="Steps")
+        for col in ("step", "attempt", "status", "started", "finished", "error"):
+            steps.add_column(col)
+        for st in summary["steps"]:
+            colour = {"passed": "green", "failed": "red"}.get(st["status"], "yellow")
+            steps.add_row(st["name"], str(st["attempt"]), f"[{colour}]{st['status']}[/]",
+                          (st["started_at"] or "")[11:19], (st["finished_at"] or "")[11:19],
+                          st["error"] or "")
+        console.print(steps)
+        arts = Table(title="Artifacts")
+        for col in ("kind", "path", "bytes", "sha256"):
+            arts.add_column(col)
+        for a in summary["artifacts"]:
+            arts.add_row(a["kind"], a["path"], str(a["size_bytes"]), a["sha256"][:16] + "…")
+        console.print(arts)
+        render_summary(console, summary)
+
+    @app.command("export")
+    def export(
+        run_id: int = typer.Argument(..., help="Run id."),
+        fmt: str = typer.Option(
+            "yaml", "--format", "-f", help="yaml | json | urdf | csv (values in m, rad)."
+        ),
+        out: Path = typer.Option(None, "--out", "-o", help="Write to this file (default stdout)."),
+        db: str = typer.Option(None, "--db", help=DB_HELP),
+    ) -> None:
+        """Export a run's final calibration (yaml/json load with `calibrate`/`verify`)."""
+        from ..db import open_database
+        from ..report import export_calibration, get_run
+
+        database = open_database(db)
+        with database.session() as s:
+            text = export_calibration(get_run(s, run_id), fmt)
+        database.dispose()
+        if out is None:
+            typer.echo(text, nl=False)
+        else:
+            out.write_text(text, encoding="utf-8")
+            typer.echo(f"wrote {out}", err=True)
+
+    @app.command("trend")
+    def trend(
+        station: str = typer.Option(..., "--station", help="Station id."),
+        param: str = typer.Option(
+            ..., "--param", help=f"One of {', '.join(H_PARAMS + CUBE_PARAMS)}."
+        ),
+        png: Path = typer.Option(
+            None, "--png", help="Plot file (default: trend-STATION-PARAM.png here)."
+        ),
+        as_json: bool = typer.Option(False, "--json", help="JSON (stored units)."),
+        db: str = typer.Option(None, "--db", help=DB_HELP),
+    ) -> None:
+        """A parameter over a station's accepted calibrations: table, PNG plot, drift flags.
+
+        Drift is flagged when the change from the station's previous accepted calibration
+        exceeds the run's recipe limits (qa.drift_translation, qa.drift_rotation_deg); cube
+        metrics are flagged above the recipe's cube limits.
+        """
+        from rich.console import Console
+        from rich.table import Table
+
+        from ..errors import CalstationError
+
+        if param not in H_PARAMS + CUBE_PARAMS:
+            raise CalstationError(
+                f"--param {param!r}: expected one of {', '.join(H_PARAMS + CUBE_PARAMS)}"
+            )
+        points = trend_points(station, param, db)
+        if as_json:
+            typer.echo(json.dumps(points, indent=2))
+        else:
+            unit = "mm" if param in CUBE_PARAMS else _unit(param)
+            table = Table(title=f"{param} of station {station} ({unit})")
+            for col in ("run", "date (UTC)", param, "Δ vs previous", "limit", "drift"):
+                table.add_column(col)
+            for p in points:
+                shown = _display("t" if param in CUBE_PARAMS else param, p["value"])
+                delta = ("—" if p["delta"] is None
+                         else _display("t" if param in CUBE_PARAMS else param, p["delta"]))
+                limit = _display("t" if param in CUBE_PARAMS else param, p["limit"])
+                flag = "[bold red]DRIFT[/]" if p["flagged"] else "ok"
+                table.add_row(str(p["run_id"]), p["date"][:19], shown, delta, limit, flag)
+            Console().print(table)
+        if not points:
+            typer.echo(f"no accepted calibrations for station {station}", err=True)
+            raise typer.Exit(1)
+        path = png or Path(f"trend-{station}-{param}.png")
+        plot_trend(points, station, param, path)
+        typer.echo(f"plot: {path}", err=True)
+
+
+def trend_points(station: str, param: str, db: str | None) -> list[dict[str, Any]]:
+    """The accepted calibrations of ``station``, oldest first, with drift vs the previous one.
+
+    Each point: run_id, date, value (m/rad), delta (vs the previous point, None for the first),
+    limit (m/rad, from that run's recipe), flagged.
+    """
+    from sqlalchemy import select
+
+    from ..db import Calibration, Run, Station, open_database
+    from ..recipe import parse_recipe
+    from ..report import iso
+
+    database = open_database(db)
+    points: list[dict[str, Any]] = []
+    with database.session() as s:
+        stmt = (
+            select(Run, Calibration)
+            .join(Station, Run.station_id == Station.id)
+            .join(Calibration, Calibration.run_id == Run.id)
+            .where(Station.name == station, Calibration.accepted)
+            .order_by(Run.id)
+        )
+        previous: float | None = None
+        for run, cal in s.execute(stmt).all():
+            qa = parse_recipe(run.recipe_text, f"recipe of run {run.id}").qa
+            if param in CUBE_PARAMS:
+                checks = run.cube_checks
+                if not checks:
+                    continue
+                value = float(getattr(checks[-1], param))
+                limit = {"edge_error": qa.edge_error, "obb_error": qa.obb_edge_error,
+                         "flatness_rms": qa.flatness_rms}[param]
+                delta = None if previous is None else value - previous
+                flagged = value > limit
+            else:
+                value = float(getattr(cal, param))
+                limit = (qa.drift_translation if param.startswith("t")
+                         else math.radians(qa.drift_rotation_deg))
+                delta = None if previous is None else value - previous
+                flagged = delta is not None and abs(delta) > limit
+            points.append({
+                "run_id": run.id, "date": iso(run.started_at) or "", "value": value,
+                "delta": delta, "limit": limit, "flagged": flagged,
+            })
+            previous = value
+    database.dispose()
+    return points
+
+
+def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Path) -> None:
+    """PNG: the parameter per run (mm or deg), drifted runs in red, the allowed band around each
+    previous value shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    def scale(v: float) -> float:
+        return math.degrees(v) if param.startswith("r") else v * 1000.0
+
+    unit = "deg" if param.startswith("r") else "mm"
+    xs = [p["run_id"] for p in points]
+    ys = [scale(p["value"]) for p in points]
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.plot(xs, ys, "-o", color="tab:blue", label=param)
+    if param not in CUBE_PARAMS:
+        for prev, cur in itertools.pairwise(points):
+            lo = scale(prev["value"] - cur["limit"])
+            hi = scale(prev["value"] + cur["limit"])
+            ax.fill_between([prev["run_id"], cur["run_id"]], [lo, lo], [hi, hi],
+                            color="tab:green", alpha=0.12, step="post")
+    else:
+        ax.axhline(scale(points[-1]["limit"]), color="tab:red", ls="--", label="limit")
+    bad_x = [p["run_id"] for p in points if p["flagged"]]
+    bad_y = [scale(p["value"]) for p in points if p["flagged"]]
+    if bad_x:
+        ax.scatter(bad_x, bad_y, color="tab:red", zorder=3, s=60, label="drift")
+    ax.set_xlabel("run")
+    ax.set_ylabel(f"{param} [{unit}]")
+    ax.set_title(f"{param} of station {station}")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

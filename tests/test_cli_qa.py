@@ -1,0 +1,192 @@
+"""QA commands: history, show, export and trend return exactly what the database holds."""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import io
+import json
+import math
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from calstation.cli import _build, app
+from calstation.db import (
+    Artifact,
+    Calibration,
+    CubeCheckRecord,
+    Database,
+    Run,
+    Station,
+    Step,
+    open_database,
+)
+from calstation.result import CalibrationResult
+
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "sim-periodicity.yaml"
+
+
+@pytest.fixture(scope="module")
+def cli() -> CliRunner:
+    _build_once()
+    return CliRunner()
+
+
+_built = False
+
+
+def _build_once() -> None:
+    global _built
+    if not _built:
+        _build()
+        _built = True
+
+
+def _add_run(
+    db: Database, station: str, status: str, H: dict[str, float], started: dt.datetime,
+    edge_error: float = 0.0004, recipe_text: str | None = None,
+) -> int:
+    """One run as the station stores it (rows only; values chosen to be non-round)."""
+    text = recipe_text or RECIPE.read_text(encoding="utf-8")
+    with db.session() as s:
+        st = s.query(Station).filter_by(name=station).one_or_none() or Station(name=station)
+        run = Run(station=st, recipe_name="sim-periodicity", recipe_path=str(RECIPE),
+                  recipe_text=text, recipe_sha256="ab" * 32, operator="qa", unattended=True,
+                  data_dir="/data/runs/x", status=status, started_at=started,
+                  finished_at=started + dt.timedelta(minutes=3))
+        step = Step(run=run, name="static_scan", status="passed", result={"lines": 100})
+        s.add_all([run, step])
+        s.flush()
+        s.add(Calibration(run=run, step_id=step.id, stage="initial", strategy="initial",
+                          **{k: v + 1e-4 for k, v in H.items()}, sigma_tx=2.5e-5, cost=0.1,
+                          iterations=1, diagnostics={"segments": 2}))
+        s.add(Calibration(run=run, stage="fine", strategy="periodicity", **H,
+                          sigma_tx=1.234567e-5, sigma_ty=None, sigma_tz=3.3e-5, sigma_rx=None,
+                          sigma_ry=7.1e-4, sigma_rz=1.9e-5, cost=3.14159e-7, iterations=9,
+                          accepted=status == "passed",
+                          diagnostics={"matches": [1200, 1310], "gauge": "platter"}))
+        s.add(CubeCheckRecord(run=run, obb_edges=[0.1012, 0.1009, 0.1003], obb_error=0.0012,
+                              face_edges=[0.10004, 0.09998, 0.10003], edge_error=edge_error,
+                              flatness_rms=0.00091, perpendicularity_deg=0.05,
+                              passed=edge_error < 0.001, failures=[]))
+        s.add(Artifact(run=run, step_id=step.id, kind="static", path="/data/runs/x/static.mcap",
+                       size_bytes=123456789, sha256="cd" * 32))
+        s.flush()
+        return run.id
+
+
+H1 = {"tx": 0.0123456789012345, "ty": 1.2498765432101234, "tz": -0.0004321098765432,
+      "rx": 0.0, "ry": 0.0012345678901234, "rz": -0.7856781234567891}
+
+
+@pytest.fixture
+def db_url(tmp_path: Path) -> str:
+    return f"sqlite:///{tmp_path / 'qa.db'}"
+
+
+def test_show_json_is_what_is_stored(cli: CliRunner, db_url: str) -> None:
+    db = open_database(db_url)
+    t0 = dt.datetime(2026, 3, 1, 8, 30, tzinfo=dt.UTC)
+    run_id = _add_run(db, "st-1", "passed", H1, t0)
+    res = cli.invoke(app, ["show", str(run_id), "--json", "--db", db_url])
+    assert res.exit_code == 0, res.output
+    shown = json.loads(res.output)
+    fine = shown["calibrations"][1]
+    assert fine["H"] == H1  # exact floats
+    assert fine["sigma"] == {"tx": 1.234567e-5, "ty": None, "tz": 3.3e-5, "rx": None,
+                             "ry": 7.1e-4, "rz": 1.9e-5}
+    assert fine["accepted"] is True and fine["cost"] == 3.14159e-7 and fine["iterations"] == 9
+    assert fine["diagnostics"] == {"matches": [1200, 1310], "gauge": "platter"}
+    assert shown["cube_check"]["face_edges"] == [0.10004, 0.09998, 0.10003]
+    assert shown["artifacts"] == [{"kind": "static", "step": "static_scan",
+                                   "path": "/data/runs/x/static.mcap", "size_bytes": 123456789,
+                                   "sha256": "cd" * 32}]
+    assert shown["started_at"] == t0.isoformat()
+    assert shown["steps"][0]["result"] == {"lines": 100}
+    res = cli.invoke(app, ["show", str(run_id), "--db", db_url])
+    assert res.exit_code == 0 and "PASS" in res.output
+    db.dispose()
+
+
+def test_history_filters_and_json(cli: CliRunner, db_url: str) -> None:
+    db = open_database(db_url)
+    t0 = dt.datetime(2026, 3, 1, tzinfo=dt.UTC)
+    a = _add_run(db, "st-1", "passed", H1, t0)
+    b = _add_run(db, "st-2", "failed", H1, t0 + dt.timedelta(days=2))
+    c = _add_run(db, "st-1", "passed", H1, t0 + dt.timedelta(days=5))
+
+    def ids(*args: str) -> list[int]:
+        res = cli.invoke(app, ["history", "--json", "--db", db_url, *args])
+        assert res.exit_code == 0, res.output
+        return [r["id"] for r in json.loads(res.output)]
+
+    assert ids() == [c, b, a]
+    assert ids("--station", "st-1") == [c, a]
+    assert ids("--status", "failed") == [b]
+    assert ids("--since", "2026-03-02") == [c, b]
+    assert ids("--station", "st-1", "--since", "2026-03-04T00:00") == [c]
+    res = cli.invoke(app, ["history", "--json", "--db", db_url, "--station", "st-2"])
+    row = json.loads(res.output)[0]
+    assert row["calibration"]["H"] == H1 and row["calibration"]["stage"] == "fine"
+    assert row["status"] == "failed" and row["cube_check"]["edge_error"] == 0.0004
+    res = cli.invoke(app, ["history", "--db", db_url])
+    assert res.exit_code == 0 and "st-2" in res.output
+    res = cli.invoke(app, ["history", "--db", db_url, "--since", "yesterday"])
+    assert res.exit_code != 0
+    db.dispose()
+
+
+def test_export_formats_round_trip(cli: CliRunner, db_url: str, tmp_path: Path) -> None:
+    db = open_database(db_url)
+    run_id = _add_run(db, "st-1", "passed", H1, dt.datetime(2026, 3, 1, tzinfo=dt.UTC))
+    out = {}
+    for fmt in ("yaml", "json", "urdf", "csv"):
+        res = cli.invoke(app, ["export", str(run_id), "--format", fmt, "--db", db_url])
+        assert res.exit_code == 0, res.output
+        out[fmt] = res.output
+    for fmt in ("yaml", "json"):
+        path = tmp_path / f"c.{fmt}"
+        path.write_text(out[fmt])
+        loaded = CalibrationResult.load(path)
+        assert loaded.H.as_dict() == H1
+        assert loaded.strategy == "periodicity" and loaded.cost == 3.14159e-7
+        assert loaded.sigma["tx"] == 1.234567e-5 and math.isnan(loaded.sigma["ty"])
+    assert yaml.safe_load(out["yaml"])["run"]["accepted"] is True
+    (row,) = list(csv.DictReader(io.StringIO(out["csv"])))
+    assert {k: float(row[k]) for k in H1} == H1
+    assert row["sigma_ty"] == "" and float(row["sigma_tx"]) == 1.234567e-5
+    assert row["strategy"] == "periodicity" and int(row["run_id"]) == run_id
+    assert f'xyz="{H1["tx"]:.9g} {H1["ty"]:.9g} {H1["tz"]:.9g}"' in out["urdf"]
+    res = cli.invoke(app, ["export", str(run_id), "--format", "xml", "--db", db_url])
+    assert res.exit_code != 0
+    db.dispose()
+
+
+def test_trend_flags_drift_against_previous_accepted(
+    cli: CliRunner, db_url: str, tmp_path: Path
+) -> None:
+    db = open_database(db_url)
+    t0 = dt.datetime(2026, 3, 1, tzinfo=dt.UTC)
+    # recipe limit: drift_translation 2 mm (the default); 1 mm then 3 mm steps in tx
+    ids = []
+    for i, tx in enumerate((0.0100, 0.0110, 0.0140)):
+        ids.append(_add_run(db, "st-9", "passed", {**H1, "tx": tx}, t0 + dt.timedelta(days=i)))
+    _add_run(db, "st-9", "failed", {**H1, "tx": 0.05}, t0 + dt.timedelta(days=9))  # not accepted
+    png = tmp_path / "tx.png"
+    res = cli.invoke(app, ["trend", "--station", "st-9", "--param", "tx", "--json",
+                           "--png", str(png), "--db", db_url])
+    assert res.exit_code == 0, res.output
+    points = json.loads(res.output[: res.output.rindex("]") + 1])
+    assert [p["run_id"] for p in points] == ids
+    assert [p["flagged"] for p in points] == [False, False, True]
+    assert points[2]["delta"] == pytest.approx(0.003)
+    assert png.stat().st_size > 1000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    res = cli.invoke(app, ["trend", "--station", "st-9", "--param", "tx", "--png",
+                           str(png), "--db", db_url])
+    assert res.exit_code == 0 and "DRIFT" in res.output
+    res = cli.invoke(app, ["trend", "--station", "st-9", "--param", "nope", "--db", db_url])
+    assert res.exit_code != 0
+    db.dispose()
