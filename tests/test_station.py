@@ -1,0 +1,334 @@
+"""The station state machine on the simulated station, with a scripted operator.
+
+The drivers are the real simulated ones (wrapped to observe motor commands or to wire the encoder
+backwards); the fine-tuning strategy is a small stand-in so these tests exercise the station, not
+the optimiser (tests/test_e2e.py runs the real engine end to end).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from calstation import hookimpl, plugins
+from calstation.db import Artifact, Calibration, Database, Run, Step, open_database
+from calstation.errors import FineTuningError, RecipeError, StationError
+from calstation.recipe import load_recipe
+from calstation.result import CalibrationResult
+from calstation.station import STEPS, Station, file_sha256, resume_run, start_run
+
+calstation_sim = pytest.importorskip("calstation_sim")
+from calstation_sim import drivers as sim_drivers  # noqa: E402
+from calstation_sim import plugin as sim_plugin  # noqa: E402
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+
+
+class ScriptedOperator:
+    """An operator that answers from a script and remembers what it was shown."""
+
+    unattended = True
+
+    def __init__(self, place: Callable[[str], bool] | None = None,
+                 decisions: list[str] | None = None) -> None:
+        self.place = place or (lambda fixture: True)
+        self.decisions = list(decisions or [])
+        self.placed: list[str] = []
+        self.failures: list[tuple[str, str, int]] = []
+        self.progress_titles: list[str] = []
+        self.summaries: list[dict[str, Any]] = []
+
+    def info(self, message: str) -> None:
+        pass
+
+    def warn(self, message: str) -> None:
+        pass
+
+    def confirm_fixture(self, fixture: str, description: str) -> bool:
+        self.placed.append(fixture)
+        return self.place(fixture)
+
+    def on_failure(self, step: str, error: str, attempt: int) -> str:
+        self.failures.append((step, error, attempt))
+        return self.decisions.pop(0) if self.decisions else "abort"
+
+    @contextmanager
+    def progress(self, title: str) -> Iterator[Callable[[str, float], None]]:
+        self.progress_titles.append(title)
+        yield lambda phase, fraction: None
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        self.summaries.append(summary)
+
+
+class SpyTurntable:
+    """The sim turntable, remembering stop and emergency-stop calls."""
+
+    def __init__(self, inner: Any, calls: list[str]) -> None:
+        self.inner, self.calls = inner, calls
+        self.clock = inner.clock
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def stop(self) -> None:
+        self.calls.append("stop")
+        self.inner.stop()
+
+    def emergency_stop(self) -> None:
+        self.calls.append("emergency_stop")
+        self.inner.emergency_stop()
+
+
+class ReversedEncoder:
+    """The sim encoder wired backwards: counts with the opposite sign."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+
+    @property
+    def counts_per_revolution(self) -> int:
+        return int(self.inner.counts_per_revolution)
+
+    def read(self) -> Any:
+        s = self.inner.read()
+        return type(s)(timestamp_ns=s.timestamp_ns, count=-s.count)
+
+    def samples(self) -> list[Any]:
+        return [type(s)(timestamp_ns=s.timestamp_ns, count=-s.count)
+                for s in self.inner.samples()]
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+class ToyStrategy:
+    """Moves tx by 0.1 mm; fails its first ``failures`` calls."""
+
+    name = "toy"
+    fixture = "spin_target"
+
+    def __init__(self) -> None:
+        self.failures = 0
+        self.calls = 0
+
+    def run(self, recording: Any, start: Any, recipe: Any,
+            progress: Callable[[str, float], None] | None = None) -> CalibrationResult:
+        self.calls += 1
+        assert len(recording.range_m) > 0
+        if self.calls <= self.failures:
+            raise FineTuningError("toy strategy: scripted failure")
+        if progress is not None:
+            progress("toy", 1.0)
+        return CalibrationResult(H=start.with_(tx=start.tx + 1e-4), sigma={"tx": 1e-5},
+                                 cost=0.5, iterations=1, strategy="toy",
+                                 diagnostics={"note": "toy"})
+
+
+class StationTestPlugin:
+    """Spy drivers around the simulator, the toy strategy, an observer."""
+
+    __name__ = "station-test-plugin"
+
+    def __init__(self) -> None:
+        self.motor_calls: list[str] = []
+        self.events: list[tuple[str, str]] = []
+        self.strategy = ToyStrategy()
+
+    @hookimpl
+    def calstation_register_drivers(self, register: Any) -> None:
+        register("lidar", "spy", lambda s, c: sim_drivers.lidar_factory({}, c))
+        register("turntable", "spy", lambda s, c: SpyTurntable(
+            sim_drivers.turntable_factory({}, c), self.motor_calls))
+        register("encoder", "spy", lambda s, c: (
+            ReversedEncoder(sim_drivers.encoder_factory({}, c)) if s.get("reversed")
+            else sim_drivers.encoder_factory({}, c)))
+
+    @hookimpl
+    def calstation_register_cost_strategies(self, register: Any) -> None:
+        register(self.strategy)
+
+    @hookimpl
+    def calstation_step_finished(self, run: Any, step: str, status: str, result: Any) -> None:
+        self.events.append((step, status))
+
+    @hookimpl
+    def calstation_run_finished(self, run: Any, status: str, summary: Any) -> None:
+        self.events.append(("run", status))
+
+
+@pytest.fixture
+def station_plugin() -> Iterator[StationTestPlugin]:
+    plugin = StationTestPlugin()
+    with plugins.isolated(sim_plugin, plugin):
+        yield plugin
+
+
+def lean_recipe(tmp_path: Path, **encoder_settings: Any) -> Path:
+    """The simulated recipe, made small: 500 points per line, 40 static lines, 60 rpm."""
+    data = yaml.safe_load((RECIPES / "sim-periodicity.yaml").read_text())
+    data["name"] = "station-test"
+    data["station"] = {
+        "id": "sim-test",
+        "lidar": {"driver": "spy"},
+        "turntable": {"driver": "spy"},
+        "encoder": {"driver": "spy", "ppr": 1024, "direction": 1,
+                    "settings": encoder_settings},
+    }
+    data["simulation"]["lidar"]["points_per_line"] = 500
+    data["steps"] = {"static_scan": {"lines": 40},
+                     "spin_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1},
+                     "cube_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1}}
+    data["calibration"] = {"strategy": "toy"}
+    path = tmp_path / "lean.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.fixture
+def db(tmp_path: Path) -> Iterator[Database]:
+    database = open_database(f"sqlite:///{tmp_path / 'st.db'}")
+    yield database
+    database.dispose()
+
+
+def _steps(db: Database, run_id: int) -> list[tuple[str, int, str]]:
+    with db.session() as s:
+        return [(r.name, r.attempt, r.status)
+                for r in s.query(Step).filter_by(run_id=run_id).order_by(Step.id)]
+
+
+def _stop_at(step_name: str) -> Callable[[str], bool]:
+    """Operator who aborts when asked to place ``step_name``'s fixture."""
+    return lambda fixture: fixture != step_name
+
+
+def test_run_until_abort_commits_each_step_and_stops_the_motor(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    ui = ScriptedOperator(place=_stop_at("qa_cube"))
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ui, operator="ann",
+                               data_dir=tmp_path / "data")
+    assert status == "aborted"
+    assert _steps(db, run_id) == [
+        ("preflight", 1, "passed"), ("place_static_target", 1, "passed"),
+        ("static_scan", 1, "passed"), ("place_spin_target", 1, "passed"),
+        ("spin_scan", 1, "passed"), ("fine_tune", 1, "passed"), ("place_qa_cube", 1, "aborted"),
+    ]
+    assert ui.placed == ["static_target", "spin_target", "qa_cube"]
+    # abort: the motor got an emergency stop and a stop, whatever it was doing
+    assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]
+    run_dir = tmp_path / "data" / "runs" / str(run_id)
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None and run.status == "aborted" and run.operator == "ann"
+        assert run.data_dir == str(run_dir.resolve())
+        arts = {a.kind: a for a in s.query(Artifact).filter_by(run_id=run_id)}
+        cals = {c.stage: c for c in s.query(Calibration).filter_by(run_id=run_id)}
+    assert set(arts) == {"static", "spin"}
+    for kind, art in arts.items():
+        path = Path(art.path)
+        assert path == (run_dir / f"{kind}.mcap").resolve()
+        assert art.size_bytes == path.stat().st_size and art.sha256 == file_sha256(path)
+    assert cals["fine"].tx == pytest.approx(cals["initial"].tx + 1e-4)
+    assert cals["fine"].strategy == "toy" and not cals["fine"].accepted
+    assert ("spin_scan", "passed") in station_plugin.events
+    assert station_plugin.events[-1] == ("run", "aborted")
+    # the simulator's ground truth went into the recordings
+    from calstation.recording import read_recording
+
+    rec = read_recording(arts["static"].path)
+    assert rec.truth is not None and rec.metadata["run"]["id"] == run_id
+    assert "static scan" in ui.progress_titles and "spin scan" in ui.progress_titles
+
+
+def test_preflight_catches_a_reversed_encoder(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    ui = ScriptedOperator()
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path, reversed=True)), db, ui,
+                               operator="ann", data_dir=tmp_path)
+    assert status == "failed"
+    (step, error, attempt) = ui.failures[0]
+    assert step == "preflight" and "direction" in error and attempt == 1
+    assert _steps(db, run_id) == [("preflight", 1, "failed")]
+    assert "stop" in station_plugin.motor_calls
+
+
+def test_failed_step_is_retried(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    station_plugin.strategy.failures = 1
+    ui = ScriptedOperator(place=_stop_at("qa_cube"), decisions=["retry"])
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ui, operator="ann",
+                               data_dir=tmp_path)
+    assert status == "aborted"  # at the cube, by script
+    steps = _steps(db, run_id)
+    assert ("fine_tune", 1, "failed") in steps and ("fine_tune", 2, "passed") in steps
+    assert ui.failures[0][0] == "fine_tune" and "scripted failure" in ui.failures[0][1]
+    assert station_plugin.events.count(("fine_tune", "failed")) == 1
+
+
+def test_resume_continues_at_the_first_unfinished_step(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    station_plugin.strategy.failures = 1
+    loaded = load_recipe(lean_recipe(tmp_path))
+    run_id, status = start_run(loaded, db, ScriptedOperator(), operator="ann", data_dir=tmp_path)
+    assert status == "failed"
+    with db.session() as s:
+        before = {a.kind: (a.path, a.sha256) for a in s.query(Artifact).filter_by(run_id=run_id)}
+    ui = ScriptedOperator(place=_stop_at("qa_cube"))
+    assert resume_run(run_id, db, ui) == "aborted"
+    steps = _steps(db, run_id)
+    # the scans were not repeated; fine-tuning re-ran on the stored spin recording
+    assert [s for s in steps if s[0] in ("static_scan", "spin_scan")] == [
+        ("static_scan", 1, "passed"), ("spin_scan", 1, "passed")]
+    assert ("fine_tune", 2, "passed") in steps
+    assert ui.placed == ["qa_cube"]
+    with db.session() as s:
+        after = {a.kind: (a.path, a.sha256) for a in s.query(Artifact).filter_by(run_id=run_id)}
+    assert after == before
+    for path, sha in after.values():
+        assert file_sha256(Path(path)) == sha
+
+
+def test_resume_refuses_a_changed_recording(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    station_plugin.strategy.failures = 1
+    run_id, _ = start_run(load_recipe(lean_recipe(tmp_path)), db, ScriptedOperator(),
+                          operator="ann", data_dir=tmp_path)
+    with db.session() as s:
+        spin = s.query(Artifact).filter_by(run_id=run_id, kind="spin").one()
+    with open(spin.path, "r+b") as f:
+        f.seek(100)
+        f.write(b"\x00\x01\x02")
+    ui = ScriptedOperator()
+    assert resume_run(run_id, db, ui) == "failed"
+    assert "changed since it was stored" in ui.failures[-1][1]
+
+
+def test_resume_of_unknown_or_passed_run(db: Database, station_plugin: StationTestPlugin) -> None:
+    with pytest.raises(StationError, match="no run 99"):
+        resume_run(99, db, ScriptedOperator())
+
+
+def test_unknown_driver_is_refused_before_the_run(tmp_path: Path, db: Database) -> None:
+    with plugins.isolated(sim_plugin), pytest.raises(RecipeError, match=r"station\.lidar\.driver"):
+        start_run(load_recipe(lean_recipe(tmp_path)), db, ScriptedOperator(),
+                  operator="ann", data_dir=tmp_path)
+    with db.session() as s:
+        assert s.query(Run).count() == 0
+
+
+def test_machine_states_follow_the_workflow() -> None:
+    assert STEPS == ("preflight", "place_static_target", "static_scan", "place_spin_target",
+                     "spin_scan", "fine_tune", "place_qa_cube", "cube_scan", "report")
+    assert Station._next_in_order("fine_tune") == "place_qa_cube"
+    assert Station._next_in_order("report") == "done"
