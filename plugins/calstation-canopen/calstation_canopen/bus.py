@@ -1,0 +1,179 @@
+"""One CANopen network per bus, shared by the drivers of a run; SYNC and heartbeat producers.
+
+The turntable and the encoder usually sit on one CAN bus. Both drivers get the same
+:class:`SharedBus` from ``context.shared["canopen"]`` (keyed by interface and channel), so there is
+one ``canopen.Network``, one SYNC producer and one master heartbeat. The SYNC producer is a thread
+of ours rather than python-can's periodic task because the encoder driver needs the host time
+of every SYNC it sent: a CiA 406 encoder on transmission type 1 samples its position at the SYNC.
+"""
+
+from __future__ import annotations
+
+import bisect
+import contextlib
+import logging
+import threading
+from collections import deque
+from collections.abc import Mapping
+from typing import Any
+
+import can
+import canopen
+
+from calstation.clock import Clock, HostClock
+from calstation.drivers import DriverContext
+from calstation.errors import DeviceTimeout, DriverError
+
+log = logging.getLogger(__name__)
+
+SYNC_COB_ID = 0x080
+NMT_COB_ID = 0x000
+
+
+class CanopenError(DriverError):
+    """A CANopen device could not be talked to, or reported a fault."""
+
+
+class CanopenTimeout(CanopenError, DeviceTimeout):
+    """A CANopen device did not answer (SDO) or did not reach a state in time."""
+
+
+class SharedBus:
+    """A connected ``canopen.Network`` plus a SYNC producer that remembers when it sent SYNCs."""
+
+    def __init__(
+        self, interface: str, channel: str, bitrate: int = 500_000, clock: Clock | None = None
+    ) -> None:
+        self.interface = interface
+        self.channel = channel
+        self.clock: Clock = clock or HostClock()
+        self.network = canopen.Network()
+        kwargs: dict[str, Any] = {"interface": interface, "channel": channel}
+        if interface not in ("virtual", "udp_multicast"):
+            kwargs["bitrate"] = bitrate
+        try:
+            self.network.connect(**kwargs)
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise CanopenError(
+                f"canopen: cannot open CAN bus {interface}:{channel}: {exc}"
+            ) from exc
+        self.users = 0
+        self._sync_times: deque[int] = deque(maxlen=4096)
+        self._sync_lock = threading.Lock()
+        self._sync_stop = threading.Event()
+        self._sync_thread: threading.Thread | None = None
+        self.sync_period_s = 0.0
+        self._heartbeat: Any = None
+
+    # --- SYNC ------------------------------------------------------------------------------
+    def start_sync(self, period_s: float) -> None:
+        """Send SYNC every ``period_s``; the shortest period any user asked for wins."""
+        if period_s <= 0 or (self._sync_thread is not None and period_s >= self.sync_period_s):
+            return
+        self.stop_sync()
+        self.sync_period_s = period_s
+        self._sync_stop.clear()
+        self._sync_thread = threading.Thread(target=self._sync_loop, name="canopen-sync",
+                                             daemon=True)
+        self._sync_thread.start()
+
+    def _sync_loop(self) -> None:
+        period_ns = round(self.sync_period_s * 1e9)
+        next_ns = self.clock.now_ns()
+        while not self._sync_stop.is_set():
+            now = self.clock.now_ns()
+            if now < next_ns:
+                self._sync_stop.wait((next_ns - now) / 1e9)
+                continue
+            self.send_sync()
+            next_ns += period_ns
+            if next_ns < now:  # fell behind (a busy machine): do not burst
+                next_ns = now + period_ns
+
+    def send_sync(self) -> int:
+        """Send one SYNC now; returns its host time (ns)."""
+        t = self.clock.now_ns()
+        with self._sync_lock:
+            self._sync_times.append(t)
+        try:
+            self.network.send_message(SYNC_COB_ID, b"")
+        except can.CanError as exc:
+            log.warning("canopen: SYNC not sent: %s", exc)
+        return t
+
+    def stop_sync(self) -> None:
+        """Stop the SYNC producer."""
+        self._sync_stop.set()
+        thread, self._sync_thread = self._sync_thread, None
+        if thread is not None:
+            thread.join(timeout=2)
+
+    def sync_times_between(self, after_ns: int, until_ns: int) -> list[int]:
+        """Host times of the SYNCs sent in (after_ns, until_ns], oldest first."""
+        with self._sync_lock:
+            times = list(self._sync_times)
+        return times[bisect.bisect_right(times, after_ns) : bisect.bisect_right(times, until_ns)]
+
+    def sync_time_before(self, t_ns: int) -> int | None:
+        """Host time of the latest SYNC sent at or before ``t_ns`` (None if none)."""
+        with self._sync_lock:
+            times = list(self._sync_times)
+        i = bisect.bisect_right(times, t_ns)
+        return times[i - 1] if i else None
+
+    # --- master heartbeat ------------------------------------------------------------------
+    def start_heartbeat(self, master_id: int, period_s: float) -> None:
+        """Produce the master's heartbeat (state operational, 0x05) on 0x700 + master_id."""
+        if self._heartbeat is None and period_s > 0:
+            self._heartbeat = self.network.send_periodic(0x700 + master_id, [0x05], period_s)
+
+    def stop_heartbeat(self) -> None:
+        """Stop the master heartbeat (drives that consume it will fault: use on purpose only)."""
+        task, self._heartbeat = self._heartbeat, None
+        if task is not None:
+            with contextlib.suppress(Exception):
+                task.stop()
+
+    def close(self) -> None:
+        """Stop producers and disconnect. Idempotent."""
+        self.stop_sync()
+        self.stop_heartbeat()
+        with contextlib.suppress(Exception):
+            self.network.disconnect()
+
+
+def acquire_bus(settings: Mapping[str, Any], context: DriverContext | None) -> SharedBus:
+    """The run's :class:`SharedBus` for ``settings['interface']``/``['channel']`` (created on
+    first use); release it with :func:`release_bus`."""
+    interface = str(settings.get("interface", "socketcan"))
+    channel = settings.get("channel")
+    if not channel:
+        raise CanopenError(
+            "canopen driver: settings.channel is required (e.g. can0 for socketcan, any name for "
+            "the virtual interface, a multicast group for udp_multicast)"
+        )
+    key = f"{interface}:{channel}"
+    clock = context.clock if context is not None else None
+    if context is None:
+        bus = SharedBus(interface, str(channel), int(settings.get("bitrate", 500_000)), clock)
+    else:
+        buses: dict[str, SharedBus] = context.shared.setdefault("canopen", {})
+        bus = buses.get(key) or SharedBus(
+            interface, str(channel), int(settings.get("bitrate", 500_000)), clock
+        )
+        buses[key] = bus
+    bus.users += 1
+    return bus
+
+
+def release_bus(bus: SharedBus, context: DriverContext | None) -> None:
+    """Drop one user of ``bus``; the last one closes it."""
+    bus.users -= 1
+    if bus.users > 0:
+        return
+    bus.close()
+    if context is not None:
+        buses = context.shared.get("canopen", {})
+        for key, value in list(buses.items()):
+            if value is bus:
+                del buses[key]

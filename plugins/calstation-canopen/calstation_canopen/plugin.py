@@ -1,0 +1,185 @@
+"""Registers turntable ``canopen402``, encoder ``canopen406`` and ``calstation emulate canopen``."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from calstation import hookimpl
+from calstation.drivers import DriverContext
+
+from .bus import CanopenError
+from .drive import Cia402Turntable
+from .emulator import DriveEmulator, EmulatedNode, EncoderEmulator
+from .encoder import Cia406Encoder
+
+
+def _simulated_station(context: DriverContext) -> Any:
+    """The run's simulated station (``context.shared["sim"]``), created on the host clock."""
+    try:
+        from calstation_sim import SimulatedStation
+    except ImportError as exc:
+        raise CanopenError(
+            "emulate: true needs the calstation-sim plugin (pip install -e plugins/calstation-sim)"
+        ) from exc
+    if context.recipe is None:
+        raise CanopenError("emulate: true needs the run's recipe (its simulation section)")
+    station = context.shared.get("sim")
+    if station is None:
+        station = SimulatedStation(context.recipe, clock=context.clock)
+        context.shared["sim"] = station
+    return station
+
+
+def _emulators(context: DriverContext) -> dict[str, EmulatedNode]:
+    found: dict[str, EmulatedNode] = context.shared.setdefault("canopen_emulators", {})
+    return found
+
+
+def _with_emulator(
+    settings: Mapping[str, Any], context: DriverContext, kind: str
+) -> dict[str, Any]:
+    """Start the emulated device for a driver with ``emulate: true`` (virtual bus by default)."""
+    cfg = dict(settings)
+    if not cfg.pop("emulate", False):
+        return cfg
+    cfg.setdefault("interface", "virtual")
+    cfg.setdefault("channel", "calstation-emulated")
+    station = _simulated_station(context)
+    emulators = _emulators(context)
+    if kind not in emulators:
+        common = {"interface": cfg["interface"], "channel": str(cfg["channel"]),
+                  "clock": context.clock}
+        if kind == "drive":
+            emulators[kind] = DriveEmulator(
+                station, node_id=int(cfg.get("node_id", 1)), heartbeat_ms=0,
+                velocity_unit_rpm=float(cfg.get("velocity_unit_rpm", 0.01)),
+                counts_per_revolution=int(cfg.get("counts_per_revolution", 10_000)),
+                direction=int(cfg.get("direction", 1)), **common)
+        else:
+            emulators[kind] = EncoderEmulator(
+                station.encoder_count, station.counts_per_revolution,
+                node_id=int(cfg.get("node_id", 2)), **common)
+    return cfg
+
+
+class EmulatedTurntable(Cia402Turntable):
+    """``canopen402`` against an in-process emulated drive turning the simulated platter."""
+
+    def close(self) -> None:
+        """Close the driver, then its emulator."""
+        super().close()
+        if self.context is not None:
+            emu = _emulators(self.context).pop("drive", None)
+            if emu is not None:
+                emu.close()
+
+
+class EmulatedEncoder(Cia406Encoder):
+    """``canopen406`` against an in-process emulated encoder on the simulated platter."""
+
+    def close(self) -> None:
+        """Close the driver, then its emulator."""
+        super().close()
+        if self.context is not None:
+            emu = _emulators(self.context).pop("encoder", None)
+            if emu is not None:
+                emu.close()
+
+
+def make_turntable(settings: Mapping[str, Any], context: DriverContext) -> Cia402Turntable:
+    """Factory of ``canopen402`` (``emulate: true`` adds an in-process emulated drive)."""
+    if settings.get("emulate"):
+        return EmulatedTurntable(_with_emulator(settings, context, "drive"), context)
+    return Cia402Turntable(settings, context)
+
+
+def make_encoder(settings: Mapping[str, Any], context: DriverContext) -> Cia406Encoder:
+    """Factory of ``canopen406`` (``emulate: true`` adds an in-process emulated encoder)."""
+    if settings.get("emulate"):
+        return EmulatedEncoder(_with_emulator(settings, context, "encoder"), context)
+    return Cia406Encoder(settings, context)
+
+
+@hookimpl
+def calstation_register_drivers(register: Any) -> None:
+    """Turntable ``canopen402`` and encoder ``canopen406``."""
+    register("turntable", "canopen402", make_turntable)
+    register("encoder", "canopen406", make_encoder)
+
+
+def _emulate_group(cli: typer.Typer) -> typer.Typer:
+    for group in cli.registered_groups:
+        if group.name == "emulate" and group.typer_instance is not None:
+            return group.typer_instance
+    sub = typer.Typer(help="Run device emulators that speak the real wire protocols.",
+                      no_args_is_help=True)
+    cli.add_typer(sub, name="emulate")
+    return sub
+
+
+@hookimpl
+def calstation_register_commands(cli: Any) -> None:
+    """Add ``calstation emulate canopen``."""
+    emulate = _emulate_group(cli)
+
+    @emulate.command("canopen")
+    def emulate_canopen(
+        recipe: Path = typer.Option(..., "--recipe", help="Recipe whose simulated station to run."),
+        interface: str = typer.Option(
+            "udp_multicast", "--interface",
+            help="python-can interface (udp_multicast across processes)."),
+        channel: str = typer.Option("239.74.163.2", "--channel", help="CAN channel / group."),
+        drive_node: int = typer.Option(1, "--drive-node", help="Node id of the CiA 402 drive."),
+        encoder_node: int = typer.Option(2, "--encoder-node", help="Node id of the encoder."),
+        hokuyo_port: int | None = typer.Option(
+            None, "--hokuyo-port", help="Also serve the SCIP 2.0 lidar on this TCP port."),
+        fixture: str = typer.Option("static_target", "--fixture", help="Fixture on the platter."),
+        seed: int | None = typer.Option(None, "--seed", help="Simulation seed."),
+    ) -> None:
+        """Emulate the CiA 402 drive and CiA 406 encoder (and optionally the lidar) of one
+        simulated station until interrupted. Type 'place FIXTURE' on stdin to change fixtures."""
+        from calstation_sim import SimulatedStation
+
+        from calstation.clock import HostClock
+        from calstation.recipe import load_recipe
+
+        clock = HostClock()
+        station = SimulatedStation(load_recipe(recipe), seed=seed, clock=clock)
+        station.place(fixture)
+        nodes: list[Any] = [
+            DriveEmulator(station, node_id=drive_node, interface=interface, channel=channel,
+                          clock=clock),
+            EncoderEmulator(station.encoder_count, station.counts_per_revolution,
+                            node_id=encoder_node, interface=interface, channel=channel,
+                            clock=clock),
+        ]
+        typer.echo(f"CiA 402 drive node {drive_node}, CiA 406 encoder node {encoder_node} on "
+                   f"{interface}:{channel}")
+        if hokuyo_port is not None:
+            from calstation_hokuyo import ScipParameters, ScipSensor, TcpServer
+
+            sensor = ScipSensor(station.scan_line, ScipParameters(azimuth_sign=1),
+                                now_ns=clock.now_ns)
+            server = TcpServer(sensor, port=hokuyo_port)
+            nodes.append(server)
+            typer.echo(f"SCIP 2.0 lidar on {server.url} (mounted with azimuth_sign 1)")
+        try:
+            while True:
+                try:
+                    words = input().split()
+                except EOFError:
+                    while True:
+                        time.sleep(3600)
+                if len(words) == 2 and words[0] == "place":
+                    with contextlib.suppress(Exception):
+                        station.place(words[1])
+                        typer.echo(f"placed {words[1]}")
+        finally:
+            for node in nodes:
+                node.close()

@@ -1,0 +1,260 @@
+"""CiA 402 / CiA 406 drivers against their emulators on python-can's virtual bus: pinned frames,
+the drive state machine, PDOs, faults and heartbeat loss."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import struct
+import time
+from collections.abc import Iterator
+
+import can
+import pytest
+from calstation_canopen import (
+    CanopenError,
+    Cia402Turntable,
+    Cia406Encoder,
+    DriveEmulator,
+    EncoderEmulator,
+    RampPlatter,
+    Unwrapper,
+)
+
+from calstation.clock import HostClock
+from calstation.drivers import DriverContext, TurntableState
+
+_channels = itertools.count()
+
+
+@pytest.fixture
+def channel() -> str:
+    """A fresh virtual channel per test, so tests never hear each other."""
+    return f"calstation-test-{next(_channels)}"
+
+
+@pytest.fixture
+def sniffer(channel: str) -> Iterator[can.BusABC]:
+    """A bus on the same channel that records every frame the others send."""
+    bus = can.Bus(interface="virtual", channel=channel)
+    yield bus
+    bus.shutdown()
+
+
+def frames(bus: can.BusABC, duration_s: float = 0.05) -> list[str]:
+    """Frames received so far, as ``IDX#HEXDATA`` (candump's short form)."""
+    out = []
+    deadline = time.monotonic() + duration_s
+    while (msg := bus.recv(max(0.0, deadline - time.monotonic()))) is not None:
+        out.append(f"{msg.arbitration_id:03X}#{bytes(msg.data).hex().upper()}")
+    return out
+
+
+@pytest.fixture
+def clock() -> HostClock:
+    return HostClock()
+
+
+@pytest.fixture
+def platter(clock: HostClock) -> RampPlatter:
+    return RampPlatter(acceleration_rpm_s=600.0, clock=clock)
+
+
+@pytest.fixture
+def drive(platter: RampPlatter, channel: str, clock: HostClock) -> Iterator[DriveEmulator]:
+    emu = DriveEmulator(platter, node_id=5, channel=channel, clock=clock, heartbeat_ms=50)
+    yield emu
+    emu.close()
+
+
+@pytest.fixture
+def turntable(drive: DriveEmulator, channel: str, clock: HostClock) -> Iterator[Cia402Turntable]:
+    tt = Cia402Turntable(
+        {"interface": "virtual", "channel": channel, "node_id": 5, "heartbeat_timeout_s": 0.3},
+        DriverContext(clock=clock),
+    )
+    yield tt
+    tt.close()
+
+
+def test_sdo_write_and_rpdo_frames_are_the_documented_bytes(
+    drive: DriveEmulator, turntable: Cia402Turntable, sniffer: can.BusABC
+) -> None:
+    frames(sniffer)  # boot-up and heartbeats so far
+    turntable.sdo_write(0x6060, 0, "<b", 3)
+    seen = [f for f in frames(sniffer) if not f.startswith("705")]
+    assert seen == ["605#2F60600003000000", "585#6060600000000000"]
+    turntable.send_rpdo(0x000F, 1000)
+    assert "205#0F00E8030000" in frames(sniffer)
+
+
+def test_tpdo_frame_is_decoded(
+    channel: str, sniffer: can.BusABC, clock: HostClock, drive: DriveEmulator,
+    turntable: Cia402Turntable,
+) -> None:
+    turntable._subscribe(0x185, turntable._on_tpdo1)
+    sniffer.send(can.Message(arbitration_id=0x185, data=bytes.fromhex("3702FD010000"),
+                             is_extended_id=False))
+    time.sleep(0.05)
+    assert turntable._statusword == 0x0237
+    assert turntable.position_rad() == pytest.approx(2 * math.pi * 509 / 10_000)
+
+
+def test_enable_sequence_then_spin_turns_the_platter(
+    drive: DriveEmulator, turntable: Cia402Turntable, platter: RampPlatter,
+    sniffer: can.BusABC, clock: HostClock,
+) -> None:
+    frames(sniffer)
+    turntable.enable()
+    sent = frames(sniffer)
+    assert "000#0105" in sent  # NMT start node 5
+    controlwords = [int(f[4:8][2:] + f[4:8][:2], 16) for f in sent if f.startswith("205#")]
+    assert controlwords == [0x06, 0x07, 0x0F]
+    assert turntable.status().state is TurntableState.ENABLED
+    turntable.spin(30.0)
+    time.sleep(0.3)
+    assert platter.platter_speed_rpm(clock.now_ns()) == pytest.approx(30.0)
+    status = turntable.status()
+    assert status.state is TurntableState.MOVING
+    assert status.speed_rpm == pytest.approx(30.0)
+    assert status.position_rad == pytest.approx(platter.platter_angle(status.timestamp_ns),
+                                                abs=2e-3)
+    # TPDO1 on SYNC: statusword (operation enabled, remote, voltage) + position, little-endian
+    tpdo = [f for f in frames(sniffer) if f.startswith("185#")]
+    assert tpdo and all(len(f) == 4 + 12 for f in tpdo)
+    sw = struct.unpack("<H", bytes.fromhex(tpdo[-1][4:8]))[0]
+    assert sw & 0x6F == 0x27 and sw & 0x0210 == 0x0210
+    turntable.stop()
+    assert abs(platter.platter_speed_rpm(clock.now_ns())) < 0.05
+
+
+def test_drive_fault_is_reported_and_reset(
+    drive: DriveEmulator, turntable: Cia402Turntable, platter: RampPlatter, clock: HostClock
+) -> None:
+    turntable.enable()
+    turntable.spin(20.0)
+    time.sleep(0.1)
+    drive.inject_fault(0x2310)
+    time.sleep(0.1)
+    status = turntable.status()
+    assert status.state is TurntableState.FAULT
+    assert any("0x2310" in f for f in status.faults)
+    assert drive.commanded_rpm == 0.0  # the drive let go of the motor
+    with pytest.raises(CanopenError, match="FAULT"):
+        turntable.spin(5.0)
+    turntable.enable()  # fault reset, then the enable sequence again
+    assert turntable.status().state is TurntableState.ENABLED
+    assert turntable.status().faults == ()
+
+
+def test_quick_stop(drive: DriveEmulator, turntable: Cia402Turntable) -> None:
+    turntable.enable()
+    turntable.spin(10.0)
+    time.sleep(0.05)
+    turntable.emergency_stop()
+    time.sleep(0.1)
+    assert turntable.status().state is TurntableState.EMERGENCY_STOP
+    assert drive.commanded_rpm == 0.0
+
+
+def test_lost_drive_heartbeat_stops_and_refuses_to_spin(
+    drive: DriveEmulator, turntable: Cia402Turntable, sniffer: can.BusABC
+) -> None:
+    turntable.enable()
+    turntable.spin(10.0)
+    frames(sniffer)
+    drive.node.nmt.stop_heartbeat()  # the drive goes silent
+    time.sleep(0.6)
+    status = turntable.status()
+    assert status.state is TurntableState.FAULT
+    assert "heartbeat lost" in status.faults
+    assert any(f.startswith("205#0200") for f in frames(sniffer))  # quick stop was sent
+    with pytest.raises(CanopenError, match="heartbeat"):
+        turntable.spin(10.0)
+
+
+def test_lost_master_heartbeat_stops_the_drive(
+    drive: DriveEmulator, turntable: Cia402Turntable, platter: RampPlatter, clock: HostClock
+) -> None:
+    turntable.enable()
+    turntable.spin(10.0)
+    time.sleep(0.05)
+    turntable.bus.stop_heartbeat()  # the host process hangs
+    time.sleep(0.5)
+    assert drive.state.name == "FAULT"
+    assert 0x8130 in drive.faults
+    assert drive.commanded_rpm == 0.0
+
+
+@pytest.fixture
+def encoder_emulator(
+    platter: RampPlatter, channel: str, clock: HostClock
+) -> Iterator[EncoderEmulator]:
+    emu = EncoderEmulator(
+        lambda t: math.floor(platter.platter_angle(t) / (2 * math.pi) * 4096), 4096,
+        node_id=3, channel=channel, clock=clock, total_range=4096 * 4,
+    )
+    yield emu
+    emu.close()
+
+
+def test_encoder_on_sync_is_stamped_with_the_sync_time(
+    encoder_emulator: EncoderEmulator, platter: RampPlatter, channel: str, clock: HostClock,
+    sniffer: can.BusABC,
+) -> None:
+    ctx = DriverContext(clock=clock)
+    enc = Cia406Encoder({"interface": "virtual", "channel": channel, "node_id": 3,
+                         "sync_period_s": 0.005}, ctx)
+    try:
+        assert enc.counts_per_revolution == 4096
+        platter.set_speed(-60.0, clock.now_ns())  # one turn a second, backwards
+        time.sleep(1.2)  # past the 4-turn range of the raw position: must unwrap
+        samples = enc.samples()
+        assert len(samples) > 100
+        times = [s.timestamp_ns for s in samples]
+        assert all(b > a for a, b in itertools.pairwise(times))
+        for s in samples[-20:]:
+            expected = platter.platter_angle(s.timestamp_ns) / (2 * math.pi) * 4096
+            assert abs(s.count - expected) < 8  # within ~1 ms of the SYNC at 4096 counts/s
+        assert samples[-1].count < -4096  # signed and unwrapped
+        tpdo = [f for f in frames(sniffer) if f.startswith("183#")]
+        assert tpdo and all(len(f) == 4 + 8 for f in tpdo)  # 0x6004 as 4 bytes
+    finally:
+        enc.close()
+
+
+def test_encoder_cyclic_mode(
+    encoder_emulator: EncoderEmulator, channel: str, clock: HostClock
+) -> None:
+    enc = Cia406Encoder({"interface": "virtual", "channel": channel, "node_id": 3,
+                         "mode": "cyclic", "cyclic_ms": 5}, DriverContext(clock=clock))
+    try:
+        time.sleep(0.3)
+        n = len(enc.samples())
+        assert 30 <= n <= 70
+        assert encoder_emulator.value(0x6200) == 5
+        assert encoder_emulator.value(0x1800, 2) == 0xFE
+    finally:
+        enc.close()
+
+
+def test_unwrapper_handles_both_directions() -> None:
+    u = Unwrapper(1000)
+    assert [u(r) for r in (990, 995, 5, 10, 995, 900)] == [-10, -5, 5, 10, -5, -100]
+
+
+def test_settings_are_checked(channel: str) -> None:
+    with pytest.raises(CanopenError, match="unknown setting"):
+        Cia402Turntable({"interface": "virtual", "channel": channel, "nodeid": 3})
+    with pytest.raises(CanopenError, match="channel is required"):
+        Cia406Encoder({"interface": "virtual"})
+
+
+def test_missing_drive_times_out(channel: str, clock: HostClock) -> None:
+    tt = Cia402Turntable({"interface": "virtual", "channel": channel, "node_id": 9,
+                          "sdo_timeout_s": 0.1}, DriverContext(clock=clock))
+    try:
+        with pytest.raises(CanopenError, match="no SDO answer"):
+            tt.enable()
+    finally:
+        tt.close()
