@@ -11,18 +11,21 @@ three):
 
 The three drivers of one ``path`` share one replay session (``context.shared["replay"][path]``)
 and one :class:`ReplayClock`, exposed as ``.clock``: it starts at the recording's first timestamp
-and advances as lines are delivered (each to its last point's time) and as the caller sleeps on
-it. The lidar delivers the recorded lines in order with their own timestamps; the encoder delivers
-the recorded readings up to the clock (so, up to the last line delivered); the turntable reports
-the last recorded status at the clock (or, for recordings without any, a status derived from the
-encoder). Turntable commands are accepted and have no effect on the data. When the lidar has
-delivered the last line, its ``lines()`` iterator ends and the clock moves to the end of the
-recording, so the encoder hands out its remaining readings.
+and advances as lines are delivered (each to the time it is complete: one nominal line period
+after its start, capped at the next line's start, never before its last point) and as the caller
+sleeps on it. The lidar delivers the recorded lines in order with their own timestamps; the
+encoder delivers the recorded readings up to the clock (so, up to the last line delivered); the
+turntable reports the last recorded status at the clock (or, for recordings without any, a
+status derived from the encoder). Turntable commands are accepted and have no effect on the data
+(``stop`` on a turning platter returns at the next recorded standstill, moving the clock there).
+When the lidar has delivered the last line, its ``lines()`` iterator ends and the clock moves to
+the end of the recording, so the encoder hands out its remaining readings.
 """
 
 from __future__ import annotations
 
 import bisect
+import contextlib
 import math
 import threading
 import time
@@ -131,7 +134,11 @@ class ReplaySession:
             self.next_sample = 0
             self.exhausted = False
             self._bounds = rec.line_bounds()
-            self._status_t = [s.timestamp_ns for s in rec.turntable]
+            self._statuses = sorted(rec.turntable, key=lambda s: s.timestamp_ns)
+            self._status_t = [s.timestamp_ns for s in self._statuses]
+            t, c = rec.encoder_t_ns, rec.encoder_count
+            self._repeated = np.zeros(len(t), dtype=bool)
+            self._repeated[1:] = (t[1:] == t[:-1]) & (c[1:] == c[:-1])
             starts = [int(rec.line_timestamp_ns[0])]
             ends = [int(rec.t_ns.max()) if rec.n_points else int(rec.line_timestamp_ns[-1])]
             if len(rec.encoder_t_ns):
@@ -155,7 +162,7 @@ class ReplaySession:
 
     # --- lidar -----------------------------------------------------------------------------
     def next_line_or_none(self) -> LidarLine | None:
-        """The next recorded line (advancing the clock to its last point), or None at the end."""
+        """The next recorded line (the clock advances to when it is complete); None at the end."""
         with self.lock:
             rec = self.recording
             i = self.next_line
@@ -180,49 +187,76 @@ class ReplaySession:
                 intensity=None if rec.intensity is None else rec.intensity[a:b].copy(),
             )
             self.next_line = i + 1
-            end = int(rec.t_ns[b - 1]) if b > a else ts
+            end = self._line_end(i, ts, int(rec.t_ns[b - 1]) if b > a else ts)
         self.clock.advance_to(end)
         return line
 
+    def _line_end(self, i: int, ts: int, last_point: int) -> int:
+        """When line ``i`` is complete, as a device delivers it: one nominal line period after
+        its start (but not past the next line's start), and never before its last point."""
+        rec = self.recording
+        rate = rec.lidar_info.line_rate_hz
+        end = ts + round(1e9 / rate) if rate > 0 and math.isfinite(rate) else last_point
+        if i + 1 < rec.n_lines:
+            end = min(end, int(rec.line_timestamp_ns[i + 1]))
+        return max(end, last_point)
+
     # --- encoder ---------------------------------------------------------------------------
     def samples_until_now(self) -> list[EncoderSample]:
-        """Recorded readings not yet handed out, up to the clock."""
+        """Recorded readings not yet handed out, up to the clock.
+
+        A reading that repeats the previous one exactly (same time and count: a recorded
+        ``read()`` that added nothing to the stream) is left out; :meth:`reading_now` gives it.
+        """
         with self.lock:
             rec = self.recording
             now = self.clock.now_ns()
             stop = int(np.searchsorted(rec.encoder_t_ns, now, side="right"))
+            sl = slice(self.next_sample, stop)
             out = [
                 EncoderSample(int(t), int(c))
-                for t, c in zip(
-                    rec.encoder_t_ns[self.next_sample : stop].tolist(),
-                    rec.encoder_count[self.next_sample : stop].tolist(),
+                for t, c, dup in zip(
+                    rec.encoder_t_ns[sl].tolist(),
+                    rec.encoder_count[sl].tolist(),
+                    self._repeated[sl].tolist(),
                     strict=True,
                 )
+                if not dup
             ]
             self.next_sample = max(self.next_sample, stop)
             return out
 
     def reading_now(self) -> EncoderSample:
-        """A reading "now", as a device would give: the latest recorded reading at the clock
-        that :meth:`samples_until_now` has not handed out yet; else the next recorded reading
-        (the clock waits for it, and the stream will not repeat it); at the end of the
-        recording, the last reading."""
+        """A reading "now": the latest recorded reading at the clock; before the first one, the
+        clock waits for it (and the stream will not repeat it)."""
         with self.lock:
             rec = self.recording
-            n = len(rec.encoder_t_ns)
-            if n == 0:
+            if len(rec.encoder_t_ns) == 0:
                 raise DriverError(f"replay: recording {self.path} has no encoder readings")
             i = int(np.searchsorted(rec.encoder_t_ns, self.clock.now_ns(), side="right")) - 1
-            if i < self.next_sample:
-                if self.next_sample < n:
-                    i = self.next_sample
-                    self.next_sample += 1
-                    self.clock.advance_to(int(rec.encoder_t_ns[i]))
-                else:
-                    i = n - 1
+            if i < 0:
+                i = 0
+                self.clock.advance_to(int(rec.encoder_t_ns[0]))
+                self.next_sample = max(self.next_sample, 1)
             return EncoderSample(int(rec.encoder_t_ns[i]), int(rec.encoder_count[i]))
 
     # --- turntable -------------------------------------------------------------------------
+    def wait_for_standstill(self) -> None:
+        """If the recorded platter is turning at the clock, advance the clock to the next
+        recorded status at standstill (speed 0), if there is one."""
+        with self.lock:
+            now = self.clock.now_ns()
+            i = bisect.bisect_right(self._status_t, now)
+            if i == 0 or self._statuses[i - 1].speed_rpm == 0.0:
+                return
+            for s in self._statuses[i:]:
+                if s.speed_rpm == 0.0:
+                    target = s.timestamp_ns
+                    break
+            else:
+                return
+        self.clock.advance_to(target)
+
     def status_now(self, state: TurntableState) -> TurntableStatus:
         """The last recorded status at the clock; else one derived from the encoder."""
         with self.lock:
@@ -230,7 +264,7 @@ class ReplaySession:
             now = self.clock.now_ns()
             if self._status_t:
                 i = bisect.bisect_right(self._status_t, now) - 1
-                s = rec.turntable[max(i, 0)]
+                s = self._statuses[max(i, 0)]
                 return TurntableStatus(now, s.state, s.speed_rpm, s.position_rad, s.faults)
             speed, position = 0.0, None
             t, c = rec.encoder_t_ns, rec.encoder_count
@@ -269,7 +303,7 @@ class ReplayLidar:
         self._running = False
 
     def lines(self) -> Iterator[LidarLine]:
-        """The recorded lines in order, each advancing the clock to its last point, until
+        """The recorded lines in order, each advancing the clock to when it is complete, until
         :meth:`stop` or the end of the recording."""
         if not self._running:
             raise DriverError("replay lidar: lines() called before start()")
@@ -317,13 +351,16 @@ class ReplayTurntable:
             raise DriverError(f"replay turntable: angle must be finite, got {angle_rad}")
 
     def stop(self) -> None:
-        """Record a zero commanded speed."""
+        """Returns when stopped: the clock moves on to the next recorded standstill, if any."""
         self.commanded_rpm = 0.0
+        self.session.wait_for_standstill()
 
     def emergency_stop(self) -> None:
-        """Record the stop. Never raises."""
+        """Like :meth:`stop`. Never raises."""
         self.commanded_rpm = 0.0
         self._state = TurntableState.EMERGENCY_STOP
+        with contextlib.suppress(Exception):  # an emergency stop must never raise
+            self.session.wait_for_standstill()
 
     def status(self) -> TurntableStatus:
         """The recorded status at the replay clock (see the module docs)."""
