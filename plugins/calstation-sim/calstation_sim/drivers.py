@@ -51,9 +51,10 @@ def _wait_until(clock: Clock, t_ns: int) -> None:
 class SimLidar:
     """The simulated line scanner (satisfies :class:`calstation.drivers.Lidar`).
 
-    Lines lie on a fixed grid from :meth:`start`: line k starts at ``t_start + k·period``. When the
-    consumer lets time pass (the clock moved on), lines in the past are skipped, as a device with
-    no buffer would drop them.
+    Lines lie on a fixed grid from :meth:`start`: line k starts at ``t_start + k·period``. On a
+    SimClock, when the consumer lets simulated time pass (``clock.sleep``), lines that started in
+    the past are skipped, as a device without a buffer would drop them; on a real-time clock the
+    lines are produced in order, each once real time has reached its end.
     """
 
     def __init__(self, station: SimulatedStation) -> None:
@@ -85,6 +86,7 @@ class SimLidar:
         if not self._running:
             raise DriverError("sim lidar: lines() called before start()")
         period = self.station.line_period_ns
+        simulated = isinstance(self.clock, SimClock)
         while self._running:
             behind = (self.clock.now_ns() - self._t_start) / period
             k0 = max(self._next, math.ceil(behind - 1e-9))
@@ -96,6 +98,8 @@ class SimLidar:
                     return
                 if self.station.revision != revision:
                     break  # the scene or the motion changed: recompute from here
+                if simulated and line.timestamp_ns < self.clock.now_ns():
+                    continue  # the consumer let simulated time pass: this line is gone
                 _wait_until(self.clock, self._line_time(k0 + j + 1))
                 self._next = k0 + j + 1
                 yield line

@@ -263,7 +263,7 @@ def load_mesh_file(path: Path, field: str) -> o3d.geometry.TriangleMesh:
         raise SimulationError(f"{field}: mesh file not found: {path}")
     if path.suffix.lower() not in {".stl", ".ply", ".obj"}:
         raise SimulationError(f"{field}: {path} is not an STL, PLY or OBJ mesh")
-    mesh = o3d.io.read_triangle_mesh(str(path))
+    mesh = o3d.io.read_triangle_mesh(path)
     if len(mesh.triangles) == 0 or len(mesh.vertices) == 0:
         raise SimulationError(f"{field}: mesh file {path} holds no triangles")
     v = np.asarray(mesh.vertices)

@@ -77,7 +77,8 @@ def _tensor_scene(parts: list[o3d.geometry.TriangleMesh]) -> o3d.t.geometry.Rayc
     for mesh in parts:
         v, t = meshes.mesh_arrays(mesh)
         scene.add_triangles(
-            o3d.core.Tensor(v.astype(np.float32)), o3d.core.Tensor(t.astype(np.uint32))
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(v.astype(np.float32))),
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(t.astype(np.uint32))),
         )
     return scene
 
@@ -89,7 +90,7 @@ def _cast(
     rays = np.empty((len(dirs), 6), dtype=np.float32)
     rays[:, :3] = origins
     rays[:, 3:] = dirs
-    hit = scene.cast_rays(o3d.core.Tensor(rays), nthreads=0)
+    hit = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)), nthreads=0)
     return np.asarray(hit["t_hit"].numpy(), dtype=np.float64)
 
 
@@ -433,7 +434,9 @@ class SimulatedStation:
         rays[:, 3] = d[:, 0]
         rays[:, 4] = c * d[:, 1] + s * d[:, 2]
         rays[:, 5] = -s * d[:, 1] + c * d[:, 2]
-        hit = self._scene_D.cast_rays(o3d.core.Tensor(rays), nthreads=0)
+        hit = self._scene_D.cast_rays(
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)), nthreads=0
+        )
         return np.asarray(hit["t_hit"].numpy(), dtype=np.float64)
 
     def _mix_pixels(self, r: FloatArray, phi: FloatArray, rng: np.random.Generator) -> None:
