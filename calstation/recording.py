@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import contextlib
 import json
 import math
 import os
@@ -217,6 +218,27 @@ class RecordingWriter:
                     f"metadata record {name!r} is written by the recorder itself; "
                     f"reserved names: {', '.join(RESERVED_METADATA)}"
                 )
+        created_ns = time.time_ns()
+        records = {
+            "calstation": {
+                "format_version": FORMAT_VERSION,
+                "kind": kind,
+                "station_id": station_id,
+                "recipe_name": recipe.recipe.name if recipe is not None else "",
+                "recipe_sha256": recipe.sha256 if recipe is not None else "",
+                "created_ns": created_ns,
+            },
+            "lidar": lidar_info.as_dict(),
+            "encoder": {
+                "counts_per_revolution": int(counts_per_revolution),
+                "direction": int(encoder_direction),
+                "latency_s": float(encoder_latency_s),
+            },
+            **dict(metadata or {}),
+        }
+        # encode everything before creating the file, so bad metadata leaves no file behind
+        encoded = {name: _encode_metadata(name, data) for name, data in records.items()}
+
         self.path = Path(path)
         self._lock = threading.RLock()
         self._chunk_size = int(chunk_size)
@@ -228,9 +250,7 @@ class RecordingWriter:
             raise RecordingError(f"cannot create recording {self.path}: {exc}") from exc
         # the mcap writer never closes a chunk on its own: this class decides (size or time)
         # and flushes the file right after, so finished chunks are on disk during the scan
-        self._writer = Writer(
-            self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD
-        )
+        self._writer = Writer(self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD)
         self._closed = False
         self._pending = 0
         self._last_flush = time.monotonic()
@@ -238,43 +258,26 @@ class RecordingWriter:
         self.lines_written = 0
         self.points_written = 0
         self.encoder_samples_written = 0
-
-        self._writer.start(profile="", library=f"calstation recording v{FORMAT_VERSION}")
-        created_ns = time.time_ns()
-        self._write_metadata(
-            "calstation",
-            {
-                "format_version": FORMAT_VERSION,
-                "kind": kind,
-                "station_id": station_id,
-                "recipe_name": recipe.recipe.name if recipe is not None else "",
-                "recipe_sha256": recipe.sha256 if recipe is not None else "",
-                "created_ns": created_ns,
-            },
-        )
-        self._write_metadata("lidar", lidar_info.as_dict())
-        self._write_metadata(
-            "encoder",
-            {
-                "counts_per_revolution": int(counts_per_revolution),
-                "direction": int(encoder_direction),
-                "latency_s": float(encoder_latency_s),
-            },
-        )
-        for name, data in (metadata or {}).items():
-            self._write_metadata(name, data)
-        if recipe is not None:
-            self._writer.add_attachment(
-                create_time=created_ns,
-                log_time=created_ns,
-                name=RECIPE_ATTACHMENT,
-                media_type="application/yaml",
-                data=recipe.text.encode("utf-8"),
-            )
-        self._lidar_channel = self._channel(LIDAR_TOPIC, LIDAR_SCHEMA)
-        self._encoder_channel = self._channel(ENCODER_TOPIC, ENCODER_SCHEMA)
-        self._turntable_channel = self._channel(TURNTABLE_TOPIC, TURNTABLE_SCHEMA)
-        self._file.flush()
+        try:
+            self._writer.start(profile="", library=f"calstation recording v{FORMAT_VERSION}")
+            for name, data in encoded.items():
+                self._writer.add_metadata(name, data)
+            if recipe is not None:
+                self._writer.add_attachment(
+                    create_time=created_ns,
+                    log_time=created_ns,
+                    name=RECIPE_ATTACHMENT,
+                    media_type="application/yaml",
+                    data=recipe.text.encode("utf-8"),
+                )
+            self._lidar_channel = self._channel(LIDAR_TOPIC, LIDAR_SCHEMA)
+            self._encoder_channel = self._channel(ENCODER_TOPIC, ENCODER_SCHEMA)
+            self._turntable_channel = self._channel(TURNTABLE_TOPIC, TURNTABLE_SCHEMA)
+            self._file.flush()
+        except OSError as exc:
+            self._closed = True
+            self._file.close()
+            raise RecordingError(f"cannot write recording {self.path}: {exc}") from exc
 
     # --- public API ----------------------------------------------------------------------
     def write_line(self, line: LidarLine) -> None:
@@ -351,7 +354,14 @@ class RecordingWriter:
     def __enter__(self) -> RecordingWriter:
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object
+    ) -> None:
+        """Close the file; if the block raised, first add an ``aborted`` metadata record
+        (``error``: the exception's type and message), so the partial scan says why it ended."""
+        if exc is not None and not self._closed:
+            with contextlib.suppress(Exception):
+                self.add_metadata("aborted", {"error": f"{type(exc).__name__}: {exc}"})
         self.close()
 
     # --- internals -----------------------------------------------------------------------

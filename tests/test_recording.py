@@ -351,3 +351,23 @@ def test_points_lidar(tmp_path: Path) -> None:
     np.testing.assert_allclose(p_L, polar_to_lidar(rec.range_m[v], line.azimuth_rad[v]))
     np.testing.assert_allclose(phi, rec.platter_angle(line.point_times_ns()[v]))
     assert len(phi) == v.sum()
+
+
+def test_failed_scan_is_closed_with_the_reason(tmp_path: Path) -> None:
+    path = tmp_path / "failed.mcap"
+    with pytest.raises(RuntimeError, match="turntable fault"), writer(path) as w:
+        for i in range(5):
+            w.write_line(make_line(i))
+        raise RuntimeError("turntable fault: overcurrent")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rec = read_recording(path)
+    assert not rec.truncated and rec.n_lines == 5
+    assert rec.metadata["aborted"] == {"error": "RuntimeError: turntable fault: overcurrent"}
+
+
+def test_bad_metadata_leaves_no_file(tmp_path: Path) -> None:
+    path = tmp_path / "never.mcap"
+    with pytest.raises(RecordingError, match=r"metadata 'truth' key 'x' cannot be stored"):
+        writer(path, metadata={"truth": {"x": object()}})
+    assert not path.exists()
