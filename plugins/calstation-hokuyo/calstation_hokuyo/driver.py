@@ -277,8 +277,8 @@ class HokuyoLidar:
             return
         try:
             self._port = serial.serial_for_url(
-                self.url, baudrate=int(self.settings["baudrate"]), timeout=0.05
-            )
+                self.url, baudrate=int(self.settings["baudrate"]), timeout=0
+            )  # non-blocking: reads return what has arrived (pyserial's socket in_waiting is 0/1)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise HokuyoError(f"hokuyo: cannot open {self.url}: {exc}") from exc
         self._buf = b""
@@ -329,10 +329,13 @@ class HokuyoLidar:
             if port is None:
                 raise HokuyoError(f"hokuyo: port {self.url} is closed")
             try:
-                chunk = port.read(max(1, port.in_waiting))
+                chunk = port.read(65536)
             except (serial.SerialException, OSError) as exc:
                 raise HokuyoError(f"hokuyo: reading from {self.url} failed: {exc}") from exc
-            self._buf += chunk
+            if chunk:
+                self._buf += chunk
+            else:
+                time.sleep(0.0005)
 
     def command(self, request: str, ok: tuple[str, ...] = ("00",)) -> Reply:
         """Send ``request`` (without LF) and return its reply; :class:`ScipStatusError` if the

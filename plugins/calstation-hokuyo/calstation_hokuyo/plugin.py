@@ -28,7 +28,9 @@ class EmulatedHokuyo(HokuyoLidar):
         from .simscene import simulated_station
 
         station = simulated_station(context)
-        self.emulator = ScipSensor(station.scan_line, ScipParameters(), now_ns=context.clock.now_ns)
+        # the emulated sensor is mounted the way the driver's settings say (azimuth_sign)
+        params = ScipParameters(azimuth_sign=int(settings.get("azimuth_sign", -1)))
+        self.emulator = ScipSensor(station.scan_line, params, now_ns=context.clock.now_ns)
         self.server = TcpServer(self.emulator)
         cfg = {k: v for k, v in settings.items() if k not in ("emulate", "port")}
         super().__init__({**cfg, "port": self.server.url}, clock=context.clock)
