@@ -14,6 +14,7 @@ Times are seconds since the station's time origin; angles radians, right-handed 
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,6 +56,7 @@ class PlatterMotion:
         self.cycles = cycles
         self._segments: list[_Segment] = [_Segment(0.0, 0.0, 0.0, 0.0, acceleration)]
         self._t0 = np.array([0.0])
+        self._lock = threading.RLock()  # real-time emulators command and query from threads
 
     # --- commands -------------------------------------------------------------------------
     def command(self, t: float, speed: float, acceleration: float | None = None) -> float:
@@ -62,15 +64,16 @@ class PlatterMotion:
 
         ``t`` earlier than the previous command is moved up to it (time never runs backwards).
         """
-        t = max(t, self._segments[-1].t0)
-        phi_n, w = self._nominal_scalar(t)
-        seg = _Segment(t, phi_n, w, speed, acceleration or self.acceleration)
-        if t == self._segments[-1].t0:
-            self._segments[-1] = seg
-        else:
-            self._segments.append(seg)
-        self._t0 = np.array([s.t0 for s in self._segments])
-        return t + seg.ramp_s
+        with self._lock:
+            t = max(t, self._segments[-1].t0)
+            phi_n, w = self._nominal_scalar(t)
+            seg = _Segment(t, phi_n, w, speed, acceleration or self.acceleration)
+            if t == self._segments[-1].t0:
+                self._segments[-1] = seg
+            else:
+                self._segments.append(seg)
+            self._t0 = np.array([s.t0 for s in self._segments])
+            return t + seg.ramp_s
 
     @property
     def last_command_time(self) -> float:
@@ -94,9 +97,10 @@ class PlatterMotion:
     def nominal(self, t: ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Nominal angle φₙ (rad) and speed ωₙ (rad/s) at times ``t`` (s), without ripple."""
         tt = np.asarray(t, dtype=np.float64)
-        idx = np.clip(np.searchsorted(self._t0, tt, side="right") - 1, 0, None)
-        segs = self._segments
-        t0 = self._t0[idx]
+        with self._lock:
+            segs, starts = list(self._segments), self._t0
+        idx = np.clip(np.searchsorted(starts, tt, side="right") - 1, 0, None)
+        t0 = starts[idx]
         phi0 = np.array([s.phi0 for s in segs])[idx]
         w0 = np.array([s.w0 for s in segs])[idx]
         w1 = np.array([s.w1 for s in segs])[idx]
