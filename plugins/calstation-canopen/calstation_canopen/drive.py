@@ -287,6 +287,16 @@ class Cia402Turntable:
         with self._lock:
             self.faults = [f for f in self.faults if not f.startswith("EMCY")]
 
+    def info(self) -> dict[str, Any]:
+        """Identity read by SDO: node id, device type 0x1000, supported drive modes 0x6502."""
+        return {
+            "protocol": "CANopen CiA 402",
+            "bus": f"{self.bus.interface}:{self.bus.channel}",
+            "node_id": self.node_id,
+            "device_type": f"0x{self.sdo_read(0x1000, 0, '<I'):08X}",
+            "supported_drive_modes": f"0x{self.sdo_read(ds.SUPPORTED_DRIVE_MODES, 0, '<I'):08X}",
+        }
+
     def _units(self, rpm: float) -> int:
         return round(int(self.settings["direction"]) * rpm / float(self.settings[
             "velocity_unit_rpm"]))

@@ -169,6 +169,18 @@ class Cia406Encoder:
             self._latest = sample
             self._new.notify_all()
 
+    def info(self) -> dict[str, Any]:
+        """Identity read by SDO: node id, device type 0x1000, resolution and range."""
+        return {
+            "protocol": "CANopen CiA 406",
+            "bus": f"{self.bus.interface}:{self.bus.channel}",
+            "node_id": self.node_id,
+            "device_type": f"0x{self._sdo(0x1000, 0, '<I'):08X}",
+            "counts_per_revolution": self._cpr,
+            "total_measuring_range": self.unwrap.total_range,
+            "mode": self.settings["mode"],
+        }
+
     @property
     def counts_per_revolution(self) -> int:
         """0x6001 measuring units per revolution."""

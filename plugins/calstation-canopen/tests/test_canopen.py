@@ -4,6 +4,7 @@ the drive state machine, PDOs, faults and heartbeat loss."""
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import struct
 import time
@@ -258,3 +259,25 @@ def test_missing_drive_times_out(channel: str, clock: HostClock) -> None:
             tt.enable()
     finally:
         tt.close()
+
+
+def test_probe_turntable_and_encoder(
+    drive: DriveEmulator, encoder_emulator: EncoderEmulator, channel: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from calstation.cli import main
+
+    for kind, driver, node in (("turntable", "canopen402", 5), ("encoder", "canopen406", 3)):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["probe", kind, "--driver", driver, "--interface", "virtual", "--channel",
+                  channel, "--node-id", str(node), "--json"])
+        assert exit_info.value.code in (0, None)
+        out = json.loads(capsys.readouterr().out)
+        assert out["info"]["node_id"] == node
+        if kind == "turntable":
+            assert out["info"]["device_type"] == "0x00020192"
+            assert out["status"]["state"] == "disabled"
+        else:
+            assert out["info"]["counts_per_revolution"] == 4096
+            assert isinstance(out["sample"]["count"], int)
+    assert drive.commanded_rpm == 0.0  # a probe never moves the motor
