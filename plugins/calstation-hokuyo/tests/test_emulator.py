@@ -1,0 +1,204 @@
+"""The driver against the SCIP 2.0 emulator over TCP and a pty: streaming, time, faults."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+from calstation_hokuyo import (
+    ClockSync,
+    HokuyoError,
+    HokuyoLidar,
+    PtyServer,
+    ScipChecksumError,
+    ScipParameters,
+    ScipSensor,
+    ScipTimeout,
+    TcpServer,
+    WallScene,
+    scip,
+)
+
+from calstation.drivers import LidarLine
+
+
+def take(lidar: HokuyoLidar, n: int) -> list[LidarLine]:
+    """Stream ``n`` lines, then stop."""
+    lidar.start()
+    try:
+        return list(itertools.islice(lidar.lines(), n))
+    finally:
+        lidar.stop()
+
+
+@pytest.fixture
+def sensor() -> ScipSensor:
+    return ScipSensor(WallScene(2.0))
+
+
+@pytest.fixture
+def server(sensor: ScipSensor) -> Iterator[TcpServer]:
+    with TcpServer(sensor) as srv:
+        yield srv
+
+
+@pytest.fixture
+def lidar(server: TcpServer) -> Iterator[HokuyoLidar]:
+    drv = HokuyoLidar({"port": server.url, "timeout_s": 0.5})
+    yield drv
+    drv.close()
+
+
+def test_gd_example_bytes_from_the_emulator() -> None:
+    """PROTOCOLS.md's GD0384038500 reply, produced by the emulator with UTM-30LX parameters."""
+    boot = 1_700_000_000_000_000_000
+    params = ScipParameters(ares=1024, amin=44, amax=725, afrt=384, scan_rpm=600,
+                            dmax_mm=5600, sensor_clock_start_ms=16_000_000 + 200)
+
+    def scene(t_ns: int) -> LidarLine:
+        az = params.step_azimuths(384, 385)
+        return LidarLine(t_ns, az, np.array([5.432, 1.234]), np.array([True, True]))
+
+    sensor = ScipSensor(scene, params, now_ns=lambda: boot)
+    sensor.laser_on = True
+    # the reply carries the last complete scan, which started 2 periods (200 ms) before "now"
+    assert sensor.receive(b"GD0384038500\n") == b"GD0384038500\n00P\nm2@0?\n1Dh0CBB\n\n"
+    assert sensor.receive(b"QT\n") == b"QT\n00P\n\n"
+    assert sensor.receive(b"GD0384038500\n") == b"GD0384038500\n10Q\n\n"  # laser off
+    assert sensor.receive(b"XX\n") == b"XX\n0Dd\n\n"  # undefined command
+
+
+def test_pp_of_the_emulator(lidar: HokuyoLidar) -> None:
+    p = lidar.parameters()
+    assert (p.ares, p.amin, p.amax, p.afrt, p.scan_rpm) == (5000, 2000, 3000, 2500, 6000)
+    info = lidar.info()
+    assert info.points_per_line == 1001
+    assert math.degrees(info.fov_rad) == pytest.approx(72.0)
+    assert info.line_rate_hz == pytest.approx(100.0)
+
+
+def test_streamed_lines_see_the_wall_at_the_right_azimuths_and_times(
+    lidar: HokuyoLidar, sensor: ScipSensor
+) -> None:
+    lines = take(lidar, 20)
+    assert len(lines) == 20
+    for line in lines:
+        assert line.valid.all()
+        np.testing.assert_allclose(line.range_m, 2.0 / np.cos(line.azimuth_rad), atol=0.0011)
+    first = lines[0].azimuth_rad
+    assert math.degrees(first[0]) == pytest.approx(36.0)  # AMIN is +36° with azimuth_sign −1
+    assert math.degrees(first[-1]) == pytest.approx(-36.0)
+    stamps = np.array([line.timestamp_ns for line in lines])
+    np.testing.assert_allclose(np.diff(stamps), 10e6, atol=0.2e6)
+    # the emulator's scans start on a 10 ms grid from its power-on; the driver's stamps land on
+    # it within the clock sync error
+    phase = (stamps - sensor._boot_ns) % 10_000_000
+    phase = np.minimum(phase, 10_000_000 - phase)
+    assert phase.max() < 1.0e6
+    assert lines[0].point_period_ns == pytest.approx(2000.0)
+
+
+def test_ms_encoding_and_clusters(server: TcpServer) -> None:
+    drv = HokuyoLidar({"port": server.url, "encoding": "S", "cluster": 4,
+                       "start_step": 2400, "end_step": 2600})
+    try:
+        lines = take(drv, 3)
+    finally:
+        drv.close()
+    assert len(lines[0]) == math.ceil(201 / 4)
+    # a cluster reports its nearest return; 2-character values are whole millimetres ≤ 4095
+    np.testing.assert_allclose(lines[0].range_m, 2.0 / np.cos(lines[0].azimuth_rad), atol=0.004)
+
+
+def test_over_a_pty(sensor: ScipSensor) -> None:
+    with PtyServer(sensor) as pty:
+        drv = HokuyoLidar({"port": pty.url, "timeout_s": 0.5})
+        try:
+            assert drv.version()["PROT"] == "SCIP 2.0"
+            lines = take(drv, 5)
+        finally:
+            drv.close()
+    assert len(lines) == 5 and all(line.valid.all() for line in lines)
+
+
+def test_timestamps_across_the_24_bit_wrap() -> None:
+    params = ScipParameters(sensor_clock_start_ms=scip.TIMESTAMP_WRAP_MS - 150)
+    with TcpServer(ScipSensor(WallScene(), params)) as srv:
+        drv = HokuyoLidar({"port": srv.url})
+        try:
+            lines = take(drv, 40)  # 400 ms: crosses the wrap
+        finally:
+            drv.close()
+    stamps = np.array([line.timestamp_ns for line in lines])
+    np.testing.assert_allclose(np.diff(stamps), 10e6, atol=0.2e6)
+
+
+def test_clock_sync_estimates_drift_and_unwraps() -> None:
+    sync = ClockSync(min_drift_baseline_s=1.0)
+    host0 = 1_000_000_000_000
+    for k, host in enumerate((host0, host0 + 10_000_000_000)):
+        sensor_ms = (scip.TIMESTAMP_WRAP_MS - 3000 + round(k * 10_000 * 1.0002)) % (
+            scip.TIMESTAMP_WRAP_MS)
+        sync.add(host - 200_000, host + 200_000, sensor_ms)
+        sync.add(host - 900_000, host + 900_000, sensor_ms)  # a slower round trip: not used
+        sync.commit()
+    assert sync.drift_ppm == pytest.approx(200, abs=1)
+    # a sensor time after the wrap maps forward in host time
+    later = sync.unwrap(20_000)  # the second anchor read 7002 ms, after the wrap
+    expected = host0 + 10_000_000_000 + (20_000 - 7002 - 0.5) / 1.0002 * 1e6
+    assert sync.to_host_ns(later) == pytest.approx(expected, abs=1e3)
+
+
+def test_bad_sum_while_streaming_is_a_clear_error(lidar: HokuyoLidar, sensor: ScipSensor) -> None:
+    lidar.start()
+    try:
+        sensor.faults.corrupt_next_reply = True
+        with pytest.raises(ScipChecksumError, match="bad sum"):
+            for _ in itertools.islice(lidar.lines(), 50):
+                pass
+    finally:
+        lidar.stop()
+
+
+def test_laser_malfunction(lidar: HokuyoLidar, sensor: ScipSensor) -> None:
+    sensor.faults.laser_malfunction = True
+    with pytest.raises(HokuyoError, match="laser malfunction"):
+        lidar.start()
+
+
+def test_reconnects_after_a_timeout(server: TcpServer, sensor: ScipSensor) -> None:
+    drv = HokuyoLidar({"port": server.url, "timeout_s": 0.3, "reconnect_attempts": 10})
+    wake = threading.Timer(1.0, lambda: setattr(sensor.faults, "silent", False))
+    try:
+        drv.start()
+        got = 0
+        for _ in drv.lines():
+            got += 1
+            if got == 5:
+                sensor.faults.silent = True  # the sensor hangs for a second
+                wake.start()
+            if got >= 15:
+                break
+        drv.stop()
+    finally:
+        wake.cancel()
+        drv.close()
+    assert drv.reconnects >= 1
+    assert server.connections >= 2
+    assert got == 15
+
+
+def test_times_out_when_the_sensor_stays_silent(lidar: HokuyoLidar, sensor: ScipSensor) -> None:
+    lidar.settings["reconnect_attempts"] = 1
+    lidar.start()
+    sensor.faults.silent = True
+    t0 = time.monotonic()
+    with pytest.raises(ScipTimeout, match="no scan"):
+        for _ in lidar.lines():
+            pass
+    assert time.monotonic() - t0 < 5.0
