@@ -140,6 +140,19 @@ def test_cube_check_fails_with_rz_off_by_one_degree(cube_scan: tuple[Any, dict[s
     assert cube_check_passes(faces, 0.100, 0.001) != []
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize(("range_m", "pitch_deg"), [(1.0, 30.0), (1.5, 60.0), (1.0, 60.0)])
+def test_cube_with_true_H_in_other_scenarios(
+    sim_run: Callable[..., dict[str, Path]], range_m: float, pitch_deg: float
+) -> None:
+    paths = sim_run(range_m=range_m, pitch_deg=pitch_deg, seed=2)
+    truth = json.loads(paths["truth"].read_text())
+    recording = read_recording(paths["cube"])
+    assert recording.truth is not None
+    faces = cube_faces(reconstruct(recording, recording.truth), truth["fixtures"]["qa_cube"])
+    assert cube_check_passes(faces, 0.100, 0.001) == [], faces
+
+
 # --- the loops themselves, on a small fast station ------------------------------------------------
 SMALL = {"points_per_line": 100, "line_rate_hz": 1000}
 
