@@ -1,0 +1,62 @@
+"""End to end through the real drivers: ``calstation run recipes/hokuyo-canopen-emulated.yaml``.
+
+The Hokuyo driver talks SCIP 2.0 over TCP to its emulator and the CANopen drivers talk to the
+emulated CiA 402 drive and CiA 406 encoder over python-can's virtual bus; the three emulators share
+one simulated station running in real time. The calibration is checked against the simulator's
+truth with the engine's thresholds. About a minute and a half of wall-clock time: marked slow.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("calstation_sim")
+pytest.importorskip("calstation_canopen")
+
+RECIPE = Path(__file__).resolve().parents[3] / "recipes" / "hokuyo-canopen-emulated.yaml"
+AXIS_OFFSET_M = 0.5e-3
+AXIS_ANGLE_RAD = math.radians(0.1)
+RZ_RAD = math.radians(0.05)
+
+
+@pytest.mark.slow
+def test_calibration_through_the_real_drivers_and_emulators(tmp_path: Path) -> None:
+    from calstation.metrics import axis_errors
+
+    from calstation.db import Artifact, Calibration, Database, Run
+    from calstation.frames import Extrinsics
+    from calstation.recording import read_recording
+
+    url = f"sqlite:///{tmp_path / 'e2e.db'}"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CALSTATION_")}
+    env.update({"CALSTATION_HOME": str(tmp_path / "home"), "CALSTATION_OPERATOR": "e2e",
+                "COLUMNS": "120"})
+    proc = subprocess.run(
+        [sys.executable, "-c", "from calstation.cli import main; main()",
+         "run", str(RECIPE), "--yes", "--db", url],
+        env=env, capture_output=True, text=True, timeout=900,
+    )
+    db = Database(url)
+    with db.session() as s:
+        (run,) = s.query(Run).all()
+        run_id, status, error = run.id, run.status, run.error
+        fine = [c.params() for c in s.query(Calibration).filter_by(run_id=run_id)
+                if c.stage == "fine"]
+        static = s.query(Artifact).filter_by(run_id=run_id, kind="static").one().path
+    truth = read_recording(static).truth
+    assert truth is not None, "the emulated run records the simulated truth"
+    assert fine, f"no fine calibration (run {status}: {error})\n{proc.stdout[-3000:]}"
+    errors = axis_errors(Extrinsics.from_dict(fine[-1]), truth)
+    print(json.dumps({k: float(v) for k, v in errors.items()}, indent=1))
+    assert errors["axis_offset_m"] <= AXIS_OFFSET_M, errors
+    assert errors["axis_angle_rad"] <= AXIS_ANGLE_RAD, errors
+    rz = errors.get("rz", errors.get("rz_rad"))
+    assert rz is not None and abs(rz) <= RZ_RAD, errors
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
