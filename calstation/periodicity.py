@@ -1,0 +1,610 @@
+"""Periodicity-constrained fine-tuning (paper §III-B-2, §IV-C; DESIGN §5) with calstation's
+robustness additions.
+
+Every surface point of the spin target is seen twice per revolution: once in the half-turn
+φ ∈ [0, π) and once in [π, 2π). With the right H both half-turn reconstructions in frame D
+coincide. The cost is the weighted point-to-plane distance between mutual nearest neighbours of
+the two halves, ``Σ w·(n·(x − x′))²`` with normals from the nearest points and the planarity
+weight ``w = 2(λ2 − λ3)/(λ1 + λ2 + λ3)``, minimised by SciPy's TRF.
+
+What calstation adds (docs/algorithms.md):
+
+- **Static-point removal.** Returns that stay at the same place in L over the whole scan (the
+  platter ring, the background, any face of revolution) carry no periodicity information; they
+  are found per azimuth bin, independently of H, and dropped. Points within a few mm of the
+  platter top are dropped too once H is good enough to tell them apart.
+- **Coarse-to-fine schedule.** Voxel size, match radius and normal neighbourhood shrink over four
+  stages (20 → 2 mm voxels), so matching converges from starts 100–200 mm and 1–2° off.
+  Voxels average the raw returns (in L) and their platter angles, which keeps the noise
+  averaging of the raw data at a fraction of the cost.
+- **Symmetric residuals.** Each match contributes its distance along the normal of both ends.
+- **Bounds.** tx, ty, tz and rz are bounded ±``translation_bound``/±``rotation_bound_deg``
+  around the current estimate (re-centred every outer iteration: they are sharp in the cost);
+  ry is bounded ±``ry_bound_deg`` around its *start* and never re-centred (the cost is nearly
+  flat in ry; a re-centred bound lets it walk away).
+- **Gauge.** The periodicity cost cannot see a shift along the axis. ``gauge: platter`` (the
+  default) fixes it with the platter: the top surface of the platter is the plane x_P = 0, so
+  the static platter returns add the residual x_P = a·(p_L − t) = 0, which also sharpens rz. The
+  coarse stages hold ty fixed (the paper's fix) until the platter is identified.
+  ``gauge: ty`` is the paper's fix throughout.
+- **Covariance** σ²·(JᵀJ)⁻¹ from the final Jacobian with σ² from the residuals, matches per
+  iteration, per-stage costs and timings in the diagnostics.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from .errors import FineTuningError
+from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, euler_to_matrix, lidar_to_polar
+from .recipe import PeriodicitySettings
+from .result import CalibrationResult
+
+if TYPE_CHECKING:
+    from .recording import Recording
+
+Progress = Callable[[str, float], None]
+
+IDX = {name: i for i, name in enumerate(PARAMETER_NAMES)}
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One step of the coarse-to-fine schedule (metres)."""
+
+    voxel: float
+    match_radius: float
+    normal_neighbours: int
+    platter_drop: float | None
+    """drop points with x_P below this (None: only static points are dropped)"""
+    use_platter: bool
+    """add the platter residual (gauge ``platter``) in this stage"""
+    max_points: int | None
+    """random subset of raw returns per half-turn used in this stage (None: all)"""
+    max_outer: int
+    """outer iterations (re-matching) at most"""
+    mutual: bool = True
+    """mutual nearest neighbours (paper) or every point against the other half's plane"""
+
+
+def schedule(settings: PeriodicitySettings) -> list[Stage]:
+    """The stages for ``settings``: four coarse-to-fine stages, or the paper's single stage."""
+    k = settings.normal_neighbours
+    platter = settings.gauge == "platter"
+    if not settings.coarse_to_fine:
+        return [
+            Stage(
+                0.001,
+                settings.match_distance,
+                max(8, k // 2),
+                0.004,
+                platter,
+                None,
+                settings.max_outer,
+            )
+        ]
+    n = settings.max_outer
+    return [
+        Stage(0.020, min(0.12, settings.match_distance), max(8, k // 4), None, False, 60_000, n),
+        Stage(
+            0.010, min(0.05, settings.match_distance), max(12, k // 3), 0.008, platter, 120_000, n
+        ),
+        Stage(
+            0.005, min(0.02, settings.match_distance), max(16, k // 2), 0.005, platter, 300_000, n
+        ),
+        Stage(0.001, min(0.004, settings.match_distance), max(8, k // 2), 0.004, platter, None, n),
+    ]
+
+
+# --- geometry helpers ------------------------------------------------------------------------
+def _rotation(x6: FloatArray) -> FloatArray:
+    return euler_to_matrix(float(x6[3]), float(x6[4]), float(x6[5]))
+
+
+def to_dynamic(
+    p_L: FloatArray, cos_phi: FloatArray, sin_phi: FloatArray, x6: FloatArray
+) -> FloatArray:
+    """(N, 3) points in L with their platter angles (as cos, sin) → (N, 3) in D, for H = x6."""
+    q = (p_L - x6[:3]) @ _rotation(x6)
+    y = cos_phi * q[:, 1] + sin_phi * q[:, 2]
+    z = -sin_phi * q[:, 1] + cos_phi * q[:, 2]
+    return np.column_stack([q[:, 0], y, z])
+
+
+def static_mask(
+    p_L: FloatArray, *, bin_deg: float = 0.1, range_cell: float = 0.004, fraction: float = 0.6
+) -> NDArray[np.bool_]:
+    """(N,) True for returns that sit at the same place in L for most of the scan.
+
+    Per azimuth bin of ``bin_deg``, a return is static when at least ``fraction`` of the bin's
+    returns lie within ±1.5 ``range_cell`` of it: the platter ring, the background, faces of
+    revolution. Independent of H.
+    """
+    rng, az = lidar_to_polar(p_L)
+    b = np.floor(az / math.radians(bin_deg)).astype(np.int64)
+    b -= b.min(initial=0)
+    c = np.floor(rng / range_cell).astype(np.int64)
+    ncell = int(c.max(initial=0)) + 3
+    key = b * ncell + c + 1
+    uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    # returns in the neighbouring range cells of the same bin
+    left = np.searchsorted(uniq, uniq - 1)
+    right = np.searchsorted(uniq, uniq + 1)
+    has_l = (left < uniq.size) & (uniq[np.minimum(left, uniq.size - 1)] == uniq - 1)
+    has_r = (right < uniq.size) & (uniq[np.minimum(right, uniq.size - 1)] == uniq + 1)
+    near = counts.copy()
+    near[has_l] += counts[left[has_l]]
+    near[has_r] += counts[right[has_r]]
+    per_bin = np.bincount(b, minlength=int(b.max(initial=0)) + 1)
+    out: NDArray[np.bool_] = near[inv] >= fraction * np.maximum(per_bin[b], 1)
+    return out
+
+
+def sensor_cells(
+    p_L: FloatArray, phi: FloatArray, size: float, *, radius_ref: float = 0.15
+) -> tuple[FloatArray, FloatArray]:
+    """Average returns over cells of the sensor grid (platter angle × azimuth), ~``size`` m wide.
+
+    Cells are cut in (φ, α), which carry no range noise, so the averages are unbiased (a voxel
+    grid in D would select points by their noisy position and pull the averages toward voxel
+    centres). A cell spans ``size / radius_ref`` of platter angle and ``size / median range`` of
+    azimuth; cells whose ranges spread more than ``size`` (a depth edge) are dropped.
+    Returns ((C, 3) mean returns in L, (C,) mean φ).
+    """
+    if p_L.shape[0] == 0:
+        return p_L, phi
+    rng, az = lidar_to_polar(p_L)
+    az_step = size / float(np.median(rng))
+    phi_step = size / radius_ref
+    ia = np.floor(az / az_step).astype(np.int64)
+    ip = np.floor(phi / phi_step).astype(np.int64)
+    ia -= ia.min()
+    ip -= ip.min()
+    key = ip * (int(ia.max()) + 1) + ia
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    m = counts.size
+    mean = np.empty((m, 3))
+    for j in range(2):
+        mean[:, j] = np.bincount(inv, weights=p_L[:, j], minlength=m) / counts
+    mean[:, 2] = np.bincount(inv, weights=p_L[:, 2], minlength=m) / counts
+    ph = np.bincount(inv, weights=phi, minlength=m) / counts
+    r_mean = np.bincount(inv, weights=rng, minlength=m) / counts
+    r_sq = np.bincount(inv, weights=rng * rng, minlength=m) / counts
+    spread = np.sqrt(np.maximum(r_sq - r_mean**2, 0.0))
+    keep = spread <= max(size, 0.002)
+    return mean[keep], ph[keep]
+
+
+def weighted_normals(
+    points: FloatArray, k: int, query: NDArray[np.int64] | None = None
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Unit normals and planarity weights from the k nearest points (paper §IV-C).
+
+    ``points`` (N, 3); ``query`` optional indices of the points that need a normal (default
+    all). Returns ((Q, 3) unit normals, (Q,) weights, (Q, 3) neighbourhood centroids) with
+    ``w = 2(λ2 − λ3)/(λ1 + λ2 + λ3)``, λ1 ≥ λ2 ≥ λ3 the covariance eigenvalues: 1 on a plane,
+    0 on an edge or in a blob.
+    """
+    n = points.shape[0]
+    q = np.arange(n) if query is None else np.asarray(query, dtype=np.int64)
+    if n < 3 or q.size == 0:
+        return np.zeros((q.size, 3)), np.zeros(q.size), np.zeros((q.size, 3))
+    k = min(k, n)
+    _, idx = cKDTree(points).query(points[q], k=k)
+    nb = points[idx]  # (Q, k, 3)
+    mean = nb.mean(axis=1)
+    cov = np.empty((q.size, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            v = (nb[:, :, a] * nb[:, :, b]).mean(axis=1) - mean[:, a] * mean[:, b]
+            cov[:, a, b] = v
+            cov[:, b, a] = v
+    lam, vec = np.linalg.eigh(cov)  # ascending
+    l3, l2, l1 = lam[:, 0], lam[:, 1], lam[:, 2]
+    total = np.maximum(l1 + l2 + l3, 1e-30)
+    w = np.clip(2.0 * (l2 - l3) / total, 0.0, 1.0)
+    return vec[:, :, 0], w, mean
+
+
+def mutual_neighbours(
+    a: FloatArray, b: FloatArray, radius: float
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Index pairs (i, j) of mutual nearest neighbours between (N, 3) a and (M, 3) b within
+    ``radius`` metres (KD-tree)."""
+    if a.shape[0] == 0 or b.shape[0] == 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty.copy()
+    da, ia = cKDTree(b).query(a, distance_upper_bound=radius)
+    _, ib = cKDTree(a).query(b, distance_upper_bound=radius)
+    ok = np.isfinite(da)
+    i = np.flatnonzero(ok)
+    j = ia[ok]
+    mutual = ib[j] == i
+    return i[mutual].astype(np.int64), j[mutual].astype(np.int64)
+
+
+# --- the problem ------------------------------------------------------------------------------
+@dataclass
+class _Half:
+    p_L: FloatArray
+    phi: FloatArray
+
+
+@dataclass
+class _Matched:
+    pa: FloatArray
+    ca: FloatArray
+    sa: FloatArray
+    pb: FloatArray
+    cb: FloatArray
+    sb: FloatArray
+    na: FloatArray
+    nb: FloatArray
+    wa: FloatArray
+    wb: FloatArray
+    oa: FloatArray
+    ob: FloatArray
+
+
+class _Problem:
+    """Residuals of one outer iteration: fixed matches and normals, H free."""
+
+    def __init__(
+        self,
+        matched: _Matched,
+        platter: FloatArray | None,
+        platter_weight: float,
+        free: list[int],
+        x6: FloatArray,
+    ) -> None:
+        self.m = matched
+        self.platter = platter
+        self.platter_weight = platter_weight
+        self.free = free
+        self.base = x6.copy()
+
+    def full(self, x: FloatArray) -> FloatArray:
+        x6 = self.base.copy()
+        x6[self.free] = x
+        return x6
+
+    def residuals(self, x: FloatArray) -> FloatArray:
+        x6 = self.full(x)
+        m = self.m
+        d = to_dynamic(m.pa, m.ca, m.sa, x6) - to_dynamic(m.pb, m.cb, m.sb, x6)
+        # point of B against A's local plane, and point of A against B's local plane
+        ra = np.sqrt(m.wa) * (np.einsum("ij,ij->i", m.na, d) + m.oa)
+        rb = np.sqrt(m.wb) * (np.einsum("ij,ij->i", m.nb, d) - m.ob)
+        parts = [ra, rb]
+        if self.platter is not None and self.platter.shape[0]:
+            axis = _rotation(x6)[:, 0]
+            parts.append(self.platter_weight * ((self.platter - x6[:3]) @ axis))
+        return np.concatenate(parts)
+
+
+def _free(gauge_ty: bool) -> list[int]:
+    names = ["tx", "tz", "ry", "rz"] if gauge_ty else ["tx", "ty", "tz", "ry", "rz"]
+    return [IDX[n] for n in names]
+
+
+def _bounds(
+    x6: FloatArray, start6: FloatArray, free: list[int], settings: PeriodicitySettings
+) -> tuple[FloatArray, FloatArray]:
+    tb = settings.translation_bound
+    rb = math.radians(settings.rotation_bound_deg)
+    ryb = math.radians(settings.ry_bound_deg)
+    lo, hi = [], []
+    for i in free:
+        if i == IDX["ry"]:
+            # never re-centred: ry is nearly unobservable and would walk to a moving bound
+            centre, half = start6[i], ryb
+            lo.append(centre - half)
+            hi.append(centre + half)
+            continue
+        half = tb if i < 3 else rb
+        lo.append(x6[i] - half)
+        hi.append(x6[i] + half)
+    lo_a, hi_a = np.array(lo), np.array(hi)
+    x = x6[free]
+    eps = 1e-9
+    return np.minimum(lo_a, x - eps), np.maximum(hi_a, x + eps)
+
+
+def _platter_samples(
+    p_static: FloatArray, x6: FloatArray, tolerance: float, radius: float
+) -> FloatArray:
+    """Static returns that lie on the platter top under H (|x_P| ≤ tolerance, inside radius)."""
+    if p_static.shape[0] == 0:
+        return p_static
+    q = (p_static - x6[:3]) @ _rotation(x6)
+    r = np.hypot(q[:, 1], q[:, 2])
+    keep = (np.abs(q[:, 0]) <= tolerance) & (r <= radius)
+    return p_static[keep]
+
+
+def _subset(half: _Half, n: int | None, rng: np.random.Generator) -> _Half:
+    if n is None or half.p_L.shape[0] <= n:
+        return half
+    idx = np.sort(rng.choice(half.p_L.shape[0], n, replace=False))
+    return _Half(half.p_L[idx], half.phi[idx])
+
+
+def static_samples(p_static: FloatArray, n: int = 20_000, seed: int = 0) -> FloatArray:
+    """A fixed random subset of at most ``n`` static returns, (S, 3) in L.
+
+    Raw returns rather than per-bin averages: grouping by noisy range would bias the averages.
+    """
+    if p_static.shape[0] <= n:
+        return p_static
+    rng = np.random.default_rng(seed)
+    return p_static[np.sort(rng.choice(p_static.shape[0], n, replace=False))]
+
+
+# --- the algorithm ---------------------------------------------------------------------------
+def periodicity_fine_tune_points(
+    p_L: FloatArray,
+    phi: FloatArray,
+    start: Extrinsics,
+    settings: PeriodicitySettings = PeriodicitySettings(),
+    *,
+    platter_radius: float = 0.2925,
+    progress: Progress | None = None,
+) -> CalibrationResult:
+    """Periodicity fine-tuning on the returns of one spin scan.
+
+    ``p_L`` (N, 3) returns in frame L (metres), ``phi`` (N,) their platter angles (rad,
+    unwrapped or not). ``start`` is the starting H; rx is held at 0. Returns a
+    :class:`CalibrationResult` (strategy ``"periodicity"``, cost = mean weighted squared
+    point-to-plane distance in m² at the last stage).
+    """
+    t_start = time.perf_counter()
+    p_L = np.asarray(p_L, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64).reshape(-1)
+    if p_L.ndim != 2 or p_L.shape[1] != 3 or p_L.shape[0] != phi.shape[0]:
+        raise FineTuningError(
+            f"periodicity needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
+        )
+    if p_L.shape[0] < 1000:
+        raise FineTuningError(
+            f"the spin scan has only {p_L.shape[0]} valid returns; periodicity needs a full "
+            "revolution of the spin target"
+        )
+    span = float(np.nanmax(phi) - np.nanmin(phi))
+    if span < 2 * math.pi * 0.98:
+        raise FineTuningError(
+            f"the spin scan covers {math.degrees(span):.0f}° of platter rotation; periodicity "
+            "needs one full revolution (360°)"
+        )
+    # one revolution exactly, so that each half-turn is seen once
+    keep = phi < np.nanmin(phi) + 2 * math.pi
+    p_L, phi = p_L[keep], phi[keep]
+    timings: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    static = static_mask(p_L)
+    p_static_all = static_samples(p_L[static])
+    rng = np.random.default_rng(0)
+    p_dyn, phi_dyn = p_L[~static], phi[~static]
+    phi_w = np.mod(phi_dyn, 2 * math.pi)
+    half_a = phi_w < math.pi
+    start6 = start.with_(rx=0.0).as_vector()
+    # generous region of interest around the platter under the start H
+    q0 = (p_dyn - start6[:3]) @ _rotation(start6)
+    roi = (
+        (q0[:, 0] > -0.2)
+        & (q0[:, 0] < 0.6)
+        & (np.hypot(q0[:, 1], q0[:, 2]) < platter_radius + 0.25)
+    )
+    halves = [
+        _Half(p_dyn[half_a & roi], phi_w[half_a & roi]),
+        _Half(p_dyn[~half_a & roi], phi_w[~half_a & roi]),
+    ]
+    timings["prepare"] = time.perf_counter() - t0
+    if min(h.p_L.shape[0] for h in halves) < 500:
+        raise FineTuningError(
+            f"too few moving returns on the spin target ({halves[0].p_L.shape[0]} and "
+            f"{halves[1].p_L.shape[0]} in the two half-turns); is the spin target on the platter?"
+        )
+
+    stages = schedule(settings)
+    x6 = start6.copy()
+    history: list[dict[str, Any]] = []
+    last: tuple[Any, _Problem] | None = None
+    total_outer = 0
+    final_cost = math.nan
+    for s_i, stage in enumerate(stages):
+        t_stage = time.perf_counter()
+        gauge_ty = settings.gauge == "ty" or not stage.use_platter
+        free = _free(gauge_ty)
+        stage_halves = [
+            _Half(*sensor_cells(h.p_L, h.phi, stage.voxel))
+            for h in (_subset(h, stage.max_points, rng) for h in halves)
+        ]
+        for outer in range(stage.max_outer):
+            if progress is not None:
+                progress(
+                    f"periodicity stage {s_i + 1}/{len(stages)} ({stage.voxel * 1e3:.0f} mm)",
+                    (s_i + outer / stage.max_outer) / len(stages),
+                )
+            matched, n_pts = _match(stage_halves, x6, stage)
+            n_matches = matched.pa.shape[0]
+            if n_matches < 50:
+                raise FineTuningError(
+                    f"periodicity stage {s_i + 1}: only {n_matches} matches between the two "
+                    f"half-turns (voxel {stage.voxel * 1e3:.0f} mm, radius "
+                    f"{stage.match_radius * 1e3:.0f} mm); the start is too far off or the spin "
+                    "target is not seen in both half-turns"
+                )
+            platter = None
+            if stage.use_platter:
+                platter = _platter_samples(
+                    p_static_all, x6, max(0.003, stage.voxel), platter_radius
+                )
+                if platter.shape[0] < 20:
+                    raise FineTuningError(
+                        "gauge 'platter': the platter top is not visible in the spin scan "
+                        f"({platter.shape[0]} static returns near x_P = 0); use gauge: ty"
+                    )
+            problem = _Problem(matched, platter, 1.0, free, x6)
+            lo, hi = _bounds(x6, start6, free, settings)
+            res = least_squares(
+                problem.residuals,
+                x6[free],
+                bounds=(lo, hi),
+                method="trf",
+                x_scale=np.full(len(free), 1e-3),
+                xtol=settings.xtol,
+                ftol=settings.ftol,
+                max_nfev=settings.max_nfev,
+            )
+            new6 = problem.full(res.x)
+            step = np.abs(new6 - x6)
+            x6 = new6
+            total_outer += 1
+            final_cost = float(np.mean(res.fun**2))
+            last = (res, problem)
+            history.append(
+                {
+                    "stage": s_i + 1,
+                    "voxel_m": stage.voxel,
+                    "points": n_pts,
+                    "matches": int(n_matches),
+                    "platter_samples": 0 if platter is None else int(platter.shape[0]),
+                    "cost": final_cost,
+                    "nfev": int(res.nfev),
+                }
+            )
+            if (
+                step[:3].max() < stage.voxel * 0.02
+                and step[5] < math.radians(0.001) * stage.voxel / 0.002
+                and step[4] < math.radians(0.01)
+            ):
+                break
+        timings[f"stage{s_i + 1}"] = time.perf_counter() - t_stage
+
+    assert last is not None
+    res, problem = last
+    sigma = _sigma(res, problem)
+    H = Extrinsics.from_vector(x6)
+    timings["total"] = time.perf_counter() - t_start
+    if progress is not None:
+        progress("periodicity done", 1.0)
+    ry_lo = start6[4] - math.radians(settings.ry_bound_deg)
+    ry_hi = start6[4] + math.radians(settings.ry_bound_deg)
+    at_bound = min(abs(x6[4] - ry_lo), abs(x6[4] - ry_hi)) < math.radians(0.01)
+    return CalibrationResult(
+        H=H,
+        sigma=sigma,
+        cost=final_cost,
+        iterations=total_outer,
+        strategy="periodicity",
+        timings=timings,
+        diagnostics={
+            "gauge": settings.gauge,
+            "gauge_note": (
+                "origin along the axis fixed by the platter top plane x_P = 0"
+                if settings.gauge == "platter"
+                else "ty held at its start value (paper §IV-C)"
+            ),
+            "coarse_to_fine": settings.coarse_to_fine,
+            "matches_per_iteration": [h["matches"] for h in history],
+            "iterations": history,
+            "static_returns": int(static.sum()),
+            "moving_returns": int(p_dyn.shape[0]),
+            "ry_at_bound": bool(at_bound),
+            "ry_bound_rad": [ry_lo, ry_hi],
+            "rms_m": math.sqrt(final_cost),
+        },
+    )
+
+
+def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched, int]:
+    """Map both half-turns' cells to D under H, drop the platter, match, compute normals."""
+    mapped: list[tuple[FloatArray, FloatArray, FloatArray, FloatArray]] = []
+    n_pts = 0
+    for h in halves:
+        c, s = np.cos(h.phi), np.sin(h.phi)
+        d = to_dynamic(h.p_L, c, s, x6)
+        if stage.platter_drop is not None:
+            keep = d[:, 0] > stage.platter_drop
+            d, pl, c, s = d[keep], h.p_L[keep], c[keep], s[keep]
+        else:
+            pl = h.p_L
+        mapped.append((d, pl, c, s))
+        n_pts += d.shape[0]
+    (da, pa, ca, sa), (db, pb, cb, sb) = mapped
+    if stage.mutual:
+        i, j = mutual_neighbours(da, db, stage.match_radius)
+        na, wa, ma = weighted_normals(da, stage.normal_neighbours, i)
+        nb, wb, mb = weighted_normals(db, stage.normal_neighbours, j)
+        # each residual measures a point against the other half's local plane fit (through its
+        # neighbourhood centroid), not against one noisy point; the offset moves with the point
+        oa = np.einsum("ij,ij->i", na, ma - da[i])
+        ob = np.einsum("ij,ij->i", nb, mb - db[j])
+        m = _Matched(pa[i], ca[i], sa[i], pb[j], cb[j], sb[j], na, nb, wa, wb, oa, ob)
+        return m, n_pts
+    # every cell of each half against the local plane of its nearest cell in the other half
+    parts = []
+    for (d1, p1, c1, s1), (d2, p2, c2, s2) in (
+        ((da, pa, ca, sa), (db, pb, cb, sb)),
+        ((db, pb, cb, sb), (da, pa, ca, sa)),
+    ):
+        dist, j = cKDTree(d2).query(d1, distance_upper_bound=stage.match_radius)
+        i = np.flatnonzero(np.isfinite(dist))
+        j = j[i]
+        n2, w2, m2 = weighted_normals(d2, stage.normal_neighbours, j)
+        o2 = np.einsum("ij,ij->i", n2, m2 - d2[j])
+        zero = np.zeros_like(w2)
+        # as a match (x = point of this half, x′ = nearest of the other) with only the other
+        # half's plane weighted
+        parts.append(_Matched(p1[i], c1[i], s1[i], p2[j], c2[j], s2[j], n2, n2, zero, w2, o2, o2))
+    return _concat(parts), n_pts
+
+
+def _concat(parts: list[_Matched]) -> _Matched:
+    fields = ("pa", "ca", "sa", "pb", "cb", "sb", "na", "nb", "wa", "wb", "oa", "ob")
+    return _Matched(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
+
+
+def _sigma(res: Any, problem: _Problem) -> dict[str, float]:
+    """1σ per parameter from σ²·(JᵀJ)⁻¹ at the solution; NaN for parameters held fixed."""
+    out = {n: math.nan for n in PARAMETER_NAMES}
+    J = np.asarray(res.jac, dtype=np.float64)
+    m, n = J.shape
+    if m <= n:
+        return out
+    s2 = float(np.sum(res.fun**2)) / (m - n)
+    try:
+        cov = s2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return out
+    for k, i in enumerate(problem.free):
+        out[PARAMETER_NAMES[i]] = float(math.sqrt(max(cov[k, k], 0.0)))
+    return out
+
+
+def periodicity_fine_tune(
+    recording: Recording,
+    start: Extrinsics,
+    settings: PeriodicitySettings = PeriodicitySettings(),
+    *,
+    platter_radius: float = 0.2925,
+    progress: Progress | None = None,
+) -> CalibrationResult:
+    """Periodicity fine-tuning on a spin-scan :class:`~calstation.recording.Recording`."""
+    p_L, phi = recording.points_lidar()
+    try:
+        return periodicity_fine_tune_points(
+            p_L, phi, start, settings, platter_radius=platter_radius, progress=progress
+        )
+    except FineTuningError as exc:
+        raise FineTuningError(f"{recording.path}: {exc}") from None
