@@ -281,3 +281,41 @@ def test_probe_turntable_and_encoder(
             assert out["info"]["counts_per_revolution"] == 4096
             assert isinstance(out["sample"]["count"], int)
     assert drive.commanded_rpm == 0.0  # a probe never moves the motor
+
+
+EMULATOR_PROCESS = """
+import sys, time
+from calstation_canopen import DriveEmulator, RampPlatter
+emu = DriveEmulator(RampPlatter(), node_id=4, interface="udp_multicast", channel=sys.argv[1])
+print("ready", flush=True)
+sys.stdin.read()  # until the test closes our stdin
+emu.close()
+"""
+
+
+def test_drive_emulator_in_another_process_over_udp_multicast() -> None:
+    import subprocess
+    import sys
+
+    pytest.importorskip("msgpack")
+    group = "239.74.163.7"
+    proc = subprocess.Popen([sys.executable, "-c", EMULATOR_PROCESS, group],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        tt = Cia402Turntable({"interface": "udp_multicast", "channel": group, "node_id": 4})
+        try:
+            tt.enable()
+            tt.spin(30.0)
+            time.sleep(0.3)
+            assert tt.status().speed_rpm == pytest.approx(30.0)
+            tt.stop()
+        finally:
+            tt.close()
+    finally:
+        assert proc.stdin is not None
+        proc.stdin.close()
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
