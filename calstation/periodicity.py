@@ -338,7 +338,7 @@ def _subset(half: _Half, n: int | None, rng: np.random.Generator) -> _Half:
     return _Half(half.p_L[idx], half.phi[idx])
 
 
-def static_samples(p_static: FloatArray, n: int = 20_000, seed: int = 0) -> FloatArray:
+def static_samples(p_static: FloatArray, n: int = 150_000, seed: int = 0) -> FloatArray:
     """A fixed random subset of at most ``n`` static returns, (S, 3) in L.
 
     Raw returns rather than per-bin averages: grouping by noisy range would bias the averages.
