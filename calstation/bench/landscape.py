@@ -120,10 +120,93 @@ def run_landscape_row(
     }
 
 
+_PREPARED: dict[tuple[str, str], Any] = {}
+"""Per worker: the prepared cost of (recording path, method), reused by every row."""
+
+
 def cost_evaluator(
     method: str, recording: Any, recipe: Any, centre: Extrinsics
 ) -> tuple[Callable[[Extrinsics], float], str]:
-    """A function H → scalar cost of ``method`` on ``recording``, and the name of the engine
-    function behind it. Prepared once per row (matching structures are reused where the engine
-    allows)."""
-    raise BenchError(f"no public cost-evaluation function found for strategy {method!r}")
+    """A function H → scalar cost of ``method`` on ``recording``, and a description of the
+    engine functions behind it. Prepared once per worker and recording, then reused."""
+    key = (str(recording.path), method)
+    if key not in _PREPARED:
+        if len(_PREPARED) > 4:
+            _PREPARED.clear()
+        if method == "periodicity":
+            _PREPARED[key] = _periodicity_cost(recording, recipe, centre)
+        elif method == "shape":
+            _PREPARED[key] = _shape_cost(recording, recipe, centre)
+        else:
+            raise BenchError(f"no cost landscape for strategy {method!r}")
+    return _PREPARED[key]  # type: ignore[no-any-return]
+
+
+LANDSCAPE_CELL_M = 0.005
+"""Sensor-grid cell size (m) for the periodicity landscape: the engine's third stage."""
+
+
+def _periodicity_cost(
+    recording: Any, recipe: Any, centre: Extrinsics
+) -> tuple[Callable[[Extrinsics], float], str]:
+    """The paper's periodicity cost, re-matched at every H (as the optimiser's outer loop sees
+    it), built from the public helpers of :mod:`calstation.periodicity`.
+
+    calstation/periodicity.py exposes no public whole-cost function, so: static returns dropped
+    (``static_mask``), both half-turns averaged over ``sensor_cells`` of 5 mm (independent of H),
+    mapped to D (``to_dynamic``), platter points (x_P ≤ 5 mm) dropped, ``mutual_neighbours``
+    within the recipe's ``match_distance`` (paper: 20 cm), planes from ``weighted_normals``;
+    cost = mean over matches of w·(n·(x − x′))², both ends' planes. The platter gauge residual
+    is not included (it is calstation's gauge, not the paper's cost).
+    """
+    from ..periodicity import (
+        mutual_neighbours,
+        sensor_cells,
+        static_mask,
+        to_dynamic,
+        weighted_normals,
+    )
+
+    settings = recipe.calibration.periodicity
+    p_L, phi = recording.points_lidar()
+    phi = np.asarray(phi, dtype=np.float64)
+    keep = phi < np.nanmin(phi) + 2 * math.pi
+    p_L, phi = p_L[keep], phi[keep]
+    dyn = ~static_mask(p_L)
+    p_L, phi = p_L[dyn], np.mod(phi[dyn], 2 * math.pi)
+    c6 = centre.as_vector()
+    q0 = to_dynamic(p_L, np.ones(len(phi)), np.zeros(len(phi)), c6)
+    radius = float(recipe.fixtures.platter.diameter) / 2.0
+    roi = (q0[:, 0] > -0.2) & (q0[:, 0] < 0.6) & (np.hypot(q0[:, 1], q0[:, 2]) < radius + 0.25)
+    halves = []
+    for sel in (phi < math.pi, phi >= math.pi):
+        cells, ph = sensor_cells(p_L[sel & roi], phi[sel & roi], LANDSCAPE_CELL_M)
+        halves.append((cells, np.cos(ph), np.sin(ph)))
+    k = max(8, int(settings.normal_neighbours) // 2)
+    match_radius = float(settings.match_distance)
+
+    def cost(H: Extrinsics) -> float:
+        x6 = H.as_vector()
+        d = []
+        for cells, c, s in halves:
+            pts = to_dynamic(cells, c, s, x6)
+            d.append(pts[pts[:, 0] > 0.005])
+        i, j = mutual_neighbours(d[0], d[1], match_radius)
+        if i.size < 50:
+            return math.nan
+        na, wa, ma = weighted_normals(d[0], k, i)
+        nb, wb, mb = weighted_normals(d[1], k, j)
+        ra = wa * np.einsum("ij,ij->i", na, ma - d[1][j]) ** 2
+        rb = wb * np.einsum("ij,ij->i", nb, mb - d[0][i]) ** 2
+        return float(np.mean(np.concatenate([ra, rb])))
+
+    return cost, (
+        "calstation.periodicity public helpers (static_mask, sensor_cells 5 mm, to_dynamic, "
+        "mutual_neighbours, weighted_normals); re-matched at every H"
+    )
+
+
+def _shape_cost(
+    recording: Any, recipe: Any, centre: Extrinsics
+) -> tuple[Callable[[Extrinsics], float], str]:
+    raise BenchError("no public shape cost function found in calstation.shape")

@@ -284,6 +284,8 @@ def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
     rows = []
     for variant in ABLATION_VARIANTS:
         every = _ablation_records(records, variant, scenarios, n_starts)
+        if not every:
+            continue
         ok = [r for r in every if r.get("status") == "ok"]
         conv = sum(1 for r in every if r.get("converged"))
         off = _values(ok, lambda r: r["axis"]["axis_offset_m"]) * MM
@@ -311,7 +313,8 @@ def _ablation_offsets(records: Sequence[dict[str, Any]], scenarios: Sequence[str
     for variant in ABLATION_VARIANTS:
         recs = [r for r in _ablation_records(records, variant, scenarios, n_starts)
                 if r.get("status") == "ok"]
-        out[variant] = _values(recs, lambda r: r["axis"]["axis_offset_m"]) * MM
+        if recs:
+            out[variant] = _values(recs, lambda r: r["axis"]["axis_offset_m"]) * MM
     return out
 
 
@@ -531,7 +534,11 @@ def _compose(
         "",
         f"Scenarios {', '.join(abl_sc) or '–'}; the initial calibration and the first "
         f"{cfg.get('ablation_starts', '?')} set-B starts of each. Recipe overrides per variant: "
-        + "; ".join(f"{k}: `{json.dumps(v)}`" for k, v in ABLATION_VARIANTS.items()) + ".",
+        + "; ".join(
+            f"{k}: `{json.dumps(ABLATION_VARIANTS[k])}`"
+            for k in cfg.get("ablation_variants", list(ABLATION_VARIANTS))
+            if k in ABLATION_VARIANTS
+        ) + ".",
         "",
         table_ablation(every, abl_sc, int(cfg.get("ablation_starts", 0))),
         "",

@@ -88,11 +88,12 @@ class BenchConfig:
     workers: int = 2
     methods: tuple[str, ...] = FINE_TUNING_METHODS
     landscape_scenario: str | None = "D6"
-    landscape_grid: int = 21
+    landscape_grid: int = 31
     landscape_translation_m: float = 0.020
     landscape_rotation_deg: float = 2.0
     ablation_scenarios: tuple[str, ...] = ("D1", "D9")
     ablation_starts: int = 10
+    ablation_variants: tuple[str, ...] = tuple(ABLATION_VARIANTS)
     seed: int = PERTURBATION_SEED
     round_starts: int = 2
     deadline: float | None = None
@@ -109,7 +110,7 @@ class BenchConfig:
         cls, recipe: Path, out: Path, workers: int = 1, command: str = ""
     ) -> BenchConfig:
         """A small subset for the test suite: one scenario (D5), one start per set, a coarse
-        landscape, a one-start ablation."""
+        landscape, coarse-to-fine on/off from the initial calibration."""
         d5 = next(s for s in paper_scenarios() if s.name == "D5")
         return cls(
             recipe,
@@ -120,7 +121,8 @@ class BenchConfig:
             landscape_scenario="D5",
             landscape_grid=5,
             ablation_scenarios=("D5",),
-            ablation_starts=1,
+            ablation_starts=0,
+            ablation_variants=("default", "no coarse-to-fine"),
             quick=True,
             command=command,
         )
@@ -759,7 +761,8 @@ def ablation_tasks(config: BenchConfig, initial: dict[str, Extrinsics]) -> list[
     variant's tasks are the main run's, with the same ids, so they run once)."""
     chosen = [s for s in config.scenarios if s.name in config.ablation_scenarios]
     tasks: list[Task] = []
-    for variant, overrides in ABLATION_VARIANTS.items():
+    for variant in config.ablation_variants:
+        overrides = ABLATION_VARIANTS[variant]
         tasks += finetune_tasks(
             config,
             initial,
