@@ -68,6 +68,32 @@ def radius_outlier_mask(points: FloatArray, radius: float, neighbours: int) -> N
     return out
 
 
+def largest_cluster(points: FloatArray, voxel: float = 0.005) -> NDArray[np.bool_]:
+    """(N,) mask of the points in the largest 26-connected cluster of occupied ``voxel`` cells.
+
+    Mixed pixels and spray that survive the radius filter in small dense clumps are cut off
+    from the object; they would otherwise stretch a bounding box.
+    """
+    from scipy import ndimage
+
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    ijk = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
+    shape = tuple(int(v) + 1 for v in ijk.max(axis=0))
+    if int(np.prod(shape)) > 50_000_000:
+        return np.ones(points.shape[0], dtype=bool)
+    grid = np.zeros(shape, dtype=bool)
+    grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
+    if n <= 1:
+        return np.ones(points.shape[0], dtype=bool)
+    lab = labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+    counts = np.bincount(lab)
+    counts[0] = 0
+    out: NDArray[np.bool_] = lab == int(np.argmax(counts))
+    return out
+
+
 def minimal_obb(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Open3D's minimum-volume oriented box: (centre (3,), axes (3, 3) as columns, extents (3,))."""
     import open3d as o3d
@@ -196,6 +222,8 @@ class ShapeCost:
         )
         idx = np.flatnonzero(seg)
         keep = radius_outlier_mask(p_D[idx], self.outlier_radius, self.settings.outlier_neighbours)
+        if self.box == "upright":
+            keep[keep] = largest_cluster(p_D[idx[keep]])
         mask = np.zeros(p_D.shape[0], dtype=bool)
         mask[idx[keep]] = True
         return p_D, mask

@@ -1,3 +1,16 @@
-"""Registers the built-in fine-tuning strategies."""
+"""Registers the built-in fine-tuning strategies (``periodicity``, ``shape``) through the same
+hook third-party plugins use."""
 
 from __future__ import annotations
+
+from calstation import hookimpl
+
+from ..hookspecs import RegisterStrategy
+from ..strategies import BUILTIN_STRATEGIES
+
+
+@hookimpl
+def calstation_register_cost_strategies(register: RegisterStrategy) -> None:
+    """Register ``periodicity`` and ``shape``."""
+    for strategy in BUILTIN_STRATEGIES:
+        register(strategy)

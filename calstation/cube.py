@@ -1,0 +1,281 @@
+"""Cube verification: dimension the QA cube from its own spin scan (DESIGN §5, §8).
+
+Two measurements of the same cleaned cloud in frame D:
+
+- the paper's metric ``e = max_i(ŝ_i − s)`` from Open3D's minimum-volume oriented bounding box
+  of the unsmoothed cloud (comparable with the paper's tables; biased upward by the noise);
+- a robust dimensioning: planes fitted (SVD, trimmed at 3σ) to the four side faces and the top,
+  the platter plane next to the cube as the bottom; edge = distance between opposite faces (the
+  top face to the platter for the height); face flatness (RMS of the plane residuals) and
+  perpendicularity (largest deviation from 90° between adjacent faces).
+
+Pass/fail against the recipe's ``qa`` limits.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import VerificationError
+from .frames import Extrinsics, FloatArray, lidar_to_dynamic
+from .recipe import CubeGeometry, QALimits
+from .shape import largest_cluster, minimal_obb, segment_above_platter, upright_box
+
+if TYPE_CHECKING:
+    from .recording import Recording
+
+SEGMENT_MARGIN = 0.005
+"""Cube points are those more than 5 mm above the platter top (the OBB height adds it back)."""
+
+
+@dataclass(frozen=True)
+class CubeCheck:
+    """Result of a cube check. Lengths in metres, angles in degrees.
+
+    - ``obb_edges`` (3,) sorted extents of the minimum-volume OBB (height corrected for the
+      segmentation margin), ``obb_error`` the paper's ``max_i(ŝ_i − s)``;
+    - ``face_edges`` (3,) face-fit edges (height, then the two horizontal edges),
+      ``edge_error`` ``max_i |ŝ_i − s|`` of those;
+    - ``flatness_rms`` the worst face's plane-fit RMS; ``perpendicularity_deg`` the worst
+      deviation from 90° between adjacent faces;
+    - ``passed`` and the ``failures`` (one message per limit exceeded).
+    """
+
+    edge: float
+    obb_edges: FloatArray
+    obb_error: float
+    face_edges: FloatArray
+    edge_error: float
+    flatness_rms: float
+    perpendicularity_deg: float
+    passed: bool
+    failures: list[str] = field(default_factory=list)
+    points: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """A plain mapping (YAML/JSON ready), metres and degrees."""
+        return {
+            "edge_m": self.edge,
+            "obb_edges_m": [float(v) for v in self.obb_edges],
+            "obb_error_m": float(self.obb_error),
+            "face_edges_m": [float(v) for v in self.face_edges],
+            "edge_error_m": float(self.edge_error),
+            "flatness_rms_m": float(self.flatness_rms),
+            "perpendicularity_deg": float(self.perpendicularity_deg),
+            "passed": bool(self.passed),
+            "failures": list(self.failures),
+            "points": int(self.points),
+            "timings": dict(self.timings),
+        }
+
+
+@dataclass(frozen=True)
+class _Face:
+    centroid: FloatArray
+    normal: FloatArray
+    rms: float
+    n: int
+
+
+def fit_plane(points: FloatArray, trim_sigma: float = 3.0) -> tuple[FloatArray, FloatArray, float]:
+    """Plane through (N, 3) points by SVD, refitted once without residuals beyond
+    ``trim_sigma``·RMS: (centroid (3,), unit normal (3,), RMS of the kept residuals)."""
+    if points.shape[0] < 3:
+        raise VerificationError(f"a plane needs at least 3 points, got {points.shape[0]}")
+    keep = np.ones(points.shape[0], dtype=bool)
+    c = points.mean(axis=0)
+    n = np.array([1.0, 0.0, 0.0])
+    rms = 0.0
+    for _ in range(2):
+        c = points[keep].mean(axis=0)
+        _, _, vt = np.linalg.svd(points[keep] - c, full_matrices=False)
+        n = vt[2]
+        res = (points - c) @ n
+        rms = float(np.sqrt(np.mean(res[keep] ** 2)))
+        keep = np.abs(res) <= trim_sigma * max(rms, 1e-6)
+        if keep.sum() < 3:
+            break
+    return c, n, rms
+
+
+def _clean(p: FloatArray, neighbours: int = 8) -> FloatArray:
+    """Radius outlier removal with the radius scaled to the cloud's density (3× the median
+    distance to the 8th neighbour): isolated returns (mixed pixels, spray) go."""
+    if p.shape[0] <= neighbours + 1:
+        return p
+    tree = cKDTree(p)
+    dist, _ = tree.query(p, k=neighbours + 1)
+    radius = 3.0 * float(np.median(dist[:, -1]))
+    out: FloatArray = p[dist[:, -1] <= radius]
+    return out
+
+
+def _faces(
+    cube: FloatArray, axes: FloatArray, lo: FloatArray, hi: FloatArray, band: float, keep_out: float
+) -> dict[str, _Face]:
+    local = cube @ axes
+    faces: dict[str, _Face] = {}
+    inner_top = local[:, 0] < hi[0] - keep_out
+    for j in (1, 2):
+        other = 3 - j
+        inner = (local[:, other] > lo[other] + keep_out) & (local[:, other] < hi[other] - keep_out)
+        for name, ref in ((f"{j}-", lo[j]), (f"{j}+", hi[j])):
+            sel = (np.abs(local[:, j] - ref) < band) & inner & inner_top
+            if sel.sum() >= 30:
+                c, n, rms = fit_plane(cube[sel])
+                faces[name] = _Face(c, n, rms, int(sel.sum()))
+    inner = np.ones(local.shape[0], dtype=bool)
+    for j in (1, 2):
+        inner &= (local[:, j] > lo[j] + keep_out) & (local[:, j] < hi[j] - keep_out)
+    sel = inner & (np.abs(local[:, 0] - hi[0]) < band)
+    if sel.sum() >= 30:
+        c, n, rms = fit_plane(cube[sel])
+        faces["top"] = _Face(c, n, rms, int(sel.sum()))
+    return faces
+
+
+def _angle_deg(n1: FloatArray, n2: FloatArray) -> float:
+    return math.degrees(math.acos(min(1.0, abs(float(np.dot(n1, n2))))))
+
+
+def check_cube_points(
+    p_L: FloatArray,
+    phi: FloatArray,
+    H: Extrinsics,
+    cube: CubeGeometry,
+    limits: QALimits,
+    *,
+    platter_radius: float = 0.2925,
+) -> CubeCheck:
+    """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H."""
+    t0 = time.perf_counter()
+    s = cube.edge
+    p_D = lidar_to_dynamic(p_L, phi, H)
+    seg = segment_above_platter(p_D, margin=SEGMENT_MARGIN, radius=platter_radius, height=3 * s)
+    pts = _clean(p_D[seg])
+    pts = pts[largest_cluster(pts)]
+    if pts.shape[0] < 500:
+        raise VerificationError(
+            f"the QA cube was not found: {pts.shape[0]} returns more than "
+            f"{SEGMENT_MARGIN * 1e3:.0f} mm above the platter (expected a {s * 1e3:.0f} mm cube)"
+        )
+    t1 = time.perf_counter()
+    # the paper's metric: minimum-volume OBB of the unsmoothed cloud
+    _, obb_axes, obb_ext = minimal_obb(pts)
+    vertical = int(np.argmax(np.abs(obb_axes[0, :])))
+    obb_ext = obb_ext.copy()
+    obb_ext[vertical] += SEGMENT_MARGIN
+    obb_edges = np.sort(obb_ext)
+    obb_error = float(np.max(obb_edges - s))
+    t2 = time.perf_counter()
+    # robust dimensioning: planes on the faces
+    centre, axes, ext = upright_box(pts)
+    lo = axes.T @ centre - 0.5 * ext
+    hi = axes.T @ centre + 0.5 * ext
+    band = min(0.008, 0.1 * s)
+    keep_out = min(0.01, 0.1 * s)
+    faces = _faces(pts, axes, lo, hi, band, keep_out)
+    missing = [n for n in ("1-", "1+", "2-", "2+", "top") if n not in faces]
+    if missing:
+        raise VerificationError(
+            f"the QA cube's faces {', '.join(missing)} have too few returns for a plane fit "
+            f"({pts.shape[0]} cube returns); is the whole cube in view?"
+        )
+    edges = []
+    for j in (1, 2):
+        a, b = faces[f"{j}-"], faces[f"{j}+"]
+        nb = b.normal if np.dot(a.normal, b.normal) > 0 else -b.normal
+        n = (a.normal + nb) / np.linalg.norm(a.normal + nb)
+        edges.append(abs(float(np.dot(b.centroid - a.centroid, n))))
+    height = _height(p_D, faces["top"], centre, ext, platter_radius)
+    face_edges = np.array([height, *edges])
+    edge_error = float(np.max(np.abs(face_edges - s)))
+    flatness = max(f.rms for f in faces.values())
+    perp = max(
+        abs(90.0 - _angle_deg(faces[a].normal, faces[b].normal))
+        for a, b in (
+            ("1-", "2-"),
+            ("1-", "2+"),
+            ("1+", "2-"),
+            ("1+", "2+"),
+            ("top", "1-"),
+            ("top", "1+"),
+            ("top", "2-"),
+            ("top", "2+"),
+        )
+    )
+    t3 = time.perf_counter()
+    failures = []
+    if edge_error > limits.edge_error:
+        failures.append(
+            f"face-fit edge error {edge_error * 1e3:.2f} mm > {limits.edge_error * 1e3:.2f} mm"
+        )
+    if obb_error > limits.obb_edge_error:
+        failures.append(
+            f"OBB edge error {obb_error * 1e3:.2f} mm > {limits.obb_edge_error * 1e3:.2f} mm"
+        )
+    if flatness > limits.flatness_rms:
+        failures.append(
+            f"face flatness {flatness * 1e3:.2f} mm RMS > {limits.flatness_rms * 1e3:.2f} mm"
+        )
+    if perp > limits.perpendicularity_deg:
+        failures.append(f"perpendicularity {perp:.3f}° > {limits.perpendicularity_deg:.3f}°")
+    return CubeCheck(
+        edge=s,
+        obb_edges=obb_edges,
+        obb_error=obb_error,
+        face_edges=face_edges,
+        edge_error=edge_error,
+        flatness_rms=flatness,
+        perpendicularity_deg=perp,
+        passed=not failures,
+        failures=failures,
+        points=int(pts.shape[0]),
+        timings={"segment": t1 - t0, "obb": t2 - t1, "faces": t3 - t2, "total": t3 - t0},
+    )
+
+
+def _height(
+    p_D: FloatArray, top: _Face, centre: FloatArray, ext: FloatArray, platter_radius: float
+) -> float:
+    """Top face above the platter plane fitted in a ring around the cube (x_D = 0 if none)."""
+    r_cube = 0.5 * float(np.hypot(ext[1], ext[2]))
+    d = np.hypot(p_D[:, 1] - centre[1], p_D[:, 2] - centre[2])
+    ring = (
+        (np.abs(p_D[:, 0]) < 0.004)
+        & (d > r_cube + 0.005)
+        & (d < r_cube + 0.06)
+        & (np.hypot(p_D[:, 1], p_D[:, 2]) < platter_radius - 0.005)
+    )
+    if ring.sum() >= 100:
+        c, n, _ = fit_plane(p_D[ring])
+        if abs(n[0]) > 0.9:
+            # height of the platter plane below the top face's centroid, along X_D
+            x_plat = (
+                c[0] - (n[1] * (top.centroid[1] - c[1]) + n[2] * (top.centroid[2] - c[2])) / n[0]
+            )
+            return float(top.centroid[0] - x_plat)
+    return float(top.centroid[0])
+
+
+def check_cube(
+    recording: Recording,
+    H: Extrinsics,
+    cube: CubeGeometry,
+    limits: QALimits,
+    *,
+    platter_radius: float = 0.2925,
+) -> CubeCheck:
+    """Cube check on a QA-cube spin-scan recording with the calibration H."""
+    p_L, phi = recording.points_lidar()
+    try:
+        return check_cube_points(p_L, phi, H, cube, limits, platter_radius=platter_radius)
+    except VerificationError as exc:
+        raise VerificationError(f"{recording.path}: {exc}") from None
