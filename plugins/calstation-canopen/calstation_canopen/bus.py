@@ -92,13 +92,16 @@ class SharedBus:
 
     def send_sync(self) -> int:
         """Send one SYNC now; returns its host time (ns)."""
-        t = self.clock.now_ns()
+        # sending and recording under one lock: a TPDO answering this SYNC cannot be paired
+        # before the SYNC's time is on record
         with self._sync_lock:
+            t = self.clock.now_ns()
+            try:
+                self.network.send_message(SYNC_COB_ID, b"")
+            except can.CanError as exc:
+                log.warning("canopen: SYNC not sent: %s", exc)
+                return t
             self._sync_times.append(t)
-        try:
-            self.network.send_message(SYNC_COB_ID, b"")
-        except can.CanError as exc:
-            log.warning("canopen: SYNC not sent: %s", exc)
         return t
 
     def stop_sync(self) -> None:
@@ -108,18 +111,19 @@ class SharedBus:
         if thread is not None:
             thread.join(timeout=2)
 
-    def sync_times_between(self, after_ns: int, until_ns: int) -> list[int]:
-        """Host times of the SYNCs sent in (after_ns, until_ns], oldest first."""
+    def pair_sync(self, after_ns: int, now_ns: int) -> int | None:
+        """The host time of the SYNC a synchronous TPDO received at ``now_ns`` answers: the oldest
+        SYNC sent after ``after_ns`` (the previous pairing) — devices answer SYNCs in order —
+        unless it is more than two periods old (its TPDO was lost): then the newest. None if no
+        SYNC was sent after ``after_ns``."""
         with self._sync_lock:
             times = list(self._sync_times)
-        return times[bisect.bisect_right(times, after_ns) : bisect.bisect_right(times, until_ns)]
-
-    def sync_time_before(self, t_ns: int) -> int | None:
-        """Host time of the latest SYNC sent at or before ``t_ns`` (None if none)."""
-        with self._sync_lock:
-            times = list(self._sync_times)
-        i = bisect.bisect_right(times, t_ns)
-        return times[i - 1] if i else None
+        pending = times[bisect.bisect_right(times, after_ns) : bisect.bisect_right(times, now_ns)]
+        if not pending:
+            return None
+        if now_ns - pending[0] <= 2 * self.sync_period_s * 1e9:
+            return pending[0]
+        return pending[-1]
 
     # --- master heartbeat ------------------------------------------------------------------
     def start_heartbeat(self, master_id: int, period_s: float) -> None:

@@ -145,6 +145,8 @@ class Cia406Encoder:
         self.network.subscribe(0x180 + n, self._on_tpdo)
         if sync:
             self.bus.start_sync(float(s["sync_period_s"]))
+        # SYNCs sent before the encoder is operational are never answered
+        self._last_sync_ns = self.clock.now_ns()
         self.node.nmt.state = "OPERATIONAL"
 
     def _on_tpdo(self, can_id: int, data: bytearray, timestamp: float) -> None:
@@ -154,14 +156,9 @@ class Cia406Encoder:
         raw = struct.unpack_from("<I", data)[0]
         t = now
         if self.settings["mode"] == "sync":
-            # the latest SYNC not yet paired sampled this TPDO; a SYNC sent a moment ago (less
-            # than a tenth of a period) cannot have been answered yet: the TPDO crossed it
-            pending = self.bus.sync_times_between(self._last_sync_ns, now)
-            fresh = now - 0.1 * self.bus.sync_period_s * 1e9
-            answered = [t_s for t_s in pending if t_s <= fresh] or pending[:1]
-            if answered:
-                t = answered[-1]
-                self._last_sync_ns = t
+            t_sync = self.bus.pair_sync(self._last_sync_ns, now)
+            if t_sync is not None:
+                t = self._last_sync_ns = t_sync
         t -= round(float(self.settings["latency_s"]) * 1e9)
         with self._new:
             sample = EncoderSample(timestamp_ns=t, count=self.unwrap(raw))
