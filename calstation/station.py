@@ -467,10 +467,26 @@ class Station:
                 recording, Extrinsics.from_dict(fine.params()), self.recipe.fixtures.qa_cube,
                 self.recipe.qa,
             )
-        cube = plain(check.to_dict())
+        cube = plain(
+            {
+                "obb_edges": check.obb_edges,
+                "obb_error": check.obb_error,
+                "face_edges": check.face_edges,
+                "edge_error": check.edge_error,
+                "flatness_rms": check.flatness_rms,
+                "perpendicularity_deg": check.perpendicularity_deg,
+                "passed": check.passed,
+                "failures": check.failures,
+            }
+        )
+        self.ui.info(
+            f"  cube: edge error {check.edge_error * 1000:.2f} mm, OBB error "
+            f"{check.obb_error * 1000:.2f} mm → {'pass' if check.passed else 'FAIL'}"
+        )
         return StepOutcome(
             {"recording": str(path), "passed": bool(check.passed),
-             "edge_error": cube.get("edge_error"), "obb_error": cube.get("obb_error")},
+             "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
+             "points": int(getattr(check, "points", 0))},
             artifacts=[("cube", path)],
             cube=(fine.id, cube),
         )

@@ -1,0 +1,180 @@
+"""Acceptance: the simulated recipe run unattended through the CLI into a temporary SQLite
+database meets the engine's accuracy thresholds against the simulator's truth; a run killed
+(SIGKILL) during the spin scan resumes to completion with every earlier step and recording intact.
+
+Each test runs one simulated calibration on a lean version of ``recipes/sim-periodicity.yaml``
+(fewer static lines, a faster spin); the real plugins (simulator, built-in strategies) are used.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from calstation.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
+from calstation.frames import Extrinsics
+from calstation.station import STEPS, file_sha256, wait_for_step
+
+pytest.importorskip("calstation_sim")
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+AXIS_OFFSET_M = 0.5e-3
+AXIS_ANGLE_RAD = math.radians(0.1)
+RZ_RAD = math.radians(0.05)
+
+
+def lean_recipe(tmp_path: Path) -> Path:
+    """recipes/sim-periodicity.yaml with fewer static lines and a faster spin."""
+    data = yaml.safe_load((RECIPES / "sim-periodicity.yaml").read_text())
+    data["name"] = "sim-periodicity-lean"
+    data["steps"]["static_scan"]["lines"] = 60
+    for scan in ("spin_scan", "cube_scan"):
+        data["steps"][scan].update({"rpm": 30, "revolutions": 1.02, "settle_s": 0.2})
+    path = tmp_path / "lean.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _env(tmp_path: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CALSTATION_")}
+    env["CALSTATION_HOME"] = str(tmp_path / "home")
+    env["CALSTATION_OPERATOR"] = "e2e"
+    env["COLUMNS"] = "120"
+    return env
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-c", "from calstation.cli import main; main()", *args]
+
+
+def _truth(db: Database, run_id: int) -> Extrinsics:
+    from calstation.recording import read_recording
+
+    with db.session() as s:
+        art = s.query(Artifact).filter_by(run_id=run_id, kind="static").one()
+    truth = read_recording(art.path).truth
+    assert truth is not None, "the simulated recording carries its ground truth"
+    return truth
+
+
+def _assert_accurate_and_passed(db: Database, run_id: int) -> dict[str, Any]:
+    from calstation.metrics import axis_errors
+
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None and run.status == "passed", run and run.error
+        (fine,) = [c for c in s.query(Calibration).filter_by(run_id=run_id, accepted=True)]
+        (cube,) = s.query(CubeCheckRecord).filter_by(run_id=run_id).all()
+    errors = axis_errors(Extrinsics.from_dict(fine.params()), _truth(db, run_id))
+    assert errors["axis_offset_m"] <= AXIS_OFFSET_M, errors
+    assert errors["axis_angle_rad"] <= AXIS_ANGLE_RAD, errors
+    assert abs(errors["rz_error"]) <= RZ_RAD, errors
+    assert cube.passed, cube.failures
+    assert fine.stage == "fine" and fine.strategy == "periodicity"
+    return errors
+
+
+def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'e2e.db'}"
+    proc = subprocess.run(
+        _cli("run", str(lean_recipe(tmp_path)), "--yes", "--db", url),
+        env=_env(tmp_path), capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "PASS" in proc.stdout
+    db = Database(url)
+    with db.session() as s:
+        (run_id,) = [r.id for r in s.query(Run).all()]
+    _assert_accurate_and_passed(db, run_id)
+    with db.session() as s:
+        steps = [(st.name, st.status) for st in s.query(Step).filter_by(run_id=run_id)]
+        arts = s.query(Artifact).filter_by(run_id=run_id).all()
+        stored = {c.stage: c.params() for c in s.query(Calibration).filter_by(run_id=run_id)}
+    assert steps == [(name, "passed") for name in STEPS]
+    run_dir = tmp_path / "home" / "runs" / str(run_id)
+    assert {a.kind for a in arts} == {"static", "spin", "cube", "report", "calibration"}
+    for a in arts:
+        assert Path(a.path).parent == run_dir.resolve()
+        assert file_sha256(Path(a.path)) == a.sha256 and Path(a.path).stat().st_size == a.size_bytes
+    # show --json and export give back exactly what was stored
+    shown = json.loads(subprocess.run(_cli("show", str(run_id), "--json", "--db", url),
+                                      env=_env(tmp_path), capture_output=True, text=True,
+                                      check=True).stdout)
+    assert {c["stage"]: c["H"] for c in shown["calibrations"]} == stored
+    exported = json.loads(subprocess.run(
+        _cli("export", str(run_id), "--format", "json", "--db", url),
+        env=_env(tmp_path), capture_output=True, text=True, check=True).stdout)
+    assert exported["H"] == stored["fine"]
+    db.dispose()
+
+
+def test_sigkill_during_spin_scan_then_resume(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'kill.db'}"
+    env = _env(tmp_path)
+    proc = subprocess.Popen(
+        _cli("run", str(lean_recipe(tmp_path)), "--yes", "--db", url),
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )
+    db = Database(url)
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                if wait_for_step(db, 1, "spin_scan", timeout_s=0.5):
+                    break
+            except Exception:  # the database may not exist yet
+                time.sleep(0.2)
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        spin = tmp_path / "home" / "runs" / "1" / "spin.mcap"
+        while time.monotonic() < deadline and not (spin.exists() and spin.stat().st_size > 0):
+            time.sleep(0.02)
+        time.sleep(0.3)  # well inside the scan
+        assert proc.poll() is None, "the run ended before it could be killed"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    with db.session() as s:
+        run = s.get(Run, 1)
+        assert run is not None and run.status == "running"
+        before_steps = [(st.name, st.attempt, st.status)
+                        for st in s.query(Step).filter_by(run_id=1).order_by(Step.id)]
+        before_arts = {a.kind: (a.path, a.size_bytes, a.sha256)
+                       for a in s.query(Artifact).filter_by(run_id=1)}
+        before_initial = s.query(Calibration).filter_by(run_id=1, stage="initial").one().params()
+    assert before_steps[:4] == [(n, 1, "passed") for n in STEPS[:4]]
+    assert before_steps[4] == ("spin_scan", 1, "running")
+    assert set(before_arts) == {"static"}
+
+    resumed = subprocess.run(_cli("resume", "1", "--yes", "--db", url), env=env,
+                             capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
+    with db.session() as s:
+        steps = [(st.name, st.attempt, st.status)
+                 for st in s.query(Step).filter_by(run_id=1).order_by(Step.id)]
+        arts = {a.kind: (a.path, a.size_bytes, a.sha256)
+                for a in s.query(Artifact).filter_by(run_id=1)}
+        initial = s.query(Calibration).filter_by(run_id=1, stage="initial").one().params()
+    # earlier steps untouched, the interrupted scan marked, then the rest of the run
+    assert steps[:4] == before_steps[:4]
+    assert steps[4] == ("spin_scan", 1, "interrupted")
+    assert steps[5:] == [("place_spin_target", 2, "passed"), ("spin_scan", 2, "passed"),
+                         *[(n, 1, "passed") for n in STEPS[5:]]]
+    assert arts["static"] == before_arts["static"] and initial == before_initial
+    for path, size, sha in arts.values():
+        assert Path(path).stat().st_size == size and file_sha256(Path(path)) == sha
+    assert (tmp_path / "home" / "runs" / "1" / "spin.attempt1.mcap").exists()
+    _assert_accurate_and_passed(db, 1)
+    db.dispose()
