@@ -113,7 +113,7 @@ def _pair_fit(
             continue
         cross = float(ab[0] * bc[1] - ab[1] * bc[0]) / (la * lw)
         if cross > -0.5:
-            why = "the corner is not an L opening toward the lidar (wrong handedness)"
+            why = why or "the corner is not an L opening toward the lidar (wrong handedness)"
             continue
         if abs(la - target.base_length) > tol * target.base_length:
             why = (

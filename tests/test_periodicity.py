@@ -1,0 +1,107 @@
+"""Periodicity-constrained fine-tuning: building blocks and one simulated scenario."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from calstation.errors import FineTuningError
+from calstation.frames import Extrinsics, polar_to_lidar
+from calstation.metrics import axis_errors
+from calstation.periodicity import (
+    mutual_neighbours,
+    periodicity_fine_tune,
+    periodicity_fine_tune_points,
+    sensor_cells,
+    static_mask,
+    weighted_normals,
+)
+from calstation.recipe import PeriodicitySettings, load_recipe
+from calstation.recording import read_recording
+
+
+def test_weighted_normals_plane_and_line() -> None:
+    rng = np.random.default_rng(0)
+    plane = np.column_stack([rng.uniform(-1, 1, 400), rng.uniform(-1, 1, 400), np.zeros(400)])
+    n, w, c = weighted_normals(plane, 30)
+    assert np.allclose(np.abs(n[:, 2]), 1.0) and np.median(w) > 0.6
+    assert c.shape == (400, 3)
+    line = np.column_stack([np.linspace(0, 1, 200), rng.normal(0, 1e-4, 200), np.zeros(200)])
+    _, w_line, _ = weighted_normals(line, 20)
+    assert np.median(w_line) < 0.05
+
+
+def test_mutual_neighbours_are_mutual_and_bounded() -> None:
+    a = np.array([[0.0, 0, 0], [1.0, 0, 0], [5.0, 0, 0]])
+    b = np.array([[0.1, 0, 0], [0.2, 0, 0], [1.05, 0, 0]])
+    i, j = mutual_neighbours(a, b, radius=0.5)
+    assert sorted(zip(i.tolist(), j.tolist(), strict=True)) == [(0, 0), (1, 2)]
+
+
+def test_static_mask_finds_returns_that_never_move() -> None:
+    rng = np.random.default_rng(0)
+    lines, beams = 300, 200
+    az = np.tile(np.radians(np.linspace(-10, 10, beams)), lines)
+    static_rng = np.full(az.size, 1.0)
+    moving_rng = 0.6 + 0.3 * rng.random(az.size)
+    is_static = np.tile(np.arange(beams) < 100, lines)
+    r = np.where(is_static, static_rng, moving_rng) + rng.normal(0, 0.001, az.size)
+    m = static_mask(polar_to_lidar(r, az))
+    assert m[is_static].mean() > 0.95 and m[~is_static].mean() < 0.05
+
+
+def test_sensor_cells_average_without_position_bias() -> None:
+    rng = np.random.default_rng(0)
+    az = rng.uniform(0.0, 0.05, 20000)
+    phi = rng.uniform(0.0, 1.0, 20000)
+    r = 1.0 + rng.normal(0, 0.001, az.size)
+    cells, ph = sensor_cells(polar_to_lidar(r, az), phi, 0.005)
+    assert cells.shape[0] < 2000 and ph.shape[0] == cells.shape[0]
+    # the averaged ranges stay unbiased (the true range is 1.0 everywhere)
+    assert abs(np.hypot(cells[:, 0], cells[:, 1]).mean() - 1.0) < 2e-5
+
+
+def test_too_little_data_is_a_clear_error() -> None:
+    with pytest.raises(FineTuningError, match="valid returns"):
+        periodicity_fine_tune_points(np.zeros((10, 3)), np.zeros(10), Extrinsics(ty=1.0))
+    p = np.zeros((5000, 3))
+    with pytest.raises(FineTuningError, match="full"):
+        periodicity_fine_tune_points(p, np.linspace(0, 3.0, 5000), Extrinsics(ty=1.0))
+
+
+def test_simulated_spin_scan_from_the_initial_calibration(sim_run) -> None:
+    """Acceptance thresholds on the default scenario (1.25 m, 45°) from a perturbed start."""
+    run = sim_run()
+    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
+    rec = read_recording(run["spin"])
+    truth = rec.truth
+    assert truth is not None
+    start = truth.with_(
+        tx=truth.tx + 0.004, tz=truth.tz - 0.003, ry=0.0, rz=truth.rz + math.radians(0.2)
+    )
+    res = periodicity_fine_tune(rec, start, recipe.calibration.periodicity)
+    e = axis_errors(res.H, truth)
+    assert e["axis_offset_m"] <= 0.5e-3
+    assert math.degrees(e["axis_angle_rad"]) <= 0.1
+    assert abs(math.degrees(e["rz_error"])) <= 0.05
+    # the platter gauge fixes the origin along the axis to the platter top
+    assert abs(e["along_axis_m"]) < 1e-3
+    d = res.diagnostics
+    assert d["gauge"] == "platter" and len(d["matches_per_iteration"]) == res.iterations
+    assert all(0 < res.sigma[n] < 1e-3 for n in ("tx", "ty", "tz"))
+    assert math.isnan(res.sigma["rx"]) and 0 < res.sigma["ry"] < math.radians(0.2)
+
+
+def test_ty_gauge_holds_ty(sim_run) -> None:
+    run = sim_run()
+    rec = read_recording(run["spin"])
+    truth = rec.truth
+    assert truth is not None
+    start = truth.with_(tx=truth.tx + 0.003, ry=0.0)
+    settings = PeriodicitySettings(gauge="ty")
+    res = periodicity_fine_tune(rec, start, settings)
+    assert res.H.ty == start.ty and math.isnan(res.sigma["ty"])
+    e = axis_errors(res.H, truth)
+    assert e["axis_offset_m"] <= 1e-3
