@@ -29,6 +29,14 @@ def _display(param: str, value: float | None) -> str:
     return f"{value * 1000:.3f}"
 
 
+def _console() -> Any:
+    """A console; wide when the output is not a terminal (pipes, logs, make)."""
+    from rich.console import Console
+
+    console = Console()
+    return console if console.is_terminal else Console(width=140)
+
+
 def _unit(param: str) -> str:
     return "deg" if param.startswith("r") else "mm"
 
@@ -60,7 +68,6 @@ def register(app: typer.Typer) -> None:
         db: str = typer.Option(None, "--db", help=DB_HELP),
     ) -> None:
         """List runs, newest first, with their final calibration and cube check."""
-        from rich.console import Console
         from rich.table import Table
         from sqlalchemy import select
 
@@ -88,19 +95,20 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(rows, indent=2))
             return
+        shown_params = [p for p in H_PARAMS if p != "rx"]  # rx is the gauge, held at 0
         table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error")
-        for col in ("run", "station", "started (UTC)", "status", *H_PARAMS, "edge mm"):
+        for col in ("run", "station", "started (UTC)", "status", *shown_params, "edge mm"):
             table.add_column(col, justify="right" if col in H_PARAMS else "left")
         for r in rows:
             cal = r["calibration"]
-            values = [_display(p, cal["H"][p]) if cal else "—" for p in H_PARAMS]
+            values = [_display(p, cal["H"][p]) if cal else "—" for p in shown_params]
             cube = r["cube_check"]
             edge = f"{cube['edge_error'] * 1000:.2f}" if cube else "—"
             colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
             started = (r["started_at"] or "")[:16].replace("T", " ")
             table.add_row(str(r["id"]), r["station"], started, f"[{colour}]{r['status']}[/]",
                           *values, edge)
-        Console().print(table)
+        _console().print(table)
 
     @app.command("show")
     def show(
@@ -109,7 +117,6 @@ def register(app: typer.Typer) -> None:
         db: str = typer.Option(None, "--db", help=DB_HELP),
     ) -> None:
         """Everything about one run: steps, calibrations, cube check, recordings."""
-        from rich.console import Console
         from rich.table import Table
 
         from ..db import open_database
@@ -123,7 +130,7 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
             return
-        console = Console()
+        console = _console()
         console.print(
             f"run {summary['id']}: recipe {summary['recipe_name']} "
             f"(sha256 {summary['recipe_sha256'][:12]}…), operator {summary['operator']}"
@@ -189,7 +196,6 @@ def register(app: typer.Typer) -> None:
         exceeds the run's recipe limits (qa.drift_translation, qa.drift_rotation_deg); cube
         metrics are flagged above the recipe's cube limits.
         """
-        from rich.console import Console
         from rich.table import Table
 
         from ..errors import CalstationError
@@ -213,7 +219,7 @@ def register(app: typer.Typer) -> None:
                 limit = _display("t" if param in CUBE_PARAMS else param, p["limit"])
                 flag = "[bold red]DRIFT[/]" if p["flagged"] else "ok"
                 table.add_row(str(p["run_id"]), p["date"][:19], shown, delta, limit, flag)
-            Console().print(table)
+            _console().print(table)
         if not points:
             typer.echo(f"no accepted calibrations for station {station}", err=True)
             raise typer.Exit(1)
