@@ -25,9 +25,10 @@ $(STAMP): pyproject.toml $(wildcard plugins/*/pyproject.toml) Makefile
 system-deps:
 	@bash scripts/system-deps.sh
 
+# The guided run on the simulated station, unattended; its database and run folders go to $(OUT).
 demo: setup
-	$(BIN)/calstation simulate recipes/sim-periodicity.yaml --out $(OUT)/sim --seed 1
-	$(BIN)/calstation reconstruct $(OUT)/sim/cube.mcap --truth $(OUT)/sim/truth.json --out $(OUT)/sim/cube.ply
+	CALSTATION_HOME=$(abspath $(OUT)) $(BIN)/calstation run recipes/sim-periodicity.yaml --yes
+	CALSTATION_HOME=$(abspath $(OUT)) $(BIN)/calstation history
 
 test: setup
 	$(BIN)/ruff check calstation plugins tests benchmarks
