@@ -332,3 +332,28 @@ def test_machine_states_follow_the_workflow() -> None:
                      "spin_scan", "fine_tune", "place_qa_cube", "cube_scan", "report")
     assert Station._next_in_order("fine_tune") == "place_qa_cube"
     assert Station._next_in_order("report") == "done"
+
+
+def test_console_operator_prompts_and_abort(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import io
+
+    from rich.console import Console
+
+    from calstation.operator import ConsoleOperator
+
+    # the operator presses Enter for the static and spin targets, then types "a" at the cube
+    monkeypatch.setattr("sys.stdin", io.StringIO("\n\na\n"))
+    out = io.StringIO()
+    ui = ConsoleOperator(unattended=False, console=Console(file=out, width=120))
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ui, operator="bob",
+                               data_dir=tmp_path)
+    text = out.getvalue()
+    assert status == "aborted"
+    assert "Place the L-shaped static target" in text and "Place the QA cube" in text
+    assert "Press Enter when done" in text
+    assert "ABORTED" in text and "place_qa_cube" not in [s[0] for s in _steps(db, run_id)
+                                                         if s[2] == "passed"]
+    assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]
