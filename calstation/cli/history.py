@@ -15,6 +15,8 @@ from typing import Any
 
 import typer
 
+from ._console import wide_console
+
 H_PARAMS = ("tx", "ty", "tz", "rx", "ry", "rz")
 CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms")
 DB_HELP = "Database URL (default: $CALSTATION_DB_URL or SQLite in $CALSTATION_HOME)."
@@ -27,14 +29,6 @@ def _display(param: str, value: float | None) -> str:
     if param.startswith("r"):
         return f"{math.degrees(value):.4f}"
     return f"{value * 1000:.3f}"
-
-
-def _console() -> Any:
-    """A console; wide when the output is not a terminal (pipes, logs, make)."""
-    from rich.console import Console
-
-    console = Console()
-    return console if console.is_terminal else Console(width=140)
 
 
 def _unit(param: str) -> str:
@@ -108,7 +102,7 @@ def register(app: typer.Typer) -> None:
             started = (r["started_at"] or "")[:16].replace("T", " ")
             table.add_row(str(r["id"]), r["station"], started, f"[{colour}]{r['status']}[/]",
                           *values, edge)
-        _console().print(table)
+        wide_console().print(table)
 
     @app.command("show")
     def show(
@@ -130,7 +124,7 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
             return
-        console = _console()
+        console = wide_console()
         console.print(
             f"run {summary['id']}: recipe {summary['recipe_name']} "
             f"(sha256 {summary['recipe_sha256'][:12]}…), operator {summary['operator']}"
@@ -219,7 +213,7 @@ def register(app: typer.Typer) -> None:
                 limit = _display("t" if param in CUBE_PARAMS else param, p["limit"])
                 flag = "[bold red]DRIFT[/]" if p["flagged"] else "ok"
                 table.add_row(str(p["run_id"]), p["date"][:19], shown, delta, limit, flag)
-            _console().print(table)
+            wide_console().print(table)
         if not points:
             typer.echo(f"no accepted calibrations for station {station}", err=True)
             raise typer.Exit(1)

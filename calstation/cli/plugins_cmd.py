@@ -6,6 +6,8 @@ import json
 
 import typer
 
+from ._console import wide_console
+
 
 def register(app: typer.Typer) -> None:
     """Add the ``plugins`` command."""
@@ -15,7 +17,6 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
     ) -> None:
         """List each plugin and its hooks, and the drivers and strategies they register."""
-        from rich.console import Console
         from rich.table import Table
 
         from .. import plugins
@@ -41,7 +42,7 @@ def register(app: typer.Typer) -> None:
             }
             typer.echo(json.dumps(out, indent=2))
             return
-        console = Console()
+        console = wide_console()
         table = Table(title="Plugins")
         table.add_column("plugin")
         table.add_column("source")

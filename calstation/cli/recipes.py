@@ -7,6 +7,8 @@ from pathlib import Path
 
 import typer
 
+from ._console import wide_console
+
 
 def recipe_dirs() -> list[Path]:
     """Folders ``recipes list`` searches (``$CALSTATION_RECIPES``, ./recipes, shipped, home)."""
@@ -68,7 +70,6 @@ def register(app: typer.Typer) -> None:
         folders: list[Path] = typer.Argument(None, help="Folders to search (default: see docs)."),
     ) -> None:
         """List the recipes found, with station, drivers, strategy and validity."""
-        from rich.console import Console
         from rich.table import Table
 
         from ..errors import RecipeError
@@ -93,7 +94,7 @@ def register(app: typer.Typer) -> None:
                 )
                 table.add_row(f.name, r.name, r.station.id, drivers, r.calibration.strategy,
                               "[green]ok[/]")
-        console = Console()
+        console = wide_console()
         if count == 0:
             console.print(f"no recipes in {', '.join(map(str, dirs)) or '(no folder)'}")
             return
