@@ -97,23 +97,26 @@ def _boxes(ax: Any, data: Sequence[np.ndarray], methods: Sequence[str]) -> None:
 
 
 def cube_error_values(
-    records: Sequence[dict[str, Any]], method: str, start_set: str, key: str = "obb_error"
+    records: Sequence[dict[str, Any]], method: str, start_set: str, key: str = "obb_error_m"
 ) -> np.ndarray:
-    """The cube edge error ``key`` (mm) of every successful record of ``method`` and
-    ``start_set`` (``"init"`` for the initial calibration itself). Shape (N,)."""
+    """The cube edge error ``key`` (mm) of every record of ``method`` and ``start_set``
+    (``"init"`` for the initial calibration itself; method ``"truth"``: the cube checked with
+    the true H, the metric's floor). A calibration or cube check that failed gives +inf: the
+    cube could not be measured. Shape (N,)."""
     vals = []
     for r in records:
-        if r.get("variant", "default") != "default" or r.get("status") != "ok":
+        if r.get("variant", "default") != "default":
             continue
-        if method == "initial":
+        if method in ("initial", "truth"):
             ok = r["kind"] == "initial"
         else:
             ok = r["kind"] == "finetune" and r["method"] == method and r["set"] == start_set
-        if ok:
-            v = r.get("cube", {}).get(key)
-            if isinstance(v, int | float):
-                vals.append(float(v) * 1e3)
-    return np.asarray(vals)
+        if not ok:
+            continue
+        cube = r.get("truth_cube" if method == "truth" else "cube", {})
+        v = cube.get(key) if r.get("status") == "ok" or method == "truth" else None
+        vals.append(float(v) * 1e3 if isinstance(v, int | float) else math.inf)
+    return np.asarray(vals, dtype=float)
 
 
 def cube_boxplots(records: Sequence[dict[str, Any]], path: Path, methods: Sequence[str]) -> None:
@@ -123,15 +126,19 @@ def cube_boxplots(records: Sequence[dict[str, Any]], path: Path, methods: Sequen
     plt = _plt()
     fig, axes = plt.subplots(2, 2, figsize=(9, 7), constrained_layout=True)
     all_methods = ["initial", *methods]
-    for row, (key, title) in enumerate(
-        (("obb_error", "OBB edge error e (paper metric)"), ("edge_error", "face-fit edge error"))
-    ):
+    panels = (
+        ("obb_error_m", "OBB edge error e (paper metric)"),
+        ("edge_error_m", "face-fit edge error"),
+    )
+    for row, (key, title) in enumerate(panels):
         for col, start_set in enumerate(("A", "B")):
             ax = axes[row][col]
             data = [cube_error_values(records, m, start_set, key) for m in all_methods]
-            _boxes(ax, data, all_methods)
+            lost = sum(int(np.sum(~np.isfinite(d))) for d in data)
+            _boxes(ax, [d[np.isfinite(d)] for d in data], all_methods)
             ax.set_yscale("symlog", linthresh=1.0)
-            ax.set_title(f"{title}, set {start_set}", fontsize=10)
+            note = f" ({lost} not measurable)" if lost else ""
+            ax.set_title(f"{title}, set {start_set}{note}", fontsize=10)
             ax.set_ylabel("mm")
             ax.grid(True, axis="y", alpha=0.3)
     fig.suptitle("10 cm QA-cube edge error (initial: one value per scenario)")

@@ -209,4 +209,36 @@ def _periodicity_cost(
 def _shape_cost(
     recording: Any, recipe: Any, centre: Extrinsics
 ) -> tuple[Callable[[Extrinsics], float], str]:
-    raise BenchError("no public shape cost function found in calstation.shape")
+    """The shape-constrained cost C1 + C2 of :class:`calstation.shape.ShapeCost` (the engine's
+    public cost object), on the returns the strategy itself would use: moving returns
+    (``static_mask``) near the cube under the centre H, a fixed subset of 20 000, the box kind
+    the recipe selects (``calibration.options.shape.box``, default upright)."""
+    from ..frames import lidar_to_dynamic
+    from ..periodicity import static_mask
+    from ..shape import ShapeCost, segment_above_platter
+
+    cube = recipe.fixtures.qa_cube
+    radius = 0.5 * float(recipe.fixtures.platter.diameter)
+    box = str(dict(recipe.calibration.options.get("shape", {})).get("box", "upright"))
+    p_L, phi = recording.points_lidar()
+    moving = ~static_mask(p_L)
+    p_L, phi = p_L[moving], phi[moving]
+    near = segment_above_platter(
+        lidar_to_dynamic(p_L, phi, centre), margin=0.0, radius=radius + 0.05,
+        height=3.0 * cube.edge + 0.05,
+    )
+    p_L, phi = p_L[near], phi[near]
+    n_all, max_points = p_L.shape[0], 20_000
+    if n_all > max_points:
+        pick = np.sort(np.random.default_rng(0).choice(n_all, max_points, replace=False))
+        p_L, phi = p_L[pick], phi[pick]
+    shape_cost = ShapeCost(
+        p_L, phi, cube, recipe.calibration.shape, platter_radius=radius,
+        density_scale=math.sqrt(n_all / max(1, p_L.shape[0])), box=box,
+    )
+
+    def cost(H: Extrinsics) -> float:
+        r = shape_cost.residuals_of(H)
+        return float(np.sum(r**2))
+
+    return cost, f"calstation.shape.ShapeCost ({box} box), C1 + C2 on the strategy's returns"

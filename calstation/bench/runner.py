@@ -92,8 +92,10 @@ class BenchConfig:
     landscape_translation_m: float = 0.020
     landscape_rotation_deg: float = 2.0
     ablation_scenarios: tuple[str, ...] = ("D1", "D9")
-    ablation_starts: int = 10
+    ablation_starts: int = 5
     ablation_variants: tuple[str, ...] = tuple(ABLATION_VARIANTS)
+    sets: tuple[str, ...] = ("A", "B")
+    perturbed_methods: tuple[str, ...] | None = None
     seed: int = PERTURBATION_SEED
     round_starts: int = 2
     deadline: float | None = None
@@ -109,8 +111,9 @@ class BenchConfig:
     def quick_config(
         cls, recipe: Path, out: Path, workers: int = 1, command: str = ""
     ) -> BenchConfig:
-        """A small subset for the test suite: one scenario (D5), one start per set, a coarse
-        landscape, coarse-to-fine on/off from the initial calibration."""
+        """A small subset for the test suite: one scenario (D5); both methods from the initial
+        calibration, periodicity from one set-A start; a 3 × 3 landscape; coarse-to-fine on/off
+        from the initial calibration."""
         d5 = next(s for s in paper_scenarios() if s.name == "D5")
         return cls(
             recipe,
@@ -118,8 +121,10 @@ class BenchConfig:
             (d5,),
             starts_per_set=1,
             workers=workers,
+            sets=("A",),
+            perturbed_methods=("periodicity",),
             landscape_scenario="D5",
-            landscape_grid=5,
+            landscape_grid=3,
             ablation_scenarios=("D5",),
             ablation_starts=0,
             ablation_variants=("default", "no coarse-to-fine"),
@@ -250,13 +255,7 @@ def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
     except Exception as exc:
         out["axis"] = {"failed": f"{type(exc).__name__}: {exc}"}
     t0 = time.perf_counter()
-    try:
-        from ..cube import check_cube
-
-        check = check_cube(cube_rec, H, recipe.fixtures.qa_cube, recipe.qa)
-        out["cube"] = _jsonable(check.to_dict())
-    except Exception as exc:
-        out["cube"] = {"failed": f"{type(exc).__name__}: {exc}"}
+    out["cube"] = _cube_check(directory, H, recipe)
     t1 = time.perf_counter()
     try:
         from ..metrics import reconstruction_distortion
@@ -269,6 +268,21 @@ def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
     t2 = time.perf_counter()
     out["eval_timings"] = {"cube_check_s": t1 - t0, "distortion_s": t2 - t1}
     return out
+
+
+def _cube_check(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
+    """The engine's cube check of the scenario's QA-cube scan with ``H``, as a plain mapping
+    (``{"failed": message}`` if the cube could not be measured)."""
+    try:
+        from ..cube import check_cube
+
+        check = check_cube(
+            _recording(directory, "cube"), H, recipe.fixtures.qa_cube, recipe.qa,
+            platter_radius=0.5 * recipe.fixtures.platter.diameter,
+        )
+        return _jsonable(check.to_dict())  # type: ignore[no-any-return]
+    except Exception as exc:
+        return {"failed": f"{type(exc).__name__}: {exc}"}
 
 
 def _jsonable(x: Any) -> Any:
@@ -385,6 +399,9 @@ def _run_initial(task: Task, record: dict[str, Any]) -> None:
     record["stage_s"] = time.perf_counter() - t0
     record.update(_result_fields(result))
     record.update(_evaluate(task.directory, result.H, recipe))
+    # the cube checked with the true H: the floor of the paper's metric on this sensor
+    truth = _recording(task.directory, "truth")
+    record["truth_cube"] = _cube_check(task.directory, truth, recipe)
 
 
 def _run_finetune(task: Task, record: dict[str, Any]) -> None:
@@ -558,7 +575,7 @@ def _run_phase(
 ) -> int:
     """Run the tasks not yet recorded; returns how many ran. Raises :class:`DeadlineReached`
     when ``deadline`` (Unix time) passes before they are all done."""
-    todo = [t for t in tasks if t.id not in store.records]
+    todo = list({t.id: t for t in tasks if t.id not in store.records}.values())
     if not todo:
         return 0
     if deadline is not None and time.time() > deadline:
@@ -660,9 +677,10 @@ class DeadlineReached(Exception):
 def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[str, Any]:
     """Run every phase of the bench; return the run's metadata (also written to ``run.json``).
 
-    Phases: simulate; initial calibration; both fine-tunings from the initial calibration; cost
-    landscapes; ablation; then the perturbed starts in rounds of ``config.round_starts`` set-A and
-    set-B starts per scenario and method, until ``config.starts_per_set``. With a
+    Phases: simulate; initial calibration; both fine-tunings from the initial calibration with
+    the ablation; cost landscapes; then the perturbed starts in rounds of
+    ``config.round_starts`` set-A and set-B starts per scenario and method, until
+    ``config.starts_per_set``. With a
     ``config.deadline`` (Unix time) no round is started that would not finish in time (estimated
     from the previous round) and a phase still running at the deadline is cut; the metadata then
     says how many starts per set were completed (``starts_completed``), which the report uses.
@@ -703,25 +721,26 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
             phases["simulate"] = time.monotonic() - t
             phase("initial calibration", initial_tasks(config), ex)
             initial = _initial_estimates(store)
-            per_task = phase(
-                "fine-tuning from the initial calibration",
-                finetune_tasks(config, initial, config.scenarios, config.methods, range(0)),
-                ex,
-            )
+            first = finetune_tasks(config, initial, config.scenarios, config.methods, range(0))
+            first += ablation_tasks(config, initial)
+            order = {s.name: i for i, s in enumerate(config.scenarios)}
+            first.sort(key=lambda t: order.get(t.scenario, 0))  # one read per scenario
+            per_task = phase("fine-tuning from the initial calibration, ablation", first, ex)
             if config.landscape_scenario:
                 from .landscape import landscape_tasks
 
                 phase("cost landscapes", landscape_tasks(config, store), ex)
-            phase("ablation", ablation_tasks(config, initial), ex)
             done = 0
             while done < config.starts_per_set:
                 nxt = min(config.starts_per_set, done + max(1, config.round_starts))
                 tasks = finetune_tasks(
-                    config, initial, config.scenarios, config.methods, range(done, nxt), False
+                    config, initial, config.scenarios,
+                    config.perturbed_methods or config.methods, range(done, nxt), False,
+                    sets=config.sets,
                 )
                 todo = [t for t in tasks if t.id not in store.records]
                 if config.deadline is not None and per_task > 0 and (
-                    time.time() + per_task * len(todo) > config.deadline
+                    time.time() + 1.2 * per_task * len(todo) > config.deadline
                 ):
                     console.print(
                         f"deadline: stopping after {done} start(s) per set "
