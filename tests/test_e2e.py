@@ -34,10 +34,11 @@ RZ_RAD = math.radians(0.05)
 
 
 def lean_recipe(tmp_path: Path) -> Path:
-    """recipes/sim-periodicity.yaml with fewer static lines and a faster spin."""
+    """recipes/sim-periodicity.yaml with fewer static lines, 600 points per line, a faster spin."""
     data = yaml.safe_load((RECIPES / "sim-periodicity.yaml").read_text())
     data["name"] = "sim-periodicity-lean"
     data["steps"]["static_scan"]["lines"] = 60
+    data["simulation"]["lidar"]["points_per_line"] = 600
     for scan in ("spin_scan", "cube_scan"):
         data["steps"][scan].update({"rpm": 30, "revolutions": 1.02, "settle_s": 0.2})
     path = tmp_path / "lean.yaml"
@@ -107,13 +108,18 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
         assert Path(a.path).parent == run_dir.resolve()
         assert file_sha256(Path(a.path)) == a.sha256 and Path(a.path).stat().st_size == a.size_bytes
     # show --json and export give back exactly what was stored
-    shown = json.loads(subprocess.run(_cli("show", str(run_id), "--json", "--db", url),
-                                      env=_env(tmp_path), capture_output=True, text=True,
-                                      check=True).stdout)
+    from typer.testing import CliRunner
+
+    from calstation.cli import _build, app
+
+    _build()
+    runner = CliRunner()
+    shown = json.loads(runner.invoke(app, ["show", str(run_id), "--json", "--db", url]).output)
     assert {c["stage"]: c["H"] for c in shown["calibrations"]} == stored
-    exported = json.loads(subprocess.run(
-        _cli("export", str(run_id), "--format", "json", "--db", url),
-        env=_env(tmp_path), capture_output=True, text=True, check=True).stdout)
+    assert shown["status"] == "passed" and shown["cube_check"]["passed"] is True
+    exported = json.loads(
+        runner.invoke(app, ["export", str(run_id), "--format", "json", "--db", url]).output
+    )
     assert exported["H"] == stored["fine"]
     db.dispose()
 
