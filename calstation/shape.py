@@ -210,6 +210,12 @@ class ShapeCost:
         self.outlier_radius = settings.outlier_radius * density_scale
         self.box = box
         self.evaluations = 0
+        self.frozen: NDArray[np.bool_] | None = None
+
+    def freeze(self, H: Extrinsics | None) -> None:
+        """Hold the cube's point set fixed at its segmentation under H (None: re-segment at
+        every evaluation, as the paper does). A fixed set keeps the residuals continuous."""
+        self.frozen = None if H is None else self.cloud(H)[1]
 
     def cloud(self, H: Extrinsics) -> tuple[FloatArray, NDArray[np.bool_]]:
         """(N, 3) all returns in D and the mask of the segmented, cleaned cube points."""
@@ -231,7 +237,11 @@ class ShapeCost:
     def residuals_of(self, H: Extrinsics) -> FloatArray:
         """C1 and C2 terms as a fixed-length residual vector."""
         self.evaluations += 1
-        p_D, mask = self.cloud(H)
+        if self.frozen is not None:
+            mask = self.frozen
+            p_D = lidar_to_dynamic(self.p_L, self.phi, H)
+        else:
+            p_D, mask = self.cloud(H)
         out = np.zeros(self.p_L.shape[0] + 3)
         n = int(mask.sum())
         if n < 50:
@@ -329,19 +339,33 @@ def shape_fine_tune_points(
 
         half = np.array([tb if i < 3 else rb for i in idx])
         centre = start6[idx]
-        x0 = np.clip(x6[idx], centre - half + 1e-12, centre + half - 1e-12)
-        r = least_squares(
-            fun,
-            x0,
-            bounds=(centre - half, centre + half),
-            method="trf",
-            xtol=settings.xtol,
-            ftol=settings.ftol,
-            max_nfev=nfev,
-            diff_step=DIFF_STEP,
-            x_scale=np.full(len(idx), 1e-3),
-        )
-        x6[idx] = r.x
+        used = 0
+        r: Any = None
+        # upright: outer loop re-segmenting between inner solves on a fixed point set;
+        # minimal (paper): one solve re-segmenting at every evaluation
+        chunk = max(len(idx) + 2, 3 * (len(idx) + 1)) if box == "upright" else nfev
+        while used < nfev:
+            if box == "upright":
+                cost.freeze(Extrinsics.from_vector(x6))
+            before = cost.evaluations
+            x0 = np.clip(x6[idx], centre - half + 1e-12, centre + half - 1e-12)
+            r = least_squares(
+                fun,
+                x0,
+                bounds=(centre - half, centre + half),
+                method="trf",
+                xtol=settings.xtol,
+                ftol=settings.ftol,
+                max_nfev=min(chunk, nfev - used),
+                diff_step=DIFF_STEP,
+                x_scale=np.full(len(idx), 1e-3),
+            )
+            used += max(1, cost.evaluations - before)
+            step = np.abs(r.x - x6[idx])
+            x6[idx] = r.x
+            if box != "upright" or (step.max() < 1e-6):
+                break
+        cost.freeze(None)
         return r
 
     def full(x: FloatArray) -> Extrinsics:
