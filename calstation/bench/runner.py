@@ -97,7 +97,7 @@ class BenchConfig:
     sets: tuple[str, ...] = ("A", "B")
     perturbed_methods: tuple[str, ...] | None = None
     seed: int = PERTURBATION_SEED
-    round_starts: int = 2
+    round_starts: int = 1
     deadline: float | None = None
     quick: bool = False
     command: str = ""
@@ -659,7 +659,8 @@ def git_commit(cwd: Path | None = None) -> str:
             ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--", "calstation", "plugins", "recipes"],
+            ["git", "status", "--porcelain", "--untracked-files=no", "--",
+             "calstation", "plugins", "recipes"],
             cwd=root,
             capture_output=True,
             text=True,

@@ -67,7 +67,7 @@ def register(app: typer.Typer) -> None:
             help="UTC time HH:MM (today): start no round of starts that would end later",
         ),
         round_starts: int = typer.Option(
-            2, "--round-starts", min=1, help="set-A and set-B starts added per round"
+            1, "--round-starts", min=1, help="set-A and set-B starts added per round"
         ),
         label: str | None = typer.Option(
             None, "--label", help="a note printed at the top of results.md (e.g. a reduced run)"
