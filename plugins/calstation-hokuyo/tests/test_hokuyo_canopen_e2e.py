@@ -29,10 +29,9 @@ RZ_RAD = math.radians(0.05)
 
 @pytest.mark.slow
 def test_calibration_through_the_real_drivers_and_emulators(tmp_path: Path) -> None:
-    from calstation.metrics import axis_errors
-
     from calstation.db import Artifact, Calibration, Database, Run
     from calstation.frames import Extrinsics
+    from calstation.metrics import axis_errors
     from calstation.recording import read_recording
 
     url = f"sqlite:///{tmp_path / 'e2e.db'}"
