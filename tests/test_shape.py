@@ -1,0 +1,98 @@
+"""Shape-constrained fine-tuning: box fits and one simulated scenario."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from calstation.errors import FineTuningError
+from calstation.frames import Extrinsics
+from calstation.metrics import axis_errors
+from calstation.recipe import load_recipe
+from calstation.recording import read_recording
+from calstation.shape import (
+    largest_cluster,
+    minimal_obb,
+    radius_outlier_mask,
+    shape_fine_tune,
+    signed_face_distances,
+    upright_box,
+)
+
+
+def _cube_surface(s: float, yaw: float, n: int, noise: float, seed: int = 0) -> np.ndarray:
+    """Noisy samples of a cube's top and side faces standing on x = 0 (frame D)."""
+    rng = np.random.default_rng(seed)
+    pts = []
+    for axis, side in ((1, -1), (1, 1), (2, -1), (2, 1)):
+        p = np.column_stack([rng.uniform(0, s, n), rng.uniform(-s / 2, s / 2, n)])
+        q = np.zeros((n, 3))
+        q[:, 0] = p[:, 0]
+        q[:, axis] = side * s / 2
+        q[:, 3 - axis] = p[:, 1]
+        pts.append(q)
+    top = np.column_stack([np.full(n, s), rng.uniform(-s / 2, s / 2, (n, 2))])
+    pts.append(top)
+    cloud = np.vstack(pts)
+    c, si = math.cos(yaw), math.sin(yaw)
+    R = np.array([[1, 0, 0], [0, c, -si], [0, si, c]])
+    return cloud @ R.T + np.array([0.0, 0.05, -0.03]) + rng.normal(0, noise, cloud.shape)
+
+
+def test_upright_box_measures_a_noisy_cube_without_the_noise_inflation() -> None:
+    cloud = _cube_surface(0.1, math.radians(25), 3000, 0.001)
+    _, axes, ext = upright_box(cloud)
+    np.testing.assert_allclose(axes[:, 0], [1, 0, 0])
+    assert ext[1] == pytest.approx(0.1, abs=3e-4) and ext[2] == pytest.approx(0.1, abs=3e-4)
+    # the extremes (the paper's OBB) are inflated by the noise
+    _, _, raw = upright_box(cloud, robust=False)
+    assert raw[1] > 0.1 + 0.003
+    _, _, obb = minimal_obb(cloud)
+    assert np.sort(obb)[-1] > 0.1 + 0.003
+
+
+def test_signed_face_distances_inside_positive() -> None:
+    centre, axes, ext = np.zeros(3), np.eye(3), np.array([2.0, 2.0, 2.0])
+    d = signed_face_distances(np.array([[0.0, 0, 0], [0.9, 0, 0], [1.2, 0, 0]]), centre, axes, ext)
+    np.testing.assert_allclose(d, [1.0, 0.1, -0.2])
+
+
+def test_outlier_filters() -> None:
+    cloud = _cube_surface(0.1, 0.0, 2000, 0.0005)
+    stray = np.array([[0.3, 0.3, 0.3], [0.3, 0.301, 0.3]])
+    p = np.vstack([cloud, stray])
+    keep = radius_outlier_mask(p, 0.01, 8)
+    assert keep[: cloud.shape[0]].mean() > 0.99 and not keep[-2:].any()
+    clump = np.random.default_rng(1).normal([0.35, 0.35, 0.35], 0.001, (50, 3))
+    m = largest_cluster(np.vstack([cloud, clump]))
+    assert m[: cloud.shape[0]].all() and not m[cloud.shape[0] :].any()
+
+
+def test_no_cube_is_a_clear_error() -> None:
+    H = Extrinsics(ty=1.25, rz=math.radians(-45))
+    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
+    from calstation.shape import shape_fine_tune_points
+
+    with pytest.raises(FineTuningError, match="QA cube"):
+        shape_fine_tune_points(np.zeros((100, 3)), np.zeros(100), H, recipe.fixtures.qa_cube)
+
+
+def test_simulated_cube_from_the_initial_calibration(sim_run) -> None:
+    from calstation.initial import initial_calibration
+
+    run = sim_run()
+    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
+    initial = initial_calibration(
+        read_recording(run["static"]), recipe.fixtures.static_target, recipe.calibration.initial
+    )
+    rec = read_recording(run["cube"])
+    truth = rec.truth
+    assert truth is not None
+    res = shape_fine_tune(rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape)
+    e = axis_errors(res.H, truth)
+    assert e["axis_offset_m"] <= 2e-3
+    assert math.degrees(e["axis_angle_rad"]) <= 0.3
+    assert res.H.ty == initial.H.ty  # the gauge
+    assert res.strategy == "shape" and res.iterations <= recipe.calibration.shape.max_nfev + 2
