@@ -708,11 +708,20 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
     t_start = time.monotonic()
     phases: dict[str, float] = meta["phases_s"]
 
+    def save() -> None:
+        meta["wall_s"] = time.monotonic() - t_start
+        meta["wall_s_total"] = meta["wall_s"] + sum(
+            float(p.get("wall_s", 0.0)) for p in meta.get("previous_runs", [])
+        )
+        meta["records"] = len(store.records)
+        (config.out / "run.json").write_text(json.dumps(meta, indent=2))
+
     def phase(name: str, tasks: Sequence[Task], ex: Executor) -> float:
         t = time.monotonic()
         n = _run_phase(ex, store, tasks, name, console, config.deadline)
         dt = time.monotonic() - t
         phases[name] = phases.get(name, 0.0) + dt
+        save()
         return dt / n if n else 0.0
 
     try:
@@ -754,16 +763,12 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
                 per_task = dt or per_task
                 done = nxt
                 meta["starts_completed"] = done
+                save()
     except DeadlineReached:
         meta["cut_by_deadline"] = True
         console.print("deadline reached: the phase in progress was cut")
-    meta["wall_s"] = time.monotonic() - t_start
-    meta["wall_s_total"] = meta["wall_s"] + sum(
-        float(p.get("wall_s", 0.0)) for p in meta.get("previous_runs", [])
-    )
     meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-    meta["records"] = len(store.records)
-    (config.out / "run.json").write_text(json.dumps(meta, indent=2))
+    save()
     return meta
 
 

@@ -118,3 +118,22 @@ def register(app: typer.Typer) -> None:
         meta = run_bench(config, console, resume=resume)
         path = write_report(out, report_dir or out, meta, label)
         console.print(f"bench finished in {meta['wall_s'] / 60.0:.1f} min; report: {path}")
+
+    @bench.command("report")
+    def report(
+        out: Path = typer.Option(
+            Path("out/bench"), "--out", help="the folder of a `bench paper` run"
+        ),
+        report_dir: Path | None = typer.Option(
+            None, "--report-dir", help="where results.md and results/*.png go (default: --out)"
+        ),
+        label: str | None = typer.Option(None, "--label", help="a note at the top"),
+    ) -> None:
+        """Rewrite results.md and its figures from the records of an earlier (or still running)
+        `bench paper` run."""
+        from rich.console import Console
+
+        from ..bench.report import write_report
+
+        path = write_report(out, report_dir or out, None, label)
+        Console(stderr=True).print(f"report: {path}")
