@@ -121,7 +121,7 @@ def to_dynamic(
 
 
 def static_mask(
-    p_L: FloatArray, *, bin_deg: float = 0.1, range_cell: float = 0.004, fraction: float = 0.6
+    p_L: FloatArray, *, bin_deg: float = 0.1, range_cell: float = 0.001, fraction: float = 0.6
 ) -> NDArray[np.bool_]:
     """(N,) True for returns that sit at the same place in L for most of the scan.
 
