@@ -652,7 +652,11 @@ def finetune_tasks(
 
 def git_commit(cwd: Path | None = None) -> str:
     """``git rev-parse HEAD`` of the source tree (with ``+dirty`` if calstation's sources have
-    uncommitted changes), or ``"unknown"``."""
+    uncommitted changes), ``$CALSTATION_SOURCE_COMMIT`` when the code runs from an export of a
+    commit, or ``"unknown"``."""
+    pinned = os.environ.get("CALSTATION_SOURCE_COMMIT")
+    if pinned:  # running from an exported tree (git archive) of that commit
+        return f"{pinned} (clean export)"
     root = cwd or Path(__file__).resolve().parents[2]
     try:
         head = subprocess.run(
