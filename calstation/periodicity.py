@@ -157,7 +157,7 @@ def sensor_cells(
     Cells are cut in (φ, α), which carry no range noise, so the averages are unbiased (a voxel
     grid in D would select points by their noisy position and pull the averages toward voxel
     centres). A cell spans ``size / radius_ref`` of platter angle and ``size / median range`` of
-    azimuth; cells whose ranges spread more than ``size`` (a depth edge) are dropped.
+    azimuth; cells whose ranges spread more than 4·``size`` (a depth edge) are dropped.
     Returns ((C, 3) mean returns in L, (C,) mean φ).
     """
     if p_L.shape[0] == 0:
@@ -180,7 +180,7 @@ def sensor_cells(
     r_mean = np.bincount(inv, weights=rng, minlength=m) / counts
     r_sq = np.bincount(inv, weights=rng * rng, minlength=m) / counts
     spread = np.sqrt(np.maximum(r_sq - r_mean**2, 0.0))
-    keep = spread <= max(size, 0.002)
+    keep = spread <= max(4.0 * size, 0.004)
     return mean[keep], ph[keep]
 
 
