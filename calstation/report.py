@@ -48,6 +48,8 @@ def run_brief(run: Run) -> dict[str, Any]:
         "finished_at": iso(run.finished_at),
         "data_dir": run.data_dir,
         "error": run.error,
+        "host": run.host,
+        "pid": run.pid,
     }
 
 

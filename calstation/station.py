@@ -27,7 +27,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import signal
+import socket
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager, suppress
@@ -650,6 +652,8 @@ class Station:
             run.status = "running"
             run.finished_at = None
             run.error = None
+            run.host = socket.gethostname()
+            run.pid = os.getpid()
 
     def _stored_calibration(self, stage: str) -> Calibration:
         with self.db.session() as s:
@@ -876,11 +880,39 @@ def start_run(
         return run_id, Station(db, run_id, loaded, ui).run()
 
 
-def resume_run(run_id: int, db: Database, ui: Operator) -> str:
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _check_not_running_elsewhere(run: Run, force: bool) -> None:
+    """Refuse to resume a run another live process is executing (two processes, one motor)."""
+    if run.status != "running" or force or run.pid is None:
+        return
+    if run.host == socket.gethostname():
+        if run.pid != os.getpid() and _process_alive(run.pid):
+            raise StationError(
+                f"run {run.id} is being executed by process {run.pid} on this host; stop it "
+                "first (or pass --force if that process id now belongs to something else)"
+            )
+        return
+    raise StationError(
+        f"run {run.id} was last executed on host {run.host!r} (process {run.pid}); resume it "
+        "there, or pass --force if that process is gone"
+    )
+
+
+def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False) -> str:
     """Continue run ``run_id`` at its first unfinished step; returns the final status.
 
     The recipe is the one stored with the run (not the file, which may have changed since).
-    Recordings of finished steps are re-used after their sha256 is checked.
+    Recordings of finished steps are re-used after their sha256 is checked. A run still being
+    executed by a live process is refused unless ``force``.
     """
     with db.session() as s:
         run = s.get(Run, run_id)
@@ -888,6 +920,7 @@ def resume_run(run_id: int, db: Database, ui: Operator) -> str:
             raise StationError(f"no run {run_id} in the database")
         if run.status == "passed":
             raise StationError(f"run {run_id} already passed; nothing to resume")
+        _check_not_running_elsewhere(run, force)
         text, path = run.recipe_text, run.recipe_path
         run_dir = Path(run.data_dir)
     source = f"recipe of run {run_id}"

@@ -357,3 +357,34 @@ def test_console_operator_prompts_and_abort(
     assert "ABORTED" in text and "place_qa_cube" not in [s[0] for s in _steps(db, run_id)
                                                          if s[2] == "passed"]
     assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]
+
+
+def test_resume_refuses_a_run_another_live_process_executes(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    import socket
+    import subprocess
+    import sys
+
+    station_plugin.strategy.failures = 1
+    run_id, _ = start_run(load_recipe(lean_recipe(tmp_path)), db, ScriptedOperator(),
+                          operator="ann", data_dir=tmp_path)
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        with db.session() as s:
+            run = s.get(Run, run_id)
+            assert run is not None and run.pid is not None
+            run.status, run.pid, run.host = "running", other.pid, socket.gethostname()
+        with pytest.raises(StationError, match=f"process {other.pid} on this host"):
+            resume_run(run_id, db, ScriptedOperator())
+        with db.session() as s:
+            run = s.get(Run, run_id)
+            assert run is not None
+            run.host = "elsewhere"
+        with pytest.raises(StationError, match="host 'elsewhere'"):
+            resume_run(run_id, db, ScriptedOperator())
+    finally:
+        other.kill()
+        other.wait()
+    ui = ScriptedOperator(place=_stop_at("qa_cube"))
+    assert resume_run(run_id, db, ui, force=True) == "aborted"

@@ -71,6 +71,11 @@ def register(app: typer.Typer) -> None:
         run_id: int = typer.Argument(..., help="The run to continue."),
         yes: bool = typer.Option(False, "--yes", "-y", help="Unattended (see `run`)."),
         db: str = typer.Option(None, "--db", help="Database URL."),
+        force: bool = typer.Option(
+            False, "--force",
+            help="Resume even if the run's recorded process still seems alive (or ran on "
+            "another host).",
+        ),
     ) -> None:
         """Continue a crashed or failed run at its first unfinished step, re-using its recordings.
 
@@ -82,7 +87,7 @@ def register(app: typer.Typer) -> None:
 
         database = open_database(db)
         try:
-            status = resume_run(run_id, database, ConsoleOperator(unattended=yes))
+            status = resume_run(run_id, database, ConsoleOperator(unattended=yes), force=force)
         finally:
             database.dispose()
         raise typer.Exit(_exit_code(status))

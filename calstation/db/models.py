@@ -65,7 +65,8 @@ class Run(Base):
     """One run of a recipe on a station.
 
     ``status`` is ``"running"``, ``"passed"``, ``"failed"`` or ``"aborted"``; a run left
-    ``"running"`` by a crashed process is resumed by ``calstation resume``.
+    ``"running"`` by a crashed process is resumed by ``calstation resume``. ``host`` and ``pid``
+    name the process executing it (so a second process cannot drive the same run).
     """
 
     __tablename__ = "run"
@@ -83,6 +84,8 @@ class Run(Base):
     finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     status: Mapped[str] = mapped_column(String(16), default="running", index=True)
     error: Mapped[str | None] = mapped_column(Text)
+    host: Mapped[str | None] = mapped_column(String(255))
+    pid: Mapped[int | None] = mapped_column(Integer)
 
     station: Mapped[Station] = relationship(back_populates="runs")
     steps: Mapped[list[Step]] = relationship(
