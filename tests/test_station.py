@@ -12,6 +12,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import pgserver
 import pytest
 import yaml
 
@@ -388,3 +389,30 @@ def test_resume_refuses_a_run_another_live_process_executes(
         other.wait()
     ui = ScriptedOperator(place=_stop_at("qa_cube"))
     assert resume_run(run_id, db, ui, force=True) == "aborted"
+
+
+postgres_url = pgserver.postgres_url
+
+
+def test_station_on_postgresql(
+    tmp_path: Path, postgres_url: str, station_plugin: StationTestPlugin
+) -> None:
+    """The same run, committed step by step into PostgreSQL, then resumed there."""
+    database = open_database(postgres_url)
+    try:
+        station_plugin.strategy.failures = 1
+        run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), database,
+                                   ScriptedOperator(), operator="pg", data_dir=tmp_path)
+        assert status == "failed"
+        assert resume_run(run_id, database, ScriptedOperator(place=_stop_at("qa_cube"))) \
+            == "aborted"
+        steps = _steps(database, run_id)
+        assert ("fine_tune", 2, "passed") in steps and ("spin_scan", 1, "passed") in steps
+        with database.session() as s:
+            fine = s.query(Calibration).filter_by(run_id=run_id, stage="fine").one()
+            assert fine.diagnostics is not None and fine.diagnostics["note"] == "toy"
+            assert fine.sigma_ty is None and fine.sigma_tx == 1e-5
+            for art in s.query(Artifact).filter_by(run_id=run_id):
+                assert file_sha256(Path(art.path)) == art.sha256
+    finally:
+        database.dispose()
