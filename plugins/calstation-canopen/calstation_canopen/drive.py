@@ -423,7 +423,13 @@ class Cia402Turntable:
             ts = TurntableState.MOVING if moving else TurntableState.ENABLED
         else:
             ts = TurntableState.DISABLED
-        return TurntableStatus(t, ts, speed, self.position_rad(), faults)
+        position = self.position_rad()
+        if position is None:  # no TPDO yet (not enabled): ask by SDO
+            with contextlib.suppress(CanopenError):
+                counts = self.sdo_read(ds.POSITION_ACTUAL, 0, "<i")
+                position = (int(self.settings["direction"]) * 2 * math.pi * counts
+                            / int(self.settings["counts_per_revolution"]))
+        return TurntableStatus(t, ts, speed, position, faults)
 
     def close(self) -> None:
         """Stop the motor (quick stop if a normal stop fails), disable, release the bus."""
