@@ -232,7 +232,7 @@ def test_encoder_cyclic_mode(
     try:
         time.sleep(0.3)
         n = len(enc.samples())
-        assert 30 <= n <= 70
+        assert 20 <= n <= 80  # 60 nominal; generous for a busy machine
         assert encoder_emulator.value(0x6200) == 5
         assert encoder_emulator.value(0x1800, 2) == 0xFE
     finally:
