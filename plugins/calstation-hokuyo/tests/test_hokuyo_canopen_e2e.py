@@ -59,3 +59,49 @@ def test_calibration_through_the_real_drivers_and_emulators(tmp_path: Path) -> N
     assert errors["axis_angle_rad"] <= AXIS_ANGLE_RAD, errors
     assert abs(errors["rz_error"]) <= RZ_RAD, errors
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+
+
+def test_emulated_drivers_share_one_simulated_station() -> None:
+    """``emulate: true``: the three factories start emulators on one real-time simulated station;
+    the emulated lidar sees the simulated scene and the emulated motor turns its platter."""
+    import numpy as np
+
+    from calstation import plugins
+    from calstation.clock import HostClock
+    from calstation.drivers import DriverContext
+    from calstation.recipe import load_recipe
+
+    loaded = load_recipe(RECIPE)
+    context = DriverContext(clock=HostClock(), recipe=loaded)
+    st = loaded.recipe.station
+    made = []
+    try:
+        for kind, cfg in (("lidar", st.lidar), ("turntable", st.turntable),
+                          ("encoder", st.encoder)):
+            made.append(plugins.driver_factory(kind, cfg.driver)(dict(cfg.settings), context))
+        lidar, turntable, encoder = made
+        sim = context.shared["sim"]
+        plugins.fixture_placed(context, "static_target", loaded.recipe.fixtures.static_target)
+        lidar.start()
+        try:
+            line = next(iter(lidar.lines()))
+        finally:
+            lidar.stop()
+        truth = sim.scan_line(line.timestamp_ns)  # the same scene, cast again (its own noise)
+        np.testing.assert_allclose(line.azimuth_rad, truth.azimuth_rad, atol=1e-12)
+        both = line.valid & truth.valid
+        assert both.sum() > 900
+        assert np.median(np.abs(line.range_m[both] - truth.range_m[both])) < 0.002
+        turntable.enable()
+        turntable.spin(30.0)
+        t0 = context.clock.now_ns()
+        context.clock.sleep(1.0)
+        encoder.samples()
+        sample = encoder.read()
+        assert sim.platter_speed_rpm(context.clock.now_ns()) == pytest.approx(30.0, rel=0.02)
+        assert sample.count == pytest.approx(sim.encoder_count(sample.timestamp_ns), abs=40)
+        assert sim.platter_angle(context.clock.now_ns()) > sim.platter_angle(t0)
+        turntable.stop()
+    finally:
+        for driver in reversed(made):
+            driver.close()
