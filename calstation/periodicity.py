@@ -126,26 +126,33 @@ def static_mask(
     """(N,) True for returns that sit at the same place in L for most of the scan.
 
     Per azimuth bin of ``bin_deg``, a return is static when at least ``fraction`` of the bin's
-    returns lie within ±1.5 ``range_cell`` of it: the platter ring, the background, faces of
+    returns lie within ±2.5 ``range_cell`` of it: the platter ring, the background, faces of
     revolution. Independent of H.
     """
     rng, az = lidar_to_polar(p_L)
+    if rng.size == 0:
+        return np.zeros(0, dtype=bool)
     b = np.floor(az / math.radians(bin_deg)).astype(np.int64)
-    b -= b.min(initial=0)
+    b -= b.min()
     c = np.floor(rng / range_cell).astype(np.int64)
-    ncell = int(c.max(initial=0)) + 3
-    key = b * ncell + c + 1
-    uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
-    # returns in the neighbouring range cells of the same bin
-    left = np.searchsorted(uniq, uniq - 1)
-    right = np.searchsorted(uniq, uniq + 1)
-    has_l = (left < uniq.size) & (uniq[np.minimum(left, uniq.size - 1)] == uniq - 1)
-    has_r = (right < uniq.size) & (uniq[np.minimum(right, uniq.size - 1)] == uniq + 1)
-    near = counts.copy()
-    near[has_l] += counts[left[has_l]]
-    near[has_r] += counts[right[has_r]]
-    per_bin = np.bincount(b, minlength=int(b.max(initial=0)) + 1)
-    out: NDArray[np.bool_] = near[inv] >= fraction * np.maximum(per_bin[b], 1)
+    c -= c.min()
+    ncell = int(c.max()) + 5
+    key = b * ncell + c + 2
+    size = (int(b.max()) + 1) * ncell
+    if size <= 50_000_000:
+        # dense counts: no sort over millions of returns
+        counts = np.bincount(key, minlength=size)
+        near_all = sum(counts[key + k] for k in (-2, -1, 0, 1, 2))
+    else:
+        uniq, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+        near = np.zeros_like(cnt)
+        for k in (-2, -1, 0, 1, 2):
+            pos = np.searchsorted(uniq, uniq + k)
+            hit = (pos < uniq.size) & (uniq[np.minimum(pos, uniq.size - 1)] == uniq + k)
+            near[hit] += cnt[pos[hit]]
+        near_all = near[inv]
+    per_bin = np.bincount(b)
+    out: NDArray[np.bool_] = near_all >= fraction * np.maximum(per_bin[b], 1)
     return out
 
 
@@ -483,6 +490,9 @@ def periodicity_fine_tune_points(
                     "nfev": int(res.nfev),
                 }
             )
+            prev_cost = history[-2]["cost"] if len(history) > 1 and outer > 0 else math.inf
+            if outer > 0 and abs(prev_cost - final_cost) <= 1e-3 * final_cost:
+                break
             if (
                 step[:3].max() < stage.voxel * 0.02
                 and step[5] < math.radians(0.001) * stage.voxel / 0.002

@@ -44,7 +44,7 @@ Progress = Callable[[str, float], None]
 DIFF_STEP = 1e-4
 """Relative finite-difference step: 0.1 mm / 0.1 mrad (the cost is piecewise)."""
 FREE = ("tx", "tz", "ry", "rz")
-"""Parameters the shape strategy estimates; ty is the gauge (held at its start)."""
+"""Parameters the shape strategy can estimate; ty is the gauge (held at its start)."""
 
 
 def segment_above_platter(
@@ -276,13 +276,16 @@ def shape_fine_tune_points(
     platter_radius: float = 0.2925,
     max_points: int = 20_000,
     box: str = "upright",
+    estimate_ry: bool = False,
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
 
     ``p_L`` (N, 3) returns in L (m), ``phi`` (N,) platter angles (rad). ``box``: ``"upright"``
     (calstation's default: a box standing on the platter) or ``"minimal"`` (the paper's
-    minimum-volume OBB from Open3D). Returns a
+    minimum-volume OBB from Open3D). ``estimate_ry``: free ry in a second pass (by default ry
+    stays at its start: the cube cost's ry minimum is biased by a few tenths of a degree,
+    docs/algorithms.md). Returns a
     :class:`CalibrationResult` with strategy ``"shape"`` and cost ``C1 + C2`` (m²).
     """
     t_start = time.perf_counter()
@@ -321,7 +324,8 @@ def shape_fine_tune_points(
         density_scale=density_scale,
         box=box,
     )
-    free = [PARAMETER_NAMES.index(n) for n in FREE]
+    names = FREE if estimate_ry else ("tx", "tz", "rz")
+    free = [PARAMETER_NAMES.index(n) for n in names]
     x6 = start.as_vector()
     tb, rb = settings.translation_bound, math.radians(settings.rotation_bound_deg)
     start6 = x6.copy()
@@ -373,9 +377,12 @@ def shape_fine_tune_points(
         v[free] = x
         return Extrinsics.from_vector(v)
 
-    # tz and ry twist the cloud alike; settle the sharp parameters with ry held first
-    solve(("tx", "tz", "rz"), settings.max_nfev // 2)
-    res = solve(FREE, settings.max_nfev - settings.max_nfev // 2)
+    if estimate_ry:
+        # tz and ry twist the cloud alike; settle the sharp parameters with ry held first
+        solve(("tx", "tz", "rz"), settings.max_nfev // 2)
+        res = solve(FREE, settings.max_nfev - settings.max_nfev // 2)
+    else:
+        res = solve(names, settings.max_nfev)
     H = full(res.x)
     final = cost.residuals_of(H)
     c2 = float(np.sum(final[-3:] ** 2))
@@ -395,6 +402,7 @@ def shape_fine_tune_points(
         diagnostics={
             "gauge": "ty held at its start value",
             "box": box,
+            "estimate_ry": estimate_ry,
             "C1": total - c2,
             "C2": c2,
             "obb_extents_m": np.sort(extents).tolist(),
@@ -431,6 +439,7 @@ def shape_fine_tune(
     *,
     platter_radius: float = 0.2925,
     box: str = "upright",
+    estimate_ry: bool = False,
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on a QA-cube spin-scan recording."""
@@ -444,6 +453,7 @@ def shape_fine_tune(
             settings,
             platter_radius=platter_radius,
             box=box,
+            estimate_ry=estimate_ry,
             progress=progress,
         )
     except FineTuningError as exc:

@@ -79,7 +79,8 @@ class PeriodicityStrategy:
 class ShapeStrategy:
     """Shape-constrained fine-tuning on the QA cube (paper §III-B-1).
 
-    ``calibration.options.shape.box``: ``upright`` (default) or ``minimal`` (the paper's box).
+    ``calibration.options.shape``: ``box`` — ``upright`` (default) or ``minimal`` (the
+    paper's box); ``estimate_ry`` — free ry too (default false: ry stays at its start).
     """
 
     name = "shape"
@@ -97,6 +98,7 @@ class ShapeStrategy:
 
         options: dict[str, Any] = dict(recipe.calibration.options.get("shape", {}))
         box = str(options.pop("box", "upright"))
+        estimate_ry = bool(options.pop("estimate_ry", False))
         if box not in ("upright", "minimal"):
             raise FineTuningError(
                 f"calibration.options.shape.box must be 'upright' or 'minimal', got {box!r}"
@@ -112,6 +114,7 @@ class ShapeStrategy:
             recipe.calibration.shape,
             platter_radius=_platter_radius(recipe),
             box=box,
+            estimate_ry=estimate_ry,
             progress=progress,
         )
 
