@@ -36,8 +36,9 @@ class ScriptedOperator:
     unattended = True
 
     def __init__(self, place: Callable[[str], bool] | None = None,
-                 decisions: list[str] | None = None) -> None:
+                 decisions: list[str] | None = None, interrupt_in: str | None = None) -> None:
         self.place = place or (lambda fixture: True)
+        self.interrupt_in = interrupt_in
         self.decisions = list(decisions or [])
         self.placed: list[str] = []
         self.failures: list[tuple[str, str, int]] = []
@@ -61,7 +62,12 @@ class ScriptedOperator:
     @contextmanager
     def progress(self, title: str) -> Iterator[Callable[[str, float], None]]:
         self.progress_titles.append(title)
-        yield lambda phase, fraction: None
+
+        def update(phase: str, fraction: float) -> None:
+            if title == self.interrupt_in and phase == "scanning" and fraction > 0.3:
+                raise KeyboardInterrupt  # the operator presses Ctrl-C mid-scan
+
+        yield update
 
     def summary(self, summary: dict[str, Any]) -> None:
         self.summaries.append(summary)
@@ -416,3 +422,21 @@ def test_station_on_postgresql(
                 assert file_sha256(Path(art.path)) == art.sha256
     finally:
         database.dispose()
+
+
+def test_ctrl_c_during_the_spin_scan_aborts_and_stops_the_motor(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    ui = ScriptedOperator(interrupt_in="spin scan")
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ui, operator="ann",
+                               data_dir=tmp_path)
+    assert status == "aborted"
+    assert _steps(db, run_id)[-1] == ("spin_scan", 1, "aborted")
+    # the acquisition stopped the spinning platter, then the station's abort: emergency stop
+    assert station_plugin.motor_calls[-3:] == ["stop", "emergency_stop", "stop"]
+    with db.session() as s:
+        kinds = {a.kind for a in s.query(Artifact).filter_by(run_id=run_id)}
+        run = s.get(Run, run_id)
+        assert run is not None and run.status == "aborted" and run.finished_at is not None
+    assert kinds == {"static"}  # the interrupted scan is not stored as a finished recording
+    assert ui.summaries[-1]["status"] == "aborted"
