@@ -288,17 +288,21 @@ def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Pat
     fig, ax = plt.subplots(figsize=(8, 4))
     ax.plot(xs, ys, "-o", color="tab:blue", label=param)
     if param not in CUBE_PARAMS:
-        for prev, cur in itertools.pairwise(points):
+        for i, (prev, cur) in enumerate(itertools.pairwise(points)):
             lo = scale(prev["value"] - cur["limit"])
             hi = scale(prev["value"] + cur["limit"])
             ax.fill_between([prev["run_id"], cur["run_id"]], [lo, lo], [hi, hi],
-                            color="tab:green", alpha=0.12, step="post")
+                            color="tab:green", alpha=0.12, step="post",
+                            label="allowed drift" if i == 0 else None)
     else:
         ax.axhline(scale(points[-1]["limit"]), color="tab:red", ls="--", label="limit")
     bad_x = [p["run_id"] for p in points if p["flagged"]]
     bad_y = [scale(p["value"]) for p in points if p["flagged"]]
     if bad_x:
         ax.scatter(bad_x, bad_y, color="tab:red", zorder=3, s=60, label="drift")
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("run")
     ax.set_ylabel(f"{param} [{unit}]")
     ax.set_title(f"{param} of station {station}")
