@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rich.markup import escape
 from sqlalchemy import select
 from transitions import Machine
 
@@ -207,17 +208,12 @@ class Station:
             self.machine.add_transition(
                 "retry", "failed", step, conditions=[self._is_failed(step)]
             )
-            # a resumed run may re-confirm a placement before the scan that needs it
-            self.machine.add_transition("jump", list(STEPS), step, conditions=[self._is_next(step)])
         self.machine.add_transition("fail", list(STEPS), "failed")
         self.machine.add_transition("abort", "*", "aborted")
         self._plan: list[str] = []
 
     # --- machine conditions --------------------------------------------------------------
     def _is_first(self, step: str) -> Callable[[], bool]:
-        return lambda: bool(self._plan) and self._plan[0] == step
-
-    def _is_next(self, step: str) -> Callable[[], bool]:
         return lambda: bool(self._plan) and self._plan[0] == step
 
     def _is_failed(self, step: str) -> Callable[[], bool]:
@@ -243,10 +239,9 @@ class Station:
                 self._plan.pop(0)
                 if not self._plan:
                     break
-                if self._plan[0] == self._next_in_order(step):
-                    self.trigger("advance")
-                else:
-                    self.trigger("jump")
+                if self._plan[0] != self._next_in_order(step):  # plans are suffixes of STEPS
+                    raise StationError(f"cannot go from {step} to {self._plan[0]}")
+                self.trigger("advance")
             return self._finish(self._verdict(), None)
         except (AbortRun, KeyboardInterrupt) as exc:
             aborted = True
@@ -874,8 +869,8 @@ def start_run(
         run.data_dir = str(run_dir)
         run_id = run.id
     run_dir.mkdir(parents=True, exist_ok=True)
-    ui.info(f"run [bold]{run_id}[/] of recipe {loaded.recipe.name} on station "
-            f"{loaded.recipe.station.id}; recordings in {run_dir}")
+    ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
+            f"{loaded.recipe.station.id}; recordings in {escape(str(run_dir))}")
     with _signals_abort():
         return run_id, Station(db, run_id, loaded, ui).run()
 
@@ -928,7 +923,7 @@ def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False) 
     loaded = LoadedRecipe(parse_recipe(text, source, base_dir), Path(path) if path else None, text)
     check_plugins(loaded)
     run_dir.mkdir(parents=True, exist_ok=True)
-    ui.info(f"resuming run [bold]{run_id}[/]; recordings in {run_dir}")
+    ui.info(f"resuming run [bold]{run_id}[/]; recordings in {escape(str(run_dir))}")
     with _signals_abort():
         return Station(db, run_id, loaded, ui).run()
 
