@@ -329,7 +329,9 @@ class PeriodicitySettings(OptimizerSettings):
     normal_neighbours: int = Field(50, gt=2)
     coarse_to_fine: bool = True
     gauge: Literal["platter", "ty"] = "platter"
-    ry_bound_deg: Positive = 1.0
+    ry_bound_deg: Positive = Field(
+        2.5, description="ry bound around its start (never re-centred): set-B starts are 2° off"
+    )
 
 
 class CalibrationSettings(Model):
