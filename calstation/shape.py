@@ -404,7 +404,8 @@ def shape_fine_tune_points(
         strategy="shape",
         timings={"total": time.perf_counter() - t_start},
         diagnostics={
-            "gauge": "ty held at its start value",
+            "gauge": "ty",
+            "gauge_note": "ty held at its start value (the cube cannot see a shift along the axis)",
             "box": box,
             "estimate_ry": estimate_ry,
             "C1": c1,

@@ -2,7 +2,12 @@
 
 The paper's nine scenarios (range 1.00/1.25/1.50 m × pitch 30/45/60°), against the simulator's
 true H with the DESIGN §8 metrics, and ten set-A starts (±100 mm, ±1°, ty fixed) in two
-scenarios.
+scenarios. Two seeds: seed 1 draws a true ry of +0.008°, seed 4 one of −0.355° (ry is the
+weakly observable parameter, and the initial calibration assumes ry = 0).
+
+The shape strategy holds ry at its start (the cube cannot determine it, docs/algorithms.md), so
+its axis direction error is the true |ry|: it meets its thresholds on seed 1 and is expected to
+miss them on seed 4 (strict xfail: the test says so when that changes).
 """
 
 from __future__ import annotations
@@ -26,8 +31,8 @@ SCENARIOS = [(r, p) for r in (1.0, 1.25, 1.5) for p in (30.0, 45.0, 60.0)]
 RECIPE = "recipes/sim-periodicity.yaml"
 
 
-def _setup(sim_run, range_m: float, pitch_deg: float):
-    run = sim_run(range_m=range_m, pitch_deg=pitch_deg, seed=1)
+def _setup(sim_run, range_m: float, pitch_deg: float, seed: int = 1):
+    run = sim_run(range_m=range_m, pitch_deg=pitch_deg, seed=seed)
     recipe = load_recipe(RECIPE).recipe
     static = read_recording(run["static"])
     truth = static.truth
@@ -44,9 +49,10 @@ def _periodicity_ok(H: Extrinsics, truth: Extrinsics) -> dict[str, float]:
     return e
 
 
+@pytest.mark.parametrize("seed", [1, 4])
 @pytest.mark.parametrize(("range_m", "pitch_deg"), SCENARIOS)
-def test_nine_scenarios(sim_run, range_m: float, pitch_deg: float) -> None:
-    run, recipe, truth, initial = _setup(sim_run, range_m, pitch_deg)
+def test_nine_scenarios(sim_run, range_m: float, pitch_deg: float, seed: int) -> None:
+    run, recipe, truth, initial = _setup(sim_run, range_m, pitch_deg, seed)
     err = initial.H.as_vector() - truth.as_vector()
     assert np.all(np.abs(err[:3]) <= 0.1) and np.all(np.abs(np.degrees(err[3:])) <= 1.0)
 
@@ -58,10 +64,23 @@ def test_nine_scenarios(sim_run, range_m: float, pitch_deg: float) -> None:
     check = check_cube(cube, per.H, recipe.fixtures.qa_cube, recipe.qa)
     assert check.edge_error <= 0.5e-3, check.to_dict()
 
-    shape = ShapeStrategy().run(cube, initial.H, recipe)
+
+def _shape_ok(sim_run, range_m: float, pitch_deg: float, seed: int) -> None:
+    run, recipe, truth, initial = _setup(sim_run, range_m, pitch_deg, seed)
+    shape = ShapeStrategy().run(read_recording(run["cube"]), initial.H, recipe)
     e = axis_errors(shape.H, truth)
     assert e["axis_offset_m"] <= 2e-3, e
     assert math.degrees(e["axis_angle_rad"]) <= 0.3, e
+
+
+@pytest.mark.parametrize(("range_m", "pitch_deg"), SCENARIOS)
+def test_shape_nine_scenarios(sim_run, range_m: float, pitch_deg: float) -> None:
+    _shape_ok(sim_run, range_m, pitch_deg, 1)
+
+
+@pytest.mark.xfail(strict=True, reason="shape holds ry at 0; the true ry of seed 4 is -0.355°")
+def test_shape_large_true_ry(sim_run) -> None:
+    _shape_ok(sim_run, 1.0, 45.0, 4)
 
 
 @pytest.mark.parametrize(("range_m", "pitch_deg"), [(1.25, 45.0), (1.0, 60.0)])
