@@ -424,6 +424,8 @@ def periodicity_fine_tune_points(
 
     stages = schedule(settings)
     x6 = start6.copy()
+    if settings.coarse_to_fine:
+        x6 = _centre_halves(halves, x6, settings, rng)
     history: list[dict[str, Any]] = []
     last: tuple[Any, _Problem] | None = None
     total_outer = 0
@@ -535,6 +537,31 @@ def periodicity_fine_tune_points(
             "rms_m": math.sqrt(final_cost),
         },
     )
+
+
+def _centre_halves(
+    halves: list[_Half], x6: FloatArray, settings: PeriodicitySettings, rng: np.random.Generator
+) -> FloatArray:
+    """Stage 0 (calstation): move tx and tz so that the centroids of the two half-turn
+    reconstructions coincide. Smooth, with a basin as wide as the target, it brings starts
+    200 mm off within reach of the first matching stage. ty (gauge), ry and rz stay."""
+    sub = [_subset(h, 20_000, rng) for h in halves]
+    cs = [(np.cos(h.phi), np.sin(h.phi)) for h in sub]
+    free = [IDX["tx"], IDX["tz"]]
+
+    def fun(x: FloatArray) -> FloatArray:
+        v = x6.copy()
+        v[free] = x
+        a = to_dynamic(sub[0].p_L, *cs[0], v)
+        b = to_dynamic(sub[1].p_L, *cs[1], v)
+        return np.asarray(a.mean(axis=0) - b.mean(axis=0), dtype=np.float64)
+
+    half = 2.0 * settings.translation_bound * 5
+    x0 = x6[free]
+    res = least_squares(fun, x0, bounds=(x0 - half, x0 + half), method="trf", max_nfev=30)
+    out = x6.copy()
+    out[free] = res.x
+    return out
 
 
 def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched, int]:
