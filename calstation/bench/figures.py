@@ -55,10 +55,12 @@ def deviations_from_mean(
     return np.concatenate(parts) if parts else np.zeros(0)
 
 
-def param_boxplots(records: Sequence[dict[str, Any]], path: Path, methods: Sequence[str]) -> None:
+def param_boxplots(
+    records: Sequence[dict[str, Any]], path: Path, methods: Sequence[str], log: bool = True
+) -> None:
     """Box plots of the deviation from the mean of tx, tz (mm), ry, rz (°) per method, for set A
-    (left) and set B (right); symmetric-log y axes so sub-millimetre spreads and far outliers
-    both show."""
+    (left) and set B (right). ``log``: symmetric-log y axes so sub-millimetre spreads and far
+    outliers both show; otherwise linear (for one method's own scale)."""
     plt = _plt()
     fig, axes = plt.subplots(4, 2, figsize=(8.5, 11), constrained_layout=True)
     for row, (param, unit, scale, linthresh) in enumerate(PARAMS_BOX):
@@ -66,13 +68,14 @@ def param_boxplots(records: Sequence[dict[str, Any]], path: Path, methods: Seque
             ax = axes[row][col]
             data = [deviations_from_mean(records, m, start_set, param) * scale for m in methods]
             _boxes(ax, data, methods)
-            ax.set_yscale("symlog", linthresh=linthresh)
+            if log:
+                ax.set_yscale("symlog", linthresh=linthresh)
             ax.axhline(0.0, color="k", lw=0.5)
-            n = max((len(d) for d in data), default=0)
-            ax.set_title(f"{param} deviation from mean, set {start_set} (N={n})", fontsize=10)
+            ax.set_title(f"{param} deviation from mean, set {start_set}", fontsize=10)
             ax.set_ylabel(f"{param} − mean ({unit})")
             ax.grid(True, axis="y", alpha=0.3)
-    fig.suptitle("Spread of the fine-tuned parameters over perturbed starts")
+    which = " and ".join(METHOD_LABELS.get(m, m) for m in methods)
+    fig.suptitle(f"Spread of the fine-tuned parameters over perturbed starts: {which}")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -93,7 +96,10 @@ def _boxes(ax: Any, data: Sequence[np.ndarray], methods: Sequence[str]) -> None:
         patch.set_facecolor(METHOD_COLOURS.get(m, "#cccccc"))
         patch.set_alpha(0.8)
     ax.set_xticks(positions)
-    ax.set_xticklabels([METHOD_LABELS.get(m, m) for m in methods], fontsize=8)
+    ax.set_xticklabels(
+        [f"{METHOD_LABELS.get(m, m)}\nN={len(d)}" for m, d in zip(methods, data, strict=True)],
+        fontsize=8,
+    )
 
 
 def cube_error_values(

@@ -396,6 +396,8 @@ def write_report(
     fig_dir.mkdir(parents=True, exist_ok=True)
 
     param_boxplots(records, fig_dir / "param_spread.png", methods)
+    if "periodicity" in methods:
+        param_boxplots(records, fig_dir / "param_spread_periodicity.png", ["periodicity"], False)
     cube_boxplots(records, fig_dir / "cube_error.png", methods)
     grids = _landscape_grids(records)
     landscape_md = []
@@ -519,9 +521,18 @@ def _compose(
     if label:
         parts += [f"> **{label}**", ""]
     if reduced:
+        fine = [r for r in every if r["kind"] == "finetune"]
+        per_task = float(np.mean([r["wall_s"] for r in fine])) if fine else float("nan")
+        full_h = per_task * 9 * len(methods) * 101 / max(1, int(cfg.get("workers", 1))) / 3600
         parts += [
             "> **Reduced run** (the paper's protocol is 9 scenarios × 50 + 50 starts): "
-            + "; ".join(reduced) + ".",
+            + "; ".join(reduced) + f". At this run's mean of {_fmt(per_task, 1)} s per "
+            f"fine-tuning task (calibration, cube check and distortion, measured on a shared "
+            f"machine) the full protocol would need ~{_fmt(full_h, 1)} h with "
+            f"{cfg.get('workers', '?')} workers, beyond the time available; the perturbed "
+            "starts run in rounds (start i of sets A and B, every scenario and method) and the "
+            "run stopped after the last round that fitted, so every scenario has the same "
+            "starts. The seeds make any larger run extend this one (`--resume`).",
             "",
         ]
     parts += [
@@ -594,6 +605,10 @@ def _compose(
         table_spread(records, methods),
         "",
         "![parameter spread](results/param_spread.png)",
+        "",
+        "The periodicity boxes on their own, linear axes:",
+        "",
+        "![periodicity parameter spread](results/param_spread_periodicity.png)",
         "",
         "## Per scenario",
         "",
