@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -212,7 +213,7 @@ def table_spread(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> s
     for m in methods:
         for s in ("A", "B"):
             row = [METHOD_LABELS.get(m, m), f"set {s}"]
-            for p, scale, d in (("tx", MM, 2), ("tz", MM, 2), ("ry", DEG, 3), ("rz", DEG, 3)):
+            for p, scale, d in (("tx", MM, 3), ("tz", MM, 3), ("ry", DEG, 4), ("rz", DEG, 4)):
                 dev = deviations_from_mean(records, m, s, p) * scale
                 if dev.size:
                     iqr = float(np.percentile(dev, 75) - np.percentile(dev, 25))
@@ -277,6 +278,9 @@ def table_timing(records: Sequence[dict[str, Any]], methods: Sequence[str],
     stages.append(("cube check", _values(evals, lambda r: r["eval_timings"]["cube_check_s"])))
     stages.append(("reconstruction distortion",
                    _values(evals, lambda r: r["eval_timings"]["distortion_s"])))
+    rows_ls = [r for r in records if r["kind"] == "landscape" and r.get("status") == "ok"]
+    stages.append(("one cost evaluation (landscape)", _values(
+        rows_ls, lambda r: r["stage_s"] / max(1, len(r["landscape"]["costs"])))))
     for name, v in stages:
         rows.append([name, str(v.size), _fmt(_median(v)), _fmt(_pct(v, 90)),
                      _fmt(float(np.max(v)) if v.size else float("nan"))])
@@ -400,7 +404,8 @@ def write_report(
         param_boxplots(records, fig_dir / "param_spread_periodicity.png", ["periodicity"], False)
     cube_boxplots(records, fig_dir / "cube_error.png", methods)
     grids = _landscape_grids(records)
-    landscape_md = []
+    landscape_md: list[str] = []
+    sources: dict[str, str] = {}
     for pair_name, title in (("translation", "translation"), ("rotation", "rotation")):
         if pair_name in grids:
             g = grids[pair_name]
@@ -412,11 +417,18 @@ def write_report(
                 f"Cost landscape over {pair[0]} × {pair[1]}, scenario {any_g['scenario']} "
                 "(axes: deviation from each method's converged value)",
             )
-            landscape_md.append(f"![{title} landscape](results/{fname})")
+            landscape_md += [f"![{title} landscape](results/{fname})", ""]
             sources = {m: g[m].get("source", "") for m in g}
-            landscape_md.append(
-                "Cost functions: " + "; ".join(f"{m}: `{s}`" for m, s in sources.items())
-            )
+    if grids:
+        landscape_md += [
+            "Cost functions: " + "; ".join(f"{m}: {src}" for m, src in sources.items()) + ".",
+            "",
+            "calstation/periodicity.py has no public function that evaluates the whole cost at "
+            "a given H (only the optimiser's private residuals), so that landscape is assembled "
+            "from its public building blocks as listed; the shape landscape uses the engine's "
+            "public `ShapeCost`. Each grid point re-segments (shape) or re-matches "
+            "(periodicity) at its own H, as the optimiser's outer loop does.",
+        ]
     abl_sc = [s for s in cfg.get("ablation_scenarios", []) if
               any(r["scenario"] == s for r in every)]
     lim = CONVERGENCE["periodicity"]["axis_offset_m"] * MM
@@ -642,11 +654,24 @@ def _compose(
         "",
     ]
     if failed:
-        parts += ["## Failures", ""]
-        seen: dict[str, int] = {}
+        parts += [
+            "## Failures",
+            "",
+            "Runs that raised an error instead of returning an estimate (the engine's own "
+            "message, file path removed), by method, start set and variant:",
+            "",
+        ]
+        seen: dict[tuple[str, str], list[str]] = {}
         for r in failed:
-            msg = str(r.get("error_message", "?")).splitlines()[0][:200]
-            seen[msg] = seen.get(msg, 0) + 1
-        parts += [f"- {n} × {msg}" for msg, n in sorted(seen.items(), key=lambda kv: -kv[1])]
+            msg = str(r.get("error_message", "?")).splitlines()[0]
+            msg = re.sub(r"\S*/scenarios/D\d/\w+\.mcap: ", "", msg)
+            msg = re.sub(r"\d+", "#", msg)[:220]
+            where = f"{r['method']}, {SET_LABELS.get(r['set'], r['set'])}"
+            if r.get("variant", "default") != "default":
+                where += f", {r['variant']}"
+            seen.setdefault((where, msg), []).append(r["scenario"])
+        for (where, msg), scen in sorted(seen.items(), key=lambda kv: (kv[0][0], -len(kv[1]))):
+            names = ", ".join(sorted(set(scen), key=lambda n: int(n[1:])))
+            parts.append(f"- {len(scen)} × [{where}] {msg} ({names})")
         parts.append("")
     return "\n".join(parts)
