@@ -13,11 +13,13 @@ What calstation adds (docs/algorithms.md):
   platter ring, the background, any face of revolution) carry no periodicity information; they
   are found per azimuth bin, independently of H, and dropped. Points within a few mm of the
   platter top are dropped too once H is good enough to tell them apart.
-- **Coarse-to-fine schedule.** Voxel size, match radius and normal neighbourhood shrink over four
-  stages (20 → 2 mm voxels), so matching converges from starts 100–200 mm and 1–2° off.
-  Voxels average the raw returns (in L) and their platter angles, which keeps the noise
-  averaging of the raw data at a fraction of the cost.
-- **Symmetric residuals.** Each match contributes its distance along the normal of both ends.
+- **Coarse-to-fine schedule.** A centroid alignment of the two half-turns (stage 0), then four
+  matching stages whose cell size, match radius and normal neighbourhood shrink (20 → 1 mm), so
+  matching converges from starts 100–200 mm and 1–2° off. Cells are cut on the sensor grid
+  (platter angle × azimuth) and average the raw returns (in L) with their platter angles:
+  unbiased by the range noise, and computed once per stage.
+- **Point-to-local-plane residuals, symmetric.** Each match contributes the distance of each end
+  to the plane fitted around the other end.
 - **Bounds.** tx, ty, tz and rz are bounded ±``translation_bound``/±``rotation_bound_deg``
   around the current estimate (re-centred every outer iteration: they are sharp in the cost);
   ry is bounded ±``ry_bound_deg`` around its *start* and never re-centred (the cost is nearly
@@ -72,8 +74,6 @@ class Stage:
     """random subset of raw returns per half-turn used in this stage (None: all)"""
     max_outer: int
     """outer iterations (re-matching) at most"""
-    mutual: bool = True
-    """mutual nearest neighbours (paper) or every point against the other half's plane"""
 
 
 def schedule(settings: PeriodicitySettings) -> list[Stage]:
@@ -579,37 +579,14 @@ def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched,
         mapped.append((d, pl, c, s))
         n_pts += d.shape[0]
     (da, pa, ca, sa), (db, pb, cb, sb) = mapped
-    if stage.mutual:
-        i, j = mutual_neighbours(da, db, stage.match_radius)
-        na, wa, ma = weighted_normals(da, stage.normal_neighbours, i)
-        nb, wb, mb = weighted_normals(db, stage.normal_neighbours, j)
-        # each residual measures a point against the other half's local plane fit (through its
-        # neighbourhood centroid), not against one noisy point; the offset moves with the point
-        oa = np.einsum("ij,ij->i", na, ma - da[i])
-        ob = np.einsum("ij,ij->i", nb, mb - db[j])
-        m = _Matched(pa[i], ca[i], sa[i], pb[j], cb[j], sb[j], na, nb, wa, wb, oa, ob)
-        return m, n_pts
-    # every cell of each half against the local plane of its nearest cell in the other half
-    parts = []
-    for (d1, p1, c1, s1), (d2, p2, c2, s2) in (
-        ((da, pa, ca, sa), (db, pb, cb, sb)),
-        ((db, pb, cb, sb), (da, pa, ca, sa)),
-    ):
-        dist, j = cKDTree(d2).query(d1, distance_upper_bound=stage.match_radius)
-        i = np.flatnonzero(np.isfinite(dist))
-        j = j[i]
-        n2, w2, m2 = weighted_normals(d2, stage.normal_neighbours, j)
-        o2 = np.einsum("ij,ij->i", n2, m2 - d2[j])
-        zero = np.zeros_like(w2)
-        # as a match (x = point of this half, x′ = nearest of the other) with only the other
-        # half's plane weighted
-        parts.append(_Matched(p1[i], c1[i], s1[i], p2[j], c2[j], s2[j], n2, n2, zero, w2, o2, o2))
-    return _concat(parts), n_pts
-
-
-def _concat(parts: list[_Matched]) -> _Matched:
-    fields = ("pa", "ca", "sa", "pb", "cb", "sb", "na", "nb", "wa", "wb", "oa", "ob")
-    return _Matched(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
+    i, j = mutual_neighbours(da, db, stage.match_radius)
+    na, wa, ma = weighted_normals(da, stage.normal_neighbours, i)
+    nb, wb, mb = weighted_normals(db, stage.normal_neighbours, j)
+    # each residual measures a point against the other half's local plane fit (through its
+    # neighbourhood centroid), not against one noisy point; the offset moves with the point
+    oa = np.einsum("ij,ij->i", na, ma - da[i])
+    ob = np.einsum("ij,ij->i", nb, mb - db[j])
+    return _Matched(pa[i], ca[i], sa[i], pb[j], cb[j], sb[j], na, nb, wa, wb, oa, ob), n_pts
 
 
 def _sigma(res: Any, problem: _Problem) -> dict[str, float]:
