@@ -74,6 +74,8 @@ class Stage:
     """random subset of raw returns per half-turn used in this stage (None: all)"""
     max_outer: int
     """outer iterations (re-matching) at most"""
+    hold_ry: bool = False
+    """keep ry at its current value (coarse cells cannot resolve it and let it wander)"""
 
 
 def schedule(settings: PeriodicitySettings) -> list[Stage]:
@@ -94,9 +96,18 @@ def schedule(settings: PeriodicitySettings) -> list[Stage]:
         ]
     n = settings.max_outer
     return [
-        Stage(0.020, min(0.12, settings.match_distance), max(8, k // 4), None, False, 60_000, n),
         Stage(
-            0.010, min(0.05, settings.match_distance), max(12, k // 3), 0.008, platter, 120_000, n
+            0.020, min(0.12, settings.match_distance), max(8, k // 4), None, False, 60_000, n, True
+        ),
+        Stage(
+            0.010,
+            min(0.05, settings.match_distance),
+            max(12, k // 3),
+            0.008,
+            platter,
+            120_000,
+            n,
+            True,
         ),
         Stage(
             0.005, min(0.02, settings.match_distance), max(16, k // 2), 0.005, platter, 300_000, n
@@ -425,7 +436,13 @@ def periodicity_fine_tune_points(
     stages = schedule(settings)
     x6 = start6.copy()
     if settings.coarse_to_fine:
-        x6 = _centre_halves(halves, x6, settings, rng)
+        # keep the centroid alignment only where it helps: the view asymmetry of the two
+        # half-turns biases the centroids, so a good start can be better than its result
+        centred = _centre_halves(halves, x6, settings, np.random.default_rng(1))
+        first = stages[0]
+        cells = [_Half(*sensor_cells(h.p_L, h.phi, first.voxel)) for h in halves]
+        if _match(cells, centred, first)[0].pa.shape[0] > _match(cells, x6, first)[0].pa.shape[0]:
+            x6 = centred
     history: list[dict[str, Any]] = []
     last: tuple[Any, _Problem] | None = None
     total_outer = 0
@@ -433,7 +450,7 @@ def periodicity_fine_tune_points(
     for s_i, stage in enumerate(stages):
         t_stage = time.perf_counter()
         gauge_ty = settings.gauge == "ty" or not stage.use_platter
-        free = _free(gauge_ty)
+        free = [i for i in _free(gauge_ty) if not (stage.hold_ry and i == IDX["ry"])]
         stage_halves = [
             _Half(*sensor_cells(h.p_L, h.phi, stage.voxel))
             for h in (_subset(h, stage.max_points, rng) for h in halves)
@@ -544,7 +561,8 @@ def _centre_halves(
 ) -> FloatArray:
     """Stage 0 (calstation): move tx and tz so that the centroids of the two half-turn
     reconstructions coincide. Smooth, with a basin as wide as the target, it brings starts
-    200 mm off within reach of the first matching stage. ty (gauge), ry and rz stay."""
+    200 mm off within reach of the first matching stage. ty (gauge), ry and rz stay. The caller
+    keeps the result only if it gives more first-stage matches than the start."""
     sub = [_subset(h, 20_000, rng) for h in halves]
     cs = [(np.cos(h.phi), np.sin(h.phi)) for h in sub]
     free = [IDX["tx"], IDX["tz"]]
