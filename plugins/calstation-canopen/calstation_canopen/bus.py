@@ -38,6 +38,10 @@ class CanopenTimeout(CanopenError, DeviceTimeout):
     """A CANopen device did not answer (SDO) or did not reach a state in time."""
 
 
+MAX_TPDO_DELAY_S = 0.05
+"""A synchronous TPDO answering later than this (and than two SYNC periods) counts as lost."""
+
+
 class SharedBus:
     """A connected ``canopen.Network`` plus a SYNC producer that remembers when it sent SYNCs."""
 
@@ -114,14 +118,16 @@ class SharedBus:
     def pair_sync(self, after_ns: int, now_ns: int) -> int | None:
         """The host time of the SYNC a synchronous TPDO received at ``now_ns`` answers: the oldest
         SYNC sent after ``after_ns`` (the previous pairing) — devices answer SYNCs in order —
-        unless it is more than two periods old (its TPDO was lost): then the newest. None if no
-        SYNC was sent after ``after_ns``."""
+        unless it is older than :data:`MAX_TPDO_DELAY_S` or two periods, whichever is longer
+        (its TPDO was lost): then the newest. None if no SYNC was sent after ``after_ns``.
+        The floor keeps pairing in order on a busy host, where an answer can lag by several
+        SYNC periods without being lost."""
         with self._sync_lock:
             times = list(self._sync_times)
         pending = times[bisect.bisect_right(times, after_ns) : bisect.bisect_right(times, now_ns)]
         if not pending:
             return None
-        if now_ns - pending[0] <= 2 * self.sync_period_s * 1e9:
+        if now_ns - pending[0] <= max(2 * self.sync_period_s, MAX_TPDO_DELAY_S) * 1e9:
             return pending[0]
         return pending[-1]
 

@@ -180,6 +180,7 @@ class EmulatedNode:
         self._threads: list[threading.Thread] = []
         self._lock = threading.RLock()
         self.sent_tpdos = 0
+        self._sample_ns = threading.local()
         self._subscribe_rpdos()
         self._spawn(self._monitor, "canopen-emulator-monitor")
         # boot-up: power on into PRE-OPERATIONAL, announce it, start the heartbeat producer
@@ -198,8 +199,17 @@ class EmulatedNode:
         """A value was written (by SDO or RPDO)."""
 
     def on_read(self, index: int, subindex: int) -> int | None:
-        """A live value, or None to use the stored one."""
+        """A live value, or None to use the stored one (sample it at :meth:`sample_time_ns`)."""
         return None
+
+    def sample_time_ns(self) -> int:
+        """When a live value is sampled: the bus time of the SYNC being answered, else now.
+
+        A real device latches its inputs when the SYNC arrives; the emulator's thread may answer
+        milliseconds later on a busy host, so it samples at the SYNC frame's own timestamp.
+        """
+        t = getattr(self._sample_ns, "t", None)
+        return self.clock.now_ns() if t is None else int(t)
 
     def on_master_lost(self) -> None:
         """The master's heartbeat stopped (0x1016 consumer time exceeded)."""
@@ -314,10 +324,16 @@ class EmulatedNode:
         if not self.operational:
             return
         self._sync_count += 1
-        for k in self._tpdos():
-            kind = self.value(0x1800 + k, 2)
-            if 1 <= kind <= 240 and self._sync_count % kind == 0:
-                self.send_tpdo(k)
+        # the frame's age on the wall clock, carried over to this node's clock
+        age_ns = max(0.0, time.time() - timestamp) * 1e9 if timestamp else 0.0
+        self._sample_ns.t = self.clock.now_ns() - int(age_ns)
+        try:
+            for k in self._tpdos():
+                kind = self.value(0x1800 + k, 2)
+                if 1 <= kind <= 240 and self._sync_count % kind == 0:
+                    self.send_tpdo(k)
+        finally:
+            self._sample_ns.t = None
 
     def _on_master_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self._consumer_lock:
@@ -556,7 +572,7 @@ class EncoderEmulator(EmulatedNode):
     def on_read(self, index: int, subindex: int) -> int | None:
         """The position value is live."""
         if index == 0x6004:
-            return self.position_value(self.clock.now_ns())
+            return self.position_value(self.sample_time_ns())
         return None
 
     def cyclic_period_ms(self, k: int) -> int:
