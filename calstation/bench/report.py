@@ -476,11 +476,14 @@ def summary_against_paper(records: Sequence[dict[str, Any]], methods: Sequence[s
             if e.size:
                 med = float(np.median(e))
                 paper = PAPER_TABLE_II[m][s]
+                every = _select(records, m, s, ok_only=False)
+                ok = [r for r in every if r.get("status") == "ok"]
+                conv = sum(1 for r in every if r.get("converged"))
                 out.append(
                     f"- {METHOD_LABELS.get(m, m)}, set {s}: median e {_e_cell(e)} mm vs "
-                    f"{paper:.1f} mm ({verdict(med, paper)}); converged "
-                    f"{sum(1 for r in _select(records, m, s, ok_only=False) if r.get('converged'))}"
-                    f"/{len(_select(records, m, s, ok_only=False))}."
+                    f"{paper:.1f} mm ({verdict(med, paper)}); converged {conv}/{len(every)} "
+                    f"({len(every) - len(ok)} stopped with an error; {conv} of the {len(ok)} "
+                    "estimates returned are within the thresholds)."
                 )
     for m in methods:
         for s in ("A", "B"):
@@ -489,9 +492,9 @@ def summary_against_paper(records: Sequence[dict[str, Any]], methods: Sequence[s
                 iqr = float(np.percentile(tx, 75) - np.percentile(tx, 25))
                 within = 100.0 * float(np.mean(np.abs(tx) <= 1.0))
                 out.append(
-                    f"- tx spread, {METHOD_LABELS.get(m, m)}, set {s}: IQR {_fmt(iqr)} mm, "
+                    f"- tx spread, {METHOD_LABELS.get(m, m)}, set {s}: IQR {_fmt(iqr, 3)} mm, "
                     f"{within:.0f}% within ±1 mm of the mean, largest "
-                    f"{_fmt(float(np.max(np.abs(tx))))} mm (paper: "
+                    f"{_fmt(float(np.max(np.abs(tx))), 3)} mm (paper: "
                     f"{PAPER_SPREAD.get((m, s, 'tx'), 'no statement')})."
                 )
     return "\n".join(out) if out else "(no results)"
