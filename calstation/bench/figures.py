@@ -141,13 +141,18 @@ def cube_boxplots(records: Sequence[dict[str, Any]], path: Path, methods: Sequen
             ax = axes[row][col]
             data = [cube_error_values(records, m, start_set, key) for m in all_methods]
             lost = sum(int(np.sum(~np.isfinite(d))) for d in data)
-            _boxes(ax, [d[np.isfinite(d)] for d in data], all_methods)
+            finite = [d[np.isfinite(d)] for d in data]
+            _boxes(ax, finite, all_methods)
             ax.set_yscale("symlog", linthresh=1.0)
-            note = f" ({lost} not measurable)" if lost else ""
-            ax.set_title(f"{title}, set {start_set}{note}", fontsize=10)
+            low = min((float(d.min()) for d in finite if d.size), default=0.0)
+            ax.set_ylim(bottom=min(0.0, low))
+            note = f" ({lost} n/m)" if lost else ""
+            ax.set_title(f"{title}, set {start_set}{note}", fontsize=9)
             ax.set_ylabel("mm")
             ax.grid(True, axis="y", alpha=0.3)
-    fig.suptitle("10 cm QA-cube edge error (initial: one value per scenario)")
+    fig.suptitle(
+        "10 cm QA-cube edge error (initial: one value per scenario; n/m: cube not measurable)"
+    )
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
