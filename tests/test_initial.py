@@ -95,3 +95,33 @@ def test_simulated_static_scan_within_set_a_of_truth(sim_run) -> None:
     # and much better than set A in practice: a few mm, a few hundredths of a degree in rz
     assert np.all(np.abs(err[:3]) < 0.01)
     assert abs(math.degrees(err[5])) < 0.2
+
+
+def test_empty_recording_is_a_clear_error(tmp_path) -> None:
+    from calstation.drivers import LidarInfo, LidarLine
+    from calstation.errors import CalstationError
+    from calstation.recording import RecordingWriter
+
+    info = LidarInfo("sim", "line", "0", math.radians(72), 100, 1000.0, 0.2, 10.0)
+    kw = {"kind": "static", "lidar_info": info, "counts_per_revolution": 4096}
+    empty = tmp_path / "empty.mcap"
+    with RecordingWriter(empty, encoder_direction=1, **kw):
+        pass
+    with pytest.raises(CalstationError, match=r"empty\.mcap"):
+        initial_calibration(read_recording(empty), TARGET)
+    # lines whose returns are all invalid (nothing in front of the lidar)
+    dark = tmp_path / "dark.mcap"
+    az = np.radians(np.linspace(-36, 36, 100))
+    with RecordingWriter(dark, encoder_direction=1, **kw) as w:
+        for i in range(5):
+            w.write_line(
+                LidarLine(
+                    timestamp_ns=1_000_000 * (i + 1),
+                    azimuth_rad=az,
+                    range_m=np.zeros(100),
+                    valid=np.zeros(100, dtype=bool),
+                    point_period_ns=1000.0,
+                )
+            )
+    with pytest.raises(InitialCalibrationError, match=r"dark\.mcap.*(no returns|empty)"):
+        initial_calibration(read_recording(dark), TARGET)
