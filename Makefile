@@ -37,6 +37,8 @@ test: setup
 
 bench: setup
 	$(BIN)/python benchmarks/simulate_revolution.py
+	$(BIN)/python benchmarks/recording_io.py
+	$(BIN)/python benchmarks/calibration.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .mypy_cache .ruff_cache
