@@ -35,6 +35,17 @@ def _build() -> None:
     plugins.register_commands(app)
 
 
+def command_group(cli: typer.Typer, name: str, help: str) -> typer.Typer:
+    """The sub-app ``calstation NAME`` of ``cli``, created with ``help`` by whichever caller comes
+    first (several plugins add commands to one group, e.g. ``calstation emulate``)."""
+    for group in cli.registered_groups:
+        if group.name == name and group.typer_instance is not None:
+            return group.typer_instance
+    sub = typer.Typer(help=help, no_args_is_help=True)
+    cli.add_typer(sub, name=name)
+    return sub
+
+
 @app.callback()
 def _root() -> None:
     """Calibrate a static line-scanning lidar against a motorised turntable."""

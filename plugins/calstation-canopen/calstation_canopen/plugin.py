@@ -11,6 +11,7 @@ from typing import Any
 import typer
 
 from calstation import hookimpl
+from calstation.cli import command_group
 from calstation.drivers import DriverContext
 
 from .bus import CanopenError
@@ -113,20 +114,13 @@ def calstation_register_drivers(register: Any) -> None:
     register("encoder", "canopen406", make_encoder)
 
 
-def _emulate_group(cli: typer.Typer) -> typer.Typer:
-    for group in cli.registered_groups:
-        if group.name == "emulate" and group.typer_instance is not None:
-            return group.typer_instance
-    sub = typer.Typer(help="Run device emulators that speak the real wire protocols.",
-                      no_args_is_help=True)
-    cli.add_typer(sub, name="emulate")
-    return sub
+_EMULATE_HELP = "Run device emulators that speak the real wire protocols."
 
 
 @hookimpl
 def calstation_register_commands(cli: Any) -> None:
     """Add ``calstation emulate canopen``."""
-    emulate = _emulate_group(cli)
+    emulate = command_group(cli, "emulate", _EMULATE_HELP)
 
     @emulate.command("canopen")
     def emulate_canopen(

@@ -11,6 +11,7 @@ from typing import Any
 import typer
 
 from calstation import hookimpl
+from calstation.cli import command_group
 from calstation.drivers import DriverContext
 
 from .driver import HokuyoLidar
@@ -54,21 +55,13 @@ def calstation_register_drivers(register: Any) -> None:
     register("lidar", "hokuyo", make_lidar)
 
 
-def emulate_group(cli: typer.Typer) -> typer.Typer:
-    """The ``calstation emulate`` sub-app, created by whichever plugin comes first."""
-    for group in cli.registered_groups:
-        if group.name == "emulate" and group.typer_instance is not None:
-            return group.typer_instance
-    sub = typer.Typer(help="Run device emulators that speak the real wire protocols.",
-                      no_args_is_help=True)
-    cli.add_typer(sub, name="emulate")
-    return sub
+_EMULATE_HELP = "Run device emulators that speak the real wire protocols."
 
 
 @hookimpl
 def calstation_register_commands(cli: Any) -> None:
     """Add ``calstation emulate hokuyo``."""
-    emulate = emulate_group(cli)
+    emulate = command_group(cli, "emulate", _EMULATE_HELP)
 
     @emulate.command("hokuyo")
     def emulate_hokuyo(
