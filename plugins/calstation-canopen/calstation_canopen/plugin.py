@@ -21,20 +21,15 @@ from .encoder import Cia406Encoder
 
 
 def _simulated_station(context: DriverContext) -> Any:
-    """The run's simulated station (``context.shared["sim"]``), created on the host clock."""
+    """The run's shared simulated station (``calstation_sim.shared_station``), created on the
+    host clock when no other driver made it yet, so the emulators run in real time."""
     try:
-        from calstation_sim import SimulatedStation
+        from calstation_sim import shared_station
     except ImportError as exc:
         raise CanopenError(
             "emulate: true needs the calstation-sim plugin (pip install -e plugins/calstation-sim)"
         ) from exc
-    if context.recipe is None:
-        raise CanopenError("emulate: true needs the run's recipe (its simulation section)")
-    station = context.shared.get("sim")
-    if station is None:
-        station = SimulatedStation(context.recipe, clock=context.clock)
-        context.shared["sim"] = station
-    return station
+    return shared_station(context, clock=context.clock)
 
 
 def _emulators(context: DriverContext) -> dict[str, EmulatedNode]:

@@ -8,6 +8,13 @@ from __future__ import annotations
 
 from .drivers import SimEncoder, SimLidar, SimTurntable
 from .run import simulate_run
-from .station import SimulatedStation
+from .station import SimulatedStation, shared_station
 
-__all__ = ["SimEncoder", "SimLidar", "SimTurntable", "SimulatedStation", "simulate_run"]
+__all__ = [
+    "SimEncoder",
+    "SimLidar",
+    "SimTurntable",
+    "SimulatedStation",
+    "shared_station",
+    "simulate_run",
+]

@@ -23,9 +23,9 @@ from calstation.drivers import (
     TurntableState,
     TurntableStatus,
 )
-from calstation.errors import DriverError, SimulationError
+from calstation.errors import DriverError
 
-from .station import SimulatedStation
+from .station import SimulatedStation, shared_station
 
 BATCH_LINES = 100
 """Lines ray-cast per batch (yielded one by one)."""
@@ -274,21 +274,14 @@ def station_from_context(settings: Mapping[str, Any], context: DriverContext) ->
             f"sim driver: unknown setting(s) {', '.join(sorted(unknown))}; "
             f"known: {', '.join(sorted(_SETTINGS))}"
         )
-    existing = context.shared.get("sim")
-    if isinstance(existing, SimulatedStation):
-        return existing
-    if context.recipe is None:
-        raise SimulationError("the sim drivers need the run's recipe (DriverContext.recipe)")
     clock = context.clock if isinstance(context.clock, SimClock) else None
-    station = SimulatedStation(
-        context.recipe,
+    return shared_station(
+        context,
+        clock=clock,
         seed=settings.get("seed"),
         range_m=settings.get("range_m"),
         pitch_deg=settings.get("pitch_deg"),
-        clock=clock,
     )
-    context.shared["sim"] = station
-    return station
 
 
 def lidar_factory(settings: Mapping[str, Any], context: DriverContext) -> SimLidar:

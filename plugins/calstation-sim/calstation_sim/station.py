@@ -21,7 +21,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from calstation.clock import Clock, SimClock
-from calstation.drivers import LidarInfo, LidarLine
+from calstation.drivers import DriverContext, LidarInfo, LidarLine
 from calstation.errors import FrameError, SimulationError
 from calstation.frames import Extrinsics, counts_per_revolution
 from calstation.recipe import LoadedRecipe, Recipe, SimulationConfig
@@ -463,3 +463,33 @@ class SimulatedStation:
             & (u < self.config.lidar.mixed_pixel_prob)
         )
         r[rows[mixed], cols[mixed]] = ra[mixed] + w[mixed] * (rb[mixed] - ra[mixed])
+
+
+def shared_station(
+    context: DriverContext,
+    *,
+    clock: Clock | None = None,
+    seed: int | None = None,
+    range_m: float | None = None,
+    pitch_deg: float | None = None,
+) -> SimulatedStation:
+    """The run's one :class:`SimulatedStation`, kept in ``context.shared["sim"]``.
+
+    The first caller creates it from ``context.recipe`` with ``clock``, ``seed``, ``range_m`` (m)
+    and ``pitch_deg`` (see :class:`SimulatedStation`); later callers get that same station and
+    their arguments are ignored. The ``sim`` drivers and the in-process emulators of other
+    plugins (``emulate: true``) all share it, so they see one scene and one platter.
+    """
+    existing = context.shared.get("sim")
+    if isinstance(existing, SimulatedStation):
+        return existing
+    if context.recipe is None:
+        raise SimulationError(
+            "the simulated station (sim drivers, emulate: true) needs the run's recipe "
+            "(DriverContext.recipe, its simulation section)"
+        )
+    station = SimulatedStation(
+        context.recipe, seed=seed, range_m=range_m, pitch_deg=pitch_deg, clock=clock
+    )
+    context.shared["sim"] = station
+    return station
