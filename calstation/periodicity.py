@@ -522,7 +522,7 @@ def periodicity_fine_tune_points(
 
     assert last is not None
     res, problem = last
-    sigma = _sigma(res, problem)
+    sigma = parameter_sigma(res, problem.free)
     H = Extrinsics.from_vector(x6)
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:
@@ -607,8 +607,11 @@ def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched,
     return _Matched(pa[i], ca[i], sa[i], pb[j], cb[j], sb[j], na, nb, wa, wb, oa, ob), n_pts
 
 
-def _sigma(res: Any, problem: _Problem) -> dict[str, float]:
-    """1σ per parameter from σ²·(JᵀJ)⁻¹ at the solution; NaN for parameters held fixed."""
+def parameter_sigma(res: Any, free: list[int]) -> dict[str, float]:
+    """1σ per parameter (metres / radians, keyed by ``PARAMETER_NAMES``) from σ²·(JᵀJ)⁻¹ at the
+    solution of ``scipy.optimize.least_squares`` (``res.jac`` (m, n), ``res.fun`` (m,)), whose n
+    columns are the parameters with indices ``free``; NaN for parameters held fixed, and for all
+    when m ≤ n or JᵀJ is singular."""
     out = {n: math.nan for n in PARAMETER_NAMES}
     J = np.asarray(res.jac, dtype=np.float64)
     m, n = J.shape
@@ -619,7 +622,7 @@ def _sigma(res: Any, problem: _Problem) -> dict[str, float]:
         cov = s2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         return out
-    for k, i in enumerate(problem.free):
+    for k, i in enumerate(free):
         out[PARAMETER_NAMES[i]] = float(math.sqrt(max(cov[k, k], 0.0)))
     return out
 

@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from .errors import FineTuningError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
-from .periodicity import static_mask
+from .periodicity import parameter_sigma, static_mask
 from .recipe import CubeGeometry, ShapeSettings
 from .result import CalibrationResult
 
@@ -391,7 +391,7 @@ def shape_fine_tune_points(
     c1 = float(np.sum(final[:-3] ** 2))
     c2 = float(np.sum(cost.last_edge_errors**2))
     total = float(np.sum(final**2))
-    sigma = _sigma(res, free)
+    sigma = parameter_sigma(res, free)
     p_D, mask = cost.cloud(H)
     _, _, extents = (upright_box if box == "upright" else minimal_obb)(p_D[mask])
     if progress is not None:
@@ -419,22 +419,6 @@ def shape_fine_tune_points(
             "status": str(res.message),
         },
     )
-
-
-def _sigma(res: Any, free: list[int]) -> dict[str, float]:
-    out = {n: math.nan for n in PARAMETER_NAMES}
-    J = np.asarray(res.jac, dtype=np.float64)
-    m, n = J.shape
-    if m <= n:
-        return out
-    s2 = float(np.sum(res.fun**2)) / (m - n)
-    try:
-        cov = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return out
-    for k, i in enumerate(free):
-        out[PARAMETER_NAMES[i]] = float(math.sqrt(max(cov[k, k], 0.0)))
-    return out
 
 
 def shape_fine_tune(
