@@ -176,6 +176,31 @@ def acquire_bus(settings: Mapping[str, Any], context: DriverContext | None) -> S
     return bus
 
 
+class BusNodeDriver:
+    """What the CANopen drivers share: the run's :class:`SharedBus` and one remote node on it."""
+
+    context: DriverContext | None
+    clock: Clock
+    node_id: int
+    bus: SharedBus
+    network: canopen.Network
+    node: canopen.RemoteNode
+
+    def _attach_node(self, settings: Mapping[str, Any], context: DriverContext | None) -> None:
+        """Take the run's bus (:func:`acquire_bus`; release it with :func:`release_bus`) and add
+        the remote node ``settings['node_id']``, awaiting its SDO responses for
+        ``settings['sdo_timeout_s']`` (s). Stamps come from ``context.clock`` (the host clock
+        without a context)."""
+        self.context = context
+        self.clock = context.clock if context is not None else HostClock()
+        self.node_id = int(settings["node_id"])
+        self.bus = acquire_bus(settings, context)
+        self.network = self.bus.network
+        self.node = canopen.RemoteNode(self.node_id, canopen.ObjectDictionary())
+        self.network.add_node(self.node)
+        self.node.sdo.RESPONSE_TIMEOUT = float(settings["sdo_timeout_s"])
+
+
 def release_bus(bus: SharedBus, context: DriverContext | None) -> None:
     """Drop one user of ``bus``; the last one closes it."""
     bus.users -= 1

@@ -25,11 +25,10 @@ from typing import Any
 
 import canopen
 
-from calstation.clock import Clock, HostClock
 from calstation.drivers import DriverContext, TurntableState, TurntableStatus
 
 from . import cia402 as ds
-from .bus import CanopenError, CanopenTimeout, SharedBus, acquire_bus, release_bus
+from .bus import BusNodeDriver, CanopenError, CanopenTimeout, release_bus
 
 log = logging.getLogger(__name__)
 
@@ -69,19 +68,12 @@ def check_settings(name: str, settings: Mapping[str, Any], defaults: Mapping[str
     return {**defaults, **settings}
 
 
-class Cia402Turntable:
+class Cia402Turntable(BusNodeDriver):
     """A CiA 402 drive behind calstation's :class:`~calstation.drivers.Turntable` protocol."""
 
     def __init__(self, settings: Mapping[str, Any], context: DriverContext | None = None) -> None:
         self.settings = check_settings("canopen402", settings, SETTINGS_DEFAULTS)
-        self.context = context
-        self.clock: Clock = context.clock if context is not None else HostClock()
-        self.node_id = int(self.settings["node_id"])
-        self.bus: SharedBus = acquire_bus(self.settings, context)
-        self.network = self.bus.network
-        self.node = canopen.RemoteNode(self.node_id, canopen.ObjectDictionary())
-        self.network.add_node(self.node)
-        self.node.sdo.RESPONSE_TIMEOUT = float(self.settings["sdo_timeout_s"])
+        self._attach_node(self.settings, context)
         self._lock = threading.RLock()
         self._statusword: int | None = None
         self._position: int | None = None

@@ -24,10 +24,9 @@ from typing import Any
 
 import canopen
 
-from calstation.clock import Clock, HostClock
 from calstation.drivers import DriverContext, EncoderSample
 
-from .bus import CanopenError, CanopenTimeout, SharedBus, acquire_bus, release_bus
+from .bus import BusNodeDriver, CanopenError, CanopenTimeout, release_bus
 from .drive import check_settings
 
 log = logging.getLogger(__name__)
@@ -70,7 +69,7 @@ class Unwrapper:
         return self.count
 
 
-class Cia406Encoder:
+class Cia406Encoder(BusNodeDriver):
     """A CiA 406 encoder behind calstation's :class:`~calstation.drivers.Encoder` protocol."""
 
     def __init__(self, settings: Mapping[str, Any], context: DriverContext | None = None) -> None:
@@ -80,14 +79,7 @@ class Cia406Encoder:
                 f"canopen406 driver: settings.mode must be 'sync' or 'cyclic', not "
                 f"{self.settings['mode']!r}"
             )
-        self.context = context
-        self.clock: Clock = context.clock if context is not None else HostClock()
-        self.node_id = int(self.settings["node_id"])
-        self.bus: SharedBus = acquire_bus(self.settings, context)
-        self.network = self.bus.network
-        self.node = canopen.RemoteNode(self.node_id, canopen.ObjectDictionary())
-        self.network.add_node(self.node)
-        self.node.sdo.RESPONSE_TIMEOUT = float(self.settings["sdo_timeout_s"])
+        self._attach_node(self.settings, context)
         self._lock = threading.Lock()
         self._samples: list[EncoderSample] = []
         self._latest: EncoderSample | None = None
