@@ -12,6 +12,7 @@ from __future__ import annotations
 import bisect
 import contextlib
 import logging
+import struct
 import threading
 from collections import deque
 from collections.abc import Mapping
@@ -177,8 +178,10 @@ def acquire_bus(settings: Mapping[str, Any], context: DriverContext | None) -> S
 
 
 class BusNodeDriver:
-    """What the CANopen drivers share: the run's :class:`SharedBus` and one remote node on it."""
+    """What the CANopen drivers share: the run's :class:`SharedBus`, one remote node on it, and
+    expedited SDO access to that node (errors name ``driver_name`` and the node)."""
 
+    driver_name: str = "canopen"
     context: DriverContext | None
     clock: Clock
     node_id: int
@@ -199,6 +202,37 @@ class BusNodeDriver:
         self.node = canopen.RemoteNode(self.node_id, canopen.ObjectDictionary())
         self.network.add_node(self.node)
         self.node.sdo.RESPONSE_TIMEOUT = float(settings["sdo_timeout_s"])
+
+    def sdo_write(self, index: int, sub: int, fmt: str, value: int) -> None:
+        """Expedited SDO download (``fmt`` a struct code: <B, <H, <I, <b, <i)."""
+        try:
+            self.node.sdo.download(index, sub, struct.pack(fmt, value))
+        except canopen.SdoAbortedError as exc:
+            raise CanopenError(
+                f"{self.driver_name} node {self.node_id}: writing 0x{index:04X}:{sub:02X} = "
+                f"{value} was refused ({exc})"
+            ) from exc
+        except canopen.SdoCommunicationError as exc:
+            raise CanopenTimeout(
+                f"{self.driver_name} node {self.node_id}: no SDO answer writing "
+                f"0x{index:04X}:{sub:02X} ({exc})"
+            ) from exc
+
+    def sdo_read(self, index: int, sub: int, fmt: str) -> int:
+        """Expedited SDO upload, decoded with ``fmt``."""
+        try:
+            data = self.node.sdo.upload(index, sub)
+        except canopen.SdoAbortedError as exc:
+            raise CanopenError(
+                f"{self.driver_name} node {self.node_id}: reading 0x{index:04X}:{sub:02X} was "
+                f"refused ({exc})"
+            ) from exc
+        except canopen.SdoCommunicationError as exc:
+            raise CanopenTimeout(
+                f"{self.driver_name} node {self.node_id}: no SDO answer reading "
+                f"0x{index:04X}:{sub:02X} ({exc})"
+            ) from exc
+        return int(struct.unpack(fmt, data[: struct.calcsize(fmt)])[0])
 
 
 def release_bus(bus: SharedBus, context: DriverContext | None) -> None:

@@ -23,8 +23,6 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-import canopen
-
 from calstation.drivers import DriverContext, TurntableState, TurntableStatus
 
 from . import cia402 as ds
@@ -71,6 +69,8 @@ def check_settings(name: str, settings: Mapping[str, Any], defaults: Mapping[str
 class Cia402Turntable(BusNodeDriver):
     """A CiA 402 drive behind calstation's :class:`~calstation.drivers.Turntable` protocol."""
 
+    driver_name = "canopen402"
+
     def __init__(self, settings: Mapping[str, Any], context: DriverContext | None = None) -> None:
         self.settings = check_settings("canopen402", settings, SETTINGS_DEFAULTS)
         self._attach_node(self.settings, context)
@@ -95,37 +95,6 @@ class Cia402Turntable(BusNodeDriver):
     def _subscribe(self, cob: int, cb: Any) -> None:
         self.network.subscribe(cob, cb)
         self._subscriptions.append((cob, cb))
-
-    def sdo_write(self, index: int, sub: int, fmt: str, value: int) -> None:
-        """Expedited SDO download (``fmt`` a struct code: <B, <H, <I, <b, <i)."""
-        try:
-            self.node.sdo.download(index, sub, struct.pack(fmt, value))
-        except canopen.SdoAbortedError as exc:
-            raise CanopenError(
-                f"canopen402 node {self.node_id}: writing 0x{index:04X}:{sub:02X} = {value} was "
-                f"refused ({exc})"
-            ) from exc
-        except canopen.SdoCommunicationError as exc:
-            raise CanopenTimeout(
-                f"canopen402 node {self.node_id}: no SDO answer writing 0x{index:04X}:{sub:02X} "
-                f"({exc})"
-            ) from exc
-
-    def sdo_read(self, index: int, sub: int, fmt: str) -> int:
-        """Expedited SDO upload, decoded with ``fmt``."""
-        try:
-            data = self.node.sdo.upload(index, sub)
-        except canopen.SdoAbortedError as exc:
-            raise CanopenError(
-                f"canopen402 node {self.node_id}: reading 0x{index:04X}:{sub:02X} was refused "
-                f"({exc})"
-            ) from exc
-        except canopen.SdoCommunicationError as exc:
-            raise CanopenTimeout(
-                f"canopen402 node {self.node_id}: no SDO answer reading 0x{index:04X}:{sub:02X} "
-                f"({exc})"
-            ) from exc
-        return int(struct.unpack(fmt, data[: struct.calcsize(fmt)])[0])
 
     def send_rpdo(self, controlword: int, target: int) -> None:
         """RPDO1: controlword (u16) + target velocity (i32), little-endian."""

@@ -22,8 +22,6 @@ import threading
 from collections.abc import Mapping
 from typing import Any
 
-import canopen
-
 from calstation.drivers import DriverContext, EncoderSample
 
 from .bus import BusNodeDriver, CanopenError, CanopenTimeout, release_bus
@@ -72,6 +70,8 @@ class Unwrapper:
 class Cia406Encoder(BusNodeDriver):
     """A CiA 406 encoder behind calstation's :class:`~calstation.drivers.Encoder` protocol."""
 
+    driver_name = "canopen406"
+
     def __init__(self, settings: Mapping[str, Any], context: DriverContext | None = None) -> None:
         self.settings = check_settings("canopen406", settings, SETTINGS_DEFAULTS)
         if self.settings["mode"] not in ("sync", "cyclic"):
@@ -92,28 +92,11 @@ class Cia406Encoder(BusNodeDriver):
             release_bus(self.bus, context)
             raise
 
-    def _sdo(self, index: int, sub: int, fmt: str, value: int | None = None) -> int:
-        try:
-            if value is None:
-                data = self.node.sdo.upload(index, sub)
-                return int(struct.unpack(fmt, data[: struct.calcsize(fmt)])[0])
-            self.node.sdo.download(index, sub, struct.pack(fmt, value))
-            return value
-        except canopen.SdoAbortedError as exc:
-            raise CanopenError(
-                f"canopen406 node {self.node_id}: SDO 0x{index:04X}:{sub:02X} refused ({exc})"
-            ) from exc
-        except canopen.SdoCommunicationError as exc:
-            raise CanopenTimeout(
-                f"canopen406 node {self.node_id}: no SDO answer for 0x{index:04X}:{sub:02X} "
-                f"({exc})"
-            ) from exc
-
     def _start(self) -> None:
         s = self.settings
         n = self.node_id
         self.node.nmt.state = "PRE-OPERATIONAL"
-        cpr = self._sdo(0x6001, 0, "<I")
+        cpr = self.sdo_read(0x6001, 0, "<I")
         if s["counts_per_revolution"] is not None and int(s["counts_per_revolution"]) != cpr:
             raise CanopenError(
                 f"canopen406 node {n}: settings.counts_per_revolution = "
@@ -121,19 +104,19 @@ class Cia406Encoder(BusNodeDriver):
             )
         self._cpr = cpr
         try:
-            total = self._sdo(0x6002, 0, "<I") or (1 << 32)
+            total = self.sdo_read(0x6002, 0, "<I") or (1 << 32)
         except CanopenError:
             total = 1 << 32
         self.unwrap = Unwrapper(total)
         sync = s["mode"] == "sync"
-        self._sdo(0x1800, 1, "<I", 0x8000_0000 | (0x180 + n))
-        self._sdo(0x1A00, 0, "<B", 0)
-        self._sdo(0x1A00, 1, "<I", 0x60040020)
-        self._sdo(0x1A00, 0, "<B", 1)
-        self._sdo(0x1800, 2, "<B", 0x01 if sync else 0xFE)
+        self.sdo_write(0x1800, 1, "<I", 0x8000_0000 | (0x180 + n))
+        self.sdo_write(0x1A00, 0, "<B", 0)
+        self.sdo_write(0x1A00, 1, "<I", 0x60040020)
+        self.sdo_write(0x1A00, 0, "<B", 1)
+        self.sdo_write(0x1800, 2, "<B", 0x01 if sync else 0xFE)
         if not sync:
-            self._sdo(0x6200, 0, "<H", int(s["cyclic_ms"]))
-        self._sdo(0x1800, 1, "<I", 0x180 + n)
+            self.sdo_write(0x6200, 0, "<H", int(s["cyclic_ms"]))
+        self.sdo_write(0x1800, 1, "<I", 0x180 + n)
         self.network.subscribe(0x180 + n, self._on_tpdo)
         if sync:
             self.bus.start_sync(float(s["sync_period_s"]))
@@ -164,7 +147,7 @@ class Cia406Encoder(BusNodeDriver):
             "protocol": "CANopen CiA 406",
             "bus": f"{self.bus.interface}:{self.bus.channel}",
             "node_id": self.node_id,
-            "device_type": f"0x{self._sdo(0x1000, 0, '<I'):08X}",
+            "device_type": f"0x{self.sdo_read(0x1000, 0, '<I'):08X}",
             "counts_per_revolution": self._cpr,
             "total_measuring_range": self.unwrap.total_range,
             "mode": self.settings["mode"],
