@@ -37,6 +37,14 @@ def _emulators(context: DriverContext) -> dict[str, EmulatedNode]:
     return found
 
 
+def _close_emulator(context: DriverContext | None, kind: str) -> None:
+    """Stop the run's emulated ``kind`` ("drive" or "encoder"), if one is running."""
+    if context is not None:
+        emu = _emulators(context).pop(kind, None)
+        if emu is not None:
+            emu.close()
+
+
 def _with_emulator(
     settings: Mapping[str, Any], context: DriverContext, kind: str
 ) -> dict[str, Any]:
@@ -70,10 +78,7 @@ class EmulatedTurntable(Cia402Turntable):
     def close(self) -> None:
         """Close the driver, then its emulator."""
         super().close()
-        if self.context is not None:
-            emu = _emulators(self.context).pop("drive", None)
-            if emu is not None:
-                emu.close()
+        _close_emulator(self.context, "drive")
 
 
 class EmulatedEncoder(Cia406Encoder):
@@ -82,10 +87,7 @@ class EmulatedEncoder(Cia406Encoder):
     def close(self) -> None:
         """Close the driver, then its emulator."""
         super().close()
-        if self.context is not None:
-            emu = _emulators(self.context).pop("encoder", None)
-            if emu is not None:
-                emu.close()
+        _close_emulator(self.context, "encoder")
 
 
 def make_turntable(settings: Mapping[str, Any], context: DriverContext) -> Cia402Turntable:
