@@ -62,6 +62,11 @@ class PlatterGeometry(Model):
     diameter: Positive = 0.585
     thickness: Positive = 0.010
 
+    @property
+    def radius(self) -> float:
+        """Half the diameter, metres."""
+        return 0.5 * self.diameter
+
 
 class LTargetGeometry(Model):
     """The static L-shaped target of the initial calibration (paper §III-A).
@@ -496,7 +501,7 @@ def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[P
     """
     problems: list[Problem] = []
     fixtures = recipe.fixtures
-    radius = fixtures.platter.diameter / 2.0
+    radius = fixtures.platter.radius
     named: list[tuple[tuple[int | str, ...], Any]] = [
         (("fixtures", "static_target"), fixtures.static_target),
         (("fixtures", "spin_target"), fixtures.spin_target),

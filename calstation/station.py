@@ -462,7 +462,7 @@ class Station:
             progress("measuring the cube", 0.1)
             check = check_cube(
                 recording, Extrinsics.from_dict(fine.params()), self.recipe.fixtures.qa_cube,
-                self.recipe.qa, platter_radius=0.5 * self.recipe.fixtures.platter.diameter,
+                self.recipe.qa, platter_radius=self.recipe.fixtures.platter.radius,
             )
         cube = plain(
             {

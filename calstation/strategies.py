@@ -48,7 +48,7 @@ class Strategy(Protocol):
 
 
 def _platter_radius(recipe: Recipe) -> float:
-    return 0.5 * recipe.fixtures.platter.diameter
+    return recipe.fixtures.platter.radius
 
 
 class PeriodicityStrategy:

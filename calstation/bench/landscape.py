@@ -176,7 +176,7 @@ def _periodicity_cost(
     p_L, phi = p_L[dyn], np.mod(phi[dyn], 2 * math.pi)
     c6 = centre.as_vector()
     q0 = to_dynamic(p_L, np.ones(len(phi)), np.zeros(len(phi)), c6)
-    radius = float(recipe.fixtures.platter.diameter) / 2.0
+    radius = recipe.fixtures.platter.radius
     roi = (q0[:, 0] > -0.2) & (q0[:, 0] < 0.6) & (np.hypot(q0[:, 1], q0[:, 2]) < radius + 0.25)
     halves = []
     for sel in (phi < math.pi, phi >= math.pi):
@@ -218,7 +218,7 @@ def _shape_cost(
     from ..shape import ShapeCost, segment_above_platter
 
     cube = recipe.fixtures.qa_cube
-    radius = 0.5 * float(recipe.fixtures.platter.diameter)
+    radius = recipe.fixtures.platter.radius
     box = str(dict(recipe.calibration.options.get("shape", {})).get("box", "upright"))
     p_L, phi = recording.points_lidar()
     moving = ~static_mask(p_L)

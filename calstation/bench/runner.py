@@ -278,7 +278,7 @@ def _cube_check(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
 
         check = check_cube(
             _recording(directory, "cube"), H, recipe.fixtures.qa_cube, recipe.qa,
-            platter_radius=0.5 * recipe.fixtures.platter.diameter,
+            platter_radius=recipe.fixtures.platter.radius,
         )
         return _jsonable(check.to_dict())  # type: ignore[no-any-return]
     except Exception as exc:

@@ -172,7 +172,7 @@ def register(app: typer.Typer) -> None:
                 calib.H,
                 rc.fixtures.qa_cube,
                 rc.qa,
-                platter_radius=0.5 * rc.fixtures.platter.diameter,
+                platter_radius=rc.fixtures.platter.radius,
             )
         if as_json:
             typer.echo(json.dumps(check.to_dict(), indent=2))
