@@ -11,11 +11,12 @@ calstation additions (docs/algorithms.md): a fixed random subset of the raw retu
 radius scaled with the density, so the neighbour count keeps its meaning) for speed; a finite
 difference step of 0.1 mm / 0.006° (the cost is piecewise: the box jumps); ty held at its start
 (the cube, like the periodicity cost, cannot see a shift along the axis); the expected height
-of the box is ``s − margin`` (the segmentation cuts the bottom off); two TRF passes, the first
-with ry held (tz and ry twist the cloud alike, and the optimiser otherwise trades one for the
-other); and by default an *upright* box (one axis along X_D: the cube stands on the platter)
-whose faces are the medians of the points near them instead of the extremes, which removes the
-~3σ noise inflation of the extremes from C2. ``box="minimal"`` keeps the paper's Open3D box.
+of the box is ``s − margin`` (the segmentation cuts the bottom off); by default an *upright* box
+(one axis along X_D: the cube stands on the platter) whose faces are the medians of the points
+near them instead of the extremes, which removes the ~3σ noise inflation of the extremes from
+C2; and ry taken from the flatness of the cube's faces (an ry error twists them), alternating
+with the box solve of tx, tz and rz, because the box cost's own ry minimum is biased by a few
+tenths of a degree. ``box="minimal"`` keeps the paper's Open3D box and joint solve.
 """
 
 from __future__ import annotations
@@ -185,6 +186,28 @@ def signed_face_distances(
     return out
 
 
+def face_labels(
+    points: FloatArray,
+    centre: FloatArray,
+    axes: FloatArray,
+    extents: FloatArray,
+    band: float = 0.006,
+    keep_out: float = 0.01,
+) -> NDArray[np.int64]:
+    """(N,) face index of each point of a box (``2·axis + side``: 1 the top, 2–5 the sides),
+    −1 for points farther than ``band`` from their nearest face, within ``keep_out`` of another
+    face (edges, mixed pixels) or on the bottom (the segmentation cut)."""
+    local = (points - centre) @ axes
+    gaps = np.abs(0.5 * extents - np.abs(local))
+    order = np.argsort(gaps, axis=1)
+    rows = np.arange(points.shape[0])
+    nearest = order[:, 0]
+    label = (2 * nearest + (local[rows, nearest] > 0)).astype(np.int64)
+    inside = np.all(np.abs(local) <= 0.5 * extents + band, axis=1)
+    ok = inside & (gaps[rows, nearest] < band) & (gaps[rows, order[:, 1]] > keep_out) & (label != 0)
+    return np.where(ok, label, -1)
+
+
 class ShapeCost:
     """The paper's cost on a fixed subset of cube-scan returns, as least-squares residuals.
 
@@ -279,16 +302,16 @@ def shape_fine_tune_points(
     platter_radius: float = 0.2925,
     max_points: int = 20_000,
     box: str = "upright",
-    estimate_ry: bool = False,
+    estimate_ry: bool = True,
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
 
     ``p_L`` (N, 3) returns in L (m), ``phi`` (N,) platter angles (rad). ``box``: ``"upright"``
     (calstation's default: a box standing on the platter) or ``"minimal"`` (the paper's
-    minimum-volume OBB from Open3D). ``estimate_ry``: free ry in a second pass (by default ry
-    stays at its start: the cube cost's ry minimum is biased by a few tenths of a degree,
-    docs/algorithms.md). Returns a
+    minimum-volume OBB from Open3D). ``estimate_ry``: with the upright box, ry from the faces'
+    flatness alternating with the box solve of tx, tz, rz; with the minimal box, the paper's
+    joint solve; ``False`` holds ry at its start (docs/algorithms.md). Returns a
     :class:`CalibrationResult` with strategy ``"shape"`` and cost ``C1 + C2`` (m²).
     """
     t_start = time.perf_counter()
@@ -314,6 +337,7 @@ def shape_fine_tune_points(
             "on the platter?"
         )
     n_all = p_L.shape[0]
+    p_L_near, phi_near = p_L, phi  # all of them: the face-flatness ry step needs the density
     if n_all > max_points:
         pick = np.sort(np.random.default_rng(0).choice(n_all, max_points, replace=False))
         p_L, phi = p_L[pick], phi[pick]
@@ -375,23 +399,84 @@ def shape_fine_tune_points(
         cost.freeze(None)
         return r
 
-    def full(x: FloatArray) -> Extrinsics:
-        v = x6.copy()
-        v[free] = x
-        return Extrinsics.from_vector(v)
+    ry_i = PARAMETER_NAMES.index("ry")
+    ry_rounds: list[dict[str, float]] = []
+    ry_sigma = math.nan
 
-    if estimate_ry:
-        # tz and ry twist the cloud alike; settle the sharp parameters with ry held first
+    def planar_ry() -> tuple[float, float]:
+        """ry from the cube faces' own flatness; (ry, 1σ) in rad.
+
+        Fits tz, ry and rz to the returns near each face (labelled by the upright box under
+        the current H, a plane per face re-fitted at every evaluation, soft-L1 loss against
+        mixed pixels) and keeps ry only: tz and rz also bend the faces, so they are freed here,
+        but the box cost places them better.
+        """
+        p_D, mask = cost.cloud(Extrinsics.from_vector(x6))
+        if int(mask.sum()) < 50:
+            raise FineTuningError("too few cube returns to estimate ry from the faces")
+        H = Extrinsics.from_vector(x6)
+        labels = face_labels(lidar_to_dynamic(p_L_near, phi_near, H), *upright_box(p_D[mask]))
+        keep = labels >= 0
+        pts_L, ph, labels = p_L_near[keep], phi_near[keep], labels[keep]
+        faces = [labels == f for f in np.unique(labels) if np.count_nonzero(labels == f) >= 30]
+        if not faces:
+            raise FineTuningError("no cube face has enough returns to estimate ry")
+        idx = [PARAMETER_NAMES.index(n) for n in ("tz", "ry", "rz")]
+        base = x6.copy()
+
+        def flatness(x: FloatArray) -> FloatArray:
+            v = base.copy()
+            v[idx] = x
+            q = lidar_to_dynamic(pts_L, ph, Extrinsics.from_vector(v))
+            out = np.zeros(q.shape[0])
+            for sel in faces:
+                d = q[sel] - q[sel].mean(axis=0)
+                out[sel] = d @ np.linalg.svd(d, full_matrices=False)[2][2]
+            return out
+
+        centre = start6[idx]
+        half = np.array([tb, rb, rb])
+        r = least_squares(
+            flatness,
+            np.clip(base[idx], centre - half + 1e-12, centre + half - 1e-12),
+            bounds=(centre - half, centre + half),
+            method="trf",
+            loss="soft_l1",
+            f_scale=0.002,
+            diff_step=DIFF_STEP,
+            x_scale=np.full(3, 1e-3),
+            max_nfev=settings.max_nfev,
+        )
+        return float(r.x[1]), parameter_sigma(r, idx)["ry"]
+
+    if estimate_ry and box == "upright":
+        # the box cost is nearly flat and jumpy in ry: settle tx, tz, rz with ry held, then
+        # alternate ry from the faces' flatness with tx, tz, rz from the box
+        res = solve(("tx", "tz", "rz"), settings.max_nfev)
+        for _ in range(2):
+            ry, ry_sigma = planar_ry()
+            change = abs(ry - x6[ry_i])
+            x6[ry_i] = ry
+            res = solve(("tx", "tz", "rz"), max(4, settings.max_nfev // 2))
+            ry_rounds.append({"ry_rad": ry, "change_rad": change})
+            if change < math.radians(0.005):
+                break
+        free = [PARAMETER_NAMES.index(n) for n in ("tx", "tz", "rz")]
+    elif estimate_ry:
+        # the paper's joint solve; tz and ry twist the cloud alike, so settle the sharp
+        # parameters with ry held first
         solve(("tx", "tz", "rz"), settings.max_nfev // 2)
         res = solve(FREE, settings.max_nfev - settings.max_nfev // 2)
     else:
         res = solve(names, settings.max_nfev)
-    H = full(res.x)
+    H = Extrinsics.from_vector(x6)
     final = cost.residuals_of(H)
     c1 = float(np.sum(final[:-3] ** 2))
     c2 = float(np.sum(cost.last_edge_errors**2))
     total = float(np.sum(final**2))
     sigma = parameter_sigma(res, free)
+    if ry_rounds:
+        sigma["ry"] = ry_sigma
     p_D, mask = cost.cloud(H)
     _, _, extents = (upright_box if box == "upright" else minimal_obb)(p_D[mask])
     if progress is not None:
@@ -408,6 +493,10 @@ def shape_fine_tune_points(
             "gauge_note": "ty held at its start value (the cube cannot see a shift along the axis)",
             "box": box,
             "estimate_ry": estimate_ry,
+            "ry_source": (
+                ("face flatness" if box == "upright" else "box cost") if estimate_ry else "held"
+            ),
+            "ry_rounds": ry_rounds,
             "C1": c1,
             "C2": c2,
             "cost_terms": "C1 + C2" if box == "minimal" else "C1",
@@ -429,7 +518,7 @@ def shape_fine_tune(
     *,
     platter_radius: float = 0.2925,
     box: str = "upright",
-    estimate_ry: bool = False,
+    estimate_ry: bool = True,
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on a QA-cube spin-scan recording."""

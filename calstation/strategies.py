@@ -80,7 +80,8 @@ class ShapeStrategy:
     """Shape-constrained fine-tuning on the QA cube (paper §III-B-1).
 
     ``calibration.options.shape``: ``box`` — ``upright`` (default) or ``minimal`` (the
-    paper's box); ``estimate_ry`` — free ry too (default false: ry stays at its start).
+    paper's box); ``estimate_ry`` — estimate ry too (default true; false holds it at its
+    start).
     """
 
     name = "shape"
@@ -98,14 +99,15 @@ class ShapeStrategy:
 
         options: dict[str, Any] = dict(recipe.calibration.options.get("shape", {}))
         box = str(options.pop("box", "upright"))
-        estimate_ry = bool(options.pop("estimate_ry", False))
+        estimate_ry = bool(options.pop("estimate_ry", True))
         if box not in ("upright", "minimal"):
             raise FineTuningError(
                 f"calibration.options.shape.box must be 'upright' or 'minimal', got {box!r}"
             )
         if options:
             raise FineTuningError(
-                f"calibration.options.shape: unknown keys {', '.join(sorted(options))} (known: box)"
+                f"calibration.options.shape: unknown keys {', '.join(sorted(options))} "
+                "(known: box, estimate_ry)"
             )
         return shape_fine_tune(
             recording,

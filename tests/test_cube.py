@@ -44,6 +44,20 @@ def test_true_calibration_passes_and_a_wrong_one_fails(sim_run) -> None:
     assert d["passed"] is False and len(d["face_edges_m"]) == 3
 
 
+def test_a_smeared_cube_is_a_failed_check_not_an_error(sim_run) -> None:
+    """A scan reconstructed 10 mm off smears a face until it cannot be fitted as a plane: the
+    check reports a large error and says which faces were missing."""
+    run = sim_run()
+    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
+    rec = read_recording(run["cube"])
+    truth = rec.truth
+    assert truth is not None
+    bad = check_cube(rec, truth.with_(tz=truth.tz + 0.01), recipe.fixtures.qa_cube, recipe.qa)
+    assert not bad.passed
+    assert any("too few returns for a plane fit" in f for f in bad.failures), bad.failures
+    assert bad.edge_error > 5e-3 and np.all(np.isfinite(bad.face_edges))
+
+
 def test_no_cube_is_a_clear_error() -> None:
     recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
     with pytest.raises(VerificationError, match="QA cube was not found"):

@@ -13,6 +13,7 @@ from calstation.metrics import axis_errors
 from calstation.recipe import load_recipe
 from calstation.recording import read_recording
 from calstation.shape import (
+    face_labels,
     largest_cluster,
     minimal_obb,
     radius_outlier_mask,
@@ -51,6 +52,21 @@ def test_upright_box_measures_a_noisy_cube_without_the_noise_inflation() -> None
     assert raw[1] > 0.1 + 0.003
     _, _, obb = minimal_obb(cloud)
     assert np.sort(obb)[-1] > 0.1 + 0.003
+
+
+def test_face_labels_keep_faces_and_drop_edges_and_strays() -> None:
+    cloud = _cube_surface(0.1, 0.3, 2000, 0.0005)
+    centre, axes, ext = upright_box(cloud)
+    strays = np.array([[0.05, 0.5, 0.5], [0.05, 0.05 + 0.3, -0.03]])  # far off; beyond a face
+    labels = face_labels(np.vstack([cloud, strays]), centre, axes, ext)
+    assert (labels[-2:] == -1).all()
+    kept = labels[:-2] >= 0
+    assert set(np.unique(labels[:-2][kept])) == {1, 2, 3, 4, 5}  # top and four sides, no bottom
+    local = (cloud - centre) @ axes
+    near_edge = np.sort(np.abs(0.5 * ext - np.abs(local)), axis=1)[:, 1] < 0.01
+    assert not kept[near_edge].any() and kept[~near_edge].mean() > 0.95
+    top = labels[:-2] == 1
+    assert np.allclose(cloud[top, 0], 0.1, atol=0.003)
 
 
 def test_signed_face_distances_inside_positive() -> None:
@@ -96,3 +112,27 @@ def test_simulated_cube_from_the_initial_calibration(sim_run) -> None:
     assert math.degrees(e["axis_angle_rad"]) <= 0.3
     assert res.H.ty == initial.H.ty  # the gauge
     assert res.strategy == "shape" and res.iterations <= recipe.calibration.shape.max_nfev + 2
+
+
+def test_ry_from_the_face_flatness_with_a_large_true_ry(sim_run) -> None:
+    """Seed 4 tilts the true axis by ry = -0.355°; holding ry at the initial 0 misses 0.3°."""
+    from calstation.initial import initial_calibration
+
+    run = sim_run(range_m=1.0, pitch_deg=45.0, seed=4)
+    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
+    initial = initial_calibration(
+        read_recording(run["static"]), recipe.fixtures.static_target, recipe.calibration.initial
+    )
+    rec = read_recording(run["cube"])
+    truth = rec.truth
+    assert truth is not None and abs(math.degrees(truth.ry - initial.H.ry)) > 0.3
+    res = shape_fine_tune(rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape)
+    e = axis_errors(res.H, truth)
+    assert e["axis_offset_m"] <= 2e-3
+    assert math.degrees(e["axis_angle_rad"]) <= 0.15
+    assert res.diagnostics["ry_source"] == "face flatness" and res.diagnostics["ry_rounds"]
+    assert 0 < res.sigma["ry"] < math.radians(0.2)
+    held = shape_fine_tune(
+        rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape, estimate_ry=False
+    )
+    assert held.H.ry == initial.H.ry and held.diagnostics["ry_source"] == "held"
