@@ -376,11 +376,13 @@ def periodicity_fine_tune_points(
     *,
     platter_radius: float = 0.2925,
     progress: Progress | None = None,
+    stages: int | None = None,
 ) -> CalibrationResult:
     """Periodicity fine-tuning on the returns of one spin scan.
 
     ``p_L`` (N, 3) returns in frame L (metres), ``phi`` (N,) their platter angles (rad,
-    unwrapped or not). ``start`` is the starting H; rx is held at 0. Returns a
+    unwrapped or not). ``start`` is the starting H; rx is held at 0. ``stages``: run only the
+    first few stages of the schedule (a coarse alignment; None: all). Returns a
     :class:`CalibrationResult` (strategy ``"periodicity"``, cost = mean weighted squared
     point-to-plane distance in m² at the last stage).
     """
@@ -433,13 +435,13 @@ def periodicity_fine_tune_points(
             f"{halves[1].p_L.shape[0]} in the two half-turns); is the spin target on the platter?"
         )
 
-    stages = schedule(settings)
+    schedule_ = schedule(settings)[:stages]
     x6 = start6.copy()
     if settings.coarse_to_fine:
         # keep the centroid alignment only where it helps: the view asymmetry of the two
         # half-turns biases the centroids, so a good start can be better than its result
         centred = _centre_halves(halves, x6, settings, np.random.default_rng(1))
-        first = stages[0]
+        first = schedule_[0]
         cells = [_Half(*sensor_cells(h.p_L, h.phi, first.voxel)) for h in halves]
         if _match(cells, centred, first)[0].pa.shape[0] > _match(cells, x6, first)[0].pa.shape[0]:
             x6 = centred
@@ -447,7 +449,7 @@ def periodicity_fine_tune_points(
     last: tuple[Any, _Problem] | None = None
     total_outer = 0
     final_cost = math.nan
-    for s_i, stage in enumerate(stages):
+    for s_i, stage in enumerate(schedule_):
         t_stage = time.perf_counter()
         gauge_ty = settings.gauge == "ty" or not stage.use_platter
         free = [i for i in _free(gauge_ty) if not (stage.hold_ry and i == IDX["ry"])]
@@ -458,8 +460,8 @@ def periodicity_fine_tune_points(
         for outer in range(stage.max_outer):
             if progress is not None:
                 progress(
-                    f"periodicity stage {s_i + 1}/{len(stages)} ({stage.voxel * 1e3:.0f} mm)",
-                    (s_i + outer / stage.max_outer) / len(stages),
+                    f"periodicity stage {s_i + 1}/{len(schedule_)} ({stage.voxel * 1e3:.0f} mm)",
+                    (s_i + outer / stage.max_outer) / len(schedule_),
                 )
             matched, n_pts = _match(stage_halves, x6, stage)
             n_matches = matched.pa.shape[0]

@@ -33,8 +33,8 @@ from scipy.spatial import cKDTree
 
 from .errors import FineTuningError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
-from .periodicity import parameter_sigma, static_mask
-from .recipe import CubeGeometry, ShapeSettings
+from .periodicity import parameter_sigma, periodicity_fine_tune_points, static_mask
+from .recipe import CubeGeometry, PeriodicitySettings, ShapeSettings
 from .result import CalibrationResult
 
 if TYPE_CHECKING:
@@ -44,6 +44,8 @@ Progress = Callable[[str, float], None]
 
 DIFF_STEP = 1e-4
 """Relative finite-difference step: 0.1 mm / 0.1 mrad (the cost is piecewise)."""
+COARSE_STAGES = 2
+"""Periodicity stages (20 and 10 mm cells) run on the cube scan before the shape cost."""
 FREE = ("tx", "tz", "ry", "rz")
 """Parameters the shape strategy can estimate; ty is the gauge (held at its start)."""
 
@@ -292,7 +294,45 @@ class ShapeCost:
         return out
 
 
-def shape_fine_tune_points(
+def _box_fit(
+    p_L: FloatArray,
+    phi: FloatArray,
+    H: Extrinsics,
+    cube: CubeGeometry,
+    settings: ShapeSettings,
+    platter_radius: float,
+    max_points: int,
+) -> float:
+    """C1 + C2 of the upright box (m²) for the cube scan's returns ((N, 3) in L, (N,) φ) under
+    H; inf when no cube is found above the platter."""
+    moving = ~static_mask(p_L)
+    p_L, phi = p_L[moving], phi[moving]
+    near = segment_above_platter(
+        lidar_to_dynamic(p_L, phi, H),
+        margin=0.0,
+        radius=platter_radius + 0.05,
+        height=3.0 * cube.edge + 0.05,
+    )
+    p_L, phi = p_L[near], phi[near]
+    n_all = p_L.shape[0]
+    if n_all < 200:
+        return math.inf
+    if n_all > max_points:
+        pick = np.sort(np.random.default_rng(0).choice(n_all, max_points, replace=False))
+        p_L, phi = p_L[pick], phi[pick]
+    cost = ShapeCost(
+        p_L,
+        phi,
+        cube,
+        settings,
+        platter_radius=platter_radius,
+        density_scale=math.sqrt(n_all / p_L.shape[0]),
+    )
+    r = cost.residuals_of(H)
+    return float(np.sum(r[:-3] ** 2) + np.sum(cost.last_edge_errors**2))
+
+
+def _shape_pass(
     p_L: FloatArray,
     phi: FloatArray,
     start: Extrinsics,
@@ -303,6 +343,7 @@ def shape_fine_tune_points(
     max_points: int = 20_000,
     box: str = "upright",
     estimate_ry: bool = True,
+    coarse: bool = True,
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
@@ -322,6 +363,44 @@ def shape_fine_tune_points(
             f"shape needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
         )
     start = start.with_(rx=0.0)
+    coarse_report: dict[str, Any] = {"used": False}
+    if coarse:
+        # the box cost has no basin wider than the cube: bring a far start within reach with
+        # the coarse stages of the periodicity matching on this same scan (ty and ry held)
+        skipped = []
+        for n_stages in range(COARSE_STAGES, 0, -1):
+            try:
+                pre = periodicity_fine_tune_points(
+                    p_L,
+                    phi,
+                    start,
+                    PeriodicitySettings(gauge="ty"),
+                    platter_radius=platter_radius,
+                    stages=n_stages,
+                )
+            except FineTuningError as exc:
+                skipped.append(str(exc))
+                continue
+            aligned = pre.H.with_(ty=start.ty, ry=start.ry, rx=0.0)
+            # the two half-turns of a cube see different faces, which biases the matching at
+            # low pitch: keep the alignment only where the box fits better than at the start
+            before = _box_fit(p_L, phi, start, cube, settings, platter_radius, max_points)
+            after = _box_fit(p_L, phi, aligned, cube, settings, platter_radius, max_points)
+            coarse_report = {
+                "used": after < before,
+                "stages": n_stages,
+                "start": start.as_dict(),
+                "aligned": aligned.as_dict(),
+                "box_cost_start": before,
+                "box_cost_aligned": after,
+                "seconds": pre.timings["total"],
+                "skipped": skipped,
+            }
+            if after < before:
+                start = aligned
+            break
+        else:
+            coarse_report = {"used": False, "skipped": skipped}
     # returns near the cube under the start H (generous: the start may be a few cm off)
     # the platter ring and the background are static in L: they never belong to the cube
     moving = ~static_mask(p_L)
@@ -435,7 +514,8 @@ def shape_fine_tune_points(
             return out
 
         centre = start6[idx]
-        half = np.array([tb, rb, rb])
+        # a set-B start is 2° off and the true ry up to 0.5° from the initial 0 (as periodicity)
+        half = np.array([tb, max(rb, math.radians(2.5)), rb])
         r = least_squares(
             flatness,
             np.clip(base[idx], centre - half + 1e-12, centre + half - 1e-12),
@@ -497,6 +577,7 @@ def shape_fine_tune_points(
                 ("face flatness" if box == "upright" else "box cost") if estimate_ry else "held"
             ),
             "ry_rounds": ry_rounds,
+            "coarse": coarse_report,
             "C1": c1,
             "C2": c2,
             "cost_terms": "C1 + C2" if box == "minimal" else "C1",
@@ -510,6 +591,52 @@ def shape_fine_tune_points(
     )
 
 
+def shape_fine_tune_points(
+    p_L: FloatArray,
+    phi: FloatArray,
+    start: Extrinsics,
+    cube: CubeGeometry,
+    settings: ShapeSettings = ShapeSettings(),
+    *,
+    platter_radius: float = 0.2925,
+    max_points: int = 20_000,
+    box: str = "upright",
+    estimate_ry: bool = True,
+    coarse: bool = True,
+    progress: Progress | None = None,
+) -> CalibrationResult:
+    """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
+
+    ``p_L`` (N, 3) returns in L (m), ``phi`` (N,) platter angles (rad). ``box``: ``"upright"``
+    (calstation's default: a box standing on the platter) or ``"minimal"`` (the paper's
+    minimum-volume OBB from Open3D). ``estimate_ry``: with the upright box, ry from the faces'
+    flatness alternating with the box solve of tx, tz, rz; with the minimal box, the paper's
+    joint solve; ``False`` holds ry at its start. ``coarse``: align a far start first with the
+    coarse periodicity stages on the same scan; when only the coarsest stage could run (the
+    start's ry too far off for the second), the whole pass is repeated from its result
+    (docs/algorithms.md). Returns a :class:`CalibrationResult` with strategy ``"shape"`` and
+    cost ``C1 + C2`` (m²).
+    """
+    t0 = time.perf_counter()
+    options: dict[str, Any] = dict(
+        platter_radius=platter_radius,
+        max_points=max_points,
+        box=box,
+        estimate_ry=estimate_ry,
+        coarse=coarse,
+        progress=progress,
+    )
+    result = _shape_pass(p_L, phi, start, cube, settings, **options)
+    passes = 1
+    report = result.diagnostics["coarse"]
+    if coarse and report.get("used") and report.get("stages", COARSE_STAGES) < COARSE_STAGES:
+        result = _shape_pass(p_L, phi, result.H, cube, settings, **options)
+        passes = 2
+    result.diagnostics["passes"] = passes
+    result.timings["total"] = time.perf_counter() - t0
+    return result
+
+
 def shape_fine_tune(
     recording: Recording,
     start: Extrinsics,
@@ -519,6 +646,7 @@ def shape_fine_tune(
     platter_radius: float = 0.2925,
     box: str = "upright",
     estimate_ry: bool = True,
+    coarse: bool = True,
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on a QA-cube spin-scan recording."""
@@ -533,6 +661,7 @@ def shape_fine_tune(
             platter_radius=platter_radius,
             box=box,
             estimate_ry=estimate_ry,
+            coarse=coarse,
             progress=progress,
         )
     except FineTuningError as exc:

@@ -81,7 +81,8 @@ class ShapeStrategy:
 
     ``calibration.options.shape``: ``box`` — ``upright`` (default) or ``minimal`` (the
     paper's box); ``estimate_ry`` — estimate ry too (default true; false holds it at its
-    start).
+    start); ``coarse`` — align a far start first with the coarse periodicity stages on the cube
+    scan (default true).
     """
 
     name = "shape"
@@ -100,6 +101,7 @@ class ShapeStrategy:
         options: dict[str, Any] = dict(recipe.calibration.options.get("shape", {}))
         box = str(options.pop("box", "upright"))
         estimate_ry = bool(options.pop("estimate_ry", True))
+        coarse = bool(options.pop("coarse", True))
         if box not in ("upright", "minimal"):
             raise FineTuningError(
                 f"calibration.options.shape.box must be 'upright' or 'minimal', got {box!r}"
@@ -107,7 +109,7 @@ class ShapeStrategy:
         if options:
             raise FineTuningError(
                 f"calibration.options.shape: unknown keys {', '.join(sorted(options))} "
-                "(known: box, estimate_ry)"
+                "(known: box, estimate_ry, coarse)"
             )
         return shape_fine_tune(
             recording,
@@ -117,6 +119,7 @@ class ShapeStrategy:
             platter_radius=_platter_radius(recipe),
             box=box,
             estimate_ry=estimate_ry,
+            coarse=coarse,
             progress=progress,
         )
 
