@@ -22,7 +22,7 @@ from .figures import (
     landscape_figure,
     param_boxplots,
 )
-from .runner import ABLATION_VARIANTS, CONVERGENCE, FINE_TUNING_METHODS
+from .runner import ABLATION_VARIANTS, ABLATIONS, CONVERGENCE, FINE_TUNING_METHODS
 from .scenarios import PERTURBATION_SEED, SCENARIO_SEED_BASE, paper_scenarios
 
 PAPER_TABLE_I = {"initial": 5.1, "shape": 3.2, "periodicity": 2.7}
@@ -288,21 +288,22 @@ def table_timing(records: Sequence[dict[str, Any]], methods: Sequence[str],
 
 
 def _ablation_records(
-    records: Sequence[dict[str, Any]], variant: str, scenarios: Sequence[str], n_starts: int
+    records: Sequence[dict[str, Any]], variant: str, scenarios: Sequence[str], n_starts: int,
+    method: str = "periodicity",
 ) -> list[dict[str, Any]]:
     return [
-        r for s in ("init", "B") for r in _select(records, "periodicity", s, variant, False)
+        r for s in ("init", "B") for r in _select(records, method, s, variant, False)
         if r["scenario"] in scenarios and (s == "init" or r["index"] < n_starts)
     ]
 
 
 def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
-                   n_starts: int) -> str:
-    """Periodicity with each robustness feature off, on the ablation subset (init + the first
+                   n_starts: int, method: str = "periodicity") -> str:
+    """``method`` with each robustness feature off, on the ablation subset (init + the first
     ``n_starts`` set-B starts)."""
     rows = []
-    for variant in ABLATION_VARIANTS:
-        every = _ablation_records(records, variant, scenarios, n_starts)
+    for variant in ABLATIONS[method]:
+        every = _ablation_records(records, variant, scenarios, n_starts, method)
         if not every:
             continue
         ok = [r for r in every if r.get("status") == "ok"]
@@ -320,17 +321,17 @@ def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
             _fmt(_median(t), 1),
         ])
     return _table(
-        ["periodicity variant", "N", "failed", "converged", "axis offset mm (median / p95)",
+        [f"{method} variant", "N", "failed", "converged", "axis offset mm (median / p95)",
          "axis direction ° (median / p95)", "ty err mm (median)", "time s (median)"],
         rows,
     )
 
 
 def _ablation_offsets(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
-                      n_starts: int) -> dict[str, np.ndarray]:
+                      n_starts: int, method: str = "periodicity") -> dict[str, np.ndarray]:
     out = {}
-    for variant in ABLATION_VARIANTS:
-        recs = [r for r in _ablation_records(records, variant, scenarios, n_starts)
+    for variant in ABLATIONS[method]:
+        recs = [r for r in _ablation_records(records, variant, scenarios, n_starts, method)
                 if r.get("status") == "ok"]
         if recs:
             out[variant] = _values(recs, lambda r: r["axis"]["axis_offset_m"]) * MM
@@ -434,6 +435,11 @@ def write_report(
     lim = CONVERGENCE["periodicity"]["axis_offset_m"] * MM
     ablation_figure(_ablation_offsets(every, abl_sc, n_abl), fig_dir / "ablation.png", lim,
                     f"Periodicity ablation, scenarios {', '.join(abl_sc)} (init + set B)")
+    shape_offsets = _ablation_offsets(every, abl_sc, n_abl, "shape")
+    if len(shape_offsets) > 1:
+        ablation_figure(shape_offsets, fig_dir / "ablation_shape.png",
+                        CONVERGENCE["shape"]["axis_offset_m"] * MM,
+                        f"Shape ablation, scenarios {', '.join(abl_sc)} (init + set B)")
 
     text = _compose(records, every, meta, methods, abl_sc, landscape_md, label)
     path = report_dir / "results.md"
@@ -635,7 +641,9 @@ def _compose(
     parts += list(landscape_md) or ["(no landscape was sampled in this run)"]
     parts += [
         "",
-        "## Ablation of calstation's robustness features (periodicity)",
+        "## Ablation of calstation's robustness features",
+        "",
+        "### Periodicity",
         "",
         f"Scenarios {', '.join(abl_sc) or '–'}; the initial calibration and the first "
         f"{cfg.get('ablation_starts', '?')} set-B starts of each. Recipe overrides per variant: "
@@ -649,6 +657,26 @@ def _compose(
         "",
         "![ablation](results/ablation.png)",
         "",
+    ]
+    shape_variants = [k for k in cfg.get("shape_ablation_variants", []) if k != "default"]
+    if shape_variants:
+        parts += [
+            "### Shape",
+            "",
+            "The same subset with the shape strategy's additions switched off. Recipe overrides "
+            "per variant: "
+            + "; ".join(
+                f"{k}: `{json.dumps(ABLATIONS['shape'][k])}`"
+                for k in shape_variants
+                if k in ABLATIONS["shape"]
+            ) + ".",
+            "",
+            table_ablation(every, abl_sc, int(cfg.get("ablation_starts", 0)), "shape"),
+            "",
+            "![shape ablation](results/ablation_shape.png)",
+            "",
+        ]
+    parts += [
         "## Time per stage",
         "",
         "Measured inside the worker processes (one thread each).",

@@ -70,6 +70,25 @@ ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
 }
 """Recipe overrides of the periodicity robustness features compared in the ablation."""
 
+SHAPE_ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "no coarse alignment": {"calibration": {"options": {"shape": {"coarse": False}}}},
+    "ry held (no face flatness)": {"calibration": {"options": {"shape": {"estimate_ry": False}}}},
+    "paper (minimal box, joint ry, no coarse)": {
+        "calibration": {
+            "options": {"shape": {"box": "minimal", "estimate_ry": True, "coarse": False}}
+        }
+    },
+}
+"""Recipe overrides of the shape strategy's robustness features compared in the ablation."""
+
+ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
+    "periodicity": ABLATION_VARIANTS,
+    "shape": SHAPE_ABLATION_VARIANTS,
+}
+"""Ablation variants per fine-tuning method (variant names are unique across methods, apart
+from ``default``, which is the main run)."""
+
 
 @dataclass(frozen=True)
 class BenchConfig:
@@ -94,6 +113,7 @@ class BenchConfig:
     ablation_scenarios: tuple[str, ...] = ("D1", "D9")
     ablation_starts: int = 5
     ablation_variants: tuple[str, ...] = tuple(ABLATION_VARIANTS)
+    shape_ablation_variants: tuple[str, ...] = tuple(SHAPE_ABLATION_VARIANTS)
     sets: tuple[str, ...] = ("A", "B")
     perturbed_methods: tuple[str, ...] | None = None
     seed: int = PERTURBATION_SEED
@@ -128,6 +148,7 @@ class BenchConfig:
             ablation_scenarios=("D5",),
             ablation_starts=0,
             ablation_variants=("default", "no coarse-to-fine"),
+            shape_ablation_variants=(),
             quick=True,
             command=command,
         )
@@ -785,23 +806,28 @@ def _previous_meta(out: Path) -> dict[str, Any] | None:
 
 
 def ablation_tasks(config: BenchConfig, initial: dict[str, Extrinsics]) -> list[Task]:
-    """Periodicity with each robustness feature switched off, on the ablation subset: from the
-    initial calibration and the first ``config.ablation_starts`` set-B starts (the default
-    variant's tasks are the main run's, with the same ids, so they run once)."""
+    """Periodicity and shape with each robustness feature switched off, on the ablation
+    subset: from the initial calibration and the first ``config.ablation_starts`` set-B starts
+    (the default variant's tasks are the main run's, with the same ids, so they run once)."""
     chosen = [s for s in config.scenarios if s.name in config.ablation_scenarios]
     tasks: list[Task] = []
-    for variant in config.ablation_variants:
-        overrides = ABLATION_VARIANTS[variant]
-        tasks += finetune_tasks(
-            config,
-            initial,
-            chosen,
-            ["periodicity"],
-            range(config.ablation_starts),
-            variant=variant,
-            overrides=overrides,
-            sets=("B",),
-        )
+    for method, variants in (
+        ("periodicity", config.ablation_variants),
+        ("shape", config.shape_ablation_variants),
+    ):
+        if method not in config.methods:
+            continue
+        for variant in variants:
+            tasks += finetune_tasks(
+                config,
+                initial,
+                chosen,
+                [method],
+                range(config.ablation_starts),
+                variant=variant,
+                overrides=ABLATIONS[method][variant],
+                sets=("B",),
+            )
     return tasks
 
 
@@ -840,8 +866,10 @@ def estimate_wall_time(seconds_per_task: float, config: BenchConfig) -> float:
 
 
 __all__ = [
+    "ABLATIONS",
     "ABLATION_VARIANTS",
     "CONVERGENCE",
+    "SHAPE_ABLATION_VARIANTS",
     "BenchConfig",
     "DeadlineReached",
     "Executor",
