@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from .errors import VerificationError
 from .frames import Extrinsics, FloatArray, lidar_to_dynamic
-from .recipe import CubeGeometry, QALimits
+from .recipe import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
 from .shape import largest_cluster, minimal_obb, segment_above_platter, upright_box
 
 if TYPE_CHECKING:
@@ -152,7 +152,7 @@ def check_cube_points(
     cube: CubeGeometry,
     limits: QALimits,
     *,
-    platter_radius: float = 0.2925,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
 ) -> CubeCheck:
     """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H."""
     t0 = time.perf_counter()
@@ -285,7 +285,7 @@ def check_cube(
     cube: CubeGeometry,
     limits: QALimits,
     *,
-    platter_radius: float = 0.2925,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
 ) -> CubeCheck:
     """Cube check on a QA-cube spin-scan recording with the calibration H."""
     p_L, phi = recording.points_lidar()

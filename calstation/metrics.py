@@ -17,6 +17,7 @@ import numpy as np
 
 from .errors import CalibrationError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
+from .recipe import DEFAULT_PLATTER_RADIUS
 
 if TYPE_CHECKING:
     from .recording import Recording
@@ -72,7 +73,7 @@ def distortion_points(
     truth: Extrinsics,
     *,
     margin: float = 0.005,
-    platter_radius: float = 0.2925,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
 ) -> dict[str, float]:
     """Reconstruction distortion on the object above the platter ((N, 3) returns in L, (N,) φ).
 

@@ -48,7 +48,7 @@ from scipy.spatial import cKDTree
 
 from .errors import FineTuningError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, euler_to_matrix, lidar_to_polar
-from .recipe import PeriodicitySettings
+from .recipe import DEFAULT_PLATTER_RADIUS, PeriodicitySettings
 from .result import CalibrationResult
 
 if TYPE_CHECKING:
@@ -374,7 +374,7 @@ def periodicity_fine_tune_points(
     start: Extrinsics,
     settings: PeriodicitySettings = PeriodicitySettings(),
     *,
-    platter_radius: float = 0.2925,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
     progress: Progress | None = None,
     stages: int | None = None,
 ) -> CalibrationResult:
@@ -634,7 +634,7 @@ def periodicity_fine_tune(
     start: Extrinsics,
     settings: PeriodicitySettings = PeriodicitySettings(),
     *,
-    platter_radius: float = 0.2925,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Periodicity fine-tuning on a spin-scan :class:`~calstation.recording.Recording`."""

@@ -68,6 +68,11 @@ class PlatterGeometry(Model):
         return 0.5 * self.diameter
 
 
+DEFAULT_PLATTER_RADIUS = PlatterGeometry().radius
+"""The default platter's radius (m), for library functions called without a recipe; the
+station, the CLI and the bench always pass the recipe's ``platter.radius``."""
+
+
 class LTargetGeometry(Model):
     """The static L-shaped target of the initial calibration (paper §III-A).
 
@@ -426,9 +431,7 @@ def _format_loc(loc: tuple[int | str, ...]) -> str:
     return "".join(parts) or "(top level)"
 
 
-def parse_recipe(
-    text: str, source: str = "<recipe>", base_dir: Path | None = None
-) -> Recipe:
+def parse_recipe(text: str, source: str = "<recipe>", base_dir: Path | None = None) -> Recipe:
     """Validate recipe YAML text; :class:`RecipeError` names the field and line of each problem.
 
     After the field checks, :func:`cross_field_problems` runs the checks that relate fields to each

@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 from .errors import FineTuningError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from .periodicity import parameter_sigma, periodicity_fine_tune_points, static_mask
-from .recipe import CubeGeometry, PeriodicitySettings, ShapeSettings
+from .recipe import DEFAULT_PLATTER_RADIUS, CubeGeometry, PeriodicitySettings, ShapeSettings
 from .result import CalibrationResult
 
 if TYPE_CHECKING:
@@ -339,7 +339,7 @@ def _shape_pass(
     cube: CubeGeometry,
     settings: ShapeSettings = ShapeSettings(),
     *,
-    platter_radius: float = 0.2925,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
     max_points: int = 20_000,
     box: str = "upright",
     estimate_ry: bool = True,
@@ -598,7 +598,7 @@ def shape_fine_tune_points(
     cube: CubeGeometry,
     settings: ShapeSettings = ShapeSettings(),
     *,
-    platter_radius: float = 0.2925,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
     max_points: int = 20_000,
     box: str = "upright",
     estimate_ry: bool = True,
@@ -643,7 +643,7 @@ def shape_fine_tune(
     cube: CubeGeometry,
     settings: ShapeSettings = ShapeSettings(),
     *,
-    platter_radius: float = 0.2925,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
     box: str = "upright",
     estimate_ry: bool = True,
     coarse: bool = True,
