@@ -344,6 +344,17 @@ class PeriodicitySettings(OptimizerSettings):
     )
 
 
+class ShapeOptions(Model):
+    """``calibration.options.shape``: the built-in shape strategy's choices (docs/algorithms.md)."""
+
+    box: Literal["upright", "minimal"] = Field(
+        "upright",
+        description="upright: calstation's box standing on the platter; minimal: the paper's",
+    )
+    estimate_ry: bool = Field(True, description="estimate ry (false: hold it at its start)")
+    coarse: bool = Field(True, description="coarse periodicity alignment on the cube scan first")
+
+
 class CalibrationSettings(Model):
     """Which fine-tuning strategy to run, and each stage's settings."""
 
@@ -558,6 +569,13 @@ def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[P
                         f"unknown parameter {unknown[0]!r}; expected tx, ty, tz, rx, ry, rz",
                     )
                 )
+    shape_options = recipe.calibration.options.get("shape")
+    if shape_options is not None:
+        try:
+            ShapeOptions.model_validate(shape_options)
+        except ValidationError as exc:
+            for err in exc.errors():
+                problems.append((("calibration", "options", "shape", *err["loc"]), err["msg"]))
     if abs(recipe.station.encoder.latency_s) > 1.0:
         problems.append(
             (("station", "encoder", "latency_s"), "implausible latency (more than 1 s)")

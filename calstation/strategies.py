@@ -8,11 +8,13 @@ register the same way (:mod:`calstation.builtin_plugins.strategies`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+from pydantic import ValidationError
 
 from .errors import FineTuningError
 from .frames import Extrinsics
-from .recipe import Recipe
+from .recipe import Recipe, ShapeOptions
 from .result import CalibrationResult
 
 if TYPE_CHECKING:
@@ -98,28 +100,21 @@ class ShapeStrategy:
         """See :func:`calstation.shape.shape_fine_tune`."""
         from .shape import shape_fine_tune
 
-        options: dict[str, Any] = dict(recipe.calibration.options.get("shape", {}))
-        box = str(options.pop("box", "upright"))
-        estimate_ry = bool(options.pop("estimate_ry", True))
-        coarse = bool(options.pop("coarse", True))
-        if box not in ("upright", "minimal"):
-            raise FineTuningError(
-                f"calibration.options.shape.box must be 'upright' or 'minimal', got {box!r}"
-            )
-        if options:
-            raise FineTuningError(
-                f"calibration.options.shape: unknown keys {', '.join(sorted(options))} "
-                "(known: box, estimate_ry, coarse)"
-            )
+        try:
+            options = ShapeOptions.model_validate(recipe.calibration.options.get("shape", {}))
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            where = ".".join(str(x) for x in first["loc"])
+            raise FineTuningError(f"calibration.options.shape.{where}: {first['msg']}") from None
         return shape_fine_tune(
             recording,
             start,
             recipe.fixtures.qa_cube,
             recipe.calibration.shape,
             platter_radius=_platter_radius(recipe),
-            box=box,
-            estimate_ry=estimate_ry,
-            coarse=coarse,
+            box=options.box,
+            estimate_ry=options.estimate_ry,
+            coarse=options.coarse,
             progress=progress,
         )
 

@@ -113,6 +113,12 @@ INVALID: list[tuple[str, tuple[str, str], str, str]] = [
     ("L-target heights not linear",
      ("fixtures:\n", "fixtures:\n  static_target:\n    h_tall: 0.2\n    h_mid: 0.1\n"
       "    h_short: 0.05\n"), "fixtures.static_target", "static_target:"),
+    ("shape option not a boolean",
+     ("  strategy: fake-strategy\n", "  strategy: fake-strategy\n  options:\n    shape:\n"
+      "      coarse: maybe\n"), "calibration.options.shape.coarse", "coarse:"),
+    ("unknown shape box", ("  strategy: fake-strategy\n", "  strategy: fake-strategy\n"
+                           "  options:\n    shape:\n      box: round\n"),
+     "calibration.options.shape.box", "box:"),
     ("revolutions below one turn", ("    lines: 100", "    lines: 100\n  spin_scan:\n"
                                      "    revolutions: 0.5"), "steps.spin_scan.revolutions",
      "revolutions:"),
