@@ -44,7 +44,8 @@ class CubeCheck:
       ``edge_error`` ``max_i |ŝ_i − s|`` of those;
     - ``flatness_rms`` the worst face's plane-fit RMS; ``perpendicularity_deg`` the worst
       deviation from 90° between adjacent faces;
-    - ``passed`` and the ``failures`` (one message per limit exceeded).
+    - ``passed`` and the ``failures`` (one message per limit exceeded);
+    - ``platter_level`` the platter top's height along X_D, from which heights are measured.
     """
 
     edge: float
@@ -58,6 +59,7 @@ class CubeCheck:
     failures: list[str] = field(default_factory=list)
     points: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    platter_level: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         """A plain mapping (YAML/JSON ready), metres and degrees."""
@@ -73,6 +75,7 @@ class CubeCheck:
             "failures": list(self.failures),
             "points": int(self.points),
             "timings": dict(self.timings),
+            "platter_level_m": float(self.platter_level),
         }
 
 
@@ -145,6 +148,26 @@ def _angle_deg(n1: FloatArray, n2: FloatArray) -> float:
     return math.degrees(math.acos(min(1.0, abs(float(np.dot(n1, n2))))))
 
 
+def platter_level(p_D: FloatArray, platter_radius: float, window: float = 0.02) -> float:
+    """Height (m, along X_D) of the platter top as seen in a spin scan ((N, 3) points in D).
+
+    The median of the returns within ``window`` of x_D = 0 on the platter, refined twice to
+    those within 3 mm of it (the cube's lowest returns fall in the window too; the platter's
+    far outnumber them). 0 when fewer than 100 platter returns are seen.
+    """
+    r = np.hypot(p_D[:, 1], p_D[:, 2])
+    x = p_D[(np.abs(p_D[:, 0]) < window) & (r < platter_radius - 0.005), 0]
+    if x.size < 100:
+        return 0.0
+    level = float(np.median(x))
+    for _ in range(2):
+        near = x[np.abs(x - level) < 0.003]
+        if near.size < 100:
+            break
+        level = float(np.median(near))
+    return level
+
+
 def check_cube_points(
     p_L: FloatArray,
     phi: FloatArray,
@@ -158,6 +181,11 @@ def check_cube_points(
     t0 = time.perf_counter()
     s = cube.edge
     p_D = lidar_to_dynamic(p_L, phi, H)
+    # measure from the platter as seen, not from x_D = 0: a calibration's origin along the axis
+    # is a gauge (the shape strategy holds ty), and a few millimetres there would otherwise
+    # lift the platter itself above the segmentation cut
+    level = platter_level(p_D, platter_radius)
+    p_D[:, 0] -= level
     seg = segment_above_platter(p_D, margin=SEGMENT_MARGIN, radius=platter_radius, height=3 * s)
     pts = _clean(p_D[seg])
     pts = pts[largest_cluster(pts)]
@@ -252,6 +280,7 @@ def check_cube_points(
         passed=not failures,
         failures=failures,
         points=int(pts.shape[0]),
+        platter_level=level,
         timings={"segment": t1 - t0, "obb": t2 - t1, "faces": t3 - t2, "total": t3 - t0},
     )
 

@@ -58,6 +58,28 @@ def test_a_smeared_cube_is_a_failed_check_not_an_error(sim_run) -> None:
     assert bad.edge_error > 5e-3 and np.all(np.isfinite(bad.face_edges))
 
 
+def test_the_check_measures_from_the_platter_it_sees(sim_run) -> None:
+    """The origin along the axis is a gauge: 4 mm of it must not lift the platter into the cube
+    (it did: the largest cluster then took in a patch of platter, 175 mm long)."""
+    from calstation.metrics import axis_errors
+
+    run = sim_run()
+    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
+    rec = read_recording(run["cube"])
+    truth = rec.truth
+    assert truth is not None
+    for shift in (0.004, -0.004):
+        # the P origin moved along X_P: p_L = R·p_P + t with t + shift·R[:, 0]
+        tx, ty, tz = truth.t + shift * truth.R[:, 0]
+        H = truth.with_(tx=tx, ty=ty, tz=tz)
+        e = axis_errors(H, truth)
+        assert abs(abs(e["along_axis_m"]) - 0.004) < 1e-6 and e["axis_offset_m"] < 1e-6
+        check = check_cube(rec, H, recipe.fixtures.qa_cube, recipe.qa)
+        assert check.passed, check.failures
+        assert abs(abs(check.platter_level) - 0.004) < 0.0005
+        assert np.all(np.abs(check.face_edges - 0.1) < 0.3e-3)
+
+
 def test_no_cube_is_a_clear_error() -> None:
     recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
     with pytest.raises(VerificationError, match="QA cube was not found"):
