@@ -294,6 +294,32 @@ class ShapeCost:
         return out
 
 
+def _near_cube(
+    p_L: FloatArray, phi: FloatArray, H: Extrinsics, cube: CubeGeometry, platter_radius: float
+) -> tuple[FloatArray, FloatArray]:
+    """The returns ((N, 3) in L, (N,) φ) in a generous region above the platter under H (the
+    start may be a few cm off)."""
+    near = segment_above_platter(
+        lidar_to_dynamic(p_L, phi, H),
+        margin=0.0,
+        radius=platter_radius + 0.05,
+        height=3.0 * cube.edge + 0.05,
+    )
+    return p_L[near], phi[near]
+
+
+def _subsample(
+    p_L: FloatArray, phi: FloatArray, max_points: int
+) -> tuple[FloatArray, FloatArray, float]:
+    """A fixed random subset of at most ``max_points`` returns, and the density scale
+    √(all / subset) for the outlier radius."""
+    n_all = p_L.shape[0]
+    if n_all > max_points:
+        pick = np.sort(np.random.default_rng(0).choice(n_all, max_points, replace=False))
+        p_L, phi = p_L[pick], phi[pick]
+    return p_L, phi, math.sqrt(n_all / p_L.shape[0])
+
+
 def _box_fit(
     p_L: FloatArray,
     phi: FloatArray,
@@ -303,30 +329,14 @@ def _box_fit(
     platter_radius: float,
     max_points: int,
 ) -> float:
-    """C1 + C2 of the upright box (m²) for the cube scan's returns ((N, 3) in L, (N,) φ) under
-    H; inf when no cube is found above the platter."""
-    moving = ~static_mask(p_L)
-    p_L, phi = p_L[moving], phi[moving]
-    near = segment_above_platter(
-        lidar_to_dynamic(p_L, phi, H),
-        margin=0.0,
-        radius=platter_radius + 0.05,
-        height=3.0 * cube.edge + 0.05,
-    )
-    p_L, phi = p_L[near], phi[near]
-    n_all = p_L.shape[0]
-    if n_all < 200:
+    """C1 + C2 of the upright box (m²) for the cube scan's moving returns ((N, 3) in L, (N,) φ)
+    under H; inf when no cube is found above the platter."""
+    p_L, phi = _near_cube(p_L, phi, H, cube, platter_radius)
+    if p_L.shape[0] < 200:
         return math.inf
-    if n_all > max_points:
-        pick = np.sort(np.random.default_rng(0).choice(n_all, max_points, replace=False))
-        p_L, phi = p_L[pick], phi[pick]
+    p_L, phi, density_scale = _subsample(p_L, phi, max_points)
     cost = ShapeCost(
-        p_L,
-        phi,
-        cube,
-        settings,
-        platter_radius=platter_radius,
-        density_scale=math.sqrt(n_all / p_L.shape[0]),
+        p_L, phi, cube, settings, platter_radius=platter_radius, density_scale=density_scale
     )
     r = cost.residuals_of(H)
     return float(np.sum(r[:-3] ** 2) + np.sum(cost.last_edge_errors**2))
@@ -335,34 +345,23 @@ def _box_fit(
 def _shape_pass(
     p_L: FloatArray,
     phi: FloatArray,
+    moving: NDArray[np.bool_],
     start: Extrinsics,
     cube: CubeGeometry,
-    settings: ShapeSettings = ShapeSettings(),
+    settings: ShapeSettings,
     *,
-    platter_radius: float = DEFAULT_PLATTER_RADIUS,
-    max_points: int = 20_000,
-    box: str = "upright",
-    estimate_ry: bool = True,
-    coarse: bool = True,
-    progress: Progress | None = None,
+    platter_radius: float,
+    max_points: int,
+    box: str,
+    estimate_ry: bool,
+    coarse: bool,
+    progress: Progress | None,
 ) -> CalibrationResult:
-    """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
-
-    ``p_L`` (N, 3) returns in L (m), ``phi`` (N,) platter angles (rad). ``box``: ``"upright"``
-    (calstation's default: a box standing on the platter) or ``"minimal"`` (the paper's
-    minimum-volume OBB from Open3D). ``estimate_ry``: with the upright box, ry from the faces'
-    flatness alternating with the box solve of tx, tz, rz; with the minimal box, the paper's
-    joint solve; ``False`` holds ry at its start (docs/algorithms.md). Returns a
-    :class:`CalibrationResult` with strategy ``"shape"`` and cost ``C1 + C2`` (m²).
-    """
-    t_start = time.perf_counter()
-    p_L = np.asarray(p_L, dtype=np.float64)
-    phi = np.asarray(phi, dtype=np.float64).reshape(-1)
-    if p_L.ndim != 2 or p_L.shape[1] != 3 or p_L.shape[0] != phi.shape[0]:
-        raise FineTuningError(
-            f"shape needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
-        )
+    """One pass of :func:`shape_fine_tune_points` (coarse alignment, box, faces) from
+    ``start``; ``moving`` marks the returns that are not static in L."""
     start = start.with_(rx=0.0)
+    # the platter ring and the background are static in L: they never belong to the cube
+    p_mov, phi_mov = p_L[moving], phi[moving]
     coarse_report: dict[str, Any] = {"used": False}
     if coarse:
         # the box cost has no basin wider than the cube: bring a far start within reach with
@@ -384,8 +383,8 @@ def _shape_pass(
             aligned = pre.H.with_(ty=start.ty, ry=start.ry, rx=0.0)
             # the two half-turns of a cube see different faces, which biases the matching at
             # low pitch: keep the alignment only where the box fits better than at the start
-            before = _box_fit(p_L, phi, start, cube, settings, platter_radius, max_points)
-            after = _box_fit(p_L, phi, aligned, cube, settings, platter_radius, max_points)
+            before = _box_fit(p_mov, phi_mov, start, cube, settings, platter_radius, max_points)
+            after = _box_fit(p_mov, phi_mov, aligned, cube, settings, platter_radius, max_points)
             coarse_report = {
                 "used": after < before,
                 "stages": n_stages,
@@ -401,26 +400,15 @@ def _shape_pass(
             break
         else:
             coarse_report = {"used": False, "skipped": skipped}
-    # returns near the cube under the start H (generous: the start may be a few cm off)
-    # the platter ring and the background are static in L: they never belong to the cube
-    moving = ~static_mask(p_L)
-    p_L, phi = p_L[moving], phi[moving]
-    p_D0 = lidar_to_dynamic(p_L, phi, start)
-    near = segment_above_platter(
-        p_D0, margin=0.0, radius=platter_radius + 0.05, height=3.0 * cube.edge + 0.05
-    )
-    p_L, phi = p_L[near], phi[near]
-    if p_L.shape[0] < 200:
+    # all of them near the cube: the face-flatness ry step needs the density
+    p_L_near, phi_near = _near_cube(p_mov, phi_mov, start, cube, platter_radius)
+    n_all = p_L_near.shape[0]
+    if n_all < 200:
         raise FineTuningError(
-            f"only {p_L.shape[0]} returns above the platter in the cube scan; is the QA cube "
+            f"only {n_all} returns above the platter in the cube scan; is the QA cube "
             "on the platter?"
         )
-    n_all = p_L.shape[0]
-    p_L_near, phi_near = p_L, phi  # all of them: the face-flatness ry step needs the density
-    if n_all > max_points:
-        pick = np.sort(np.random.default_rng(0).choice(n_all, max_points, replace=False))
-        p_L, phi = p_L[pick], phi[pick]
-    density_scale = math.sqrt(n_all / p_L.shape[0])
+    p_L, phi, density_scale = _subsample(p_L_near, phi_near, max_points)
     cost = ShapeCost(
         p_L,
         phi,
@@ -490,10 +478,10 @@ def _shape_pass(
         mixed pixels) and keeps ry only: tz and rz also bend the faces, so they are freed here,
         but the box cost places them better.
         """
-        p_D, mask = cost.cloud(Extrinsics.from_vector(x6))
+        H = Extrinsics.from_vector(x6)
+        p_D, mask = cost.cloud(H)
         if int(mask.sum()) < 50:
             raise FineTuningError("too few cube returns to estimate ry from the faces")
-        H = Extrinsics.from_vector(x6)
         labels = face_labels(lidar_to_dynamic(p_L_near, phi_near, H), *upright_box(p_D[mask]))
         keep = labels >= 0
         pts_L, ph, labels = p_L_near[keep], phi_near[keep], labels[keep]
@@ -567,7 +555,7 @@ def _shape_pass(
         cost=total,
         iterations=int(res.nfev),
         strategy="shape",
-        timings={"total": time.perf_counter() - t_start},
+        timings={},
         diagnostics={
             "gauge": "ty",
             "gauge_note": "ty held at its start value (the cube cannot see a shift along the axis)",
@@ -618,19 +606,35 @@ def shape_fine_tune_points(
     cost ``C1 + C2`` (m²).
     """
     t0 = time.perf_counter()
-    options: dict[str, Any] = dict(
-        platter_radius=platter_radius,
-        max_points=max_points,
-        box=box,
-        estimate_ry=estimate_ry,
-        coarse=coarse,
-        progress=progress,
-    )
-    result = _shape_pass(p_L, phi, start, cube, settings, **options)
+    p_L = np.asarray(p_L, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64).reshape(-1)
+    if p_L.ndim != 2 or p_L.shape[1] != 3 or p_L.shape[0] != phi.shape[0]:
+        raise FineTuningError(
+            f"shape needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
+        )
+    moving = ~static_mask(p_L)
+
+    def run(h: Extrinsics) -> CalibrationResult:
+        return _shape_pass(
+            p_L,
+            phi,
+            moving,
+            h,
+            cube,
+            settings,
+            platter_radius=platter_radius,
+            max_points=max_points,
+            box=box,
+            estimate_ry=estimate_ry,
+            coarse=coarse,
+            progress=progress,
+        )
+
+    result = run(start)
     passes = 1
     report = result.diagnostics["coarse"]
     if coarse and report.get("used") and report.get("stages", COARSE_STAGES) < COARSE_STAGES:
-        result = _shape_pass(p_L, phi, result.H, cube, settings, **options)
+        result = run(result.H)
         passes = 2
     result.diagnostics["passes"] = passes
     result.timings["total"] = time.perf_counter() - t0
