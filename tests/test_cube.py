@@ -10,8 +10,17 @@ import pytest
 from calstation.cube import check_cube, check_cube_points, fit_plane
 from calstation.errors import VerificationError
 from calstation.frames import Extrinsics
-from calstation.recipe import load_recipe
-from calstation.recording import read_recording
+from calstation.recipe import Recipe, load_recipe
+from calstation.recording import Recording, read_recording
+
+
+def _cube_scan(sim_run) -> tuple[Recipe, Recording, Extrinsics]:
+    """The default simulated scenario's recipe, QA-cube recording and true H."""
+    run = sim_run()
+    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
+    rec = read_recording(run["cube"])
+    assert rec.truth is not None
+    return recipe, rec, rec.truth
 
 
 def test_fit_plane_trims_outliers() -> None:
@@ -25,11 +34,7 @@ def test_fit_plane_trims_outliers() -> None:
 
 
 def test_true_calibration_passes_and_a_wrong_one_fails(sim_run) -> None:
-    run = sim_run()
-    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
-    rec = read_recording(run["cube"])
-    truth = rec.truth
-    assert truth is not None
+    recipe, rec, truth = _cube_scan(sim_run)
     good = check_cube(rec, truth, recipe.fixtures.qa_cube, recipe.qa)
     assert good.passed, good.failures
     assert np.all(np.abs(good.face_edges - 0.1) < 0.3e-3)
@@ -47,11 +52,7 @@ def test_true_calibration_passes_and_a_wrong_one_fails(sim_run) -> None:
 def test_a_smeared_cube_is_a_failed_check_not_an_error(sim_run) -> None:
     """A scan reconstructed 10 mm off smears a face until it cannot be fitted as a plane: the
     check reports a large error and says which faces were missing."""
-    run = sim_run()
-    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
-    rec = read_recording(run["cube"])
-    truth = rec.truth
-    assert truth is not None
+    recipe, rec, truth = _cube_scan(sim_run)
     bad = check_cube(rec, truth.with_(tz=truth.tz + 0.01), recipe.fixtures.qa_cube, recipe.qa)
     assert not bad.passed
     assert any("too few returns for a plane fit" in f for f in bad.failures), bad.failures
@@ -63,11 +64,7 @@ def test_the_check_measures_from_the_platter_it_sees(sim_run) -> None:
     (it did: the largest cluster then took in a patch of platter, 175 mm long)."""
     from calstation.metrics import axis_errors
 
-    run = sim_run()
-    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
-    rec = read_recording(run["cube"])
-    truth = rec.truth
-    assert truth is not None
+    recipe, rec, truth = _cube_scan(sim_run)
     for shift in (0.004, -0.004):
         # the P origin moved along X_P: p_L = R·p_P + t with t + shift·R[:, 0]
         tx, ty, tz = truth.t + shift * truth.R[:, 0]

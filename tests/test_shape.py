@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -10,8 +11,9 @@ import pytest
 from calstation.errors import FineTuningError
 from calstation.frames import Extrinsics
 from calstation.metrics import axis_errors
-from calstation.recipe import load_recipe
-from calstation.recording import read_recording
+from calstation.recipe import Recipe, load_recipe
+from calstation.recording import Recording, read_recording
+from calstation.result import CalibrationResult
 from calstation.shape import (
     face_labels,
     largest_cluster,
@@ -95,15 +97,22 @@ def test_no_cube_is_a_clear_error() -> None:
         shape_fine_tune_points(np.zeros((100, 3)), np.zeros(100), H, recipe.fixtures.qa_cube)
 
 
-def test_simulated_cube_from_the_initial_calibration(sim_run) -> None:
+def _from_initial(sim_run, **scenario: Any) -> tuple[Recipe, CalibrationResult, Recording]:
+    """A simulated scenario's recipe, initial calibration and QA-cube recording (with truth)."""
     from calstation.initial import initial_calibration
 
-    run = sim_run()
+    run = sim_run(**scenario)
     recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
     initial = initial_calibration(
         read_recording(run["static"]), recipe.fixtures.static_target, recipe.calibration.initial
     )
     rec = read_recording(run["cube"])
+    assert rec.truth is not None
+    return recipe, initial, rec
+
+
+def test_simulated_cube_from_the_initial_calibration(sim_run) -> None:
+    recipe, initial, rec = _from_initial(sim_run)
     truth = rec.truth
     assert truth is not None
     res = shape_fine_tune(rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape)
@@ -116,14 +125,7 @@ def test_simulated_cube_from_the_initial_calibration(sim_run) -> None:
 
 def test_ry_from_the_face_flatness_with_a_large_true_ry(sim_run) -> None:
     """Seed 4 tilts the true axis by ry = -0.355°; holding ry at the initial 0 misses 0.3°."""
-    from calstation.initial import initial_calibration
-
-    run = sim_run(range_m=1.0, pitch_deg=45.0, seed=4)
-    recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
-    initial = initial_calibration(
-        read_recording(run["static"]), recipe.fixtures.static_target, recipe.calibration.initial
-    )
-    rec = read_recording(run["cube"])
+    recipe, initial, rec = _from_initial(sim_run, range_m=1.0, pitch_deg=45.0, seed=4)
     truth = rec.truth
     assert truth is not None and abs(math.degrees(truth.ry - initial.H.ry)) > 0.3
     res = shape_fine_tune(rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape)
