@@ -15,7 +15,7 @@ import logging
 import struct
 import threading
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import can
@@ -203,35 +203,32 @@ class BusNodeDriver:
         self.network.add_node(self.node)
         self.node.sdo.RESPONSE_TIMEOUT = float(settings["sdo_timeout_s"])
 
-    def sdo_write(self, index: int, sub: int, fmt: str, value: int) -> None:
-        """Expedited SDO download (``fmt`` a struct code: <B, <H, <I, <b, <i)."""
+    @contextlib.contextmanager
+    def _sdo_errors(self, action: str, index: int, sub: int, detail: str = "") -> Iterator[None]:
+        """Turn canopen's SDO errors into calstation's, naming the node, the entry and
+        ``action`` ("writing" or "reading")."""
+        entry = f"0x{index:04X}:{sub:02X}"
         try:
-            self.node.sdo.download(index, sub, struct.pack(fmt, value))
+            yield
         except canopen.SdoAbortedError as exc:
             raise CanopenError(
-                f"{self.driver_name} node {self.node_id}: writing 0x{index:04X}:{sub:02X} = "
-                f"{value} was refused ({exc})"
-            ) from exc
-        except canopen.SdoCommunicationError as exc:
-            raise CanopenTimeout(
-                f"{self.driver_name} node {self.node_id}: no SDO answer writing "
-                f"0x{index:04X}:{sub:02X} ({exc})"
-            ) from exc
-
-    def sdo_read(self, index: int, sub: int, fmt: str) -> int:
-        """Expedited SDO upload, decoded with ``fmt``."""
-        try:
-            data = self.node.sdo.upload(index, sub)
-        except canopen.SdoAbortedError as exc:
-            raise CanopenError(
-                f"{self.driver_name} node {self.node_id}: reading 0x{index:04X}:{sub:02X} was "
+                f"{self.driver_name} node {self.node_id}: {action} {entry}{detail} was "
                 f"refused ({exc})"
             ) from exc
         except canopen.SdoCommunicationError as exc:
             raise CanopenTimeout(
-                f"{self.driver_name} node {self.node_id}: no SDO answer reading "
-                f"0x{index:04X}:{sub:02X} ({exc})"
+                f"{self.driver_name} node {self.node_id}: no SDO answer {action} {entry} ({exc})"
             ) from exc
+
+    def sdo_write(self, index: int, sub: int, fmt: str, value: int) -> None:
+        """Expedited SDO download (``fmt`` a struct code: <B, <H, <I, <b, <i)."""
+        with self._sdo_errors("writing", index, sub, f" = {value}"):
+            self.node.sdo.download(index, sub, struct.pack(fmt, value))
+
+    def sdo_read(self, index: int, sub: int, fmt: str) -> int:
+        """Expedited SDO upload, decoded with ``fmt``."""
+        with self._sdo_errors("reading", index, sub):
+            data = self.node.sdo.upload(index, sub)
         return int(struct.unpack(fmt, data[: struct.calcsize(fmt)])[0])
 
 
