@@ -49,10 +49,6 @@ class Strategy(Protocol):
         ...
 
 
-def _platter_radius(recipe: Recipe) -> float:
-    return recipe.fixtures.platter.radius
-
-
 class PeriodicityStrategy:
     """Periodicity-constrained fine-tuning on the spin target (paper §III-B-2)."""
 
@@ -73,7 +69,7 @@ class PeriodicityStrategy:
             recording,
             start,
             recipe.calibration.periodicity,
-            platter_radius=_platter_radius(recipe),
+            platter_radius=recipe.fixtures.platter.radius,
             progress=progress,
         )
 
@@ -111,7 +107,7 @@ class ShapeStrategy:
             start,
             recipe.fixtures.qa_cube,
             recipe.calibration.shape,
-            platter_radius=_platter_radius(recipe),
+            platter_radius=recipe.fixtures.platter.radius,
             box=options.box,
             estimate_ry=options.estimate_ry,
             coarse=options.coarse,
