@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from .errors import VerificationError
@@ -44,6 +46,9 @@ class CubeCheck:
       ``edge_error`` ``max_i |ŝ_i − s|`` of those;
     - ``flatness_rms`` the worst face's plane-fit RMS; ``perpendicularity_deg`` the worst
       deviation from 90° between adjacent faces;
+    - ``twist_deg`` the ry correction (≈ true ry − the checked ry) that makes the four side
+      faces flattest, and its ``twist_sigma_deg``: an error of ry shears every side face in
+      proportion to height, which the edges and the flatness barely see;
     - ``passed`` and the ``failures`` (one message per limit exceeded);
     - ``platter_level`` the platter top's height along X_D, from which heights are measured.
     """
@@ -60,6 +65,8 @@ class CubeCheck:
     points: int = 0
     timings: dict[str, float] = field(default_factory=dict)
     platter_level: float = 0.0
+    twist_deg: float = math.nan
+    twist_sigma_deg: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """A plain mapping (YAML/JSON ready), metres and degrees."""
@@ -71,6 +78,8 @@ class CubeCheck:
             "edge_error_m": float(self.edge_error),
             "flatness_rms_m": float(self.flatness_rms),
             "perpendicularity_deg": float(self.perpendicularity_deg),
+            "twist_deg": float(self.twist_deg),
+            "twist_sigma_deg": float(self.twist_sigma_deg),
             "passed": bool(self.passed),
             "failures": list(self.failures),
             "points": int(self.points),
@@ -85,6 +94,8 @@ class _Face:
     normal: FloatArray
     rms: float
     n: int
+    members: NDArray[np.intp]
+    """indices of the face's returns in the cleaned cube cloud"""
 
 
 def fit_plane(points: FloatArray, trim_sigma: float = 3.0) -> tuple[FloatArray, FloatArray, float]:
@@ -108,15 +119,16 @@ def fit_plane(points: FloatArray, trim_sigma: float = 3.0) -> tuple[FloatArray, 
     return c, n, rms
 
 
-def _clean(p: FloatArray, neighbours: int = 8) -> FloatArray:
+def _clean(p: FloatArray, neighbours: int = 8) -> NDArray[np.bool_]:
     """Radius outlier removal with the radius scaled to the cloud's density (3× the median
-    distance to the 8th neighbour): isolated returns (mixed pixels, spray) go."""
+    distance to the 8th neighbour): (N,) True for the returns kept; isolated returns (mixed
+    pixels, spray) go."""
     if p.shape[0] <= neighbours + 1:
-        return p
+        return np.ones(p.shape[0], dtype=bool)
     tree = cKDTree(p)
     dist, _ = tree.query(p, k=neighbours + 1)
     radius = 3.0 * float(np.median(dist[:, -1]))
-    out: FloatArray = p[dist[:, -1] <= radius]
+    out: NDArray[np.bool_] = dist[:, -1] <= radius
     return out
 
 
@@ -133,14 +145,14 @@ def _faces(
             sel = (np.abs(local[:, j] - ref) < band) & inner & inner_top
             if sel.sum() >= 30:
                 c, n, rms = fit_plane(cube[sel])
-                faces[name] = _Face(c, n, rms, int(sel.sum()))
+                faces[name] = _Face(c, n, rms, int(sel.sum()), np.flatnonzero(sel))
     inner = np.ones(local.shape[0], dtype=bool)
     for j in (1, 2):
         inner &= (local[:, j] > lo[j] + keep_out) & (local[:, j] < hi[j] - keep_out)
     sel = inner & (np.abs(local[:, 0] - hi[0]) < band)
     if sel.sum() >= 30:
         c, n, rms = fit_plane(cube[sel])
-        faces["top"] = _Face(c, n, rms, int(sel.sum()))
+        faces["top"] = _Face(c, n, rms, int(sel.sum()), np.flatnonzero(sel))
     return faces
 
 
@@ -187,8 +199,10 @@ def check_cube_points(
     level = platter_level(p_D, platter_radius)
     p_D[:, 0] -= level
     seg = segment_above_platter(p_D, margin=SEGMENT_MARGIN, radius=platter_radius, height=3 * s)
-    pts = _clean(p_D[seg])
-    pts = pts[largest_cluster(pts)]
+    idx = np.flatnonzero(seg)
+    idx = idx[_clean(p_D[idx])]
+    idx = idx[largest_cluster(p_D[idx])]
+    pts = p_D[idx]
     if pts.shape[0] < 500:
         raise VerificationError(
             f"the QA cube was not found: {pts.shape[0]} returns more than "
@@ -245,6 +259,10 @@ def check_cube_points(
         ),
         default=math.nan,
     )
+    sides = [faces[n].members for n in ("1-", "1+", "2-", "2+") if n in faces]
+    twist, twist_sigma = face_twist(
+        [p_L[idx[m]] for m in sides], [phi[idx[m]] for m in sides], H
+    )
     t3 = time.perf_counter()
     failures = []
     if missing:
@@ -269,6 +287,17 @@ def check_cube_points(
         )
     if perp > limits.perpendicularity_deg:
         failures.append(f"perpendicularity {perp:.3f}° > {limits.perpendicularity_deg:.3f}°")
+    if not math.isfinite(twist):
+        failures.append(
+            "the twist of the side faces cannot be measured (fewer than two side faces with "
+            "enough returns): the check cannot see an error of ry"
+        )
+    elif abs(math.degrees(twist)) > limits.twist_deg:
+        failures.append(
+            f"side faces twisted: ry off by {math.degrees(twist):+.3f}° "
+            f"(±{math.degrees(twist_sigma):.3f}°) > {limits.twist_deg:.3f}°; the calibration's "
+            "tilt of the axis out of the scan plane is wrong"
+        )
     return CubeCheck(
         edge=s,
         obb_edges=obb_edges,
@@ -277,12 +306,72 @@ def check_cube_points(
         edge_error=edge_error,
         flatness_rms=flatness,
         perpendicularity_deg=perp,
+        twist_deg=math.degrees(twist),
+        twist_sigma_deg=math.degrees(twist_sigma),
         passed=not failures,
         failures=failures,
         points=int(pts.shape[0]),
         platter_level=level,
         timings={"segment": t1 - t0, "obb": t2 - t1, "faces": t3 - t2, "total": t3 - t0},
     )
+
+
+TWIST_BOUND_DEG = 3.0
+"""The ry correction the twist fit searches (±, degrees)."""
+TWIST_POINTS = 5000
+"""Returns per side face the twist fit uses at most (a fixed random subset)."""
+
+
+def face_twist(
+    faces_L: list[FloatArray], faces_phi: list[FloatArray], H: Extrinsics
+) -> tuple[float, float]:
+    """The ry correction (rad) that makes the cube's side faces flattest, and its 1σ (rad).
+
+    ``faces_L`` holds each side face's returns ((N_f, 3) in L) and ``faces_phi`` their platter
+    angles. An ry error moves a return seen at height h by about ry·h perpendicular to the scan
+    plane, in opposite senses on the near and far side of the axis, so a side face seen over a
+    turn becomes a twisted surface; tx, tz and rz do not twist it (their displacements do not
+    grow with height). Each face's plane is re-fitted at every evaluation (soft-L1 against
+    mixed pixels); σ is the cluster-robust sandwich over 2 cm blocks of the faces. (NaN, NaN)
+    with fewer than two faces of 30 returns.
+    """
+    from .periodicity import block_ids, parameter_sigma
+
+    rng = np.random.default_rng(0)
+    faces = []
+    for p, f in zip(faces_L, faces_phi, strict=True):
+        if p.shape[0] > TWIST_POINTS:
+            pick = np.sort(rng.choice(p.shape[0], TWIST_POINTS, replace=False))
+            p, f = p[pick], f[pick]
+        if p.shape[0] >= 30:
+            faces.append((p, f))
+    if len(faces) < 2:
+        return math.nan, math.nan
+
+    def flatness(x: FloatArray) -> FloatArray:
+        Hx = H.with_(ry=H.ry + float(x[0]))
+        out = []
+        for p, f in faces:
+            q = lidar_to_dynamic(p, f, Hx)
+            d = q - q.mean(axis=0)
+            out.append(d @ np.linalg.svd(d, full_matrices=False)[2][2])
+        return np.concatenate(out)
+
+    bound = math.radians(TWIST_BOUND_DEG)
+    res = least_squares(
+        flatness,
+        np.zeros(1),
+        bounds=(-bound, bound),
+        method="trf",
+        loss="soft_l1",
+        f_scale=0.002,
+        diff_step=1e-3,
+        x_scale=np.array([1e-3]),
+        max_nfev=50,
+    )
+    q = np.concatenate([lidar_to_dynamic(p, f, H) for p, f in faces])
+    sigma = parameter_sigma(res, [4], blocks=block_ids(q, 0.02))["ry"]
+    return float(res.x[0]), float(sigma)
 
 
 def _height(

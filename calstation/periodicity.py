@@ -78,15 +78,20 @@ class Stage:
     """keep ry at its current value (coarse cells cannot resolve it and let it wander)"""
 
 
-def schedule(settings: PeriodicitySettings) -> list[Stage]:
-    """The stages for ``settings``: four coarse-to-fine stages, or the paper's single stage."""
+def schedule(settings: PeriodicitySettings, final_voxel: float = 0.001) -> list[Stage]:
+    """The stages for ``settings``: four coarse-to-fine stages, or the paper's single stage.
+
+    ``final_voxel`` (m) is the cell size of the last stage, chosen from the scan's noise and
+    density by :func:`final_cell_size`. ry is held in every stage but the last: coarse cells
+    and the few hundred matches of the 5 mm stage cannot resolve it and throw it to its bound.
+    """
     k = settings.normal_neighbours
     platter = settings.gauge == "platter"
     if not settings.coarse_to_fine:
         return [
             Stage(
-                0.001,
-                settings.match_distance,
+                final_voxel,
+                max(settings.match_distance, 4 * final_voxel),
                 max(8, k // 2),
                 0.004,
                 platter,
@@ -95,6 +100,7 @@ def schedule(settings: PeriodicitySettings) -> list[Stage]:
             )
         ]
     n = settings.max_outer
+    fine = max(final_voxel, 0.001)
     return [
         Stage(
             0.020, min(0.12, settings.match_distance), max(8, k // 4), None, False, 60_000, n, True
@@ -110,10 +116,110 @@ def schedule(settings: PeriodicitySettings) -> list[Stage]:
             True,
         ),
         Stage(
-            0.005, min(0.02, settings.match_distance), max(16, k // 2), 0.005, platter, 300_000, n
+            max(0.005, fine),
+            min(0.02, settings.match_distance),
+            max(16, k // 2),
+            0.005,
+            platter,
+            300_000,
+            n,
+            True,
         ),
-        Stage(0.001, min(0.004, settings.match_distance), max(8, k // 2), 0.004, platter, None, n),
+        Stage(
+            fine,
+            min(4 * fine, settings.match_distance),
+            max(8, k // 2),
+            0.004,
+            platter,
+            None,
+            max(n, FINAL_MAX_OUTER),
+        ),
     ]
+
+
+FINAL_MAX_OUTER = 30
+"""Outer iterations allowed in the last stage: it stops on the parameter step, not the cost."""
+
+CELL_SIZES = (0.001, 0.0015, 0.002, 0.0025, 0.003, 0.004, 0.005)
+"""Candidate cell sizes of the last stage (m), smallest first."""
+
+CELL_NOISE_RATIO = 1.0 / 3.0
+"""The last stage's cells must average the range noise down to this fraction of their size."""
+
+
+def range_noise(p_L: FloatArray, static: NDArray[np.bool_], *, az_quantum: float = 1e-4) -> float:
+    """Range noise σ (m) of the lidar, from the static returns of one scan.
+
+    Static returns (the platter ring, the background) come back at the same range for the same
+    azimuth whatever the platter angle, so their spread per azimuth is the range noise. Azimuths
+    are grouped in ``az_quantum`` rad (0.1 mm across at 1 m); the σ is 1.4826 × the median of the
+    per-azimuth median absolute deviations (robust to mixed pixels). NaN when fewer than 20
+    azimuths have 5 static returns.
+    """
+    if int(static.sum()) < 100:
+        return math.nan
+    rng, az = lidar_to_polar(p_L[static])
+    key = np.floor(az / az_quantum).astype(np.int64)
+    order = np.lexsort((rng, key))  # by azimuth group, then range
+    key, rng = key[order], rng[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, key.size])
+    group = np.repeat(np.arange(starts.size), counts)
+    mid = starts + (counts - 1) // 2
+    dev = np.abs(rng - rng[mid][group])
+    mad = dev[np.lexsort((dev, group))][mid]
+    ok = counts >= 5
+    if int(ok.sum()) < 20:
+        return math.nan
+    return float(1.4826 * np.median(mad[ok]))
+
+
+def final_cell_size(
+    halves_p_L: list[FloatArray], halves_phi: list[FloatArray], noise: float
+) -> float:
+    """The smallest cell size of :data:`CELL_SIZES` whose cells average the range noise down to
+    :data:`CELL_NOISE_RATIO` of their size (m).
+
+    Mutual nearest neighbours between the two half-turns prefer pairs whose noise cancels their
+    misalignment; when a cell's noise (σ/√returns) is comparable to the cell spacing, each outer
+    iteration recovers only a few per cent of an ry error, and ry stays biased (docs/algorithms.md).
+    The count per cell is the median over the target's cells of both halves.
+    """
+    if not math.isfinite(noise) or noise <= 0:
+        return CELL_SIZES[0]
+    for size in CELL_SIZES:
+        counts = np.concatenate(
+            [_cell_counts(p, ph, size) for p, ph in zip(halves_p_L, halves_phi, strict=True)]
+        )
+        per_cell = float(np.median(counts)) if counts.size else 1.0
+        if noise / math.sqrt(per_cell) <= CELL_NOISE_RATIO * size:
+            return size
+    return CELL_SIZES[-1]
+
+
+def _cell_keys(
+    p_L: FloatArray, phi: FloatArray, size: float, radius_ref: float
+) -> NDArray[np.int64]:
+    """(N,) cell index of each return on the sensor grid (platter angle × azimuth)."""
+    rng, az = lidar_to_polar(p_L)
+    az_step = size / float(np.median(rng))
+    phi_step = size / radius_ref
+    ia = np.floor(az / az_step).astype(np.int64)
+    ip = np.floor(phi / phi_step).astype(np.int64)
+    ia -= ia.min()
+    ip -= ip.min()
+    out: NDArray[np.int64] = ip * (int(ia.max()) + 1) + ia
+    return out
+
+
+def _cell_counts(
+    p_L: FloatArray, phi: FloatArray, size: float, radius_ref: float = 0.15
+) -> NDArray[np.int64]:
+    if p_L.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    _, counts = np.unique(_cell_keys(p_L, phi, size, radius_ref), return_counts=True)
+    out: NDArray[np.int64] = counts
+    return out
 
 
 # --- geometry helpers ------------------------------------------------------------------------
@@ -180,14 +286,8 @@ def sensor_cells(
     """
     if p_L.shape[0] == 0:
         return p_L, phi
-    rng, az = lidar_to_polar(p_L)
-    az_step = size / float(np.median(rng))
-    phi_step = size / radius_ref
-    ia = np.floor(az / az_step).astype(np.int64)
-    ip = np.floor(phi / phi_step).astype(np.int64)
-    ia -= ia.min()
-    ip -= ip.min()
-    key = ip * (int(ia.max()) + 1) + ia
+    rng, _ = lidar_to_polar(p_L)
+    key = _cell_keys(p_L, phi, size, radius_ref)
     _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
     m = counts.size
     mean = np.empty((m, 3))
@@ -271,6 +371,8 @@ class _Matched:
     wb: FloatArray
     oa: FloatArray
     ob: FloatArray
+    block: NDArray[np.int64]
+    """(M,) the spatial block (in D) of each match, for the clustered covariance"""
 
 
 class _Problem:
@@ -289,6 +391,14 @@ class _Problem:
         self.platter_weight = platter_weight
         self.free = free
         self.base = x6.copy()
+
+    def row_blocks(self) -> NDArray[np.int64]:
+        """(rows,) the spatial block of each residual, in the order of :meth:`residuals`."""
+        b = self.m.block
+        parts = [b, b]
+        if self.platter is not None and self.platter.shape[0]:
+            parts.append(block_ids(self.platter, SIGMA_BLOCK) + (int(b.max(initial=-1)) + 1))
+        return np.concatenate(parts)
 
     def full(self, x: FloatArray) -> FloatArray:
         x6 = self.base.copy()
@@ -410,7 +520,7 @@ def periodicity_fine_tune_points(
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    static = static_mask(p_L)
+    static, noise = _static_and_noise(p_L)
     p_static_all = static_samples(p_L[static])
     rng = np.random.default_rng(0)
     p_dyn, phi_dyn = p_L[~static], phi[~static]
@@ -435,7 +545,8 @@ def periodicity_fine_tune_points(
             f"{halves[1].p_L.shape[0]} in the two half-turns); is the spin target on the platter?"
         )
 
-    schedule_ = schedule(settings)[:stages]
+    final_voxel = final_cell_size([h.p_L for h in halves], [h.phi for h in halves], noise)
+    schedule_ = schedule(settings, final_voxel)[:stages]
     x6 = start6.copy()
     if settings.coarse_to_fine:
         # keep the centroid alignment only where it helps: the view asymmetry of the two
@@ -511,20 +622,14 @@ def periodicity_fine_tune_points(
                     "nfev": int(res.nfev),
                 }
             )
-            prev_cost = history[-2]["cost"] if len(history) > 1 and outer > 0 else math.inf
-            if outer > 0 and abs(prev_cost - final_cost) <= 1e-3 * final_cost:
-                break
-            if (
-                step[:3].max() < stage.voxel * 0.02
-                and step[5] < math.radians(0.001) * stage.voxel / 0.002
-                and step[4] < math.radians(0.01)
-            ):
+            if _converged(history, outer, step, stage):
                 break
         timings[f"stage{s_i + 1}"] = time.perf_counter() - t_stage
 
     assert last is not None
     res, problem = last
-    sigma = parameter_sigma(res, problem.free)
+    sigma = parameter_sigma(res, problem.free, blocks=problem.row_blocks())
+    sigma_independent = parameter_sigma(res, problem.free)
     H = Extrinsics.from_vector(x6)
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:
@@ -550,12 +655,50 @@ def periodicity_fine_tune_points(
             "matches_per_iteration": [h["matches"] for h in history],
             "iterations": history,
             "static_returns": int(static.sum()),
+            "range_noise_m": noise,
+            "sigma_independent": sigma_independent,
+            "final_cell_m": final_voxel,
             "moving_returns": int(p_dyn.shape[0]),
             "ry_at_bound": bool(at_bound),
             "ry_bound_rad": [ry_lo, ry_hi],
             "rms_m": math.sqrt(final_cost),
         },
     )
+
+
+def _static_and_noise(p_L: FloatArray) -> tuple[NDArray[np.bool_], float]:
+    """The static returns and the range noise σ (m) of a spin scan.
+
+    The static test's range window must be wider than the noise, or a noisy platter ring is not
+    found static and its σ is underestimated: a first pass with 1 mm cells estimates σ, a second
+    uses cells of 1.5 σ (at least 1 mm).
+    """
+    static = static_mask(p_L)
+    noise = range_noise(p_L, static)
+    if math.isfinite(noise) and 1.5 * noise > 0.001:
+        noise = range_noise(p_L, static_mask(p_L, range_cell=1.5 * noise))
+    return static, noise
+
+
+def _converged(
+    history: list[dict[str, Any]], outer: int, step: FloatArray, stage: Stage
+) -> bool:
+    """Stop the outer loop of a stage?
+
+    While ry is held, a stalled cost or a step below the cell's resolution ends the stage. Once
+    ry is free the cost is nearly flat in it, so only the parameter step counts: a cost-based
+    stop ended the loop while ry was still walking back from a wrong start.
+    """
+    small_step = (
+        step[:3].max() < stage.voxel * 0.02
+        and step[5] < math.radians(0.001) * stage.voxel / 0.002
+        and step[4] < math.radians(0.002)
+    )
+    if not stage.hold_ry:
+        return bool(small_step)
+    prev_cost = history[-2]["cost"] if len(history) > 1 and outer > 0 else math.inf
+    cost = history[-1]["cost"]
+    return bool(small_step or (outer > 0 and abs(prev_cost - cost) <= 1e-3 * cost))
 
 
 def _centre_halves(
@@ -606,24 +749,61 @@ def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched,
     # neighbourhood centroid), not against one noisy point; the offset moves with the point
     oa = np.einsum("ij,ij->i", na, ma - da[i])
     ob = np.einsum("ij,ij->i", nb, mb - db[j])
-    return _Matched(pa[i], ca[i], sa[i], pb[j], cb[j], sb[j], na, nb, wa, wb, oa, ob), n_pts
+    block = block_ids(da[i], SIGMA_BLOCK)
+    matched = _Matched(pa[i], ca[i], sa[i], pb[j], cb[j], sb[j], na, nb, wa, wb, oa, ob, block)
+    return matched, n_pts
 
 
-def parameter_sigma(res: Any, free: list[int]) -> dict[str, float]:
-    """1σ per parameter (metres / radians, keyed by ``PARAMETER_NAMES``) from σ²·(JᵀJ)⁻¹ at the
-    solution of ``scipy.optimize.least_squares`` (``res.jac`` (m, n), ``res.fun`` (m,)), whose n
-    columns are the parameters with indices ``free``; NaN for parameters held fixed, and for all
-    when m ≤ n or JᵀJ is singular."""
+SIGMA_BLOCK = 0.02
+"""Edge (m) of the spatial blocks whose residuals are taken as correlated in the covariance."""
+
+
+def block_ids(points: FloatArray, size: float) -> NDArray[np.int64]:
+    """(N,) a dense block index for (N, 3) points on a grid of ``size`` m."""
+    if points.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    cells = np.floor(points / size).astype(np.int64)
+    _, inv = np.unique(cells, axis=0, return_inverse=True)
+    out: NDArray[np.int64] = inv.reshape(-1).astype(np.int64)
+    return out
+
+
+def parameter_sigma(
+    res: Any, free: list[int], blocks: NDArray[np.int64] | None = None
+) -> dict[str, float]:
+    """1σ per parameter (metres / radians, keyed by ``PARAMETER_NAMES``) at the solution of
+    ``scipy.optimize.least_squares`` (``res.jac`` (m, n), ``res.fun`` (m,)), whose n columns are
+    the parameters with indices ``free``; NaN for parameters held fixed, and for all when m ≤ n
+    or JᵀJ is singular.
+
+    Without ``blocks``: σ²·(JᵀJ)⁻¹, which assumes independent residuals. With ``blocks`` (m,)
+    (the spatial block of each residual): the cluster-robust sandwich
+    (JᵀJ)⁻¹·(Σ_g J_gᵀ r_g r_gᵀ J_g)·(JᵀJ)⁻¹ · G/(G − 1). Neighbouring residuals share normals,
+    plane fits and cell averages, so they are correlated; the sandwich lets every block's
+    residuals co-vary freely and is at least the independent σ's order of size.
+    """
     out = {n: math.nan for n in PARAMETER_NAMES}
     J = np.asarray(res.jac, dtype=np.float64)
+    r = np.asarray(res.fun, dtype=np.float64)
     m, n = J.shape
     if m <= n:
         return out
-    s2 = float(np.sum(res.fun**2)) / (m - n)
     try:
-        cov = s2 * np.linalg.inv(J.T @ J)
+        inv = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         return out
+    if blocks is None:
+        cov = float(np.sum(r**2)) / (m - n) * inv
+    else:
+        g = int(blocks.max()) + 1
+        if g <= n:
+            return out
+        scores = np.column_stack(
+            [np.bincount(blocks, weights=J[:, k] * r, minlength=g) for k in range(n)]
+        )
+        cov = inv @ (scores.T @ scores) @ inv * (g / (g - 1))
+        cov_iid = float(np.sum(r**2)) / (m - n) * inv
+        cov = np.maximum(cov, cov_iid)  # elementwise on the diagonal used below
     for k, i in enumerate(free):
         out[PARAMETER_NAMES[i]] = float(math.sqrt(max(cov[k, k], 0.0)))
     return out

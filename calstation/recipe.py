@@ -374,6 +374,9 @@ class QALimits(Model):
     obb_edge_error: Positive = 0.0060
     flatness_rms: Positive = 0.0015
     perpendicularity_deg: Positive = 0.5
+    twist_deg: Positive = Field(
+        0.1, description="largest ry correction the cube's side faces may ask for (degrees)"
+    )
     drift_translation: Positive = 0.002
     drift_rotation_deg: Positive = 0.2
 
