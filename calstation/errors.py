@@ -47,6 +47,19 @@ class FineTuningError(CalibrationError):
     """A fine-tuning strategy could not run on the data it was given."""
 
 
+class ObservabilityError(FineTuningError):
+    """A fine-tuning ran, but its data do not determine a parameter well enough (σ too large).
+
+    ``details`` carries the refused estimate, so that it can be stored with the failed step.
+    """
+
+    details: dict[str, object]
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.details = {}
+
+
 class VerificationError(CalstationError):
     """The QA cube could not be measured."""
 

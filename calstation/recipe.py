@@ -355,6 +355,20 @@ class ShapeOptions(Model):
     coarse: bool = Field(True, description="coarse periodicity alignment on the cube scan first")
 
 
+class SigmaLimits(Model):
+    """``calibration.max_sigma``: the largest 1σ a fine-tuning may report per parameter.
+
+    A result with a larger σ is refused (the data do not determine that parameter well
+    enough), with a message that names the parameter and what to do. ty is the gauge along the
+    axis and has no limit. Lengths in metres, angles in degrees.
+    """
+
+    tx: Positive = 0.0005
+    tz: Positive = 0.0005
+    ry_deg: Positive = 0.1
+    rz_deg: Positive = 0.05
+
+
 class CalibrationSettings(Model):
     """Which fine-tuning strategy to run, and each stage's settings."""
 
@@ -362,6 +376,7 @@ class CalibrationSettings(Model):
     initial: InitialSettings = InitialSettings()
     shape: ShapeSettings = ShapeSettings()
     periodicity: PeriodicitySettings = PeriodicitySettings()
+    max_sigma: SigmaLimits = SigmaLimits()
     options: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="settings of plugin strategies, by strategy name"
     )

@@ -58,7 +58,8 @@ from .db import (
     Station as StationRow,
 )
 from .drivers import DriverContext
-from .errors import CalstationError, DriverError, StationError
+from .errors import CalstationError, DriverError, ObservabilityError, StationError
+from .observability import check_sigma
 from .operator import Operator
 from .recipe import LoadedRecipe, check_plugins, parse_recipe
 from .report import previous_accepted, run_brief, run_summary
@@ -84,6 +85,10 @@ SCAN_PLACEMENT: dict[str, str] = {
     "cube_scan": "place_qa_cube",
 }
 """The placement step each scan needs (re-confirmed when a run resumes at the scan)."""
+
+RETRY_FROM: dict[str, str] = {"fine_tune": "place_spin_target"}
+"""Where a retry of a failed step starts: a fine-tuning refused for what its scan could see
+is retried by re-placing the spin target and scanning again, not by re-reading the same scan."""
 
 RECORDING_OF: dict[str, str] = {"static_scan": "static", "spin_scan": "spin", "cube_scan": "cube"}
 """Scan step → recording kind (and file stem in the run folder)."""
@@ -233,7 +238,7 @@ class Station:
                 step = self.state
                 if not self._attempt(step):
                     if self.ui.on_failure(step, self._last_error, self._attempts(step)) == "retry":
-                        self.trigger("retry")
+                        self._restart_from(RETRY_FROM.get(step, step))
                         continue
                     return self._finish("failed", f"step {step} failed: {self._last_error}")
                 self._plan.pop(0)
@@ -256,6 +261,13 @@ class Station:
             raise
         finally:
             self._stop_hardware(emergency=aborted)
+
+    def _restart_from(self, step: str) -> None:
+        """Leave the failed state for ``step`` (the failed step or an earlier one) and plan
+        every step from there again."""
+        self.failed_step = step
+        self._plan = list(STEPS[STEPS.index(step) :])
+        self.trigger("retry")
 
     @staticmethod
     def _next_in_order(step: str) -> str:
@@ -294,7 +306,8 @@ class Station:
                 f"{type(exc).__name__}: {exc}"
             )
             self._last_error = message
-            self._end_step(step_id, "failed", {"error": message}, message)
+            failed = {"error": message, **plain(getattr(exc, "details", {}))}
+            self._end_step(step_id, "failed", failed, message)
             self._notify("step_finished", run=self._brief(), step=step, status="failed",
                          result={"error": message})
             self.failed_step = step
@@ -442,6 +455,12 @@ class Station:
                 recording, Extrinsics.from_dict(start.params()), self.recipe, progress
             )
         self.ui.info(f"  {strategy.name}: {_fmt_h(result.H.as_dict())}")
+        try:
+            check_sigma(result, self.recipe.calibration.max_sigma, strategy.fixture)
+        except ObservabilityError as exc:
+            # the refused estimate is kept with the failed step: nothing computed is lost
+            exc.details = {"refused": {"H": result.H.as_dict(), "sigma": result.sigma}}
+            raise
         return StepOutcome(
             {"strategy": strategy.name, "H": result.H.as_dict(), "cost": plain(result.cost),
              "iterations": result.iterations},

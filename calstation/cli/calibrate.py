@@ -67,12 +67,16 @@ def register(app: typer.Typer) -> None:
         """Initial calibration from --static, then fine-tuning from --spin.
 
         Prints H (mm, degrees) with a 1σ per parameter; --json prints tx, ty, tz (m), rx, ry,
-        rz (rad), sigma_* for each, strategy and cost on stdout.
+        rz (rad), sigma_* for each, strategy and cost on stdout. A result whose σ exceeds the
+        recipe's calibration.max_sigma is printed (and written with --out) but refused: exit
+        code 3, with what to do on stderr (``refused`` in the JSON).
         """
         from rich.console import Console
 
         from .. import plugins
+        from ..errors import ObservabilityError
         from ..initial import initial_calibration
+        from ..observability import check_sigma, sigma_problems
         from ..recipe import load_recipe
         from ..recording import read_recording
 
@@ -107,10 +111,14 @@ def register(app: typer.Typer) -> None:
         result = replace(result, diagnostics=diagnostics)
         if out is not None:
             result.save(out)
+        refused = sigma_problems(result, rc.calibration.max_sigma)
         if as_json:
             summary = result.summary()
             summary["initial"] = initial.H.as_dict()
+            summary["refused"] = refused
             typer.echo(json.dumps(summary, indent=2))
+            if refused:
+                raise typer.Exit(3)
             return
         from rich.table import Table
 
@@ -141,6 +149,12 @@ def register(app: typer.Typer) -> None:
             f"{result.timings.get('total', float('nan')):.2f} s"
             + (f"; written to {out}" if out is not None else "")
         )
+        if refused:
+            try:
+                check_sigma(result, rc.calibration.max_sigma, strat.fixture)
+            except ObservabilityError as exc:
+                Console(stderr=True).print(f"[bold red]refused[/]: {exc}")
+            raise typer.Exit(3)
 
     @app.command("verify")
     def verify_cmd(

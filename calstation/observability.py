@@ -1,0 +1,75 @@
+"""The observability gate: refuse a calibration whose σ says the data do not determine it.
+
+A fine-tuning always returns numbers; whether they mean anything depends on what the scan could
+see. Each strategy reports a 1σ per parameter (docs/algorithms.md says how it is obtained);
+:func:`check_sigma` compares them with the recipe's ``calibration.max_sigma`` and raises
+:class:`~calstation.errors.ObservabilityError`, naming each parameter, its σ and its limit and
+saying what to do, rather than hand the operator a silent guess.
+"""
+
+from __future__ import annotations
+
+import math
+
+from .errors import ObservabilityError
+from .recipe import SigmaLimits
+from .result import CalibrationResult
+
+ADVICE = {
+    "spin_target": (
+        "Re-place the spin target off-centre (about 60 mm from the axis) so that its facets "
+        "face along the platter's turn as well as toward the axis, check that the lidar sees "
+        "it in both half-turns, and retry; a noisier sensor needs more revolutions or a "
+        "larger target."
+    ),
+    "qa_cube": (
+        "Re-seat the QA cube so that the lidar sees at least two of its side faces over the "
+        "turn, and retry."
+    ),
+}
+
+
+def sigma_problems(result: CalibrationResult, limits: SigmaLimits) -> list[str]:
+    """One message per parameter whose σ exceeds its limit, or cannot be computed."""
+    checks = (
+        ("tx", limits.tx, 1e3, "mm"),
+        ("tz", limits.tz, 1e3, "mm"),
+        ("ry", math.radians(limits.ry_deg), math.degrees(1.0), "°"),
+        ("rz", math.radians(limits.rz_deg), math.degrees(1.0), "°"),
+    )
+    problems = []
+    sigmas = result.sigma
+    if all(not math.isfinite(sigmas.get(n, math.nan)) for n, *_ in checks):
+        return ["no parameter has a σ: the data do not determine the calibration"]
+    for name, limit, scale, unit in checks:
+        sigma = sigmas.get(name, math.nan)
+        if not math.isfinite(sigma):
+            continue  # held by the strategy (its start is kept)
+        if sigma > limit:
+            field = f"{name}_deg" if unit == "°" else name
+            problems.append(
+                f"{name}: σ {sigma * scale:.3f} {unit} > {limit * scale:.3f} {unit} "
+                f"(calibration.max_sigma.{field})"
+            )
+    return problems
+
+
+def check_sigma(result: CalibrationResult, limits: SigmaLimits, fixture: str) -> None:
+    """Raise :class:`ObservabilityError` when a σ of ``result`` exceeds ``limits``.
+
+    ``fixture`` is the fixture the strategy scanned (``spin_target`` or ``qa_cube``), for the
+    advice. The message lists every parameter over its limit and the estimated range noise.
+    """
+    problems = sigma_problems(result, limits)
+    if not problems:
+        return
+    noise = result.diagnostics.get("range_noise_m")
+    seen = (
+        f" (range noise {float(noise) * 1e3:.2f} mm estimated from the scan)"
+        if isinstance(noise, float) and math.isfinite(noise)
+        else ""
+    )
+    raise ObservabilityError(
+        f"the {result.strategy} fine-tuning cannot determine the calibration well enough"
+        f"{seen}: {'; '.join(problems)}. {ADVICE.get(fixture, 'Re-place the fixture and retry.')}"
+    )

@@ -1,0 +1,147 @@
+"""Trustworthy calibration: the range-noise estimate, noise-sized cells, the observability gate
+and the cube check's twist measure, against the simulator's truth.
+
+The long sweep over noise, background, placement and line rate is ``-m slow``
+(``tests/test_trust_slow.py``); here one hard case (a centred spin target, 2 mm noise, no
+background) and the cube check on the default scene.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from calstation.cube import check_cube
+from calstation.errors import ObservabilityError
+from calstation.frames import Extrinsics, polar_to_lidar
+from calstation.metrics import axis_errors
+from calstation.observability import check_sigma, sigma_problems
+from calstation.periodicity import final_cell_size, noise_inflation, range_noise
+from calstation.recipe import SigmaLimits, load_recipe
+from calstation.recording import read_recording
+from calstation.result import CalibrationResult
+from calstation.strategies import PeriodicityStrategy
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _result(**sigma: float) -> CalibrationResult:
+    full = {"tx": 1e-5, "ty": math.nan, "tz": 1e-5, "rx": math.nan, "ry": 1e-4, "rz": 1e-5}
+    full.update(sigma)
+    return CalibrationResult(
+        H=Extrinsics(0.0, 1.0, 0.0, 0.0, 0.0, -0.78),
+        sigma=full,
+        cost=0.0,
+        iterations=1,
+        strategy="periodicity",
+        timings={},
+        diagnostics={"range_noise_m": 0.002},
+    )
+
+
+def test_gate_names_the_parameter_its_sigma_and_what_to_do() -> None:
+    limits = SigmaLimits()
+    assert sigma_problems(_result(), limits) == []
+    bad = _result(ry=math.radians(0.31), tz=0.0008)
+    problems = sigma_problems(bad, limits)
+    assert len(problems) == 2
+    assert problems[0].startswith("tz: σ 0.800 mm > 0.500 mm")
+    assert "ry: σ 0.310 °" in problems[1] and "calibration.max_sigma.ry_deg" in problems[1]
+    with pytest.raises(ObservabilityError) as err:
+        check_sigma(bad, limits, "spin_target")
+    message = str(err.value)
+    assert "range noise 2.00 mm" in message and "Re-place the spin target off-centre" in message
+
+
+def test_gate_refuses_a_result_without_any_sigma() -> None:
+    nan = math.nan
+    problems = sigma_problems(_result(tx=nan, tz=nan, ry=nan, rz=nan), SigmaLimits())
+    assert problems and "do not determine" in problems[0]
+
+
+def test_range_noise_from_static_returns() -> None:
+    rng = np.random.default_rng(3)
+    lines, beams = 400, 300
+    az = np.tile(np.radians(np.linspace(-20, 20, beams)), lines)
+    r = np.tile(np.linspace(0.9, 1.3, beams), lines)  # a static floor, range varies with azimuth
+    for sigma in (0.0005, 0.001, 0.002):
+        p = polar_to_lidar(r + rng.normal(0, sigma, r.size), az)
+        est = range_noise(p, np.ones(r.size, dtype=bool))
+        assert est == pytest.approx(sigma, rel=0.1)
+    assert math.isnan(range_noise(p, np.zeros(r.size, dtype=bool)))
+
+
+def test_final_cells_grow_with_the_noise() -> None:
+    rng = np.random.default_rng(0)
+    n = 200_000
+    az = rng.uniform(-0.3, 0.3, n)
+    phi = rng.uniform(0.0, math.pi, n)
+    p = [polar_to_lidar(np.full(n, 1.0), az)]
+    sizes = [final_cell_size(p, [phi], noise) for noise in (0.0, 0.0005, 0.001, 0.002, 0.004)]
+    assert sizes[0] == 0.001
+    assert sizes == sorted(sizes) and sizes[-1] > sizes[1]
+    assert noise_inflation(math.nan) == 1.0 and noise_inflation(0.002) > noise_inflation(0.001)
+
+
+@pytest.fixture(scope="module")
+def hard_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A centred spin target, 2 mm range noise and no background (the weakest ry)."""
+    from calstation_sim import simulate_run
+
+    data = yaml.safe_load((REPO / "recipes/sim-periodicity.yaml").read_text())
+    data["simulation"]["lidar"]["range_noise"] = 0.002
+    data["simulation"]["background"] = {"enabled": False}
+    data["simulation"]["truth"] = {"range": 0.9, "pitch_deg": 40}
+    data["simulation"]["seed"] = 9
+    data["fixtures"]["spin_target"]["offset"] = [0.0, 0.0]
+    out = tmp_path_factory.mktemp("hard")
+    path = out / "hard.yaml"
+    path.write_text(yaml.safe_dump(data))
+    run = simulate_run(load_recipe(path), out, progress=False)
+    run["recipe"] = path
+    return run
+
+
+def test_centred_target_is_within_3_sigma_or_refused(hard_run: dict[str, Path]) -> None:
+    from calstation.initial import initial_calibration
+
+    recipe = load_recipe(hard_run["recipe"]).recipe
+    static = read_recording(hard_run["static"])
+    truth = static.truth
+    assert truth is not None
+    initial = initial_calibration(static, recipe.fixtures.static_target, recipe.calibration.initial)
+    result = PeriodicityStrategy().run(read_recording(hard_run["spin"]), initial.H, recipe)
+    noise = result.diagnostics["range_noise_m"]
+    assert noise == pytest.approx(0.002, rel=0.15)
+    err = axis_errors(result.H, truth)
+    try:
+        check_sigma(result, recipe.calibration.max_sigma, "spin_target")
+    except ObservabilityError as exc:
+        assert "ry" in str(exc)
+        return
+    for name in ("tx", "tz", "ry", "rz"):
+        assert abs(err[f"{name}_error"]) <= 3 * result.sigma[name], (name, err, result.sigma)
+
+
+def test_cube_check_sees_an_ry_error(sim_run) -> None:
+    run = sim_run(range_m=1.25, pitch_deg=45.0, seed=1)
+    recipe = load_recipe(REPO / "recipes/sim-periodicity.yaml").recipe
+    cube = read_recording(run["cube"])
+    truth = cube.truth
+    assert truth is not None
+    args = (recipe.fixtures.qa_cube, recipe.qa)
+    kw = {"platter_radius": recipe.fixtures.platter.radius}
+    good = check_cube(cube, truth, *args, **kw)
+    assert good.passed, good.failures
+    assert abs(good.twist_deg) < recipe.qa.twist_deg
+    for off in (0.2, -0.2):
+        bad = check_cube(cube, truth.with_(ry=truth.ry + math.radians(off)), *args, **kw)
+        assert not bad.passed
+        assert any("twisted" in f for f in bad.failures), bad.failures
+        # the twist is the ry correction: it points back toward the truth
+        assert bad.twist_deg * off < 0 and abs(bad.twist_deg + off) < 0.1
+    assert "twist_deg" in good.to_dict()
