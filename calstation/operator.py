@@ -190,7 +190,8 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
             f"QA cube: face-fit edges [{edges}] mm, edge error {cube['edge_error'] * 1000:.2f} mm, "
             f"OBB error {cube['obb_error'] * 1000:.2f} mm, flatness RMS "
             f"{cube['flatness_rms'] * 1000:.2f} mm, perpendicularity "
-            f"{cube['perpendicularity_deg']:.3f}° → {'pass' if cube['passed'] else 'FAIL'}",
+            f"{cube['perpendicularity_deg']:.3f}°, side-face twist "
+            f"{_twist(cube)} → {'pass' if cube['passed'] else 'FAIL'}",
             highlight=False,
         )
         for f in cube.get("failures") or []:
@@ -198,3 +199,11 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
     if s.get("error"):
         console.print(f"[red]{escape(s['error'])}[/]")
     console.print(Panel(f"{verdict}", style=style, expand=False))
+
+
+def _twist(cube: dict[str, Any]) -> str:
+    """The side faces' twist as ``+0.012° (±0.030°)``, or ``—`` for checks stored without it."""
+    twist, sigma = cube.get("twist_deg"), cube.get("twist_sigma_deg")
+    if twist is None or twist != twist:
+        return "—"
+    return f"{twist:+.3f}° (±{sigma if sigma is not None else float('nan'):.3f}°)"

@@ -80,6 +80,8 @@ def cube_dict(c: CubeCheckRecord) -> dict[str, Any]:
         "edge_error": c.edge_error,
         "flatness_rms": c.flatness_rms,
         "perpendicularity_deg": c.perpendicularity_deg,
+        "twist_deg": c.twist_deg,
+        "twist_sigma_deg": c.twist_sigma_deg,
         "passed": c.passed,
         "failures": c.failures,
         "created_at": iso(c.created_at),

@@ -491,13 +491,16 @@ class Station:
                 "edge_error": check.edge_error,
                 "flatness_rms": check.flatness_rms,
                 "perpendicularity_deg": check.perpendicularity_deg,
+                "twist_deg": check.twist_deg,
+                "twist_sigma_deg": check.twist_sigma_deg,
                 "passed": check.passed,
                 "failures": check.failures,
             }
         )
         self.ui.info(
             f"  cube: edge error {check.edge_error * 1000:.2f} mm, OBB error "
-            f"{check.obb_error * 1000:.2f} mm → {'pass' if check.passed else 'FAIL'}"
+            f"{check.obb_error * 1000:.2f} mm, side-face twist {check.twist_deg:+.3f}° "
+            f"(±{check.twist_sigma_deg:.3f}°) → {'pass' if check.passed else 'FAIL'}"
         )
         return StepOutcome(
             {"recording": str(path), "passed": bool(check.passed),
@@ -819,6 +822,8 @@ def _cube_row(run_id: int, step_id: int, cal_id: int, c: dict[str, Any]) -> Cube
         edge_error=number("edge_error"),
         flatness_rms=number("flatness_rms"),
         perpendicularity_deg=number("perpendicularity_deg"),
+        twist_deg=number("twist_deg"),
+        twist_sigma_deg=number("twist_sigma_deg"),
         passed=bool(c.get("passed")),
         failures=[str(f) for f in c.get("failures") or []],
     )

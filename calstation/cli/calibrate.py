@@ -202,7 +202,8 @@ def register(app: typer.Typer) -> None:
             )
             typer.echo(
                 f"flatness {check.flatness_rms * 1e3:.2f} mm RMS, perpendicularity "
-                f"{check.perpendicularity_deg:.3f}°"
+                f"{check.perpendicularity_deg:.3f}°, side-face twist {check.twist_deg:+.3f}° "
+                f"(±{check.twist_sigma_deg:.3f}°, limit ±{rc.qa.twist_deg:.3f}°)"
             )
             verdict = "[bold green]PASS[/]" if check.passed else "[bold red]FAIL[/]"
             Console().print(verdict + ("" if check.passed else ": " + "; ".join(check.failures)))

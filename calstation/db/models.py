@@ -187,6 +187,9 @@ class CubeCheckRecord(Base):
     edge_error: Mapped[float] = mapped_column(Float)
     flatness_rms: Mapped[float] = mapped_column(Float)
     perpendicularity_deg: Mapped[float] = mapped_column(Float)
+    twist_deg: Mapped[float | None] = mapped_column(Float)
+    """the ry correction the side faces ask for (degrees; NULL before it was measured)"""
+    twist_sigma_deg: Mapped[float | None] = mapped_column(Float)
     passed: Mapped[bool] = mapped_column(Boolean)
     failures: Mapped[list[Any]] = mapped_column(JSON)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
