@@ -22,12 +22,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
-from scipy.spatial import cKDTree
 
 from .errors import VerificationError
 from .frames import Extrinsics, FloatArray, lidar_to_dynamic
+from .geometry import (
+    density_outlier_mask,
+    fit_plane,
+    largest_cluster,
+    minimal_obb,
+    platter_level,
+    segment_above_platter,
+    upright_box,
+)
 from .recipe import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
-from .shape import largest_cluster, minimal_obb, segment_above_platter, upright_box
 
 if TYPE_CHECKING:
     from .recording import Recording
@@ -98,40 +105,6 @@ class _Face:
     """indices of the face's returns in the cleaned cube cloud"""
 
 
-def fit_plane(points: FloatArray, trim_sigma: float = 3.0) -> tuple[FloatArray, FloatArray, float]:
-    """Plane through (N, 3) points by SVD, refitted once without residuals beyond
-    ``trim_sigma``·RMS: (centroid (3,), unit normal (3,), RMS of the kept residuals)."""
-    if points.shape[0] < 3:
-        raise VerificationError(f"a plane needs at least 3 points, got {points.shape[0]}")
-    keep = np.ones(points.shape[0], dtype=bool)
-    c = points.mean(axis=0)
-    n = np.array([1.0, 0.0, 0.0])
-    rms = 0.0
-    for _ in range(2):
-        c = points[keep].mean(axis=0)
-        _, _, vt = np.linalg.svd(points[keep] - c, full_matrices=False)
-        n = vt[2]
-        res = (points - c) @ n
-        rms = float(np.sqrt(np.mean(res[keep] ** 2)))
-        keep = np.abs(res) <= trim_sigma * max(rms, 1e-6)
-        if keep.sum() < 3:
-            break
-    return c, n, rms
-
-
-def _clean(p: FloatArray, neighbours: int = 8) -> NDArray[np.bool_]:
-    """Radius outlier removal with the radius scaled to the cloud's density (3× the median
-    distance to the 8th neighbour): (N,) True for the returns kept; isolated returns (mixed
-    pixels, spray) go."""
-    if p.shape[0] <= neighbours + 1:
-        return np.ones(p.shape[0], dtype=bool)
-    tree = cKDTree(p)
-    dist, _ = tree.query(p, k=neighbours + 1)
-    radius = 3.0 * float(np.median(dist[:, -1]))
-    out: NDArray[np.bool_] = dist[:, -1] <= radius
-    return out
-
-
 def _faces(
     cube: FloatArray, axes: FloatArray, lo: FloatArray, hi: FloatArray, band: float, keep_out: float
 ) -> dict[str, _Face]:
@@ -160,26 +133,6 @@ def _angle_deg(n1: FloatArray, n2: FloatArray) -> float:
     return math.degrees(math.acos(min(1.0, abs(float(np.dot(n1, n2))))))
 
 
-def platter_level(p_D: FloatArray, platter_radius: float, window: float = 0.02) -> float:
-    """Height (m, along X_D) of the platter top as seen in a spin scan ((N, 3) points in D).
-
-    The median of the returns within ``window`` of x_D = 0 on the platter, refined twice to
-    those within 3 mm of it (the cube's lowest returns fall in the window too; the platter's
-    far outnumber them). 0 when fewer than 100 platter returns are seen.
-    """
-    r = np.hypot(p_D[:, 1], p_D[:, 2])
-    x = p_D[(np.abs(p_D[:, 0]) < window) & (r < platter_radius - 0.005), 0]
-    if x.size < 100:
-        return 0.0
-    level = float(np.median(x))
-    for _ in range(2):
-        near = x[np.abs(x - level) < 0.003]
-        if near.size < 100:
-            break
-        level = float(np.median(near))
-    return level
-
-
 def check_cube_points(
     p_L: FloatArray,
     phi: FloatArray,
@@ -200,7 +153,7 @@ def check_cube_points(
     p_D[:, 0] -= level
     seg = segment_above_platter(p_D, margin=SEGMENT_MARGIN, radius=platter_radius, height=3 * s)
     idx = np.flatnonzero(seg)
-    idx = idx[_clean(p_D[idx])]
+    idx = idx[density_outlier_mask(p_D[idx])]
     idx = idx[largest_cluster(p_D[idx])]
     pts = p_D[idx]
     if pts.shape[0] < 500:
@@ -318,7 +271,7 @@ def check_cube_points(
 
 TWIST_BOUND_DEG = 3.0
 """The ry correction the twist fit searches (±, degrees)."""
-TWIST_POINTS = 5000
+TWIST_POINTS = 20000
 """Returns per side face the twist fit uses at most (a fixed random subset)."""
 
 

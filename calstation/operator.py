@@ -34,7 +34,11 @@ FIXTURE_PROMPTS: dict[str, str] = {
         "Place the L-shaped static target on the platter: base plate toward the lidar, the "
         "corner of base and wall over the platter centre. Keep the platter still."
     ),
-    "spin_target": "Place the heptagonal spin target anywhere on the platter.",
+    "spin_target": (
+        "Place the heptagonal spin target off-centre, as the recipe's offset says (about 60 mm "
+        "from the axis): a centred target cannot show the axis tilt out of the scan plane (ry), "
+        "and the fine-tuning then refuses its result."
+    ),
     "qa_cube": "Place the QA cube anywhere on the platter, standing on one face.",
     "none": "Clear the platter.",
 }

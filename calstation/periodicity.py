@@ -514,8 +514,9 @@ def periodicity_fine_tune_points(
             f"the spin scan covers {math.degrees(span):.0f}° of platter rotation; periodicity "
             "needs one full revolution (360°)"
         )
-    # one revolution exactly, so that each half-turn is seen once
-    keep = phi < np.nanmin(phi) + 2 * math.pi
+    # whole revolutions only, so that every half-turn is seen equally often
+    revolutions = max(1, math.floor(span / (2 * math.pi) + 0.02))
+    keep = phi < np.nanmin(phi) + revolutions * 2 * math.pi
     p_L, phi = p_L[keep], phi[keep]
     timings: dict[str, float] = {}
 

@@ -33,6 +33,15 @@ from scipy.spatial import cKDTree
 
 from .errors import FineTuningError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
+from .geometry import (
+    face_labels,
+    largest_cluster,
+    minimal_obb,
+    radius_outlier_mask,
+    segment_above_platter,
+    signed_face_distances,
+    upright_box,
+)
 from .periodicity import parameter_sigma, periodicity_fine_tune_points, static_mask
 from .recipe import DEFAULT_PLATTER_RADIUS, CubeGeometry, PeriodicitySettings, ShapeSettings
 from .result import CalibrationResult
@@ -48,166 +57,6 @@ COARSE_STAGES = 2
 """Periodicity stages (20 and 10 mm cells) run on the cube scan before the shape cost."""
 FREE = ("tx", "tz", "ry", "rz")
 """Parameters the shape strategy can estimate; ty is the gauge (held at its start)."""
-
-
-def segment_above_platter(
-    p_D: FloatArray, *, margin: float, radius: float, height: float
-) -> NDArray[np.bool_]:
-    """(N,) mask of points above the platter: margin < x_D < height, inside ``radius`` of the
-    axis (metres). Frame D and P share X, so this is the paper's threshold along X_P."""
-    r = np.hypot(p_D[:, 1], p_D[:, 2])
-    out: NDArray[np.bool_] = (p_D[:, 0] > margin) & (p_D[:, 0] < height) & (r < radius)
-    return out
-
-
-def radius_outlier_mask(points: FloatArray, radius: float, neighbours: int) -> NDArray[np.bool_]:
-    """(N,) True for points with at least ``neighbours`` other points within ``radius`` (m)."""
-    if neighbours <= 0 or points.shape[0] == 0:
-        return np.ones(points.shape[0], dtype=bool)
-    if points.shape[0] <= neighbours:
-        return np.zeros(points.shape[0], dtype=bool)
-    dist, _ = cKDTree(points).query(points, k=neighbours + 1, distance_upper_bound=radius)
-    out: NDArray[np.bool_] = np.isfinite(dist[:, -1])
-    return out
-
-
-def largest_cluster(points: FloatArray, voxel: float = 0.005) -> NDArray[np.bool_]:
-    """(N,) mask of the points in the largest 26-connected cluster of occupied ``voxel`` cells.
-
-    Mixed pixels and spray that survive the radius filter in small dense clumps are cut off
-    from the object; they would otherwise stretch a bounding box.
-    """
-    from scipy import ndimage
-
-    if points.shape[0] == 0:
-        return np.zeros(0, dtype=bool)
-    ijk = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
-    shape = tuple(int(v) + 1 for v in ijk.max(axis=0))
-    if int(np.prod(shape)) > 50_000_000:
-        return np.ones(points.shape[0], dtype=bool)
-    grid = np.zeros(shape, dtype=bool)
-    grid[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
-    if n <= 1:
-        return np.ones(points.shape[0], dtype=bool)
-    lab = labels[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
-    counts = np.bincount(lab)
-    counts[0] = 0
-    out: NDArray[np.bool_] = lab == int(np.argmax(counts))
-    return out
-
-
-def minimal_obb(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Open3D's minimum-volume oriented box: (centre (3,), axes (3, 3) as columns, extents (3,))."""
-    import open3d as o3d
-
-    if points.shape[0] < 8:
-        raise FineTuningError(f"a bounding box needs at least 8 points, got {points.shape[0]}")
-    pc = o3d.utility.Vector3dVector(np.ascontiguousarray(points, dtype=np.float64))
-    try:
-        box = o3d.geometry.OrientedBoundingBox.create_from_points_minimal(pc, robust=True)
-    except RuntimeError as exc:
-        raise FineTuningError(f"the minimal bounding box failed: {exc}") from None
-    return np.asarray(box.center).copy(), np.asarray(box.R).copy(), np.asarray(box.extent).copy()
-
-
-def upright_box(
-    points: FloatArray, robust: bool = True
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The minimum-area box standing on the platter: one axis is X_D, the footprint is the
-    minimum-area rectangle of the points projected on the platter plane (rotating calipers on
-    the convex hull). Returns (centre (3,), axes (3, 3) as columns, extents (3,)), metres.
-
-    An object resting on the platter has an upright box; unlike a free box it cannot tilt to
-    absorb a calibration error, so the cost stays sensitive to ry and smoother.
-    """
-    from scipy.spatial import ConvexHull, QhullError
-
-    if points.shape[0] < 8:
-        raise FineTuningError(f"a bounding box needs at least 8 points, got {points.shape[0]}")
-    yz = points[:, 1:]
-    try:
-        hull = yz[ConvexHull(yz).vertices]
-    except QhullError as exc:
-        raise FineTuningError(f"the cube footprint is degenerate: {exc}") from None
-    edges = np.roll(hull, -1, axis=0) - hull
-    ang = np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), np.pi / 2))
-    c, s_ = np.cos(ang), np.sin(ang)
-    u = hull @ np.vstack([c, s_])  # (H, A) coordinate along the edge direction
-    v = hull @ np.vstack([-s_, c])
-    area = (u.max(0) - u.min(0)) * (v.max(0) - v.min(0))
-    k = int(np.argmin(area))
-    du = np.array([0.0, c[k], s_[k]])
-    dv = np.array([0.0, -s_[k], c[k]])
-    axes = np.column_stack([[1.0, 0.0, 0.0], du, dv])
-    local = points @ axes
-    lo, hi = local.min(axis=0), local.max(axis=0)
-    if robust:
-        lo, hi = _robust_faces(local, lo, hi)
-    centre = axes @ (0.5 * (lo + hi))
-    return centre, axes, hi - lo
-
-
-def _robust_faces(
-    local: FloatArray, lo: FloatArray, hi: FloatArray, band: float = 0.008, keep_out: float = 0.01
-) -> tuple[FloatArray, FloatArray]:
-    """Face positions as medians of the points near each face rather than the extremes.
-
-    The extremes of a noisy cloud lie ~3σ outside the true faces (the paper's OBB metric is
-    biased for this reason). For each face, the points within ``band`` of the extreme and at
-    least ``keep_out`` from the other side faces give the median position. The bottom (x) face
-    is the segmentation cut and stays as it is.
-    """
-    lo, hi = lo.copy(), hi.copy()
-    for j in (1, 2):
-        other = 3 - j
-        inner = (local[:, other] > lo[other] + keep_out) & (local[:, other] < hi[other] - keep_out)
-        below_top = local[:, 0] < hi[0] - keep_out
-        for side, ref in ((-1, lo[j]), (1, hi[j])):
-            near = np.abs(local[:, j] - ref) < band
-            sel = near & inner & below_top
-            if sel.sum() >= 10:
-                (lo if side < 0 else hi)[j] = float(np.median(local[sel, j]))
-    inner = np.ones(local.shape[0], dtype=bool)
-    for j in (1, 2):
-        inner &= (local[:, j] > lo[j] + keep_out) & (local[:, j] < hi[j] - keep_out)
-    top = inner & (local[:, 0] > hi[0] - band)
-    if top.sum() >= 10:
-        hi[0] = float(np.median(local[top, 0]))
-    return lo, hi
-
-
-def signed_face_distances(
-    points: FloatArray, centre: FloatArray, axes: FloatArray, extents: FloatArray
-) -> FloatArray:
-    """(N,) signed distance of each point to the nearest face of the box (positive inside)."""
-    local = (points - centre) @ axes
-    half = 0.5 * extents
-    gaps = half - np.abs(local)  # distance to the face pair of each axis, >0 inside
-    out: FloatArray = gaps[np.arange(gaps.shape[0]), np.argmin(np.abs(gaps), axis=1)]
-    return out
-
-
-def face_labels(
-    points: FloatArray,
-    centre: FloatArray,
-    axes: FloatArray,
-    extents: FloatArray,
-    band: float = 0.006,
-    keep_out: float = 0.01,
-) -> NDArray[np.int64]:
-    """(N,) face index of each point of a box (``2·axis + side``: 1 the top, 2–5 the sides),
-    −1 for points farther than ``band`` from their nearest face, within ``keep_out`` of another
-    face (edges, mixed pixels) or on the bottom (the segmentation cut)."""
-    local = (points - centre) @ axes
-    gaps = np.abs(0.5 * extents - np.abs(local))
-    order = np.argsort(gaps, axis=1)
-    rows = np.arange(points.shape[0])
-    nearest = order[:, 0]
-    label = (2 * nearest + (local[rows, nearest] > 0)).astype(np.int64)
-    inside = np.all(np.abs(local) <= 0.5 * extents + band, axis=1)
-    ok = inside & (gaps[rows, nearest] < band) & (gaps[rows, order[:, 1]] > keep_out) & (label != 0)
-    return np.where(ok, label, -1)
 
 
 class ShapeCost:
@@ -233,6 +82,7 @@ class ShapeCost:
         self.settings = settings
         self.platter_radius = platter_radius
         self.outlier_radius = settings.outlier_radius * density_scale
+        self._radius_from_data = False
         self.box = box
         self.evaluations = 0
         self.frozen: NDArray[np.bool_] | None = None
@@ -253,12 +103,29 @@ class ShapeCost:
             height=3.0 * self.edge,
         )
         idx = np.flatnonzero(seg)
+        if not self._radius_from_data:
+            self._scale_radius_to_density(p_D[idx])
         keep = radius_outlier_mask(p_D[idx], self.outlier_radius, self.settings.outlier_neighbours)
         if self.box == "upright":
             keep[keep] = largest_cluster(p_D[idx[keep]])
         mask = np.zeros(p_D.shape[0], dtype=bool)
         mask[idx[keep]] = True
         return p_D, mask
+
+    def _scale_radius_to_density(self, points: FloatArray) -> None:
+        """Widen the outlier radius to the scan's real density, once (the first segmentation).
+
+        The paper's 1 mm for 8 neighbours assumes its sensor's density; at a lower line rate the
+        cube's own returns are farther apart than that and the filter removed the cube (180
+        lines/s: too few returns left). The radius becomes at least 2.5× the median distance to
+        the ``outlier_neighbours``-th neighbour, so isolated returns still go.
+        """
+        k = self.settings.outlier_neighbours
+        self._radius_from_data = True
+        if k <= 0 or points.shape[0] <= k + 1:
+            return
+        dist, _ = cKDTree(points).query(points, k=k + 1)
+        self.outlier_radius = max(self.outlier_radius, 2.5 * float(np.median(dist[:, -1])))
 
     def residuals_of(self, H: Extrinsics) -> FloatArray:
         """C1 and C2 terms as a fixed-length residual vector."""

@@ -398,6 +398,12 @@ class Station:
     def _place(self, fixture: str) -> StepOutcome:
         geometry = getattr(self.recipe.fixtures, fixture)
         description = f"{geometry.kind}"
+        offset = getattr(geometry, "offset", None)
+        if offset is not None:
+            description += (
+                f", centre {math.hypot(*offset) * 1e3:.0f} mm from the axis "
+                f"(offset y {offset[0] * 1e3:+.0f} mm, z {offset[1] * 1e3:+.0f} mm)"
+            )
         if not self.ui.confirm_fixture(fixture, description):
             raise AbortRun(f"aborted by the operator while placing the {fixture}")
         plugins.fixture_placed(self._drivers().context, fixture, geometry)

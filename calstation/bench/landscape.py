@@ -214,8 +214,9 @@ def _shape_cost(
     (``static_mask``) near the cube under the centre H, a fixed subset of 20 000, the box kind
     the recipe selects (``calibration.options.shape.box``, default upright)."""
     from ..frames import lidar_to_dynamic
+    from ..geometry import segment_above_platter
     from ..periodicity import static_mask
-    from ..shape import ShapeCost, segment_above_platter
+    from ..shape import ShapeCost
 
     cube = recipe.fixtures.qa_cube
     radius = recipe.fixtures.platter.radius
