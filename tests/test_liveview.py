@@ -182,3 +182,13 @@ def test_port_in_use_is_a_clear_error() -> None:
         with pytest.raises(LiveViewError, match=f"cannot start the live view on 127.0.0.1:{port}"):
             start_live_view(port=port)
     assert recording.live_sink() is None
+
+
+def test_foxglove_port_is_optional_on_the_command_line() -> None:
+    from calstation.cli import optional_port
+
+    assert optional_port(["run", "r.yaml", "--foxglove"]) == ["run", "r.yaml", "--foxglove", "8765"]
+    assert optional_port(["run", "--foxglove", "r.yaml"]) == ["run", "--foxglove", "8765", "r.yaml"]
+    assert optional_port(["run", "--foxglove", "9000", "r.yaml"]) == [
+        "run", "--foxglove", "9000", "r.yaml"]
+    assert optional_port(["run", "r.yaml"]) == ["run", "r.yaml"]

@@ -66,7 +66,7 @@ def register(app: typer.Typer) -> None:
             "recordings go to DATA_DIR/runs/RUN_ID/.",
         ),
         foxglove: int | None = typer.Option(
-            None, "--foxglove", metavar="[PORT]", is_flag=False, flag_value=8765,
+            None, "--foxglove", metavar="[PORT]",
             help="Stream every scan live over the Foxglove WebSocket protocol on "
             "127.0.0.1:PORT (default 8765); open ws://127.0.0.1:PORT in Foxglove.",
         ),
@@ -103,7 +103,7 @@ def register(app: typer.Typer) -> None:
             "another host).",
         ),
         foxglove: int | None = typer.Option(
-            None, "--foxglove", metavar="[PORT]", is_flag=False, flag_value=8765,
+            None, "--foxglove", metavar="[PORT]",
             help="Stream every scan live over the Foxglove WebSocket protocol on "
             "127.0.0.1:PORT (default 8765); open ws://127.0.0.1:PORT in Foxglove.",
         ),
