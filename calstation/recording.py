@@ -382,12 +382,14 @@ class RecordingWriter:
         """Close the file; if the block raised, first add an ``aborted`` metadata record
         (``error``: the exception's type and message), so the partial scan says why it ended;
         otherwise first add the reconstructed cloud when the calibration is known."""
-        if exc is not None and not self._closed:
-            with contextlib.suppress(Exception):
-                self.add_metadata("aborted", {"error": f"{type(exc).__name__}: {exc}"})
-        elif exc is None and not self._closed:
-            self._write_cloud()
-        self.close()
+        try:
+            if exc is not None and not self._closed:
+                with contextlib.suppress(Exception):
+                    self.add_metadata("aborted", {"error": f"{type(exc).__name__}: {exc}"})
+            elif exc is None and not self._closed:
+                self._write_cloud()
+        finally:
+            self.close()
 
     # --- internals -----------------------------------------------------------------------
     def _check_open(self) -> None:
@@ -416,11 +418,16 @@ class RecordingWriter:
             return
         from .reconstruct import reconstruct
 
-        rec = _recording_from_lines(self, buf)
         try:
+            rec = _recording_from_lines(self, buf)
             points = reconstruct(rec, H)
-        except CalstationError:
-            return  # nothing to show (no returns with a known platter angle): no cloud
+        except Exception as exc:  # a preview: the scan itself is complete and kept
+            warnings.warn(
+                f"recording {self.path}: no reconstructed cloud written ({exc})", stacklevel=3
+            )
+            return
+        if len(points) == 0:
+            return
         step = max(1, math.ceil(len(points) / max(self._cloud_points, 1)))
         self.write_point_cloud(points[::step], int(rec.t_ns[-1]), pb.PLATTER_FRAME)
 

@@ -410,3 +410,45 @@ def test_bad_metadata_leaves_no_file(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match=r"metadata 'truth' key 'x' cannot be stored"):
         writer(path, metadata={"truth": {"x": object()}})
     assert not path.exists()
+
+
+def test_cloud_only_for_a_completed_scan_with_a_calibration(tmp_path: Path) -> None:
+    """The reconstructed cloud is written at the end of a scan that completed, decimated to
+    ``cloud_points``; a failed scan gets its ``aborted`` record and no cloud."""
+    from mcap.reader import make_reader
+
+    H = Extrinsics(0.01, 1.2, -0.003, 0.0, 0.002, -0.78)
+
+    def scan(path: Path, fail: bool) -> dict[str, int]:
+        try:
+            with writer(path, calibration=H, calibration_source="initial", cloud_points=500) as w:
+                w.write_encoder([EncoderSample(T0 - 1_000_000, 0)])
+                for i in range(20):
+                    w.write_line(make_line(i))
+                    w.write_encoder([EncoderSample(T0 + (i + 1) * 1_000_000, 10 * (i + 1))])
+                if fail:
+                    raise RuntimeError("lidar unplugged")
+        except RuntimeError:
+            pass
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        assert summary is not None and summary.statistics is not None
+        return {summary.channels[c].topic: n
+                for c, n in summary.statistics.channel_message_counts.items()}
+
+    done = scan(tmp_path / "done.mcap", fail=False)
+    assert done["/platter/cloud"] == 1 and done["/tf_static"] == 1 and done["/lidar/scan"] == 20
+    rec = read_recording(tmp_path / "done.mcap")
+    assert rec.calibration == H and rec.metadata["calibration"]["source"] == "initial"
+    with open(tmp_path / "done.mcap", "rb") as f:
+        (msg,) = [m for _, _, m in make_reader(f).iter_messages(topics=["/platter/cloud"])]
+    from calstation.messages import point_cloud
+    from calstation.reconstruct import reconstruct
+
+    points = reconstruct(rec, H)
+    step = -(-len(points) // 500)
+    assert msg.data == point_cloud(int(rec.t_ns[-1]), "platter", points[::step])
+    failed = scan(tmp_path / "failed.mcap", fail=True)
+    assert "/platter/cloud" not in failed and failed["/lidar/scan"] == 20
+    assert read_recording(tmp_path / "failed.mcap").metadata["aborted"] == {
+        "error": "RuntimeError: lidar unplugged"}
