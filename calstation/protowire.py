@@ -87,6 +87,7 @@ def fields(buf: bytes | memoryview) -> list[tuple[int, int, int | bytes | memory
     The value is an int (varint), 8 or 4 bytes (fixed 64/32) or a memoryview of the payload
     (length-delimited, no copy). Raises :class:`RecordingError` on a malformed buffer.
     """
+    # this runs for every message of a recording: varints are decoded inline, not by calls
     view = memoryview(buf)
     n = len(view)
     pos = 0
@@ -96,31 +97,37 @@ def fields(buf: bytes | memoryview) -> list[tuple[int, int, int | bytes | memory
         while pos < n:
             key = view[pos]
             pos += 1
-            if key >= 0x80:  # single-byte keys are the rule: read longer ones the slow way
+            if key >= 0x80:
                 key, pos = _read_varint(view, pos - 1)
             wire = key & 7
-            value: int | bytes | memoryview
-            if wire == LEN:
-                size = view[pos]
+            if wire in (LEN, VARINT):
+                v = view[pos]
                 pos += 1
-                if size >= 0x80:
-                    size, pos = _read_varint(view, pos - 1)
-                value = view[pos : pos + size]
-                pos += size
-            elif wire == VARINT:
-                value = view[pos]
-                pos += 1
-                if value >= 0x80:
-                    value, pos = _read_varint(view, pos - 1)
+                if v >= 0x80:
+                    v &= 0x7F
+                    shift = 7
+                    while True:
+                        b = view[pos]
+                        pos += 1
+                        v |= (b & 0x7F) << shift
+                        if b < 0x80:
+                            break
+                        shift += 7
+                        if shift > 63:
+                            raise RecordingError("malformed protobuf: varint longer than 10 bytes")
+                if wire == VARINT:
+                    append((key >> 3, wire, v))
+                else:
+                    append((key >> 3, wire, view[pos : pos + v]))
+                    pos += v
             elif wire == I64:
-                value = view[pos : pos + 8]
+                append((key >> 3, wire, view[pos : pos + 8]))
                 pos += 8
             elif wire == I32:
-                value = view[pos : pos + 4]
+                append((key >> 3, wire, view[pos : pos + 4]))
                 pos += 4
             else:
                 raise RecordingError(f"malformed protobuf: unsupported wire type {wire}")
-            append((key >> 3, wire, value))
     except IndexError:
         raise RecordingError("malformed protobuf: the message ends inside a field") from None
     if pos > n:
