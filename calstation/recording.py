@@ -419,7 +419,7 @@ class RecordingWriter:
         from .reconstruct import reconstruct
 
         try:
-            rec = _recording_from_lines(self, buf)
+            rec = _recording_from_lines(self, buf, self._cloud_points)
             points = reconstruct(rec, H)
         except Exception as exc:  # a preview: the scan itself is complete and kept
             warnings.warn(
@@ -428,8 +428,8 @@ class RecordingWriter:
             return
         if len(points) == 0:
             return
-        step = max(1, math.ceil(len(points) / max(self._cloud_points, 1)))
-        self.write_point_cloud(points[::step], int(rec.t_ns[-1]), pb.PLATTER_FRAME)
+        end_ns = int(buf.lines[-1].point_times_ns()[-1])  # the scan's last point
+        self.write_point_cloud(points, end_ns, pb.PLATTER_FRAME)
 
     def _add(self, topic: str, log_time: int, data: bytes) -> None:
         self._check_open()
@@ -494,10 +494,12 @@ def _static_transform(t_ns: int, H: Extrinsics) -> bytes:
     )
 
 
-def _recording_from_lines(w: RecordingWriter, buf: _CloudBuffer) -> Recording:
-    """An in-memory :class:`Recording` of what a writer kept (to reconstruct its cloud)."""
+def _recording_from_lines(w: RecordingWriter, buf: _CloudBuffer, max_points: int) -> Recording:
+    """An in-memory :class:`Recording` of every k-th point a writer kept, at most
+    ``max_points`` points (to reconstruct its cloud: only what is drawn is computed)."""
     lines = buf.lines
     counts = np.array([len(ln) for ln in lines], dtype=np.int64)
+    every = slice(None, None, max(1, math.ceil(int(counts.sum()) / max(max_points, 1))))
     enc_t = np.asarray(buf.enc_t, dtype=np.int64)
     enc_c = np.asarray(buf.enc_c, dtype=np.int64)
     order = np.argsort(enc_t, kind="stable")
@@ -510,11 +512,13 @@ def _recording_from_lines(w: RecordingWriter, buf: _CloudBuffer) -> Recording:
         encoder_direction=w._direction,
         encoder_latency_s=w._latency_ns * 1e-9,
         line_timestamp_ns=np.array([ln.timestamp_ns for ln in lines], dtype=np.int64),
-        line_index=np.repeat(np.arange(len(lines), dtype=np.int32), counts),
-        t_ns=np.concatenate([ln.point_times_ns() for ln in lines]),
-        azimuth_rad=np.concatenate([np.asarray(ln.azimuth_rad, np.float64) for ln in lines]),
-        range_m=np.concatenate([np.asarray(ln.range_m, np.float64) for ln in lines]),
-        valid=np.concatenate([np.asarray(ln.valid, bool) for ln in lines]),
+        line_index=np.repeat(np.arange(len(lines), dtype=np.int32), counts)[every],
+        t_ns=np.concatenate([ln.point_times_ns() for ln in lines])[every],
+        azimuth_rad=np.concatenate([np.asarray(ln.azimuth_rad, np.float64) for ln in lines])[
+            every
+        ],
+        range_m=np.concatenate([np.asarray(ln.range_m, np.float64) for ln in lines])[every],
+        valid=np.concatenate([np.asarray(ln.valid, bool) for ln in lines])[every],
         intensity=None,
         encoder_t_ns=enc_t[order],
         encoder_count=enc_c[order],

@@ -445,9 +445,13 @@ def test_cloud_only_for_a_completed_scan_with_a_calibration(tmp_path: Path) -> N
     from calstation.messages import point_cloud
     from calstation.reconstruct import reconstruct
 
+    # every k-th point (valid or not) of the scan, k = ceil(2000 / 500), reconstructed
     points = reconstruct(rec, H)
-    step = -(-len(points) // 500)
-    assert msg.data == point_cloud(int(rec.t_ns[-1]), "platter", points[::step])
+    every_4th = np.zeros(rec.n_points, bool)
+    every_4th[::4] = True
+    want = points[every_4th[rec.valid]]
+    assert 0 < len(want) <= 500
+    assert msg.data == point_cloud(int(rec.t_ns[-1]), "platter", want)
     failed = scan(tmp_path / "failed.mcap", fail=True)
     assert "/platter/cloud" not in failed and failed["/lidar/scan"] == 20
     assert read_recording(tmp_path / "failed.mcap").metadata["aborted"] == {
