@@ -1,18 +1,22 @@
 """Recordings: each scan written to MCAP while it is acquired, and read back as numpy arrays.
 
-The format is documented in ``docs/recording-format.md``. In short:
+The format is documented in ``docs/recording-format.md``. In short (format version 2):
 
 - MCAP, chunked (~1 MiB per chunk), zstd-compressed; the file is flushed after every chunk (and at
   least every second) so that a writer killed mid-scan loses at most the chunk in progress.
-- Schema encoding ``jsonschema``, message encoding ``json`` (Foxglove and ``mcap cat`` open it).
-  Bulk arrays are base64 strings of little-endian arrays (``"contentEncoding": "base64"``).
-- Channels ``/lidar/line``, ``/encoder/count``, ``/turntable/status``; message ``log_time`` is the
-  host-clock time of the data.
-- Metadata records ``calstation``, ``lidar``, ``encoder`` (and ``truth`` for simulated data, or any
-  other name); each value is JSON-encoded (MCAP metadata values are strings).
+- Protobuf messages in well-known schemas, so viewers show the scan in 3D: each lidar line is a
+  ``foxglove.LaserScan`` on ``/lidar/scan`` (frame ``lidar``) with its exact azimuths and timing
+  in a ``calstation.LidarLineTiming`` on ``/lidar/line``; the encoder readings are
+  ``calstation.EncoderSamples`` on ``/encoder/count`` and the platter angle a
+  ``foxglove.FrameTransform`` stream on ``/tf``; the calibration, once known, a
+  ``foxglove.FrameTransform`` on ``/tf_static``; the reconstructed cloud a ``foxglove.PointCloud``
+  on ``/platter/cloud``. Turntable status stays JSON on ``/turntable/status``.
+- Metadata records ``calstation``, ``lidar``, ``encoder`` (and ``truth`` for simulated data,
+  ``calibration`` once known, or any other name); each value is JSON-encoded.
 - The recipe text is the attachment ``recipe.yaml``.
 
-:func:`read_recording` returns a :class:`Recording` with flat numpy arrays (one entry per point).
+Version-1 files (JSON messages with base64 arrays) are still read. :func:`read_recording` returns
+a :class:`Recording` with flat numpy arrays (one entry per point).
 """
 
 from __future__ import annotations
@@ -20,46 +24,53 @@ from __future__ import annotations
 import base64
 import binascii
 import contextlib
+import functools
 import json
 import math
 import os
-import struct
 import threading
 import time
 import warnings
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from . import messages as pb
 from .drivers import EncoderSample, LidarInfo, LidarLine, TurntableState, TurntableStatus
 from .errors import CalstationError, RecordingError
 from .frames import Extrinsics, counts_to_angle
 from .recipe import LoadedRecipe
 
-FORMAT_VERSION: int = 1
+FORMAT_VERSION: int = 2
 """Version of the recording layout (channels, schemas, metadata) described in the docs."""
 
+SCAN_TOPIC = "/lidar/scan"
 LIDAR_TOPIC = "/lidar/line"
 ENCODER_TOPIC = "/encoder/count"
+PLATTER_TF_TOPIC = "/tf"
+STATIC_TF_TOPIC = "/tf_static"
+CLOUD_TOPIC = "/platter/cloud"
 TURNTABLE_TOPIC = "/turntable/status"
 RECIPE_ATTACHMENT = "recipe.yaml"
-RESERVED_METADATA = ("calstation", "lidar", "encoder")
+RESERVED_METADATA = ("calstation", "lidar", "encoder", "calibration")
 
 DEFAULT_CHUNK_SIZE = 1 << 20
 """Uncompressed bytes per chunk: a crash loses at most about this much of the scan."""
 DEFAULT_FLUSH_INTERVAL_S = 1.0
 """A chunk is also closed and flushed when this much wall time passed since the last flush."""
+DEFAULT_CLOUD_POINTS = 300_000
+"""At most this many points in the reconstructed cloud written at the end of a scan."""
 
-# dtypes of the base64 arrays (little-endian), part of the format
-AZIMUTH_DTYPE = np.dtype("<f8")
-RANGE_DTYPE = np.dtype("<f4")
-VALID_DTYPE = np.dtype("u1")
-INTENSITY_DTYPE = np.dtype("<f4")
-TIME_OFFSET_DTYPE = np.dtype("<i8")
+# dtypes of the version-1 base64 arrays (little-endian)
+V1_AZIMUTH_DTYPE = np.dtype("<f8")
+V1_RANGE_DTYPE = np.dtype("<f4")
+V1_VALID_DTYPE = np.dtype("u1")
+V1_INTENSITY_DTYPE = np.dtype("<f4")
+V1_TIME_OFFSET_DTYPE = np.dtype("<i8")
 
 
 class RecordingTruncatedWarning(UserWarning):
@@ -67,60 +78,28 @@ class RecordingTruncatedWarning(UserWarning):
     complete chunk."""
 
 
-# --- schemas -------------------------------------------------------------------------------
-def _b64(dtype: str, unit: str, what: str) -> dict[str, Any]:
-    return {
-        "type": "string",
-        "contentEncoding": "base64",
-        "description": f"{what}: little-endian {dtype}[count], {unit}",
-    }
+class LiveSink(Protocol):
+    """Where a writer also sends every message as it is written (the live view)."""
+
+    def publish(self, topic: str, schema: pb.SchemaData, data: bytes, log_time_ns: int) -> None:
+        """Send one encoded message of ``topic`` (in ``schema``) stamped ``log_time_ns``."""
+        ...
 
 
-LIDAR_SCHEMA: dict[str, Any] = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "calstation.LidarLine",
-    "description": "One line of a 2D line scanner in its own polar coordinates (frame L).",
-    "type": "object",
-    "properties": {
-        "timestamp_ns": {
-            "type": "integer",
-            "description": "host-clock time of the first point, ns since the Unix epoch",
-        },
-        "point_period_ns": {
-            "type": "number",
-            "description": "time between consecutive points, ns (point i at timestamp + i·period)",
-        },
-        "count": {"type": "integer", "description": "number of points in the line"},
-        "azimuth_rad": _b64("float64", "rad", "azimuth α (0 = +Y_L, positive toward +X_L)"),
-        "range_m": _b64("float32", "m", "range ρ (meaningless where valid = 0)"),
-        "valid": _b64("uint8", "0/1", "1 = valid return"),
-        "time_offset_ns": _b64(
-            "int64", "ns", "optional per-point time offsets from timestamp_ns (overrides period)"
-        ),
-        "intensity": _b64("float32", "device units", "optional intensity"),
-    },
-    "required": ["timestamp_ns", "point_period_ns", "count", "azimuth_rad", "range_m", "valid"],
-}
+_live_sink: LiveSink | None = None
 
-ENCODER_SCHEMA: dict[str, Any] = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "calstation.EncoderSamples",
-    "description": "A batch of encoder readings, oldest first.",
-    "type": "object",
-    "properties": {
-        "timestamp_ns": {
-            "type": "array",
-            "items": {"type": "integer"},
-            "description": "host-clock time of each reading, ns since the Unix epoch",
-        },
-        "count": {
-            "type": "array",
-            "items": {"type": "integer"},
-            "description": "unwrapped signed encoder count of each reading",
-        },
-    },
-    "required": ["timestamp_ns", "count"],
-}
+
+def set_live_sink(sink: LiveSink | None) -> None:
+    """Make ``sink`` the live sink of every writer created from now on in this process (the
+    live view, :mod:`calstation.liveview`); None stops it."""
+    global _live_sink
+    _live_sink = sink
+
+
+def live_sink() -> LiveSink | None:
+    """The process's live sink, if any."""
+    return _live_sink
+
 
 TURNTABLE_SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -136,6 +115,26 @@ TURNTABLE_SCHEMA: dict[str, Any] = {
     },
     "required": ["timestamp_ns", "state", "speed_rpm"],
 }
+_TURNTABLE = pb.SchemaData(
+    "calstation.TurntableStatus", "jsonschema", json.dumps(TURNTABLE_SCHEMA).encode("utf-8")
+)
+
+CHANNELS: dict[str, tuple[str, str]] = {
+    SCAN_TOPIC: ("foxglove.LaserScan", "protobuf"),
+    LIDAR_TOPIC: (pb.LINE_TIMING_SCHEMA, "protobuf"),
+    ENCODER_TOPIC: (pb.ENCODER_SCHEMA, "protobuf"),
+    PLATTER_TF_TOPIC: ("foxglove.FrameTransform", "protobuf"),
+    STATIC_TF_TOPIC: ("foxglove.FrameTransform", "protobuf"),
+    CLOUD_TOPIC: ("foxglove.PointCloud", "protobuf"),
+    TURNTABLE_TOPIC: ("calstation.TurntableStatus", "json"),
+}
+"""Topic → (schema name, message encoding) of a version-2 recording."""
+
+
+def channel_schema(topic: str) -> pb.SchemaData:
+    """The schema of a version-2 ``topic``."""
+    name = CHANNELS[topic][0]
+    return _TURNTABLE if name == _TURNTABLE.name else pb.schema(name)
 
 
 # --- writing -------------------------------------------------------------------------------
@@ -165,9 +164,17 @@ def _encode_metadata(name: str, data: Mapping[str, Any]) -> dict[str, str]:
     return out
 
 
-def _b64encode(values: ArrayLike, dtype: np.dtype[Any]) -> str:
-    arr = np.ascontiguousarray(values, dtype=dtype)
-    return base64.b64encode(arr.tobytes()).decode("ascii")
+def _calibration_record(H: Extrinsics, source: str) -> dict[str, Any]:
+    return {**H.as_dict(), "source": source}
+
+
+@dataclass
+class _CloudBuffer:
+    """What the writer keeps of a scan to reconstruct its cloud at the end (array references)."""
+
+    lines: list[LidarLine] = field(default_factory=list)
+    enc_t: list[int] = field(default_factory=list)
+    enc_c: list[int] = field(default_factory=list)
 
 
 class RecordingWriter:
@@ -178,6 +185,13 @@ class RecordingWriter:
     ``encoder_latency_s`` (encoder time minus lidar time, s) describe the station and are stored as
     metadata, with ``station_id``, the recipe's name and sha256 (its text becomes the attachment
     ``recipe.yaml``) and any further ``metadata`` records (name → mapping, e.g. ``"truth"``).
+
+    ``calibration`` (with ``calibration_source``, e.g. ``"initial"``, ``"fine"``, ``"truth"``) is
+    the H known when the scan starts: it is written as the ``calibration`` metadata record and the
+    static transform ``lidar`` → ``platform``, and at the end of a scan that completed the
+    reconstructed cloud (at most ``cloud_points`` points, frame ``platter``) is added.
+    ``live`` receives every message as it is written (default: the process's live sink, see
+    :func:`set_live_sink` and :mod:`calstation.liveview`).
 
     Data is buffered into chunks of about ``chunk_size`` uncompressed bytes; each finished chunk is
     compressed, written and flushed to the operating system at once, and a chunk is also closed
@@ -197,27 +211,16 @@ class RecordingWriter:
         station_id: str = "",
         recipe: LoadedRecipe | None = None,
         metadata: Mapping[str, Mapping[str, Any]] | None = None,
+        calibration: Extrinsics | None = None,
+        calibration_source: str = "",
+        live: LiveSink | None = None,
+        cloud_points: int = DEFAULT_CLOUD_POINTS,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
     ) -> None:
         from mcap.writer import CompressionType, Writer
 
-        if not kind:
-            raise RecordingError("recording kind must not be empty")
-        if int(counts_per_revolution) <= 0:
-            raise RecordingError(
-                f"counts_per_revolution must be positive, got {counts_per_revolution}"
-            )
-        if encoder_direction not in (1, -1):
-            raise RecordingError(f"encoder_direction must be +1 or -1, got {encoder_direction}")
-        if not math.isfinite(encoder_latency_s):
-            raise RecordingError(f"encoder_latency_s must be finite, got {encoder_latency_s}")
-        for name in metadata or {}:
-            if name in RESERVED_METADATA:
-                raise RecordingError(
-                    f"metadata record {name!r} is written by the recorder itself; "
-                    f"reserved names: {', '.join(RESERVED_METADATA)}"
-                )
+        _check_station(kind, counts_per_revolution, encoder_direction, encoder_latency_s, metadata)
         created_ns = time.time_ns()
         records = {
             "calstation": {
@@ -236,6 +239,8 @@ class RecordingWriter:
             },
             **dict(metadata or {}),
         }
+        if calibration is not None:
+            records["calibration"] = _calibration_record(calibration, calibration_source)
         # encode everything before creating the file, so bad metadata leaves no file behind
         encoded = {name: _encode_metadata(name, data) for name, data in records.items()}
 
@@ -243,6 +248,13 @@ class RecordingWriter:
         self._lock = threading.RLock()
         self._chunk_size = int(chunk_size)
         self._flush_interval_s = float(flush_interval_s)
+        self._cpr = int(counts_per_revolution)
+        self._direction = int(encoder_direction)
+        self._latency_ns = round(encoder_latency_s * 1e9)
+        self._live = live if live is not None else _live_sink
+        self._cloud_points = int(cloud_points)
+        self._calibration = calibration
+        self._cloud = _CloudBuffer()
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file: IO[bytes] = open(self.path, "wb")  # noqa: SIM115 (closed in close())
@@ -255,6 +267,7 @@ class RecordingWriter:
         self._pending = 0
         self._last_flush = time.monotonic()
         self._sequence: dict[int, int] = {}
+        self._channels: dict[str, int] = {}
         self.lines_written = 0
         self.points_written = 0
         self.encoder_samples_written = 0
@@ -270,53 +283,62 @@ class RecordingWriter:
                     media_type="application/yaml",
                     data=recipe.text.encode("utf-8"),
                 )
-            self._lidar_channel = self._channel(LIDAR_TOPIC, LIDAR_SCHEMA)
-            self._encoder_channel = self._channel(ENCODER_TOPIC, ENCODER_SCHEMA)
-            self._turntable_channel = self._channel(TURNTABLE_TOPIC, TURNTABLE_SCHEMA)
+            self._register_channels()
             self._file.flush()
         except OSError as exc:
             self._closed = True
             self._file.close()
             raise RecordingError(f"cannot write recording {self.path}: {exc}") from exc
+        if calibration is not None:
+            self._add(STATIC_TF_TOPIC, created_ns, _static_transform(created_ns, calibration))
 
     # --- public API ----------------------------------------------------------------------
     def write_line(self, line: LidarLine) -> None:
         """Append one lidar line (stamped on the host clock)."""
-        n = len(line)
-        msg: dict[str, Any] = {
-            "timestamp_ns": int(line.timestamp_ns),
-            "point_period_ns": float(line.point_period_ns),
-            "count": n,
-            "azimuth_rad": _b64encode(line.azimuth_rad, AZIMUTH_DTYPE),
-            "range_m": _b64encode(line.range_m, RANGE_DTYPE),
-            "valid": _b64encode(np.asarray(line.valid, dtype=bool), VALID_DTYPE),
-        }
-        if line.time_offset_ns is not None:
-            msg["time_offset_ns"] = _b64encode(line.time_offset_ns, TIME_OFFSET_DTYPE)
-        if line.intensity is not None:
-            msg["intensity"] = _b64encode(line.intensity, INTENSITY_DTYPE)
+        ts = int(line.timestamp_ns)
+        scan = pb.laser_scan(ts, line.azimuth_rad, line.range_m, line.valid, line.intensity)
+        timing = pb.line_timing(
+            ts, line.point_period_ns, line.azimuth_rad, line.range_m, line.valid,
+            line.time_offset_ns,
+        )
         with self._lock:
-            self._add(self._lidar_channel, int(line.timestamp_ns), msg)
+            self._add(SCAN_TOPIC, ts, scan)
+            self._add(LIDAR_TOPIC, ts, timing)
             self.lines_written += 1
-            self.points_written += n
+            self.points_written += len(line)
+            if self._calibration is not None:
+                self._cloud.lines.append(line)
 
     def write_encoder(self, samples: Iterable[EncoderSample]) -> None:
-        """Append encoder readings (oldest first), batched into one message."""
+        """Append encoder readings (oldest first), batched into one message; the platter angle
+        of the newest reading also goes to ``/tf`` (``platform`` → ``platter``)."""
         batch = list(samples)
         if not batch:
             return
-        msg = {
-            "timestamp_ns": [int(s.timestamp_ns) for s in batch],
-            "count": [int(s.count) for s in batch],
-        }
+        t = [int(s.timestamp_ns) for s in batch]
+        c = [int(s.count) for s in batch]
+        data = pb.encoder_samples(t, c)
+        phi = float(counts_to_angle(c[-1], self._cpr, self._direction))
+        t_lidar = max(t[-1] - self._latency_ns, 0)
         with self._lock:
-            self._add(self._encoder_channel, msg["timestamp_ns"][0], msg)
+            self._add(ENCODER_TOPIC, t[0], data)
+            self._add(PLATTER_TF_TOPIC, t_lidar, pb.platter_transform(t_lidar, phi))
             self.encoder_samples_written += len(batch)
+            if self._calibration is not None:
+                self._cloud.enc_t.extend(t)
+                self._cloud.enc_c.extend(c)
 
     def write_turntable(self, status: TurntableStatus) -> None:
         """Append one turntable status report."""
+        data = json.dumps(status.as_dict(), separators=(",", ":")).encode("utf-8")
         with self._lock:
-            self._add(self._turntable_channel, int(status.timestamp_ns), status.as_dict())
+            self._add(TURNTABLE_TOPIC, int(status.timestamp_ns), data)
+
+    def write_point_cloud(self, points: ArrayLike, timestamp_ns: int, frame_id: str) -> None:
+        """Append a ``foxglove.PointCloud`` of (N, 3) points (metres) in ``frame_id``."""
+        with self._lock:
+            data = pb.point_cloud(timestamp_ns, frame_id, points)
+            self._add(CLOUD_TOPIC, int(timestamp_ns), data)
 
     def add_metadata(self, name: str, data: Mapping[str, Any]) -> None:
         """Add a metadata record (e.g. ``"truth"``); values must be JSON-serialisable.
@@ -358,11 +380,16 @@ class RecordingWriter:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: object
     ) -> None:
         """Close the file; if the block raised, first add an ``aborted`` metadata record
-        (``error``: the exception's type and message), so the partial scan says why it ended."""
-        if exc is not None and not self._closed:
-            with contextlib.suppress(Exception):
-                self.add_metadata("aborted", {"error": f"{type(exc).__name__}: {exc}"})
-        self.close()
+        (``error``: the exception's type and message), so the partial scan says why it ended;
+        otherwise first add the reconstructed cloud when the calibration is known."""
+        try:
+            if exc is not None and not self._closed:
+                with contextlib.suppress(Exception):
+                    self.add_metadata("aborted", {"error": f"{type(exc).__name__}: {exc}"})
+            elif exc is None and not self._closed:
+                self._write_cloud()
+        finally:
+            self.close()
 
     # --- internals -----------------------------------------------------------------------
     def _check_open(self) -> None:
@@ -372,29 +399,53 @@ class RecordingWriter:
     def _write_metadata(self, name: str, data: Mapping[str, Any]) -> None:
         self._writer.add_metadata(name, _encode_metadata(name, data))
 
-    def _channel(self, topic: str, schema: dict[str, Any]) -> int:
-        schema_id = self._writer.register_schema(
-            name=str(schema["title"]),
-            encoding="jsonschema",
-            data=json.dumps(schema).encode("utf-8"),
-        )
-        return self._writer.register_channel(
-            topic=topic, message_encoding="json", schema_id=schema_id
-        )
+    def _register_channels(self) -> None:
+        schema_ids: dict[str, int] = {}
+        for topic, (schema_name, encoding) in CHANNELS.items():
+            if schema_name not in schema_ids:
+                s = channel_schema(topic)
+                schema_ids[schema_name] = self._writer.register_schema(
+                    name=s.name, encoding=s.encoding, data=s.data
+                )
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding=encoding, schema_id=schema_ids[schema_name]
+            )
 
-    def _add(self, channel: int, log_time: int, msg: Mapping[str, Any]) -> None:
+    def _write_cloud(self) -> None:
+        """The reconstructed cloud of the scan in frame D (``platter``), decimated."""
+        buf, H = self._cloud, self._calibration
+        if H is None or not buf.lines or not buf.enc_t:
+            return
+        from .reconstruct import reconstruct
+
+        try:
+            rec = _recording_from_lines(self, buf, self._cloud_points)
+            points = reconstruct(rec, H)
+        except Exception as exc:  # a preview: the scan itself is complete and kept
+            warnings.warn(
+                f"recording {self.path}: no reconstructed cloud written ({exc})", stacklevel=3
+            )
+            return
+        if len(points) == 0:
+            return
+        end_ns = int(buf.lines[-1].point_times_ns()[-1])  # the scan's last point
+        self.write_point_cloud(points, end_ns, pb.PLATTER_FRAME)
+
+    def _add(self, topic: str, log_time: int, data: bytes) -> None:
         self._check_open()
         if log_time < 0:
             raise RecordingError(
-                f"recording {self.path}: negative timestamp {log_time} ns on {channel}; "
+                f"recording {self.path}: negative timestamp {log_time} ns on {topic}; "
                 "timestamps are host-clock ns since the Unix epoch"
             )
-        data = json.dumps(msg, separators=(",", ":")).encode("utf-8")
+        channel = self._channels[topic]
         seq = self._sequence.get(channel, 0)
         self._sequence[channel] = seq + 1
         self._writer.add_message(
             channel_id=channel, log_time=log_time, data=data, publish_time=log_time, sequence=seq
         )
+        if self._live is not None:
+            self._live.publish(topic, channel_schema(topic), data, log_time)
         self._pending += len(data) + 31
         if (
             self._pending >= self._chunk_size
@@ -409,6 +460,71 @@ class RecordingWriter:
             raise RecordingError(f"cannot write recording {self.path}: {exc}") from exc
         self._pending = 0
         self._last_flush = time.monotonic()
+
+
+def _check_station(
+    kind: str,
+    counts_per_revolution: int,
+    encoder_direction: int,
+    encoder_latency_s: float,
+    metadata: Mapping[str, Mapping[str, Any]] | None,
+) -> None:
+    if not kind:
+        raise RecordingError("recording kind must not be empty")
+    if int(counts_per_revolution) <= 0:
+        raise RecordingError(
+            f"counts_per_revolution must be positive, got {counts_per_revolution}"
+        )
+    if encoder_direction not in (1, -1):
+        raise RecordingError(f"encoder_direction must be +1 or -1, got {encoder_direction}")
+    if not math.isfinite(encoder_latency_s):
+        raise RecordingError(f"encoder_latency_s must be finite, got {encoder_latency_s}")
+    for name in metadata or {}:
+        if name in RESERVED_METADATA:
+            raise RecordingError(
+                f"metadata record {name!r} is written by the recorder itself; "
+                f"reserved names: {', '.join(RESERVED_METADATA)}"
+            )
+
+
+def _static_transform(t_ns: int, H: Extrinsics) -> bytes:
+    """The calibration as ``lidar`` → ``platform``: the pose of P in L."""
+    return pb.frame_transform(
+        t_ns, pb.LIDAR_FRAME, pb.PLATFORM_FRAME, H.t, H.as_quaternion()
+    )
+
+
+def _recording_from_lines(w: RecordingWriter, buf: _CloudBuffer, max_points: int) -> Recording:
+    """An in-memory :class:`Recording` of every k-th point a writer kept, at most
+    ``max_points`` points (to reconstruct its cloud: only what is drawn is computed)."""
+    lines = buf.lines
+    counts = np.array([len(ln) for ln in lines], dtype=np.int64)
+    every = slice(None, None, max(1, math.ceil(int(counts.sum()) / max(max_points, 1))))
+    enc_t = np.asarray(buf.enc_t, dtype=np.int64)
+    enc_c = np.asarray(buf.enc_c, dtype=np.int64)
+    order = np.argsort(enc_t, kind="stable")
+    return Recording(
+        path=w.path,
+        kind="",
+        metadata={},
+        lidar_info=LidarInfo("", "", "", 0.0, 0, 0.0, 0.0, 0.0),
+        counts_per_revolution=w._cpr,
+        encoder_direction=w._direction,
+        encoder_latency_s=w._latency_ns * 1e-9,
+        line_timestamp_ns=np.array([ln.timestamp_ns for ln in lines], dtype=np.int64),
+        line_index=np.repeat(np.arange(len(lines), dtype=np.int32), counts)[every],
+        t_ns=np.concatenate([ln.point_times_ns() for ln in lines])[every],
+        azimuth_rad=np.concatenate([np.asarray(ln.azimuth_rad, np.float64) for ln in lines])[
+            every
+        ],
+        range_m=np.concatenate([np.asarray(ln.range_m, np.float64) for ln in lines])[every],
+        valid=np.concatenate([np.asarray(ln.valid, bool) for ln in lines])[every],
+        intensity=None,
+        encoder_t_ns=enc_t[order],
+        encoder_count=enc_c[order],
+        turntable=[],
+        truncated=False,
+    )
 
 
 # --- the recording -------------------------------------------------------------------------
@@ -472,6 +588,20 @@ class Recording:
         except CalstationError as exc:
             raise RecordingError(
                 f"recording {self.path}: metadata 'truth' is invalid: {exc}"
+            ) from exc
+
+    @property
+    def calibration(self) -> Extrinsics | None:
+        """The H known when the scan was taken (metadata ``calibration``, keys tx..rz, with
+        ``source``: ``initial``, ``fine``, ``truth``, …), else None."""
+        data = self.metadata.get("calibration")
+        if data is None:
+            return None
+        try:
+            return Extrinsics.from_dict({k: data[k] for k in data if k in _H_KEYS})
+        except CalstationError as exc:
+            raise RecordingError(
+                f"recording {self.path}: metadata 'calibration' is invalid: {exc}"
             ) from exc
 
     @property
@@ -561,53 +691,46 @@ class Recording:
 
 
 _H_KEYS = ("tx", "ty", "tz", "rx", "ry", "rz")
+_H_KEYS = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
 # --- reading -------------------------------------------------------------------------------
-class _ExactReader:
-    """A file wrapper whose ``read(n)`` returns n bytes or raises ``EndOfFile`` (so a record cut
-    off by a killed writer is detected as incomplete instead of being parsed short)."""
-
-    def __init__(self, f: IO[bytes]) -> None:
-        self._f = f
-        self.at_boundary = False
-
-    def read(self, n: int = -1) -> bytes:
-        from mcap.exceptions import EndOfFile
-
-        data = self._f.read(n)
-        if n >= 0 and len(data) != n:
-            # nothing at all where a record's opcode should be: the file ends between records
-            self.at_boundary = n == 1 and not data
-            raise EndOfFile()
-        return data
-
-
-class _Incomplete(Exception):
-    """The file ends (or is damaged) before a record is complete."""
+Buffer = bytes | memoryview
 
 
 @dataclass
 class _Collected:
+    """What the reader gathered, message by message, before assembling the arrays.
+
+    Version 1 fills the line lists from one JSON message per line; version 2 from a
+    ``LidarLineTiming`` (timing lists) and a ``LaserScan`` (``scan_*`` lists) per line, paired
+    in order when assembling.
+    """
+
     metadata: dict[str, dict[str, Any]] = field(default_factory=dict)
     attachments: dict[str, bytes] = field(default_factory=dict)
+    v2: bool | None = None
     line_ts: list[int] = field(default_factory=list)
     line_period: list[float] = field(default_factory=list)
     line_count: list[int] = field(default_factory=list)
-    line_offsets: list[bytes | None] = field(default_factory=list)
-    azimuth: list[bytes] = field(default_factory=list)
-    range_: list[bytes] = field(default_factory=list)
-    valid: list[bytes] = field(default_factory=list)
-    intensity: list[bytes | None] = field(default_factory=list)
+    line_offsets: list[Buffer | None] = field(default_factory=list)
+    azimuth: list[Buffer] = field(default_factory=list)
+    range_: list[Buffer] = field(default_factory=list)
+    valid: list[Buffer] = field(default_factory=list)
+    invalid_range: list[Buffer] = field(default_factory=list)
+    intensity: list[Buffer | None] = field(default_factory=list)
+    scan_ts: list[int] = field(default_factory=list)
     enc_t: list[int] = field(default_factory=list)
     enc_c: list[int] = field(default_factory=list)
+    enc_t_buf: list[Buffer] = field(default_factory=list)
+    enc_c_buf: list[Buffer] = field(default_factory=list)
     turntable: list[TurntableStatus] = field(default_factory=list)
     clean: bool = False
     problem: str = ""
 
 
 def read_recording(path: str | Path) -> Recording:
-    """Read a recording written by :class:`RecordingWriter`.
+    """Read a recording written by :class:`RecordingWriter` (format version 1 or 2).
 
     Raises :class:`RecordingError` (naming the file and the problem) for a missing or non-MCAP
     file, one without the ``calstation`` metadata, or one without lidar lines. A file whose writer
@@ -641,58 +764,34 @@ def read_recording(path: str | Path) -> Recording:
 
 
 def _collect(p: Path, f: IO[bytes]) -> _Collected:
-    from mcap.exceptions import EndOfFile, InvalidMagic, McapError
-    from mcap.records import Attachment, Channel, Chunk, Footer, Message, Metadata
-    from mcap.stream_reader import StreamReader, breakup_chunk
+    from .mcapscan import MAGIC, Handlers, scan
 
     col = _Collected()
-    head = f.read(8)
-    if len(head) < 8 or head != b"\x89MCAP0\r\n":
-        what = "is empty" if not head else "is not an MCAP file (bad magic bytes)"
+    data = f.read()
+    if len(data) < len(MAGIC) or not data.startswith(MAGIC):
+        what = "is empty" if not data else "is not an MCAP file (bad magic bytes)"
         raise RecordingError(f"recording {p} {what}")
-    f.seek(0)
-    channels: dict[int, str] = {}
-    exact = _ExactReader(f)
-    reader = StreamReader(exact, emit_chunks=True)  # type: ignore[arg-type]
-    records = reader.records
-    footer_seen = False
-    while True:
-        try:
-            record = next(records)
-        except StopIteration:
-            col.clean = footer_seen
-            if not footer_seen:
-                col.problem = "the file ends without the MCAP footer"
-            break
-        except (EndOfFile, struct.error, InvalidMagic, McapError, ValueError, MemoryError) as exc:
-            if not isinstance(exc, (EndOfFile, struct.error)):
-                col.problem = f"damaged record: {exc}"
-            elif exact.at_boundary:
-                col.problem = "the file ends after a complete record, without the MCAP footer"
-            else:
-                col.problem = "the file ends inside a record, which was dropped"
-            break
-        if isinstance(record, Chunk):
-            try:
-                inner = breakup_chunk(record, validate_crc=True)
-            except Exception as exc:  # zstd / CRC / parse errors: a damaged chunk
-                col.problem = f"damaged chunk: {exc}"
-                break
-            for r in inner:
-                if isinstance(r, Channel):
-                    channels[r.id] = r.topic
-                elif isinstance(r, Message):
-                    _message(p, col, channels.get(r.channel_id, ""), r.data)
-        elif isinstance(record, Metadata):
-            col.metadata[record.name] = _decode_metadata(p, record.name, record.metadata)
-        elif isinstance(record, Attachment):
-            col.attachments[record.name] = bytes(record.data)
-        elif isinstance(record, Channel):
-            channels[record.id] = record.topic
-        elif isinstance(record, Footer):
-            footer_seen = True
-        elif isinstance(record, Message):  # unchunked file (another writer)
-            _message(p, col, channels.get(record.channel_id, ""), record.data)
+    readers: dict[int, Callable[[Buffer], None]] = {}
+
+    def on_channel(channel_id: int, topic: str, encoding: str) -> None:
+        if topic in _READ_TOPICS:
+            readers[channel_id] = functools.partial(_message, p, col, (topic, encoding))
+        else:  # transforms and clouds are derived data: the arrays come from the raw channels
+            readers.pop(channel_id, None)
+
+    def on_message(channel_id: int, payload: memoryview) -> None:
+        read = readers.get(channel_id)
+        if read is not None:
+            read(payload)
+
+    def on_metadata(name: str, values: dict[str, str]) -> None:
+        col.metadata[name] = _decode_metadata(p, name, values)
+
+    def on_attachment(name: str, payload: bytes) -> None:
+        col.attachments[name] = payload
+
+    result = scan(data, Handlers(on_channel, on_message, on_metadata, on_attachment))
+    col.clean, col.problem = result.clean, result.problem
     return col
 
 
@@ -706,71 +805,174 @@ def _decode_metadata(p: Path, name: str, raw: Mapping[str, str]) -> dict[str, An
     return out
 
 
-def _message(p: Path, col: _Collected, topic: str, data: bytes) -> None:
-    if topic not in (LIDAR_TOPIC, ENCODER_TOPIC, TURNTABLE_TOPIC):
-        return
+_READ_TOPICS = (SCAN_TOPIC, LIDAR_TOPIC, ENCODER_TOPIC, TURNTABLE_TOPIC)
+
+
+def _message(p: Path, col: _Collected, channel: tuple[str, str], data: Buffer) -> None:
+    topic, encoding = channel
     try:
-        msg = json.loads(data)
-        if topic == LIDAR_TOPIC:
-            n = int(msg["count"])
-            col.line_ts.append(int(msg["timestamp_ns"]))
-            col.line_period.append(float(msg["point_period_ns"]))
-            col.line_count.append(n)
-            az = base64.b64decode(msg["azimuth_rad"])
-            rg = base64.b64decode(msg["range_m"])
-            va = base64.b64decode(msg["valid"])
-            off = base64.b64decode(msg["time_offset_ns"]) if "time_offset_ns" in msg else None
-            it = base64.b64decode(msg["intensity"]) if "intensity" in msg else None
-            sizes = {
-                "azimuth_rad": (len(az), n * AZIMUTH_DTYPE.itemsize),
-                "range_m": (len(rg), n * RANGE_DTYPE.itemsize),
-                "valid": (len(va), n * VALID_DTYPE.itemsize),
-            }
-            if off is not None:
-                sizes["time_offset_ns"] = (len(off), n * TIME_OFFSET_DTYPE.itemsize)
-            if it is not None:
-                sizes["intensity"] = (len(it), n * INTENSITY_DTYPE.itemsize)
-            for name, (got, want) in sizes.items():
-                if got != want:
-                    raise RecordingError(
-                        f"recording {p}: lidar line {len(col.line_ts) - 1} field {name} has "
-                        f"{got} bytes, expected {want} for {n} points"
-                    )
-            col.azimuth.append(az)
-            col.range_.append(rg)
-            col.valid.append(va)
-            col.line_offsets.append(off)
-            col.intensity.append(it)
-        elif topic == ENCODER_TOPIC:
-            ts, cs = msg["timestamp_ns"], msg["count"]
-            if len(ts) != len(cs):
-                raise RecordingError(
-                    f"recording {p}: an encoder message has {len(ts)} timestamps for "
-                    f"{len(cs)} counts"
-                )
-            col.enc_t.extend(int(t) for t in ts)
-            col.enc_c.extend(int(c) for c in cs)
+        if topic == TURNTABLE_TOPIC:
+            col.turntable.append(_turntable_status(json.loads(bytes(data))))
+            return
+        v2 = encoding == "protobuf"
+        if col.v2 is None:
+            col.v2 = v2
+        elif col.v2 != v2:
+            raise RecordingError(f"recording {p}: {topic} mixes JSON and protobuf messages")
+        if not v2:
+            _message_v1(p, col, topic, json.loads(bytes(data)))
+        elif topic == SCAN_TOPIC:
+            scan = pb.decode_laser_scan(data)
+            col.scan_ts.append(scan.timestamp_ns)
+            col.range_.append(scan.ranges)
+            col.intensity.append(scan.intensities)
+        elif topic == LIDAR_TOPIC:
+            timing = pb.decode_line_timing(data)
+            col.line_ts.append(timing.timestamp_ns)
+            col.line_period.append(timing.point_period_ns)
+            col.line_count.append(timing.count)
+            col.azimuth.append(timing.azimuth)
+            col.valid.append(timing.valid)
+            col.line_offsets.append(timing.time_offset)
+            col.invalid_range.append(timing.invalid_range)
         else:
-            col.turntable.append(
-                TurntableStatus(
-                    timestamp_ns=int(msg["timestamp_ns"]),
-                    state=TurntableState(msg["state"]),
-                    speed_rpm=float(msg["speed_rpm"]),
-                    position_rad=(
-                        None if msg.get("position_rad") is None else float(msg["position_rad"])
-                    ),
-                    faults=tuple(str(x) for x in msg.get("faults", ())),
+            t, c = pb.decode_encoder_samples(data)
+            if len(t) != len(c) or len(t) % 8:
+                raise RecordingError(
+                    f"recording {p}: an encoder message has {len(t)} bytes of timestamps for "
+                    f"{len(c)} bytes of counts"
                 )
-            )
+            col.enc_t_buf.append(t)
+            col.enc_c_buf.append(c)
     except RecordingError:
         raise
     except (KeyError, TypeError, ValueError, binascii.Error) as exc:
         raise RecordingError(f"recording {p}: malformed message on {topic}: {exc!r}") from exc
 
 
+def _turntable_status(msg: Mapping[str, Any]) -> TurntableStatus:
+    return TurntableStatus(
+        timestamp_ns=int(msg["timestamp_ns"]),
+        state=TurntableState(msg["state"]),
+        speed_rpm=float(msg["speed_rpm"]),
+        position_rad=None if msg.get("position_rad") is None else float(msg["position_rad"]),
+        faults=tuple(str(x) for x in msg.get("faults", ())),
+    )
+
+
+def _message_v1(p: Path, col: _Collected, topic: str, msg: dict[str, Any]) -> None:
+    """A version-1 JSON message (base64 arrays) of ``/lidar/line`` or ``/encoder/count``."""
+    if topic == ENCODER_TOPIC:
+        ts, cs = msg["timestamp_ns"], msg["count"]
+        if len(ts) != len(cs):
+            raise RecordingError(
+                f"recording {p}: an encoder message has {len(ts)} timestamps for "
+                f"{len(cs)} counts"
+            )
+        col.enc_t.extend(int(t) for t in ts)
+        col.enc_c.extend(int(c) for c in cs)
+        return
+    if topic != LIDAR_TOPIC:
+        raise RecordingError(f"recording {p}: a JSON message on {topic} (a version-2 topic)")
+    n = int(msg["count"])
+    col.line_ts.append(int(msg["timestamp_ns"]))
+    col.line_period.append(float(msg["point_period_ns"]))
+    col.line_count.append(n)
+    arrays: dict[str, np.dtype[Any]] = {
+        "azimuth_rad": V1_AZIMUTH_DTYPE,
+        "range_m": V1_RANGE_DTYPE,
+        "valid": V1_VALID_DTYPE,
+        "time_offset_ns": V1_TIME_OFFSET_DTYPE,
+        "intensity": V1_INTENSITY_DTYPE,
+    }
+    raw: dict[str, bytes | None] = {}
+    for name, dtype in arrays.items():
+        if name not in msg:
+            if name in ("azimuth_rad", "range_m", "valid"):
+                raise KeyError(name)
+            raw[name] = None
+            continue
+        raw[name] = b = base64.b64decode(msg[name])
+        if len(b) != n * dtype.itemsize:
+            raise RecordingError(
+                f"recording {p}: lidar line {len(col.line_ts) - 1} field {name} has "
+                f"{len(b)} bytes, expected {n * dtype.itemsize} for {n} points"
+            )
+    col.azimuth.append(raw["azimuth_rad"] or b"")
+    col.range_.append(raw["range_m"] or b"")
+    col.valid.append(raw["valid"] or b"")
+    col.line_offsets.append(raw["time_offset_ns"])
+    col.intensity.append(raw["intensity"])
+
+
+@dataclass
+class _Lines:
+    """The per-line and per-point arrays of a recording, before the :class:`Recording`."""
+
+    line_ts: NDArray[np.int64]
+    periods: NDArray[np.float64]
+    counts: NDArray[np.int64]
+    azimuth: NDArray[np.float64]
+    range_m: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+    offsets: list[Buffer | None]
+    intensity: list[Buffer | None]
+    intensity_dtype: np.dtype[Any]
+
+
 def _assemble(p: Path, col: _Collected) -> Recording:
     meta = col.metadata
     incomplete = "" if col.clean else f" (the file is incomplete, writer killed? {col.problem})"
+    info, lidar_info, (cpr, direction, latency) = _check_metadata(p, meta, incomplete)
+    lines = _lines_v2(p, col) if col.v2 else _lines_v1(col)
+    if len(lines.counts) == 0:
+        raise RecordingError(f"recording {p} contains no lidar lines{incomplete}")
+    n_lines = len(lines.counts)
+    counts, line_ts = lines.counts, lines.line_ts
+    line_index = np.repeat(np.arange(n_lines, dtype=np.int32), counts)
+    starts = np.zeros(n_lines, dtype=np.int64)
+    np.cumsum(counts[:-1], out=starts[1:])
+    has_offsets = np.array([o is not None for o in lines.offsets], dtype=bool)
+    t_ns = _point_times(lines, line_index, starts, has_offsets)
+    intensity: NDArray[np.float64] | None = None
+    if any(x is not None for x in lines.intensity):
+        parts = [
+            np.frombuffer(x, dtype=lines.intensity_dtype)
+            if x is not None
+            else np.full(int(n), np.nan, dtype=lines.intensity_dtype)
+            for x, n in zip(lines.intensity, counts, strict=True)
+        ]
+        intensity = np.concatenate(parts).astype(np.float64)
+    enc_t, enc_c = _encoder_arrays(col)
+    return Recording(
+        path=p,
+        kind=str(info.get("kind", "")),
+        metadata=meta,
+        lidar_info=lidar_info,
+        counts_per_revolution=cpr,
+        encoder_direction=direction,
+        encoder_latency_s=latency,
+        line_timestamp_ns=line_ts,
+        line_index=line_index,
+        t_ns=t_ns,
+        azimuth_rad=lines.azimuth,
+        range_m=lines.range_m,
+        valid=lines.valid,
+        intensity=intensity,
+        encoder_t_ns=enc_t,
+        encoder_count=enc_c,
+        turntable=col.turntable,
+        truncated=not col.clean,
+        line_point_period_ns=lines.periods,
+        line_has_offsets=has_offsets,
+        attachments=col.attachments,
+    )
+
+
+def _check_metadata(
+    p: Path, meta: dict[str, dict[str, Any]], incomplete: str
+) -> tuple[dict[str, Any], LidarInfo, tuple[int, int, float]]:
+    """The ``calstation`` record, the lidar info and (counts/rev, direction, latency)."""
     if "calstation" not in meta:
         raise RecordingError(
             f"recording {p} has no 'calstation' metadata: not a calstation recording{incomplete}"
@@ -801,62 +1003,126 @@ def _assemble(p: Path, col: _Collected) -> Recording:
             f"recording {p}: metadata 'encoder' has counts_per_revolution={cpr}, "
             f"direction={direction} (expected > 0 and ±1)"
         )
-    if not col.line_ts:
-        raise RecordingError(f"recording {p} contains no lidar lines{incomplete}")
+    return info, lidar_info, (cpr, direction, latency)
 
-    counts = np.asarray(col.line_count, dtype=np.int64)
-    n_lines = len(counts)
-    line_ts = np.asarray(col.line_ts, dtype=np.int64)
-    periods = np.asarray(col.line_period, dtype=np.float64)
-    azimuth = np.frombuffer(b"".join(col.azimuth), dtype=AZIMUTH_DTYPE).astype(np.float64)
-    range_m = np.frombuffer(b"".join(col.range_), dtype=RANGE_DTYPE).astype(np.float64)
-    valid = np.frombuffer(b"".join(col.valid), dtype=VALID_DTYPE).astype(bool)
-    line_index = np.repeat(np.arange(n_lines, dtype=np.int32), counts)
-    starts = np.zeros(n_lines, dtype=np.int64)
-    np.cumsum(counts[:-1], out=starts[1:])
-    within = np.arange(len(line_index), dtype=np.int64) - starts[line_index]
-    t_ns = line_ts[line_index] + np.round(within * periods[line_index]).astype(np.int64)
-    has_offsets = np.array([o is not None for o in col.line_offsets], dtype=bool)
-    if has_offsets.any():
-        for i in np.flatnonzero(has_offsets):
-            off = np.frombuffer(col.line_offsets[i] or b"", dtype=TIME_OFFSET_DTYPE)
-            t_ns[starts[i] : starts[i] + counts[i]] = line_ts[i] + off
-    intensity: NDArray[np.float64] | None = None
-    if any(x is not None for x in col.intensity):
-        parts = [
-            np.frombuffer(x, dtype=INTENSITY_DTYPE)
-            if x is not None
-            else np.full(int(n), np.nan, dtype=INTENSITY_DTYPE)
-            for x, n in zip(col.intensity, counts, strict=True)
-        ]
-        intensity = np.concatenate(parts).astype(np.float64)
 
-    enc_t = np.asarray(col.enc_t, dtype=np.int64)
-    enc_c = np.asarray(col.enc_c, dtype=np.int64)
+def _lines_v1(col: _Collected) -> _Lines:
+    return _Lines(
+        line_ts=np.asarray(col.line_ts, dtype=np.int64),
+        periods=np.asarray(col.line_period, dtype=np.float64),
+        counts=np.asarray(col.line_count, dtype=np.int64),
+        azimuth=np.frombuffer(b"".join(col.azimuth), V1_AZIMUTH_DTYPE).astype(np.float64),
+        range_m=np.frombuffer(b"".join(col.range_), V1_RANGE_DTYPE).astype(np.float64),
+        valid=np.frombuffer(b"".join(col.valid), V1_VALID_DTYPE).astype(bool),
+        offsets=col.line_offsets,
+        intensity=col.intensity,
+        intensity_dtype=V1_INTENSITY_DTYPE,
+    )
+
+
+def _lines_v2(p: Path, col: _Collected) -> _Lines:
+    """Pair each line's LaserScan with its LidarLineTiming and check their sizes."""
+    n = min(len(col.line_ts), len(col.scan_ts))
+    if col.clean and len(col.line_ts) != len(col.scan_ts):
+        raise RecordingError(
+            f"recording {p} has {len(col.scan_ts)} LaserScan messages on {SCAN_TOPIC} for "
+            f"{len(col.line_ts)} line timings on {LIDAR_TOPIC}"
+        )
+    # a killed writer may have written one message of the last pair: it is dropped
+    line_ts = np.asarray(col.line_ts[:n], dtype=np.int64)
+    scan_ts = np.asarray(col.scan_ts[:n], dtype=np.int64)
+    counts = np.asarray(col.line_count[:n], dtype=np.int64)
+    if np.any(line_ts != scan_ts):
+        i = int(np.flatnonzero(line_ts != scan_ts)[0])
+        raise RecordingError(
+            f"recording {p}: lidar line {i} has LaserScan time {scan_ts[i]} ns but line timing "
+            f"time {line_ts[i]} ns"
+        )
+    sizes: dict[str, tuple[list[Buffer], int]] = {
+        "azimuth_rad": (col.azimuth, pb.AZIMUTH_DTYPE.itemsize),
+        "valid": (col.valid, pb.VALID_DTYPE.itemsize),
+        "ranges": (col.range_, pb.RANGE_DTYPE.itemsize),
+    }
+    for name, (bufs, itemsize) in sizes.items():
+        got = np.fromiter((len(b) for b in bufs[:n]), dtype=np.int64, count=n)
+        bad = np.flatnonzero(got != counts * itemsize)
+        if bad.size:
+            i = int(bad[0])
+            raise RecordingError(
+                f"recording {p}: lidar line {i} field {name} has {got[i]} bytes, expected "
+                f"{counts[i] * itemsize} for {counts[i]} points"
+            )
+    valid = _concat(col.valid[:n], pb.VALID_DTYPE).view(bool)
+    range_m = _concat(col.range_[:n], pb.RANGE_DTYPE)
+    invalid = np.frombuffer(b"".join(col.invalid_range[:n]), pb.RANGE_DTYPE)
+    n_invalid = len(valid) - int(np.count_nonzero(valid))
+    if len(invalid) == n_invalid:
+        range_m[~valid] = invalid  # the raw ranges of invalid returns (NaN in the LaserScan)
+    elif len(invalid):
+        raise RecordingError(
+            f"recording {p}: {len(invalid)} raw ranges of invalid returns for {n_invalid} "
+            "invalid returns"
+        )
+    return _Lines(
+        line_ts=line_ts,
+        periods=np.asarray(col.line_period[:n], dtype=np.float64),
+        counts=counts,
+        azimuth=_concat(col.azimuth[:n], pb.AZIMUTH_DTYPE).view(np.float64),
+        range_m=range_m,
+        valid=valid,
+        offsets=col.line_offsets[:n],
+        intensity=col.intensity[:n],
+        intensity_dtype=pb.INTENSITY_DTYPE,
+    )
+
+
+def _concat(parts: list[Buffer], dtype: np.dtype[Any]) -> NDArray[Any]:
+    """One writable array of the packed arrays ``parts`` (a single copy)."""
+    if not parts:
+        return np.zeros(0, dtype=dtype)
+    return np.concatenate([np.frombuffer(b, dtype=dtype) for b in parts])
+
+
+def _point_times(
+    lines: _Lines,
+    line_index: NDArray[np.int32],
+    starts: NDArray[np.int64],
+    has_offsets: NDArray[np.bool_],
+) -> NDArray[np.int64]:
+    """(M,) host time of every point: explicit offsets where a line has them, else its period."""
+    counts, line_ts = lines.counts, lines.line_ts
+    if not has_offsets.any() and np.all(counts == counts[0]) and np.all(
+        lines.periods == lines.periods[0]
+    ):  # the usual scan: every line alike, so one row of offsets serves them all
+        row = np.round(np.arange(counts[0]) * lines.periods[0]).astype(np.int64)
+        same: NDArray[np.int64] = (line_ts[:, None] + row[None, :]).reshape(-1)
+        return same
+    if has_offsets.all():
+        offsets = np.frombuffer(b"".join(o or b"" for o in lines.offsets), V1_TIME_OFFSET_DTYPE)
+        if len(offsets) == len(line_index):
+            return np.repeat(line_ts, counts) + offsets
+    within = np.arange(len(line_index), dtype=np.int64) - np.repeat(starts, counts)
+    t_ns = np.repeat(line_ts, counts) + np.round(
+        within * np.repeat(lines.periods, counts)
+    ).astype(np.int64)
+    for i in np.flatnonzero(has_offsets):
+        off = np.frombuffer(lines.offsets[i] or b"", dtype=V1_TIME_OFFSET_DTYPE)
+        if len(off) != counts[i]:
+            raise RecordingError(
+                f"lidar line {i} has {len(off)} time offsets for {counts[i]} points"
+            )
+        t_ns[starts[i] : starts[i] + counts[i]] = line_ts[i] + off
+    return t_ns
+
+
+def _encoder_arrays(col: _Collected) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    if col.enc_t_buf:
+        enc_t = np.frombuffer(b"".join(col.enc_t_buf), pb.TIME_DTYPE).astype(np.int64)
+        enc_c = np.frombuffer(b"".join(col.enc_c_buf), pb.TIME_DTYPE).astype(np.int64)
+    else:
+        enc_t = np.asarray(col.enc_t, dtype=np.int64)
+        enc_c = np.asarray(col.enc_c, dtype=np.int64)
     if len(enc_t) > 1 and np.any(np.diff(enc_t) < 0):
         order = np.argsort(enc_t, kind="stable")
         enc_t, enc_c = enc_t[order], enc_c[order]
-
-    return Recording(
-        path=p,
-        kind=str(info.get("kind", "")),
-        metadata=meta,
-        lidar_info=lidar_info,
-        counts_per_revolution=cpr,
-        encoder_direction=direction,
-        encoder_latency_s=latency,
-        line_timestamp_ns=line_ts,
-        line_index=line_index,
-        t_ns=t_ns,
-        azimuth_rad=azimuth,
-        range_m=range_m,
-        valid=valid,
-        intensity=intensity,
-        encoder_t_ns=enc_t,
-        encoder_count=enc_c,
-        turntable=col.turntable,
-        truncated=not col.clean,
-        line_point_period_ns=periods,
-        line_has_offsets=has_offsets,
-        attachments=col.attachments,
-    )
+    return enc_t, enc_c

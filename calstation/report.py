@@ -12,7 +12,7 @@ import datetime as dt
 import io
 import json
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 from sqlalchemy import select
@@ -21,7 +21,10 @@ from sqlalchemy.orm import Session
 from .db import PARAMS, Calibration, CubeCheckRecord, Run
 from .errors import DatabaseError
 
-EXPORT_FORMATS = ("yaml", "json", "urdf", "csv")
+if TYPE_CHECKING:
+    from .ros import Frames
+
+EXPORT_FORMATS = ("yaml", "json", "urdf", "csv", "tf", "ros2-yaml")
 
 
 def iso(t: dt.datetime | None) -> str | None:
@@ -141,10 +144,16 @@ def final_calibration(run: Run) -> Calibration:
     raise DatabaseError(f"run {run.id} has no calibration yet (status {run.status})")
 
 
-def export_calibration(run: Run, fmt: str) -> str:
+def export_calibration(
+    run: Run, fmt: str, *, parent: str = "lidar", frames: Frames | None = None
+) -> str:
     """The run's final calibration as ``yaml``, ``json`` (both loadable by
-    ``CalibrationResult.load``), ``urdf`` (an ``<origin>`` element) or ``csv`` (one header row and
-    one value row, floats written exactly)."""
+    ``CalibrationResult.load``), ``csv`` (one header row and one value row, floats written
+    exactly), or for ROS (:mod:`calstation.ros`): ``tf`` (``static_transform_publisher``
+    arguments, both directions), ``urdf`` (links and joints) or ``ros2-yaml`` (a
+    ``geometry_msgs/TransformStamped``). ``parent`` (``lidar`` or ``platform``) picks the
+    direction of the URDF joint and the TransformStamped; ``frames`` the frame ids."""
+    from . import ros
     from .frames import Extrinsics
     from .result import CalibrationResult
 
@@ -154,19 +163,31 @@ def export_calibration(run: Run, fmt: str) -> str:
         )
     cal = final_calibration(run)
     H = Extrinsics.from_dict(cal.params())
+    names = frames or ros.Frames()
+    title = (
+        f"calstation run {run.id}, station {run.station.name}: {cal.stage} calibration "
+        f"({cal.strategy}{', accepted' if cal.accepted else ''})"
+    )
+    if fmt == "tf":
+        return ros.tf_export(H, title, names)
     if fmt == "urdf":
-        return (
-            f"<!-- calstation run {run.id}, station {run.station.name}, {cal.strategy}: "
-            f"pose of the platform frame P in the lidar frame L -->\n{H.urdf_origin()}\n"
+        return ros.urdf_export(H, title, names, parent)
+    if fmt == "ros2-yaml":
+        created = cal.created_at
+        stamp = round(
+            (created if created.tzinfo else created.replace(tzinfo=dt.UTC)).timestamp() * 1e9
         )
+        return ros.ros2_yaml_export(H, title, stamp, names, parent)
     if fmt == "csv":
         buf = io.StringIO()
         header = ["run_id", "station", "stage", "strategy", "accepted", *PARAMS]
         header += [f"sigma_{p}" for p in PARAMS] + ["cost", "iterations"]
+        header += ["qx", "qy", "qz", "qw"]  # rotation of P in L, quaternion order x y z w
         row: list[Any] = [run.id, run.station.name, cal.stage, cal.strategy, cal.accepted]
         row += [repr(v) for v in cal.params().values()]
         row += ["" if s is None else repr(s) for s in cal.sigmas().values()]
         row += ["" if cal.cost is None else repr(cal.cost), cal.iterations]
+        row += [repr(float(q)) for q in H.as_quaternion()]
         writer = csv.writer(buf, lineterminator="\n")
         writer.writerow(header)
         writer.writerow(row)

@@ -35,7 +35,7 @@ from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from rich.markup import escape
@@ -63,6 +63,9 @@ from .observability import check_sigma
 from .operator import Operator
 from .recipe import LoadedRecipe, check_plugins, parse_recipe
 from .report import previous_accepted, run_brief, run_summary
+
+if TYPE_CHECKING:
+    from .frames import Extrinsics
 
 STEPS: tuple[str, ...] = (
     "preflight",
@@ -586,6 +589,7 @@ class Station:
         truth = _scene_truth(d.context)
         if truth is not None:
             metadata["truth"] = truth
+        calibration, source = self._latest_calibration()
         with (
             RecordingWriter(
                 path,
@@ -597,6 +601,8 @@ class Station:
                 station_id=self.recipe.station.id,
                 recipe=self.loaded,
                 metadata=metadata,
+                calibration=calibration,
+                calibration_source=source,
             ) as writer,
             self.ui.progress(f"{kind} scan") as progress,
         ):
@@ -677,6 +683,17 @@ class Station:
             run.error = None
             run.host = socket.gethostname()
             run.pid = os.getpid()
+
+    def _latest_calibration(self) -> tuple[Extrinsics | None, str]:
+        """The run's newest calibration (fine before initial) and its stage, for a recording's
+        static transform and cloud; (None, "") before the first one."""
+        from .frames import Extrinsics
+
+        for stage in ("fine", "initial"):
+            with suppress(StationError):
+                cal = self._stored_calibration(stage)
+                return Extrinsics.from_dict(cal.params()), stage
+        return None, ""
 
     def _stored_calibration(self, stage: str) -> Calibration:
         with self.db.session() as s:

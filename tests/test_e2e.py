@@ -127,6 +127,36 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
     )
     assert exported["H"] == stored["fine"]
     db.dispose()
+    _assert_well_known_schemas(run_dir, stored)
+
+
+def _assert_well_known_schemas(run_dir: Path, stored: dict[str, dict[str, float]]) -> None:
+    """The run's recordings list the foxglove schemas (read with the ``mcap`` package); the
+    spin and cube scans carry the calibration known when they started, and their cloud."""
+    from mcap.reader import make_reader
+
+    from calstation.messages import decode_frame_transform
+
+    for kind, calibration in (("static", None), ("spin", "initial"), ("cube", "fine")):
+        with open(run_dir / f"{kind}.mcap", "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            assert summary is not None and summary.statistics is not None
+            schemas = {sc.name for sc in summary.schemas.values()}
+            assert {"foxglove.LaserScan", "foxglove.FrameTransform",
+                    "foxglove.PointCloud"} <= schemas
+            counts = {summary.channels[cid].topic: n
+                      for cid, n in summary.statistics.channel_message_counts.items()}
+            static_tf = [m.data for _, _, m in reader.iter_messages(topics=["/tf_static"])]
+        assert counts["/lidar/scan"] == counts["/lidar/line"] > 0 and counts["/tf"] > 0
+        if calibration is None:
+            assert "/tf_static" not in counts and "/platter/cloud" not in counts
+            continue
+        assert counts["/platter/cloud"] == 1
+        tf = decode_frame_transform(static_tf[0])
+        H = Extrinsics.from_dict(stored[calibration])
+        assert (tf.parent, tf.child) == ("lidar", "platform")
+        assert tf.translation.tolist() == H.t.tolist()
 
 
 def test_sigkill_during_spin_scan_then_resume(tmp_path: Path) -> None:

@@ -138,30 +138,69 @@ def test_round_trip(tmp_path: Path) -> None:
         np.testing.assert_array_equal(got.valid, orig.valid)
 
 
-def test_file_is_plain_mcap_with_json(tmp_path: Path) -> None:
-    """Any MCAP reader sees the channels, JSON schemas and JSON-encoded metadata."""
+def test_file_is_plain_mcap_in_well_known_schemas(tmp_path: Path) -> None:
+    """Any MCAP reader sees the foxglove schemas, and a standard protobuf decoder decodes every
+    message to the values written (LaserScan bearings π/2 − α, NaN for invalid returns)."""
     from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
 
     path = tmp_path / "r.mcap"
-    with writer(path) as w:
-        w.write_line(make_line(0))
-        w.write_encoder([EncoderSample(T0, 1)])
+    line = make_line(0, intensity=True)
+    H = Extrinsics(0.01, 1.2, -0.003, 0.0, 0.002, -0.78)
+    with writer(path, calibration=H, calibration_source="fine") as w:
+        w.write_line(line)
+        w.write_encoder([EncoderSample(T0, 0), EncoderSample(T0 + 2_000_000, 1024)])
+        w.write_turntable(TurntableStatus(T0, TurntableState.MOVING, 20.0, None, ()))
     with open(path, "rb") as f:
-        reader = make_reader(f)
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
         assert summary is not None
+        schemas = {s.name: s.encoding for s in summary.schemas.values()}
+        assert {"foxglove.LaserScan", "foxglove.FrameTransform", "foxglove.PointCloud",
+                "calstation.LidarLineTiming", "calstation.EncoderSamples"} <= set(schemas)
+        assert schemas["foxglove.LaserScan"] == "protobuf"
         topics = {c.topic: c.message_encoding for c in summary.channels.values()}
-        assert topics == {"/lidar/line": "json", "/encoder/count": "json",
-                          "/turntable/status": "json"}
-        assert {s.encoding for s in summary.schemas.values()} == {"jsonschema"}
-        msgs = [(c.topic, m) for _, c, m in reader.iter_messages()]
+        assert topics["/lidar/scan"] == "protobuf" and topics["/turntable/status"] == "json"
+        decoded: dict[str, list[object]] = {}
+        for _, channel, _, proto in reader.iter_decoded_messages(
+            topics=["/lidar/scan", "/lidar/line", "/encoder/count", "/tf", "/tf_static",
+                    "/platter/cloud"]
+        ):
+            decoded.setdefault(channel.topic, []).append(proto)
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
-    topic, msg = msgs[0]
-    assert topic == "/lidar/line" and msg.log_time == T0
-    body = json.loads(msg.data)
-    assert body["count"] == 100
+    scan = decoded["/lidar/scan"][0]
+    assert scan.frame_id == "lidar"
+    assert scan.timestamp.ToNanoseconds() == T0
+    assert scan.start_angle == pytest.approx(np.pi / 2 - line.azimuth_rad[0])
+    assert scan.end_angle == pytest.approx(np.pi / 2 - line.azimuth_rad[-1])
+    ranges = np.array(scan.ranges)
+    np.testing.assert_array_equal(ranges[line.valid], line.range_m[line.valid])
+    assert np.isnan(ranges[~line.valid]).all()
+    np.testing.assert_array_equal(scan.intensities, line.intensity)
+    timing = decoded["/lidar/line"][0]
+    np.testing.assert_array_equal(timing.azimuth_rad, line.azimuth_rad)
+    np.testing.assert_array_equal(timing.valid, line.valid)
+    np.testing.assert_array_equal(timing.invalid_range_m, line.range_m[~line.valid])
+    assert timing.point_period_ns == line.point_period_ns
+    enc = decoded["/encoder/count"][0]
+    assert list(enc.count) == [0, 1024]
+    tf = decoded["/tf"][0]  # a quarter turn: 1024 of 4096 counts
+    assert (tf.parent_frame_id, tf.child_frame_id) == ("platform", "platter")
+    q = tf.rotation
+    np.testing.assert_allclose([q.x, q.y, q.z, q.w], [np.sin(np.pi / 4), 0, 0, np.cos(np.pi / 4)])
+    static = decoded["/tf_static"][0]
+    assert (static.parent_frame_id, static.child_frame_id) == ("lidar", "platform")
+    tr, q = static.translation, static.rotation
+    np.testing.assert_allclose([tr.x, tr.y, tr.z], H.t)
+    np.testing.assert_allclose([q.x, q.y, q.z, q.w], H.as_quaternion())
+    cloud = decoded["/platter/cloud"][0]
+    assert cloud.frame_id == "platter" and cloud.point_stride == 12
+    assert [f.name for f in cloud.fields] == ["x", "y", "z"]
+    assert len(cloud.data) == 12 * int(line.valid.sum())
     assert json.loads(meta["encoder"]["counts_per_revolution"]) == 4096
-    assert json.loads(meta["calstation"]["kind"]) == "spin"
+    assert json.loads(meta["calstation"]["format_version"]) == 2
+    assert json.loads(meta["calibration"]["source"]) == "fine"
+    assert read_recording(path).calibration == H
 
 
 def test_chunks_are_on_disk_while_writing(tmp_path: Path) -> None:
@@ -371,3 +410,49 @@ def test_bad_metadata_leaves_no_file(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match=r"metadata 'truth' key 'x' cannot be stored"):
         writer(path, metadata={"truth": {"x": object()}})
     assert not path.exists()
+
+
+def test_cloud_only_for_a_completed_scan_with_a_calibration(tmp_path: Path) -> None:
+    """The reconstructed cloud is written at the end of a scan that completed, decimated to
+    ``cloud_points``; a failed scan gets its ``aborted`` record and no cloud."""
+    from mcap.reader import make_reader
+
+    H = Extrinsics(0.01, 1.2, -0.003, 0.0, 0.002, -0.78)
+
+    def scan(path: Path, fail: bool) -> dict[str, int]:
+        try:
+            with writer(path, calibration=H, calibration_source="initial", cloud_points=500) as w:
+                w.write_encoder([EncoderSample(T0 - 1_000_000, 0)])
+                for i in range(20):
+                    w.write_line(make_line(i))
+                    w.write_encoder([EncoderSample(T0 + (i + 1) * 1_000_000, 10 * (i + 1))])
+                if fail:
+                    raise RuntimeError("lidar unplugged")
+        except RuntimeError:
+            pass
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+        assert summary is not None and summary.statistics is not None
+        return {summary.channels[c].topic: n
+                for c, n in summary.statistics.channel_message_counts.items()}
+
+    done = scan(tmp_path / "done.mcap", fail=False)
+    assert done["/platter/cloud"] == 1 and done["/tf_static"] == 1 and done["/lidar/scan"] == 20
+    rec = read_recording(tmp_path / "done.mcap")
+    assert rec.calibration == H and rec.metadata["calibration"]["source"] == "initial"
+    with open(tmp_path / "done.mcap", "rb") as f:
+        (msg,) = [m for _, _, m in make_reader(f).iter_messages(topics=["/platter/cloud"])]
+    from calstation.messages import point_cloud
+    from calstation.reconstruct import reconstruct
+
+    # every k-th point (valid or not) of the scan, k = ceil(2000 / 500), reconstructed
+    points = reconstruct(rec, H)
+    every_4th = np.zeros(rec.n_points, bool)
+    every_4th[::4] = True
+    want = points[every_4th[rec.valid]]
+    assert 0 < len(want) <= 500
+    assert msg.data == point_cloud(int(rec.t_ns[-1]), "platter", want)
+    failed = scan(tmp_path / "failed.mcap", fail=True)
+    assert "/platter/cloud" not in failed and failed["/lidar/scan"] == 20
+    assert read_recording(tmp_path / "failed.mcap").metadata["aborted"] == {
+        "error": "RuntimeError: lidar unplugged"}

@@ -25,6 +25,23 @@ app = typer.Typer(
 )
 
 
+OPTIONAL_PORT_OPTIONS = {"--foxglove": "8765"}
+"""Options whose value may be left out (``--foxglove`` alone means its default port)."""
+
+
+def optional_port(argv: list[str]) -> list[str]:
+    """``argv`` with the default value inserted after an option of
+    :data:`OPTIONAL_PORT_OPTIONS` that is not followed by a number (click has no optional
+    option values through typer)."""
+    out: list[str] = []
+    for i, arg in enumerate(argv):
+        out.append(arg)
+        default = OPTIONAL_PORT_OPTIONS.get(arg)
+        if default is not None and (i + 1 == len(argv) or not argv[i + 1].isdigit()):
+            out.append(default)
+    return out
+
+
 def _build() -> None:
     for info in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
@@ -58,7 +75,7 @@ def main(argv: list[str] | None = None) -> None:
     err = Console(stderr=True)
     try:
         _build()
-        app(args=argv)
+        app(args=optional_port(sys.argv[1:] if argv is None else argv))
     except CalstationError as exc:
         from rich.markup import escape
 

@@ -153,18 +153,35 @@ def register(app: typer.Typer) -> None:
     def export(
         run_id: int = typer.Argument(..., help="Run id."),
         fmt: str = typer.Option(
-            "yaml", "--format", "-f", help="yaml | json | urdf | csv (values in m, rad)."
+            "yaml", "--format", "-f",
+            help="yaml | json | csv | tf | urdf | ros2-yaml (values in m, rad; quaternions "
+            "x y z w). tf: static_transform_publisher arguments, both directions; urdf: links "
+            "and joints; ros2-yaml: a geometry_msgs/TransformStamped.",
         ),
+        parent: str = typer.Option(
+            "lidar", "--parent",
+            help="urdf, ros2-yaml: the parent frame, lidar (pose of P in L) or platform "
+            "(the inverse).",
+        ),
+        lidar_frame: str = typer.Option("lidar", "--lidar-frame", help="Frame id of L."),
+        platform_frame: str = typer.Option("platform", "--platform-frame", help="Frame id of P."),
+        platter_frame: str = typer.Option("platter", "--platter-frame", help="Frame id of D."),
         out: Path = typer.Option(None, "--out", "-o", help="Write to this file (default stdout)."),
         db: str = typer.Option(None, "--db", help=DB_HELP),
     ) -> None:
         """Export a run's final calibration (yaml/json load with `calibrate`/`verify`)."""
         from ..db import open_database
         from ..report import export_calibration, get_run
+        from ..ros import Frames
 
+        if parent not in ("lidar", "platform"):
+            raise typer.BadParameter(
+                f"parent must be 'lidar' or 'platform', got {parent!r}", param_hint="--parent"
+            )
+        frames = Frames(lidar_frame, platform_frame, platter_frame)
         database = open_database(db)
         with database.session() as s:
-            text = export_calibration(get_run(s, run_id), fmt)
+            text = export_calibration(get_run(s, run_id), fmt, parent=parent, frames=frames)
         database.dispose()
         if out is None:
             typer.echo(text, nl=False)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import getpass
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import typer
@@ -21,6 +23,24 @@ def _default_operator() -> str:
         return os.environ.get("CALSTATION_OPERATOR") or getpass.getuser()
     except Exception:
         return "unknown"
+
+
+@contextmanager
+def _live_view(port: int | None) -> Iterator[None]:
+    """The live view on ``port`` for the duration of the block (nothing when None)."""
+    if port is None:
+        yield
+        return
+    from rich.console import Console
+
+    from ..liveview import start_live_view
+
+    view = start_live_view(port)
+    Console(stderr=True).print(f"live view: open [bold]{view.url}[/] in Foxglove")
+    try:
+        yield
+    finally:
+        view.close()
 
 
 def register(app: typer.Typer) -> None:
@@ -45,6 +65,11 @@ def register(app: typer.Typer) -> None:
             help="Folder for run folders (default: $CALSTATION_HOME); "
             "recordings go to DATA_DIR/runs/RUN_ID/.",
         ),
+        foxglove: int | None = typer.Option(
+            None, "--foxglove", metavar="[PORT]",
+            help="Stream every scan live over the Foxglove WebSocket protocol on "
+            "127.0.0.1:PORT (default 8765); open ws://127.0.0.1:PORT in Foxglove.",
+        ),
     ) -> None:
         """Run a recipe on the station: guided (prompts) or unattended (--yes).
 
@@ -58,10 +83,11 @@ def register(app: typer.Typer) -> None:
         loaded = load_recipe(recipe)
         database = open_database(db)
         try:
-            _, status = start_run(
-                loaded, database, ConsoleOperator(unattended=yes),
-                operator=operator or _default_operator(), data_dir=data_dir,
-            )
+            with _live_view(foxglove):
+                _, status = start_run(
+                    loaded, database, ConsoleOperator(unattended=yes),
+                    operator=operator or _default_operator(), data_dir=data_dir,
+                )
         finally:
             database.dispose()
         raise typer.Exit(_exit_code(status))
@@ -76,6 +102,11 @@ def register(app: typer.Typer) -> None:
             help="Resume even if the run's recorded process still seems alive (or ran on "
             "another host).",
         ),
+        foxglove: int | None = typer.Option(
+            None, "--foxglove", metavar="[PORT]",
+            help="Stream every scan live over the Foxglove WebSocket protocol on "
+            "127.0.0.1:PORT (default 8765); open ws://127.0.0.1:PORT in Foxglove.",
+        ),
     ) -> None:
         """Continue a crashed or failed run at its first unfinished step, re-using its recordings.
 
@@ -87,7 +118,10 @@ def register(app: typer.Typer) -> None:
 
         database = open_database(db)
         try:
-            status = resume_run(run_id, database, ConsoleOperator(unattended=yes), force=force)
+            with _live_view(foxglove):
+                status = resume_run(
+                    run_id, database, ConsoleOperator(unattended=yes), force=force
+                )
         finally:
             database.dispose()
         raise typer.Exit(_exit_code(status))

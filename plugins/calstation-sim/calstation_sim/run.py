@@ -10,6 +10,7 @@ from typing import Any
 
 from calstation.acquisition import acquire_spin, acquire_static
 from calstation.errors import SimulationError
+from calstation.frames import PARAMETER_NAMES, Extrinsics
 from calstation.recipe import LoadedRecipe, SpinScanStep
 
 from .drivers import SimEncoder, SimLidar, SimTurntable
@@ -77,6 +78,8 @@ def simulate_run(
     r = recipe.recipe
     enc = r.station.encoder
     paths: dict[str, Path] = {}
+    truth = station.truth_dict()
+    truth_H = Extrinsics.from_dict({k: truth[k] for k in PARAMETER_NAMES})
     with _progress_bars(progress) as task:
         for kind, fixture in RECORDINGS:
             station.place(fixture)
@@ -92,6 +95,9 @@ def simulate_run(
                 station_id=r.station.id,
                 recipe=recipe,
                 metadata={"truth": station.truth_dict()},
+                # the true H gives the file its transform tree and cloud in a viewer
+                calibration=truth_H,
+                calibration_source="truth",
             ) as writer:
                 if kind == "static":
                     acquire_static(

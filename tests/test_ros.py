@@ -1,0 +1,182 @@
+"""ROS exports: tf, URDF and TransformStamped parsed back and checked against T_L_P, both ways."""
+
+from __future__ import annotations
+
+import datetime as dt
+import re
+import shlex
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from typer.testing import CliRunner
+
+from calstation import ros
+from calstation.cli import _build, app
+from calstation.db import Calibration, Run, Station, open_database
+from calstation.errors import CalstationError
+from calstation.frames import Extrinsics, euler_to_matrix, polar_to_lidar
+
+H = Extrinsics(0.0123456789, 1.2498765432, -0.0004321098, 0.0, 0.0012345678, -0.7856781234)
+
+angles = st.floats(-np.pi, np.pi, allow_nan=False)
+metres = st.floats(-2.0, 2.0, allow_nan=False)
+extrinsics = st.builds(
+    Extrinsics, metres, metres, metres, angles, st.floats(-1.5, 1.5), angles
+)
+
+
+def _matrix(t: list[float], q_xyzw: list[float]) -> np.ndarray:
+    return Extrinsics.from_quaternion(t, q_xyzw).as_matrix()
+
+
+def _publishers(text: str) -> dict[tuple[str, str], np.ndarray]:
+    """(parent, child) → 4×4 matrix of every ``static_transform_publisher`` line."""
+    out = {}
+    for line in text.splitlines():
+        if not line.startswith("ros2 run tf2_ros static_transform_publisher "):
+            continue
+        words = shlex.split(line)[4:]
+        args = dict(zip(words[::2], words[1::2], strict=True))
+        t = [float(args[f"--{k}"]) for k in ("x", "y", "z")]
+        q = [float(args[f"--q{k}"]) for k in ("x", "y", "z", "w")]
+        out[(args["--frame-id"], args["--child-frame-id"])] = _matrix(t, q)
+    return out
+
+
+def _urdf_joints(text: str) -> dict[str, ET.Element]:
+    root = ET.fromstring(f"<robot name='test'>{text}</robot>")
+    assert {link.get("name") for link in root.iter("link")} == {"lidar", "platform", "platter"}
+    return {j.get("name") or "": j for j in root.iter("joint")}
+
+
+def _origin(joint: ET.Element) -> np.ndarray:
+    origin = joint.find("origin")
+    assert origin is not None
+    xyz = [float(v) for v in (origin.get("xyz") or "").split()]
+    rpy = [float(v) for v in (origin.get("rpy") or "").split()]
+    T = np.eye(4)
+    T[:3, :3] = euler_to_matrix(*rpy)  # URDF: R = Rz(yaw)·Ry(pitch)·Rx(roll)
+    T[:3, 3] = xyz
+    return T
+
+
+@settings(max_examples=40, deadline=None)
+@given(extrinsics)
+def test_tf_export_both_directions(h: Extrinsics) -> None:
+    text = ros.tf_export(h, "test")
+    assert "quaternion order: x y z w" in text
+    tfs = _publishers(text)
+    T = h.as_matrix()
+    np.testing.assert_allclose(tfs[("lidar", "platform")], T, atol=1e-7)
+    np.testing.assert_allclose(tfs[("platform", "lidar")], np.linalg.inv(T), atol=1e-7)
+    np.testing.assert_allclose(tfs[("lidar", "platform")] @ tfs[("platform", "lidar")],
+                               np.eye(4), atol=1e-7)
+
+
+@settings(max_examples=40, deadline=None)
+@given(extrinsics, st.sampled_from(["lidar", "platform"]))
+def test_urdf_export_both_directions(h: Extrinsics, parent: str) -> None:
+    text = ros.urdf_export(h, "test", parent=parent)
+    assert "order x y z w" in text
+    joints = _urdf_joints(text)
+    child = "platform" if parent == "lidar" else "lidar"
+    joint = joints[f"{parent}_to_{child}"]
+    assert joint.get("type") == "fixed"
+    assert joint.find("parent").get("link") == parent  # type: ignore[union-attr]
+    assert joint.find("child").get("link") == child  # type: ignore[union-attr]
+    want = h.as_matrix() if parent == "lidar" else np.linalg.inv(h.as_matrix())
+    np.testing.assert_allclose(_origin(joint), want, atol=1e-7)
+    platter = joints["platform_to_platter"]
+    assert platter.get("type") == "continuous"
+    assert platter.find("axis").get("xyz") == "1 0 0"  # type: ignore[union-attr]
+    # the quaternion in the comment is the same rotation
+    (q,) = re.findall(r"order x y z w \(scalar last, as ROS and scipy\): ([^>]*) -->", text)
+    R = Extrinsics.from_quaternion([0, 0, 0], [float(v) for v in q.split()]).R
+    np.testing.assert_allclose(R, want[:3, :3], atol=1e-7)
+
+
+@pytest.mark.parametrize("parent", ["lidar", "platform"])
+def test_ros2_yaml_is_a_transform_stamped(parent: str) -> None:
+    text = ros.ros2_yaml_export(H, "test", 1_767_225_600_123_456_789, parent=parent)
+    assert "quaternion order: x y z w" in text
+    msg = yaml.safe_load(text)
+    assert msg["header"]["stamp"] == {"sec": 1_767_225_600, "nanosec": 123_456_789}
+    assert (msg["header"]["frame_id"], msg["child_frame_id"]) == (
+        (parent, "platform" if parent == "lidar" else "lidar")
+    )
+    tr, q = msg["transform"]["translation"], msg["transform"]["rotation"]
+    T = _matrix([tr["x"], tr["y"], tr["z"]], [q["x"], q["y"], q["z"], q["w"]])
+    want = H.as_matrix() if parent == "lidar" else np.linalg.inv(H.as_matrix())
+    np.testing.assert_allclose(T, want, atol=1e-8)
+
+
+def test_rep103_frames() -> None:
+    """lidar_link has x along the boresight and its bearings turn the ROS way (θ = −α);
+    turntable_link has z up the rotation axis."""
+    tfs = {(t.parent, t.child): t.matrix() for t in ros.rep103_transforms()}
+    T = tfs[("lidar", "lidar_link")]
+    rho, alpha = 1.3, np.radians([-30.0, 0.0, 20.0])
+    p_L = polar_to_lidar(np.full(3, rho), alpha)
+    p_link = (np.linalg.inv(T) @ np.c_[p_L, np.ones(3)].T).T[:, :3]
+    np.testing.assert_allclose(p_link[:, 0], rho * np.cos(-alpha), atol=1e-12)
+    np.testing.assert_allclose(p_link[:, 1], rho * np.sin(-alpha), atol=1e-12)
+    np.testing.assert_allclose(p_link[:, 2], 0.0, atol=1e-12)
+    for parent, child in (("platform", "turntable_link"), ("platter", "platter_link")):
+        R = tfs[(parent, child)][:3, :3]
+        np.testing.assert_allclose(R @ [0, 0, 1], [1, 0, 0], atol=1e-12)  # z = +X_P, the axis
+        assert np.isclose(np.linalg.det(R), 1.0)
+
+
+def test_bad_parent_and_frames() -> None:
+    with pytest.raises(CalstationError, match="parent must be 'lidar' or 'platform'"):
+        ros.lidar_platform(H, parent="world")
+    with pytest.raises(CalstationError, match="frame ids must differ"):
+        ros.Frames("a", "a", "b")
+    with pytest.raises(CalstationError, match="not a valid frame id"):
+        ros.Frames("my lidar")
+
+
+def test_export_cli_formats(tmp_path: Path) -> None:
+    """``calstation export --format tf|urdf|ros2-yaml`` on a stored run, with frame names."""
+    url = f"sqlite:///{tmp_path / 'ros.db'}"
+    db = open_database(url)
+    with db.session() as s:
+        run = Run(station=Station(name="st-ros"), recipe_name="r", recipe_path="r.yaml",
+                  recipe_text="name: r\n", recipe_sha256="ab" * 32, operator="qa",
+                  unattended=True, data_dir=str(tmp_path), status="passed",
+                  started_at=dt.datetime(2026, 3, 1, tzinfo=dt.UTC))
+        s.add(run)
+        s.flush()
+        s.add(Calibration(run=run, stage="fine", strategy="periodicity", **H.as_dict(),
+                          accepted=True, created_at=dt.datetime(2026, 3, 1, 9, tzinfo=dt.UTC)))
+        s.flush()
+        run_id = run.id
+    db.dispose()
+    _build()
+    runner = CliRunner()
+
+    def export(*args: str) -> str:
+        res = runner.invoke(app, ["export", str(run_id), "--db", url, *args])
+        assert res.exit_code == 0, res.output
+        return res.output
+
+    tfs = _publishers(export("--format", "tf", "--lidar-frame", "laser",
+                             "--platform-frame", "turntable"))
+    np.testing.assert_allclose(tfs[("laser", "turntable")], H.as_matrix(), atol=1e-8)
+    np.testing.assert_allclose(tfs[("turntable", "laser")], np.linalg.inv(H.as_matrix()),
+                               atol=1e-8)
+    joint = _urdf_joints(export("--format", "urdf", "--parent", "platform"))["platform_to_lidar"]
+    np.testing.assert_allclose(_origin(joint), np.linalg.inv(H.as_matrix()), atol=1e-8)
+    msg = yaml.safe_load(export("--format", "ros2-yaml"))
+    assert msg["header"]["stamp"]["sec"] == int(
+        dt.datetime(2026, 3, 1, 9, tzinfo=dt.UTC).timestamp()
+    )
+    assert "qx,qy,qz,qw" in export("--format", "csv").splitlines()[0]
+    res = runner.invoke(app, ["export", str(run_id), "--db", url, "--format", "urdf",
+                              "--parent", "world"])
+    assert res.exit_code == 2 and "parent must be 'lidar' or 'platform'" in res.output
