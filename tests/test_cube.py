@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from calstation.cube import check_cube, check_cube_points, fit_plane
+from calstation.cube import check_cube, check_cube_points
 from calstation.errors import VerificationError
 from calstation.frames import Extrinsics
+from calstation.geometry import fit_plane
 from calstation.recipe import Recipe, load_recipe
 from calstation.recording import Recording, read_recording
 

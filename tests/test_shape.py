@@ -10,19 +10,19 @@ import pytest
 
 from calstation.errors import FineTuningError
 from calstation.frames import Extrinsics
-from calstation.metrics import axis_errors
-from calstation.recipe import Recipe, load_recipe
-from calstation.recording import Recording, read_recording
-from calstation.result import CalibrationResult
-from calstation.shape import (
+from calstation.geometry import (
     face_labels,
     largest_cluster,
     minimal_obb,
     radius_outlier_mask,
-    shape_fine_tune,
     signed_face_distances,
     upright_box,
 )
+from calstation.metrics import axis_errors
+from calstation.recipe import Recipe, load_recipe
+from calstation.recording import Recording, read_recording
+from calstation.result import CalibrationResult
+from calstation.shape import shape_fine_tune
 
 
 def _cube_surface(s: float, yaw: float, n: int, noise: float, seed: int = 0) -> np.ndarray:
