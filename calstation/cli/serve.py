@@ -53,6 +53,8 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"calstation station: http://{shown}:{port}/  (recipes from {recipes}, "
                    f"runs in {folder}/runs; Ctrl-C to stop)", err=True)
         try:
-            uvicorn.run(application, host=host, port=port, log_level="warning")
+            # live pages keep an event stream open: do not wait for browsers to hang up
+            uvicorn.run(application, host=host, port=port, log_level="warning",
+                        timeout_graceful_shutdown=3)
         finally:
             database.dispose()

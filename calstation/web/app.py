@@ -39,6 +39,7 @@ from .templating import environment
 
 STATIC = Path(__file__).parent / "static"
 EVENT_KEEPALIVE_S = 15.0
+EVENT_MIN_PERIOD_S = 0.2
 
 
 def create_app(
@@ -154,6 +155,8 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
                     version = current
                     waited = 0.0
                     yield f"event: state\ndata: {json.dumps(runner.live.snapshot())}\n\n"
+                    # coalesce bursts (progress, lidar lines): a page needs a few frames a second
+                    await asyncio.sleep(EVENT_MIN_PERIOD_S)
                 else:
                     waited += 1.0
                     if waited >= EVENT_KEEPALIVE_S:

@@ -39,6 +39,9 @@ LINE_PREVIEW_PERIOD_S = 0.2
 LINE_PREVIEW_POINTS = 400
 """Points of the live lidar line (a subsample of the line's valid returns)."""
 
+PROGRESS_STEP = 0.01
+"""Progress is published when its fraction moved by this much (or its phase changed)."""
+
 LOG_LINES = 60
 
 MAX_RETRIES = 3
@@ -123,6 +126,9 @@ class LiveState:
         def end(st: LiveState) -> None:
             st.status, st.result, st.error = status, result, error
             st.prompt = st.progress = None
+            for step in st.steps.values():
+                if step["status"] == "running":  # the step the run was aborted (or died) in
+                    step["status"] = "aborted" if status == "aborted" else "failed"
         self.update(end)
 
     # --- prompts ---------------------------------------------------------------------------
@@ -214,6 +220,7 @@ class WebOperator:
         self.live = live
         self.recipe = recipe
         self._last_line = 0.0
+        self._lines = 0
 
     # --- the Operator protocol -------------------------------------------------------------
     def info(self, message: str) -> None:
@@ -257,9 +264,17 @@ class WebOperator:
     @contextmanager
     def progress(self, title: str) -> Iterator[Callable[[str, float], None]]:
         """Progress of one long step, in words and a fraction; checks for an abort."""
+        shown: dict[str, Any] = {"phase": None, "fraction": -1.0, "at": 0.0}
+
         def update(phase: str, fraction: float) -> None:
             self._check_abort()
             frac = max(0.0, min(1.0, float(fraction))) if math.isfinite(fraction) else 0.0
+            now = time.monotonic()
+            # steps report progress per line: publish only what a person can see change
+            if (phase == shown["phase"] and abs(frac - shown["fraction"]) < PROGRESS_STEP
+                    and now - shown["at"] < LINE_PREVIEW_PERIOD_S):
+                return
+            shown.update(phase=phase, fraction=frac, at=now)
             self.live.update(lambda st: setattr(
                 st, "progress", {"title": title, "phase": phase, "fraction": frac}))
 
@@ -304,6 +319,8 @@ class WebOperator:
         if now - self._last_line < LINE_PREVIEW_PERIOD_S:
             return
         self._last_line = now
+        self._lines += 1
+        seq = self._lines
         valid = np.asarray(line.valid, dtype=bool)
         rho = np.asarray(line.range_m)[valid]
         alpha = np.asarray(line.azimuth_rad)[valid]
@@ -314,7 +331,8 @@ class WebOperator:
         x = np.round(rho * np.sin(alpha) * 1000.0, 1).tolist()
         y = np.round(rho * np.cos(alpha) * 1000.0, 1).tolist()
         self.live.update(lambda st: setattr(
-            st, "line", {"kind": kind, "x_mm": x, "y_mm": y, "points": int(valid.sum())}))
+            st, "line", {"seq": seq, "kind": kind, "x_mm": x, "y_mm": y,
+                         "points": int(valid.sum())}))
 
 
 class Runner:

@@ -68,6 +68,8 @@
     if (box.getAttribute("data-prompt") === String(p.id)) { return; }
     box.setAttribute("data-prompt", String(p.id));
     box.setAttribute("data-kind", p.kind);
+    box.setAttribute("data-fixture", p.fixture || "");
+    box.setAttribute("data-step", p.step || "");
     $("prompt-title").textContent = p.kind === "failure" ? "Step " + p.step + " failed" : "Place the fixture";
     $("prompt-text").textContent = p.text;
     $("prompt-error").hidden = !p.error;
@@ -83,6 +85,8 @@
     var el = $("line-plot");
     if (!line || !busy || !window.Plotly) { el.hidden = !line || !busy; return; }
     el.hidden = false;
+    if (el.getAttribute("data-seq") === String(line.seq)) { return; }
+    el.setAttribute("data-seq", String(line.seq));
     var data = [{x: line.x_mm, y: line.y_mm, mode: "markers", type: "scattergl",
                  marker: {size: 3, color: "#0969da"}, name: "returns"}];
     var layout = {title: {text: "live lidar line (" + line.kind + " scan, " + line.points + " returns)"},
