@@ -49,6 +49,21 @@ FIXTURE_PROMPTS: dict[str, str] = {
 }
 
 
+STEP_HINTS: dict[str, str] = {
+    "preflight": "Check that the lidar is powered and connected, that the platter turns freely "
+    "and that the encoder is connected, then retry.",
+    "static_scan": "Check the L-target: base plate toward the lidar, the corner of base and wall "
+    "over the platter centre, nothing between it and the lidar; then retry.",
+    "spin_scan": "Check that the platter turns and nothing touches the spin target, then retry "
+    "(the scan is taken again).",
+    "fine_tune": "Check that the spin target stood on the platter, fully in view, during the "
+    "spin scan; retry runs the fine-tuning again on the same recording.",
+    "cube_scan": "Check that the QA cube stands on one face, fully in view, and nothing touches "
+    "it; then retry (the scan is taken again).",
+    "report": "Check the free disk space and the database connection, then retry.",
+}
+"""What the operator can do about a failed step (shown beside its error)."""
+
 EVENT_KINDS: tuple[str, ...] = ("step_started", "step_finished", "lidar_line")
 """What :class:`StationEvent` s a station publishes (prompts, progress and the final summary
 are the :class:`Operator` methods of the same names)."""
@@ -155,9 +170,11 @@ class ConsoleOperator:
 
     def on_failure(self, step: str, error: str, attempt: int) -> Decision:
         """Show the error; ask retry/abort (unattended: abort)."""
+        hint = STEP_HINTS.get(step)
         self.console.print(
             Panel(
-                escape(error), title=f"step {step} failed (attempt {attempt})", border_style="red"
+                escape(error) + (f"\n[dim]{escape(hint)}[/]" if hint else ""),
+                title=f"step {step} failed (attempt {attempt})", border_style="red",
             )
         )
         if self.unattended or attempt > self.max_retries:

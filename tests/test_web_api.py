@@ -93,7 +93,7 @@ def test_a_run_from_the_api_to_its_report(
         run_id = r.json()["run_id"]
         prompt = wait_prompt(client)
         assert prompt["fixture"] == "static_target" and prompt["answers"] == ["continue", "abort"]
-        assert "<svg" in prompt["svg"] and "lidar side" in prompt["svg"]
+        assert "<svg" in prompt["svg"] and "the scan line" in prompt["svg"]
         final = finish(client, headers)
         status = run_status(db, run_id)
         assert final["status"] == status and status in ("passed", "failed")

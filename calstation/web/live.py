@@ -30,7 +30,7 @@ from rich.text import Text
 
 from ..db import Database, Run
 from ..errors import CalstationError, StationError
-from ..operator import FIXTURE_PROMPTS, Decision, StationEvent
+from ..operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
 from ..station import STEPS, AbortRun, Station, create_run, resume_run
 
 LINE_PREVIEW_PERIOD_S = 0.2
@@ -254,9 +254,10 @@ class WebOperator:
         allowed: tuple[str, ...] = ("retry", "abort") if attempt <= MAX_RETRIES else ("abort",)
         answer = self.live.ask(
             {"kind": "failure", "step": step, "error": error, "attempt": attempt,
-             "text": f"Step {step} failed (attempt {attempt}). Fix the cause shown below, then "
-                     "retry the step, or abort the run."
-                     + ("" if "retry" in allowed else f" ({MAX_RETRIES} retries used.)")},
+             "text": f"Step {step} failed (attempt {attempt}). "
+                     + STEP_HINTS.get(step, "Fix the cause shown below, then retry the step.")
+                     + (" Or abort the run." if "retry" in allowed
+                        else f" {MAX_RETRIES} retries are used up: abort the run.")},
             allowed,
         )
         return "retry" if answer == "retry" else "abort"
@@ -303,6 +304,7 @@ class WebOperator:
             def finished(st: LiveState) -> None:
                 st.steps[d["step"]].update(status=d["status"], attempt=d["attempt"],
                                            error=d.get("error"))
+                st.progress = None
             self.live.update(finished)
         elif event.kind == "lidar_line":
             self._preview(d["kind"], d["line"])

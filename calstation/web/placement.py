@@ -105,8 +105,9 @@ def placement_svg(platter_radius: float, geom: Any, title: str) -> str:
         f'<circle cx="{cx}" cy="{cy}" r="3" fill="#57606a"/>',
         f'<polygon points="{cx - 10},{SIZE - 4} {cx + 10},{SIZE - 4} {cx},{SIZE - 20}" '
         'fill="#cf222e"/>',
-        f'<text x="{cx + 14}" y="{SIZE - 6}" font-size="12" fill="#cf222e">lidar side '
-        '(scan line dashed)</text>',
+        f'<text x="{cx + 14}" y="{SIZE - 6}" font-size="12" fill="#cf222e">lidar</text>',
+        f'<text x="{SIZE - 6}" y="16" font-size="11" fill="#cf222e" text-anchor="end">'
+        "dashed: the scan line</text>",
     ]
     colours = {"base": "#b6e3ff", "wall": "#0969da", "body": "#fff8c5"}
     for outline in fixture_outlines(geom):
@@ -115,8 +116,9 @@ def placement_svg(platter_radius: float, geom: Any, title: str) -> str:
         if outline["role"] == "mark" or len(pts) == 1:
             x, y = pts[0]
             parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="4" fill="#8250df"/>')
-            anchor = "end" if x > cx else "start"
-            dx = -7 if x > cx else 7
+            # labels point away from the centre, so the two ends of a target do not collide
+            anchor = "start" if x >= cx else "end"
+            dx = 7 if x >= cx else -7
             parts.append(f'<text x="{x + dx:.1f}" y="{y - 6:.1f}" font-size="11" '
                          f'text-anchor="{anchor}" fill="#8250df">{label}</text>')
             continue

@@ -168,14 +168,17 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
         "marker": {"size": 8, "color": ["#cf222e" if p["flagged"] else "#0969da" for p in pts]},
     }]
     if t["limit_kind"] == "drift" and len(pts) > 1:
-        # the allowed band: the previous value ± the drift limit
-        upper = [None] + [(a["value"] + b["limit"]) * k for a, b in itertools.pairwise(pts)]
-        lower = [None] + [(a["value"] - b["limit"]) * k for a, b in itertools.pairwise(pts)]
-        data.append({"type": "scatter", "mode": "lines", "name": "drift limit", "x": dates,
-                     "y": upper, "line": {"dash": "dot", "color": "#1a7f37", "shape": "hv"}})
-        data.append({"type": "scatter", "mode": "lines", "name": "drift limit (low)",
-                     "x": dates, "y": lower, "showlegend": False,
-                     "line": {"dash": "dot", "color": "#1a7f37", "shape": "hv"}})
+        # the allowed band of each run: the previous value ± the drift limit
+        for sign, name in ((1.0, "drift limit"), (-1.0, None)):
+            xs: list[Any] = []
+            ys: list[Any] = []
+            for a, b in itertools.pairwise(pts):
+                level = (a["value"] + sign * b["limit"]) * k
+                xs += [a["date"], b["date"], None]
+                ys += [level, level, None]
+            data.append({"type": "scatter", "mode": "lines", "name": name or "", "x": xs,
+                         "y": ys, "showlegend": name is not None, "hoverinfo": "skip",
+                         "line": {"dash": "dot", "color": "#1a7f37"}})
     elif t["limit_kind"] == "cube" and pts:
         data.append({"type": "scatter", "mode": "lines", "name": "limit", "x": dates,
                      "y": [p["limit"] * k for p in pts], "line": {"dash": "dash",

@@ -49,7 +49,7 @@
     $("abort-button").hidden = !s.busy;
     renderPrompt(s.prompt);
     var p = s.progress;
-    $("progress").hidden = !p || !s.busy;
+    $("progress").hidden = !p || !s.busy || !!s.prompt;
     if (p) {
       $("progress-text").textContent = p.title + (p.phase ? ": " + p.phase : "") + " — " + Math.round(p.fraction * 100) + " %";
       $("progress-bar").value = p.fraction;
