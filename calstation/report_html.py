@@ -365,6 +365,7 @@ def report_data(db: Database, run_id: int, *, views: bool = True) -> dict[str, A
         "steps": step_rows(summary["steps"]),
         "artifacts": summary["artifacts"],
         "drift": _drift_of(summary),
+        "qa": qa.model_dump() if qa is not None else None,
         "views": [],
         "figures": {},
         "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),

@@ -198,14 +198,19 @@ def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
 
     rows: list[dict[str, Any]] = []
     fa, fb = a.get("final"), b.get("final")
+    qa_b = b.get("qa") or {}
     for p in PARAMS:
         va = display_value(p, fa["H"][p]) if fa else None
         vb = display_value(p, fb["H"][p]) if fb else None
         sa = display_value(p, fa["sigma"][p]) if fa else None
         sb = display_value(p, fb["sigma"][p]) if fb else None
+        # the drift limit of B's recipe: how far a station may move between calibrations
+        limit = (qa_b.get("drift_translation", math.nan) * 1000.0 if p.startswith("t")
+                 else qa_b.get("drift_rotation_deg"))
+        diff = None if va is None or vb is None else vb - va
         rows.append({"name": p, "unit": "mm" if p.startswith("t") else "°", "a": va, "b": vb,
-                     "sigma_a": sa, "sigma_b": sb,
-                     "diff": None if va is None or vb is None else vb - va})
+                     "sigma_a": sa, "sigma_b": sb, "diff": diff, "limit": limit,
+                     "flagged": diff is not None and limit is not None and abs(diff) > limit})
     ra = {r["name"]: r for r in a.get("cube_rows") or []}
     rb = {r["name"]: r for r in b.get("cube_rows") or []}
     for name in list(ra) or list(rb):
@@ -214,5 +219,6 @@ def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
         rows.append({"name": name, "unit": x.get("unit") or y.get("unit"), "a": va, "b": vb,
                      "sigma_a": None, "sigma_b": None,
                      "diff": None if va is None or vb is None else vb - va,
-                     "limit": x.get("limit") or y.get("limit")})
+                     "limit": x.get("limit") or y.get("limit"),
+                     "flagged": y.get("ok") is False})
     return rows
