@@ -8,8 +8,9 @@ renders the same template with plotly served from its own ``/static``.
 
 What it holds: the verdict, H with its 1σ (mm, degrees), every measured value of the cube check
 beside its limit, interactive subsampled 3D views of the reconstructed spin target (coloured by
-half-turn) and cube (coloured by residual: the distance to the nearest point of the other
-half-turn), the residual histogram, the cost per iteration when the strategy reports it, the
+half-turn; its residual is the distance to the nearest point of the other half-turn) and cube
+(coloured by residual: the distance to the plane through its nearest points), the residual
+histogram, the cost per iteration when the strategy reports it, the
 steps with their timings and the recordings with their sha256. A print stylesheet keeps it
 readable on paper (the 3D views print as the browser draws them; every number is in a table).
 """
@@ -117,15 +118,42 @@ def half_turn_residuals(
     return out
 
 
+def local_plane_residuals(points: NDArray[np.float64], k: int = 20) -> NDArray[np.float64]:
+    """Distance (m) of each point to the plane fitted (PCA) to its ``k`` nearest neighbours.
+
+    Small on a flat, well reconstructed face (the range noise); large at mixed pixels and where
+    a wrong H smears a face. Used for the cube, whose vertical faces each half-turn sees from
+    a different side (so a half-turn distance would mean nothing there).
+    """
+    from scipy.spatial import cKDTree
+
+    n = points.shape[0]
+    if n <= k:
+        return np.full(n, np.inf)
+    _, idx = cKDTree(points).query(points, k=k)
+    nb = points[idx]  # (N, k, 3)
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    _, vecs = np.linalg.eigh(cov)
+    normal = vecs[:, :, 0]  # the smallest eigenvalue's vector
+    out: NDArray[np.float64] = np.abs(
+        np.einsum("ni,ni->n", points - nb.mean(axis=1), normal))
+    return out
+
+
 def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> dict[str, Any]:
-    """One 3D view and its residual statistics, as plain data for the template."""
+    """One 3D view and its residual statistics, as plain data for the template.
+
+    ``by``: ``"half-turn"`` (colour by half-turn; residual = distance to the other half-turn)
+    or ``"plane"`` (colour by the distance to the local plane, which is also the residual).
+    """
     rng = _rng()
     points, first = reconstructed_object(path, H, platter_radius)
-    if points.shape[0] < 10:
+    if points.shape[0] < 30:
         return {"title": title, "error": f"only {points.shape[0]} points above the platter"}
     pick = _subsample(points.shape[0], MAX_RESIDUAL_POINTS * 2, rng)
     pts, fst = points[pick], first[pick]
-    residual = half_turn_residuals(pts, fst)
+    residual = half_turn_residuals(pts, fst) if by == "half-turn" else local_plane_residuals(pts)
     show = _subsample(pts.shape[0], MAX_CLOUD_POINTS, rng)
     finite = residual[np.isfinite(residual)] * 1000.0
     cloud = Cloud(
@@ -140,6 +168,9 @@ def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> di
         "points": int(points.shape[0]),
         "shown": int(show.shape[0]),
         "figure": _cloud_figure(cloud),
+        "residual_kind": ("distance to the nearest point of the other half-turn"
+                          if by == "half-turn" else
+                          "distance to the plane through the 20 nearest points"),
         "residual": {
             "median_mm": float(np.median(finite)) if finite.size else None,
             "p95_mm": float(np.percentile(finite, 95)) if finite.size else None,
@@ -202,7 +233,7 @@ def _histogram_figure(clouds: list[dict[str, Any]]) -> dict[str, Any] | None:
         "data": traces,
         "layout": {
             "barmode": "overlay", "height": 300, "margin": {"l": 50, "r": 10, "t": 30, "b": 40},
-            "title": {"text": "residuals: distance to the other half-turn"},
+            "title": {"text": "residuals (see each view for what they measure)"},
             "xaxis": {"title": {"text": "mm"}, "range": [0, max(
                 2.0, *(4.0 * (c["residual"]["median_mm"] or 0)
                        for c in clouds if c.get("residual")))]},
@@ -236,7 +267,7 @@ def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
             "xaxis": {"title": {"text": "outer iteration"}, "dtick": 1},
             "yaxis": {"title": {"text": "RMS residual (mm)"}, "type": "log"},
             "yaxis2": {"title": {"text": "matches"}, "overlaying": "y", "side": "right",
-                       "nticks": 5, "rangemode": "tozero"},
+                       "type": "linear", "nticks": 5, "rangemode": "tozero"},
             "legend": {"orientation": "h"},
         },
     }
@@ -396,7 +427,8 @@ def _views(artifacts: list[dict[str, Any]], H: Any, radius: float) -> list[dict[
     newest = {a["kind"]: a for a in artifacts}
     views = []
     for kind, title, by in (("spin", "spin target (coloured by half-turn)", "half-turn"),
-                            ("cube", "QA cube (coloured by residual)", "residual")):
+                            ("cube", "QA cube (coloured by residual to the local plane)",
+                             "plane")):
         art = newest.get(kind)
         if art is None:
             continue

@@ -328,3 +328,25 @@ def test_placement_picture_follows_the_recipe_geometry(tmp_path: Path) -> None:
     corners = [tuple(map(float, p.split(","))) for p in pts.group(1).split()]
     # a 45° cube has its corners on the axes: one straight above the centre
     assert min(abs(cx - SIZE / 2) for cx, _ in corners) < 0.2
+
+
+def test_a_run_left_running_by_a_stopped_server_is_resumed_from_the_page(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    from calstation.recipe import load_recipe
+    from calstation.station import create_run
+
+    with make_client(tmp_path, db) as client:
+        # a run the server created and then lost (killed before any step finished)
+        run_id = create_run(load_recipe(tmp_path / "recipes" / "lean.yaml"), db, operator="ann",
+                            unattended=False, data_dir=tmp_path / "data")
+        headers = csrf_of(client)
+        page = client.get("/")
+        assert f'action="/api/resume/{run_id}"' in page.text
+        r = client.post(f"/api/resume/{run_id}", headers=headers)
+        assert r.status_code == 201, r.text
+        assert client.post(f"/api/resume/{run_id}", headers=headers).status_code == 409
+        final = finish(client, headers)
+        assert final["run_id"] == run_id and final["status"] == run_status(db, run_id)
+        assert [s[0] for s in steps_of(db, run_id)][:2] == ["preflight", "place_static_target"]
+        assert f'action="/api/resume/{run_id}"' not in client.get("/").text
