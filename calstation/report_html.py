@@ -253,22 +253,19 @@ def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
     if not costs or any(c is None for c in costs):
         return None
     rms = [math.sqrt(float(c)) * 1000.0 for c in costs if c is not None]
-    matches = [h.get("matches") for h in history]
+    labels = [
+        f"stage {h.get('stage', '?')}, {h.get('matches', '?')} matches" for h in history
+    ]
     return {
         "data": [
             {"type": "scatter", "mode": "lines+markers", "name": "RMS residual (mm)",
-             "x": list(range(1, len(rms) + 1)), "y": rms},
-            {"type": "bar", "name": "matches", "x": list(range(1, len(rms) + 1)),
-             "y": matches, "yaxis": "y2", "opacity": 0.3},
+             "x": list(range(1, len(rms) + 1)), "y": rms, "text": labels},
         ],
         "layout": {
-            "height": 300, "margin": {"l": 50, "r": 50, "t": 30, "b": 40},
-            "title": {"text": "cost per iteration"},
+            "height": 300, "margin": {"l": 50, "r": 20, "t": 30, "b": 40},
+            "title": {"text": "cost per iteration (RMS residual; stage and matches on hover)"},
             "xaxis": {"title": {"text": "outer iteration"}, "dtick": 1},
             "yaxis": {"title": {"text": "RMS residual (mm)"}, "type": "log"},
-            "yaxis2": {"title": {"text": "matches"}, "overlaying": "y", "side": "right",
-                       "type": "linear", "nticks": 5, "rangemode": "tozero"},
-            "legend": {"orientation": "h"},
         },
     }
 

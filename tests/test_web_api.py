@@ -350,3 +350,9 @@ def test_a_run_left_running_by_a_stopped_server_is_resumed_from_the_page(
         assert final["run_id"] == run_id and final["status"] == run_status(db, run_id)
         assert [s[0] for s in steps_of(db, run_id)][:2] == ["preflight", "place_static_target"]
         assert f'action="/api/resume/{run_id}"' not in client.get("/").text
+        with db.session() as s:
+            run = s.get(Run, run_id)
+            assert run is not None
+            run.status = "passed"  # whatever its cube said: a passed run is never resumed
+        r = client.post(f"/api/resume/{run_id}", headers=headers)
+        assert r.status_code == 400 and "already passed" in r.json()["error"]

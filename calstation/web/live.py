@@ -31,7 +31,14 @@ from rich.text import Text
 from ..db import Database, Run
 from ..errors import CalstationError, StationError
 from ..operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
-from ..station import STEPS, AbortRun, Station, create_run, resume_run
+from ..station import (
+    STEPS,
+    AbortRun,
+    Station,
+    _check_not_running_elsewhere,
+    create_run,
+    resume_run,
+)
 
 LINE_PREVIEW_PERIOD_S = 0.2
 """At most this often the live lidar line is refreshed (the lidar gives ~1000 lines/s)."""
@@ -401,6 +408,10 @@ class Runner:
                 run = s.get(Run, run_id)
                 if run is None:
                     raise StationError(f"no run {run_id} in the database")
+                if run.status == "passed":
+                    raise StationError(f"run {run_id} already passed; nothing to resume")
+                # refused here, with its reason, rather than in the run's thread
+                _check_not_running_elsewhere(run, force)
                 recipe = parse_recipe(run.recipe_text, f"recipe of run {run_id}")
                 operator = run.operator
             self.live.begin(run_id, recipe.name, operator, None)

@@ -66,7 +66,7 @@ def load_token(token_file: Path | None = None) -> str | None:
         source = str(path)
     if len(token) < 12:
         raise CalstationError(f"the station token from {source} is too short: use at least 12 "
-                              "characters (e.g. `python -m secrets` or `openssl rand -hex 16`)")
+                              "characters (e.g. from `openssl rand -hex 16`)")
     return token
 
 
