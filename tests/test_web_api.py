@@ -356,3 +356,46 @@ def test_a_run_left_running_by_a_stopped_server_is_resumed_from_the_page(
             run.status = "passed"  # whatever its cube said: a passed run is never resumed
         r = client.post(f"/api/resume/{run_id}", headers=headers)
         assert r.status_code == 400 and "already passed" in r.json()["error"]
+
+
+def test_calstation_serve_prints_its_address_and_serves(tmp_path: Path) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import httpx
+    from webstation import free_port
+
+    port = free_port()
+    (tmp_path / "recipes").mkdir()
+    lean_recipe(tmp_path / "recipes")
+    env = {**os.environ, "CALSTATION_HOME": str(tmp_path / "home")}
+    env.pop("CALSTATION_TOKEN", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from calstation.cli import main; main()", "serve",
+         "--port", str(port), "--recipes", str(tmp_path / "recipes"),
+         "--db", f"sqlite:///{tmp_path / 'serve.db'}"],
+        env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert f"http://127.0.0.1:{port}/" in line
+        state = wait_until(lambda: _get(httpx, f"http://127.0.0.1:{port}/state.json"), timeout=30)
+        assert state["status"] == "idle" and state["recipes"] == ["lean.yaml"]
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+    # a network address without a token: refused before listening
+    bad = subprocess.run(
+        [sys.executable, "-c", "from calstation.cli import main; main()", "serve",
+         "--host", "0.0.0.0", "--port", str(port), "--db", f"sqlite:///{tmp_path / 'serve.db'}"],
+        env=env, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "needs a station token" in bad.stderr
+
+
+def _get(httpx: Any, url: str) -> Any:
+    try:
+        return httpx.get(url, timeout=2).json()
+    except httpx.HTTPError:
+        return None

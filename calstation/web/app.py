@@ -62,7 +62,8 @@ def create_app(
         if runner.abort("the web station was stopped"):
             await asyncio.to_thread(runner.join, 30.0)
 
-    app = FastAPI(title="calstation station", lifespan=lifespan, docs_url="/api/docs",
+    # no Swagger UI: it loads its scripts from a CDN, and the station has no internet
+    app = FastAPI(title="calstation station", lifespan=lifespan, docs_url=None,
                   redoc_url=None, openapi_url="/api/openapi.json")
     app.state.runner = runner
     app.state.guard = guard
