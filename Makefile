@@ -1,5 +1,7 @@
 # calstation — set-up, the main job and the tests.
-#   make demo   set everything up, then run a full guided calibration on the simulated station
+#   make demo   set everything up, then start the web station on the simulated station and print
+#               its URL (open it, start a run, click through the prompts)
+#   make demo-console   the same run in the terminal, unattended
 #   make test   set everything up, then run the test suite, ruff and mypy
 PYTHON ?= python3
 VENV   ?= .venv
@@ -8,7 +10,7 @@ PLUGIN_DIRS := $(sort $(dir $(wildcard plugins/*/pyproject.toml)))
 STAMP  := $(VENV)/.calstation-installed
 OUT    ?= out
 
-.PHONY: setup system-deps demo test lint bench clean
+.PHONY: setup system-deps demo demo-console test lint bench clean
 
 setup: $(STAMP)
 
@@ -25,8 +27,13 @@ $(STAMP): pyproject.toml $(wildcard plugins/*/pyproject.toml) Makefile
 system-deps:
 	@bash scripts/system-deps.sh
 
-# The guided run on the simulated station, unattended; its database and run folders go to $(OUT).
+# The web station on the simulated station (http://127.0.0.1:8470/, Ctrl-C stops it); its
+# database and run folders go to $(OUT).
 demo: setup
+	CALSTATION_HOME=$(abspath $(OUT)) $(BIN)/calstation serve --recipes recipes
+
+# The guided run on the simulated station in the terminal, unattended.
+demo-console: setup
 	CALSTATION_HOME=$(abspath $(OUT)) $(BIN)/calstation run recipes/sim-periodicity.yaml --yes
 	CALSTATION_HOME=$(abspath $(OUT)) $(BIN)/calstation history
 
@@ -34,6 +41,7 @@ test: setup
 	$(BIN)/ruff check calstation plugins tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -n 2 -q
+	$(BIN)/python -m pytest -q -m browser tests/test_web_browser.py
 
 bench: setup
 	$(BIN)/python benchmarks/simulate_revolution.py

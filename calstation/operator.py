@@ -1,4 +1,12 @@
-"""The operator's side of a run: prompts, progress bars and the final verdict, with rich.
+"""The operator's side of a run: the one interface between the station and its front ends.
+
+The station (:mod:`calstation.station`) talks to whoever runs it only through an
+:class:`Operator`: it asks (``confirm_fixture``, ``on_failure``), reports (``info``, ``warn``,
+``progress``, ``summary``) and publishes :class:`StationEvent` s (step started and finished, a
+preview of the lidar line being recorded) through :func:`publish`. Two front ends implement it:
+:class:`ConsoleOperator` here (``calstation run``, rich) and the web station's operator
+(:mod:`calstation.web.live`, ``calstation serve``). The state machine, the database writes and
+resume stay in the station.
 
 :class:`ConsoleOperator` is the interactive terminal UI; with ``unattended=True`` (``--yes``) it
 never asks: fixtures are placed by the ``calstation_fixture_placed`` hook (the simulator puts them
@@ -9,6 +17,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 from rich.console import Console
@@ -44,6 +53,54 @@ FIXTURE_PROMPTS: dict[str, str] = {
 }
 
 
+STEP_HINTS: dict[str, str] = {
+    "preflight": "Check that the lidar is powered and connected, that the platter turns freely "
+    "and that the encoder is connected, then retry.",
+    "static_scan": "Check the L-target: base plate toward the lidar, the corner of base and wall "
+    "over the platter centre, nothing between it and the lidar; then retry.",
+    "spin_scan": "Check that the platter turns and nothing touches the spin target, then retry "
+    "(the scan is taken again).",
+    "fine_tune": "Check that the spin target stood on the platter, fully in view, during the "
+    "spin scan; retry runs the fine-tuning again on the same recording.",
+    "cube_scan": "Check that the QA cube stands on one face, fully in view, and nothing touches "
+    "it; then retry (the scan is taken again).",
+    "report": "Check the free disk space and the database connection, then retry.",
+}
+"""What the operator can do about a failed step (shown beside its error)."""
+
+EVENT_KINDS: tuple[str, ...] = ("step_started", "step_finished", "lidar_line")
+"""What :class:`StationEvent` s a station publishes (prompts, progress and the final summary
+are the :class:`Operator` methods of the same names)."""
+
+
+@dataclass(frozen=True)
+class StationEvent:
+    """Something that happened in a run, for front ends to show.
+
+    - ``step_started``: ``step``, ``attempt``.
+    - ``step_finished``: ``step``, ``attempt``, ``status`` (``passed``/``failed``), ``result``
+      (the step's JSON result as stored) and ``error``.
+    - ``lidar_line``: ``kind`` (recording kind: static, spin, cube) and ``line`` (the
+      :class:`~calstation.drivers.LidarLine` just written); published for every line, so a
+      front end keeps only what it can show.
+    """
+
+    kind: str
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+def publish(ui: Operator, kind: str, /, **data: Any) -> None:
+    """Give ``ui`` the event ``kind`` if it listens (an ``event(StationEvent)`` method).
+
+    Listening is optional so that a minimal operator (a script, a test) needs only the
+    :class:`Operator` methods. An exception from the listener propagates: that is how a front
+    end aborts a run mid-step (it raises ``AbortRun``).
+    """
+    listener = getattr(ui, "event", None)
+    if listener is not None:
+        listener(StationEvent(kind, data))
+
+
 class Operator(Protocol):
     """What the station needs from whoever runs it."""
 
@@ -73,6 +130,9 @@ class Operator(Protocol):
         """Show the run's final PASS/FAIL summary (``summary`` as from ``report.run_summary``)."""
         ...
 
+    # Optional: ``def event(self, event: StationEvent) -> None`` receives every
+    # :class:`StationEvent` (see :func:`publish`).
+
 
 class ConsoleOperator:
     """The terminal operator UI (rich). ``unattended`` answers every question itself."""
@@ -87,6 +147,14 @@ class ConsoleOperator:
     def info(self, message: str) -> None:
         """Print a line."""
         self.console.print(message, highlight=False)
+
+    def event(self, event: StationEvent) -> None:
+        """Print the start of each step (the console shows no live lidar lines)."""
+        if event.kind == "step_started":
+            self.console.print(
+                f"[bold]▶ {event.data['step']}[/] (attempt {event.data['attempt']})",
+                highlight=False,
+            )
 
     def warn(self, message: str) -> None:
         """Print a warning."""
@@ -106,9 +174,11 @@ class ConsoleOperator:
 
     def on_failure(self, step: str, error: str, attempt: int) -> Decision:
         """Show the error; ask retry/abort (unattended: abort)."""
+        hint = STEP_HINTS.get(step)
         self.console.print(
             Panel(
-                escape(error), title=f"step {step} failed (attempt {attempt})", border_style="red"
+                escape(error) + (f"\n[dim]{escape(hint)}[/]" if hint else ""),
+                title=f"step {step} failed (attempt {attempt})", border_style="red",
             )
         )
         if self.unattended or attempt > self.max_retries:

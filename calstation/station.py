@@ -60,7 +60,7 @@ from .db import (
 from .drivers import DriverContext
 from .errors import CalstationError, DriverError, ObservabilityError, StationError
 from .observability import check_sigma
-from .operator import Operator
+from .operator import Operator, publish
 from .recipe import LoadedRecipe, check_plugins, parse_recipe
 from .report import previous_accepted, run_brief, run_summary
 
@@ -298,8 +298,8 @@ class Station:
     def _attempt(self, step: str) -> bool:
         """One attempt at ``step``: row, work, commit. False (with ``_last_error``) on failure."""
         step_id, attempt = self._begin_step(step)
-        self.ui.info(f"[bold]▶ {step}[/] (attempt {attempt})")
         try:
+            publish(self.ui, "step_started", step=step, attempt=attempt)
             handler = getattr(self, f"_step_{step}")
             outcome: StepOutcome = handler(step_id)
         except (AbortRun, KeyboardInterrupt):
@@ -311,12 +311,16 @@ class Station:
             self._last_error = message
             failed = {"error": message, **plain(getattr(exc, "details", {}))}
             self._end_step(step_id, "failed", failed, message)
+            publish(self.ui, "step_finished", step=step, attempt=attempt, status="failed",
+                    result={"error": message}, error=message)
             self._notify("step_finished", run=self._brief(), step=step, status="failed",
                          result={"error": message})
             self.failed_step = step
             self.trigger("fail")
             return False
         self._end_step(step_id, "passed", outcome.result, None, outcome)
+        publish(self.ui, "step_finished", step=step, attempt=attempt, status="passed",
+                result=plain(outcome.result), error=None)
         self._notify("step_finished", run=self._brief(), step=step, status="passed",
                      result=outcome.result)
         return True
@@ -606,7 +610,7 @@ class Station:
             ) as writer,
             self.ui.progress(f"{kind} scan") as progress,
         ):
-            acquire(writer, progress)
+            acquire(_PublishingWriter(writer, self.ui, kind), progress)
         return path
 
     def _attempts(self, step: str) -> int:
@@ -753,9 +757,19 @@ class Station:
             run.error = error
             s.flush()
             summary = run_summary(run)
+        self._write_report_html()
         self._notify("run_finished", run=run_brief_from(summary), status=status, summary=summary)
         self.ui.summary(summary)
         return status
+
+    def _write_report_html(self) -> None:
+        """``report.html`` in the run folder, whatever the outcome; a failure is a warning."""
+        from .report_html import write_run_report
+
+        try:
+            write_run_report(self.db, self.run_id)
+        except Exception as exc:
+            self.ui.warn(f"could not write report.html: {type(exc).__name__}: {exc}")
 
     def _notify(self, hook: str, **kwargs: Any) -> None:
         """Call an observer hook; an observer's exception is a warning, never a failed run."""
@@ -777,6 +791,20 @@ class Station:
         for driver in (d.lidar, d.turntable, d.encoder):
             _quietly(driver.close)
         self.drivers = None
+
+
+class _PublishingWriter:
+    """A recording writer that also publishes each lidar line to the operator (live preview)."""
+
+    def __init__(self, inner: Any, ui: Operator, kind: str) -> None:
+        self._inner, self._ui, self._kind = inner, ui, kind
+
+    def write_line(self, line: Any) -> None:
+        self._inner.write_line(line)
+        publish(self._ui, "lidar_line", kind=self._kind, line=line)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
 
 
 @dataclass
@@ -890,6 +918,34 @@ def start_run(
     The recipe is validated against the installed plugins first. The run folder is
     ``<data_dir>/runs/<run id>/``.
     """
+    run_id = create_run(loaded, db, operator=operator, unattended=ui.unattended,
+                        data_dir=data_dir)
+    ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
+            f"{loaded.recipe.station.id}; recordings in {escape(str(_run_dir(db, run_id)))}")
+    with _signals_abort():
+        return run_id, Station(db, run_id, loaded, ui).run()
+
+
+def _run_dir(db: Database, run_id: int) -> Path:
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        return Path(run.data_dir)
+
+
+def create_run(
+    loaded: LoadedRecipe,
+    db: Database,
+    *,
+    operator: str,
+    unattended: bool,
+    data_dir: Path | None = None,
+) -> int:
+    """Create (and commit) a ``running`` run of ``loaded`` and its folder; returns its id.
+
+    The recipe is validated against the installed plugins first. Execute it with
+    ``Station(db, run_id, loaded, ui).run()``.
+    """
     check_plugins(loaded)
     base = (data_dir or data_dir_default()).expanduser().resolve()
     with db.session() as s:
@@ -906,7 +962,7 @@ def start_run(
             recipe_text=loaded.text,
             recipe_sha256=loaded.sha256,
             operator=operator,
-            unattended=ui.unattended,
+            unattended=unattended,
             data_dir="",
             status="running",
         )
@@ -916,10 +972,7 @@ def start_run(
         run.data_dir = str(run_dir)
         run_id = run.id
     run_dir.mkdir(parents=True, exist_ok=True)
-    ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
-            f"{loaded.recipe.station.id}; recordings in {escape(str(run_dir))}")
-    with _signals_abort():
-        return run_id, Station(db, run_id, loaded, ui).run()
+    return run_id
 
 
 def _process_alive(pid: int) -> bool:

@@ -1,0 +1,492 @@
+"""The web front end of a run: an :class:`~calstation.operator.Operator` that keeps the run's live
+state for the pages and takes the operator's answers from them, and the runner that executes one
+run at a time in a background thread of the server process.
+
+The station (:mod:`calstation.station`) is the same one the console drives: :class:`WebOperator`
+only records what it is told (steps, progress, prompts, lidar lines, the verdict) into a
+:class:`LiveState`, and blocks the run's thread at a prompt until a page answers. Abort from a page
+raises :class:`~calstation.station.AbortRun` inside the run at its next progress report or lidar
+line (or answers the pending prompt with abort), which is what Ctrl-C does on the console: the
+station closes the step as aborted and stops the motor (``emergency_stop`` then ``stop``).
+
+Because the state lives in the server, a page that is closed or reloaded mid-run finds the same
+step and the same pending prompt.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.text import Text
+
+from ..db import Database, Run
+from ..errors import CalstationError, StationError
+from ..operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
+from ..station import (
+    STEPS,
+    AbortRun,
+    Station,
+    _check_not_running_elsewhere,
+    create_run,
+    resume_run,
+)
+
+LINE_PREVIEW_PERIOD_S = 0.2
+"""At most this often the live lidar line is refreshed (the lidar gives ~1000 lines/s)."""
+
+LINE_PREVIEW_POINTS = 400
+"""Points of the live lidar line (a subsample of the line's valid returns)."""
+
+PROGRESS_STEP = 0.01
+"""Progress is published when its fraction moved by this much (or its phase changed)."""
+
+LOG_LINES = 60
+
+MAX_RETRIES = 3
+"""A failed step can be retried this many times from the page, then only aborted."""
+
+
+class Busy(CalstationError):
+    """A run is already in progress on this station (HTTP 409)."""
+
+
+class NoSuchPrompt(CalstationError):
+    """An answer to a prompt that is not (or no longer) pending (HTTP 409)."""
+
+
+def _plain_text(markup: str) -> str:
+    try:
+        return Text.from_markup(markup).plain
+    except Exception:
+        return markup
+
+
+class LiveState:
+    """What the operator page shows, kept by the server; thread-safe.
+
+    :meth:`snapshot` is the page's JSON twin (``/state.json``); ``version`` grows with every
+    change, so the event stream sends a snapshot only when something changed.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._ids = itertools.count(1)
+        self.version = 0
+        self._reset()
+
+    def _reset(self) -> None:
+        self.run_id: int | None = None
+        self.recipe: str | None = None
+        self.operator: str | None = None
+        self.serial: str | None = None
+        self.status = "idle"
+        self.step: str | None = None
+        self.attempt = 0
+        self.steps: dict[str, dict[str, Any]] = {
+            s: {"name": s, "status": "pending", "attempt": 0, "error": None} for s in STEPS
+        }
+        self.progress: dict[str, Any] | None = None
+        self.prompt: dict[str, Any] | None = None
+        self.line: dict[str, Any] | None = None
+        self.log: list[dict[str, str]] = []
+        self.result: dict[str, Any] | None = None
+        self.error: str | None = None
+        self.abort_requested: str | None = None
+        self._answer: tuple[int, str] | None = None
+
+    # --- changes ---------------------------------------------------------------------------
+    def _changed(self) -> None:
+        self.version += 1
+        self._cond.notify_all()
+
+    def begin(self, run_id: int, recipe: str, operator: str, serial: str | None) -> None:
+        """A new (or resumed) run starts."""
+        with self._cond:
+            self._reset()
+            self.run_id, self.recipe, self.operator, self.serial = run_id, recipe, operator, serial
+            self.status = "running"
+            self._changed()
+
+    def update(self, fn: Callable[[LiveState], None]) -> None:
+        """Apply ``fn`` to the state under its lock and publish the change."""
+        with self._cond:
+            fn(self)
+            self._changed()
+
+    def add_log(self, level: str, message: str) -> None:
+        """Append a line to the page's log."""
+        def add(st: LiveState) -> None:
+            st.log = [*st.log[-(LOG_LINES - 1):], {"level": level, "text": _plain_text(message)}]
+        self.update(add)
+
+    def finish(self, status: str, result: dict[str, Any] | None, error: str | None) -> None:
+        """The run ended (``result`` is the end screen's data: verdict, values and limits)."""
+        def end(st: LiveState) -> None:
+            st.status, st.result, st.error = status, result, error
+            st.prompt = st.progress = None
+            for step in st.steps.values():
+                if step["status"] == "running":  # the step the run was aborted (or died) in
+                    step["status"] = "aborted" if status == "aborted" else "failed"
+        self.update(end)
+
+    # --- prompts ---------------------------------------------------------------------------
+    def ask(self, prompt: dict[str, Any], allowed: tuple[str, ...]) -> str:
+        """Show ``prompt`` and block until a page answers one of ``allowed`` (or abort)."""
+        with self._cond:
+            pid = next(self._ids)
+            self.prompt = {**prompt, "id": pid, "answers": list(allowed)}
+            self._answer = None
+            self._changed()
+            while True:
+                if self.abort_requested:
+                    answer = "abort"
+                    break
+                if self._answer is not None and self._answer[0] == pid:
+                    answer = self._answer[1]
+                    break
+                self._cond.wait(timeout=0.5)
+            self.prompt = None
+            self._answer = None
+            self._changed()
+            return answer
+
+    def answer(self, prompt_id: int, answer: str) -> None:
+        """Answer the pending prompt; :class:`NoSuchPrompt` if it is not pending or the answer
+        is not one it offers."""
+        with self._cond:
+            p = self.prompt
+            if p is None or p["id"] != prompt_id:
+                raise NoSuchPrompt(
+                    f"prompt {prompt_id} is not pending (it was answered, or the run moved on); "
+                    "reload the page"
+                )
+            if answer not in p["answers"]:
+                raise NoSuchPrompt(
+                    f"{answer!r} is not an answer to this prompt; use one of "
+                    f"{', '.join(p['answers'])}"
+                )
+            self._answer = (prompt_id, answer)
+            self._changed()
+
+    def request_abort(self, reason: str) -> bool:
+        """Ask the running run to abort; False if no run is running."""
+        with self._cond:
+            if self.status != "running":
+                return False
+            self.abort_requested = reason
+            self._changed()
+            return True
+
+    # --- reading ---------------------------------------------------------------------------
+    def snapshot(self) -> dict[str, Any]:
+        """The state as JSON-ready data (the operator page's JSON twin)."""
+        with self._cond:
+            return {
+                "version": self.version,
+                "busy": self.status == "running",
+                "run_id": self.run_id,
+                "recipe": self.recipe,
+                "operator": self.operator,
+                "serial": self.serial,
+                "status": self.status,
+                "step": self.step,
+                "attempt": self.attempt,
+                "steps": [dict(s) for s in self.steps.values()],
+                "progress": None if self.progress is None else dict(self.progress),
+                "prompt": None if self.prompt is None else dict(self.prompt),
+                "line": self.line,
+                "log": list(self.log),
+                "result": self.result,
+                "error": self.error,
+                "abort_requested": self.abort_requested,
+            }
+
+    def wait_change(self, version: int, timeout: float) -> int:
+        """Block until ``version`` is outdated or ``timeout`` passes; returns the version."""
+        with self._cond:
+            if self.version == version:
+                self._cond.wait(timeout=timeout)
+            return self.version
+
+
+class WebOperator:
+    """The station's operator for the web pages (see the module docstring)."""
+
+    unattended = False
+
+    def __init__(self, live: LiveState, recipe: Any) -> None:
+        self.live = live
+        self.recipe = recipe
+        self._last_line = 0.0
+        self._lines = 0
+
+    # --- the Operator protocol -------------------------------------------------------------
+    def info(self, message: str) -> None:
+        """A line for the page's log."""
+        self.live.add_log("info", message)
+
+    def warn(self, message: str) -> None:
+        """A warning for the page's log."""
+        self.live.add_log("warning", message)
+
+    def confirm_fixture(self, fixture: str, description: str) -> bool:
+        """Show the placement picture with Continue and Abort; wait for the answer."""
+        from .placement import placement_svg
+
+        self._check_abort()
+        geometry = getattr(self.recipe.fixtures, fixture, None)
+        svg = None
+        if geometry is not None:
+            svg = placement_svg(self.recipe.fixtures.platter.radius, geometry,
+                                f"place the {fixture.replace('_', ' ')}")
+        text = FIXTURE_PROMPTS.get(fixture, f"Place the {fixture} on the platter.")
+        answer = self.live.ask(
+            {"kind": "fixture", "fixture": fixture, "step": self.live.step, "text": text,
+             "detail": description, "svg": svg},
+            ("continue", "abort"),
+        )
+        return answer == "continue"
+
+    def on_failure(self, step: str, error: str, attempt: int) -> Decision:
+        """Show the step's error with Retry and Abort; wait for the answer."""
+        allowed: tuple[str, ...] = ("retry", "abort") if attempt <= MAX_RETRIES else ("abort",)
+        answer = self.live.ask(
+            {"kind": "failure", "step": step, "error": error, "attempt": attempt,
+             "text": f"Step {step} failed (attempt {attempt}). "
+                     + STEP_HINTS.get(step, "Fix the cause shown below, then retry the step.")
+                     + (" Or abort the run." if "retry" in allowed
+                        else f" {MAX_RETRIES} retries are used up: abort the run.")},
+            allowed,
+        )
+        return "retry" if answer == "retry" else "abort"
+
+    @contextmanager
+    def progress(self, title: str) -> Iterator[Callable[[str, float], None]]:
+        """Progress of one long step, in words and a fraction; checks for an abort."""
+        shown: dict[str, Any] = {"phase": None, "fraction": -1.0, "at": 0.0}
+
+        def update(phase: str, fraction: float) -> None:
+            self._check_abort()
+            frac = max(0.0, min(1.0, float(fraction))) if math.isfinite(fraction) else 0.0
+            now = time.monotonic()
+            # steps report progress per line: publish only what a person can see change
+            if (phase == shown["phase"] and abs(frac - shown["fraction"]) < PROGRESS_STEP
+                    and now - shown["at"] < LINE_PREVIEW_PERIOD_S):
+                return
+            shown.update(phase=phase, fraction=frac, at=now)
+            self.live.update(lambda st: setattr(
+                st, "progress", {"title": title, "phase": phase, "fraction": frac}))
+
+        update("", 0.0)
+        yield update
+        self.live.update(lambda st: setattr(
+            st, "progress", {"title": title, "phase": "done", "fraction": 1.0}))
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        """The run's final summary; the runner builds the end screen from the database."""
+        self.live.add_log("info", f"run {summary['id']} {summary['status']}")
+
+    def event(self, event: StationEvent) -> None:
+        """Steps started and finished, and the live lidar line; checks for an abort."""
+        d = event.data
+        if event.kind == "step_started":
+            def started(st: LiveState) -> None:
+                st.step, st.attempt = d["step"], d["attempt"]
+                st.steps[d["step"]].update(status="running", attempt=d["attempt"], error=None)
+                st.progress = None
+                if d["step"] not in ("static_scan", "spin_scan", "cube_scan"):
+                    st.line = None
+            self.live.update(started)
+            self.live.add_log("info", f"▶ {d['step']} (attempt {d['attempt']})")
+        elif event.kind == "step_finished":
+            def finished(st: LiveState) -> None:
+                st.steps[d["step"]].update(status=d["status"], attempt=d["attempt"],
+                                           error=d.get("error"))
+                st.progress = None
+            self.live.update(finished)
+        elif event.kind == "lidar_line":
+            self._preview(d["kind"], d["line"])
+        self._check_abort()
+
+    # --- helpers ---------------------------------------------------------------------------
+    def _check_abort(self) -> None:
+        reason = self.live.abort_requested
+        if reason:
+            raise AbortRun(reason)
+
+    def _preview(self, kind: str, line: Any) -> None:
+        now = time.monotonic()
+        if now - self._last_line < LINE_PREVIEW_PERIOD_S:
+            return
+        self._last_line = now
+        self._lines += 1
+        seq = self._lines
+        valid = np.asarray(line.valid, dtype=bool)
+        rho = np.asarray(line.range_m)[valid]
+        alpha = np.asarray(line.azimuth_rad)[valid]
+        if rho.size > LINE_PREVIEW_POINTS:
+            pick = np.linspace(0, rho.size - 1, LINE_PREVIEW_POINTS).astype(int)
+            rho, alpha = rho[pick], alpha[pick]
+        # frame L (DESIGN §2): x = ρ·sin α, y = ρ·cos α; in millimetres for the plot
+        x = np.round(rho * np.sin(alpha) * 1000.0, 1).tolist()
+        y = np.round(rho * np.cos(alpha) * 1000.0, 1).tolist()
+        self.live.update(lambda st: setattr(
+            st, "line", {"seq": seq, "kind": kind, "x_mm": x, "y_mm": y,
+                         "points": int(valid.sum())}))
+
+
+class Runner:
+    """Executes one run at a time in a background thread and keeps its :class:`LiveState`.
+
+    ``start`` and ``resume`` raise :class:`Busy` while a run is in progress: of two concurrent
+    starts exactly one runs (the lock is taken without waiting).
+    """
+
+    def __init__(self, db: Database, data_dir: Path, recipes_dir: Path) -> None:
+        self.db = db
+        self.data_dir = data_dir
+        self.recipes_dir = recipes_dir
+        self.live = LiveState()
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+
+    # --- recipes ---------------------------------------------------------------------------
+    def recipes(self) -> list[str]:
+        """The recipe files offered on the operator page (names in the recipes folder)."""
+        if not self.recipes_dir.is_dir():
+            return []
+        return sorted(p.name for p in self.recipes_dir.glob("*.yaml"))
+
+    def recipe_path(self, name: str) -> Path:
+        """The recipe file ``name`` of the recipes folder (never a path outside it)."""
+        if name not in self.recipes():
+            raise StationError(
+                f"no recipe {name!r} in {self.recipes_dir}; choose one of "
+                f"{', '.join(self.recipes()) or '(none)'}"
+            )
+        return self.recipes_dir / name
+
+    # --- runs ------------------------------------------------------------------------------
+    def start(self, recipe: str, operator: str, serial: str | None) -> int:
+        """Create a run of the recipe file ``recipe`` and execute it in the background."""
+        from ..recipe import load_recipe
+
+        if not operator.strip():
+            raise StationError("enter the operator's name")
+        self._take()
+        try:
+            loaded = load_recipe(self.recipe_path(recipe))
+            run_id = create_run(loaded, self.db, operator=operator.strip(), unattended=False,
+                                data_dir=self.data_dir)
+            serial = (serial or "").strip() or None
+            if serial:
+                self._store_serial(run_id, serial)
+            self.live.begin(run_id, loaded.recipe.name, operator.strip(), serial)
+            ui = WebOperator(self.live, loaded.recipe)
+            self._launch(run_id, lambda: Station(self.db, run_id, loaded, ui).run())
+        except BaseException:
+            self._lock.release()
+            raise
+        return run_id
+
+    def resume(self, run_id: int, force: bool = False) -> int:
+        """Continue run ``run_id`` at its first unfinished step (as ``calstation resume``)."""
+        from ..recipe import parse_recipe
+
+        self._take()
+        try:
+            with self.db.session() as s:
+                run = s.get(Run, run_id)
+                if run is None:
+                    raise StationError(f"no run {run_id} in the database")
+                if run.status == "passed":
+                    raise StationError(f"run {run_id} already passed; nothing to resume")
+                # refused here, with its reason, rather than in the run's thread
+                _check_not_running_elsewhere(run, force)
+                recipe = parse_recipe(run.recipe_text, f"recipe of run {run_id}")
+                operator = run.operator
+            self.live.begin(run_id, recipe.name, operator, None)
+            ui = WebOperator(self.live, recipe)
+            self._launch(run_id, lambda: resume_run(run_id, self.db, ui, force=force))
+        except BaseException:
+            self._lock.release()
+            raise
+        return run_id
+
+    def abort(self, reason: str) -> bool:
+        """Abort the running run (the motor is stopped by the station); False if none runs."""
+        return self.live.request_abort(reason)
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for the background run to end; True if none is running any more."""
+        t = self._thread
+        if t is not None:
+            t.join(timeout)
+            return not t.is_alive()
+        return True
+
+    @property
+    def busy(self) -> bool:
+        """A run is in progress."""
+        return self._lock.locked()
+
+    def _take(self) -> None:
+        if not self._lock.acquire(blocking=False):
+            snap = self.live.snapshot()
+            raise Busy(
+                f"run {snap['run_id']} ({snap['recipe']}, operator {snap['operator']}) is in "
+                f"progress on this station, at step {snap['step'] or 'start-up'}; finish or "
+                "abort it first"
+            )
+
+    def _launch(self, run_id: int, execute: Callable[[], str]) -> None:
+        def main() -> None:
+            status, error = "failed", None
+            try:
+                status = execute()
+            except CalstationError as exc:
+                error = str(exc)
+                self.live.add_log("error", error)
+            except BaseException as exc:
+                error = f"{type(exc).__name__}: {exc}"
+                self.live.add_log("error", error)
+            finally:
+                self.live.finish(status, self._end_screen(run_id), error)
+                self._lock.release()
+
+        self._thread = threading.Thread(target=main, name=f"calstation-run-{run_id}",
+                                        daemon=True)
+        self._thread.start()
+
+    def _end_screen(self, run_id: int) -> dict[str, Any] | None:
+        from ..report_html import report_data
+
+        try:
+            data = report_data(self.db, run_id, views=False)
+        except Exception as exc:
+            self.live.add_log("error", f"could not read run {run_id}: {exc}")
+            return None
+        return {k: data[k] for k in ("verdict", "calibrations", "cube_rows", "drift", "serial")} | {
+            "error": data["run"]["error"], "status": data["run"]["status"]}
+
+    def _store_serial(self, run_id: int, serial: str) -> None:
+        """The unit's serial: in the run's ``serial`` column where the database has one, and in
+        ``unit.json`` in the run folder (read by the report)."""
+        with self.db.session() as s:
+            run = s.get(Run, run_id)
+            assert run is not None
+            if hasattr(Run, "serial"):  # the column of a newer schema
+                setattr(run, "serial", serial)  # noqa: B010
+            folder = Path(run.data_dir)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / "unit.json").write_text(json.dumps({"serial": serial}) + "\n",
+                                          encoding="utf-8")

@@ -1,0 +1,133 @@
+"""Where a fixture goes: an SVG top view of the platter drawn from the recipe's geometry.
+
+Seen from above (looking down −X_P onto the platter), with the lidar's side at the bottom: the
+L-target's base runs from A (toward the lidar, −Y_P) to the wall at B (DESIGN §3), so the lidar
+looks from −Y_P and the scan plane crosses the platter along the Y_P axis (z_P ≈ 0). Screen
+coordinates: right = −Z_P, up = +Y_P, which keeps the view right-handed from above. Fixture
+outlines are the recipe's: offset (y, z) in metres, yaw about +X_P (DESIGN §3, the simulator
+places meshes the same way), the L-target's tall end at z = −width/2.
+"""
+
+from __future__ import annotations
+
+import math
+from html import escape
+from typing import Any
+
+SIZE = 360
+"""Width and height of the picture (px)."""
+
+MARGIN = 34
+
+
+def _frustum_outline(geom: Any) -> list[tuple[float, float]]:
+    """The frustum's base polygon (y, z), metres: the recipe's, or the default concave heptagon
+    (regular, circumradius, vertex 0 pulled in by ``notch_depth``)."""
+    if getattr(geom, "polygon", None):
+        return [(float(y), float(z)) for y, z in geom.polygon]
+    out = []
+    for k in range(7):
+        a = 2.0 * math.pi * k / 7
+        r = geom.circumradius * ((1.0 - geom.notch_depth) if k == 0 else 1.0)
+        out.append((r * math.cos(a), r * math.sin(a)))
+    return out
+
+
+def _place(points: list[tuple[float, float]], offset: Any, yaw_deg: float
+           ) -> list[tuple[float, float]]:
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    oy, oz = (float(offset[0]), float(offset[1])) if offset is not None else (0.0, 0.0)
+    return [(c * y - s * z + oy, s * y + c * z + oz) for y, z in points]
+
+
+def _rect(y0: float, y1: float, z0: float, z1: float) -> list[tuple[float, float]]:
+    return [(y0, z0), (y1, z0), (y1, z1), (y0, z1)]
+
+
+def fixture_outlines(geom: Any) -> list[dict[str, Any]]:
+    """Outlines of one fixture in P (y, z metres): ``[{"points", "label", "role"}]``."""
+    kind = getattr(geom, "kind", "")
+    yaw = float(getattr(geom, "yaw_deg", 0.0))
+    offset = getattr(geom, "offset", (0.0, 0.0))
+    if kind == "l_target":
+        w, bl, wt = geom.width, geom.base_length, geom.wall_thickness
+        return [
+            {"points": _place(_rect(-bl, wt, -w / 2, w / 2), offset, 0.0), "role": "base",
+             "label": "base plate (A, toward the lidar)"},
+            {"points": _place(_rect(0.0, wt, -w / 2, w / 2), offset, 0.0), "role": "wall",
+             "label": "wall (B over the centre)"},
+            {"points": _place([(0.0, -w / 2)], offset, 0.0), "role": "mark",
+             "label": f"tall end {geom.h_tall * 1000:.0f} mm"},
+            {"points": _place([(0.0, w / 2)], offset, 0.0), "role": "mark",
+             "label": f"short end {geom.h_short * 1000:.0f} mm"},
+        ]
+    if kind == "frustum":
+        poly = _frustum_outline(geom)
+        return [
+            {"points": _place(poly, offset, yaw), "role": "body",
+             "label": f"spin target (height {geom.height * 1000:.0f} mm)"},
+            {"points": _place([poly[0]], offset, yaw), "role": "mark", "label": "notch"},
+        ]
+    if kind == "cube":
+        h = geom.edge / 2
+        return [{"points": _place(_rect(-h, h, -h, h), offset, yaw), "role": "body",
+                 "label": f"cube {geom.edge * 1000:.0f} mm, yaw {yaw:g}°"}]
+    if kind == "pyramid":
+        h = geom.base / 2
+        return [{"points": _place(_rect(-h, h, -h, h), offset, yaw), "role": "body",
+                 "label": "pyramid"}]
+    if kind == "prism":
+        return [{"points": _place(_rect(-geom.edge / 2, geom.edge / 2, -geom.depth / 2,
+                                        geom.depth / 2), offset, yaw),
+                 "role": "body", "label": "prism"}]
+    # a mesh: only its placement is known
+    return [{"points": _place([(0.0, 0.0)], offset, yaw), "role": "mark",
+             "label": f"mesh {getattr(geom, 'mesh', '')}"}]
+
+
+def placement_svg(platter_radius: float, geom: Any, title: str) -> str:
+    """The top view (SVG text) of ``geom`` on a platter of ``platter_radius`` metres."""
+    scale = (SIZE / 2 - MARGIN) / platter_radius
+    cx = cy = SIZE / 2
+
+    def xy(y: float, z: float) -> tuple[float, float]:
+        return cx - z * scale, cy - y * scale
+
+    parts = [
+        f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {SIZE} {SIZE}" '
+        f'class="placement" role="img" aria-label="{escape(title)}">',
+        f"<title>{escape(title)}</title>",
+        f'<circle cx="{cx}" cy="{cy}" r="{platter_radius * scale:.1f}" fill="#eef1f4" '
+        'stroke="#57606a" stroke-width="2"/>',
+        # the scan plane crosses the platter along Y_P
+        f'<line x1="{cx}" y1="{MARGIN - 12}" x2="{cx}" y2="{SIZE - MARGIN + 12}" '
+        'stroke="#cf222e" stroke-width="1.5" stroke-dasharray="6 4"/>',
+        f'<circle cx="{cx}" cy="{cy}" r="3" fill="#57606a"/>',
+        f'<polygon points="{cx - 10},{SIZE - 4} {cx + 10},{SIZE - 4} {cx},{SIZE - 20}" '
+        'fill="#cf222e"/>',
+        f'<text x="{cx + 14}" y="{SIZE - 6}" font-size="12" fill="#cf222e">lidar</text>',
+        f'<text x="{SIZE - 6}" y="16" font-size="11" fill="#cf222e" text-anchor="end">'
+        "dashed: the scan line</text>",
+    ]
+    colours = {"base": "#b6e3ff", "wall": "#0969da", "body": "#fff8c5"}
+    for outline in fixture_outlines(geom):
+        pts = [xy(y, z) for y, z in outline["points"]]
+        label = escape(outline["label"])
+        if outline["role"] == "mark" or len(pts) == 1:
+            x, y = pts[0]
+            parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="4" fill="#8250df"/>')
+            # labels point away from the centre, so the two ends of a target do not collide
+            anchor = "start" if x >= cx else "end"
+            dx = 7 if x >= cx else -7
+            parts.append(f'<text x="{x + dx:.1f}" y="{y - 6:.1f}" font-size="11" '
+                         f'text-anchor="{anchor}" fill="#8250df">{label}</text>')
+            continue
+        poly = " ".join(f"{x:.1f},{y:.1f}" for x, y in pts)
+        parts.append(f'<polygon points="{poly}" fill="{colours[outline["role"]]}" '
+                     f'stroke="#1b1f24" stroke-width="1.5" fill-opacity="0.85">'
+                     f"<title>{label}</title></polygon>")
+    parts.append(f'<text x="6" y="16" font-size="12" fill="#1b1f24">{escape(title)}</text>')
+    parts.append(f'<text x="6" y="32" font-size="11" fill="#57606a">top view, platter '
+                 f'⌀ {platter_radius * 2000:.0f} mm</text>')
+    parts.append("</svg>")
+    return "".join(parts)

@@ -1,0 +1,224 @@
+"""The QA engineer's queries behind the web pages: history, trends, two runs side by side.
+
+Plain data (stored units: metres, radians, UTC ISO-8601), the JSON twins of the pages; the
+templates convert to millimetres and degrees.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from ..db import PARAMS, Calibration, Run, Station
+from ..errors import CalstationError
+from ..recipe import parse_recipe
+from ..report import calibration_dict, cube_dict, iso, run_brief
+
+STATUSES = ("running", "passed", "failed", "aborted")
+TREND_PARAMS = tuple(p for p in PARAMS if p != "rx")  # rx is the gauge, held at 0
+CUBE_TREND_PARAMS = ("edge_error", "obb_error", "flatness_rms")
+
+
+class QueryError(CalstationError):
+    """A filter the QA pages cannot use (HTTP 400)."""
+
+
+@dataclass
+class HistoryFilter:
+    """Filters of the history page (all optional)."""
+
+    station: str | None = None
+    status: str | None = None
+    operator: str | None = None
+    serial: str | None = None
+    since: str | None = None
+    until: str | None = None
+    limit: int = 200
+
+    def as_dict(self) -> dict[str, Any]:
+        """The filters as given (for the page and its JSON twin)."""
+        return {k: v for k, v in vars(self).items() if v not in (None, "")}
+
+
+def parse_date(text: str, field: str, end: bool = False) -> dt.datetime:
+    """A date (``2026-11-23``, whole day) or ISO time, UTC."""
+    try:
+        value = dt.datetime.fromisoformat(text.strip())
+    except ValueError as exc:
+        raise QueryError(f"{field}: {text!r} is not a date (YYYY-MM-DD) or ISO time") from exc
+    if value.tzinfo is None:
+        value = value.replace(tzinfo=dt.UTC)
+    if end and len(text.strip()) == 10:
+        value += dt.timedelta(days=1)
+    return value
+
+
+def history(session: Session, f: HistoryFilter) -> list[dict[str, Any]]:
+    """Runs, newest first, each with its final calibration and cube check."""
+    from ..report_html import unit_serial
+
+    if f.status and f.status not in STATUSES:
+        raise QueryError(f"status: {f.status!r} is not one of {', '.join(STATUSES)}")
+    stmt = select(Run).join(Station).order_by(Run.id.desc())
+    if f.station:
+        stmt = stmt.where(Station.name == f.station)
+    if f.status:
+        stmt = stmt.where(Run.status == f.status)
+    if f.operator:
+        stmt = stmt.where(Run.operator == f.operator)
+    if f.since:
+        stmt = stmt.where(Run.started_at >= parse_date(f.since, "since"))
+    if f.until:
+        stmt = stmt.where(Run.started_at < parse_date(f.until, "until", end=True))
+    if f.serial and hasattr(Run, "serial"):
+        stmt = stmt.where(Run.serial == f.serial)
+    rows: list[dict[str, Any]] = []
+    for run in session.scalars(stmt.limit(max(1, min(f.limit, 5000)) * (4 if f.serial else 1))):
+        item = run_brief(run)
+        fine = [c for c in run.calibrations if c.stage == "fine"]
+        picks = [c for c in run.calibrations if c.accepted] or fine or run.calibrations
+        item["calibration"] = calibration_dict(picks[-1]) if picks else None
+        item["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+        item["serial"] = unit_serial({**item, "steps": [
+            {"name": s.name, "status": s.status, "result": s.result} for s in run.steps]})
+        if f.serial and item["serial"] != f.serial:
+            continue
+        rows.append(item)
+        if len(rows) >= f.limit:
+            break
+    return rows
+
+
+def choices(session: Session) -> dict[str, list[str]]:
+    """Values offered by the history filters: stations and operators seen."""
+    return {
+        "stations": list(session.scalars(select(Station.name).order_by(Station.name))),
+        "operators": list(session.scalars(select(Run.operator).distinct().order_by(Run.operator))),
+        "statuses": list(STATUSES),
+    }
+
+
+def trend(session: Session, station: str, param: str) -> dict[str, Any]:
+    """One parameter of ``station``'s accepted calibrations by date, with 1σ and drift limits.
+
+    Each point: run_id, date, value and sigma (m/rad; sigma None when not estimated), delta to
+    the previous point, limit (the recipe's drift limit, or the cube limit), flagged.
+    """
+    if param not in TREND_PARAMS + CUBE_TREND_PARAMS:
+        raise QueryError(
+            f"param: {param!r} is not one of {', '.join(TREND_PARAMS + CUBE_TREND_PARAMS)}")
+    stmt = (
+        select(Run, Calibration)
+        .join(Station, Run.station_id == Station.id)
+        .join(Calibration, Calibration.run_id == Run.id)
+        .where(Station.name == station, Calibration.accepted)
+        .order_by(Run.started_at, Run.id)
+    )
+    points: list[dict[str, Any]] = []
+    previous: float | None = None
+    for run, cal in session.execute(stmt).all():
+        qa = parse_recipe(run.recipe_text, f"recipe of run {run.id}").qa
+        sigma: float | None = None
+        if param in CUBE_TREND_PARAMS:
+            if not run.cube_checks:
+                continue
+            value = float(getattr(run.cube_checks[-1], param))
+            limit = {"edge_error": qa.edge_error, "obb_error": qa.obb_edge_error,
+                     "flatness_rms": qa.flatness_rms}[param]
+            flagged = value > limit
+            delta = None if previous is None else value - previous
+        else:
+            value = float(getattr(cal, param))
+            sigma = getattr(cal, f"sigma_{param}")
+            limit = (qa.drift_translation if param.startswith("t")
+                     else math.radians(qa.drift_rotation_deg))
+            delta = None if previous is None else value - previous
+            flagged = delta is not None and abs(delta) > limit
+        points.append({"run_id": run.id, "date": iso(run.started_at), "value": value,
+                       "sigma": sigma, "delta": delta, "limit": limit, "flagged": flagged})
+        previous = value
+    kind = "cube" if param in CUBE_TREND_PARAMS else "drift"
+    return {"station": station, "param": param, "limit_kind": kind, "points": points}
+
+
+def display_scale(param: str) -> tuple[float, str]:
+    """Factor and unit to show a stored value: metres → mm, radians → degrees."""
+    if param.startswith("r"):
+        return math.degrees(1.0), "°"
+    return 1000.0, "mm"
+
+
+def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
+    """A plotly figure of a trend: values with 1σ bars by date, the limits drawn."""
+    k, unit = display_scale(t["param"])
+    pts = t["points"]
+    dates = [p["date"] for p in pts]
+    values = [p["value"] * k for p in pts]
+    data: list[dict[str, Any]] = [{
+        "type": "scatter", "mode": "lines+markers", "name": t["param"], "x": dates, "y": values,
+        "text": [f"run {p['run_id']}" for p in pts],
+        "error_y": {"type": "data", "visible": True,
+                    "array": [0.0 if p["sigma"] is None else p["sigma"] * k for p in pts]},
+        "marker": {"size": 8, "color": ["#cf222e" if p["flagged"] else "#0969da" for p in pts]},
+    }]
+    if t["limit_kind"] == "drift" and len(pts) > 1:
+        # the allowed band of each run: the previous value ± the drift limit
+        for sign, name in ((1.0, "drift limit"), (-1.0, None)):
+            xs: list[Any] = []
+            ys: list[Any] = []
+            for a, b in itertools.pairwise(pts):
+                level = (a["value"] + sign * b["limit"]) * k
+                xs += [a["date"], b["date"], None]
+                ys += [level, level, None]
+            data.append({"type": "scatter", "mode": "lines", "name": name or "", "x": xs,
+                         "y": ys, "showlegend": name is not None, "hoverinfo": "skip",
+                         "line": {"dash": "dot", "color": "#1a7f37"}})
+    elif t["limit_kind"] == "cube" and pts:
+        data.append({"type": "scatter", "mode": "lines", "name": "limit", "x": dates,
+                     "y": [p["limit"] * k for p in pts], "line": {"dash": "dash",
+                                                                   "color": "#cf222e"}})
+    return {"data": data, "layout": {
+        "height": 380, "margin": {"l": 60, "r": 20, "t": 40, "b": 50},
+        "title": {"text": f"{t['param']} of station {t['station']} (accepted calibrations)"},
+        "xaxis": {"title": {"text": "date (UTC)"}},
+        "yaxis": {"title": {"text": f"{t['param']} ({unit})"}},
+        "legend": {"orientation": "h"},
+    }}
+
+
+def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
+    """Rows of two runs' final calibrations and cube checks side by side (display units)."""
+    from ..report_html import display_value
+
+    rows: list[dict[str, Any]] = []
+    fa, fb = a.get("final"), b.get("final")
+    qa_b = b.get("qa") or {}
+    for p in PARAMS:
+        va = display_value(p, fa["H"][p]) if fa else None
+        vb = display_value(p, fb["H"][p]) if fb else None
+        sa = display_value(p, fa["sigma"][p]) if fa else None
+        sb = display_value(p, fb["sigma"][p]) if fb else None
+        # the drift limit of B's recipe: how far a station may move between calibrations
+        limit = (qa_b.get("drift_translation", math.nan) * 1000.0 if p.startswith("t")
+                 else qa_b.get("drift_rotation_deg"))
+        diff = None if va is None or vb is None else vb - va
+        rows.append({"name": p, "unit": "mm" if p.startswith("t") else "°", "a": va, "b": vb,
+                     "sigma_a": sa, "sigma_b": sb, "diff": diff, "limit": limit,
+                     "flagged": diff is not None and limit is not None and abs(diff) > limit})
+    ra = {r["name"]: r for r in a.get("cube_rows") or []}
+    rb = {r["name"]: r for r in b.get("cube_rows") or []}
+    for name in list(ra) or list(rb):
+        x, y = ra.get(name, {}), rb.get(name, {})
+        va, vb = x.get("value"), y.get("value")
+        rows.append({"name": name, "unit": x.get("unit") or y.get("unit"), "a": va, "b": vb,
+                     "sigma_a": None, "sigma_b": None,
+                     "diff": None if va is None or vb is None else vb - va,
+                     "limit": x.get("limit") or y.get("limit"),
+                     "flagged": y.get("ok") is False})
+    return rows

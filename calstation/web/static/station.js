@@ -1,0 +1,131 @@
+// The operator page's live updates: server-sent events carry the run's state; this script only
+// renders it and posts the operator's answers (with the page's CSRF value).
+(function () {
+  "use strict";
+  var app = document.getElementById("app");
+  if (!app) { return; }
+  var csrf = document.querySelector('meta[name="csrf-token"]').getAttribute("content");
+  var state = JSON.parse(app.getAttribute("data-state"));
+  var $ = function (id) { return document.getElementById(id); };
+
+  function post(url, body) {
+    return fetch(url, {
+      method: "POST",
+      headers: {"Content-Type": "application/json", "X-CSRF-Token": csrf},
+      body: JSON.stringify(body || {}),
+      credentials: "same-origin"
+    }).then(function (r) {
+      return r.json().catch(function () { return {}; }).then(function (data) {
+        if (!r.ok) { throw new Error(data.error || ("HTTP " + r.status)); }
+        return data;
+      });
+    });
+  }
+
+  function showError(message) {
+    var el = $("start-error");
+    el.textContent = message;
+    el.hidden = false;
+  }
+
+  function render(s) {
+    var previous = state;
+    state = s;
+    app.setAttribute("data-status", s.status);
+    app.setAttribute("data-version", String(s.version));
+    $("start").hidden = s.busy;
+    $("run").hidden = s.status === "idle";
+    $("run-id").textContent = s.run_id || "";
+    $("run-status").textContent = s.status;
+    $("run-status").className = "status " + s.status;
+    $("run-recipe").textContent = s.recipe || "";
+    $("run-operator").textContent = s.operator || "";
+    s.steps.forEach(function (st) {
+      var li = document.querySelector('#steps li[data-step="' + st.name + '"]');
+      if (!li) { return; }
+      li.className = st.status + (st.name === s.step && s.busy ? " current" : "");
+      li.querySelector(".attempt").textContent = st.attempt > 1 ? " (attempt " + st.attempt + ")" : "";
+    });
+    $("abort-button").hidden = !s.busy;
+    renderPrompt(s.prompt);
+    var p = s.progress;
+    $("progress").hidden = !p || !s.busy || !!s.prompt;
+    if (p) {
+      $("progress-text").textContent = p.title + (p.phase ? ": " + p.phase : "") + " — " + Math.round(p.fraction * 100) + " %";
+      $("progress-bar").value = p.fraction;
+    }
+    renderLine(s.line, s.busy);
+    if (previous.busy && !s.busy) {
+      // the run ended: the end screen (values beside their limits) is rendered by the server
+      window.location.reload();
+    }
+  }
+
+  function renderPrompt(p) {
+    var box = $("prompt");
+    if (!p) { box.hidden = true; box.removeAttribute("data-prompt"); return; }
+    box.hidden = false;
+    if (box.getAttribute("data-prompt") === String(p.id)) { return; }
+    box.setAttribute("data-prompt", String(p.id));
+    box.setAttribute("data-kind", p.kind);
+    box.setAttribute("data-fixture", p.fixture || "");
+    box.setAttribute("data-step", p.step || "");
+    $("prompt-title").textContent = p.kind === "failure" ? "Step " + p.step + " failed" : "Place the fixture";
+    $("prompt-text").textContent = p.text;
+    $("prompt-error").hidden = !p.error;
+    $("prompt-error").textContent = p.error || "";
+    $("prompt-svg").innerHTML = p.svg || "";  // drawn by the server from the recipe, escaped there
+    box.querySelectorAll("button[data-answer]").forEach(function (b) {
+      b.hidden = p.answers.indexOf(b.getAttribute("data-answer")) < 0;
+      b.disabled = false;
+    });
+  }
+
+  function renderLine(line, busy) {
+    var el = $("line-plot");
+    if (!line || !busy || !window.Plotly) { el.hidden = !line || !busy; return; }
+    el.hidden = false;
+    if (el.getAttribute("data-seq") === String(line.seq)) { return; }
+    el.setAttribute("data-seq", String(line.seq));
+    var data = [{x: line.x_mm, y: line.y_mm, mode: "markers", type: "scattergl",
+                 marker: {size: 3, color: "#0969da"}, name: "returns"}];
+    var layout = {title: {text: "live lidar line (" + line.kind + " scan, " + line.points + " returns)"},
+                  height: 320, margin: {l: 50, r: 10, t: 40, b: 40},
+                  xaxis: {title: {text: "x_L (mm)"}}, yaxis: {title: {text: "y_L (mm, boresight)"}, scaleanchor: "x"},
+                  showlegend: false};
+    Plotly.react(el, data, layout, {displaylogo: false, responsive: true, staticPlot: false});
+    el.setAttribute("data-drawn", "1");
+  }
+
+  $("start-form").addEventListener("submit", function (ev) {
+    ev.preventDefault();
+    $("start-error").hidden = true;
+    $("start-button").disabled = true;
+    post("/api/start", {recipe: $("recipe").value, operator: $("operator").value, serial: $("serial").value})
+      .then(function (data) { render(data.state); })
+      .catch(function (e) { showError(e.message); })
+      .finally(function () { $("start-button").disabled = false; });
+  });
+
+  document.querySelectorAll("#prompt button[data-answer]").forEach(function (b) {
+    b.addEventListener("click", function () {
+      var id = Number($("prompt").getAttribute("data-prompt"));
+      document.querySelectorAll("#prompt button[data-answer]").forEach(function (x) { x.disabled = true; });
+      post("/api/answer", {prompt_id: id, answer: b.getAttribute("data-answer")})
+        .catch(function (e) { alert(e.message); });
+    });
+  });
+
+  $("abort-button").addEventListener("click", function () {
+    if (!window.confirm("Abort the run? The turntable is stopped.")) { return; }
+    post("/api/abort").catch(function (e) { alert(e.message); });
+  });
+
+  // the server renders the first state; prompts shown on reload need their id
+  if (state.prompt) { $("prompt").removeAttribute("data-prompt"); }
+  render(state);
+
+  var source = new EventSource("/events");
+  source.addEventListener("state", function (ev) { render(JSON.parse(ev.data)); });
+  window.addEventListener("load", function () { if (state.line) { renderLine(state.line, state.busy); } });
+})();

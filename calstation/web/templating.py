@@ -1,0 +1,37 @@
+"""The Jinja2 environment shared by the web pages and the self-contained run report."""
+
+from __future__ import annotations
+
+import json
+import math
+from functools import cache
+from typing import Any
+
+from jinja2 import Environment, PackageLoader, select_autoescape
+
+
+def _num(value: Any, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "—"
+    if isinstance(value, int | float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def _mm(value: Any, digits: int = 3) -> str:
+    return "—" if value is None else _num(float(value) * 1000.0, digits)
+
+
+@cache
+def environment() -> Environment:
+    """Templates from ``calstation/web/templates``, HTML auto-escaped."""
+    env = Environment(
+        loader=PackageLoader("calstation", "web/templates"),
+        autoescape=select_autoescape(["html"]),
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    env.filters["num"] = _num
+    env.filters["mm"] = _mm
+    env.filters["tojson_compact"] = lambda v: json.dumps(v, separators=(",", ":"))
+    return env

@@ -1,0 +1,401 @@
+"""The web station's HTTP API and pages through FastAPI's test client, on the simulated station.
+
+The station is the real one (simulated drivers, wrapped to observe motor commands; the stand-in
+fine-tuning strategy of tests/test_station.py), run by the web station's runner in its background
+thread, exactly as ``calstation serve`` runs it.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from fastapi.testclient import TestClient
+from test_station import StationTestPlugin, lean_recipe
+from webstation import run_status, steps_of, wait_until
+
+from calstation import plugins
+from calstation.db import Database, Run, open_database
+from calstation.errors import CalstationError
+from calstation.report import export_calibration, get_run
+from calstation.web.app import create_app
+from calstation.web.placement import SIZE, placement_svg
+
+calstation_sim = pytest.importorskip("calstation_sim")
+from calstation_sim import plugin as sim_plugin  # noqa: E402
+
+TOKEN = "station-token-0123456789"
+
+
+@pytest.fixture
+def station_plugin() -> Iterator[StationTestPlugin]:
+    plugin = StationTestPlugin()
+    with plugins.isolated(sim_plugin, plugin):
+        yield plugin
+
+
+@pytest.fixture
+def db(tmp_path: Path) -> Iterator[Database]:
+    database = open_database(f"sqlite:///{tmp_path / 'web.db'}")
+    yield database
+    database.dispose()
+
+
+def make_client(tmp_path: Path, db: Database, **kwargs: Any) -> TestClient:
+    recipes = tmp_path / "recipes"
+    recipes.mkdir(exist_ok=True)
+    lean_recipe(recipes)
+    app = create_app(db, data_dir=tmp_path / "data", recipes_dir=recipes, **kwargs)
+    return TestClient(app, base_url="http://127.0.0.1:8470")
+
+
+def csrf_of(client: TestClient) -> dict[str, str]:
+    """Open the operator page like a browser; the CSRF header the page's script sends."""
+    assert client.get("/").status_code == 200
+    return {"X-CSRF-Token": client.cookies["calstation_csrf"]}
+
+
+def wait_prompt(client: TestClient, kind: str | None = None) -> dict[str, Any]:
+    def pending() -> dict[str, Any] | None:
+        st = client.get("/state.json").json()
+        p = st["prompt"]
+        return p if p is not None and (kind is None or p["kind"] == kind) else None
+    prompt: dict[str, Any] = wait_until(pending, timeout=60)
+    return prompt
+
+
+def finish(client: TestClient, headers: dict[str, str]) -> dict[str, Any]:
+    """Answer Continue to every placement until the run ends; the final state."""
+    while True:
+        st = client.get("/state.json").json()
+        if not st["busy"]:
+            return st
+        if st["prompt"] and st["prompt"]["kind"] == "fixture":
+            r = client.post("/api/answer", headers=headers,
+                            json={"prompt_id": st["prompt"]["id"], "answer": "continue"})
+            assert r.status_code == 200, r.text
+        version = st["version"]
+        wait_until(lambda v=version: client.get("/state.json").json()["version"] != v,
+                   timeout=60, period=0.05)
+
+
+def test_a_run_from_the_api_to_its_report(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    with make_client(tmp_path, db) as client:
+        headers = csrf_of(client)
+        r = client.post("/api/start", headers=headers,
+                        json={"recipe": "lean.yaml", "operator": "ann", "serial": "SN-0042"})
+        assert r.status_code == 201, r.text
+        run_id = r.json()["run_id"]
+        prompt = wait_prompt(client)
+        assert prompt["fixture"] == "static_target" and prompt["answers"] == ["continue", "abort"]
+        assert "<svg" in prompt["svg"] and "the scan line" in prompt["svg"]
+        final = finish(client, headers)
+        status = run_status(db, run_id)
+        assert final["status"] == status and status in ("passed", "failed")
+        # the verdict is the cube check's; every step itself passed
+        assert [s[2] for s in steps_of(db, run_id)] == ["passed"] * 9
+        # the end screen: every measured value beside its limit
+        result = final["result"]
+        assert result["verdict"] == {"passed": "PASS", "failed": "FAIL"}[status]
+        names = [row["name"] for row in result["cube_rows"]]
+        assert "face-fit edge error" in names and all(
+            row["limit"] is not None for row in result["cube_rows"])
+        assert result["serial"] == "SN-0042"
+        # every step went through the page's live state
+        assert [s["status"] for s in final["steps"]] == ["passed"] * 9
+        # report.html in the run folder, also served
+        with db.session() as s:
+            folder = Path(get_run(s, run_id).data_dir)
+            urdf = export_calibration(get_run(s, run_id), "urdf")
+        report = (folder / "report.html").read_text()
+        assert "Plotly" in report and "SN-0042" in report and "<script src=" not in report
+        assert client.get(f"/runs/{run_id}/report.html").text == report
+        page = client.get(f"/runs/{run_id}")
+        assert page.status_code == 200 and "/static/plotly.min.js" in page.text
+        data = client.get(f"/runs/{run_id}.json").json()
+        assert data["run"]["id"] == run_id and data["cube_rows"] == result["cube_rows"]
+        assert client.get(f"/runs/{run_id}/export.urdf").text == urdf
+        ann = client.get("/runs.json", params={"operator": "ann"}).json()["runs"]
+        assert ann[0]["id"] == run_id
+        assert client.get("/runs.json", params={"operator": "bob"}).json()["runs"] == []
+        assert client.get("/runs.json", params={"serial": "SN-0042"}).json()["runs"][0]["id"] == (
+            run_id)
+        assert client.get("/runs", params={"status": "nonsense"}).status_code == 400
+        js = client.get("/static/plotly.min.js")
+        assert js.status_code == 200 and len(js.content) > 1_000_000
+
+
+def test_state_changes_need_the_pages_csrf_value(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    with make_client(tmp_path, db) as client:
+        headers = csrf_of(client)
+        body = {"recipe": "lean.yaml", "operator": "ann"}
+        assert client.post("/api/start", json=body).status_code == 403
+        assert client.post("/api/start", json=body,
+                           headers={"X-CSRF-Token": "forged"}).status_code == 403
+        r = client.post("/api/start", json=body,
+                        headers={**headers, "Origin": "http://evil.example"})
+        assert r.status_code == 403 and "cross-site" in r.json()["error"]
+        # a plain HTML form post (no script) carries the value as a field
+        form = {**body, "csrf": "forged"}
+        assert client.post("/api/start", data=form).status_code == 403
+        with db.session() as s:
+            assert s.query(Run).count() == 0
+        assert station_plugin.motor_calls == []
+
+
+def test_a_non_local_station_needs_its_token(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    with pytest.raises(CalstationError, match="needs a station token"):
+        make_client(tmp_path, db, host="0.0.0.0")
+    with make_client(tmp_path, db, host="0.0.0.0", token=TOKEN) as client:
+        headers = csrf_of(client)
+        body = {"recipe": "lean.yaml", "operator": "ann"}
+        # read-only pages stay open
+        assert client.get("/runs").status_code == 200
+        assert client.get("/state.json").status_code == 200
+        # without the token (even with a valid CSRF value) nothing starts or aborts
+        assert client.post("/api/start", json=body, headers=headers).status_code == 401
+        assert client.post("/api/abort", headers=headers).status_code == 401
+        wrong = {"Authorization": "Bearer not-the-token-at-all"}
+        assert client.post("/api/start", json=body, headers=wrong).status_code == 401
+        with db.session() as s:
+            assert s.query(Run).count() == 0
+        assert station_plugin.motor_calls == []
+        # the login page gives a browser its session; wrong tokens are refused
+        assert client.post("/login", data={"token": "nope", "csrf": headers["X-CSRF-Token"]}
+                           ).status_code == 401
+        r = client.post("/login", data={"token": TOKEN, "csrf": headers["X-CSRF-Token"]},
+                        follow_redirects=False)
+        assert r.status_code == 303 and "calstation_session" in client.cookies
+        r = client.post("/api/start", json=body, headers=headers)
+        assert r.status_code == 201, r.text
+        run_id = r.json()["run_id"]
+        wait_prompt(client)
+        assert client.post("/api/abort", headers=headers).status_code == 200
+        wait_until(lambda: not client.get("/state.json").json()["busy"])
+        assert run_status(db, run_id) == "aborted"
+    # a script with the token needs no cookie and no CSRF value
+    with make_client(tmp_path, db, host="0.0.0.0", token=TOKEN) as script:
+        auth = {"Authorization": f"Bearer {TOKEN}"}
+        r = script.post("/api/start", json=body, headers=auth)
+        assert r.status_code == 201, r.text
+        wait_prompt(script)
+        assert script.post("/api/abort", headers=auth).status_code == 200
+        wait_until(lambda: not script.get("/state.json").json()["busy"])
+
+
+def test_two_starts_at_once_start_exactly_one_run(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    with make_client(tmp_path, db) as client:
+        headers = csrf_of(client)
+        barrier = threading.Barrier(2)
+        codes: list[int] = []
+        messages: list[str] = []
+
+        def start(name: str) -> None:
+            barrier.wait()
+            r = client.post("/api/start", headers=headers,
+                            json={"recipe": "lean.yaml", "operator": name})
+            codes.append(r.status_code)
+            messages.append(r.text)
+
+        threads = [threading.Thread(target=start, args=(n,)) for n in ("ann", "bob")]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert sorted(codes) == [201, 409], messages
+        assert any("in progress on this station" in m for m in messages)
+        with db.session() as s:
+            assert s.query(Run).count() == 1
+        wait_prompt(client)
+        client.post("/api/abort", headers=headers)
+        wait_until(lambda: not client.get("/state.json").json()["busy"])
+
+
+def test_prompts_answers_and_abort(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    with make_client(tmp_path, db) as client:
+        headers = csrf_of(client)
+        assert client.post("/api/abort", headers=headers).status_code == 409  # nothing runs
+        r = client.post("/api/start", headers=headers,
+                        json={"recipe": "missing.yaml", "operator": "ann"})
+        assert r.status_code == 400 and "lean.yaml" in r.json()["error"]
+        r = client.post("/api/start", headers=headers, json={"recipe": "lean.yaml", "operator": ""})
+        assert r.status_code == 400
+        run_id = client.post("/api/start", headers=headers,
+                             json={"recipe": "lean.yaml", "operator": "ann"}).json()["run_id"]
+        prompt = wait_prompt(client)
+        stale = client.post("/api/answer", headers=headers,
+                            json={"prompt_id": prompt["id"] + 1, "answer": "continue"})
+        assert stale.status_code == 409 and "not pending" in stale.json()["error"]
+        wrong = client.post("/api/answer", headers=headers,
+                            json={"prompt_id": prompt["id"], "answer": "retry"})
+        assert wrong.status_code == 409
+        # reloading the page shows the same prompt
+        page = client.get("/")
+        assert "Place the L-shaped static target" in page.text and 'class="placement"' in page.text
+        assert client.get("/state.json").json()["prompt"]["id"] == prompt["id"]
+        client.post("/api/answer", headers=headers,
+                    json={"prompt_id": prompt["id"], "answer": "continue"})
+        wait_prompt(client)  # the spin target
+        assert client.post("/api/abort", headers=headers).status_code == 200
+        st = wait_until(lambda: (s := client.get("/state.json").json())["busy"] is False and s)
+        assert st["status"] == "aborted" and st["result"]["verdict"] == "ABORTED"
+        assert run_status(db, run_id) == "aborted"
+        assert steps_of(db, run_id)[-1] == ("place_spin_target", 1, "aborted")
+        assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]
+
+
+def test_failed_step_offers_retry_and_the_retry_runs_it_again(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    station_plugin.strategy.failures = 1
+    with make_client(tmp_path, db) as client:
+        headers = csrf_of(client)
+        run_id = client.post("/api/start", headers=headers,
+                             json={"recipe": "lean.yaml", "operator": "ann"}).json()["run_id"]
+        while (p := wait_prompt(client))["kind"] == "fixture" and p["fixture"] != "qa_cube":
+            client.post("/api/answer", headers=headers, json={"prompt_id": p["id"],
+                                                              "answer": "continue"})
+            if p["fixture"] == "spin_target":
+                break
+        failure = wait_prompt(client, "failure")
+        assert failure["step"] == "fine_tune" and "scripted failure" in failure["error"]
+        assert failure["answers"] == ["retry", "abort"]
+        client.post("/api/answer", headers=headers, json={"prompt_id": failure["id"],
+                                                          "answer": "retry"})
+        cube = wait_prompt(client, "fixture")
+        assert cube["fixture"] == "qa_cube"
+        client.post("/api/answer", headers=headers, json={"prompt_id": cube["id"],
+                                                          "answer": "abort"})
+        wait_until(lambda: not client.get("/state.json").json()["busy"])
+        steps = steps_of(db, run_id)
+        assert ("fine_tune", 1, "failed") in steps and ("fine_tune", 2, "passed") in steps
+
+
+def test_trends_and_compare_pages(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    with make_client(tmp_path, db) as client:
+        headers = csrf_of(client)
+        ids = []
+        for _ in range(2):
+            r = client.post("/api/start", headers=headers,
+                            json={"recipe": "lean.yaml", "operator": "ann"})
+            ids.append(r.json()["run_id"])
+            finish(client, headers)
+        both = client.get("/compare.json", params={"a": ids[0], "b": ids[1]}).json()
+        tx = next(r for r in both["rows"] if r["name"] == "tx")
+        assert tx["diff"] == pytest.approx(tx["b"] - tx["a"])
+        assert client.get("/compare", params={"a": ids[0], "b": ids[1]}).status_code == 200
+        assert client.get("/compare", params={"a": "x", "b": "1"}).status_code == 400
+        trend = client.get("/trends.json", params={"station": "sim-test", "param": "tx"}).json()
+        accepted = [p["run_id"] for p in trend["points"]]
+        with db.session() as s:
+            passed = [r.id for r in s.query(Run).filter_by(status="passed").order_by(Run.id)]
+        assert accepted == passed
+        assert client.get("/trends", params={"station": "sim-test", "param": "tz"}
+                          ).status_code == 200
+        assert client.get("/trends.json", params={"param": "bogus"}).status_code == 400
+
+
+def test_placement_picture_follows_the_recipe_geometry(tmp_path: Path) -> None:
+    from calstation.recipe import CubeGeometry, LTargetGeometry
+
+    svg = placement_svg(0.2925, LTargetGeometry(), "place the static target")
+    # seen from above with the lidar at the bottom, +Z_P points left: the tall end (z = −w/2)
+    # is drawn right of the centre
+    import re
+
+    marks = re.findall(r'<circle cx="([\d.]+)" cy="([\d.]+)" r="4"[^>]*/><text[^>]*>([^<]+)<',
+                       svg)
+    x = {label.split()[0]: float(cx) for cx, _, label in marks}
+    assert x["tall"] > SIZE / 2 > x["short"]
+    cube = placement_svg(0.2925, CubeGeometry(edge=0.1, offset=(0.0, 0.0), yaw_deg=45.0), "cube")
+    pts = re.search(r'<polygon points="([^"]+)" fill="#fff8c5"', cube)
+    assert pts is not None
+    corners = [tuple(map(float, p.split(","))) for p in pts.group(1).split()]
+    # a 45° cube has its corners on the axes: one straight above the centre
+    assert min(abs(cx - SIZE / 2) for cx, _ in corners) < 0.2
+
+
+def test_a_run_left_running_by_a_stopped_server_is_resumed_from_the_page(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    from calstation.recipe import load_recipe
+    from calstation.station import create_run
+
+    with make_client(tmp_path, db) as client:
+        # a run the server created and then lost (killed before any step finished)
+        run_id = create_run(load_recipe(tmp_path / "recipes" / "lean.yaml"), db, operator="ann",
+                            unattended=False, data_dir=tmp_path / "data")
+        headers = csrf_of(client)
+        page = client.get("/")
+        assert f'action="/api/resume/{run_id}"' in page.text
+        r = client.post(f"/api/resume/{run_id}", headers=headers)
+        assert r.status_code == 201, r.text
+        assert client.post(f"/api/resume/{run_id}", headers=headers).status_code == 409
+        final = finish(client, headers)
+        assert final["run_id"] == run_id and final["status"] == run_status(db, run_id)
+        assert [s[0] for s in steps_of(db, run_id)][:2] == ["preflight", "place_static_target"]
+        assert f'action="/api/resume/{run_id}"' not in client.get("/").text
+        with db.session() as s:
+            run = s.get(Run, run_id)
+            assert run is not None
+            run.status = "passed"  # whatever its cube said: a passed run is never resumed
+        r = client.post(f"/api/resume/{run_id}", headers=headers)
+        assert r.status_code == 400 and "already passed" in r.json()["error"]
+
+
+def test_calstation_serve_prints_its_address_and_serves(tmp_path: Path) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import httpx
+    from webstation import free_port
+
+    port = free_port()
+    (tmp_path / "recipes").mkdir()
+    lean_recipe(tmp_path / "recipes")
+    env = {**os.environ, "CALSTATION_HOME": str(tmp_path / "home")}
+    env.pop("CALSTATION_TOKEN", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from calstation.cli import main; main()", "serve",
+         "--port", str(port), "--recipes", str(tmp_path / "recipes"),
+         "--db", f"sqlite:///{tmp_path / 'serve.db'}"],
+        env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        assert f"http://127.0.0.1:{port}/" in line
+        state = wait_until(lambda: _get(httpx, f"http://127.0.0.1:{port}/state.json"), timeout=30)
+        assert state["status"] == "idle" and state["recipes"] == ["lean.yaml"]
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+    # a network address without a token: refused before listening
+    bad = subprocess.run(
+        [sys.executable, "-c", "from calstation.cli import main; main()", "serve",
+         "--host", "0.0.0.0", "--port", str(port), "--db", f"sqlite:///{tmp_path / 'serve.db'}"],
+        env=env, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "needs a station token" in bad.stderr
+
+
+def _get(httpx: Any, url: str) -> Any:
+    try:
+        return httpx.get(url, timeout=2).json()
+    except httpx.HTTPError:
+        return None

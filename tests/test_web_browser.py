@@ -1,0 +1,264 @@
+"""The web station in a real browser: Debian's chromium driven by Playwright, clicking as an
+operator does, against ``calstation serve``'s app served by uvicorn.
+
+Run with ``pytest -m browser`` (``make test`` does, in a second pass). A failing test saves a
+screenshot to ``$CALSTATION_TEST_SCREENSHOTS`` (default ``out/browser-failures/``). With
+``CALSTATION_DOCS_SCREENSHOTS=1`` the tests also write the pictures of ``docs/station.md`` into
+``docs/station/``.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from test_station import StationTestPlugin, lean_recipe
+from webstation import CHROMIUM, CHROMIUM_ARGS, copy_recipe, run_status, served, steps_of
+
+from calstation import plugins
+from calstation.db import Database, Run, open_database
+from calstation.web.app import create_app
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+calstation_sim = pytest.importorskip("calstation_sim")
+from calstation_sim import plugin as sim_plugin  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+FAILURES = Path(os.environ.get("CALSTATION_TEST_SCREENSHOTS", REPO / "out" / "browser-failures"))
+DOCS = REPO / "docs" / "station"
+DOCS_SHOTS = os.environ.get("CALSTATION_DOCS_SCREENSHOTS") == "1"
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not Path(CHROMIUM).exists(),
+                       reason=f"{CHROMIUM} missing: run scripts/system-deps.sh"),
+]
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser: Any, request: pytest.FixtureRequest) -> Iterator[Any]:
+    context = browser.new_context(viewport={"width": 1200, "height": 860})
+    pg = context.new_page()
+    pg.set_default_timeout(90_000)
+    pg.on("dialog", lambda d: d.accept())  # "Abort the run?" → yes
+    failed_before = request.session.testsfailed
+    yield pg
+    if request.session.testsfailed > failed_before:  # counted before this teardown
+        FAILURES.mkdir(parents=True, exist_ok=True)
+        pg.screenshot(path=str(FAILURES / f"{request.node.name}.png"), full_page=True)
+    context.close()
+
+
+@pytest.fixture
+def db(tmp_path: Path) -> Iterator[Database]:
+    database = open_database(f"sqlite:///{tmp_path / 'web.db'}")
+    yield database
+    database.dispose()
+
+
+def shot(page: Any, name: str, full: bool = False) -> None:
+    """A picture for docs/station.md (only with CALSTATION_DOCS_SCREENSHOTS=1), reduced to a
+    palette so the repository stays small."""
+    if not DOCS_SHOTS:
+        return
+    from PIL import Image
+
+    DOCS.mkdir(parents=True, exist_ok=True)
+    path = DOCS / f"{name}.png"
+    page.screenshot(path=str(path), full_page=full)
+    with Image.open(path) as image:
+        small = image.convert("RGB").quantize(colors=96)
+    small.save(path, optimize=True)
+
+
+@contextmanager
+def station(tmp_path: Path, db: Database, recipe: Path) -> Iterator[str]:
+    app = create_app(db, data_dir=tmp_path / "data", recipes_dir=recipe.parent)
+    with served(app) as url:
+        yield url
+
+
+def start(page: Any, url: str, recipe: str, operator: str = "ann", serial: str = "") -> None:
+    page.goto(url + "/")
+    page.select_option("#recipe", recipe)
+    page.fill("#operator", operator)
+    page.fill("#serial", serial)
+    page.click("#start-button")
+    page.wait_for_selector("#run:not([hidden])")
+
+
+def place(page: Any, fixture: str) -> Any:
+    """Wait for the placement prompt of ``fixture``; returns the prompt box."""
+    return page.wait_for_selector(f'#prompt:not([hidden])[data-fixture="{fixture}"]'
+                                  '[data-kind="fixture"]')
+
+
+def click_answer(page: Any, answer: str) -> None:
+    page.click(f'#prompt button[data-answer="{answer}"]:not([hidden])')
+
+
+def wait_end(page: Any) -> str:
+    verdict = page.wait_for_selector("#verdict", timeout=180_000)
+    return str(verdict.inner_text())
+
+
+def classes(page: Any, step: str) -> list[str]:
+    """The classes of a step in the page's step list (its status, "current")."""
+    value = page.locator(f'#steps li[data-step="{step}"]').get_attribute("class") or ""
+    return value.split()
+
+
+def latest_run(db: Database) -> int:
+    with db.session() as s:
+        run = s.query(Run).order_by(Run.id.desc()).first()
+        assert run is not None
+        return run.id
+
+
+@pytest.mark.slow
+def test_a_full_simulated_run_by_clicking_with_a_reload(
+    tmp_path: Path, db: Database, page: Any, browser: Any
+) -> None:
+    recipe = copy_recipe(REPO / "recipes" / "sim-periodicity.yaml", tmp_path / "recipes")
+    with plugins.isolated(sim_plugin), station(tmp_path, db, recipe) as url:
+        page.goto(url + "/")
+        shot(page, "start")
+        start(page, url, "sim-periodicity.yaml", serial="LIDAR-0042")
+        box = place(page, "static_target")
+        assert "L-shaped static target" in box.inner_text()
+        assert page.locator("#prompt-svg svg.placement").count() == 1
+        shot(page, "placement")
+        click_answer(page, "continue")
+        place(page, "spin_target")
+        # reload mid-run: the same step and the same pending prompt
+        page.reload()
+        box = place(page, "spin_target")
+        assert classes(page, "static_scan") == ["passed"]
+        assert "heptagonal spin target" in box.inner_text()
+        click_answer(page, "continue")
+        # the live lidar line is drawn during the spin scan
+        page.wait_for_selector("#line-plot[data-drawn]:not([hidden])")
+        assert re.search(r"spin scan", page.inner_text("#line-plot"))
+        shot(page, "scan")
+        place(page, "qa_cube")
+        click_answer(page, "continue")
+        assert wait_end(page) == "PASS"
+        run_id = latest_run(db)
+        assert run_status(db, run_id) == "passed"
+        values = page.inner_text("#result")
+        assert "face-fit edge error" in values and "≤ 1.000 mm" in values
+        shot(page, "end", full=True)
+        # the run folder's report.html opens offline with its 3D views drawn
+        report = tmp_path / "data" / "runs" / str(run_id) / "report.html"
+        offline = browser.new_context(offline=True, viewport={"width": 1200, "height": 860})
+        rp = offline.new_page()
+        rp.goto(report.as_uri())
+        rp.wait_for_selector(".view3d[data-drawn]")
+        assert rp.locator(".view3d[data-drawn]").count() == 2
+        assert rp.inner_text("#verdict") == "PASS" and "LIDAR-0042" in rp.inner_text("header")
+        rp.wait_for_timeout(500)
+        shot(rp, "report", full=True)
+        offline.close()
+        if DOCS_SHOTS:
+            _qa_pages(page, url, db, recipe, run_id)
+
+
+def _qa_pages(page: Any, url: str, db: Database, recipe: Path, first: int) -> None:
+    """Pictures of history, trends and compare for the docs (a second, unattended run)."""
+    from calstation.operator import ConsoleOperator
+    from calstation.recipe import load_recipe
+    from calstation.station import start_run
+
+    data = yaml.safe_load(recipe.read_text())
+    data["simulation"]["seed"] = 7  # another day, other noise
+    other = recipe.with_name("sim-periodicity-seed7.yaml")
+    other.write_text(yaml.safe_dump(data, sort_keys=False))
+    second, _ = start_run(load_recipe(other), db, ConsoleOperator(unattended=True),
+                          operator="bob", data_dir=recipe.parent.parent / "data")
+    page.goto(url + "/runs")
+    page.wait_for_selector("#history")
+    shot(page, "history")
+    page.goto(url + "/trends?station=sim-01&param=tx")
+    page.wait_for_selector("#trend-plot[data-drawn]")
+    shot(page, "trends", full=True)
+    page.goto(url + f"/compare?a={first}&b={second}")
+    shot(page, "compare", full=True)
+
+
+@pytest.fixture
+def station_plugin() -> Iterator[StationTestPlugin]:
+    plugin = StationTestPlugin()
+    with plugins.isolated(sim_plugin, plugin):
+        yield plugin
+
+
+def test_a_failed_step_is_retried_from_the_page(
+    tmp_path: Path, db: Database, page: Any, station_plugin: StationTestPlugin
+) -> None:
+    station_plugin.strategy.failures = 1
+    (tmp_path / "recipes").mkdir()
+    recipe = lean_recipe(tmp_path / "recipes")
+    with station(tmp_path, db, recipe) as url:
+        start(page, url, "lean.yaml")
+        for fixture in ("static_target", "spin_target"):
+            place(page, fixture)
+            click_answer(page, "continue")
+        box = page.wait_for_selector('#prompt:not([hidden])[data-kind="failure"]')
+        assert "scripted failure" in page.inner_text("#prompt-error")
+        assert page.locator('#prompt button[data-answer="retry"]').is_visible()
+        assert "failed" in classes(page, "fine_tune")
+        assert "fine_tune" in box.inner_text()
+        shot(page, "failure")
+        click_answer(page, "retry")
+        place(page, "qa_cube")
+        click_answer(page, "continue")
+        wait_end(page)
+        run_id = latest_run(db)
+        steps = steps_of(db, run_id)
+        assert ("fine_tune", 1, "failed") in steps and ("fine_tune", 2, "passed") in steps
+        assert run_status(db, run_id) in ("passed", "failed")
+        assert page.inner_text('#steps li[data-step="fine_tune"]').endswith("(attempt 2)")
+
+
+def test_abort_during_a_scan_stops_the_motor(
+    tmp_path: Path, db: Database, page: Any, station_plugin: StationTestPlugin
+) -> None:
+    (tmp_path / "recipes").mkdir()
+    recipe = lean_recipe(tmp_path / "recipes")
+    data = yaml.safe_load(recipe.read_text())
+    # a scan far longer than the test (the simulator runs faster than real time)
+    data["steps"]["spin_scan"]["revolutions"] = 2000.0
+    recipe.write_text(yaml.safe_dump(data, sort_keys=False))
+    with station(tmp_path, db, recipe) as url:
+        start(page, url, "lean.yaml")
+        for fixture in ("static_target", "spin_target"):
+            place(page, fixture)
+            click_answer(page, "continue")
+        page.wait_for_selector("#progress:not([hidden])")
+        page.wait_for_function(
+            "document.querySelector('#progress-text').textContent.includes('spin scan')")
+        # closing or reloading the page does not stop the run
+        page.reload()
+        page.wait_for_selector('#steps li.running[data-step="spin_scan"]')
+        motor_before = list(station_plugin.motor_calls)
+        page.click("#abort-button")
+        assert wait_end(page) == "ABORTED"
+        run_id = latest_run(db)
+        assert run_status(db, run_id) == "aborted"
+        assert steps_of(db, run_id)[-1] == ("spin_scan", 1, "aborted")
+        assert station_plugin.motor_calls[len(motor_before):][-2:] == ["emergency_stop", "stop"]
+        assert "aborted" in classes(page, "spin_scan")

@@ -1,0 +1,79 @@
+"""Helpers of the web station tests: the app over a test database, served for real by uvicorn in a
+thread (for the browser tests), and the plugin set-up shared with the station tests."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import uvicorn
+
+from calstation.db import Database, Run, Step
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = [
+    "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--no-first-run",
+]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@contextmanager
+def served(app: Any) -> Iterator[str]:
+    """Serve ``app`` on 127.0.0.1 with uvicorn in a thread; yields its base URL."""
+    port = free_port()
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
+                                           lifespan="on", timeout_graceful_shutdown=2))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("the test server did not start")
+        time.sleep(0.05)
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(30)
+
+
+def run_status(db: Database, run_id: int) -> str:
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        return run.status
+
+
+def steps_of(db: Database, run_id: int) -> list[tuple[str, int, str]]:
+    with db.session() as s:
+        return [(r.name, r.attempt, r.status)
+                for r in s.query(Step).filter_by(run_id=run_id).order_by(Step.id)]
+
+
+def wait_until(predicate: Any, timeout: float = 60.0, period: float = 0.1) -> Any:
+    """Poll ``predicate`` until it returns something truthy; fails after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(period)
+    raise AssertionError(f"timed out after {timeout} s waiting for {predicate}")
+
+
+def copy_recipe(src: Path, folder: Path, name: str | None = None) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    dst = folder / (name or src.name)
+    dst.write_text(src.read_text(encoding="utf-8"), encoding="utf-8")
+    return dst
