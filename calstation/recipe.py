@@ -614,6 +614,9 @@ def plugin_problems(recipe: Recipe) -> list[Problem]:
             problems.append(
                 (("calibration", "options", name), f"options for unknown strategy {name!r}")
             )
+    from .strategies import recipe_option_problems
+
+    problems += recipe_option_problems(recipe, strategies)
     return problems
 
 

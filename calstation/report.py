@@ -42,6 +42,7 @@ def run_brief(run: Run) -> dict[str, Any]:
         "recipe_path": run.recipe_path,
         "recipe_sha256": run.recipe_sha256,
         "operator": run.operator,
+        "unit_serial": run.unit_serial,
         "unattended": run.unattended,
         "status": run.status,
         "started_at": iso(run.started_at),

@@ -373,6 +373,7 @@ class Station:
         return StepOutcome(
             {
                 "lidar": plain(info.as_dict()),
+                "unit_serial": self._record_serial(str(info.serial or "")),
                 "lines": lines,
                 "valid_fraction": valid / max(points, 1),
                 "encoder_counts": int(counts),
@@ -381,6 +382,18 @@ class Station:
                 "rpm": rpm,
             }
         )
+
+    def _record_serial(self, reported: str) -> str | None:
+        """The run's unit serial: the operator's, else the lidar's (stored with the run)."""
+        with self.db.session() as s:
+            run = s.get(Run, self.run_id)
+            assert run is not None
+            if run.unit_serial and reported and reported != run.unit_serial:
+                self.ui.warn(f"the lidar reports serial {reported!r}, the operator gave "
+                             f"{run.unit_serial!r}; the operator's is kept")
+            elif not run.unit_serial and reported:
+                run.unit_serial = reported
+            return run.unit_serial
 
     def _place(self, fixture: str) -> StepOutcome:
         geometry = getattr(self.recipe.fixtures, fixture)
@@ -437,10 +450,14 @@ class Station:
         strategy = self._strategy()
         start = self._stored_calibration("initial")
         recording = read_recording(self._artifact_path("spin"))
+        from .strategies import run_strategy
+
         with self.ui.progress(f"fine-tuning ({strategy.name})") as progress:
-            result = strategy.run(
-                recording, Extrinsics.from_dict(start.params()), self.recipe, progress
+            result, warnings = run_strategy(
+                strategy, recording, Extrinsics.from_dict(start.params()), self.recipe, progress
             )
+        for warning in warnings:
+            self.ui.warn(warning)
         self.ui.info(f"  {strategy.name}: {_fmt_h(result.H.as_dict())}")
         return StepOutcome(
             {"strategy": strategy.name, "H": result.H.as_dict(), "cost": plain(result.cost),
@@ -765,7 +782,7 @@ def _acquire_spin(d: Drivers, writer: Any, cfg: Any, progress: Any) -> None:
     )
 
 
-def _calibration_row(run_id: int, step_id: int, stage: str, res: Any) -> Calibration:
+def _calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> Calibration:
     H = res.H.as_dict()
     sigma = {k: plain(float(v)) for k, v in res.sigma.items()}
     diagnostics = plain(dict(res.diagnostics))
@@ -837,11 +854,13 @@ def start_run(
     *,
     operator: str,
     data_dir: Path | None = None,
+    serial: str | None = None,
 ) -> tuple[int, str]:
     """Create a run of ``loaded`` and execute it; returns (run id, final status).
 
     The recipe is validated against the installed plugins first. The run folder is
-    ``<data_dir>/runs/<run id>/``.
+    ``<data_dir>/runs/<run id>/``. ``serial`` is the unit's serial number when the operator
+    gives it (else the lidar's, read at preflight).
     """
     check_plugins(loaded)
     base = (data_dir or data_dir_default()).expanduser().resolve()
@@ -859,6 +878,7 @@ def start_run(
             recipe_text=loaded.text,
             recipe_sha256=loaded.sha256,
             operator=operator,
+            unit_serial=serial or None,
             unattended=ui.unattended,
             data_dir="",
             status="running",
