@@ -376,6 +376,9 @@ class QALimits(Model):
     perpendicularity_deg: Positive = 0.5
     drift_translation: Positive = 0.002
     drift_rotation_deg: Positive = 0.2
+    drift_fails: bool = Field(
+        False, description="drift beyond the limits fails the run (default: a warning only)"
+    )
 
 
 # --- the recipe ----------------------------------------------------------------------------

@@ -209,6 +209,8 @@ class Station:
                 "retry", "failed", step, conditions=[self._is_failed(step)]
             )
         self.machine.add_transition("fail", list(STEPS), "failed")
+        # a QA verdict (failed cube check) the operator does not retry still gets its report
+        self.machine.add_transition("conclude", "failed", "report")
         self.machine.add_transition("abort", "*", "aborted")
         self._plan: list[str] = []
 
@@ -235,14 +237,19 @@ class Station:
                     if self.ui.on_failure(step, self._last_error, self._attempts(step)) == "retry":
                         self.trigger("retry")
                         continue
-                    return self._finish("failed", f"step {step} failed: {self._last_error}")
+                    if not self._verdict_failure:
+                        return self._finish("failed", f"step {step} failed: {self._last_error}")
+                    self._plan = ["report"]
+                    self.trigger("conclude")
+                    continue
                 self._plan.pop(0)
                 if not self._plan:
                     break
                 if self._plan[0] != self._next_in_order(step):  # plans are suffixes of STEPS
                     raise StationError(f"cannot go from {step} to {self._plan[0]}")
                 self.trigger("advance")
-            return self._finish(self._verdict(), None)
+            verdict = self._verdict()
+            return self._finish(verdict, None if verdict == "passed" else self._failure_reason())
         except (AbortRun, KeyboardInterrupt) as exc:
             aborted = True
             if self.state in STEPS:
@@ -281,8 +288,13 @@ class Station:
         return plan
 
     def _attempt(self, step: str) -> bool:
-        """One attempt at ``step``: row, work, commit. False (with ``_last_error``) on failure."""
+        """One attempt at ``step``: row, work, commit. False (with ``_last_error``) on failure.
+
+        A step whose outcome is a failed QA verdict (``outcome.failure``) keeps its recordings and
+        results and fails like any step, so the operator may retry it.
+        """
         step_id, attempt = self._begin_step(step)
+        self._verdict_failure = False
         self.ui.info(f"[bold]▶ {step}[/] (attempt {attempt})")
         try:
             handler = getattr(self, f"_step_{step}")
@@ -300,12 +312,23 @@ class Station:
             self.failed_step = step
             self.trigger("fail")
             return False
+        if outcome.failure is not None:
+            self._last_error = outcome.failure
+            self._verdict_failure = True
+            self._end_step(step_id, "failed", outcome.result, outcome.failure, outcome)
+            self._notify("step_finished", run=self._brief(), step=step, status="failed",
+                         result=outcome.result)
+            self.failed_step = step
+            self.trigger("fail")
+            return False
         self._end_step(step_id, "passed", outcome.result, None, outcome)
         self._notify("step_finished", run=self._brief(), step=step, status="passed",
                      result=outcome.result)
         return True
 
     _last_error: str = ""
+    _verdict_failure: bool = False
+    _drift_failure: str | None = None
 
     # --- the steps ---------------------------------------------------------------------------
     def _step_preflight(self, step_id: int) -> StepOutcome:
@@ -472,6 +495,8 @@ class Station:
 
         d = self._drivers()
         cfg = self.recipe.steps.cube_scan
+        if self._attempts("cube_scan") > 1:  # a retry: re-seat the cube, then scan again
+            self._place("qa_cube")
         path = self._record("cube_scan", step_id, lambda w, p: _acquire_spin(d, w, cfg, p))
         fine = self._stored_calibration("fine")
         recording = read_recording(path)
@@ -503,6 +528,7 @@ class Station:
              "points": int(getattr(check, "points", 0))},
             artifacts=[("cube", path)],
             cube=(fine.id, cube),
+            failure=None if check.passed else "cube check failed: " + "; ".join(check.failures),
         )
 
     def _step_report(self, step_id: int) -> StepOutcome:
@@ -513,12 +539,19 @@ class Station:
             fine = [c for c in run.calibrations if c.stage == "fine"]
             drift = None
             if fine:
-                for c in run.calibrations:
-                    c.accepted = False
-                fine[-1].accepted = verdict == "passed"
                 prev = previous_accepted(s, run)
                 if prev is not None:
                     drift = _drift(fine[-1], prev, self.recipe.qa)
+                    if drift["flagged"] and self.recipe.qa.drift_fails and verdict == "passed":
+                        verdict = "failed"
+                        self._drift_failure = (
+                            f"calibration drifted beyond the recipe's limits since run "
+                            f"{drift['previous_run']}: {', '.join(drift['flagged'])} "
+                            "(qa.drift_fails is set)"
+                        )
+                for c in run.calibrations:
+                    c.accepted = False
+                fine[-1].accepted = verdict == "passed"
             s.flush()
             summary = run_summary(run)
         summary["status"] = verdict
@@ -708,7 +741,21 @@ class Station:
         return "passed" if check is not None and check.passed else "failed"
 
     def _verdict(self) -> str:
-        return self._verdict_from_db()
+        return "failed" if self._drift_failure else self._verdict_from_db()
+
+    def _failure_reason(self) -> str | None:
+        """Why a run that went through every step failed: drift, else the cube check."""
+        if self._drift_failure:
+            return self._drift_failure
+        with self.db.session() as s:
+            check = s.scalars(
+                select(CubeCheckRecord)
+                .where(CubeCheckRecord.run_id == self.run_id)
+                .order_by(CubeCheckRecord.id.desc())
+            ).first()
+            if check is None or check.passed:
+                return None
+            return "cube check failed: " + "; ".join(str(f) for f in check.failures)
 
     def _brief(self) -> dict[str, Any]:
         with self.db.session() as s:
@@ -759,6 +806,8 @@ class StepOutcome:
     artifacts: list[tuple[str, Path]] = field(default_factory=list)
     calibration: tuple[str, Any] | None = None
     cube: tuple[int, dict[str, Any]] | None = None
+    failure: str | None = None
+    """A failed QA verdict: the step fails (the operator may retry) but keeps what it stored."""
 
 
 def run_brief_from(summary: dict[str, Any]) -> dict[str, Any]:
