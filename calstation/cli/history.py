@@ -107,12 +107,16 @@ def register(app: typer.Typer) -> None:
             typer.echo(json.dumps(rows, indent=2))
             return
         shown_params = [p for p in H_PARAMS if p != "rx"]  # rx is the gauge, held at 0
-        table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error")
+        from rich import box
+
+        table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error",
+                      box=box.SIMPLE_HEAD, pad_edge=False)
         columns = ("run", "station", "serial", "started (UTC)", "operator", "recipe", "status",
-                   *shown_params, "edge mm", "reason")
+                   *shown_params, "edge mm")
         for col in columns:
             table.add_column(col, justify="right" if col in H_PARAMS else "left",
-                             overflow="fold" if col == "reason" else "ellipsis")
+                             no_wrap=col in ("started (UTC)", "recipe", "serial"))
+        reasons = []
         for r in rows:
             cal = r["calibration"]
             values = [_display(p, cal["H"][p]) if cal else "—" for p in shown_params]
@@ -122,8 +126,13 @@ def register(app: typer.Typer) -> None:
             started = (r["started_at"] or "")[:16].replace("T", " ")
             table.add_row(str(r["id"]), r["station"], r["unit_serial"] or "—", started,
                           r["operator"], r["recipe_name"], f"[{colour}]{r['status']}[/]",
-                          *values, edge, escape(failure_reason(r)))
-        wide_console().print(table)
+                          *values, edge)
+            if r["failure_reason"]:
+                reasons.append(f"run {r['id']} ({r['status']}): {r['failure_reason']}")
+        console = wide_console()
+        console.print(table)
+        for line in reasons:
+            console.print(escape(line), highlight=False)
 
     @app.command("show")
     def show(
@@ -304,6 +313,16 @@ def trend_points(
 def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Path) -> None:
     """PNG: the parameter over time (x = the run's start date, UTC; mm or deg), drifted runs in
     red, the allowed band around each previous value shaded."""
+    import matplotlib.pyplot as plt
+
+    fig = trend_figure(points, station, param)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def trend_figure(points: list[dict[str, Any]], station: str, param: str) -> Any:
+    """The matplotlib figure of :func:`plot_trend` (x axis: dates)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -343,6 +362,4 @@ def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Pat
     ax.grid(True, alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return fig

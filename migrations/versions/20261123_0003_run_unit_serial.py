@@ -85,6 +85,8 @@ def downgrade() -> None:
         kept = dict(result) if isinstance(result, dict) else {}
         kept['unit_serial'] = serial
         conn.execute(_step.update().where(_step.c.id == step_id).values(result=kept))
-    with op.batch_alter_table('run', schema=None) as batch_op:
-        batch_op.drop_index(batch_op.f('ix_run_unit_serial'))
-        batch_op.drop_column('unit_serial')
+    # Not a batch operation: on SQLite a batch re-creates the run table, and dropping the old one
+    # with foreign keys on would cascade to every step, calibration and artifact of every run.
+    # SQLite 3.35+ drops a column in place.
+    op.drop_index('ix_run_unit_serial', table_name='run')
+    op.drop_column('run', 'unit_serial')
