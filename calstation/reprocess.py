@@ -82,6 +82,7 @@ class Reprocessing:
     recordings: dict[str, str]
     accepted: dict[str, float] | None = None
     accepted_id: int | None = None
+    accepted_gauge: str | None = None
     difference: dict[str, float] | None = None
     warnings: list[str] = field(default_factory=list)
 
@@ -220,6 +221,7 @@ def _store(
         ).first()
         accepted = previous.params() if previous is not None else None
         accepted_id = previous.id if previous is not None else None
+        accepted_gauge = (previous.diagnostics or {}).get("gauge") if previous is not None else None
         row = _calibration_row(run_id, None, REPROCESS_STAGE, result)
         if accepted_id is not None:
             row.diagnostics = {**(row.diagnostics or {}), "compared_to": accepted_id}
@@ -237,6 +239,7 @@ def _store(
     return Reprocessing(
         run_id=run_id, calibration_id=new_id, accepted_now=accept, initial=initial,
         result=result, recordings=recordings, accepted=accepted, accepted_id=accepted_id,
+        accepted_gauge=None if accepted_gauge is None else str(accepted_gauge),
         difference=difference, warnings=warnings,
     )
 

@@ -306,8 +306,14 @@ def _reprocess(
     if done.accepted is None:
         typer.echo(f"run {run_id} has no accepted calibration to compare with")
         return
+    gauges = (done.accepted_gauge, result.diagnostics.get("gauge"))
+    caption = None
+    if gauges[0] != gauges[1]:
+        caption = (f"gauges differ (accepted: {gauges[0] or '—'}, re-processed: "
+                   f"{gauges[1] or '—'}): a shift of the origin along the rotation axis is a "
+                   "gauge choice, not a calibration difference; it shows in tx and ty")
     table = Table(title=f"difference to the accepted calibration {done.accepted_id} of run "
-                        f"{run_id} (mm, °)")
+                        f"{run_id} (mm, °)", caption=caption)
     for col in ("parameter", "accepted", "re-processed", "difference"):
         table.add_column(col, justify="right")
     for p, a, b, d in difference_rows(done.accepted, result.H):
