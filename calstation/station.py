@@ -495,7 +495,7 @@ class Station:
 
         d = self._drivers()
         cfg = self.recipe.steps.cube_scan
-        if self._attempts("cube_scan") > 1:  # a retry: re-seat the cube, then scan again
+        if self.failed_step == "cube_scan":  # the operator's retry: re-seat the cube, rescan
             self._place("qa_cube")
         path = self._record("cube_scan", step_id, lambda w, p: _acquire_spin(d, w, cfg, p))
         fine = self._stored_calibration("fine")
