@@ -7,8 +7,8 @@
 - :mod:`calstation.testing.canbus`: an emulated CANopen node on python-can to build device
   emulators on.
 - :mod:`calstation.testing.fixtures`: pytest fixtures giving the recordings of a simulated run
-  (through the ``calstation-sim`` plugin when installed) for a strategy test; enable them with
-  ``pytest_plugins = ["calstation.testing.fixtures"]`` in a ``conftest.py``.
+  (through the ``calstation-sim`` plugin when installed) for a strategy test; import them into a
+  ``conftest.py``.
 - :func:`simulate_scans` and :func:`strategy_start` below: the same without pytest.
 
 Nothing here is imported by calstation itself; only tests and emulators use it.

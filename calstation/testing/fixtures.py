@@ -2,7 +2,9 @@
 
 Enable them in a plugin's ``tests/conftest.py``::
 
-    pytest_plugins = ["calstation.testing.fixtures"]
+    from calstation.testing.fixtures import simulated_scans, strategy_start  # noqa: F401
+
+(or ``pytest_plugins = ["calstation.testing.fixtures"]`` in a top-level conftest).
 
 and use them in a test::
 
