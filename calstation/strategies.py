@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from .errors import FineTuningError, PluginError
 from .frames import PARAMETER_NAMES, Extrinsics
@@ -61,11 +61,19 @@ class Strategy(Protocol):
         ...
 
 
+class NoOptions(BaseModel):
+    """The options model of a strategy that takes none: any key is an error."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
 class PeriodicityStrategy:
-    """Periodicity-constrained fine-tuning on the spin target (paper §III-B-2)."""
+    """Periodicity-constrained fine-tuning on the spin target (paper §III-B-2); its settings are
+    ``calibration.periodicity``, so ``calibration.options.periodicity`` takes no key."""
 
     name = "periodicity"
     fixture = "spin_target"
+    options_model = NoOptions
 
     def run(
         self,

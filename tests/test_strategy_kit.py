@@ -113,6 +113,12 @@ def test_options_model_problems_name_the_option() -> None:
         problems = recipe_option_problems(recipe, plugins.strategies())
     assert (("calibration", "options", "with-options", "bogus"), "unknown option") in problems
     assert any(loc[-1] == "radius" and "number" in msg for loc, msg in problems)
+    # the built-in periodicity strategy takes no options at all
+    recipe = parse_recipe(RECIPE.replace("with-options:\n      radius: wide\n      bogus: 1",
+                                         "periodicity:\n      bogus: 1"))
+    with plugins.isolated():
+        problems = recipe_option_problems(recipe, plugins.strategies())
+    assert problems == [(("calibration", "options", "periodicity", "bogus"), "unknown option")]
 
 
 def test_a_bad_options_model_is_refused_at_registration() -> None:
@@ -136,7 +142,7 @@ def test_plugins_command_lists_each_strategy_with_its_plugin() -> None:
     rows = {s["name"]: s for s in json.loads(proc.stdout)["strategies"]}
     assert rows["shape"]["plugin"] == "calstation.builtin_plugins.strategies"
     assert rows["shape"]["options"] == ["box", "estimate_ry", "coarse"]
-    assert rows["periodicity"]["options"] is None
+    assert rows["periodicity"]["options"] == []  # its settings are calibration.periodicity
     if "example-ry-held" in rows:  # the example plugin, when installed
         assert rows["example-ry-held"]["plugin"] == "example"
 

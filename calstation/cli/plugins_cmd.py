@@ -67,7 +67,7 @@ def register(app: typer.Typer) -> None:
         for name, s in sorted(strategies.items()):
             options = _options_schema(s)
             stable.add_row(name, str(getattr(s, "fixture", "")), plugins.strategy_plugin(name),
-                           ", ".join(options) if options is not None else "(unchecked)")
+                           "(unchecked)" if options is None else ", ".join(options) or "(none)")
         console.print(stable)
 
 
