@@ -36,7 +36,9 @@ def calstation_register_cost_strategies(register: RegisterStrategy) -> None:
 
     Call ``register(strategy)`` with an object implementing
     :class:`calstation.strategies.Strategy`; its ``name`` is what recipes write in
-    ``calibration.strategy`` and what ``calstation calibrate --strategy`` accepts.
+    ``calibration.strategy`` and what ``calstation calibrate --strategy`` accepts. An optional
+    ``options_model`` (a pydantic model class) validates ``calibration.options[name]``; it must
+    be a pydantic model class, or registering fails.
     """
 
 
@@ -73,7 +75,8 @@ def calstation_step_finished(run: Any, step: str, status: str, result: Any) -> N
     ``run`` is the run's summary mapping (as for :func:`calstation_run_started`), ``step`` the
     step name (``"preflight"``, ``"place_static_target"``, ``"static_scan"``, ...), ``status``
     ``"passed"`` or ``"failed"``, ``result`` the step's JSON-ready result mapping (for a failed
-    step: ``{"error": message}``). Observers (a factory MES upload, say) implement this; an
+    step: ``{"error": message}``; a failed cube check is a failed ``cube_scan`` with its whole
+    result, as its measurements are kept). Observers (a factory MES upload, say) implement this; an
     exception raised here is reported but does not fail the run.
     """
 

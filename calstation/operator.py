@@ -270,6 +270,17 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
         )
         for f in cube.get("failures") or []:
             console.print(f"  [red]✘[/] {escape(str(f))}")
+    limits = s.get("qa_limits")
+    if limits:
+        console.print(
+            f"limits: edge error ≤ {limits['edge_error'] * 1000:.2f} mm, OBB error ≤ "
+            f"{limits['obb_edge_error'] * 1000:.2f} mm, flatness RMS ≤ "
+            f"{limits['flatness_rms'] * 1000:.2f} mm, perpendicularity ≤ "
+            f"{limits['perpendicularity_deg']:.3f}°; drift ≤ "
+            f"{limits['drift_translation'] * 1000:.2f} mm / {limits['drift_rotation_deg']:.3f}°"
+            + (" (fails the run)" if limits.get("drift_fails") else " (warns)"),
+            highlight=False,
+        )
     if s.get("error"):
         console.print(f"[red]{escape(s['error'])}[/]")
     console.print(Panel(f"{verdict}", style=style, expand=False))

@@ -245,8 +245,11 @@ def strategies() -> dict[str, Any]:
     with _lock:
         if "strategies" in _registry_cache:
             return dict(_registry_cache["strategies"])
+        from .strategies import options_model_of
+
         pm = load_plugins()
         found: dict[str, Any] = {}
+        owners: dict[str, str] = {}
         for impl in pm.hook.calstation_register_cost_strategies.get_hookimpls():
             plugin = impl.plugin_name
 
@@ -255,13 +258,29 @@ def strategies() -> dict[str, Any]:
                 if not isinstance(name, str) or not name:
                     raise PluginError(f"plugin {_plugin} registered a strategy without a name")
                 if name in found:
-                    raise PluginError(f"strategy {name!r} registered twice (second by {_plugin})")
+                    raise PluginError(
+                        f"strategy {name!r} registered twice: by {owners[name]} and by {_plugin}"
+                    )
+                try:
+                    options_model_of(strategy)
+                except PluginError as exc:
+                    raise PluginError(f"plugin {_plugin}: {exc}") from None
                 found[name] = strategy
+                owners[name] = _plugin
 
             _trace(f"calstation_register_cost_strategies(register) → {plugin}")
             impl.function(register=register)
         _registry_cache["strategies"] = found
+        _registry_cache["strategy_plugins"] = owners
         return dict(found)
+
+
+def strategy_plugin(name: str) -> str:
+    """The name of the plugin that registered strategy ``name`` (see :func:`strategies`)."""
+    strategy(name)
+    with _lock:
+        owners: dict[str, str] = _registry_cache.get("strategy_plugins", {})
+        return owners.get(name, "?")
 
 
 def strategy(name: str) -> Any:

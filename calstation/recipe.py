@@ -394,6 +394,9 @@ class QALimits(Model):
     )
     drift_translation: Positive = 0.002
     drift_rotation_deg: Positive = 0.2
+    drift_fails: bool = Field(
+        False, description="drift beyond the limits fails the run (default: a warning only)"
+    )
 
 
 # --- the recipe ----------------------------------------------------------------------------
@@ -632,6 +635,9 @@ def plugin_problems(recipe: Recipe) -> list[Problem]:
             problems.append(
                 (("calibration", "options", name), f"options for unknown strategy {name!r}")
             )
+    from .strategies import recipe_option_problems
+
+    problems += recipe_option_problems(recipe, strategies)
     return problems
 
 

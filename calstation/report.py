@@ -45,6 +45,7 @@ def run_brief(run: Run) -> dict[str, Any]:
         "recipe_path": run.recipe_path,
         "recipe_sha256": run.recipe_sha256,
         "operator": run.operator,
+        "unit_serial": run.unit_serial,
         "unattended": run.unattended,
         "status": run.status,
         "started_at": iso(run.started_at),
@@ -109,6 +110,7 @@ def run_summary(run: Run) -> dict[str, Any]:
     ]
     out["calibrations"] = [calibration_dict(c) for c in run.calibrations]
     out["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+    out["qa_limits"] = qa_limits(run.recipe_text)
     out["artifacts"] = [
         {
             "kind": a.kind,
@@ -120,6 +122,21 @@ def run_summary(run: Run) -> dict[str, Any]:
         for a in run.artifacts
     ]
     return out
+
+
+def qa_limits(recipe_text: str) -> dict[str, Any] | None:
+    """The pass/fail and drift limits of a stored recipe (metres, degrees; ``qa`` section with its
+    defaults), None when the text is not a recipe mapping."""
+    from pydantic import ValidationError
+
+    from .recipe import QALimits
+
+    try:
+        data = yaml.safe_load(recipe_text)
+        section = data.get("qa") if isinstance(data, dict) else None
+        return QALimits.model_validate(section or {}).model_dump()
+    except (yaml.YAMLError, ValidationError):
+        return None
 
 
 def get_run(session: Session, run_id: int) -> Run:

@@ -347,8 +347,9 @@ def unit_serial(summary: dict[str, Any]) -> str | None:
     """The unit's serial: the run's own column when the database has one, else ``unit.json`` in
     the run folder (written by the web station), else the serial the lidar reported in
     preflight."""
-    if summary.get("serial"):
-        return str(summary["serial"])
+    for key in ("unit_serial", "serial"):
+        if summary.get(key):
+            return str(summary[key])
     unit = Path(summary.get("data_dir") or ".") / "unit.json"
     if summary.get("data_dir") and unit.is_file():
         try:

@@ -217,6 +217,8 @@ class Station:
                 "retry", "failed", step, conditions=[self._is_failed(step)]
             )
         self.machine.add_transition("fail", list(STEPS), "failed")
+        # a QA verdict (failed cube check) the operator does not retry still gets its report
+        self.machine.add_transition("conclude", "failed", "report")
         self.machine.add_transition("abort", "*", "aborted")
         self._plan: list[str] = []
 
@@ -243,14 +245,19 @@ class Station:
                     if self.ui.on_failure(step, self._last_error, self._attempts(step)) == "retry":
                         self._restart_from(RETRY_FROM.get(step, step))
                         continue
-                    return self._finish("failed", f"step {step} failed: {self._last_error}")
+                    if not self._verdict_failure:
+                        return self._finish("failed", f"step {step} failed: {self._last_error}")
+                    self._plan = ["report"]
+                    self.trigger("conclude")
+                    continue
                 self._plan.pop(0)
                 if not self._plan:
                     break
                 if self._plan[0] != self._next_in_order(step):  # plans are suffixes of STEPS
                     raise StationError(f"cannot go from {step} to {self._plan[0]}")
                 self.trigger("advance")
-            return self._finish(self._verdict(), None)
+            verdict = self._verdict()
+            return self._finish(verdict, None if verdict == "passed" else self._failure_reason())
         except (AbortRun, KeyboardInterrupt) as exc:
             aborted = True
             if self.state in STEPS:
@@ -296,8 +303,13 @@ class Station:
         return plan
 
     def _attempt(self, step: str) -> bool:
-        """One attempt at ``step``: row, work, commit. False (with ``_last_error``) on failure."""
+        """One attempt at ``step``: row, work, commit. False (with ``_last_error``) on failure.
+
+        A step whose outcome is a failed QA verdict (``outcome.failure``) keeps its recordings and
+        results and fails like any step, so the operator may retry it.
+        """
         step_id, attempt = self._begin_step(step)
+        self._verdict_failure = False
         try:
             publish(self.ui, "step_started", step=step, attempt=attempt)
             handler = getattr(self, f"_step_{step}")
@@ -318,6 +330,15 @@ class Station:
             self.failed_step = step
             self.trigger("fail")
             return False
+        if outcome.failure is not None:
+            self._last_error = outcome.failure
+            self._verdict_failure = True
+            self._end_step(step_id, "failed", outcome.result, outcome.failure, outcome)
+            self._notify("step_finished", run=self._brief(), step=step, status="failed",
+                         result=outcome.result)
+            self.failed_step = step
+            self.trigger("fail")
+            return False
         self._end_step(step_id, "passed", outcome.result, None, outcome)
         publish(self.ui, "step_finished", step=step, attempt=attempt, status="passed",
                 result=plain(outcome.result), error=None)
@@ -326,6 +347,8 @@ class Station:
         return True
 
     _last_error: str = ""
+    _verdict_failure: bool = False
+    _drift_failure: str | None = None
 
     # --- the steps ---------------------------------------------------------------------------
     def _step_preflight(self, step_id: int) -> StepOutcome:
@@ -393,6 +416,7 @@ class Station:
         return StepOutcome(
             {
                 "lidar": plain(info.as_dict()),
+                "unit_serial": self._record_serial(str(info.serial or "")),
                 "lines": lines,
                 "valid_fraction": valid / max(points, 1),
                 "encoder_counts": int(counts),
@@ -401,6 +425,18 @@ class Station:
                 "rpm": rpm,
             }
         )
+
+    def _record_serial(self, reported: str) -> str | None:
+        """The run's unit serial: the operator's, else the lidar's (stored with the run)."""
+        with self.db.session() as s:
+            run = s.get(Run, self.run_id)
+            assert run is not None
+            if run.unit_serial and reported and reported != run.unit_serial:
+                self.ui.warn(f"the lidar reports serial {reported!r}, the operator gave "
+                             f"{run.unit_serial!r}; the operator's is kept")
+            elif not run.unit_serial and reported:
+                run.unit_serial = reported
+            return run.unit_serial
 
     def _place(self, fixture: str) -> StepOutcome:
         geometry = getattr(self.recipe.fixtures, fixture)
@@ -463,10 +499,14 @@ class Station:
         strategy = self._strategy()
         start = self._stored_calibration("initial")
         recording = read_recording(self._artifact_path("spin"))
+        from .strategies import run_strategy
+
         with self.ui.progress(f"fine-tuning ({strategy.name})") as progress:
-            result = strategy.run(
-                recording, Extrinsics.from_dict(start.params()), self.recipe, progress
+            result, warnings = run_strategy(
+                strategy, recording, Extrinsics.from_dict(start.params()), self.recipe, progress
             )
+        for warning in warnings:
+            self.ui.warn(warning)
         self.ui.info(f"  {strategy.name}: {_fmt_h(result.H.as_dict())}")
         try:
             check_sigma(result, self.recipe.calibration.max_sigma, strategy.fixture)
@@ -487,6 +527,8 @@ class Station:
 
         d = self._drivers()
         cfg = self.recipe.steps.cube_scan
+        if self.failed_step == "cube_scan":  # the operator's retry: re-seat the cube, rescan
+            self._place("qa_cube")
         path = self._record("cube_scan", step_id, lambda w, p: _acquire_spin(d, w, cfg, p))
         fine = self._stored_calibration("fine")
         recording = read_recording(path)
@@ -521,6 +563,7 @@ class Station:
              "points": int(getattr(check, "points", 0))},
             artifacts=[("cube", path)],
             cube=(fine.id, cube),
+            failure=None if check.passed else "cube check failed: " + "; ".join(check.failures),
         )
 
     def _step_report(self, step_id: int) -> StepOutcome:
@@ -531,12 +574,19 @@ class Station:
             fine = [c for c in run.calibrations if c.stage == "fine"]
             drift = None
             if fine:
-                for c in run.calibrations:
-                    c.accepted = False
-                fine[-1].accepted = verdict == "passed"
                 prev = previous_accepted(s, run)
                 if prev is not None:
                     drift = _drift(fine[-1], prev, self.recipe.qa)
+                    if drift["flagged"] and self.recipe.qa.drift_fails and verdict == "passed":
+                        verdict = "failed"
+                        self._drift_failure = (
+                            f"calibration drifted beyond the recipe's limits since run "
+                            f"{drift['previous_run']}: {', '.join(drift['flagged'])} "
+                            "(qa.drift_fails is set)"
+                        )
+                for c in run.calibrations:
+                    c.accepted = False
+                fine[-1].accepted = verdict == "passed"
             s.flush()
             summary = run_summary(run)
         summary["status"] = verdict
@@ -740,7 +790,21 @@ class Station:
         return "passed" if check is not None and check.passed else "failed"
 
     def _verdict(self) -> str:
-        return self._verdict_from_db()
+        return "failed" if self._drift_failure else self._verdict_from_db()
+
+    def _failure_reason(self) -> str | None:
+        """Why a run that went through every step failed: drift, else the cube check."""
+        if self._drift_failure:
+            return self._drift_failure
+        with self.db.session() as s:
+            check = s.scalars(
+                select(CubeCheckRecord)
+                .where(CubeCheckRecord.run_id == self.run_id)
+                .order_by(CubeCheckRecord.id.desc())
+            ).first()
+            if check is None or check.passed:
+                return None
+            return "cube check failed: " + "; ".join(str(f) for f in check.failures)
 
     def _brief(self) -> dict[str, Any]:
         with self.db.session() as s:
@@ -815,6 +879,8 @@ class StepOutcome:
     artifacts: list[tuple[str, Path]] = field(default_factory=list)
     calibration: tuple[str, Any] | None = None
     cube: tuple[int, dict[str, Any]] | None = None
+    failure: str | None = None
+    """A failed QA verdict: the step fails (the operator may retry) but keeps what it stored."""
 
 
 def run_brief_from(summary: dict[str, Any]) -> dict[str, Any]:
@@ -838,7 +904,7 @@ def _acquire_spin(d: Drivers, writer: Any, cfg: Any, progress: Any) -> None:
     )
 
 
-def _calibration_row(run_id: int, step_id: int, stage: str, res: Any) -> Calibration:
+def _calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> Calibration:
     H = res.H.as_dict()
     sigma = {k: plain(float(v)) for k, v in res.sigma.items()}
     diagnostics = plain(dict(res.diagnostics))
@@ -912,14 +978,16 @@ def start_run(
     *,
     operator: str,
     data_dir: Path | None = None,
+    serial: str | None = None,
 ) -> tuple[int, str]:
     """Create a run of ``loaded`` and execute it; returns (run id, final status).
 
     The recipe is validated against the installed plugins first. The run folder is
-    ``<data_dir>/runs/<run id>/``.
+    ``<data_dir>/runs/<run id>/``. ``serial`` is the unit's serial number when the operator
+    gives it (else the lidar's, read at preflight).
     """
     run_id = create_run(loaded, db, operator=operator, unattended=ui.unattended,
-                        data_dir=data_dir)
+                        data_dir=data_dir, serial=serial)
     ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
             f"{loaded.recipe.station.id}; recordings in {escape(str(_run_dir(db, run_id)))}")
     with _signals_abort():
@@ -940,8 +1008,11 @@ def create_run(
     operator: str,
     unattended: bool,
     data_dir: Path | None = None,
+    serial: str | None = None,
 ) -> int:
     """Create (and commit) a ``running`` run of ``loaded`` and its folder; returns its id.
+
+    ``serial`` is the unit's serial number when the operator gives it.
 
     The recipe is validated against the installed plugins first. Execute it with
     ``Station(db, run_id, loaded, ui).run()``.
@@ -962,6 +1033,7 @@ def create_run(
             recipe_text=loaded.text,
             recipe_sha256=loaded.sha256,
             operator=operator,
+            unit_serial=serial or None,
             unattended=unattended,
             data_dir="",
             status="running",

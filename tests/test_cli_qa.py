@@ -47,15 +47,17 @@ def _build_once() -> None:
 
 def _add_run(
     db: Database, station: str, status: str, H: dict[str, float], started: dt.datetime,
-    edge_error: float = 0.0004, recipe_text: str | None = None,
+    edge_error: float = 0.0004, recipe_text: str | None = None, serial: str | None = None,
+    error: str | None = None, operator: str = "qa",
 ) -> int:
     """One run as the station stores it (rows only; values chosen to be non-round)."""
     text = recipe_text or RECIPE.read_text(encoding="utf-8")
     with db.session() as s:
         st = s.query(Station).filter_by(name=station).one_or_none() or Station(name=station)
         run = Run(station=st, recipe_name="sim-periodicity", recipe_path=str(RECIPE),
-                  recipe_text=text, recipe_sha256="ab" * 32, operator="qa", unattended=True,
+                  recipe_text=text, recipe_sha256="ab" * 32, operator=operator, unattended=True,
                   data_dir="/data/runs/x", status=status, started_at=started,
+                  unit_serial=serial, error=error,
                   finished_at=started + dt.timedelta(minutes=3))
         step = Step(run=run, name="static_scan", status="passed", result={"lines": 100})
         s.add_all([run, step])
@@ -190,3 +192,63 @@ def test_trend_flags_drift_against_previous_accepted(
     res = cli.invoke(app, ["trend", "--station", "st-9", "--param", "nope", "--db", db_url])
     assert res.exit_code != 0
     db.dispose()
+
+
+def test_history_shows_serial_operator_recipe_and_reason(cli: CliRunner, db_url: str) -> None:
+    db = open_database(db_url)
+    t0 = dt.datetime(2026, 3, 1, tzinfo=dt.UTC)
+    a = _add_run(db, "st-1", "passed", H1, t0, serial="LX-1001", operator="ann")
+    b = _add_run(db, "st-1", "failed", H1, t0 + dt.timedelta(days=1), serial="LX-1002",
+                 operator="bob", error="step spin_scan failed: the lidar went silent")
+    c = _add_run(db, "st-1", "failed", H1, t0 + dt.timedelta(days=2), serial="LX-1001",
+                 edge_error=0.004)
+    res = cli.invoke(app, ["history", "--json", "--db", db_url, "--serial", "LX-1001"])
+    assert res.exit_code == 0, res.output
+    rows = json.loads(res.output)
+    assert [r["id"] for r in rows] == [c, a]
+    assert rows[0]["unit_serial"] == "LX-1001" and rows[1]["failure_reason"] is None
+    res = cli.invoke(app, ["history", "--db", db_url])
+    assert res.exit_code == 0
+    line_b = next(line for line in res.output.splitlines() if "LX-1002" in line)
+    assert "bob" in line_b and "sim-periodicity" in line_b
+    assert f"run {b} (failed): step spin_scan failed: the lidar went silent" in res.output
+    assert f"run {a} " not in res.output  # a passed run has no reason line
+    # a failed cube check with no run error: the reason is the cube check
+    res = cli.invoke(app, ["history", "--json", "--db", db_url])
+    (row_c,) = [r for r in json.loads(res.output) if r["id"] == c]
+    assert row_c["failure_reason"].startswith("cube check")
+    db.dispose()
+
+
+def test_trend_by_date_and_serial(cli: CliRunner, db_url: str, tmp_path: Path) -> None:
+    from calstation.cli.history import trend_figure, trend_points
+
+    db = open_database(db_url)
+    t0 = dt.datetime(2026, 3, 1, tzinfo=dt.UTC)
+    late = _add_run(db, "st-5", "passed", {**H1, "tx": 0.011}, t0 + dt.timedelta(days=30),
+                    serial="U-2")
+    early = _add_run(db, "st-5", "passed", {**H1, "tx": 0.010}, t0, serial="U-1")
+    mid = _add_run(db, "st-5", "passed", {**H1, "tx": 0.012}, t0 + dt.timedelta(days=3),
+                   serial="U-1")
+    db.dispose()
+    points = trend_points("st-5", "tx", db_url)
+    assert [p["run_id"] for p in points] == [early, mid, late]  # by date, not by run id
+    assert [p["run_id"] for p in trend_points("st-5", "tx", db_url, serial="U-1")] == [early, mid]
+    fig = trend_figure(points, "st-5", "tx")
+    xs = fig.axes[0].lines[0].get_xdata()
+    assert [x.date() for x in xs] == [(t0 + dt.timedelta(days=d)).date() for d in (0, 3, 30)]
+    assert "run start" in fig.axes[0].get_xlabel()
+    res = cli.invoke(app, ["trend", "--station", "st-5", "--param", "tx", "--serial", "U-2",
+                           "--png", str(tmp_path / "t.png"), "--db", db_url])
+    assert res.exit_code == 0 and "U-2" in res.output and "U-1" not in res.output
+
+
+def test_show_prints_the_limits_on_pass(cli: CliRunner, db_url: str) -> None:
+    db = open_database(db_url)
+    run_id = _add_run(db, "st-1", "passed", H1, dt.datetime(2026, 3, 1, tzinfo=dt.UTC))
+    db.dispose()
+    res = cli.invoke(app, ["show", str(run_id), "--db", db_url])
+    text = " ".join(res.output.split())  # the console wraps long lines
+    assert res.exit_code == 0 and "PASS" in text
+    assert "limits: edge error ≤ 1.00 mm, OBB error ≤ 15.00 mm" in text  # the recipe's
+    assert "drift ≤ 2.00 mm / 0.200° (warns)" in text

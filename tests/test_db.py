@@ -172,3 +172,45 @@ def test_postgresql_upgrade_matches_models_and_round_trips(postgres_url: str) ->
     _assert_matches_models(db)
     _check_roundtrip(db, _fill(db))
     db.dispose()
+
+
+def test_unit_serial_migration_fills_and_downgrades_losslessly(tmp_path: Path) -> None:
+    """0003 fills unit_serial from what the steps recorded; its downgrade keeps every serial in
+    a step result, so upgrading again restores it."""
+    from alembic import command
+
+    db = Database(f"sqlite:///{tmp_path / 'serial.db'}")
+    db.upgrade("0002")
+    with db.engine.begin() as conn:
+        conn.execute(text(
+            "INSERT INTO station (id, name, created_at) VALUES (1, 'st', '2026-01-01')"))
+        for run_id in (1, 2, 3):
+            conn.execute(text(
+                "INSERT INTO run (id, station_id, recipe_name, recipe_text, recipe_sha256, "
+                "operator, unattended, data_dir, started_at, status) VALUES "
+                f"({run_id}, 1, 'r', 'name: r', 'ab', 'ann', 0, '/d', '2026-01-01', 'passed')"))
+        conn.execute(text(
+            "INSERT INTO step (run_id, name, attempt, status, started_at, result) VALUES "
+            "(1, 'preflight', 1, 'passed', '2026-01-01', "
+            "'{\"lidar\": {\"serial\": \"H-0042\"}, \"lines\": 10}')"))
+        conn.execute(text(
+            "INSERT INTO step (run_id, name, attempt, status, started_at, result) VALUES "
+            "(2, 'preflight', 1, 'passed', '2026-01-01', '{\"lidar\": {\"serial\": \"H-7\"}}')"))
+    db.upgrade()
+    with db.session() as s:
+        assert [r.unit_serial for r in s.scalars(select(Run).order_by(Run.id))] == [
+            "H-0042", "H-7", None]
+        s.get(Run, 2).unit_serial = "OPERATOR-9"  # given by the operator, not the lidar's
+    with db.engine.begin() as conn:
+        command.downgrade(alembic_config(conn), "0002")
+    with db.engine.connect() as conn:
+        assert "unit_serial" not in {c["name"] for c in inspect(conn).get_columns("run")}
+        assert conn.execute(text("SELECT count(*) FROM step")).scalar() == 2  # nothing lost
+    db.upgrade()
+    with db.session() as s:
+        assert [r.unit_serial for r in s.scalars(select(Run).order_by(Run.id))] == [
+            "H-0042", "OPERATOR-9", None]
+        s.get(Run, 3).unit_serial = "NO-STEPS"
+    with db.engine.begin() as conn, pytest.raises(RuntimeError, match="would lose it"):
+        command.downgrade(alembic_config(conn), "0002")
+    db.dispose()

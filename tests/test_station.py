@@ -7,6 +7,7 @@ the optimiser (tests/test_e2e.py runs the real engine end to end).
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -440,3 +441,65 @@ def test_ctrl_c_during_the_spin_scan_aborts_and_stops_the_motor(
         assert run is not None and run.status == "aborted" and run.finished_at is not None
     assert kinds == {"static"}  # the interrupted scan is not stored as a finished recording
     assert ui.summaries[-1]["status"] == "aborted"
+
+
+def _qa_recipe(tmp_path: Path, name: str, seed: int = 0, **qa: Any) -> Path:
+    """The lean recipe with its qa section replaced by ``qa`` (and the simulation's seed)."""
+    path = lean_recipe(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["qa"] = qa
+    data["simulation"]["seed"] = seed
+    out = tmp_path / name
+    out.write_text(yaml.safe_dump(data, sort_keys=False))
+    return out
+
+
+def test_failed_cube_check_offers_reseat_and_rescan(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    # a limit no cube meets: the check fails, the operator re-seats once, then gives up
+    ui = ScriptedOperator(decisions=["retry", "abort"])
+    run_id, status = start_run(load_recipe(_qa_recipe(tmp_path, "strict.yaml", edge_error=1e-7)),
+                               db, ui, operator="ann", data_dir=tmp_path, serial="UNIT-42")
+    assert status == "failed"
+    assert [f[0] for f in ui.failures] == ["cube_scan", "cube_scan"]
+    assert "cube check failed" in ui.failures[0][1]
+    assert ui.placed.count("qa_cube") == 2  # placed, then re-seated for the rescan
+    steps = _steps(db, run_id)
+    assert ("cube_scan", 1, "failed") in steps and ("cube_scan", 2, "failed") in steps
+    assert steps[-1] == ("report", 1, "passed")
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        assert run.error is not None and run.error.startswith("cube check failed")
+        assert len(run.cube_checks) == 2 and not any(c.passed for c in run.cube_checks)
+        assert [a.kind for a in run.artifacts].count("cube") == 2  # both scans kept
+        assert run.unit_serial == "UNIT-42"  # the operator's serial wins over the lidar's
+        report = json.loads((Path(run.data_dir) / "report.json").read_text())
+    assert report["status"] == "failed" and report["unit_serial"] == "UNIT-42"
+
+
+def test_drift_beyond_limits_fails_the_run_when_the_recipe_says_so(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    loose = dict(edge_error=0.05, obb_edge_error=0.05, flatness_rms=0.05,
+                 perpendicularity_deg=10.0)
+    first, status = start_run(load_recipe(_qa_recipe(tmp_path, "a.yaml", **loose)), db,
+                              ScriptedOperator(), operator="ann", data_dir=tmp_path)
+    assert status == "passed"
+    # another seed: other noise, so a slightly different calibration of the same station
+    strict = _qa_recipe(tmp_path, "b.yaml", seed=7, **loose, drift_translation=1e-9,
+                        drift_rotation_deg=1e-9, drift_fails=True)
+    second, status = start_run(load_recipe(strict), db, ScriptedOperator(), operator="ann",
+                               data_dir=tmp_path)
+    assert status == "failed"
+    with db.session() as s:
+        run = s.get(Run, second)
+        assert run is not None and run.error is not None
+        assert f"drifted beyond the recipe's limits since run {first}" in run.error
+        assert not any(c.accepted for c in run.calibrations)
+        # the lidar's own serial is the unit's when the operator gives none
+        (preflight,) = [st for st in run.steps if st.name == "preflight"]
+        assert preflight.result is not None
+        assert run.unit_serial == preflight.result["lidar"]["serial"] == "sim-7"
+        assert preflight.result["unit_serial"] == "sim-7"

@@ -36,15 +36,24 @@ def register(app: typer.Typer) -> None:
 
     @app.command("calibrate")
     def calibrate_cmd(
-        recipe: Path = typer.Argument(..., help="Recipe YAML.", show_default=False),
-        static: Path = typer.Option(
-            ..., "--static", help="Static scan of the L-target (MCAP).", show_default=False
+        recipe: Path | None = typer.Argument(
+            None, help="Recipe YAML (not with --run).", show_default=False
         ),
-        spin: Path = typer.Option(
-            ...,
+        static: Path | None = typer.Option(
+            None, "--static", help="Static scan of the L-target (MCAP).", show_default=False
+        ),
+        spin: Path | None = typer.Option(
+            None,
             "--spin",
             help="Spin scan for the fine-tuning: the spin target for periodicity, the QA cube "
             "for shape (MCAP).",
+            show_default=False,
+        ),
+        run: int | None = typer.Option(
+            None,
+            "--run",
+            help="Re-process stored run N: its recipe and recordings come from the database, "
+            "and the result is stored with the run.",
             show_default=False,
         ),
         strategy: str | None = typer.Option(
@@ -55,6 +64,10 @@ def register(app: typer.Typer) -> None:
             "recipe's calibration.strategy.",
             show_default=False,
         ),
+        accept: bool = typer.Option(
+            False, "--accept",
+            help="With --run: make the re-processing the run's accepted calibration.",
+        ),
         out: Path | None = typer.Option(
             None,
             "--out",
@@ -63,98 +76,40 @@ def register(app: typer.Typer) -> None:
             show_default=False,
         ),
         as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+        db: str | None = typer.Option(
+            None, "--db", help="Database URL for --run (default: $CALSTATION_DB_URL or SQLite).",
+            show_default=False,
+        ),
     ) -> None:
-        """Initial calibration from --static, then fine-tuning from --spin.
+        """Initial calibration from --static, then fine-tuning from --spin; or re-process a run.
 
         Prints H (mm, degrees) with a 1σ per parameter; --json prints tx, ty, tz (m), rx, ry,
-        rz (rad), sigma_* for each, strategy and cost on stdout. A result whose σ exceeds the
+        rz (rad), sigma_* for each, strategy and cost on stdout. With --run N the result is stored
+        with run N as a re-processing (not accepted unless --accept) and compared with the run's
+        accepted calibration. A recording whose encoder settings or recipe sha256 differ from the
+        recipe's gives a warning naming both values. A result whose σ exceeds the
         recipe's calibration.max_sigma is printed (and written with --out) but refused: exit
         code 3, with what to do on stderr (``refused`` in the JSON).
         """
-        from rich.console import Console
+        from ..errors import CalstationError
 
-        from .. import plugins
-        from ..errors import ObservabilityError
-        from ..initial import initial_calibration
-        from ..observability import check_sigma, sigma_problems
-        from ..recipe import load_recipe
-        from ..recording import read_recording
-
-        console = Console(stderr=True)
-        loaded = load_recipe(recipe)
-        rc = loaded.recipe
-        name = strategy or rc.calibration.strategy
-        strat = plugins.strategy(name)
-        with console.status(f"reading {static}"):
-            st = read_recording(static)
-        with console.status("initial calibration"):
-            initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
-        with console.status(f"reading {spin}"):
-            sp = read_recording(spin)
-        with _progress_bar(console) as bar:
-            task = bar.add_task(f"{name} fine-tuning", total=1.0)
-
-            def progress(message: str, fraction: float) -> None:
-                bar.update(task, description=message, completed=max(0.0, min(1.0, fraction)))
-
-            result = strat.run(sp, initial.H, rc, progress)
-            bar.update(task, completed=1.0)
-        diagnostics = dict(result.diagnostics)
-        diagnostics["initial"] = {
-            "H": initial.H.as_dict(),
-            "timings": dict(initial.timings),
-        }
-        diagnostics["recordings"] = {"static": str(static), "spin": str(spin)}
-        diagnostics["recipe"] = {"name": rc.name, "sha256": loaded.sha256}
-        from dataclasses import replace
-
-        result = replace(result, diagnostics=diagnostics)
-        if out is not None:
-            result.save(out)
-        refused = sigma_problems(result, rc.calibration.max_sigma)
-        if as_json:
-            summary = result.summary()
-            summary["initial"] = initial.H.as_dict()
-            summary["refused"] = refused
-            typer.echo(json.dumps(summary, indent=2))
-            if refused:
-                raise typer.Exit(3)
+        if run is not None:
+            if recipe is not None or static is not None or spin is not None:
+                raise CalstationError(
+                    "--run takes the recipe and the recordings from the database: give either "
+                    "--run N, or RECIPE --static FILE --spin FILE"
+                )
+            _reprocess(run, strategy, accept, out, as_json, db)
             return
-        from rich.table import Table
-
-        table = Table(
-            title=f"calibration ({result.strategy}, gauge {diagnostics.get('gauge', '—')})"
-        )
-        table.add_column("parameter")
-        table.add_column("initial", justify="right")
-        table.add_column("fine-tuned", justify="right")
-        table.add_column("1σ", justify="right")
-        for n in ("tx", "ty", "tz"):
-            table.add_row(
-                f"{n} (mm)",
-                _mm(getattr(initial.H, n)),
-                _mm(getattr(result.H, n)),
-                _mm(result.sigma.get(n, math.nan)),
+        if recipe is None or static is None or spin is None:
+            missing = [n for n, v in (("RECIPE", recipe), ("--static", static), ("--spin", spin))
+                       if v is None]
+            raise CalstationError(
+                f"missing {', '.join(missing)}: give RECIPE --static FILE --spin FILE, or --run N"
             )
-        for n in ("rx", "ry", "rz"):
-            table.add_row(
-                f"{n} (°)",
-                _deg(getattr(initial.H, n)),
-                _deg(getattr(result.H, n)),
-                _deg(result.sigma.get(n, math.nan)),
-            )
-        Console().print(table)
-        typer.echo(
-            f"cost {result.cost:.4g}, {result.iterations} iterations, "
-            f"{result.timings.get('total', float('nan')):.2f} s"
-            + (f"; written to {out}" if out is not None else "")
-        )
-        if refused:
-            try:
-                check_sigma(result, rc.calibration.max_sigma, strat.fixture)
-            except ObservabilityError as exc:
-                Console(stderr=True).print(f"[bold red]refused[/]: {exc}")
-            raise typer.Exit(3)
+        if accept:
+            raise CalstationError("--accept applies to a stored run: use it with --run N")
+        _calibrate_files(recipe, static, spin, strategy, out, as_json)
 
     @app.command("verify")
     def verify_cmd(
@@ -209,3 +164,181 @@ def register(app: typer.Typer) -> None:
             Console().print(verdict + ("" if check.passed else ": " + "; ".join(check.failures)))
         if not check.passed:
             raise typer.Exit(1)
+
+
+def _warn(console: Any, warnings: list[str]) -> None:
+    from rich.markup import escape
+
+    for w in warnings:
+        console.print(f"[yellow]warning:[/] {escape(w)}", highlight=False)
+
+
+def _calibrate_files(
+    recipe: Path, static: Path, spin: Path, strategy: str | None, out: Path | None,
+    as_json: bool,
+) -> None:
+    """``calibrate RECIPE --static --spin``: nothing is stored."""
+    from dataclasses import replace
+
+    from rich.console import Console
+
+    from .. import plugins
+    from ..initial import initial_calibration
+    from ..observability import sigma_problems
+    from ..recipe import load_recipe
+    from ..recording import read_recording
+    from ..reprocess import recording_disagreements
+    from ..strategies import run_strategy
+
+    console = Console(stderr=True)
+    loaded = load_recipe(recipe)
+    rc = loaded.recipe
+    name = strategy or rc.calibration.strategy
+    strat = plugins.strategy(name)
+    with console.status(f"reading {static}"):
+        st = read_recording(static)
+    warnings = recording_disagreements(st, loaded)
+    with console.status("initial calibration"):
+        initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
+    with console.status(f"reading {spin}"):
+        sp = read_recording(spin)
+    warnings += recording_disagreements(sp, loaded)
+    _warn(console, warnings)
+    with _progress_bar(console) as bar:
+        task = bar.add_task(f"{name} fine-tuning", total=1.0)
+
+        def progress(message: str, fraction: float) -> None:
+            bar.update(task, description=message, completed=max(0.0, min(1.0, fraction)))
+
+        result, strategy_warnings = run_strategy(strat, sp, initial.H, rc, progress)
+        bar.update(task, completed=1.0)
+    _warn(console, strategy_warnings)
+    diagnostics = dict(result.diagnostics)
+    diagnostics["initial"] = {"H": initial.H.as_dict(), "timings": dict(initial.timings)}
+    diagnostics["recordings"] = {"static": str(static), "spin": str(spin)}
+    diagnostics["recipe"] = {"name": rc.name, "sha256": loaded.sha256}
+    if warnings or strategy_warnings:
+        diagnostics["warnings"] = warnings + strategy_warnings
+    result = replace(result, diagnostics=diagnostics)
+    if out is not None:
+        result.save(out)
+    refused = sigma_problems(result, rc.calibration.max_sigma)
+    if as_json:
+        summary = result.summary()
+        summary["initial"] = initial.H.as_dict()
+        summary["refused"] = refused
+        typer.echo(json.dumps(summary, indent=2))
+    else:
+        _print_result(initial.H, result)
+        typer.echo(_timing_line(result) + (f"; written to {out}" if out is not None else ""))
+    if refused:
+        _refuse(result, rc, strat.fixture)
+
+
+def _refuse(result: Any, rc: Any, fixture: str) -> None:
+    """Say on stderr why ``result`` is refused (its σ over ``calibration.max_sigma``); exit 3."""
+    from rich.console import Console
+
+    from ..errors import ObservabilityError
+    from ..observability import check_sigma
+
+    try:
+        check_sigma(result, rc.calibration.max_sigma, fixture)
+    except ObservabilityError as exc:
+        Console(stderr=True).print(f"[bold red]refused[/]: {exc}", highlight=False)
+    raise typer.Exit(3)
+
+
+def _timing_line(result: Any) -> str:
+    total = result.timings.get("total")
+    took = f"{total:.2f} s" if isinstance(total, float | int) and math.isfinite(total) else "—"
+    return f"cost {result.cost:.4g}, {result.iterations} iterations, {took}"
+
+
+def _print_result(initial: Any, result: Any) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(
+        title=f"calibration ({result.strategy}, gauge {result.diagnostics.get('gauge', '—')})"
+    )
+    table.add_column("parameter")
+    table.add_column("initial", justify="right")
+    table.add_column("fine-tuned", justify="right")
+    table.add_column("1σ", justify="right")
+    for n in ("tx", "ty", "tz"):
+        table.add_row(f"{n} (mm)", _mm(getattr(initial, n)), _mm(getattr(result.H, n)),
+                      _mm(result.sigma.get(n, math.nan)))
+    for n in ("rx", "ry", "rz"):
+        table.add_row(f"{n} (°)", _deg(getattr(initial, n)), _deg(getattr(result.H, n)),
+                      _deg(result.sigma.get(n, math.nan)))
+    Console().print(table)
+
+
+def _reprocess(
+    run_id: int, strategy: str | None, accept: bool, out: Path | None, as_json: bool,
+    db: str | None,
+) -> None:
+    """``calibrate --run N``: re-process a stored run and store the result with it."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from ..db import open_database
+    from ..reprocess import difference_rows, reprocess_run
+
+    console = Console(stderr=True)
+    database = open_database(db)
+    try:
+        with _progress_bar(console) as bar:
+            task = bar.add_task(f"re-processing run {run_id}", total=1.0)
+
+            def progress(message: str, fraction: float) -> None:
+                bar.update(task, description=message, completed=max(0.0, min(1.0, fraction)))
+
+            def status(message: str) -> None:
+                bar.update(task, description=message)
+
+            done = reprocess_run(database, run_id, strategy, accept=accept, progress=progress,
+                                 status=status)
+            bar.update(task, completed=1.0)
+    finally:
+        database.dispose()
+    _warn(console, done.warnings)
+    result = done.result
+    if out is not None:
+        result.save(out)
+    if as_json:
+        summary = result.summary()
+        summary["initial"] = done.initial.H.as_dict()
+        summary["run_id"] = run_id
+        summary["calibration_id"] = done.calibration_id
+        summary["accepted"] = done.accepted_now
+        summary["compared_to"] = done.accepted_id
+        summary["difference"] = done.difference
+        summary["warnings"] = done.warnings
+        typer.echo(json.dumps(summary, indent=2))
+        return
+    _print_result(done.initial.H, result)
+    typer.echo(
+        _timing_line(result) + f"; stored with run {run_id} as calibration "
+        f"{done.calibration_id} (re-processing, "
+        f"{'accepted' if done.accepted_now else 'not accepted'})"
+        + (f"; written to {out}" if out is not None else "")
+    )
+    if done.accepted is None:
+        typer.echo(f"run {run_id} has no accepted calibration to compare with")
+        return
+    gauges = (done.accepted_gauge, result.diagnostics.get("gauge"))
+    caption = None
+    if gauges[0] != gauges[1]:
+        caption = (f"gauges differ (accepted: {gauges[0] or '—'}, re-processed: "
+                   f"{gauges[1] or '—'}): a shift of the origin along the rotation axis is a "
+                   "gauge choice, not a calibration difference; it shows in tx and ty")
+    table = Table(title=f"difference to the accepted calibration {done.accepted_id} of run "
+                        f"{run_id} (mm, °)", caption=caption)
+    for col in ("parameter", "accepted", "re-processed", "difference"):
+        table.add_column(col, justify="right")
+    for p, a, b, d in difference_rows(done.accepted, result.H):
+        fmt = "{:.4f}" if p.startswith("r") else "{:.3f}"
+        table.add_row(p, fmt.format(a), fmt.format(b), ("{:+" + fmt[2:]).format(d))
+    Console().print(table)

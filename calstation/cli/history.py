@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import typer
+from rich.markup import escape
 
 from ._console import wide_console
 
@@ -47,6 +48,18 @@ def _parse_since(text: str) -> dt.datetime:
     return t if t.tzinfo else t.replace(tzinfo=dt.UTC)
 
 
+def failure_reason(run: dict[str, Any]) -> str:
+    """Why a run did not pass, in one line: its error, else the cube check's failures."""
+    if run["status"] == "passed":
+        return ""
+    if run.get("error"):
+        return str(run["error"]).splitlines()[0]
+    cube = run.get("cube_check")
+    if cube and not cube["passed"]:
+        return "cube check: " + "; ".join(cube.get("failures") or ["failed"])
+    return ""
+
+
 def register(app: typer.Typer) -> None:
     """Add ``history``, ``show``, ``export`` and ``trend``."""
 
@@ -57,6 +70,7 @@ def register(app: typer.Typer) -> None:
         status: str = typer.Option(
             None, "--status", help="Only runs with this status (running/passed/failed/aborted)."
         ),
+        serial: str = typer.Option(None, "--serial", help="Only runs of this unit serial."),
         limit: int = typer.Option(200, "--limit", help="At most this many runs (newest)."),
         as_json: bool = typer.Option(False, "--json", help="JSON (stored values: m, rad)."),
         db: str = typer.Option(None, "--db", help=DB_HELP),
@@ -76,6 +90,8 @@ def register(app: typer.Typer) -> None:
                 stmt = stmt.where(Station.name == station)
             if status:
                 stmt = stmt.where(Run.status == status)
+            if serial:
+                stmt = stmt.where(Run.unit_serial == serial)
             if since:
                 stmt = stmt.where(Run.started_at >= _parse_since(since))
             for run in s.scalars(stmt):
@@ -84,15 +100,23 @@ def register(app: typer.Typer) -> None:
                 picks = [c for c in run.calibrations if c.accepted] or fine or run.calibrations
                 item["calibration"] = calibration_dict(picks[-1]) if picks else None
                 item["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+                item["failure_reason"] = failure_reason(item) or None
                 rows.append(item)
         database.dispose()
         if as_json:
             typer.echo(json.dumps(rows, indent=2))
             return
         shown_params = [p for p in H_PARAMS if p != "rx"]  # rx is the gauge, held at 0
-        table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error")
-        for col in ("run", "station", "started (UTC)", "status", *shown_params, "edge mm"):
-            table.add_column(col, justify="right" if col in H_PARAMS else "left")
+        from rich import box
+
+        table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error",
+                      box=box.SIMPLE_HEAD, pad_edge=False)
+        columns = ("run", "station", "serial", "started (UTC)", "operator", "recipe", "status",
+                   *shown_params, "edge mm")
+        for col in columns:
+            table.add_column(col, justify="right" if col in H_PARAMS else "left",
+                             no_wrap=col in ("started (UTC)", "recipe", "serial"))
+        reasons = []
         for r in rows:
             cal = r["calibration"]
             values = [_display(p, cal["H"][p]) if cal else "—" for p in shown_params]
@@ -100,9 +124,15 @@ def register(app: typer.Typer) -> None:
             edge = f"{cube['edge_error'] * 1000:.2f}" if cube else "—"
             colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
             started = (r["started_at"] or "")[:16].replace("T", " ")
-            table.add_row(str(r["id"]), r["station"], started, f"[{colour}]{r['status']}[/]",
+            table.add_row(str(r["id"]), r["station"], r["unit_serial"] or "—", started,
+                          r["operator"], r["recipe_name"], f"[{colour}]{r['status']}[/]",
                           *values, edge)
-        wide_console().print(table)
+            if r["failure_reason"]:
+                reasons.append(f"run {r['id']} ({r['status']}): {r['failure_reason']}")
+        console = wide_console()
+        console.print(table)
+        for line in reasons:
+            console.print(escape(line), highlight=False)
 
     @app.command("show")
     def show(
@@ -198,10 +228,11 @@ def register(app: typer.Typer) -> None:
         png: Path = typer.Option(
             None, "--png", help="Plot file (default: trend-STATION-PARAM.png here)."
         ),
+        serial: str = typer.Option(None, "--serial", help="Only runs of this unit serial."),
         as_json: bool = typer.Option(False, "--json", help="JSON (stored units)."),
         db: str = typer.Option(None, "--db", help=DB_HELP),
     ) -> None:
-        """A parameter over a station's accepted calibrations: table, PNG plot, drift flags.
+        """A parameter over a station's accepted calibrations: table, PNG plot by date, drift flags.
 
         Drift is flagged when the change from the station's previous accepted calibration
         exceeds the run's recipe limits (qa.drift_translation, qa.drift_rotation_deg); cube
@@ -215,13 +246,13 @@ def register(app: typer.Typer) -> None:
             raise CalstationError(
                 f"--param {param!r}: expected one of {', '.join(H_PARAMS + CUBE_PARAMS)}"
             )
-        points = trend_points(station, param, db)
+        points = trend_points(station, param, db, serial=serial)
         if as_json:
             typer.echo(json.dumps(points, indent=2))
         else:
             unit = "mm" if param in CUBE_PARAMS else _unit(param)
             table = Table(title=f"{param} of station {station} ({unit})")
-            for col in ("run", "date (UTC)", param, "Δ vs previous", "limit", "drift"):
+            for col in ("run", "date (UTC)", "serial", param, "Δ vs previous", "limit", "drift"):
                 table.add_column(col)
             for p in points:
                 shown = _display("t" if param in CUBE_PARAMS else param, p["value"])
@@ -229,21 +260,26 @@ def register(app: typer.Typer) -> None:
                          else _display("t" if param in CUBE_PARAMS else param, p["delta"]))
                 limit = _display("t" if param in CUBE_PARAMS else param, p["limit"])
                 flag = "[bold red]DRIFT[/]" if p["flagged"] else "ok"
-                table.add_row(str(p["run_id"]), p["date"][:19], shown, delta, limit, flag)
+                table.add_row(str(p["run_id"]), p["date"][:19].replace("T", " "),
+                              p["unit_serial"] or "—", shown, delta, limit, flag)
             wide_console().print(table)
         if not points:
-            typer.echo(f"no accepted calibrations for station {station}", err=True)
+            which = f" and unit {serial}" if serial else ""
+            typer.echo(f"no accepted calibrations for station {station}{which}", err=True)
             raise typer.Exit(1)
         path = png or Path(f"trend-{station}-{param}.png")
         plot_trend(points, station, param, path)
         typer.echo(f"plot: {path}", err=True)
 
 
-def trend_points(station: str, param: str, db: str | None) -> list[dict[str, Any]]:
-    """The accepted calibrations of ``station``, oldest first, with drift vs the previous one.
+def trend_points(
+    station: str, param: str, db: str | None, serial: str | None = None
+) -> list[dict[str, Any]]:
+    """The accepted calibrations of ``station`` (of unit ``serial`` only, when given), oldest
+    first, with drift vs the previous one.
 
-    Each point: run_id, date, value (m/rad), delta (vs the previous point, None for the first),
-    limit (m/rad, from that run's recipe), flagged.
+    Each point: run_id, date (the run's start, UTC ISO-8601), unit_serial, value (m/rad), delta
+    (vs the previous point, None for the first), limit (m/rad, from that run's recipe), flagged.
     """
     from sqlalchemy import select
 
@@ -259,8 +295,10 @@ def trend_points(station: str, param: str, db: str | None) -> list[dict[str, Any
             .join(Station, Run.station_id == Station.id)
             .join(Calibration, Calibration.run_id == Run.id)
             .where(Station.name == station, Calibration.accepted)
-            .order_by(Run.id)
+            .order_by(Run.started_at, Run.id)
         )
+        if serial:
+            stmt = stmt.where(Run.unit_serial == serial)
         previous: float | None = None
         for run, cal in s.execute(stmt).all():
             qa = parse_recipe(run.recipe_text, f"recipe of run {run.id}").qa
@@ -280,7 +318,8 @@ def trend_points(station: str, param: str, db: str | None) -> list[dict[str, Any
                 delta = None if previous is None else value - previous
                 flagged = delta is not None and abs(delta) > limit
             points.append({
-                "run_id": run.id, "date": iso(run.started_at) or "", "value": value,
+                "run_id": run.id, "date": iso(run.started_at) or "",
+                "unit_serial": run.unit_serial, "value": value,
                 "delta": delta, "limit": limit, "flagged": flagged,
             })
             previous = value
@@ -289,43 +328,55 @@ def trend_points(station: str, param: str, db: str | None) -> list[dict[str, Any
 
 
 def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Path) -> None:
-    """PNG: the parameter per run (mm or deg), drifted runs in red, the allowed band around each
-    previous value shaded."""
+    """PNG: the parameter over time (x = the run's start date, UTC; mm or deg), drifted runs in
+    red, the allowed band around each previous value shaded."""
+    import matplotlib.pyplot as plt
+
+    fig = trend_figure(points, station, param)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def trend_figure(points: list[dict[str, Any]], station: str, param: str) -> Any:
+    """The matplotlib figure of :func:`plot_trend` (x axis: dates)."""
     import matplotlib
 
     matplotlib.use("Agg")
+    import matplotlib.dates as mdates
     import matplotlib.pyplot as plt
 
     def scale(v: float) -> float:
         return math.degrees(v) if param.startswith("r") else v * 1000.0
 
     unit = "deg" if param.startswith("r") else "mm"
-    xs = [p["run_id"] for p in points]
+    xs: list[Any] = [dt.datetime.fromisoformat(p["date"]) for p in points]
     ys = [scale(p["value"]) for p in points]
     fig, ax = plt.subplots(figsize=(8, 4))
     ax.plot(xs, ys, "-o", color="tab:blue", label=param)
     if param not in CUBE_PARAMS:
-        for i, (prev, cur) in enumerate(itertools.pairwise(points)):
+        for i, ((x0, prev), (x1, cur)) in enumerate(itertools.pairwise(zip(xs, points,
+                                                                              strict=True))):
             lo = scale(prev["value"] - cur["limit"])
             hi = scale(prev["value"] + cur["limit"])
-            ax.fill_between([prev["run_id"], cur["run_id"]], [lo, lo], [hi, hi],
-                            color="tab:green", alpha=0.12, step="post",
-                            label="allowed drift" if i == 0 else None)
+            ax.fill_between([x0, x1], [lo, lo], [hi, hi], color="tab:green", alpha=0.12,
+                            step="post", label="allowed drift" if i == 0 else None)
     else:
         ax.axhline(scale(points[-1]["limit"]), color="tab:red", ls="--", label="limit")
-    bad_x = [p["run_id"] for p in points if p["flagged"]]
-    bad_y = [scale(p["value"]) for p in points if p["flagged"]]
-    if bad_x:
-        ax.scatter(bad_x, bad_y, color="tab:red", zorder=3, s=60, label="drift")
-    from matplotlib.ticker import MaxNLocator
-
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("run")
+    bad = [(x, y) for x, y, p in zip(xs, ys, points, strict=True) if p["flagged"]]
+    if bad:
+        ax.scatter([b[0] for b in bad], [b[1] for b in bad], color="tab:red", zorder=3, s=60,
+                   label="drift")
+    for x, y, p in zip(xs, ys, points, strict=True):
+        ax.annotate(str(p["run_id"]), (x, y), textcoords="offset points", xytext=(0, 6),
+                    ha="center", fontsize=7, color="0.4")
+    locator = mdates.AutoDateLocator()  # type: ignore[no-untyped-call]
+    ax.xaxis.set_major_locator(locator)
+    ax.xaxis.set_major_formatter(mdates.ConciseDateFormatter(locator))  # type: ignore[no-untyped-call]
+    ax.set_xlabel("run start (UTC); labels: run ids")
     ax.set_ylabel(f"{param} [{unit}]")
     ax.set_title(f"{param} of station {station}")
     ax.grid(True, alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return fig

@@ -36,7 +36,9 @@ def register(app: typer.Typer) -> None:
                     for e in sorted(drivers.values(), key=lambda e: (e.kind, e.name))
                 ],
                 "strategies": [
-                    {"name": name, "fixture": getattr(s, "fixture", None)}
+                    {"name": name, "fixture": getattr(s, "fixture", None),
+                     "plugin": plugins.strategy_plugin(name),
+                     "options": _options_schema(s)}
                     for name, s in sorted(strategies.items())
                 ],
             }
@@ -60,6 +62,18 @@ def register(app: typer.Typer) -> None:
         stable = Table(title="Fine-tuning strategies")
         stable.add_column("name")
         stable.add_column("fixture")
+        stable.add_column("plugin")
+        stable.add_column("options")
         for name, s in sorted(strategies.items()):
-            stable.add_row(name, str(getattr(s, "fixture", "")))
+            options = _options_schema(s)
+            stable.add_row(name, str(getattr(s, "fixture", "")), plugins.strategy_plugin(name),
+                           "(unchecked)" if options is None else ", ".join(options) or "(none)")
         console.print(stable)
+
+
+def _options_schema(strategy: object) -> list[str] | None:
+    """The option names of a strategy's ``options_model`` (None: it declares none)."""
+    from ..strategies import options_model_of
+
+    model = options_model_of(strategy)
+    return None if model is None else list(model.model_fields)

@@ -57,6 +57,10 @@ def register(app: typer.Typer) -> None:
         operator: str = typer.Option(
             None, "--operator", help="Operator name (default: $CALSTATION_OPERATOR or login)."
         ),
+        serial: str = typer.Option(
+            None, "--serial",
+            help="Serial number of the unit calibrated (default: the one the lidar reports).",
+        ),
         db: str = typer.Option(
             None, "--db", help="Database URL (default: $CALSTATION_DB_URL or SQLite)."
         ),
@@ -86,7 +90,7 @@ def register(app: typer.Typer) -> None:
             with _live_view(foxglove):
                 _, status = start_run(
                     loaded, database, ConsoleOperator(unattended=yes),
-                    operator=operator or _default_operator(), data_dir=data_dir,
+                    operator=operator or _default_operator(), data_dir=data_dir, serial=serial,
                 )
         finally:
             database.dispose()

@@ -67,6 +67,8 @@ class Run(Base):
     ``status`` is ``"running"``, ``"passed"``, ``"failed"`` or ``"aborted"``; a run left
     ``"running"`` by a crashed process is resumed by ``calstation resume``. ``host`` and ``pid``
     name the process executing it (so a second process cannot drive the same run).
+    ``unit_serial`` is the serial number of the calibrated unit: given by the operator
+    (``calstation run --serial``), else the lidar driver's ``info().serial`` at preflight.
     """
 
     __tablename__ = "run"
@@ -86,6 +88,7 @@ class Run(Base):
     error: Mapped[str | None] = mapped_column(Text)
     host: Mapped[str | None] = mapped_column(String(255))
     pid: Mapped[int | None] = mapped_column(Integer)
+    unit_serial: Mapped[str | None] = mapped_column(String(100), index=True)
 
     station: Mapped[Station] = relationship(back_populates="runs")
     steps: Mapped[list[Step]] = relationship(

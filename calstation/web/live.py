@@ -16,7 +16,6 @@ step and the same pending prompt.
 from __future__ import annotations
 
 import itertools
-import json
 import math
 import threading
 import time
@@ -385,11 +384,9 @@ class Runner:
         self._take()
         try:
             loaded = load_recipe(self.recipe_path(recipe))
-            run_id = create_run(loaded, self.db, operator=operator.strip(), unattended=False,
-                                data_dir=self.data_dir)
             serial = (serial or "").strip() or None
-            if serial:
-                self._store_serial(run_id, serial)
+            run_id = create_run(loaded, self.db, operator=operator.strip(), unattended=False,
+                                data_dir=self.data_dir, serial=serial)
             self.live.begin(run_id, loaded.recipe.name, operator.strip(), serial)
             ui = WebOperator(self.live, loaded.recipe)
             self._launch(run_id, lambda: Station(self.db, run_id, loaded, ui).run())
@@ -478,15 +475,3 @@ class Runner:
         return {k: data[k] for k in ("verdict", "calibrations", "cube_rows", "drift", "serial")} | {
             "error": data["run"]["error"], "status": data["run"]["status"]}
 
-    def _store_serial(self, run_id: int, serial: str) -> None:
-        """The unit's serial: in the run's ``serial`` column where the database has one, and in
-        ``unit.json`` in the run folder (read by the report)."""
-        with self.db.session() as s:
-            run = s.get(Run, run_id)
-            assert run is not None
-            if hasattr(Run, "serial"):  # the column of a newer schema
-                setattr(run, "serial", serial)  # noqa: B010
-            folder = Path(run.data_dir)
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / "unit.json").write_text(json.dumps({"serial": serial}) + "\n",
-                                          encoding="utf-8")

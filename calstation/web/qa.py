@@ -76,8 +76,8 @@ def history(session: Session, f: HistoryFilter) -> list[dict[str, Any]]:
         stmt = stmt.where(Run.started_at >= parse_date(f.since, "since"))
     if f.until:
         stmt = stmt.where(Run.started_at < parse_date(f.until, "until", end=True))
-    if f.serial and hasattr(Run, "serial"):
-        stmt = stmt.where(Run.serial == f.serial)
+    if f.serial:
+        stmt = stmt.where(Run.unit_serial == f.serial)
     rows: list[dict[str, Any]] = []
     for run in session.scalars(stmt.limit(max(1, min(f.limit, 5000)) * (4 if f.serial else 1))):
         item = run_brief(run)

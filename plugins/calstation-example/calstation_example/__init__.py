@@ -1,1 +1,1 @@
-"""Example calstation plugin: a run observer that appends JSON lines to a file."""
+"""Example calstation plugin: drivers, a fine-tuning strategy and a run observer."""

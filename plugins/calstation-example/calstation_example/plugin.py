@@ -1,4 +1,7 @@
-"""The example plugin's hook implementations.
+"""The example plugin's hook implementations: drivers, a strategy, a run observer, a command.
+
+Drivers (``example`` lidar, turntable, encoder) are in :mod:`calstation_example.drivers`, the
+strategy (``example-ry-held``) in :mod:`calstation_example.strategy`.
 
 Set ``CALSTATION_EXAMPLE_LOG`` to a file path to switch the observer on; each event is appended
 as one JSON line (UTF-8), flushed at once so a crash never loses an event already reported.
@@ -16,8 +19,26 @@ from typing import Any
 import typer
 
 from calstation import hookimpl
+from calstation.hookspecs import RegisterDriver, RegisterStrategy
+
+from . import drivers
+from .strategy import RyHeldStrategy
 
 ENV = "CALSTATION_EXAMPLE_LOG"
+
+
+@hookimpl
+def calstation_register_drivers(register: RegisterDriver) -> None:
+    """Register the ``example`` lidar, turntable and encoder."""
+    register("lidar", "example", drivers.lidar_factory)
+    register("turntable", "example", drivers.turntable_factory)
+    register("encoder", "example", drivers.encoder_factory)
+
+
+@hookimpl
+def calstation_register_cost_strategies(register: RegisterStrategy) -> None:
+    """Register the ``example-ry-held`` strategy."""
+    register(RyHeldStrategy())
 
 
 def log_path() -> Path | None:

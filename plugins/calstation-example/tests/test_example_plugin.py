@@ -49,6 +49,8 @@ def test_plugin_reports_its_hooks() -> None:
     with plugins.isolated(example, builtins=False):
         (info,) = [i for i in plugins.plugin_report() if i.name == example.__name__]
     assert set(info.hooks) == {
+        "calstation_register_drivers",
+        "calstation_register_cost_strategies",
         "calstation_run_started",
         "calstation_step_finished",
         "calstation_run_finished",

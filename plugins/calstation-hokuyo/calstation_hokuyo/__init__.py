@@ -1,9 +1,10 @@
 """Hokuyo SCIP 2.0 line scanners for calstation: the ``hokuyo`` lidar driver and its emulator."""
 
+from calstation.testing.transports import PtyServer, TcpServer
+
 from .driver import ClockSync, HokuyoLidar, SensorParameters, StepMapping
 from .emulator import ScipParameters, ScipSensor, WallScene
 from .scip import HokuyoError, ScipChecksumError, ScipStatusError, ScipTimeout
-from .transport import PtyServer, TcpServer
 
 __all__ = [
     "ClockSync",

@@ -1,8 +1,8 @@
 """A SCIP 2.0 sensor emulator that speaks the protocol byte for byte.
 
-:class:`ScipSensor` is the device (a :class:`~calstation_hokuyo.transport.StreamDevice`); put it
-behind :class:`~calstation_hokuyo.transport.TcpServer` or
-:class:`~calstation_hokuyo.transport.PtyServer`. Its ranges come from a *scene*: a callable
+:class:`ScipSensor` is the device (a :class:`~calstation.testing.transports.StreamDevice`); put it
+behind :class:`~calstation.testing.transports.TcpServer` or
+:class:`~calstation.testing.transports.PtyServer`. Its ranges come from a *scene*: a callable
 ``scene(t_ns) -> LidarLine`` giving one line of the world at host time ``t_ns`` — the simulated
 station's ``SimulatedStation.scan_line`` (real time), or :class:`WallScene` for protocol tests.
 

@@ -13,11 +13,11 @@ import typer
 from calstation import hookimpl
 from calstation.cli import command_group
 from calstation.drivers import DriverContext
+from calstation.testing.transports import PtyServer, TcpServer
 
 from .driver import HokuyoLidar
 from .emulator import ScipParameters, ScipSensor, WallScene
 from .scip import HokuyoError
-from .transport import PtyServer, TcpServer
 
 
 class EmulatedHokuyo(HokuyoLidar):

@@ -9,9 +9,9 @@ from contextlib import contextmanager
 
 import pytest
 from calstation_hokuyo import HokuyoError, HokuyoLidar, ScipChecksumError, ScipStatusError
-from calstation_hokuyo.transport import ScriptedDevice, TcpServer
 
 from calstation.clock import SimClock
+from calstation.testing.transports import ScriptedDevice, TcpServer
 
 PP = (
     b"PP\n",

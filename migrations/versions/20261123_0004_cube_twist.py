@@ -1,7 +1,7 @@
 """cube check twist of the side faces
 
-Revision ID: 0003_cube_twist
-Revises: 0002
+Revision ID: 0004_cube_twist
+Revises: 0003_run_unit_serial
 Create Date: 2026-11-23 18:00:00
 """
 
@@ -13,8 +13,8 @@ import sqlalchemy as sa
 from alembic import op
 
 
-revision: str = '0003_cube_twist'
-down_revision: str | None = '0002'
+revision: str = '0004_cube_twist'
+down_revision: str | None = '0003_run_unit_serial'
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 
