@@ -29,8 +29,11 @@ ADVICE = {
 }
 
 
-def sigma_problems(result: CalibrationResult, limits: SigmaLimits) -> list[str]:
-    """One message per parameter whose σ exceeds its limit, or cannot be computed."""
+def sigma_problems(
+    result: CalibrationResult, limits: SigmaLimits, skip: tuple[str, ...] = ()
+) -> list[str]:
+    """One message per parameter whose σ exceeds its limit, or cannot be computed; parameters
+    in ``skip`` are left to a later check (ry, when the cube scan will add to it)."""
     checks = (
         ("tx", limits.tx, 1e3, "mm"),
         ("tz", limits.tz, 1e3, "mm"),
@@ -42,6 +45,8 @@ def sigma_problems(result: CalibrationResult, limits: SigmaLimits) -> list[str]:
     if all(not math.isfinite(sigmas.get(n, math.nan)) for n, *_ in checks):
         return ["no parameter has a σ: the data do not determine the calibration"]
     for name, limit, scale, unit in checks:
+        if name in skip:
+            continue
         sigma = sigmas.get(name, math.nan)
         if not math.isfinite(sigma):
             continue  # held by the strategy (its start is kept)
@@ -54,13 +59,15 @@ def sigma_problems(result: CalibrationResult, limits: SigmaLimits) -> list[str]:
     return problems
 
 
-def check_sigma(result: CalibrationResult, limits: SigmaLimits, fixture: str) -> None:
+def check_sigma(
+    result: CalibrationResult, limits: SigmaLimits, fixture: str, skip: tuple[str, ...] = ()
+) -> None:
     """Raise :class:`ObservabilityError` when a σ of ``result`` exceeds ``limits``.
 
     ``fixture`` is the fixture the strategy scanned (``spin_target`` or ``qa_cube``), for the
     advice. The message lists every parameter over its limit and the estimated range noise.
     """
-    problems = sigma_problems(result, limits)
+    problems = sigma_problems(result, limits, skip)
     if not problems:
         return
     noise = result.diagnostics.get("range_noise_m")

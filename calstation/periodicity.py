@@ -634,9 +634,11 @@ def periodicity_fine_tune_points(
     assert last is not None
     res, problem = last
     sigma_independent = parameter_sigma(res, problem.free)
-    sigma_blocks = parameter_sigma(res, problem.free, blocks=problem.row_blocks())
+    covariance = parameter_covariance(res, problem.free, blocks=problem.row_blocks())
+    sigma_blocks = sigma_from_covariance(covariance, problem.free)
     inflation = noise_inflation(noise)
     sigma = {k: v * inflation for k, v in sigma_blocks.items()}
+    reported_cov = None if covariance is None else covariance * inflation**2
     H = Extrinsics.from_vector(x6)
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:
@@ -666,6 +668,7 @@ def periodicity_fine_tune_points(
             "sigma_independent": sigma_independent,
             "sigma_blocks": sigma_blocks,
             "sigma_noise_inflation": inflation,
+            "covariance": covariance_record(reported_cov, problem.free),
             "final_cell_m": final_voxel,
             "moving_returns": int(p_dyn.shape[0]),
             "ry_at_bound": bool(at_bound),
@@ -797,42 +800,65 @@ def noise_inflation(noise: float) -> float:
     return math.sqrt(1.0 + (NOISE_BIAS_GAIN * (noise / 0.001) ** 2) ** 2)
 
 
-def parameter_sigma(
+def parameter_covariance(
     res: Any, free: list[int], blocks: NDArray[np.int64] | None = None
-) -> dict[str, float]:
-    """1σ per parameter (metres / radians, keyed by ``PARAMETER_NAMES``) at the solution of
-    ``scipy.optimize.least_squares`` (``res.jac`` (m, n), ``res.fun`` (m,)), whose n columns are
-    the parameters with indices ``free``; NaN for parameters held fixed, and for all when m ≤ n
+) -> FloatArray | None:
+    """(n, n) covariance of the n parameters with indices ``free`` at the solution of
+    ``scipy.optimize.least_squares`` (``res.jac`` (m, n), ``res.fun`` (m,)); None when m ≤ n
     or JᵀJ is singular.
 
     Without ``blocks``: σ²·(JᵀJ)⁻¹, which assumes independent residuals. With ``blocks`` (m,)
-    (the spatial block of each residual): the cluster-robust sandwich
-    (JᵀJ)⁻¹·(Σ_g J_gᵀ r_g r_gᵀ J_g)·(JᵀJ)⁻¹ · G/(G − 1). Neighbouring residuals share normals,
-    plane fits and cell averages, so they are correlated; the sandwich lets every block's
-    residuals co-vary freely and is at least the independent σ's order of size.
+    (the spatial block of each residual): each parameter's variance is the larger of that and
+    the cluster-robust sandwich (JᵀJ)⁻¹·(Σ_g J_gᵀ r_g r_gᵀ J_g)·(JᵀJ)⁻¹ · G/(G − 1), whose
+    blocks' residuals may co-vary freely (neighbouring residuals share normals, plane fits and
+    cell averages); the correlations are those of σ²·(JᵀJ)⁻¹, so the matrix stays positive
+    semi-definite.
     """
-    out = {n: math.nan for n in PARAMETER_NAMES}
     J = np.asarray(res.jac, dtype=np.float64)
     r = np.asarray(res.fun, dtype=np.float64)
     m, n = J.shape
     if m <= n:
-        return out
+        return None
     try:
         inv = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
-        return out
-    if blocks is None:
-        cov = float(np.sum(r**2)) / (m - n) * inv
-    else:
+        return None
+    cov: FloatArray = float(np.sum(r**2)) / (m - n) * inv
+    if blocks is not None:
         g = int(blocks.max()) + 1
         if g <= n:
-            return out
+            return None
         scores = np.column_stack(
             [np.bincount(blocks, weights=J[:, k] * r, minlength=g) for k in range(n)]
         )
-        cov = inv @ (scores.T @ scores) @ inv * (g / (g - 1))
-        cov_iid = float(np.sum(r**2)) / (m - n) * inv
-        cov = np.maximum(cov, cov_iid)  # elementwise on the diagonal used below
+        sandwich = inv @ (scores.T @ scores) @ inv * (g / (g - 1))
+        iid = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+        scale = np.sqrt(np.maximum(np.diag(cov), np.diag(sandwich))) / iid
+        cov = cov * np.outer(scale, scale)
+    return cov
+
+
+def parameter_sigma(
+    res: Any, free: list[int], blocks: NDArray[np.int64] | None = None
+) -> dict[str, float]:
+    """1σ per parameter (metres / radians, keyed by ``PARAMETER_NAMES``) from
+    :func:`parameter_covariance`; NaN for parameters held fixed, and for all when the
+    covariance cannot be computed."""
+    return sigma_from_covariance(parameter_covariance(res, free, blocks), free)
+
+
+def covariance_record(cov: FloatArray | None, free: list[int]) -> dict[str, Any] | None:
+    """The covariance as stored with a calibration: parameter names and the matrix (SI)."""
+    if cov is None:
+        return None
+    return {"parameters": [PARAMETER_NAMES[i] for i in free], "matrix": cov.tolist()}
+
+
+def sigma_from_covariance(cov: FloatArray | None, free: list[int]) -> dict[str, float]:
+    """1σ per parameter name from an (n, n) covariance of the parameters ``free``."""
+    out = {n: math.nan for n in PARAMETER_NAMES}
+    if cov is None:
+        return out
     for k, i in enumerate(free):
         out[PARAMETER_NAMES[i]] = float(math.sqrt(max(cov[k, k], 0.0)))
     return out

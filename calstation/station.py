@@ -63,6 +63,7 @@ from .observability import check_sigma
 from .operator import Operator, publish
 from .recipe import LoadedRecipe, check_plugins, parse_recipe
 from .report import previous_accepted, run_brief, run_summary
+from .result import CalibrationResult
 
 if TYPE_CHECKING:
     from .frames import Extrinsics
@@ -508,8 +509,10 @@ class Station:
         for warning in warnings:
             self.ui.warn(warning)
         self.ui.info(f"  {strategy.name}: {_fmt_h(result.H.as_dict())}")
+        # a spin-target strategy's ry is gated after the cube scan has added its faces to it
+        later = ("ry",) if strategy.fixture == "spin_target" else ()
         try:
-            check_sigma(result, self.recipe.calibration.max_sigma, strategy.fixture)
+            check_sigma(result, self.recipe.calibration.max_sigma, strategy.fixture, later)
         except ObservabilityError as exc:
             # the refused estimate is kept with the failed step: nothing computed is lost
             exc.details = {"refused": {"H": result.H.as_dict(), "sigma": result.sigma}}
@@ -521,8 +524,6 @@ class Station:
         )
 
     def _step_cube_scan(self, step_id: int) -> StepOutcome:
-        from .cube import check_cube
-        from .frames import Extrinsics
         from .recording import read_recording
 
         d = self._drivers()
@@ -534,10 +535,7 @@ class Station:
         recording = read_recording(path)
         with self.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
-            check = check_cube(
-                recording, Extrinsics.from_dict(fine.params()), self.recipe.fixtures.qa_cube,
-                self.recipe.qa, platter_radius=self.recipe.fixtures.platter.radius,
-            )
+            check, joint, ry_failure = self._check_cube_joint(recording, fine, progress)
         cube = plain(
             {
                 "obb_edges": check.obb_edges,
@@ -557,14 +555,94 @@ class Station:
             f"{check.obb_error * 1000:.2f} mm, side-face twist {check.twist_deg:+.3f}° "
             f"(±{check.twist_sigma_deg:.3f}°) → {'pass' if check.passed else 'FAIL'}"
         )
+        failures = list(check.failures) + ([ry_failure] if ry_failure else [])
+        if ry_failure:
+            cube["passed"] = False
+            cube["failures"] = failures
         return StepOutcome(
-            {"recording": str(path), "passed": bool(check.passed),
+            {"recording": str(path), "passed": not failures,
              "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
-             "points": int(getattr(check, "points", 0))},
+             "points": int(getattr(check, "points", 0)),
+             "joint_ry": None if joint is None else plain(joint.diagnostics["joint"])},
             artifacts=[("cube", path)],
-            cube=(fine.id, cube),
-            failure=None if check.passed else "cube check failed: " + "; ".join(check.failures),
+            calibration=None if joint is None else ("fine", joint),
+            cube=(None if joint is not None else fine.id, cube),
+            failure=None if not failures else "cube check failed: " + "; ".join(failures),
         )
+
+    def _check_cube_joint(
+        self, recording: Any, fine: Calibration, progress: Any
+    ) -> tuple[Any, CalibrationResult | None, str | None]:
+        """The cube check, with ry combined from the spin target and the cube's side faces.
+
+        The twist of the side faces under the fine-tuned H measures ry; when the fine-tuning
+        came from the spin target the two are combined (:mod:`calstation.joint`) and the cube is
+        measured again with the combined H. Returns (the check, the combined calibration or
+        None, a failure when ry stays undetermined or the two disagree).
+        """
+        from .cube import check_cube
+        from .frames import Extrinsics
+        from .joint import CONSISTENCY_SIGMA, combine_with_cube
+
+        H = Extrinsics.from_dict(fine.params())
+        args = (self.recipe.fixtures.qa_cube, self.recipe.qa)
+        radius = self.recipe.fixtures.platter.radius
+        check = check_cube(recording, H, *args, platter_radius=radius)
+        if self._strategy().fixture != "spin_target":
+            return check, None, None
+        diagnostics = fine.diagnostics or {}
+        joint = combine_with_cube(
+            H, diagnostics.get("covariance"), math.radians(check.twist_deg),
+            math.radians(check.twist_sigma_deg),
+        )
+        limit = math.radians(self.recipe.calibration.max_sigma.ry_deg)
+        if joint is None:
+            sigma_ry = fine.sigma_ry if fine.sigma_ry is not None else math.nan
+            if math.isfinite(check.twist_deg) and math.isfinite(sigma_ry):
+                spread = math.hypot(sigma_ry, math.radians(check.twist_sigma_deg))
+                z = abs(math.radians(check.twist_deg)) / spread
+                if z > CONSISTENCY_SIGMA:
+                    return check, None, (
+                        f"the spin target and the cube disagree on ry by {check.twist_deg:+.3f}° "
+                        f"({z:.1f} σ): re-place the spin target off-centre and re-run the "
+                        "calibration, or re-seat the cube"
+                    )
+            if not math.isfinite(sigma_ry) or sigma_ry > limit:
+                return check, None, (
+                    f"ry is not determined: σ {math.degrees(sigma_ry):.3f}° > "
+                    f"{self.recipe.calibration.max_sigma.ry_deg:.3f}° and the cube's side faces "
+                    "could not add to it; re-seat the cube so that two side faces face the lidar"
+                )
+            return check, None, None
+        progress("measuring the cube with ry from both scans", 0.6)
+        check = check_cube(recording, joint.H, *args, platter_radius=radius)
+        result = CalibrationResult(
+            H=joint.H,
+            sigma=joint.sigma,
+            cost=float(fine.cost) if fine.cost is not None else math.nan,
+            iterations=int(fine.iterations or 0),
+            strategy=f"{fine.strategy}+cube",
+            timings={},
+            diagnostics={"joint": joint.details, "from_calibration": fine.id,
+                         "gauge": diagnostics.get("gauge"),
+                         "covariance": joint.details["covariance"]},
+        )
+        self.ui.info(
+            f"  ry from the spin target {math.degrees(joint.details['ry_spin_target']):.3f}° "
+            f"± {math.degrees(joint.details['sigma_ry_spin_target']):.3f}°, from the cube "
+            f"{math.degrees(joint.details['ry_cube']):.3f}° ± "
+            f"{math.degrees(joint.details['sigma_ry_cube']):.3f}° → combined "
+            f"{math.degrees(joint.H.ry):.3f}° ± {math.degrees(joint.sigma['ry']):.3f}°"
+        )
+        if joint.sigma["ry"] > limit:
+            return check, result, (
+                f"ry is not determined well enough even with the cube: σ "
+                f"{math.degrees(joint.sigma['ry']):.3f}° > "
+                f"{self.recipe.calibration.max_sigma.ry_deg:.3f}° "
+                "(calibration.max_sigma.ry_deg); re-seat the cube so that two side faces face "
+                "the lidar, or re-place the spin target off-centre"
+            )
+        return check, result, None
 
     def _step_report(self, step_id: int) -> StepOutcome:
         verdict = self._verdict_from_db()
@@ -706,11 +784,16 @@ class Station:
                             sha256=file_sha256(path),
                         )
                     )
+                new_cal = None
                 if outcome.calibration is not None:
                     stage, res = outcome.calibration
-                    s.add(_calibration_row(self.run_id, step_id, stage, res))
+                    new_cal = _calibration_row(self.run_id, step_id, stage, res)
+                    s.add(new_cal)
+                    s.flush()
                 if outcome.cube is not None:
                     cal_id, cube = outcome.cube
+                    if cal_id is None and new_cal is not None:
+                        cal_id = new_cal.id  # the check of the calibration this step made
                     s.add(_cube_row(self.run_id, step_id, cal_id, cube))
 
     def _close_running_steps(self, status: str, error: str) -> None:
@@ -878,7 +961,8 @@ class StepOutcome:
     result: dict[str, Any]
     artifacts: list[tuple[str, Path]] = field(default_factory=list)
     calibration: tuple[str, Any] | None = None
-    cube: tuple[int, dict[str, Any]] | None = None
+    cube: tuple[int | None, dict[str, Any]] | None = None
+    """(calibration id, check); None as the id: the calibration this step stores"""
     failure: str | None = None
     """A failed QA verdict: the step fails (the operator may retry) but keeps what it stored."""
 
@@ -924,7 +1008,9 @@ def _calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> 
     )
 
 
-def _cube_row(run_id: int, step_id: int, cal_id: int, c: dict[str, Any]) -> CubeCheckRecord:
+def _cube_row(
+    run_id: int, step_id: int, cal_id: int | None, c: dict[str, Any]
+) -> CubeCheckRecord:
     def number(key: str) -> float:
         v = c.get(key)
         return float("nan") if v is None else float(v)
