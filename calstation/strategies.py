@@ -8,13 +8,13 @@ register the same way (:mod:`calstation.builtin_plugins.strategies`).
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from .errors import FineTuningError
 from .frames import Extrinsics
-from .recipe import Recipe, ShapeOptions
+from .recipe import PeriodicityOptions, Recipe, ShapeOptions
 from .result import CalibrationResult
 
 if TYPE_CHECKING:
@@ -33,6 +33,11 @@ class Strategy(Protocol):
     - ``run``: refine ``start`` from that recording; settings come from ``recipe`` (its own
       section, or ``calibration.options[name]`` for plugins). Raises
       :class:`~calstation.errors.FineTuningError` when the data cannot support a result.
+
+    A strategy may also declare ``options_model``: a pydantic model of its
+    ``calibration.options.<name>`` section (``extra="forbid"`` makes unknown keys errors).
+    ``calstation recipes validate`` and every run check the recipe's options against it, with
+    the field and line of each problem; :func:`strategy_options` gives the validated model.
     """
 
     name: str
@@ -54,6 +59,7 @@ class PeriodicityStrategy:
 
     name = "periodicity"
     fixture = "spin_target"
+    options_model = PeriodicityOptions
 
     def run(
         self,
@@ -85,6 +91,7 @@ class ShapeStrategy:
 
     name = "shape"
     fixture = "qa_cube"
+    options_model = ShapeOptions
 
     def run(
         self,
@@ -96,12 +103,8 @@ class ShapeStrategy:
         """See :func:`calstation.shape.shape_fine_tune`."""
         from .shape import shape_fine_tune
 
-        try:
-            options = ShapeOptions.model_validate(recipe.calibration.options.get("shape", {}))
-        except ValidationError as exc:
-            first = exc.errors()[0]
-            where = ".".join(str(x) for x in first["loc"])
-            raise FineTuningError(f"calibration.options.shape.{where}: {first['msg']}") from None
+        options = strategy_options(self, recipe)
+        assert isinstance(options, ShapeOptions)
         return shape_fine_tune(
             recording,
             start,
@@ -117,6 +120,23 @@ class ShapeStrategy:
 
 BUILTIN_STRATEGIES: tuple[Strategy, ...] = (PeriodicityStrategy(), ShapeStrategy())
 """The strategies calstation registers itself."""
+
+
+def strategy_options(strategy: Strategy, recipe: Recipe) -> BaseModel | dict[str, Any]:
+    """The strategy's ``calibration.options.<name>``, validated by its ``options_model`` when it
+    declares one (else the plain mapping). FineTuningError names the field of a problem."""
+    raw = recipe.calibration.options.get(strategy.name) or {}
+    model: type[BaseModel] | None = getattr(strategy, "options_model", None)
+    if model is None:
+        return dict(raw)
+    try:
+        return model.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(x) for x in first["loc"])
+        raise FineTuningError(
+            f"calibration.options.{strategy.name}.{where}: {first['msg']}"
+        ) from None
 
 
 def get_strategy(name: str) -> Strategy:
