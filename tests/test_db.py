@@ -97,7 +97,7 @@ def test_outdated_database_is_refused(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path / 'old.db'}"
     db = Database(url)
     db.upgrade("0002")
-    with pytest.raises(DatabaseError, match="at revision 0002, .*run `calstation db upgrade`"):
+    with pytest.raises(DatabaseError, match=r"at revision 0002, .*run `calstation db upgrade`"):
         db.ensure_schema()
     db.dispose()
 
@@ -108,7 +108,7 @@ def test_unknown_revision_says_what_it_is(tmp_path: Path) -> None:
     db.upgrade()
     with db.engine.begin() as conn:
         conn.execute(text("UPDATE alembic_version SET version_num = 'from_the_future'"))
-    with pytest.raises(DatabaseError, match="at revision 'from_the_future', which this calstation "
+    with pytest.raises(DatabaseError, match=r"at revision 'from_the_future', which this calstation "
                                             "does not know .* newer calstation"):
         db.ensure_schema()
     with pytest.raises(DatabaseError, match="does not know"):

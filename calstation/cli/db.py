@@ -30,6 +30,19 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"{database!r}: {before or 'empty'} → {after}")
         database.dispose()
 
+    @db_app.command("downgrade")
+    def downgrade(
+        revision: str = typer.Argument(..., help="Target revision (see `alembic history`)."),
+        db: str | None = DbOption,
+    ) -> None:
+        """Undo migrations down to REVISION, keeping every row (refused where rows would go)."""
+        from ..db import Database
+
+        database = Database(db)
+        before, after = database.downgrade(revision)
+        typer.echo(f"{database!r}: {before or 'empty'} → {after or 'empty'}")
+        database.dispose()
+
     @db_app.command("info")
     def info(db: str | None = DbOption) -> None:
         """Print the database URL and its revision."""
