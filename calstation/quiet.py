@@ -1,7 +1,8 @@
 """Keeping libraries' chatter off standard output.
 
-Open3D prints its warnings from C++ straight to file descriptor 1, ahead of any JSON a command
-prints. :func:`stdout_to_stderr` points descriptor 1 at standard error while a library works;
+Open3D prints its warnings through Python's ``sys.stdout`` (and C++ code may write to file
+descriptor 1), ahead of any JSON a command prints. :func:`stdout_to_stderr` points both at
+standard error while a library works;
 :func:`quiet_open3d` also lowers Open3D's verbosity to errors.
 """
 
@@ -10,8 +11,15 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Iterator
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager, redirect_stdout, suppress
 from typing import Any
+
+
+def _flush_c_stdout() -> None:
+    with suppress(OSError, AttributeError):
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
 
 
 @contextmanager
@@ -20,15 +28,19 @@ def stdout_to_stderr() -> Iterator[None]:
     try:
         sys.stdout.flush()
         saved = os.dup(1)
-    except (OSError, ValueError):  # no real descriptor 1 (embedded use): nothing to redirect
-        yield
+    except (OSError, ValueError):  # no real descriptor 1 (embedded use): Python's stdout only
+        with redirect_stdout(sys.stderr):
+            yield
         return
     try:
         os.dup2(2, 1)
-        yield
+        # Open3D's Python bindings print through Python's sys.stdout, C++ code to descriptor 1
+        with redirect_stdout(sys.stderr):
+            yield
     finally:
         with suppress(OSError, ValueError):
             sys.stdout.flush()
+        _flush_c_stdout()  # C libraries buffer: flush while descriptor 1 is still stderr
         os.dup2(saved, 1)
         os.close(saved)
 

@@ -39,8 +39,8 @@ from calstation.recipe import load_recipe
 from calstation.station import STEPS, file_sha256, resume_run, start_run
 
 pytest.importorskip("calstation_sim")
-from calstation_sim import plugin as sim_plugin  # noqa: E402
-from test_station import ScriptedOperator, StationTestPlugin, lean_recipe  # noqa: E402
+from calstation_sim import plugin as sim_plugin
+from test_station import ScriptedOperator, StationTestPlugin, lean_recipe
 
 postgres_url = pgserver.postgres_url
 
@@ -267,8 +267,8 @@ def _open_and_register(url: str, name: str, barrier: Any, out: Any) -> None:
         out.put(("error", f"{type(exc).__name__}: {exc}"))
 
 
-def _race(url: str, processes: int = 4) -> list[tuple[str, Any]]:
-    ctx = multiprocessing.get_context("spawn")
+def _race(url: str, processes: int = 3) -> list[tuple[str, Any]]:
+    ctx = multiprocessing.get_context("fork")  # each child opens its own engine
     barrier = ctx.Barrier(processes)
     out = ctx.Queue()
     procs = [ctx.Process(target=_open_and_register, args=(url, "sim-01", barrier, out))

@@ -73,6 +73,7 @@ def register(app: typer.Typer) -> None:
 
         from .. import plugins
         from ..initial import initial_calibration
+        from ..quiet import stdout_to_stderr
         from ..recipe import load_recipe
         from ..recording import read_recording
 
@@ -87,7 +88,7 @@ def register(app: typer.Typer) -> None:
             initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
         with console.status(f"reading {spin}"):
             sp = read_recording(spin)
-        with _progress_bar(console) as bar:
+        with _progress_bar(console) as bar, stdout_to_stderr():
             task = bar.add_task(f"{name} fine-tuning", total=1.0)
 
             def progress(message: str, fraction: float) -> None:
@@ -157,6 +158,8 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
 
         from ..cube import check_cube
+        from ..errors import VerificationError
+        from ..quiet import stdout_to_stderr
         from ..recipe import load_recipe
         from ..recording import read_recording
         from ..result import CalibrationResult
@@ -166,7 +169,12 @@ def register(app: typer.Typer) -> None:
         calib = CalibrationResult.load(calibration)
         with console.status(f"reading {cube}"):
             rec = read_recording(cube)
-        with console.status("measuring the QA cube"):
+        if rec.kind != "cube":
+            raise VerificationError(
+                f"{cube}: this is a {rec.kind!r} recording, not a scan of the QA cube; verify "
+                "needs the cube's spin scan (recording kind 'cube', cube.mcap of a run)"
+            )
+        with console.status("measuring the QA cube"), stdout_to_stderr():
             check = check_cube(
                 rec,
                 calib.H,
