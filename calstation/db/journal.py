@@ -231,6 +231,28 @@ def _owner_alive(host: str | None, pid: int | None) -> bool | None:
     return True
 
 
+SCAN_RECORDINGS = {"static_scan": "static", "spin_scan": "spin", "cube_scan": "cube"}
+"""Scan step → its recording's kind and file stem in the run folder (as the station writes)."""
+
+
+def _register_partial_recordings(s: Session, run_id: int, run_dir: Path) -> list[str]:
+    """Store the recordings of scans a dead process left running as ``partial`` artifacts."""
+    from ..station import file_sha256
+
+    kept = []
+    for step in s.scalars(select(Step).where(Step.run_id == run_id, Step.status == "running")):
+        kind = SCAN_RECORDINGS.get(step.name)
+        path = run_dir / f"{kind}.mcap"
+        if kind is None or not path.is_file():
+            continue
+        if s.scalars(select(Artifact.id).where(Artifact.path == str(path))).first() is None:
+            s.add(Artifact(run_id=run_id, step_id=step.id, kind=kind, path=str(path),
+                           size_bytes=path.stat().st_size, sha256=file_sha256(path),
+                           status="partial"))
+            kept.append(path.name)
+    return kept
+
+
 def recover(db: Database) -> list[str]:
     """Write journalled results and mark abandoned runs ``interrupted``; what was done, in words.
 
@@ -261,8 +283,11 @@ def recover(db: Database) -> list[str]:
                          "the database was unavailable")
         if not closed and alive is False:
             with db.session(f"marking run {run_id} interrupted") as s:
+                kept = _register_partial_recordings(s, run_id, Path(data_dir))
                 _apply_run_end(s, run_end(
                     run_id, "interrupted", f"process {pid} ended before the run finished"))
+            if kept:
+                notes.append(f"run {run_id}: kept {', '.join(kept)} as partial recording(s)")
             notes.append(f"run {run_id} was left running by process {pid}, which has ended: "
                          f"marked interrupted (continue it with `calstation resume {run_id}`)")
     return notes
