@@ -879,13 +879,23 @@ def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[P
 
 def plugin_problems(recipe: Recipe) -> list[Problem]:
     """Checks against the installed plugins: drivers and strategies named must be registered,
-    and each strategy's options must fit the ``options_model`` it declares."""
+    each driver's ``settings`` must fit the ``settings_model`` its factory declares, and each
+    strategy's options the ``options_model`` it declares."""
     from . import plugins
 
     problems: list[Problem] = []
     registered = plugins.drivers()
     for kind in plugins.DRIVER_KINDS:
-        name = getattr(recipe.station, kind).driver
+        config = getattr(recipe.station, kind)
+        name = config.driver
+        settings_model = getattr(registered[(kind, name)].factory, "settings_model", None) if (
+            kind, name) in registered else None
+        if settings_model is not None:
+            try:
+                settings_model.model_validate(config.settings)
+            except ValidationError as exc:
+                problems += [(("station", kind, "settings", *err["loc"]), _message(err))
+                             for err in exc.errors()]
         if (kind, name) not in registered:
             known = sorted(n for (k, n) in registered if k == kind)
             problems.append(

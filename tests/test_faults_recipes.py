@@ -229,7 +229,7 @@ def test_malformed_recipe_is_refused_with_file_line_and_field(
 
 
 def test_at_least_sixty_malformed_recipes() -> None:
-    assert len(CASES) + len(FILE_CASES) >= 60
+    assert len(CASES) + len(FILE_CASES) + len(SETTINGS_CASES) >= 60
 
 
 def test_duplicate_key_names_both_lines(tmp_path: Path) -> None:
@@ -342,3 +342,38 @@ def test_cli_validate_reports_without_traceback(
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err + captured.out
     assert "nested more than" in captured.err
+
+
+# --- driver settings, checked against the settings model each driver declares -------------
+CANOPEN = (REPO / "recipes" / "hokuyo-canopen-emulated.yaml").read_text(encoding="utf-8")
+SETTINGS_CASES: list[tuple[str, str, tuple[str, str], str]] = [
+    ("node id zero", CANOPEN, ("      node_id: 1", "      node_id: 0"),
+     "station.turntable.settings.node_id"),
+    ("node id 200", CANOPEN, ("      node_id: 2", "      node_id: 200"),
+     "station.encoder.settings.node_id"),
+    ("sync period inf", CANOPEN, ("      sync_period_s: 0.002", "      sync_period_s: .inf"),
+     "station.encoder.settings.sync_period_s"),
+    ("unknown drive setting", CANOPEN, ("      node_id: 1", "      node_id: 1\n      nodeid: 1"),
+     "station.turntable.settings.nodeid"),
+    ("sim seed negative", BASE, ("  lidar:\n    driver: sim",
+                                 "  lidar:\n    driver: sim\n    settings: {seed: -3}"),
+     "station.lidar.settings.seed"),
+    ("sim unknown setting", BASE, ("  turntable:\n    driver: sim",
+                                   "  turntable:\n    driver: sim\n    settings: {rpm: 3}"),
+     "station.turntable.settings.rpm"),
+]
+
+
+@pytest.mark.parametrize("case", SETTINGS_CASES, ids=[c[0] for c in SETTINGS_CASES])
+def test_driver_settings_are_checked_before_the_run(
+    tmp_path: Path, case: tuple[str, str, tuple[str, str], str]
+) -> None:
+    _name, base, (old, new), field = case
+    assert old in base
+    text = base.replace(old, new, 1)
+    path = tmp_path / "r.yaml"
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(RecipeError) as info:
+        check_plugins(load_recipe(path))
+    assert re.search(rf"{re.escape(str(path))}:\d+: {re.escape(field)}: ", str(info.value)), (
+        str(info.value))
