@@ -343,19 +343,19 @@ class OptimizerSettings(Model):
 class ShapeSettings(OptimizerSettings):
     """Shape-constrained fine-tuning (paper §III-B-1, §IV-B)."""
 
-    max_nfev: int = Field(100, ge=1, le=10_000)
+    max_nfev: int = Field(100, ge=1, le=1000)
     segment_margin: float = Field(0.010, ge=0, le=0.1)
     outlier_radius: float = Field(0.001, ge=1e-5, le=0.1)
-    outlier_neighbours: int = Field(8, ge=0, le=1000)
+    outlier_neighbours: int = Field(8, ge=0, le=100)
 
 
 class PeriodicitySettings(OptimizerSettings):
     """Periodicity-constrained fine-tuning (paper §III-B-2, §IV-C) and its robustness schedule."""
 
-    max_nfev: int = Field(10, ge=1, le=1000, description="evaluations per inner solve")
-    max_outer: int = Field(15, ge=1, le=1000)
+    max_nfev: int = Field(10, ge=1, le=100, description="evaluations per inner solve")
+    max_outer: int = Field(15, ge=1, le=50)
     match_distance: float = Field(0.20, ge=0.001, le=2.0)
-    normal_neighbours: int = Field(50, ge=3, le=1000)
+    normal_neighbours: int = Field(50, ge=3, le=200)
     coarse_to_fine: bool = True
     gauge: Literal["platter", "ty"] = "platter"
     ry_bound_deg: float = Field(
@@ -801,6 +801,11 @@ def _simulation_problems(recipe: Recipe) -> list[Problem]:
                          f"the platter at {sim.truth.range:g} m is outside the lidar's range "
                          f"window [{lidar.range_min:g}, {lidar.range_max:g}] m"))
     if sim.truth.H is not None:
+        missing = [k for k in PARAM_NAMES if k not in sim.truth.H and k != "rx"]
+        if missing:
+            problems.append((("simulation", "truth", "H"),
+                             f"missing {', '.join(missing)} (tx, ty, tz, ry, rz are needed; rx "
+                             "defaults to 0)"))
         for key, value in sim.truth.H.items():
             if key not in PARAM_NAMES:
                 problems.append((("simulation", "truth", "H", key),
@@ -808,6 +813,13 @@ def _simulation_problems(recipe: Recipe) -> list[Problem]:
             elif key.startswith("r") and abs(value) > math.pi:
                 problems.append((("simulation", "truth", "H", key),
                                  f"{value:g} rad is not an angle in [-π, π]"))
+    accel = sim.turntable.acceleration_rpm_s
+    preflight_rpm = recipe.steps.spin_scan.rpm
+    if accel * PREFLIGHT_RAMP_S < 0.5 * preflight_rpm:
+        problems.append((("simulation", "turntable", "acceleration_rpm_s"),
+                         f"{accel:g} rpm/s does not bring the platter to half of "
+                         f"steps.spin_scan.rpm ({preflight_rpm:g}) within the preflight's "
+                         f"{PREFLIGHT_RAMP_S:g} s spin-up: at least {preflight_rpm / 3:g} rpm/s"))
     background = sim.background
     if background.enabled and background.wall_distance <= fixtures.platter.radius + 0.05:
         problems.append((("simulation", "background", "wall_distance"),
@@ -820,6 +832,8 @@ def _simulation_problems(recipe: Recipe) -> list[Problem]:
 
 
 PARAM_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
+PREFLIGHT_RAMP_S = 1.5
+"""How long the station's preflight lets the platter spin up before it counts (station.py)."""
 
 
 class PeriodicityOptions(Model):

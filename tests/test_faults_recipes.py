@@ -139,6 +139,13 @@ CASES: list[tuple[str, Callable[[str], str], str, str]] = [
          "  strategy: periodicity", "  periodicity:\n    max_outer: 1000000000"),
      "calibration.periodicity.max_outer", "    max_outer:"),
     ("version zero", replace("version: 1", "version: 0"), "version", "version: 0"),
+    ("true H missing ty", add_under("    pitch_deg: 45", "    H: {tx: 0, tz: 0, ry: 0, rz: -0.7}"),
+     "simulation.truth.H", "    H: {"),
+    ("turntable too slow to spin up", add_under("  seed: 0", "  turntable:\n"
+                                                "    acceleration_rpm_s: 2"),
+     "simulation.turntable.acceleration_rpm_s", "    acceleration_rpm_s: 2"),
+    ("normal neighbours 5000", under_strategy("  periodicity:\n    normal_neighbours: 5000"),
+     "calibration.periodicity.normal_neighbours", "    normal_neighbours: 5000"),
     ("wrong type for rpm", replace("    rpm: 20", "    rpm: fast"), "steps.spin_scan.rpm",
      "    rpm: fast"),
     ("integer lines as float", replace("    lines: 100", "    lines: 100.5"),
