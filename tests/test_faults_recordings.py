@@ -122,7 +122,14 @@ def _not_mcap(tmp: Path) -> Path:
     return p
 
 
+def _fifo(tmp: Path) -> Path:
+    p = tmp / "fifo.mcap"
+    os.mkfifo(p)
+    return p
+
+
 DAMAGED: list[tuple[str, Callable[[Path], Path]]] = [
+    ("a named pipe", _fifo),
     ("truncated half", _truncated),
     ("random bytes", _garbage),
     ("empty file", _empty),
@@ -149,6 +156,19 @@ def test_damaged_recording_gives_a_result_or_one_clear_error(
     else:
         assert code == 2 and err.startswith("error:") and path.name in err, err
         assert not out.exists()
+
+
+def test_a_calibration_file_that_is_a_pipe_is_refused_not_waited_on(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rec = _recording(tmp_path / "spin.mcap")
+    pipe = tmp_path / "calibration.yaml"
+    os.mkfifo(pipe)
+    code, _, err = _run(["reconstruct", str(rec), "-c", str(pipe), "-o",
+                         str(tmp_path / "x.ply")], capsys)
+    assert code == 2 and "named pipe (FIFO), not a regular file" in err
+    code, _, err = _run(["verify", RECIPE, "--cube", str(rec), "-c", str(pipe)], capsys)
+    assert code == 2 and "named pipe (FIFO), not a regular file" in err
 
 
 def test_verify_refuses_a_recording_that_is_not_a_cube_scan(
