@@ -27,6 +27,10 @@ MAX_MESH_BYTES = 200_000_000
 """Largest fixture mesh file accepted (bytes)."""
 MAX_SCAN_POINTS = 25_000_000
 """Most lidar points one simulated scan may produce (the default spin scan takes ~3.2 million)."""
+MAX_SCAN_LINES = 200_000
+"""Most lidar lines one simulated scan may produce (the default spin scan takes ~3200)."""
+MAX_SCAN_ENCODER_SAMPLES = 20_000_000
+"""Most encoder samples one simulated scan may produce."""
 MAX_SCAN_SECONDS = 600.0
 """Longest scan a recipe may ask for (settle time plus the turns), seconds."""
 
@@ -754,6 +758,8 @@ def _scan_problems(recipe: Recipe) -> list[Problem]:
     # streams at its own rate, checked by the time bound only
     sim = recipe.simulation if recipe.station.lidar.driver == "sim" else None
     rate = 0.0 if sim is None else sim.lidar.points_per_line * sim.lidar.line_rate_hz
+    line_rate = 0.0 if sim is None else sim.lidar.line_rate_hz
+    sample_rate = 0.0 if sim is None else sim.encoder.sample_rate_hz
     accel = 60.0 if sim is None else sim.turntable.acceleration_rpm_s
     for name in ("spin_scan", "cube_scan"):
         cfg: SpinScanStep = getattr(recipe.steps, name)
@@ -768,6 +774,17 @@ def _scan_problems(recipe: Recipe) -> list[Problem]:
                              f"{seconds * rate / 1e6:.0f} million simulated points, more than "
                              f"the {MAX_SCAN_POINTS / 1e6:g} million a scan may hold: raise rpm "
                              "or lower the lidar's points_per_line × line_rate_hz"))
+        elif line_rate and seconds * line_rate > MAX_SCAN_LINES:
+            problems.append((("steps", name, "revolutions"),
+                             f"{cfg.revolutions:g} turns at {cfg.rpm:g} rpm make about "
+                             f"{seconds * line_rate:,.0f} simulated lidar lines, more than the "
+                             f"{MAX_SCAN_LINES:,} a scan may hold"))
+        elif sample_rate and seconds * sample_rate > MAX_SCAN_ENCODER_SAMPLES:
+            problems.append((("steps", name, "revolutions"),
+                             f"{cfg.revolutions:g} turns at {cfg.rpm:g} rpm make about "
+                             f"{seconds * sample_rate / 1e6:.0f} million simulated encoder "
+                             f"samples, more than the {MAX_SCAN_ENCODER_SAMPLES / 1e6:g} million "
+                             "a scan may hold"))
     if sim is not None:
         lines = recipe.steps.static_scan.lines
         if lines * sim.lidar.points_per_line > MAX_SCAN_POINTS:
