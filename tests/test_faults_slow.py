@@ -127,7 +127,7 @@ EDGES = {
     "noisiest lidar": {"simulation": {"lidar": {"range_noise": 0.1}}},
     "largest placement error": {"simulation": {"placement": {"position_sigma": 0.05,
                                                              "yaw_sigma_deg": 10}}},
-    "frustum near its build limit": {"fixtures": {"spin_target": {"height": 0.09}}},
+    "frustum near its build limit": {"fixtures": {"spin_target": {"height": 0.058}}},
     "cube at the platter's edge": {"fixtures": {"qa_cube": {"offset": [0.21, 0.0]}}},
     "no ripple, no settle": {"simulation": {"turntable": {"speed_ripple": 0}},
                              "steps": {"spin_scan": {"settle_s": 0}}},
