@@ -55,7 +55,9 @@ def register(app: typer.Typer) -> None:
         station: str = typer.Option(None, "--station", help="Only this station."),
         since: str = typer.Option(None, "--since", help="Only runs started since DATE (UTC)."),
         status: str = typer.Option(
-            None, "--status", help="Only runs with this status (running/passed/failed/aborted/interrupted)."
+            None,
+            "--status",
+            help="Only runs with this status (running/passed/failed/aborted/interrupted).",
         ),
         limit: int = typer.Option(200, "--limit", help="At most this many runs (newest)."),
         as_json: bool = typer.Option(False, "--json", help="JSON (stored values: m, rad)."),
