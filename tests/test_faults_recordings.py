@@ -182,6 +182,20 @@ def test_verify_refuses_a_recording_that_is_not_a_cube_scan(
         assert f"this is a '{kind}' recording, not a scan of the QA cube" in err
 
 
+def test_calibrate_refuses_recordings_of_the_wrong_kind(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    spin = _recording(tmp_path / "spin.mcap", kind="spin")
+    static = _recording(tmp_path / "static.mcap", kind="static")
+    code, out, err = _run(["calibrate", RECIPE, "--static", str(spin), "--spin", str(spin),
+                           "--json"], capsys)
+    assert code == 2 and out == ""
+    assert "this is a 'spin' recording, not the static scan of the L-target" in err
+    code, out, err = _run(["calibrate", RECIPE, "--static", str(static), "--spin", str(static),
+                           "--json"], capsys)
+    assert code == 2 and out == "" and "this is a 'static' recording" in err
+
+
 def test_reconstruct_refuses_to_write_an_empty_cloud(
     tmp_path: Path, calibration_file: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

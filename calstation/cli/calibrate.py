@@ -72,6 +72,7 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
 
         from .. import plugins
+        from ..errors import CalibrationError
         from ..initial import initial_calibration
         from ..quiet import stdout_to_stderr
         from ..recipe import load_recipe
@@ -84,10 +85,20 @@ def register(app: typer.Typer) -> None:
         strat = plugins.strategy(name)
         with console.status(f"reading {static}"):
             st = read_recording(static)
-        with console.status("initial calibration"):
-            initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
+        if st.kind in ("spin", "cube"):
+            raise CalibrationError(
+                f"{static}: this is a {st.kind!r} recording, not the static scan of the L-target "
+                "(recording kind 'static', static.mcap of a run)"
+            )
         with console.status(f"reading {spin}"):
             sp = read_recording(spin)
+        if sp.kind == "static":
+            raise CalibrationError(
+                f"{spin}: this is a 'static' recording; fine-tuning needs a spin scan "
+                f"({'spin' if strat.fixture == 'spin_target' else 'cube'}.mcap of a run)"
+            )
+        with console.status("initial calibration"), stdout_to_stderr():
+            initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
         with _progress_bar(console) as bar, stdout_to_stderr():
             task = bar.add_task(f"{name} fine-tuning", total=1.0)
 

@@ -118,7 +118,8 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
     ``lock_timeout`` seconds (default :func:`lock_timeout_s`), on PostgreSQL too."""
     timeout = lock_timeout_s() if lock_timeout is None else lock_timeout
     try:
-        engine = create_engine(url)
+        # pre-ping: a pooled connection that a restarted server dropped is replaced, not used
+        engine = create_engine(url, pool_pre_ping=not url.startswith("sqlite"))
     except (SQLAlchemyError, ImportError, ValueError) as exc:
         hint = ""
         if url.startswith("postgresql"):
