@@ -52,7 +52,10 @@ class DriverConfig(Model):
 class EncoderConfig(DriverConfig):
     """The encoder driver plus the station-level encoder configuration."""
 
-    ppr: int = Field(1024, ge=1, le=1_000_000, description="pulses per revolution; counts = 4·ppr")
+    ppr: int = Field(
+        1024, ge=100, le=1_000_000,
+        description="pulses per revolution; counts = 4·ppr (at least 400 counts, 0.9°, per turn)",
+    )
     direction: Literal[1, -1] = 1
     latency_s: float = Field(
         0.0, ge=-1.0, le=1.0, description="encoder time minus lidar time, compensated"

@@ -108,6 +108,7 @@ CASES: list[tuple[str, Callable[[str], str], str, str]] = [
     ("seed 2^70", replace("  seed: 0", "  seed: 1180591620717411303424"), "simulation.seed",
      "  seed: 118"),
     ("ppr zero", replace("    ppr: 1024", "    ppr: 0"), "station.encoder.ppr", "    ppr: 0"),
+    ("ppr too coarse", replace("    ppr: 1024", "    ppr: 8"), "station.encoder.ppr", "    ppr: 8"),
     ("ppr huge", replace("    ppr: 1024", "    ppr: 1000000000"), "station.encoder.ppr",
      "    ppr: 1000000000"),
     ("latency two seconds", add_under("    direction: 1", "    latency_s: 2.0"),
