@@ -963,6 +963,8 @@ def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False) 
     Recordings of finished steps are re-used after their sha256 is checked. A run still being
     executed by a live process is refused unless ``force``.
     """
+    for note in journal.recover(db):  # results journalled by an earlier process, first
+        ui.info(escape(note))
     with db.session() as s:
         run = s.get(Run, run_id)
         if run is None:

@@ -115,6 +115,46 @@ def test_lock_timeout_is_configurable_and_checked(monkeypatch: pytest.MonkeyPatc
         Database(f"sqlite:///{tmp_path / 'c.db'}")
 
 
+def _hold_pg_lock(url: str, seconds: float) -> threading.Thread:
+    """Another PostgreSQL session holding an exclusive lock on the station table."""
+    from sqlalchemy import create_engine
+
+    held = threading.Event()
+
+    def hold() -> None:
+        engine = create_engine(url)
+        with engine.begin() as conn:
+            conn.exec_driver_sql("LOCK TABLE station IN ACCESS EXCLUSIVE MODE")
+            held.set()
+            time.sleep(seconds)
+        engine.dispose()
+
+    thread = threading.Thread(target=hold, daemon=True)
+    thread.start()
+    assert held.wait(30)
+    return thread
+
+
+def test_a_postgresql_lock_is_waited_for_then_one_sentence(postgres_url: str) -> None:
+    said: list[str] = []
+    db = Database(postgres_url, lock_timeout=20, on_wait=said.append)
+    db.ensure_schema()
+    holder = _hold_pg_lock(postgres_url, 3.0)
+    get_or_create_station(db, "pg-waited")
+    holder.join()
+    assert said and "waiting for the database" in said[0]
+    db.dispose()
+    short = Database(postgres_url, lock_timeout=0.5, on_wait=lambda m: None)
+    holder = _hold_pg_lock(postgres_url, 2.0)
+    with pytest.raises(DatabaseError) as info:
+        get_or_create_station(short, "pg-refused")
+    holder.join()
+    message = str(info.value)
+    assert "stayed locked by another process for 0.5 s" in message
+    assert "SELECT" not in message and "[SQL" not in message
+    short.dispose()
+
+
 # --- lost writes: journalled, written by the next command ----------------------------------
 class FailingWrites:
     """Make the database refuse statements matching ``predicate`` while armed, as a lock that
