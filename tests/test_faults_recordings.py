@@ -289,7 +289,7 @@ def db(tmp_path: Path) -> Iterator[Database]:
 
 
 def test_lidar_disconnect_mid_scan_keeps_a_partial_recording_and_stops_the_motor(
-    tmp_path: Path, db: Database
+    tmp_path: Path, db: Database, capsys: pytest.CaptureFixture[str]
 ) -> None:
     plugin = DisconnectPlugin(limit=10 + 40 + 300)  # preflight, static scan, then mid spin scan
     with plugins.isolated(sim_plugin, plugin):
@@ -309,6 +309,10 @@ def test_lidar_disconnect_mid_scan_keeps_a_partial_recording_and_stops_the_motor
     assert spin.status == "partial"
     assert Path(spin.path).exists() and file_sha256(Path(spin.path)) == spin.sha256
     assert any("motor stopped by stop" in m for m in ui.messages)
+    # `show` tells the same
+    shown = json.loads(_run(["show", str(run_id), "--json", "--db", db.url], capsys)[1])
+    assert shown["motor_stop"]["how"] == "stop"
+    assert {(a["kind"], a["status"]) for a in shown["artifacts"]} >= {("spin", "partial")}
     # resumed with the cable back: the scan is taken again, the partial one kept aside
     with plugins.isolated(sim_plugin, DisconnectPlugin(limit=10**9)):
         assert resume_run(run_id, db, ScriptedOperator()) in ("passed", "failed")

@@ -144,11 +144,17 @@ def register(app: typer.Typer) -> None:
                           st["error"] or "")
         console.print(steps)
         arts = Table(title="Artifacts")
-        for col in ("kind", "path", "bytes", "sha256"):
+        for col in ("kind", "path", "bytes", "sha256", "status"):
             arts.add_column(col)
         for a in summary["artifacts"]:
-            arts.add_row(a["kind"], a["path"], str(a["size_bytes"]), a["sha256"][:16] + "…")
+            arts.add_row(a["kind"], a["path"], str(a["size_bytes"]), a["sha256"][:16] + "…",
+                         a.get("status") or "complete")
         console.print(arts)
+        stop = summary.get("motor_stop")
+        if stop:
+            console.print(f"motor stopped by {stop['how']} (run {stop['reason']})"
+                          + ("" if stop["ok"] else f": {'; '.join(stop['errors'])}"),
+                          highlight=False)
         render_summary(console, summary)
 
     @app.command("export")
