@@ -239,6 +239,40 @@ def test_a_lost_step_end_is_journalled_and_written_by_the_next_command(
     db.dispose()
 
 
+def test_a_lost_calibration_is_journalled_with_its_step_and_written_later(
+    tmp_path: Path, station_plugin: StationTestPlugin
+) -> None:
+    db = _lean_db(tmp_path)
+    failing = FailingWrites(db, lambda sql: sql.startswith("UPDATE step"))
+    plugins.get_plugin_manager().register(ArmAfter(failing, "spin_scan"))
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ScriptedOperator(),
+                               operator="ann", data_dir=tmp_path)
+    assert status == "interrupted"
+    entries = journal_mod.read(tmp_path / "runs" / str(run_id) / "journal.jsonl")
+    fine = entries[0]["calibration"]
+    assert entries[0]["status"] == "passed" and fine["stage"] == "fine"
+    with db.session() as s:
+        assert s.scalars(select(Calibration).where(Calibration.stage == "fine")).first() is None
+    failing.armed = False
+    again = open_database(db.url)
+    with again.session() as s:
+        stored = s.scalars(select(Calibration).where(Calibration.run_id == run_id,
+                                                     Calibration.stage == "fine")).one()
+        assert stored.params() == {k: fine[k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")}
+        assert stored.diagnostics is not None and stored.diagnostics["note"] == "toy"
+    assert ("fine_tune", "passed") in _step_rows(again, run_id)
+    # replaying the same journal again changes nothing
+    applied = tmp_path / "runs" / str(run_id) / "journal.applied.jsonl"
+    with again.session() as s:
+        for entry in journal_mod.read(applied):
+            journal_mod.APPLY[entry["op"]](s, entry)
+    with again.session() as s:
+        assert len(s.scalars(select(Calibration).where(Calibration.run_id == run_id,
+                                                       Calibration.stage == "fine")).all()) == 1
+    again.dispose()
+    db.dispose()
+
+
 def test_report_json_never_claims_a_verdict_the_database_does_not_hold(
     tmp_path: Path, station_plugin: StationTestPlugin
 ) -> None:
