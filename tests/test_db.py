@@ -113,6 +113,14 @@ def test_unknown_revision_says_what_it_is(tmp_path: Path) -> None:
         db.ensure_schema()
     with pytest.raises(DatabaseError, match="does not know"):
         db.upgrade()
+    from typer.testing import CliRunner
+
+    from calstation.cli import _build, app
+
+    _build()
+    shown = CliRunner().invoke(app, ["db", "info", "--db", url])
+    assert "revision: from_the_future" in shown.output
+    assert "unknown to this calstation: migrated by a newer version" in shown.output
     db.dispose()
 
 
