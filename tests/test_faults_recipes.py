@@ -13,9 +13,13 @@ import re
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import pytest
+from pydantic import BaseModel, ConfigDict, Field
 
+from calstation import hookimpl, plugins
 from calstation.cli import main
 from calstation.errors import RecipeError
 from calstation.recipe import check_plugins, load_recipe, parse_recipe
@@ -388,3 +392,40 @@ def test_driver_settings_are_checked_before_the_run(
         check_plugins(load_recipe(path))
     assert re.search(rf"{re.escape(str(path))}:\d+: {re.escape(field)}: ", str(info.value)), (
         str(info.value))
+
+
+# --- a plugin strategy's options model --------------------------------------------------------
+class _PluginOptions(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    iterations: int = Field(5, ge=1, le=50)
+
+
+class _OptionsPlugin:
+    __name__ = "options-plugin"
+
+    @hookimpl
+    def calstation_register_cost_strategies(self, register: Any) -> None:
+        register(SimpleNamespace(name="planes", fixture="spin_target",
+                                 options_model=_PluginOptions))
+
+
+@pytest.mark.parametrize("options,field", [
+    ("  options:\n    planes:\n      iteratons: 3\n", "calibration.options.planes.iteratons"),
+    ("  options:\n    planes:\n      iterations: 500\n", "calibration.options.planes.iterations"),
+], ids=["unknown key", "out of range"])
+def test_a_plugin_strategy_options_model_is_enforced(
+    tmp_path: Path, options: str, field: str
+) -> None:
+    from calstation_sim import plugin as sim_plugin
+
+    text = BASE.replace("  strategy: periodicity\n", "  strategy: planes\n" + options)
+    path = tmp_path / "r.yaml"
+    path.write_text(text, encoding="utf-8")
+    with plugins.isolated(sim_plugin, _OptionsPlugin()):
+        with pytest.raises(RecipeError) as info:
+            check_plugins(load_recipe(path))
+        assert f"{path}:{_line_of(text, options.splitlines()[-1])}: {field}: " in str(info.value)
+        good = tmp_path / "good.yaml"
+        good.write_text(BASE.replace("  strategy: periodicity\n", "  strategy: planes\n"))
+        check_plugins(load_recipe(good))  # defaults fit the model
