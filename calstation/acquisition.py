@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
-from typing import Protocol
+from contextlib import suppress
+from typing import Any, Protocol
 
 from .clock import Clock
 from .drivers import Encoder, EncoderSample, Lidar, LidarLine, Turntable, TurntableStatus
@@ -139,14 +140,29 @@ def acquire_spin(
         if settle_s > 0:
             clock.sleep(settle_s)
         _scan_turns(lidar, turntable, encoder, writer, rpm, revolutions, clock, progress)
+    except BaseException as exc:
+        _stop_after_fault(turntable, writer, exc)
+        raise
+    try:
+        turntable.stop()
+    except Exception:
+        turntable.emergency_stop()
+        raise
     finally:
-        try:
-            turntable.stop()
-        except Exception:
+        writer.write_turntable(turntable.status())
+
+
+def _stop_after_fault(turntable: Any, writer: Any, exc: BaseException) -> None:
+    """Stop the platter after ``exc`` (emergency stop if ``stop`` fails) without hiding ``exc``:
+    the fault that ended the scan is the one the operator must read."""
+    try:
+        turntable.stop()
+    except Exception as stop_exc:
+        exc.add_note(f"then the turntable's stop failed: {stop_exc}")
+        with suppress(Exception):
             turntable.emergency_stop()
-            raise
-        finally:
-            writer.write_turntable(turntable.status())
+    with suppress(Exception):
+        writer.write_turntable(turntable.status())
 
 
 def _wait_for_speed(

@@ -74,3 +74,7 @@ class StationError(CalstationError):
 
 class DatabaseError(CalstationError):
     """The run database is unreachable, out of date or inconsistent."""
+
+
+class ResultJournalled(DatabaseError):
+    """A result could not be written to the database and was kept in the run folder's journal."""

@@ -127,13 +127,15 @@ def load_extrinsics(path: str | Path, *, source: str = "calibration") -> Extrins
     """
     if source not in ("calibration", "truth"):
         raise ValueError(f"source must be 'calibration' or 'truth', not {source!r}")
+    from .yamlsafe import read_text_file
+
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"{source} file {p} does not exist")
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"cannot read {source} file {p}: {exc}") from exc
+    try:  # a regular file of bounded size only (a FIFO would block forever)
+        text = read_text_file(p, f"{source} file", 10_000_000)
+    except ValueError as exc:
+        raise RecordingError(f"cannot read {source} file {p}: {exc}") from None
     data = _parse_mapping(p, text, source)
     if source == "calibration":
         if "H" not in data:

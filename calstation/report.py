@@ -54,6 +54,7 @@ def run_brief(run: Run) -> dict[str, Any]:
         "error": run.error,
         "host": run.host,
         "pid": run.pid,
+        "motor_stop": run.motor_stop,
     }
 
 
@@ -118,6 +119,7 @@ def run_summary(run: Run) -> dict[str, Any]:
             "path": a.path,
             "size_bytes": a.size_bytes,
             "sha256": a.sha256,
+            "status": a.status,
         }
         for a in run.artifacts
     ]

@@ -124,13 +124,13 @@ class CalibrationResult:
     @classmethod
     def load(cls, path: str | Path) -> CalibrationResult:
         """Read a file written by :meth:`save` (YAML or JSON)."""
+        from .yamlsafe import read_text_file
+
         p = Path(path)
-        try:
-            text = p.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise CalibrationError(f"{p}: calibration file not found") from None
-        except OSError as exc:
-            raise CalibrationError(f"{p}: cannot read calibration: {exc}") from None
+        try:  # a regular file of bounded size only (a FIFO would block forever)
+            text = read_text_file(p, "calibration file", 10_000_000)
+        except ValueError as exc:
+            raise CalibrationError(f"{p}: {exc}") from None
         try:
             data = yaml.safe_load(text)  # JSON is YAML
         except yaml.YAMLError as exc:

@@ -52,13 +52,18 @@ from .db import (
     Run,
     Step,
     calstation_home,
+    get_or_create_station,
+    journal,
     utcnow,
 )
-from .db import (
-    Station as StationRow,
-)
 from .drivers import DriverContext
-from .errors import CalstationError, DriverError, ObservabilityError, StationError
+from .errors import (
+    CalstationError,
+    DatabaseError,
+    DriverError,
+    ObservabilityError,
+    StationError,
+)
 from .observability import check_sigma
 from .operator import Operator, publish
 from .recipe import LoadedRecipe, check_plugins, parse_recipe
@@ -206,6 +211,9 @@ class Station:
             if run is None:
                 raise StationError(f"no run {run_id} in the database")
             self.run_dir = Path(run.data_dir)
+        db.log_path = self.run_dir / "database.log"  # SQL of database faults, never the console
+        db.on_wait = lambda message: ui.warn(escape(message))
+        self._partial: list[tuple[str, Path]] = []
         self.machine = Machine(
             model=self, states=list(STATES), initial="idle", auto_transitions=False
         )
@@ -233,11 +241,12 @@ class Station:
     # --- the run -----------------------------------------------------------------------------
     def run(self) -> str:
         """Execute the remaining steps; returns the final status. The motor is always stopped."""
-        self._plan = self._remaining_steps()
-        self._mark_running()
-        self._notify("run_started", run=self._brief())
         aborted = False
+        self._final = "interrupted"
         try:
+            self._plan = self._remaining_steps()
+            self._mark_running()
+            self._notify("run_started", run=self._brief())
             self.drivers = _open_drivers(self.loaded)
             self.trigger("begin")
             while True:
@@ -261,17 +270,20 @@ class Station:
             return self._finish(verdict, None if verdict == "passed" else self._failure_reason())
         except (AbortRun, KeyboardInterrupt) as exc:
             aborted = True
-            if self.state in STEPS:
-                self._close_running_steps("aborted", str(exc) or "aborted by the operator")
             self.trigger("abort")
             return self._finish("aborted", str(exc) or "aborted by the operator")
+        except DatabaseError as exc:
+            # the database failed (a lock outlasted the wait, or it went away): what could not be
+            # stored is journalled; the run stops as interrupted, to be resumed
+            aborted = True
+            self.ui.warn(escape(str(exc)))
+            return self._finish("interrupted", str(exc))
         except BaseException as exc:
             # an unexpected error (not a step failure): the run is failed, never left running
-            self._close_running_steps("failed", f"{type(exc).__name__}: {exc}")
             self._finish("failed", f"{type(exc).__name__}: {exc}")
             raise
         finally:
-            self._stop_hardware(emergency=aborted)
+            self._record_motor_stop(self._stop_hardware(emergency=aborted))
 
     def _restart_from(self, step: str) -> None:
         """Leave the failed state for ``step`` (the failed step or an earlier one) and plan
@@ -311,11 +323,17 @@ class Station:
         """
         step_id, attempt = self._begin_step(step)
         self._verdict_failure = False
+        self._partial = []
         try:
             publish(self.ui, "step_started", step=step, attempt=attempt)
             handler = getattr(self, f"_step_{step}")
             outcome: StepOutcome = handler(step_id)
-        except (AbortRun, KeyboardInterrupt):
+        except (AbortRun, KeyboardInterrupt) as exc:
+            with suppress(DatabaseError):  # journalled if not stored; the abort goes on
+                self._end_step(step_id, "aborted", {}, str(exc) or "aborted by the operator",
+                               StepOutcome({}))
+            raise
+        except DatabaseError:
             raise
         except Exception as exc:  # a step failure, whatever raised it, is the operator's call
             message = str(exc) if isinstance(exc, CalstationError) else (
@@ -323,7 +341,7 @@ class Station:
             )
             self._last_error = message
             failed = {"error": message, **plain(getattr(exc, "details", {}))}
-            self._end_step(step_id, "failed", failed, message)
+            self._end_step(step_id, "failed", failed, message, StepOutcome({}))
             publish(self.ui, "step_finished", step=step, attempt=attempt, status="failed",
                     result={"error": message}, error=message)
             self._notify("step_finished", run=self._brief(), step=step, status="failed",
@@ -645,42 +663,43 @@ class Station:
         return check, result, None
 
     def _step_report(self, step_id: int) -> StepOutcome:
+        """report.json and calibration.yaml, carrying the verdict the database will hold.
+
+        The verdict, the accepted calibration and both files are stored in the step's one
+        transaction; the files are written under temporary names and moved into place only once
+        that transaction is committed, so report.json never claims a verdict the database does
+        not hold."""
+        from .report import export_calibration
+
         verdict = self._verdict_from_db()
-        with self.db.session() as s:
+        with self.db.session("preparing the report") as s:
             run = s.get(Run, self.run_id)
             assert run is not None
             fine = [c for c in run.calibrations if c.stage == "fine"]
-            drift = None
-            if fine:
-                prev = previous_accepted(s, run)
-                if prev is not None:
-                    drift = _drift(fine[-1], prev, self.recipe.qa)
-                    if drift["flagged"] and self.recipe.qa.drift_fails and verdict == "passed":
-                        verdict = "failed"
-                        self._drift_failure = (
-                            f"calibration drifted beyond the recipe's limits since run "
-                            f"{drift['previous_run']}: {', '.join(drift['flagged'])} "
-                            "(qa.drift_fails is set)"
-                        )
-                for c in run.calibrations:
-                    c.accepted = False
-                fine[-1].accepted = verdict == "passed"
-            s.flush()
+            prev = previous_accepted(s, run) if fine else None
+            drift = _drift(fine[-1], prev, self.recipe.qa) if prev is not None else None
+            if drift is not None and drift["flagged"] and self.recipe.qa.drift_fails \
+                    and verdict == "passed":
+                verdict = "failed"
+                self._drift_failure = (
+                    f"calibration drifted beyond the recipe's limits since run "
+                    f"{drift['previous_run']}: {', '.join(drift['flagged'])} "
+                    "(qa.drift_fails is set)"
+                )
+            accept = fine[-1].id if fine and verdict == "passed" else None
+            run.status = verdict  # as the step's transaction will store it; not committed here
+            for c in run.calibrations:
+                c.accepted = c.id == accept
             summary = run_summary(run)
-        summary["status"] = verdict
+            text = export_calibration(run, "yaml") if fine else None
+            s.rollback()
+        staged: list[tuple[str, Path, Path]] = []
         report = self.run_dir / "report.json"
-        report.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-        artifacts = [("report", report)]
-        if fine:
-            from .report import export_calibration
-
-            with self.db.session() as s:
-                run = s.get(Run, self.run_id)
-                assert run is not None
-                text = export_calibration(run, "yaml")
+        staged.append(("report", _write_staged(report, json.dumps(summary, indent=2) + "\n"),
+                       report))
+        if text is not None:
             calib = self.run_dir / "calibration.yaml"
-            calib.write_text(text, encoding="utf-8")
-            artifacts.append(("calibration", calib))
+            staged.append(("calibration", _write_staged(calib, text), calib))
         result: dict[str, Any] = {"verdict": verdict, "report": str(report)}
         if drift is not None:
             result["drift"] = drift
@@ -689,7 +708,7 @@ class Station:
                     "calibration drifted beyond the recipe's limits since run "
                     f"{drift['previous_run']}: {', '.join(drift['flagged'])}"
                 )
-        return StepOutcome(result, artifacts=artifacts)
+        return StepOutcome(result, staged=staged, run_status=verdict, accept_calibration=accept)
 
     # --- helpers -------------------------------------------------------------------------
     def _drivers(self) -> Drivers:
@@ -714,6 +733,10 @@ class Station:
             while (aside := path.with_name(f"{kind}.attempt{n}.mcap")).exists():
                 n += 1
             path.rename(aside)
+            with self.db.session("moving a partial recording aside") as s:
+                for art in s.scalars(select(Artifact).where(
+                        Artifact.run_id == self.run_id, Artifact.path == str(path))):
+                    art.path = str(aside)
         enc = self.recipe.station.encoder
         metadata: dict[str, dict[str, Any]] = {
             "run": {"id": self.run_id, "step": step, "step_id": step_id}
@@ -722,6 +745,7 @@ class Station:
         if truth is not None:
             metadata["truth"] = truth
         calibration, source = self._latest_calibration()
+        self._partial = [(kind, path)]  # until the recording is complete
         with (
             RecordingWriter(
                 path,
@@ -739,6 +763,7 @@ class Station:
             self.ui.progress(f"{kind} scan") as progress,
         ):
             acquire(_PublishingWriter(writer, self.ui, kind), progress)
+        self._partial = []
         return path
 
     def _attempts(self, step: str) -> int:
@@ -762,48 +787,36 @@ class Station:
         status: str,
         result: dict[str, Any],
         error: str | None,
-        outcome: StepOutcome | None = None,
+        outcome: StepOutcome,
     ) -> None:
-        """Commit the step's end, its artifacts and results in one transaction."""
-        with self.db.session() as s:
-            row = s.get(Step, step_id)
-            assert row is not None
-            row.status = status
-            row.finished_at = utcnow()
-            row.result = plain(result)
-            row.error = error
-            if outcome is not None:
-                for kind, path in outcome.artifacts:
-                    s.add(
-                        Artifact(
-                            run_id=self.run_id,
-                            step_id=step_id,
-                            kind=kind,
-                            path=str(path),
-                            size_bytes=path.stat().st_size,
-                            sha256=file_sha256(path),
-                        )
-                    )
-                new_cal = None
-                if outcome.calibration is not None:
-                    stage, res = outcome.calibration
-                    new_cal = _calibration_row(self.run_id, step_id, stage, res)
-                    s.add(new_cal)
-                    s.flush()
-                if outcome.cube is not None:
-                    cal_id, cube = outcome.cube
-                    if cal_id is None and new_cal is not None:
-                        cal_id = new_cal.id  # the check of the calibration this step made
-                    s.add(_cube_row(self.run_id, step_id, cal_id, cube))
+        """Commit the step's end, its artifacts and results in one transaction.
 
-    def _close_running_steps(self, status: str, error: str) -> None:
-        with self.db.session() as s:
-            for row in s.scalars(
-                select(Step).where(Step.run_id == self.run_id, Step.status == "running")
-            ):
-                row.status = status
-                row.error = error
-                row.finished_at = utcnow()
+        Recordings cut short (``_partial``) are stored with the status ``partial``. If the
+        database fails, the change is journalled in the run folder and ResultJournalled raised
+        (:func:`calstation.db.journal.store`)."""
+        files = [(kind, path, path, "complete") for kind, path in outcome.artifacts]
+        files += [(kind, final, tmp, "complete") for kind, tmp, final in outcome.staged]
+        files += [(kind, path, path, "partial") for kind, path in self._partial if path.exists()]
+        self._partial = []
+        artifacts = [
+            {"kind": kind, "path": str(final), "size_bytes": source.stat().st_size,
+             "sha256": file_sha256(source), "status": state}
+            for kind, final, source, state in files
+        ]
+        calibration = cube = None
+        if outcome.calibration is not None:
+            stage, res = outcome.calibration
+            calibration = journal.columns(_calibration_row(self.run_id, step_id, stage, res))
+        if outcome.cube is not None:
+            cal_id, check = outcome.cube
+            cube = journal.columns(_cube_row(self.run_id, step_id, cal_id, check))
+        change = journal.step_end(
+            self.run_id, step_id, status, plain(result), error, artifacts=artifacts,
+            calibration=calibration, cube=cube, run_status=outcome.run_status,
+            accept_calibration=outcome.accept_calibration,
+            staged=[(tmp, final) for _, tmp, final in outcome.staged],
+        )
+        journal.store(self.db, self.run_dir, change, f"the end of step {step_id}")
 
     def _mark_running(self) -> None:
         with self.db.session() as s:
@@ -847,7 +860,8 @@ class Station:
         with self.db.session() as s:
             art = s.scalars(
                 select(Artifact)
-                .where(Artifact.run_id == self.run_id, Artifact.kind == kind)
+                .where(Artifact.run_id == self.run_id, Artifact.kind == kind,
+                       Artifact.status == "complete")
                 .order_by(Artifact.id.desc())
             ).first()
         if art is None:
@@ -896,14 +910,18 @@ class Station:
             return run_brief(run)
 
     def _finish(self, status: str, error: str | None) -> str:
-        with self.db.session() as s:
-            run = s.get(Run, self.run_id)
-            assert run is not None
-            run.status = status
-            run.finished_at = utcnow()
-            run.error = error
-            s.flush()
-            summary = run_summary(run)
+        """Store the run's end (journalled if the database fails: never raises for that)."""
+        self._final = status
+        try:
+            journal.store(self.db, self.run_dir, journal.run_end(self.run_id, status, error),
+                          f"the end of run {self.run_id}")
+            with self.db.session("reading the run") as s:
+                run = s.get(Run, self.run_id)
+                assert run is not None
+                summary = run_summary(run)
+        except DatabaseError as exc:
+            self.ui.warn(escape(str(exc)))
+            return status
         self._write_report_html()
         self._notify("run_finished", run=run_brief_from(summary), status=status, summary=summary)
         self.ui.summary(summary)
@@ -925,19 +943,46 @@ class Station:
         except Exception as exc:
             self.ui.warn(f"a plugin's {hook} observer failed: {type(exc).__name__}: {exc}")
 
-    def _stop_hardware(self, emergency: bool) -> None:
+    def _stop_hardware(self, emergency: bool) -> dict[str, Any] | None:
+        """Stop the turntable (emergency stop first after an abort or fault; emergency stop if
+        ``stop()`` fails), close the drivers; how it went, or None if no driver was open."""
         d = self.drivers
         if d is None:
-            return
+            return None
+        done: list[str] = []
+        errors: list[str] = []
+
+        def attempt(name: str) -> bool:
+            try:
+                getattr(d.turntable, name)()
+            except Exception as exc:
+                errors.append(f"{name} failed: {type(exc).__name__}: {exc}")
+                return False
+            done.append(name)
+            return True
+
         if emergency:
-            _quietly(d.turntable.emergency_stop)
-        try:
-            d.turntable.stop()
-        except Exception:
-            _quietly(d.turntable.emergency_stop)
+            attempt("emergency_stop")
+        if not attempt("stop") and "emergency_stop" not in done:
+            attempt("emergency_stop")
         for driver in (d.lidar, d.turntable, d.encoder):
             _quietly(driver.close)
         self.drivers = None
+        return {"how": " then ".join(done) or "not stopped", "ok": bool(done),
+                "reason": self._final, "errors": errors, "at": utcnow().isoformat()}
+
+    def _record_motor_stop(self, record: dict[str, Any] | None) -> None:
+        """Say on the console and in the database (``run.motor_stop``) how the motor stopped."""
+        if record is None:
+            return
+        text = f"motor stopped by {record['how']} (run {record['reason']})"
+        if record["ok"]:
+            self.ui.info(text)
+        else:
+            self.ui.warn(f"the motor could not be stopped: {'; '.join(record['errors'])}")
+        with suppress(DatabaseError):  # journalled when the database is unavailable
+            journal.store(self.db, self.run_dir, journal.motor_stop(self.run_id, record),
+                          "how the motor stopped")
 
 
 class _PublishingWriter:
@@ -965,6 +1010,22 @@ class StepOutcome:
     """(calibration id, check); None as the id: the calibration this step stores"""
     failure: str | None = None
     """A failed QA verdict: the step fails (the operator may retry) but keeps what it stored."""
+    staged: list[tuple[str, Path, Path]] = field(default_factory=list)
+    """(kind, temporary file, final path): moved into place once the step is stored."""
+    run_status: str | None = None
+    """The run's verdict, stored with the step (the report step)."""
+    accept_calibration: int | None = None
+    """The calibration the verdict accepts (the report step of a passed run)."""
+
+
+def _write_staged(final: Path, text: str) -> Path:
+    """Write ``text`` beside ``final`` under a temporary name (flushed to disk); its path."""
+    tmp = final.with_name(final.name + ".pending")
+    with tmp.open("w", encoding="utf-8") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    return tmp
 
 
 def run_brief_from(summary: dict[str, Any]) -> dict[str, Any]:
@@ -1105,15 +1166,10 @@ def create_run(
     """
     check_plugins(loaded)
     base = (data_dir or data_dir_default()).expanduser().resolve()
-    with db.session() as s:
-        station = s.scalars(
-            select(StationRow).where(StationRow.name == loaded.recipe.station.id)
-        ).first()
-        if station is None:
-            station = StationRow(name=loaded.recipe.station.id)
-            s.add(station)
+    station_id = get_or_create_station(db, loaded.recipe.station.id)
+    with db.session("creating the run") as s:
         run = Run(
-            station=station,
+            station_id=station_id,
             recipe_name=loaded.recipe.name,
             recipe_path=str(loaded.path.resolve()) if loaded.path else None,
             recipe_text=loaded.text,
@@ -1167,6 +1223,8 @@ def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False) 
     Recordings of finished steps are re-used after their sha256 is checked. A run still being
     executed by a live process is refused unless ``force``.
     """
+    for note in journal.recover(db):  # results journalled by an earlier process, first
+        ui.info(escape(note))
     with db.session() as s:
         run = s.get(Run, run_id)
         if run is None:

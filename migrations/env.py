@@ -1,7 +1,8 @@
 """Alembic environment of calstation's run database.
 
 Uses the connection in ``config.attributes["connection"]`` when one is given (calstation's own
-``Database.upgrade`` and the tests pass theirs); otherwise connects to ``-x url=...``, the
+``Database.upgrade`` and the tests pass theirs, with SQLite's foreign keys already off: see
+``calstation.db.foreign_keys_off``); otherwise connects to ``-x url=...``, the
 ``sqlalchemy.url`` option, ``CALSTATION_DB_URL`` or the default SQLite file.
 """
 
@@ -9,7 +10,7 @@ from __future__ import annotations
 
 from alembic import context
 
-from calstation.db import default_database_url, make_engine
+from calstation.db import default_database_url, foreign_keys_off, make_engine
 from calstation.db.models import Base
 
 config = context.config
@@ -55,7 +56,9 @@ def run_migrations_online() -> None:
             context.run_migrations()
         return
     engine = make_engine(_url())
-    with engine.begin() as conn:
+    # SQLite: foreign keys off while tables are rebuilt, or dropping the old table would
+    # cascade-delete the rows that reference it (calstation's Database does the same)
+    with engine.connect() as conn, foreign_keys_off(conn), conn.begin():
         _configure(conn)
         with context.begin_transaction():
             context.run_migrations()

@@ -105,7 +105,7 @@ def test_show_json_is_what_is_stored(cli: CliRunner, db_url: str) -> None:
     assert shown["cube_check"]["face_edges"] == [0.10004, 0.09998, 0.10003]
     assert shown["artifacts"] == [{"kind": "static", "step": "static_scan",
                                    "path": "/data/runs/x/static.mcap", "size_bytes": 123456789,
-                                   "sha256": "cd" * 32}]
+                                   "sha256": "cd" * 32, "status": "complete"}]
     assert shown["started_at"] == t0.isoformat()
     assert shown["steps"][0]["result"] == {"lines": 100}
     res = cli.invoke(app, ["show", str(run_id), "--db", db_url])

@@ -96,11 +96,31 @@ def test_default_location_follows_calstation_home(
 def test_outdated_database_is_refused(tmp_path: Path) -> None:
     url = f"sqlite:///{tmp_path / 'old.db'}"
     db = Database(url)
+    db.upgrade("0002")
+    with pytest.raises(DatabaseError, match=r"at revision 0002, .*run `calstation db upgrade`"):
+        db.ensure_schema()
+    db.dispose()
+
+
+def test_unknown_revision_says_what_it_is(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'new.db'}"
+    db = Database(url)
     db.upgrade()
     with db.engine.begin() as conn:
-        conn.execute(text("UPDATE alembic_version SET version_num = 'older'"))
-    with pytest.raises(DatabaseError, match="calstation db upgrade"):
+        conn.execute(text("UPDATE alembic_version SET version_num = 'from_the_future'"))
+    with pytest.raises(DatabaseError, match=r"at revision 'from_the_future', which this calstation "
+                                            "does not know .* newer calstation"):
         db.ensure_schema()
+    with pytest.raises(DatabaseError, match="does not know"):
+        db.upgrade()
+    from typer.testing import CliRunner
+
+    from calstation.cli import _build, app
+
+    _build()
+    shown = CliRunner().invoke(app, ["db", "info", "--db", url])
+    assert "revision: from_the_future" in shown.output
+    assert "unknown to this calstation: migrated by a newer version" in shown.output
     db.dispose()
 
 

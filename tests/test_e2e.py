@@ -187,7 +187,7 @@ def test_sigkill_during_spin_scan_then_resume(tmp_path: Path) -> None:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == -signal.SIGKILL
-    with db.session() as s:
+    with db.session() as s:  # as the killed process left it
         run = s.get(Run, 1)
         assert run is not None and run.status == "running"
         before_steps = [(st.name, st.attempt, st.status)
@@ -206,11 +206,17 @@ def test_sigkill_during_spin_scan_then_resume(tmp_path: Path) -> None:
         steps = [(st.name, st.attempt, st.status)
                  for st in s.query(Step).filter_by(run_id=1).order_by(Step.id)]
         arts = {a.kind: (a.path, a.size_bytes, a.sha256)
-                for a in s.query(Artifact).filter_by(run_id=1)}
+                for a in s.query(Artifact).filter_by(run_id=1, status="complete")}
         initial = s.query(Calibration).filter_by(run_id=1, stage="initial").one().params()
     # earlier steps untouched, the interrupted scan marked, then the rest of the run
     assert steps[:4] == before_steps[:4]
     assert steps[4] == ("spin_scan", 1, "interrupted")
+    with db.session() as s:  # the killed scan's recording is kept as a partial one
+        run = s.get(Run, 1)
+        assert run is not None and run.status == "passed"
+        partial = s.query(Artifact).filter_by(run_id=1, status="partial").one()
+    assert partial.kind == "spin" and partial.path.endswith("spin.attempt1.mcap")
+    assert file_sha256(Path(partial.path)) == partial.sha256
     assert steps[5:] == [("place_spin_target", 2, "passed"), ("spin_scan", 2, "passed"),
                          *[(n, 1, "passed") for n in STEPS[5:]]]
     assert arts["static"] == before_arts["static"] and initial == before_initial

@@ -45,12 +45,15 @@ class ScriptedOperator:
         self.failures: list[tuple[str, str, int]] = []
         self.progress_titles: list[str] = []
         self.summaries: list[dict[str, Any]] = []
+        self.messages = []
+
+    messages: list[str]
 
     def info(self, message: str) -> None:
-        pass
+        self.messages.append(message)
 
     def warn(self, message: str) -> None:
-        pass
+        self.messages.append(message)
 
     def confirm_fixture(self, fixture: str, description: str) -> bool:
         self.placed.append(fixture)
@@ -436,11 +439,17 @@ def test_ctrl_c_during_the_spin_scan_aborts_and_stops_the_motor(
     # the acquisition stopped the spinning platter, then the station's abort: emergency stop
     assert station_plugin.motor_calls[-3:] == ["stop", "emergency_stop", "stop"]
     with db.session() as s:
-        kinds = {a.kind for a in s.query(Artifact).filter_by(run_id=run_id)}
+        kinds = {a.kind: a.status for a in s.query(Artifact).filter_by(run_id=run_id)}
         run = s.get(Run, run_id)
         assert run is not None and run.status == "aborted" and run.finished_at is not None
-    assert kinds == {"static"}  # the interrupted scan is not stored as a finished recording
+        # the run records how the motor was stopped
+        assert run.motor_stop is not None
+        assert run.motor_stop["how"] == "emergency_stop then stop" and run.motor_stop["ok"]
+        assert run.motor_stop["reason"] == "aborted"
+    # the interrupted scan is kept as a partial recording, never as a finished one
+    assert kinds == {"static": "complete", "spin": "partial"}
     assert ui.summaries[-1]["status"] == "aborted"
+    assert any("motor stopped by emergency_stop then stop" in m for m in ui.messages)
 
 
 def _qa_recipe(tmp_path: Path, name: str, seed: int = 0, **qa: Any) -> Path:

@@ -126,6 +126,8 @@ def register(app: typer.Typer) -> None:
         from rich.console import Console
 
         from ..cube import check_cube
+        from ..errors import VerificationError
+        from ..quiet import stdout_to_stderr
         from ..recipe import load_recipe
         from ..recording import read_recording
         from ..result import CalibrationResult
@@ -135,7 +137,12 @@ def register(app: typer.Typer) -> None:
         calib = CalibrationResult.load(calibration)
         with console.status(f"reading {cube}"):
             rec = read_recording(cube)
-        with console.status("measuring the QA cube"):
+        if rec.kind != "cube":
+            raise VerificationError(
+                f"{cube}: this is a {rec.kind!r} recording, not a scan of the QA cube; verify "
+                "needs the cube's spin scan (recording kind 'cube', cube.mcap of a run)"
+            )
+        with console.status("measuring the QA cube"), stdout_to_stderr():
             check = check_cube(
                 rec,
                 calib.H,
@@ -183,8 +190,10 @@ def _calibrate_files(
     from rich.console import Console
 
     from .. import plugins
+    from ..errors import CalibrationError
     from ..initial import initial_calibration
     from ..observability import sigma_problems
+    from ..quiet import stdout_to_stderr
     from ..recipe import load_recipe
     from ..recording import read_recording
     from ..reprocess import recording_disagreements
@@ -197,14 +206,24 @@ def _calibrate_files(
     strat = plugins.strategy(name)
     with console.status(f"reading {static}"):
         st = read_recording(static)
+    if st.kind in ("spin", "cube"):
+        raise CalibrationError(
+            f"{static}: this is a {st.kind!r} recording, not the static scan of the L-target "
+            "(recording kind 'static', static.mcap of a run)"
+        )
     warnings = recording_disagreements(st, loaded)
-    with console.status("initial calibration"):
+    with console.status("initial calibration"), stdout_to_stderr():
         initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
     with console.status(f"reading {spin}"):
         sp = read_recording(spin)
+    if sp.kind == "static":
+        raise CalibrationError(
+            f"{spin}: this is a 'static' recording; fine-tuning needs a spin scan "
+            f"({'spin' if strat.fixture == 'spin_target' else 'cube'}.mcap of a run)"
+        )
     warnings += recording_disagreements(sp, loaded)
     _warn(console, warnings)
-    with _progress_bar(console) as bar:
+    with _progress_bar(console) as bar, stdout_to_stderr():
         task = bar.add_task(f"{name} fine-tuning", total=1.0)
 
         def progress(message: str, fraction: float) -> None:

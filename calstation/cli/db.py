@@ -30,15 +30,33 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"{database!r}: {before or 'empty'} → {after}")
         database.dispose()
 
+    @db_app.command("downgrade")
+    def downgrade(
+        revision: str = typer.Argument(..., help="Target revision (see `alembic history`)."),
+        db: str | None = DbOption,
+    ) -> None:
+        """Undo migrations down to REVISION, keeping every row (refused where rows would go)."""
+        from ..db import Database
+
+        database = Database(db)
+        before, after = database.downgrade(revision)
+        typer.echo(f"{database!r}: {before or 'empty'} → {after or 'empty'}")
+        database.dispose()
+
     @db_app.command("info")
     def info(db: str | None = DbOption) -> None:
         """Print the database URL and its revision."""
-        from ..db import Database, head_revision
+        from ..db import Database, head_revision, known_revisions
 
         database = Database(db)
         current = database.current_revision()
         head = head_revision()
-        state = "up to date" if current == head else "needs `calstation db upgrade`"
+        if current == head:
+            state = "up to date"
+        elif current is not None and current not in known_revisions():
+            state = "unknown to this calstation: migrated by a newer version"
+        else:
+            state = "needs `calstation db upgrade`"
         typer.echo(f"url:      {database.engine.url.render_as_string(hide_password=True)}")
         typer.echo(f"revision: {current or 'none'} (head {head}, {state})")
         database.dispose()

@@ -68,7 +68,9 @@ def register(app: typer.Typer) -> None:
         station: str = typer.Option(None, "--station", help="Only this station."),
         since: str = typer.Option(None, "--since", help="Only runs started since DATE (UTC)."),
         status: str = typer.Option(
-            None, "--status", help="Only runs with this status (running/passed/failed/aborted)."
+            None,
+            "--status",
+            help="Only runs with this status (running/passed/failed/aborted/interrupted).",
         ),
         serial: str = typer.Option(None, "--serial", help="Only runs of this unit serial."),
         limit: int = typer.Option(200, "--limit", help="At most this many runs (newest)."),
@@ -172,11 +174,17 @@ def register(app: typer.Typer) -> None:
                           st["error"] or "")
         console.print(steps)
         arts = Table(title="Artifacts")
-        for col in ("kind", "path", "bytes", "sha256"):
+        for col in ("kind", "path", "bytes", "sha256", "status"):
             arts.add_column(col)
         for a in summary["artifacts"]:
-            arts.add_row(a["kind"], a["path"], str(a["size_bytes"]), a["sha256"][:16] + "…")
+            arts.add_row(a["kind"], a["path"], str(a["size_bytes"]), a["sha256"][:16] + "…",
+                         a.get("status") or "complete")
         console.print(arts)
+        stop = summary.get("motor_stop")
+        if stop:
+            console.print(f"motor stopped by {stop['how']} (run {stop['reason']})"
+                          + ("" if stop["ok"] else f": {'; '.join(stop['errors'])}"),
+                          highlight=False)
         render_summary(console, summary)
 
     @app.command("export")

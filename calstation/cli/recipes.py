@@ -54,7 +54,7 @@ def register(app: typer.Typer) -> None:
                 if plugins:
                     check_plugins(loaded)
             except RecipeError as exc:
-                failures.append(str(exc) if len(files) == 1 else f"{f}: {exc}")
+                failures.append(str(exc))  # every message names its file
                 continue
             r = loaded.recipe
             typer.echo(

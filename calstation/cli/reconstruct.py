@@ -37,6 +37,8 @@ def register(app: typer.Typer) -> None:
         """
         from rich.console import Console
 
+        from ..errors import RecordingError
+        from ..quiet import stdout_to_stderr
         from ..reconstruct import load_extrinsics, reconstruct, write_ply
         from ..recording import read_recording
 
@@ -49,9 +51,14 @@ def register(app: typer.Typer) -> None:
         console = Console(stderr=True)
         with console.status(f"reading {recording}"):
             rec = read_recording(recording)
-        with console.status(f"reconstructing {rec.n_points:,} points"):
+        with console.status(f"reconstructing {rec.n_points:,} points"), stdout_to_stderr():
             points = reconstruct(rec, H)
-        with console.status(f"writing {out}"):
+        if len(points) == 0:
+            raise RecordingError(
+                f"{recording}: none of its {rec.n_lines:,} lines holds a valid return: nothing "
+                f"to reconstruct, {out} not written"
+            )
+        with console.status(f"writing {out}"), stdout_to_stderr():
             write_ply(out, points)
         note = " (recording truncated: read up to its last complete chunk)" if rec.truncated else ""
         typer.echo(

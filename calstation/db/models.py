@@ -64,9 +64,12 @@ class Station(Base):
 class Run(Base):
     """One run of a recipe on a station.
 
-    ``status`` is ``"running"``, ``"passed"``, ``"failed"`` or ``"aborted"``; a run left
-    ``"running"`` by a crashed process is resumed by ``calstation resume``. ``host`` and ``pid``
-    name the process executing it (so a second process cannot drive the same run).
+    ``status`` is ``"running"``, ``"passed"``, ``"failed"``, ``"aborted"`` or ``"interrupted"``
+    (its process ended, or lost the database, before the run finished); ``calstation resume``
+    continues a run that did not pass. ``host`` and ``pid`` name the process executing it (so a
+    second process cannot drive the same run). ``motor_stop`` says how the turntable was stopped
+    when the run's drivers closed: ``{"how": "stop" | "emergency_stop" | ..., "reason", "ok",
+    "at"}``.
     ``unit_serial`` is the serial number of the calibrated unit: given by the operator
     (``calstation run --serial``), else the lidar driver's ``info().serial`` at preflight.
     """
@@ -89,6 +92,7 @@ class Run(Base):
     host: Mapped[str | None] = mapped_column(String(255))
     pid: Mapped[int | None] = mapped_column(Integer)
     unit_serial: Mapped[str | None] = mapped_column(String(100), index=True)
+    motor_stop: Mapped[dict[str, Any] | None] = mapped_column(JSON)
 
     station: Mapped[Station] = relationship(back_populates="runs")
     steps: Mapped[list[Step]] = relationship(
@@ -201,7 +205,11 @@ class CubeCheckRecord(Base):
 
 
 class Artifact(Base):
-    """A file a run produced (a recording, a report): path, size in bytes and sha256."""
+    """A file a run produced (a recording, a report): path, size in bytes and sha256.
+
+    ``status`` is ``"complete"``, or ``"partial"`` for a recording cut short by a fault or an
+    abort (kept for diagnosis, never re-used by ``resume``).
+    """
 
     __tablename__ = "artifact"
 
@@ -212,6 +220,7 @@ class Artifact(Base):
     path: Mapped[str] = mapped_column(String(1000))
     size_bytes: Mapped[int] = mapped_column(BigInteger)
     sha256: Mapped[str] = mapped_column(String(64))
+    status: Mapped[str] = mapped_column(String(16), default="complete", server_default="complete")
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
     run: Mapped[Run] = relationship(back_populates="artifacts")

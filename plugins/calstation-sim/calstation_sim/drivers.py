@@ -13,6 +13,7 @@ from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from calstation.clock import Clock, SimClock
 from calstation.drivers import (
@@ -263,6 +264,16 @@ class SimEncoder:
 _SETTINGS = {"seed", "range_m", "pitch_deg"}
 
 
+class SimSettings(BaseModel):
+    """``settings`` of the ``sim`` drivers (checked by ``calstation recipes validate``)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    seed: int | None = Field(None, ge=0, le=2**63 - 1)
+    range_m: float | None = Field(None, ge=0.2, le=20.0)
+    pitch_deg: float | None = Field(None, gt=5, lt=85)
+
+
 def station_from_context(settings: Mapping[str, Any], context: DriverContext) -> SimulatedStation:
     """The run's :class:`SimulatedStation` from ``context.shared["sim"]``, created on first use
     from ``context.recipe`` and the driver ``settings`` (optional ``seed``, ``range_m``,
@@ -297,3 +308,7 @@ def turntable_factory(settings: Mapping[str, Any], context: DriverContext) -> Si
 def encoder_factory(settings: Mapping[str, Any], context: DriverContext) -> SimEncoder:
     """Factory of the ``sim`` encoder driver."""
     return SimEncoder(station_from_context(settings, context))
+
+
+for _factory in (lidar_factory, turntable_factory, encoder_factory):
+    _factory.settings_model = SimSettings  # type: ignore[attr-defined]

@@ -129,12 +129,14 @@ def test_missing_or_empty_mesh_file_is_a_clear_error(
     with pytest.raises(RecipeError, match=r"fixtures\.qa_cube\.mesh: mesh file not found"):
         make_recipe({"fixtures.qa_cube.mesh": "nope.stl"})
     # a file that disappears after the recipe was loaded
-    (tmp_path / "gone.stl").write_bytes(b"")
+    box = o3d.geometry.TriangleMesh.create_box(0.1, 0.1, 0.1)
+    box.translate((0.0, -0.05, -0.05))
+    assert o3d.io.write_triangle_mesh(str(tmp_path / "gone.stl"), box.compute_triangle_normals())
     station = SimulatedStation(make_recipe({"fixtures.qa_cube.mesh": "gone.stl"}))
     (tmp_path / "gone.stl").unlink()
     with pytest.raises(SimulationError, match=r"fixtures\.qa_cube\.mesh: mesh file not found"):
         station.place("qa_cube")
+    # an empty mesh is refused when the recipe is validated, before anything moves
     (tmp_path / "empty.ply").write_text("ply\nformat ascii 1.0\nend_header\n")
-    station = SimulatedStation(make_recipe({"fixtures.qa_cube.mesh": "empty.ply"}))
-    with pytest.raises(SimulationError, match="holds no triangles"):
-        station.place("qa_cube")
+    with pytest.raises(RecipeError, match=r"fixtures\.qa_cube\.mesh: .*holds no triangles"):
+        make_recipe({"fixtures.qa_cube.mesh": "empty.ply"})

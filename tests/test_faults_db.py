@@ -1,0 +1,469 @@
+"""Fault injection, database: locks, lost writes, concurrent first runs, downgrades.
+
+A lock is taken the way another process would take it (a second SQLite connection holding
+``BEGIN IMMEDIATE``); a lost write is a driver error raised at the driver boundary
+(``before_cursor_execute``) for the statements of one step. The station runs are the lean ones of
+tests/test_station.py (simulated drivers, a stand-in strategy).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import sqlite3
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pgserver
+import pytest
+from sqlalchemy import event, func, select, text
+
+from calstation import hookimpl, plugins
+from calstation.db import (
+    Artifact,
+    Calibration,
+    CubeCheckRecord,
+    Database,
+    Run,
+    Station,
+    Step,
+    get_or_create_station,
+    open_database,
+)
+from calstation.db import journal as journal_mod
+from calstation.errors import DatabaseError
+from calstation.recipe import load_recipe
+from calstation.station import STEPS, file_sha256, resume_run, start_run
+
+pytest.importorskip("calstation_sim")
+from calstation_sim import plugin as sim_plugin
+from test_station import ScriptedOperator, StationTestPlugin, lean_recipe
+
+postgres_url = pgserver.postgres_url
+
+
+@pytest.fixture
+def station_plugin() -> Iterator[StationTestPlugin]:
+    plugin = StationTestPlugin()
+    with plugins.isolated(sim_plugin, plugin):
+        yield plugin
+
+
+def hold_lock(path: Path, seconds: float) -> threading.Thread:
+    """Another process's write lock on the SQLite file ``path`` for ``seconds`` (returns once
+    the lock is held)."""
+    held = threading.Event()
+
+    def hold() -> None:
+        conn = sqlite3.connect(path, isolation_level=None, timeout=30)
+        conn.execute("BEGIN IMMEDIATE")
+        held.set()
+        time.sleep(seconds)
+        conn.execute("COMMIT")
+        conn.close()
+
+    thread = threading.Thread(target=hold, daemon=True)
+    thread.start()
+    assert held.wait(30)
+    return thread
+
+
+# --- locks ---------------------------------------------------------------------------------
+def test_a_lock_is_waited_for_and_said(tmp_path: Path) -> None:
+    said: list[str] = []
+    db = Database(f"sqlite:///{tmp_path / 'w.db'}", lock_timeout=20, on_wait=said.append)
+    db.ensure_schema()
+    holder = hold_lock(tmp_path / "w.db", 3.0)
+    start = time.monotonic()
+    station_id = get_or_create_station(db, "waited")
+    waited = time.monotonic() - start
+    holder.join()
+    assert 2.5 < waited < 15, waited
+    assert said and "waiting for the database" in said[0] and "up to 20 s" in said[0]
+    with db.session() as s:
+        assert s.get(Station, station_id) is not None
+    db.dispose()
+
+
+def test_a_lock_past_the_timeout_is_one_sentence_with_details_in_the_log(tmp_path: Path) -> None:
+    db = Database(f"sqlite:///{tmp_path / 'l.db'}", lock_timeout=0.5, on_wait=lambda m: None)
+    db.ensure_schema()
+    db.log_path = tmp_path / "database.log"
+    holder = hold_lock(tmp_path / "l.db", 2.0)
+    with pytest.raises(DatabaseError) as info:
+        get_or_create_station(db, "x" * 50 + "-recipe-text-marker")
+    holder.join()
+    message = str(info.value)
+    assert "stayed locked by another process for 0.5 s" in message
+    assert f"details in {tmp_path / 'database.log'}" in message
+    for leak in ("SELECT", "INSERT", "[SQL", "parameters", "recipe-text-marker", "sqlalche.me"):
+        assert leak not in message, message
+    log = (tmp_path / "database.log").read_text()
+    assert "database is locked" in log and "[SQL: " in log
+    db.dispose()
+
+
+def test_lock_timeout_is_configurable_and_checked(monkeypatch: pytest.MonkeyPatch,
+                                                  tmp_path: Path) -> None:
+    monkeypatch.setenv("CALSTATION_DB_LOCK_TIMEOUT", "7.5")
+    assert Database(f"sqlite:///{tmp_path / 'c.db'}").lock_timeout == 7.5
+    monkeypatch.setenv("CALSTATION_DB_LOCK_TIMEOUT", "forever")
+    with pytest.raises(DatabaseError, match="CALSTATION_DB_LOCK_TIMEOUT='forever'"):
+        Database(f"sqlite:///{tmp_path / 'c.db'}")
+
+
+def _hold_pg_lock(url: str, seconds: float) -> threading.Thread:
+    """Another PostgreSQL session holding an exclusive lock on the station table."""
+    from sqlalchemy import create_engine
+
+    held = threading.Event()
+
+    def hold() -> None:
+        engine = create_engine(url)
+        with engine.begin() as conn:
+            conn.exec_driver_sql("LOCK TABLE station IN ACCESS EXCLUSIVE MODE")
+            held.set()
+            time.sleep(seconds)
+        engine.dispose()
+
+    thread = threading.Thread(target=hold, daemon=True)
+    thread.start()
+    assert held.wait(30)
+    return thread
+
+
+def test_a_postgresql_lock_is_waited_for_then_one_sentence(postgres_url: str) -> None:
+    said: list[str] = []
+    db = Database(postgres_url, lock_timeout=20, on_wait=said.append)
+    db.ensure_schema()
+    holder = _hold_pg_lock(postgres_url, 3.0)
+    get_or_create_station(db, "pg-waited")
+    holder.join()
+    assert said and "waiting for the database" in said[0]
+    db.dispose()
+    short = Database(postgres_url, lock_timeout=0.5, on_wait=lambda m: None)
+    holder = _hold_pg_lock(postgres_url, 2.0)
+    with pytest.raises(DatabaseError) as info:
+        get_or_create_station(short, "pg-refused")
+    holder.join()
+    message = str(info.value)
+    assert "stayed locked by another process for 0.5 s" in message
+    assert "SELECT" not in message and "[SQL" not in message
+    short.dispose()
+
+
+# --- lost writes: journalled, written by the next command ----------------------------------
+class FailingWrites:
+    """Make the database refuse statements matching ``predicate`` while armed, as a lock that
+    outlasts the wait would."""
+
+    def __init__(self, db: Database, predicate: Callable[[str], bool]) -> None:
+        self.armed = False
+        self.predicate = predicate
+        event.listen(db.engine, "before_cursor_execute", self._check)
+
+    def _check(self, conn: Any, cursor: Any, statement: str, *args: Any) -> None:
+        if self.armed and self.predicate(statement):
+            raise sqlite3.OperationalError("database is locked")
+
+
+class ArmAfter:
+    """A plugin that arms a FailingWrites once ``step`` has finished."""
+
+    __name__ = "arm-after"
+
+    def __init__(self, failing: FailingWrites, step: str) -> None:
+        self.failing, self.step = failing, step
+
+    @hookimpl
+    def calstation_step_finished(self, run: Any, step: str, status: str, result: Any) -> None:
+        if step == self.step and status == "passed":
+            self.failing.armed = True
+
+
+def _lean_db(tmp_path: Path) -> Database:
+    db = Database(f"sqlite:///{tmp_path / 'j.db'}", lock_timeout=0.5, on_wait=lambda m: None)
+    db.ensure_schema()
+    return db
+
+
+def _step_rows(db: Database, run_id: int) -> list[tuple[str, str]]:
+    with db.session() as s:
+        return [(r.name, r.status) for r in
+                s.scalars(select(Step).where(Step.run_id == run_id).order_by(Step.id))]
+
+
+def test_a_lost_step_end_is_journalled_and_written_by_the_next_command(
+    tmp_path: Path, station_plugin: StationTestPlugin
+) -> None:
+    db = _lean_db(tmp_path)
+    failing = FailingWrites(db, lambda sql: sql.startswith("UPDATE step"))
+    plugins.get_plugin_manager().register(ArmAfter(failing, "place_spin_target"))
+    ui = ScriptedOperator()
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ui, operator="ann",
+                               data_dir=tmp_path)
+    assert status == "interrupted"
+    run_dir = tmp_path / "runs" / str(run_id)
+    entries = journal_mod.read(run_dir / "journal.jsonl")
+    assert [e["op"] for e in entries] == ["step_end", "run_end"]
+    assert entries[0]["status"] == "passed"  # the spin scan's end, with its recording
+    assert entries[0]["artifacts"][0]["kind"] == "spin"
+    assert any("is kept in" in m and "journal.jsonl" in m for m in ui.messages)
+    with db.session() as s:  # the database does not hold it yet
+        assert s.get(Run, run_id).status == "running"  # type: ignore[union-attr]
+    failing.armed = False
+    # the motor stop was stored directly (another statement), the run shows how
+    with db.session() as s:
+        assert s.get(Run, run_id).motor_stop["ok"]  # type: ignore[union-attr,index]
+    # the next command writes the journal
+    again = open_database(db.url)
+    with again.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None and run.status == "interrupted"
+        spin = s.scalars(select(Artifact).where(Artifact.run_id == run_id,
+                                                Artifact.kind == "spin")).one()
+        assert file_sha256(Path(spin.path)) == spin.sha256
+    assert ("spin_scan", "passed") in _step_rows(again, run_id)
+    assert not (run_dir / "journal.jsonl").exists() and (run_dir / "journal.applied.jsonl").exists()
+    # and the run resumes after the stored spin scan, to its end
+    status = resume_run(run_id, again, ScriptedOperator())
+    assert status in ("passed", "failed")
+    rows = _step_rows(again, run_id)
+    assert [n for n, st in rows if st == "passed"][-4:] == ["fine_tune", "place_qa_cube",
+                                                             "cube_scan", "report"]
+    assert sum(1 for n, st in rows if n == "spin_scan") == 1  # the scan was not repeated
+    again.dispose()
+    db.dispose()
+
+
+def test_a_lost_calibration_is_journalled_with_its_step_and_written_later(
+    tmp_path: Path, station_plugin: StationTestPlugin
+) -> None:
+    db = _lean_db(tmp_path)
+    failing = FailingWrites(db, lambda sql: sql.startswith("UPDATE step"))
+    plugins.get_plugin_manager().register(ArmAfter(failing, "spin_scan"))
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ScriptedOperator(),
+                               operator="ann", data_dir=tmp_path)
+    assert status == "interrupted"
+    entries = journal_mod.read(tmp_path / "runs" / str(run_id) / "journal.jsonl")
+    fine = entries[0]["calibration"]
+    assert entries[0]["status"] == "passed" and fine["stage"] == "fine"
+    with db.session() as s:
+        assert s.scalars(select(Calibration).where(Calibration.stage == "fine")).first() is None
+    failing.armed = False
+    again = open_database(db.url)
+    with again.session() as s:
+        stored = s.scalars(select(Calibration).where(Calibration.run_id == run_id,
+                                                     Calibration.stage == "fine")).one()
+        assert stored.params() == {k: fine[k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")}
+        assert stored.diagnostics is not None and stored.diagnostics["note"] == "toy"
+    assert ("fine_tune", "passed") in _step_rows(again, run_id)
+    # replaying the same journal again changes nothing
+    applied = tmp_path / "runs" / str(run_id) / "journal.applied.jsonl"
+    with again.session() as s:
+        for entry in journal_mod.read(applied):
+            journal_mod.APPLY[entry["op"]](s, entry)
+    with again.session() as s:
+        assert len(s.scalars(select(Calibration).where(Calibration.run_id == run_id,
+                                                       Calibration.stage == "fine")).all()) == 1
+    again.dispose()
+    db.dispose()
+
+
+def test_report_json_never_claims_a_verdict_the_database_does_not_hold(
+    tmp_path: Path, station_plugin: StationTestPlugin
+) -> None:
+    db = _lean_db(tmp_path)
+    failing = FailingWrites(db, lambda sql: sql.startswith("UPDATE step"))
+    plugins.get_plugin_manager().register(ArmAfter(failing, "cube_scan"))
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ScriptedOperator(),
+                               operator="ann", data_dir=tmp_path)
+    assert status == "interrupted"
+    run_dir = tmp_path / "runs" / str(run_id)
+    assert not (run_dir / "report.json").exists()  # staged, not in place
+    assert (run_dir / "report.json.pending").exists()
+    failing.armed = False
+    again = open_database(db.url)
+    report = json.loads((run_dir / "report.json").read_text())
+    with again.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        assert report["status"] == run.status and run.status in ("passed", "failed")
+        accepted = [c for c in run.calibrations if c.accepted]
+        assert len(accepted) == (1 if run.status == "passed" else 0)
+        kinds = {a.kind for a in run.artifacts}
+    assert {"static", "spin", "cube", "report", "calibration"} <= kinds
+    calibration = (run_dir / "calibration.yaml").read_text()
+    assert f"status: {report['status']}" in calibration
+    assert {n for n, st in _step_rows(again, run_id) if st == "passed"} == set(STEPS)
+    again.dispose()
+    db.dispose()
+
+
+def test_a_run_left_running_by_a_dead_process_shows_interrupted(tmp_path: Path) -> None:
+    db = open_database(f"sqlite:///{tmp_path / 'd.db'}")
+    station_id = get_or_create_station(db, "st")
+    import subprocess
+    import sys
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True)
+    import socket
+
+    with db.session() as s:
+        run = Run(station_id=station_id, recipe_name="r", recipe_text="", recipe_sha256="0" * 64,
+                  operator="ann", data_dir=str(tmp_path / "gone"), status="running",
+                  host=socket.gethostname(), pid=int(dead.stdout))
+        s.add(run)
+        s.flush()
+        s.add(Step(run_id=run.id, name="spin_scan", status="running"))
+        run_id = run.id
+    again = open_database(db.url)
+    with again.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None and run.status == "interrupted"
+        assert run.steps[0].status == "interrupted"
+    again.dispose()
+    db.dispose()
+
+
+# --- concurrent first runs -----------------------------------------------------------------
+def _open_and_register(url: str, name: str, barrier: Any, out: Any) -> None:
+    try:
+        barrier.wait(30)
+        db = open_database(url)
+        out.put(("ok", get_or_create_station(db, name)))
+        db.dispose()
+    except Exception as exc:  # reported to the test
+        out.put(("error", f"{type(exc).__name__}: {exc}"))
+
+
+def _race(url: str, processes: int = 3) -> list[tuple[str, Any]]:
+    ctx = multiprocessing.get_context("fork")  # each child opens its own engine
+    barrier = ctx.Barrier(processes)
+    out = ctx.Queue()
+    procs = [ctx.Process(target=_open_and_register, args=(url, "sim-01", barrier, out))
+             for _ in range(processes)]
+    for p in procs:
+        p.start()
+    results = [out.get(timeout=120) for _ in procs]
+    for p in procs:
+        p.join(60)
+    return results
+
+
+def test_concurrent_first_opens_of_a_fresh_sqlite_database_all_succeed(tmp_path: Path) -> None:
+    url = f"sqlite:///{tmp_path / 'fresh.db'}"
+    results = _race(url)
+    assert all(r[0] == "ok" for r in results), results
+    assert len({r[1] for r in results}) == 1  # one station row, shared
+    db = Database(url)
+    with db.session() as s:
+        assert s.scalar(select(func.count()).select_from(Station)) == 1
+    db.dispose()
+
+
+def test_concurrent_first_opens_of_a_fresh_postgresql_database_all_succeed(
+    postgres_url: str,
+) -> None:
+    db = Database(postgres_url)
+    with db.engine.begin() as conn:  # a fresh database: nothing from other tests
+        conn.execute(text("DROP SCHEMA public CASCADE"))
+        conn.execute(text("CREATE SCHEMA public"))
+    db.dispose()
+    results = _race(postgres_url)
+    assert all(r[0] == "ok" for r in results), results
+    assert len({r[1] for r in results}) == 1
+
+
+# --- downgrades keep the rows --------------------------------------------------------------
+COUNTED = (Station, Run, Step, Calibration, CubeCheckRecord, Artifact)
+
+
+def _populate(db: Database) -> None:
+    station_id = get_or_create_station(db, "pop")
+    with db.session() as s:
+        for r in range(3):
+            run = Run(station_id=station_id, recipe_name="r", recipe_text="name: r\n",
+                      recipe_sha256="0" * 64, operator="ann", data_dir=f"/tmp/run{r}",
+                      status="passed")
+            s.add(run)
+            s.flush()
+            for i, name in enumerate(STEPS):
+                step = Step(run_id=run.id, name=name, status="passed", result={"i": i})
+                s.add(step)
+                s.flush()
+                if name == "static_scan":
+                    s.add(Artifact(run_id=run.id, step_id=step.id, kind="static",
+                                   path=f"/tmp/run{r}/static.mcap", size_bytes=10,
+                                   sha256="1" * 64))
+            cal = Calibration(run_id=run.id, stage="fine", strategy="periodicity", tx=0.0,
+                              ty=1.0, tz=0.0, rx=0.0, ry=0.0, rz=-0.7, accepted=True)
+            s.add(cal)
+            s.flush()
+            s.add(CubeCheckRecord(run_id=run.id, calibration_id=cal.id, obb_edges=[0.1] * 3,
+                                  obb_error=0.001, face_edges=[0.1] * 3, edge_error=0.0005,
+                                  flatness_rms=0.0002, perpendicularity_deg=0.1, passed=True,
+                                  failures=[]))
+
+
+def _counts(db: Database) -> dict[str, int]:
+    with db.engine.connect() as conn:
+        return {m.__tablename__: int(conn.execute(
+            text(f"SELECT count(*) FROM {m.__tablename__}")).scalar() or 0) for m in COUNTED}
+
+
+def _downgrade_and_upgrade_keep_rows(db: Database) -> None:
+    _populate(db)
+    before = _counts(db)
+    assert before["step"] == 27 and before["artifact"] == 3
+    for revision in ("0002", "0001"):
+        db.downgrade(revision)
+        assert _counts(db) == before, revision
+    db.upgrade()
+    assert _counts(db) == before
+    with db.session() as s:  # the new columns are back, with their defaults
+        assert {a.status for a in s.scalars(select(Artifact))} == {"complete"}
+    with pytest.raises(DatabaseError, match=r"holds 3 run\(s\); downgrading below revision 0001 "
+                                            "would drop every table"):
+        db.downgrade("base")
+    assert _counts(db) == before
+
+
+def test_downgrade_and_upgrade_keep_every_row_sqlite(tmp_path: Path) -> None:
+    db = open_database(f"sqlite:///{tmp_path / 'down.db'}")
+    _downgrade_and_upgrade_keep_rows(db)
+    db.dispose()
+
+
+def test_downgrade_and_upgrade_keep_every_row_postgresql(postgres_url: str) -> None:
+    db = Database(postgres_url)
+    with db.engine.begin() as conn:
+        conn.execute(text("DROP SCHEMA public CASCADE"))
+        conn.execute(text("CREATE SCHEMA public"))
+    db.ensure_schema()
+    _downgrade_and_upgrade_keep_rows(db)
+    db.dispose()
+
+
+def test_cli_downgrade_of_a_populated_database(tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    from calstation.cli import main
+
+    url = f"sqlite:///{tmp_path / 'cli.db'}"
+    db = open_database(url)
+    _populate(db)
+    before = _counts(db)
+    with pytest.raises(SystemExit) as info:
+        main(["db", "downgrade", "0001", "--db", url])
+    assert info.value.code in (0, None)
+    assert _counts(db) == before
+    with pytest.raises(SystemExit) as info:
+        main(["db", "downgrade", "base", "--db", url])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "would drop every table" in err and "Traceback" not in err
+    db.dispose()
