@@ -394,7 +394,7 @@ class SigmaLimits(Model):
 
     tx: float = Field(0.0005, gt=0, le=0.1)
     tz: float = Field(0.0005, gt=0, le=0.1)
-    ry_deg: float = Field(0.1, gt=0, le=10)
+    ry_deg: float = Field(0.05, gt=0, le=10)
     rz_deg: float = Field(0.05, gt=0, le=10)
 
 
