@@ -752,7 +752,8 @@ def _fixture_problems(
     offset = getattr(geometry, "offset", (0.0, 0.0))
     reach = math.hypot(*offset) + footprint
     if reach > radius + 1e-9:
-        what = "offset" if math.hypot(*offset) > 0 else _size_field(geometry)
+        # the size is at fault when the fixture would not fit even centred; else the offset
+        what = "offset" if footprint <= radius + 1e-9 else _size_field(geometry)
         problems.append(
             (
                 (*loc, what),

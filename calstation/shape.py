@@ -117,14 +117,17 @@ class ShapeCost:
 
         The paper's 1 mm for 8 neighbours assumes its sensor's density; at a lower line rate the
         cube's own returns are farther apart than that and the filter removed the cube (180
-        lines/s: too few returns left). The radius becomes at least 2.5× the median distance to
-        the ``outlier_neighbours``-th neighbour, so isolated returns still go.
+        lines/s: too few returns left). When the configured radius would drop most returns, it
+        becomes 2.5× the median distance to the ``outlier_neighbours``-th neighbour, so isolated
+        returns still go.
         """
         k = self.settings.outlier_neighbours
         self._radius_from_data = True
         if k <= 0 or points.shape[0] <= k + 1:
             return
         dist, _ = cKDTree(points).query(points, k=k + 1)
+        if np.mean(dist[:, -1] <= self.outlier_radius) >= 0.5:
+            return  # the configured radius keeps most returns: the scan is dense enough
         self.outlier_radius = max(self.outlier_radius, 2.5 * float(np.median(dist[:, -1])))
 
     def residuals_of(self, H: Extrinsics) -> FloatArray:

@@ -625,7 +625,7 @@ class Station:
                         f"({z:.1f} σ): re-place the spin target off-centre and re-run the "
                         "calibration, or re-seat the cube"
                     )
-            if not math.isfinite(sigma_ry) or sigma_ry > limit:
+            if math.isfinite(sigma_ry) and sigma_ry > limit:  # NaN: the strategy held ry
                 return check, None, (
                     f"ry is not determined: σ {math.degrees(sigma_ry):.3f}° > "
                     f"{self.recipe.calibration.max_sigma.ry_deg:.3f}° and the cube's side faces "

@@ -80,7 +80,9 @@ def _assert_accurate_and_passed(db: Database, run_id: int) -> dict[str, Any]:
     assert errors["axis_angle_rad"] <= AXIS_ANGLE_RAD, errors
     assert abs(errors["rz_error"]) <= RZ_RAD, errors
     assert cube.passed, cube.failures
-    assert fine.stage == "fine" and fine.strategy == "periodicity"
+    # the accepted calibration combines the spin target's periodicity with the cube's faces
+    assert fine.stage == "fine" and fine.strategy == "periodicity+cube"
+    assert (fine.diagnostics or {}).get("joint", {}).get("disagreement_sigma", 99) <= 3
     print(
         f"run {run_id}: axis offset {errors['axis_offset_m'] * 1e3:.3f} mm, direction "
         f"{math.degrees(errors['axis_angle_rad']):.3f}°, "

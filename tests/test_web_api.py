@@ -68,14 +68,16 @@ def wait_prompt(client: TestClient, kind: str | None = None) -> dict[str, Any]:
 
 
 def finish(client: TestClient, headers: dict[str, str]) -> dict[str, Any]:
-    """Answer Continue to every placement until the run ends; the final state."""
+    """Answer Continue to every placement, and give up on a failed step (a failed cube check
+    is one), until the run ends; the final state."""
     while True:
         st = client.get("/state.json").json()
         if not st["busy"]:
             return st
-        if st["prompt"] and st["prompt"]["kind"] == "fixture":
+        if st["prompt"] and st["prompt"]["kind"] in ("fixture", "failure"):
+            answer = "continue" if st["prompt"]["kind"] == "fixture" else "abort"
             r = client.post("/api/answer", headers=headers,
-                            json={"prompt_id": st["prompt"]["id"], "answer": "continue"})
+                            json={"prompt_id": st["prompt"]["id"], "answer": answer})
             assert r.status_code == 200, r.text
         version = st["version"]
         wait_until(lambda v=version: client.get("/state.json").json()["version"] != v,
@@ -275,6 +277,11 @@ def test_failed_step_offers_retry_and_the_retry_runs_it_again(
         assert failure["answers"] == ["retry", "abort"]
         client.post("/api/answer", headers=headers, json={"prompt_id": failure["id"],
                                                           "answer": "retry"})
+        # a fine-tuning is retried from the spin target's placement: re-place, re-scan, re-fit
+        again = wait_prompt(client, "fixture")
+        assert again["fixture"] == "spin_target"
+        client.post("/api/answer", headers=headers, json={"prompt_id": again["id"],
+                                                          "answer": "continue"})
         cube = wait_prompt(client, "fixture")
         assert cube["fixture"] == "qa_cube"
         client.post("/api/answer", headers=headers, json={"prompt_id": cube["id"],
@@ -282,6 +289,7 @@ def test_failed_step_offers_retry_and_the_retry_runs_it_again(
         wait_until(lambda: not client.get("/state.json").json()["busy"])
         steps = steps_of(db, run_id)
         assert ("fine_tune", 1, "failed") in steps and ("fine_tune", 2, "passed") in steps
+        assert ("spin_scan", 2, "passed") in steps
 
 
 def test_trends_and_compare_pages(

@@ -212,8 +212,6 @@ def _calibrate_files(
             "(recording kind 'static', static.mcap of a run)"
         )
     warnings = recording_disagreements(st, loaded)
-    with console.status("initial calibration"), stdout_to_stderr():
-        initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
     with console.status(f"reading {spin}"):
         sp = read_recording(spin)
     if sp.kind == "static":
@@ -221,6 +219,8 @@ def _calibrate_files(
             f"{spin}: this is a 'static' recording; fine-tuning needs a spin scan "
             f"({'spin' if strat.fixture == 'spin_target' else 'cube'}.mcap of a run)"
         )
+    with console.status("initial calibration"), stdout_to_stderr():
+        initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
     warnings += recording_disagreements(sp, loaded)
     _warn(console, warnings)
     with _progress_bar(console) as bar, stdout_to_stderr():
