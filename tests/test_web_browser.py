@@ -224,6 +224,9 @@ def test_a_failed_step_is_retried_from_the_page(
         assert "fine_tune" in box.inner_text()
         shot(page, "failure")
         click_answer(page, "retry")
+        # a fine-tuning is retried from the spin target's placement: re-place, re-scan, re-fit
+        place(page, "spin_target")
+        click_answer(page, "continue")
         place(page, "qa_cube")
         click_answer(page, "continue")
         wait_end(page)
@@ -240,8 +243,9 @@ def test_abort_during_a_scan_stops_the_motor(
     (tmp_path / "recipes").mkdir()
     recipe = lean_recipe(tmp_path / "recipes")
     data = yaml.safe_load(recipe.read_text())
-    # a scan far longer than the test (the simulator runs faster than real time)
-    data["steps"]["spin_scan"]["revolutions"] = 2000.0
+    # a scan far longer than the test (the simulator runs faster than real time): the slowest
+    # turn and the longest scan the recipe checks allow
+    data["steps"]["spin_scan"].update(rpm=0.5, revolutions=4.9)
     recipe.write_text(yaml.safe_dump(data, sort_keys=False))
     with station(tmp_path, db, recipe) as url:
         start(page, url, "lean.yaml")
