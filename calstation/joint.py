@@ -34,6 +34,12 @@ class JointRy:
     details: dict[str, Any]
 
 
+def disagreement_sigma(sigma_ry: float, twist: float, twist_sigma: float) -> float:
+    """How many combined σ the cube's ry correction ``twist`` (rad, 1σ ``twist_sigma``) lies
+    from the fine-tuning's ry (1σ ``sigma_ry``)."""
+    return abs(twist) / math.sqrt(sigma_ry**2 + twist_sigma**2)
+
+
 def combine_with_cube(
     H: Extrinsics, covariance: dict[str, Any] | None, twist: float, twist_sigma: float
 ) -> JointRy | None:
@@ -51,8 +57,7 @@ def combine_with_cube(
     C = np.asarray(covariance["matrix"], dtype=np.float64)
     i = names.index("ry")
     var_ry = float(C[i, i])
-    spread = math.sqrt(var_ry + twist_sigma**2)
-    z = abs(twist) / spread
+    z = disagreement_sigma(math.sqrt(max(var_ry, 0.0)), twist, twist_sigma)
     details: dict[str, Any] = {
         "ry_spin_target": H.ry,
         "sigma_ry_spin_target": math.sqrt(max(var_ry, 0.0)),

@@ -580,28 +580,24 @@ class Recording:
     @property
     def truth(self) -> Extrinsics | None:
         """The true H of simulated data (metadata ``truth``, keys tx..rz), else None."""
-        data = self.metadata.get("truth")
-        if data is None:
-            return None
-        try:
-            return Extrinsics.from_dict({k: data[k] for k in data if k in _H_KEYS})
-        except CalstationError as exc:
-            raise RecordingError(
-                f"recording {self.path}: metadata 'truth' is invalid: {exc}"
-            ) from exc
+        return self._extrinsics("truth")
 
     @property
     def calibration(self) -> Extrinsics | None:
         """The H known when the scan was taken (metadata ``calibration``, keys tx..rz, with
         ``source``: ``initial``, ``fine``, ``truth``, …), else None."""
-        data = self.metadata.get("calibration")
+        return self._extrinsics("calibration")
+
+    def _extrinsics(self, name: str) -> Extrinsics | None:
+        """The H in metadata record ``name`` (keys tx..rz), None without that record."""
+        data = self.metadata.get(name)
         if data is None:
             return None
         try:
             return Extrinsics.from_dict({k: data[k] for k in data if k in _H_KEYS})
         except CalstationError as exc:
             raise RecordingError(
-                f"recording {self.path}: metadata 'calibration' is invalid: {exc}"
+                f"recording {self.path}: metadata '{name}' is invalid: {exc}"
             ) from exc
 
     @property

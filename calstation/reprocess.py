@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select
 
-from .db import PARAMS, Artifact, Calibration, Database, Run
+from .db import PARAMS, Calibration, Database, Run
 from .errors import DatabaseError, RecordingError
 from .frames import Extrinsics
 from .recipe import LoadedRecipe, parse_recipe
@@ -98,22 +98,11 @@ def run_recipe(run: Run) -> LoadedRecipe:
 def stored_recording(run: Run, kind: str) -> Path:
     """The newest ``kind`` recording of ``run`` (``static``, ``spin``, ``cube``), checked against
     its stored size and sha256; :class:`RecordingError` when missing or changed."""
-    from .station import file_sha256
+    from .station import checked_recording
 
-    found = [a for a in run.artifacts if a.kind == kind]
-    if not found:
-        raise RecordingError(f"run {run.id} has no {kind} recording stored")
-    art: Artifact = found[-1]
-    path = Path(art.path)
-    if not path.is_file():
-        raise RecordingError(f"the {kind} recording of run {run.id} is missing: {path}")
-    digest = file_sha256(path)
-    if digest != art.sha256:
-        raise RecordingError(
-            f"the {kind} recording {path} of run {run.id} changed since it was stored: "
-            f"sha256 {digest[:12]}… now, {art.sha256[:12]}… stored"
-        )
-    return path
+    # a partial recording (a scan cut short) is never re-processed
+    found = [a for a in run.artifacts if a.kind == kind and a.status == "complete"]
+    return checked_recording(found[-1] if found else None, run.id, kind, RecordingError)
 
 
 def _spin_fixture(run: Run, loaded: LoadedRecipe) -> str:

@@ -136,6 +136,25 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def checked_recording(
+    art: Artifact | None, run_id: int, kind: str, error: type[CalstationError]
+) -> Path:
+    """The path of a stored ``kind`` recording of run ``run_id`` after checking that the file
+    is there and unchanged (its stored sha256); ``error`` names what is wrong."""
+    if art is None:
+        raise error(f"run {run_id} has no {kind} recording stored")
+    path = Path(art.path)
+    if not path.is_file():
+        raise error(f"the {kind} recording of run {run_id} is missing: {path}")
+    digest = file_sha256(path)
+    if digest != art.sha256:
+        raise error(
+            f"the {kind} recording {path} of run {run_id} changed since it was stored "
+            f"(sha256 {digest[:12]}… now, {art.sha256[:12]}… stored)"
+        )
+    return path
+
+
 def plain(value: Any) -> Any:
     """JSON-ready copy: numpy → Python, NaN/inf → None, tuples → lists, keys → str."""
     if isinstance(value, Mapping):
@@ -600,7 +619,7 @@ class Station:
         """
         from .cube import check_cube
         from .frames import Extrinsics
-        from .joint import CONSISTENCY_SIGMA, combine_with_cube
+        from .joint import CONSISTENCY_SIGMA, combine_with_cube, disagreement_sigma
 
         H = Extrinsics.from_dict(fine.params())
         args = (self.recipe.fixtures.qa_cube, self.recipe.qa)
@@ -617,8 +636,8 @@ class Station:
         if joint is None:
             sigma_ry = fine.sigma_ry if fine.sigma_ry is not None else math.nan
             if math.isfinite(check.twist_deg) and math.isfinite(sigma_ry):
-                spread = math.hypot(sigma_ry, math.radians(check.twist_sigma_deg))
-                z = abs(math.radians(check.twist_deg)) / spread
+                z = disagreement_sigma(sigma_ry, math.radians(check.twist_deg),
+                                       math.radians(check.twist_sigma_deg))
                 if z > CONSISTENCY_SIGMA:
                     return check, None, (
                         f"the spin target and the cube disagree on ry by {check.twist_deg:+.3f}° "
@@ -864,18 +883,7 @@ class Station:
                        Artifact.status == "complete")
                 .order_by(Artifact.id.desc())
             ).first()
-        if art is None:
-            raise StationError(f"run {self.run_id} has no {kind} recording stored")
-        path = Path(art.path)
-        if not path.is_file():
-            raise StationError(f"the {kind} recording of run {self.run_id} is missing: {path}")
-        digest = file_sha256(path)
-        if digest != art.sha256:
-            raise StationError(
-                f"the {kind} recording {path} changed since it was stored "
-                f"(sha256 {digest[:12]}…, stored {art.sha256[:12]}…)"
-            )
-        return path
+        return checked_recording(art, self.run_id, kind, StationError)
 
     def _verdict_from_db(self) -> str:
         with self.db.session() as s:
