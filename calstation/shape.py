@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from .cube import face_range_noise, twist_noise_bias
 from .errors import FineTuningError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from .geometry import (
@@ -42,7 +43,12 @@ from .geometry import (
     signed_face_distances,
     upright_box,
 )
-from .periodicity import parameter_sigma, periodicity_fine_tune_points, static_mask
+from .periodicity import (
+    block_ids,
+    parameter_sigma,
+    periodicity_fine_tune_points,
+    static_mask,
+)
 from .recipe import DEFAULT_PLATTER_RADIUS, CubeGeometry, PeriodicitySettings, ShapeSettings
 from .result import CalibrationResult
 
@@ -385,7 +391,11 @@ def _shape_pass(
             x_scale=np.full(3, 1e-3),
             max_nfev=settings.max_nfev,
         )
-        return float(r.x[1]), parameter_sigma(r, idx)["ry"]
+        # σ as the cube check's twist: 2 cm blocks, and the bias range noise leaves
+        Hr = Extrinsics.from_vector(np.where(np.arange(6) == ry_i, r.x[1], x6))
+        sigma = parameter_sigma(r, idx, blocks=block_ids(lidar_to_dynamic(pts_L, ph, Hr), 0.02))
+        noise = face_range_noise([pts_L[sel] for sel in faces], [ph[sel] for sel in faces], Hr)
+        return float(r.x[1]), math.hypot(sigma["ry"], twist_noise_bias(noise))
 
     if estimate_ry and box == "upright":
         # the box cost is nearly flat and jumpy in ry: settle tx, tz, rz with ry held, then
@@ -412,7 +422,11 @@ def _shape_pass(
     c1 = float(np.sum(final[:-3] ** 2))
     c2 = float(np.sum(cost.last_edge_errors**2))
     total = float(np.sum(final**2))
-    sigma = parameter_sigma(res, free)
+    # the box cost's residuals are neighbours on one shape: a cluster-robust σ over 2 cm blocks
+    # (the three edge residuals are blocks of their own)
+    blocks = block_ids(lidar_to_dynamic(cost.p_L, cost.phi, H), 0.02)
+    blocks = np.concatenate([blocks, blocks.max(initial=-1) + 1 + np.arange(3)])
+    sigma = parameter_sigma(res, free, blocks=blocks)
     if ry_rounds:
         sigma["ry"] = ry_sigma
     p_D, mask = cost.cloud(H)
