@@ -15,11 +15,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .frames import PARAMETER_NAMES, Extrinsics
+from .result import CalibrationResult
+
+if TYPE_CHECKING:
+    from .cube import CubeCheck
+    from .recipe import Recipe
+    from .recording import Recording
 
 CONSISTENCY_SIGMA = 3.0
 """Largest disagreement (in combined σ) between the two ry estimates that is still combined."""
@@ -77,3 +83,74 @@ def combine_with_cube(
         sigma[name] = math.sqrt(max(float(C_new[k, k]), 0.0))
     details["covariance"] = {"parameters": names, "matrix": C_new.tolist()}
     return JointRy(Extrinsics.from_vector(x), sigma, details)
+
+
+def ry_with_cube(
+    H: Extrinsics,
+    covariance: dict[str, Any] | None,
+    sigma_ry: float,
+    twist: float,
+    twist_sigma: float,
+    limit: float,
+) -> tuple[JointRy | None, str | None]:
+    """The station's ry decision after the cube scan of a spin-target fine-tuning: H with its
+    ``covariance`` record and ry σ ``sigma_ry`` (rad; NaN when the strategy held ry), the cube's
+    twist and its σ under H (rad), the recipe's ry σ limit (rad).
+
+    Returns (the combined estimate or None, a failure or None). It fails when the two
+    estimates disagree by more than :data:`CONSISTENCY_SIGMA`, or when ry's σ (combined, or
+    the spin target's alone when the cube could not add to it) exceeds ``limit``.
+    """
+    joint = combine_with_cube(H, covariance, twist, twist_sigma)
+    if joint is None:
+        if math.isfinite(twist) and math.isfinite(twist_sigma) and math.isfinite(sigma_ry):
+            z = disagreement_sigma(sigma_ry, twist, twist_sigma)
+            if z > CONSISTENCY_SIGMA:
+                return None, (
+                    f"the spin target and the cube disagree on ry by {math.degrees(twist):+.3f}° "
+                    f"({z:.1f} σ): re-place the spin target off-centre and re-run the "
+                    "calibration, or re-seat the cube"
+                )
+        if math.isfinite(sigma_ry) and sigma_ry > limit:  # NaN: the strategy held ry
+            return None, (
+                f"ry is not determined: σ {math.degrees(sigma_ry):.3f}° > "
+                f"{math.degrees(limit):.3f}° and the cube's side faces could not add to it; "
+                "re-seat the cube so that two side faces face the lidar"
+            )
+        return None, None
+    if joint.sigma["ry"] > limit:
+        return joint, (
+            f"ry is not determined well enough even with the cube: σ "
+            f"{math.degrees(joint.sigma['ry']):.3f}° > {math.degrees(limit):.3f}° "
+            "(calibration.max_sigma.ry_deg); re-seat the cube so that two side faces face "
+            "the lidar, or re-place the spin target off-centre"
+        )
+    return joint, None
+
+
+def fine_tune_with_cube(
+    result: CalibrationResult, cube: Recording, recipe: Recipe
+) -> tuple[CalibrationResult, CubeCheck, str | None]:
+    """A spin-target fine-tuning ``result`` with ry combined from the cube scan ``cube``, as
+    the station does at its cube step: (the combined result, strategy ``<name>+cube``, or
+    ``result`` when nothing could be combined; the cube check under that H; the failure of
+    :func:`ry_with_cube` or None)."""
+    from .cube import check_cube
+
+    args = (recipe.fixtures.qa_cube, recipe.qa)
+    radius = recipe.fixtures.platter.radius
+    check = check_cube(cube, result.H, *args, platter_radius=radius)
+    joint, failure = ry_with_cube(
+        result.H, result.diagnostics.get("covariance"), result.sigma.get("ry", math.nan),
+        math.radians(check.twist_deg), math.radians(check.twist_sigma_deg),
+        math.radians(recipe.calibration.max_sigma.ry_deg),
+    )
+    if joint is None:
+        return result, check, failure
+    combined = CalibrationResult(
+        H=joint.H, sigma=joint.sigma, cost=result.cost, iterations=result.iterations,
+        strategy=f"{result.strategy}+cube", timings=dict(result.timings),
+        diagnostics={**result.diagnostics, "joint": joint.details,
+                     "covariance": joint.details["covariance"]},
+    )
+    return combined, check_cube(cube, joint.H, *args, platter_radius=radius), failure

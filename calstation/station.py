@@ -619,7 +619,7 @@ class Station:
         """
         from .cube import check_cube
         from .frames import Extrinsics
-        from .joint import CONSISTENCY_SIGMA, combine_with_cube, disagreement_sigma
+        from .joint import ry_with_cube
 
         H = Extrinsics.from_dict(fine.params())
         args = (self.recipe.fixtures.qa_cube, self.recipe.qa)
@@ -628,29 +628,14 @@ class Station:
         if self._strategy().fixture != "spin_target":
             return check, None, None
         diagnostics = fine.diagnostics or {}
-        joint = combine_with_cube(
-            H, diagnostics.get("covariance"), math.radians(check.twist_deg),
-            math.radians(check.twist_sigma_deg),
+        joint, failure = ry_with_cube(
+            H, diagnostics.get("covariance"),
+            fine.sigma_ry if fine.sigma_ry is not None else math.nan,
+            math.radians(check.twist_deg), math.radians(check.twist_sigma_deg),
+            math.radians(self.recipe.calibration.max_sigma.ry_deg),
         )
-        limit = math.radians(self.recipe.calibration.max_sigma.ry_deg)
         if joint is None:
-            sigma_ry = fine.sigma_ry if fine.sigma_ry is not None else math.nan
-            if math.isfinite(check.twist_deg) and math.isfinite(sigma_ry):
-                z = disagreement_sigma(sigma_ry, math.radians(check.twist_deg),
-                                       math.radians(check.twist_sigma_deg))
-                if z > CONSISTENCY_SIGMA:
-                    return check, None, (
-                        f"the spin target and the cube disagree on ry by {check.twist_deg:+.3f}° "
-                        f"({z:.1f} σ): re-place the spin target off-centre and re-run the "
-                        "calibration, or re-seat the cube"
-                    )
-            if math.isfinite(sigma_ry) and sigma_ry > limit:  # NaN: the strategy held ry
-                return check, None, (
-                    f"ry is not determined: σ {math.degrees(sigma_ry):.3f}° > "
-                    f"{self.recipe.calibration.max_sigma.ry_deg:.3f}° and the cube's side faces "
-                    "could not add to it; re-seat the cube so that two side faces face the lidar"
-                )
-            return check, None, None
+            return check, None, failure
         progress("measuring the cube with ry from both scans", 0.6)
         check = check_cube(recording, joint.H, *args, platter_radius=radius)
         result = CalibrationResult(
@@ -671,15 +656,7 @@ class Station:
             f"{math.degrees(joint.details['sigma_ry_cube']):.3f}° → combined "
             f"{math.degrees(joint.H.ry):.3f}° ± {math.degrees(joint.sigma['ry']):.3f}°"
         )
-        if joint.sigma["ry"] > limit:
-            return check, result, (
-                f"ry is not determined well enough even with the cube: σ "
-                f"{math.degrees(joint.sigma['ry']):.3f}° > "
-                f"{self.recipe.calibration.max_sigma.ry_deg:.3f}° "
-                "(calibration.max_sigma.ry_deg); re-seat the cube so that two side faces face "
-                "the lidar, or re-place the spin target off-centre"
-            )
-        return check, result, None
+        return check, result, failure
 
     def _step_report(self, step_id: int) -> StepOutcome:
         """report.json and calibration.yaml, carrying the verdict the database will hold.

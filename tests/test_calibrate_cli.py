@@ -88,3 +88,27 @@ def test_errors_are_clean_messages(sim_run, tmp_path, capsys) -> None:
         ["calibrate", RECIPE, "--static", str(run["cube"]), "--spin", str(run["spin"])], capsys
     )
     assert code == 2 and "error:" in err
+
+
+def test_calibrate_with_the_cube_combines_ry(sim_run, capsys) -> None:
+    run = sim_run()
+    argv = ["calibrate", RECIPE, "--static", str(run["static"]), "--spin", str(run["spin"])]
+    code, out, _ = _run([*argv, "--json"], capsys)
+    alone = json.loads(out)
+    code, out, err = _run([*argv, "--cube", str(run["cube"]), "--json"], capsys)
+    assert code == 0, err
+    both = json.loads(out)
+    assert both["strategy"] == "periodicity+cube" and "side-face twist" in err
+    # the cube's faces add to ry: the combined σ is smaller, and it covers the real error
+    assert both["sigma_ry"] < alone["sigma_ry"]
+    truth = read_recording(run["spin"]).truth
+    assert truth is not None
+    assert abs(both["ry"] - truth.ry) <= 3 * both["sigma_ry"]
+
+    # the wrong recording, or a strategy that already fine-tunes on the cube: a clear message
+    code, _, err = _run([*argv, "--cube", str(run["spin"])], capsys)
+    assert code != 0 and "not a scan of the QA cube" in err and "Traceback" not in err
+    shape = ["calibrate", RECIPE, "--static", str(run["static"]), "--spin", str(run["cube"]),
+             "--strategy", "shape", "--cube", str(run["cube"])]
+    code, _, err = _run(shape, capsys)
+    assert code != 0 and "give the cube scan as --spin" in err

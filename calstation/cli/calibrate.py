@@ -49,6 +49,13 @@ def register(app: typer.Typer) -> None:
             "for shape (MCAP).",
             show_default=False,
         ),
+        cube: Path | None = typer.Option(
+            None,
+            "--cube",
+            help="Spin scan of the QA cube (MCAP): with a spin-target strategy its side faces "
+            "are combined into ry, as the station does.",
+            show_default=False,
+        ),
         run: int | None = typer.Option(
             None,
             "--run",
@@ -89,12 +96,14 @@ def register(app: typer.Typer) -> None:
         accepted calibration. A recording whose encoder settings or recipe sha256 differ from the
         recipe's gives a warning naming both values. A result whose σ exceeds the
         recipe's calibration.max_sigma is printed (and written with --out) but refused: exit
-        code 3, with what to do on stderr (``refused`` in the JSON).
+        code 3, with what to do on stderr (``refused`` in the JSON). With --cube, the cube
+        scan's side-face twist is combined into ry (strategy ``periodicity+cube``) and the ry
+        limit applies to the combined σ; the cube check under the result is printed.
         """
         from ..errors import CalstationError
 
         if run is not None:
-            if recipe is not None or static is not None or spin is not None:
+            if recipe is not None or static is not None or spin is not None or cube is not None:
                 raise CalstationError(
                     "--run takes the recipe and the recordings from the database: give either "
                     "--run N, or RECIPE --static FILE --spin FILE"
@@ -109,7 +118,7 @@ def register(app: typer.Typer) -> None:
             )
         if accept:
             raise CalstationError("--accept applies to a stored run: use it with --run N")
-        _calibrate_files(recipe, static, spin, strategy, out, as_json)
+        _calibrate_files(recipe, static, spin, strategy, out, as_json, cube)
 
     @app.command("verify")
     def verify_cmd(
@@ -182,7 +191,7 @@ def _warn(console: Any, warnings: list[str]) -> None:
 
 def _calibrate_files(
     recipe: Path, static: Path, spin: Path, strategy: str | None, out: Path | None,
-    as_json: bool,
+    as_json: bool, cube: Path | None = None,
 ) -> None:
     """``calibrate RECIPE --static --spin``: nothing is stored."""
     from dataclasses import replace
@@ -204,6 +213,11 @@ def _calibrate_files(
     rc = loaded.recipe
     name = strategy or rc.calibration.strategy
     strat = plugins.strategy(name)
+    if cube is not None and strat.fixture != "spin_target":
+        raise CalibrationError(
+            f"--cube: the {name} strategy fine-tunes on the cube scan itself; give the cube "
+            "scan as --spin (--cube adds the cube to a spin-target strategy's ry)"
+        )
     with console.status(f"reading {static}"):
         st = read_recording(static)
     if st.kind in ("spin", "cube"):
@@ -232,16 +246,24 @@ def _calibrate_files(
         result, strategy_warnings = run_strategy(strat, sp, initial.H, rc, progress)
         bar.update(task, completed=1.0)
     _warn(console, strategy_warnings)
+    joint_failure = None
+    if cube is not None:
+        result, joint_failure = _with_cube(console, result, cube, loaded)
     diagnostics = dict(result.diagnostics)
     diagnostics["initial"] = {"H": initial.H.as_dict(), "timings": dict(initial.timings)}
     diagnostics["recordings"] = {"static": str(static), "spin": str(spin)}
+    if cube is not None:
+        diagnostics["recordings"]["cube"] = str(cube)
     diagnostics["recipe"] = {"name": rc.name, "sha256": loaded.sha256}
     if warnings or strategy_warnings:
         diagnostics["warnings"] = warnings + strategy_warnings
     result = replace(result, diagnostics=diagnostics)
     if out is not None:
         result.save(out)
-    refused = sigma_problems(result, rc.calibration.max_sigma)
+    later = ("ry",) if joint_failure is not None else ()
+    refused = sigma_problems(result, rc.calibration.max_sigma, later)
+    if joint_failure is not None:
+        refused.append(joint_failure)
     if as_json:
         summary = result.summary()
         summary["initial"] = initial.H.as_dict()
@@ -251,20 +273,60 @@ def _calibrate_files(
         _print_result(initial.H, result)
         typer.echo(_timing_line(result) + (f"; written to {out}" if out is not None else ""))
     if refused:
-        _refuse(result, rc, strat.fixture)
+        _refuse(result, rc, strat.fixture, joint_failure)
 
 
-def _refuse(result: Any, rc: Any, fixture: str) -> None:
-    """Say on stderr why ``result`` is refused (its σ over ``calibration.max_sigma``); exit 3."""
+def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any, str | None]:
+    """``result`` with ry combined from the cube scan (a spin-target strategy), and the
+    failure of that combination or None; prints the cube's figures."""
+    from rich.markup import escape
+
+    from ..errors import CalibrationError
+    from ..joint import fine_tune_with_cube
+    from ..quiet import stdout_to_stderr
+    from ..recording import read_recording
+    from ..reprocess import recording_disagreements
+
+    with console.status(f"reading {cube}"):
+        rec = read_recording(cube)
+    if rec.kind != "cube":
+        raise CalibrationError(
+            f"{cube}: this is a {rec.kind!r} recording, not a scan of the QA cube (recording "
+            "kind 'cube', cube.mcap of a run)"
+        )
+    _warn(console, recording_disagreements(rec, loaded))
+    with console.status("combining ry with the cube's side faces"), stdout_to_stderr():
+        combined, check, failure = fine_tune_with_cube(result, rec, loaded.recipe)
+    joint = combined.diagnostics.get("joint") or {}
+    line = (f"cube: side-face twist {check.twist_deg:+.3f}° ± {check.twist_sigma_deg:.3f}°, "
+            f"edge error {check.edge_error * 1e3:.2f} mm")
+    if joint:
+        line += (f"; ry from the spin target {math.degrees(joint['ry_spin_target']):.3f}° ± "
+                 f"{math.degrees(joint['sigma_ry_spin_target']):.3f}°, from the cube "
+                 f"{math.degrees(joint['ry_cube']):.3f}° ± "
+                 f"{math.degrees(joint['sigma_ry_cube']):.3f}° → combined "
+                 f"{math.degrees(combined.H.ry):.3f}° ± {math.degrees(combined.sigma['ry']):.3f}°")
+    console.print(escape(line), highlight=False)
+    return combined, failure
+
+
+def _refuse(result: Any, rc: Any, fixture: str, joint_failure: str | None = None) -> None:
+    """Say on stderr why ``result`` is refused (its σ over ``calibration.max_sigma``, or ry
+    undetermined with the cube); exit 3."""
     from rich.console import Console
+    from rich.markup import escape
 
     from ..errors import ObservabilityError
     from ..observability import check_sigma
 
+    console = Console(stderr=True)
     try:
-        check_sigma(result, rc.calibration.max_sigma, fixture)
+        check_sigma(result, rc.calibration.max_sigma, fixture,
+                    ("ry",) if joint_failure is not None else ())
     except ObservabilityError as exc:
-        Console(stderr=True).print(f"[bold red]refused[/]: {exc}", highlight=False)
+        console.print(f"[bold red]refused[/]: {escape(str(exc))}", highlight=False)
+    if joint_failure is not None:
+        console.print(f"[bold red]refused[/]: {escape(joint_failure)}", highlight=False)
     raise typer.Exit(3)
 
 
