@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from .errors import FrameError
 
@@ -65,6 +64,8 @@ def euler_to_matrix(rx: float, ry: float, rz: float) -> FloatArray:
 def matrix_to_euler(R: ArrayLike) -> tuple[float, float, float]:
     """Inverse of :func:`euler_to_matrix`: (rx, ry, rz) in radians, ry in [-π/2, π/2]."""
     m = _check_rotation(R)
+    from scipy.spatial.transform import Rotation  # scipy is slow to import
+
     rx, ry, rz = Rotation.from_matrix(m).as_euler("xyz")
     return float(rx), float(ry), float(rz)
 
@@ -132,6 +133,8 @@ class Extrinsics:
 
     def as_quaternion(self) -> FloatArray:
         """Rotation as a unit quaternion (x, y, z, w), scalar last (scipy/ROS order), w ≥ 0."""
+        from scipy.spatial.transform import Rotation  # scipy is slow to import
+
         q = Rotation.from_matrix(self.R).as_quat()
         return np.asarray(q if q[3] >= 0 else -q, dtype=np.float64)
 
@@ -141,6 +144,8 @@ class Extrinsics:
         q = np.asarray(quaternion_xyzw, dtype=np.float64)
         if q.shape != (4,) or not np.isfinite(q).all() or np.linalg.norm(q) < 1e-12:
             raise FrameError(f"quaternion must be 4 finite values, not all zero: {q.tolist()}")
+        from scipy.spatial.transform import Rotation  # scipy is slow to import
+
         rx, ry, rz = Rotation.from_quat(q / np.linalg.norm(q)).as_euler("xyz")
         tr = np.asarray(translation, dtype=np.float64).reshape(3)
         return cls(float(tr[0]), float(tr[1]), float(tr[2]), float(rx), float(ry), float(rz))

@@ -10,12 +10,29 @@ from calstation.hookspecs import RegisterDriver
 
 @hookimpl
 def calstation_register_drivers(register: RegisterDriver) -> None:
-    """The ``sim`` lidar, turntable and encoder, sharing one station per run."""
-    from . import drivers
+    """The ``sim`` lidar, turntable and encoder, sharing one station per run (the drivers,
+    and Open3D with them, are imported when a run builds one)."""
+    register("lidar", "sim", _lidar)
+    register("turntable", "sim", _turntable)
+    register("encoder", "sim", _encoder)
 
-    register("lidar", "sim", drivers.lidar_factory)
-    register("turntable", "sim", drivers.turntable_factory)
-    register("encoder", "sim", drivers.encoder_factory)
+
+def _lidar(*args: Any, **kwargs: Any) -> Any:
+    from .drivers import lidar_factory
+
+    return lidar_factory(*args, **kwargs)
+
+
+def _turntable(*args: Any, **kwargs: Any) -> Any:
+    from .drivers import turntable_factory
+
+    return turntable_factory(*args, **kwargs)
+
+
+def _encoder(*args: Any, **kwargs: Any) -> Any:
+    from .drivers import encoder_factory
+
+    return encoder_factory(*args, **kwargs)
 
 
 @hookimpl
