@@ -173,6 +173,8 @@ def test_calibrate_files_warns_on_a_disagreeing_recipe(
     files = sim_run()
     data = yaml.safe_load(RECIPE.read_text(encoding="utf-8"))
     data["station"]["encoder"]["direction"] = -1
+    # this test is about the warnings: shape's σ at 1 mm of noise is over the default limits
+    data["calibration"]["max_sigma"] = {"tx": 0.003, "tz": 0.003, "ry_deg": 0.3}
     path = tmp_path / "reversed.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     code, out, err = _run(["calibrate", str(path), "--static", str(files["static"]),
