@@ -31,8 +31,8 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from .cube import face_range_noise, twist_noise_bias
-from .errors import FineTuningError
+from .cube import check_cube_points, face_range_noise, twist_noise_bias
+from .errors import FineTuningError, VerificationError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from .geometry import (
     face_labels,
@@ -49,7 +49,13 @@ from .periodicity import (
     periodicity_fine_tune_points,
     static_mask,
 )
-from .recipe import DEFAULT_PLATTER_RADIUS, CubeGeometry, PeriodicitySettings, ShapeSettings
+from .recipe import (
+    DEFAULT_PLATTER_RADIUS,
+    CubeGeometry,
+    PeriodicitySettings,
+    QALimits,
+    ShapeSettings,
+)
 from .result import CalibrationResult
 
 if TYPE_CHECKING:
@@ -218,23 +224,26 @@ def _box_fit(
     return float(np.sum(r[:-3] ** 2) + np.sum(cost.last_edge_errors**2))
 
 
-BOX_NOISE_BIAS_M = 0.0006
-"""Empirical bound on the box cost's axis-offset bias at 1 mm range noise (metres; it grows
-with the noise², see :func:`box_noise_bias`)."""
+BOX_NOISE_M = 0.0003
+"""Empirical σ of the box cost's axis per 1 mm of range noise (metres), beyond what its
+residuals and the cube's dimensions show (see :func:`axis_sigma_floor`)."""
 
 
-def box_noise_bias(noise: float) -> float:
-    """Bound (m) on the bias range noise ``noise`` (m) leaves in the box cost's tx and tz.
+def axis_sigma_floor(edge_error: float, noise: float) -> float:
+    """The part of the shape strategy's tx and tz σ (m) its cost's residuals cannot see.
 
-    Noise-free scans give an axis offset of 0.01–0.02 mm; with 1 mm of noise the default scene
-    gives 0.60 mm (1.18 mm with the simulator's mixed pixels) and the bench's nine scenarios a
-    median of 0.78 mm, p95 1.30 mm (docs/algorithms.md). The cost's own residuals cannot see
-    this bias, so it is added to σ in quadrature as
-    :data:`BOX_NOISE_BIAS_M`·(σ_noise / 1 mm)². 0 for an unknown noise.
+    An axis offset δ doubles each side face of the reconstructed cube about 2δ apart, so the
+    face-fit edges come out ≈ 2δ too long: ``edge_error`` (m, the cube check's
+    ``edge_error`` under the result) / 2 bounds the offset the cube's known size allows. To it
+    is added :data:`BOX_NOISE_M`·(σ_noise / 1 mm), ``noise`` in metres. On the shape sweep of
+    docs/algorithms.md (60 runs, 0.5 and 1 mm of noise, 180–1000 lines/s) the axis offset
+    stayed within 1.9 of the resulting σ; the residual sandwich alone had let 1–3 mm offsets
+    pass with σ of 0.02–0.09 mm. ``edge_error`` NaN (the cube could not be dimensioned): the
+    whole cube edge is the bound.
     """
-    if not math.isfinite(noise) or noise <= 0:
-        return 0.0
-    return BOX_NOISE_BIAS_M * (noise / 0.001) ** 2
+    dims = 0.5 * edge_error if math.isfinite(edge_error) else 0.1
+    spread = BOX_NOISE_M * noise / 0.001 if math.isfinite(noise) and noise > 0 else 0.0
+    return math.hypot(dims, spread)
 
 
 def _shape_pass(
@@ -453,8 +462,6 @@ def _shape_pass(
     sigma = parameter_sigma(res, free, blocks=blocks)
     pts_L, ph, faces = labelled_faces(H)
     noise = face_range_noise([pts_L[f] for f in faces], [ph[f] for f in faces], H)
-    for name in ("tx", "tz"):
-        sigma[name] = math.hypot(sigma[name], box_noise_bias(noise))
     if ry_rounds:
         sigma["ry"] = ry_sigma
     p_D, mask = cost.cloud(H)
@@ -550,6 +557,17 @@ def shape_fine_tune_points(
         result = run(result.H)
         passes = 2
     result.diagnostics["passes"] = passes
+    # what the residuals cannot see: the cube's own dimensions under the result
+    try:
+        edge_error = check_cube_points(
+            p_L, phi, result.H, cube, QALimits(), platter_radius=platter_radius
+        ).edge_error
+    except VerificationError:
+        edge_error = math.nan
+    floor = axis_sigma_floor(edge_error, float(result.diagnostics.get("range_noise_m", math.nan)))
+    for name in ("tx", "tz"):
+        result.sigma[name] = math.hypot(result.sigma[name], floor)
+    result.diagnostics["edge_error_m"] = edge_error
     result.timings["total"] = time.perf_counter() - t0
     return result
 
