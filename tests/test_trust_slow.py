@@ -1,0 +1,118 @@
+"""Trustworthy calibration across the condition matrix (slow; run with -m slow).
+
+Conditions the default simulator does not produce: range noise 0.5–2 mm, no background, a
+centred spin target, 180 and 360 lines/s. Each run is decided as the station decides it
+(periodicity, its σ gate, the cube's twist combined into ry, the ry gate on the result;
+shape gated on its own σ), and checked against the simulator's true H: either the step
+refuses, or every parameter is within 3σ and the axis direction within the issue's threshold.
+The full sweep of 120 runs is ``benchmarks/ry_sweep.py``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import yaml
+
+from calstation.cube import check_cube
+from calstation.errors import CalstationError
+from calstation.initial import initial_calibration
+from calstation.joint import ry_with_cube
+from calstation.metrics import axis_errors
+from calstation.observability import sigma_problems
+from calstation.recipe import load_recipe
+from calstation.recording import read_recording
+from calstation.strategies import PeriodicityStrategy, ShapeStrategy
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _simulate(tmp_path: Path, *, noise: float, background: bool, offset: float, rate: float,
+              scenario: tuple[float, float], seed: int) -> tuple[dict[str, Path], object]:
+    from calstation_sim import simulate_run
+
+    data = yaml.safe_load((REPO / "recipes/sim-periodicity.yaml").read_text())
+    sim = data["simulation"]
+    sim["lidar"].update(range_noise=noise, line_rate_hz=rate)
+    sim["background"] = {"enabled": background}
+    sim["truth"] = {"range": scenario[0], "pitch_deg": scenario[1]}
+    sim["seed"] = seed
+    data["fixtures"]["spin_target"]["offset"] = [offset, 0.0]
+    path = tmp_path / "recipe.yaml"
+    path.write_text(yaml.safe_dump(data))
+    recipe = load_recipe(path).recipe
+    return simulate_run(load_recipe(path), tmp_path, progress=False), recipe
+
+
+# the issue's thresholds on the axis direction of an accepted run: (p95 bound) per noise
+DIRECTION_LIMIT_DEG = {0.0005: 0.1, 0.001: 0.1, 0.002: 0.2}
+
+
+@pytest.mark.parametrize(
+    ("noise", "background", "offset", "rate", "scenario", "seed"),
+    [
+        (0.0005, False, 0.0, 1000.0, (1.0, 30.0), 21),
+        (0.001, False, 0.06, 1000.0, (0.9, 40.0), 22),
+        (0.001, True, 0.0, 180.0, (1.25, 45.0), 23),
+        (0.001, False, 0.06, 180.0, (1.5, 60.0), 24),
+        (0.002, True, 0.06, 1000.0, (1.0, 45.0), 25),
+        (0.002, False, 0.0, 1000.0, (0.9, 40.0), 26),
+    ],
+)
+def test_periodicity_with_the_cube_is_within_3_sigma_or_refused(
+    tmp_path: Path, noise: float, background: bool, offset: float, rate: float,
+    scenario: tuple[float, float], seed: int,
+) -> None:
+    run, recipe = _simulate(tmp_path, noise=noise, background=background, offset=offset,
+                            rate=rate, scenario=scenario, seed=seed)
+    static = read_recording(run["static"])
+    truth = static.truth
+    assert truth is not None
+    initial = initial_calibration(static, recipe.fixtures.static_target, recipe.calibration.initial)
+    fine = PeriodicityStrategy().run(read_recording(run["spin"]), initial.H, recipe)
+    assert fine.diagnostics["range_noise_m"] == pytest.approx(noise, rel=0.2)
+    limits = recipe.calibration.max_sigma
+    low_noise = noise <= 0.0005  # the sweep accepted all 40 runs at 0.5 mm: so must this one
+    if sigma_problems(fine, limits, skip=("ry",)):
+        assert not low_noise, sigma_problems(fine, limits)
+        return  # refused at the fine-tune step, with the observability message
+    cube = read_recording(run["cube"])
+    check = check_cube(cube, fine.H, recipe.fixtures.qa_cube, recipe.qa,
+                       platter_radius=recipe.fixtures.platter.radius)
+    joint, failure = ry_with_cube(
+        fine.H, fine.diagnostics["covariance"], fine.sigma["ry"],
+        math.radians(check.twist_deg), math.radians(check.twist_sigma_deg),
+        math.radians(limits.ry_deg),
+    )
+    if failure:
+        assert "ry" in failure and not low_noise, failure
+        return
+    H, sigma = (fine.H, fine.sigma) if joint is None else (joint.H, joint.sigma)
+    assert joint is not None or not low_noise  # the cube's faces add to ry
+    err = axis_errors(H, truth)
+    for name in ("tx", "tz", "ry", "rz"):
+        assert abs(err[f"{name}_error"]) <= 3 * sigma[name], (name, err, sigma)
+    assert math.degrees(err["axis_angle_rad"]) <= DIRECTION_LIMIT_DEG[noise], err
+
+
+@pytest.mark.parametrize("rate", [180.0, 360.0, 1000.0])
+def test_shape_meets_1_mm_and_0_1_deg_or_stops(tmp_path: Path, rate: float) -> None:
+    run, recipe = _simulate(tmp_path, noise=0.001, background=True, offset=0.06, rate=rate,
+                            scenario=(1.25, 45.0), seed=31)
+    static = read_recording(run["static"])
+    truth = static.truth
+    assert truth is not None
+    initial = initial_calibration(static, recipe.fixtures.static_target, recipe.calibration.initial)
+    try:
+        result = ShapeStrategy().run(read_recording(run["cube"]), initial.H, recipe)
+    except CalstationError:
+        return  # a clear stop (the CLI and the station print its message)
+    if sigma_problems(result, recipe.calibration.max_sigma):
+        return
+    err = axis_errors(result.H, truth)
+    assert err["axis_offset_m"] <= 1e-3, err
+    assert math.degrees(err["axis_angle_rad"]) <= 0.1, err
