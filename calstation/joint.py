@@ -27,6 +27,14 @@ if TYPE_CHECKING:
     from .recipe import Recipe
     from .recording import Recording
 
+MORE_DATA = (
+    "Scan more turns (steps.spin_scan.revolutions and steps.cube_scan.revolutions: the σ falls "
+    "as returns are added), re-place the spin target off-centre if it stood centred, and "
+    "re-seat the cube so that two side faces face the lidar; or, if the station's accuracy "
+    "need allows, raise calibration.max_sigma.ry_deg"
+)
+"""What to do when ry stays undetermined after the cube scan."""
+
 CONSISTENCY_SIGMA = 3.0
 """Largest disagreement (in combined σ) between the two ry estimates that is still combined."""
 
@@ -114,16 +122,15 @@ def ry_with_cube(
         if math.isfinite(sigma_ry) and sigma_ry > limit:  # NaN: the strategy held ry
             return None, (
                 f"ry is not determined: σ {math.degrees(sigma_ry):.3f}° > "
-                f"{math.degrees(limit):.3f}° and the cube's side faces could not add to it; "
-                "re-seat the cube so that two side faces face the lidar"
+                f"{math.degrees(limit):.3f}° and the cube's side faces could not add to it. "
+                f"{MORE_DATA}"
             )
         return None, None
     if joint.sigma["ry"] > limit:
         return joint, (
             f"ry is not determined well enough even with the cube: σ "
             f"{math.degrees(joint.sigma['ry']):.3f}° > {math.degrees(limit):.3f}° "
-            "(calibration.max_sigma.ry_deg); re-seat the cube so that two side faces face "
-            "the lidar, or re-place the spin target off-centre"
+            f"(calibration.max_sigma.ry_deg). {MORE_DATA}"
         )
     return joint, None
 
