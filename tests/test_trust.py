@@ -145,3 +145,28 @@ def test_cube_check_sees_an_ry_error(sim_run) -> None:
         # the twist is the ry correction: it points back toward the truth
         assert bad.twist_deg * off < 0 and abs(bad.twist_deg + off) < 0.1
     assert "twist_deg" in good.to_dict()
+
+
+def test_ry_with_cube_combines_agreeing_estimates_and_refuses_the_rest() -> None:
+    from calstation.joint import ry_with_cube
+
+    H = Extrinsics(0.01, 1.0, 0.02, 0.0, math.radians(0.4), -0.78)
+    names = ["tx", "tz", "ry", "rz"]
+    s = [2e-4, 3e-4, math.radians(0.06), math.radians(0.01)]
+    C = np.diag(np.square(s))
+    C[1, 2] = C[2, 1] = 0.8 * s[1] * s[2]  # tz moves with ry (the target fixes tz + ry·h)
+    cov = {"parameters": names, "matrix": C.tolist()}
+    limit = math.radians(0.05)
+    # agreeing: ry moves toward the cube by the ratio of variances, tz with it, σ shrinks
+    joint, failure = ry_with_cube(H, cov, s[2], math.radians(-0.1), math.radians(0.06), limit)
+    assert joint is not None and failure is None
+    assert math.degrees(joint.H.ry) == pytest.approx(0.35, abs=1e-9)
+    assert joint.H.tz < H.tz and joint.sigma["ry"] == pytest.approx(s[2] / math.sqrt(2))
+    # disagreeing by more than 3σ: nothing combined, the step fails naming both
+    joint, failure = ry_with_cube(H, cov, s[2], math.radians(0.5), math.radians(0.06), limit)
+    assert joint is None and failure is not None and "disagree on ry" in failure
+    # agreeing but still over the limit: combined, and refused with what to do
+    wide = math.radians(0.2)
+    joint, failure = ry_with_cube(H, cov, s[2], math.radians(0.05), wide, limit)
+    assert joint is not None and failure is not None
+    assert "calibration.max_sigma.ry_deg" in failure and "revolutions" in failure
