@@ -13,7 +13,6 @@ from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from calstation.clock import Clock, SimClock
 from calstation.drivers import (
@@ -26,6 +25,7 @@ from calstation.drivers import (
 )
 from calstation.errors import DriverError
 
+from .settings import SimSettings
 from .station import SimulatedStation, shared_station
 
 BATCH_LINES = 100
@@ -262,16 +262,6 @@ class SimEncoder:
 
 # --- factories --------------------------------------------------------------------------------
 _SETTINGS = {"seed", "range_m", "pitch_deg"}
-
-
-class SimSettings(BaseModel):
-    """``settings`` of the ``sim`` drivers (checked by ``calstation recipes validate``)."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-    seed: int | None = Field(None, ge=0, le=2**63 - 1)
-    range_m: float | None = Field(None, ge=0.2, le=20.0)
-    pitch_deg: float | None = Field(None, gt=5, lt=85)
 
 
 def station_from_context(settings: Mapping[str, Any], context: DriverContext) -> SimulatedStation:

@@ -7,6 +7,8 @@ from typing import Any
 from calstation import hookimpl
 from calstation.hookspecs import RegisterDriver
 
+from .settings import SimSettings
+
 
 @hookimpl
 def calstation_register_drivers(register: RegisterDriver) -> None:
@@ -33,6 +35,10 @@ def _encoder(*args: Any, **kwargs: Any) -> Any:
     from .drivers import encoder_factory
 
     return encoder_factory(*args, **kwargs)
+
+
+for _factory in (_lidar, _turntable, _encoder):
+    _factory.settings_model = SimSettings  # type: ignore[attr-defined]
 
 
 @hookimpl
