@@ -276,7 +276,9 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
             f"limits: edge error ≤ {limits['edge_error'] * 1000:.2f} mm, OBB error ≤ "
             f"{limits['obb_edge_error'] * 1000:.2f} mm, flatness RMS ≤ "
             f"{limits['flatness_rms'] * 1000:.2f} mm, perpendicularity ≤ "
-            f"{limits['perpendicularity_deg']:.3f}°; drift ≤ "
+            f"{limits['perpendicularity_deg']:.3f}°"
+            + (f", side-face twist ≤ {limits['twist_deg']:.3f}°" if "twist_deg" in limits else "")
+            + "; drift ≤ "
             f"{limits['drift_translation'] * 1000:.2f} mm / {limits['drift_rotation_deg']:.3f}°"
             + (" (fails the run)" if limits.get("drift_fails") else " (warns)"),
             highlight=False,
