@@ -71,7 +71,8 @@ class Reprocessing:
 
     ``initial`` and ``result`` are the recomputed initial and fine-tuned calibrations;
     ``accepted`` the run's previously accepted H (None when it had none) and ``difference``
-    ``result − accepted`` per parameter (m, rad); ``warnings`` every disagreement found.
+    ``result − accepted`` per parameter (m, rad); ``warnings`` every disagreement found;
+    ``refused`` the observability gate's reasons, empty when the result meets it.
     """
 
     run_id: int
@@ -85,6 +86,9 @@ class Reprocessing:
     accepted_gauge: str | None = None
     difference: dict[str, float] | None = None
     warnings: list[str] = field(default_factory=list)
+    refused: list[str] = field(default_factory=list)
+    """Why the result does not meet the recipe's ``calibration.max_sigma`` (then it is stored
+    but never accepted)."""
 
 
 def run_recipe(run: Run) -> LoadedRecipe:
@@ -146,11 +150,15 @@ def reprocess_run(
 
     ``strategy_name`` defaults to the run's recipe's ``calibration.strategy``. The new
     calibration is stored with stage ``"reprocess"``; with ``accept`` it becomes the run's
-    accepted calibration (only for a passed run) and the previous one is no longer accepted.
-    ``status(message)`` is told what is being done (reading, initial calibration).
+    accepted calibration (only for a passed run) and the previous one is no longer accepted. A
+    spin-target strategy's ry is combined with the run's cube scan, as at the station. A result
+    over the recipe's ``calibration.max_sigma`` is stored but not accepted, with the reasons in
+    ``refused``. ``status(message)`` is told what is being done (reading, initial calibration).
     """
     from . import plugins
     from .initial import initial_calibration
+    from .joint import fine_tune_with_cube
+    from .observability import sigma_problems
     from .recording import read_recording
     from .strategies import run_strategy
 
@@ -170,7 +178,12 @@ def reprocess_run(
         strategy = plugins.strategy(name)
         kind = spin_recording_kind(_spin_fixture(run, loaded), strategy.fixture)
         paths = {"static": stored_recording(run, "static"), kind: stored_recording(run, kind)}
-    warnings: list[str] = []
+        warnings: list[str] = []
+        if strategy.fixture == "spin_target" and kind != "cube":
+            try:  # the cube scan adds its side faces to ry, as at the station
+                paths["cube"] = stored_recording(run, "cube")
+            except RecordingError as exc:
+                warnings.append(f"ry from the spin target alone: {exc}")
     say(f"reading {paths['static']}")
     static = read_recording(paths["static"])
     warnings += recording_disagreements(static, loaded)
@@ -181,14 +194,24 @@ def reprocess_run(
     warnings += recording_disagreements(spin, loaded)
     result, strategy_warnings = run_strategy(strategy, spin, initial.H, rc, progress)
     warnings += strategy_warnings
+    joint_failure = None
+    if "cube" in paths and kind != "cube":
+        say(f"combining ry with the cube scan {paths['cube']}")
+        cube = read_recording(paths["cube"])
+        warnings += recording_disagreements(cube, loaded)
+        result, _, joint_failure = fine_tune_with_cube(result, cube, rc)
+    refused = sigma_problems(result, rc.calibration.max_sigma,
+                             ("ry",) if joint_failure is not None else ())
+    refused += [joint_failure] if joint_failure is not None else []
     recordings = {k: str(v) for k, v in paths.items()}
     result = replace(result, diagnostics={
         **result.diagnostics,
         "initial": {"H": initial.H.as_dict(), "timings": dict(initial.timings)},
         "reprocess": {"recordings": recordings, "warnings": warnings,
-                      "recipe_sha256": loaded.sha256},
+                      "recipe_sha256": loaded.sha256, "refused": refused},
     })
-    return _store(db, run_id, result, initial, recordings, warnings, accept)
+    done = _store(db, run_id, result, initial, recordings, warnings, accept and not refused)
+    return replace(done, refused=refused)
 
 
 def _store(

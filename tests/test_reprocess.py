@@ -79,10 +79,13 @@ def test_reprocessing_with_shape_stores_a_second_calibration(
     code, out, err = _run(
         ["calibrate", "--run", str(run_id), "--strategy", "shape", "--db", url, "--json"], capsys
     )
-    assert code == 0, err
+    # at 1 mm of noise shape does not determine the axis to the recipe's limits: stored, refused
+    assert code == 3, err
     data = json.loads(out)
     assert data["run_id"] == run_id and data["strategy"] == "shape"
     assert data["accepted"] is False and data["warnings"] == []
+    assert data["refused"] and all("calibration.max_sigma" in r for r in data["refused"])
+    assert "refused" in err and "not accepted" in err
     truth = read_recording(files["cube"]).truth
     assert truth is not None
     with db.session() as s:
@@ -110,17 +113,26 @@ def test_reprocessing_with_shape_stores_a_second_calibration(
     code, out, _ = _run(["show", str(run_id), "--db", url], capsys)
     assert code == 0 and "fine ✔" in out and "reprocess" in out and "shape" in out
 
-    # the text output prints the difference to the accepted calibration; --accept makes the
-    # re-processing the run's only accepted calibration
+    # --accept does not accept a refused result: the run keeps its accepted calibration
     code, out, err = _run(["calibrate", "--run", str(run_id), "--strategy", "shape", "--accept",
                            "--db", url], capsys)
+    assert code == 3 and "not accepted although --accept was given" in " ".join(err.split())
+    with db.session() as s:
+        accepted = s.query(Calibration).filter_by(run_id=run_id, accepted=True).all()
+        assert [c.id for c in accepted] == [fine.id]
+
+    # the recipe's periodicity, with ry combined from the run's cube scan as at the station:
+    # the text output prints the difference to the accepted calibration; --accept makes the
+    # re-processing the run's only accepted calibration
+    code, out, err = _run(["calibrate", "--run", str(run_id), "--accept", "--db", url], capsys)
     assert code == 0, err
     assert f"difference to the accepted calibration {fine.id}" in out
     assert "(re-processing, accepted)" in out and "nan" not in out
     with db.session() as s:
         accepted = s.query(Calibration).filter_by(run_id=run_id, accepted=True).all()
         assert len(accepted) == 1 and accepted[0].stage == "reprocess"
-        assert accepted[0].id > new.id
+        assert accepted[0].id > new.id and accepted[0].strategy == "periodicity+cube"
+        assert accepted[0].diagnostics["reprocess"]["recordings"]["cube"] == str(files["cube"])
     db.dispose()
 
 

@@ -397,7 +397,9 @@ def _reprocess(
         summary["compared_to"] = done.accepted_id
         summary["difference"] = done.difference
         summary["warnings"] = done.warnings
+        summary["refused"] = done.refused
         typer.echo(json.dumps(summary, indent=2))
+        _refuse_reprocessing(console, done, accept)
         return
     _print_result(done.initial.H, result)
     typer.echo(
@@ -408,6 +410,7 @@ def _reprocess(
     )
     if done.accepted is None:
         typer.echo(f"run {run_id} has no accepted calibration to compare with")
+        _refuse_reprocessing(console, done, accept)
         return
     gauges = (done.accepted_gauge, result.diagnostics.get("gauge"))
     caption = None
@@ -423,3 +426,18 @@ def _reprocess(
         fmt = "{:.4f}" if p.startswith("r") else "{:.3f}"
         table.add_row(p, fmt.format(a), fmt.format(b), ("{:+" + fmt[2:]).format(d))
     Console().print(table)
+    _refuse_reprocessing(console, done, accept)
+
+
+def _refuse_reprocessing(console: Any, done: Any, accept: bool) -> None:
+    """A re-processing over ``calibration.max_sigma``: say why (it is stored, not accepted)
+    and exit 3."""
+    from rich.markup import escape
+
+    if not done.refused:
+        return
+    kept = (f"stored with run {done.run_id} as calibration {done.calibration_id}, "
+            + ("not accepted although --accept was given" if accept else "not accepted"))
+    console.print(f"[bold red]refused[/] ({kept}): {escape('; '.join(done.refused))}",
+                  highlight=False)
+    raise typer.Exit(3)
