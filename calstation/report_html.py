@@ -294,6 +294,11 @@ def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
         ("perpendicularity", cube.get("perpendicularity_deg"),
          getattr(qa, "perpendicularity_deg", None), 1.0, "°"),
     ]
+    twist = cube.get("twist_deg")
+    if twist is not None:  # checks stored before the twist measure have none
+        # the ry correction that makes the side faces flattest: its size against the limit
+        rows.append(("side-face twist |δ| (ry check)", abs(float(twist)),
+                     getattr(qa, "twist_deg", None), 1.0, "°"))
     out = []
     for name, value, limit, scale, unit in rows:
         v = None if value is None else float(value) * scale

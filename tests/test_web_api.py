@@ -105,6 +105,7 @@ def test_a_run_from_the_api_to_its_report(
         result = final["result"]
         assert result["verdict"] == {"passed": "PASS", "failed": "FAIL"}[status]
         names = [row["name"] for row in result["cube_rows"]]
+        assert "side-face twist |δ| (ry check)" in names  # beside the other cube figures
         assert "face-fit edge error" in names and all(
             row["limit"] is not None for row in result["cube_rows"])
         assert result["serial"] == "SN-0042"
