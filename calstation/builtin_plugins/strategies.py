@@ -6,11 +6,13 @@ from __future__ import annotations
 from calstation import hookimpl
 
 from ..hookspecs import RegisterStrategy
-from ..strategies import BUILTIN_STRATEGIES
 
 
 @hookimpl
 def calstation_register_cost_strategies(register: RegisterStrategy) -> None:
-    """Register ``periodicity`` and ``shape``."""
+    """Register ``periodicity`` and ``shape`` (imported when a strategy is first looked up, not
+    when the CLI starts)."""
+    from ..strategies import BUILTIN_STRATEGIES
+
     for strategy in BUILTIN_STRATEGIES:
         register(strategy)
