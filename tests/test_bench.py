@@ -156,3 +156,17 @@ def test_quick_bench_completes_and_periodicity_meets_thresholds(tmp_path: Path) 
                 "landscape_translation.png", "landscape_rotation.png"):
         data = (out / "results" / png).read_bytes()
         assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+
+
+def test_variant_reports_are_summarised_with_a_link(tmp_path) -> None:
+    from calstation.bench.report import variants_section
+
+    assert variants_section(tmp_path) == ""
+    report = tmp_path / "bench-variants" / "noise-2mm" / "results.md"
+    report.parent.mkdir(parents=True)
+    report.write_text("# Results\n\n## Against the true H\n\nSome text.\n\n| a | b |\n|---|---|\n"
+                      "| periodicity | 0.05 |\n\n## Spread\n\n| not | this |\n")
+    text = variants_section(tmp_path)
+    assert "## Harder stations" in text
+    assert "[its report](bench-variants/noise-2mm/results.md)" in text
+    assert "| periodicity | 0.05 |" in text and "| not | this |" not in text

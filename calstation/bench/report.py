@@ -442,9 +442,41 @@ def write_report(
                         f"Shape ablation, scenarios {', '.join(abl_sc)} (init + set B)")
 
     text = _compose(records, every, meta, methods, abl_sc, landscape_md, label)
+    text += variants_section(report_dir)
     path = report_dir / "results.md"
     path.write_text(text)
     return path
+
+
+def variants_section(report_dir: Path) -> str:
+    """"Harder stations": the ground-truth table of each variant report found in
+    ``report_dir/bench-variants/<name>/results.md`` (``benchmarks/paper_variants.py``), with a
+    link to it; empty when there is none."""
+    root = report_dir / "bench-variants"
+    found = sorted(d for d in root.iterdir() if (d / "results.md").is_file()) \
+        if root.is_dir() else []
+    parts = []
+    for d in found:
+        lines = (d / "results.md").read_text().splitlines()
+        if "## Against the true H" not in lines:
+            continue
+        rest = lines[lines.index("## Against the true H") + 1:]
+        start = next((i for i, line in enumerate(rest) if line.startswith("|")), len(rest))
+        table = []
+        for line in rest[start:]:
+            if not line.startswith("|"):
+                break
+            table.append(line)
+        parts += [f"### {d.name}: [its report](bench-variants/{d.name}/results.md)", "", *table,
+                  ""]
+    if not parts:
+        return ""
+    head = ["", "## Harder stations", "",
+            "The same bench on recipes the default simulator does not produce "
+            "(`benchmarks/paper_variants.py`: 2 mm of range noise, no background), each with its "
+            "own report, figures and provenance; their ground-truth tables, columns as above "
+            "(estimates without the observability gate or the cube's ry):", ""]
+    return "\n".join(head + parts)
 
 
 def summary_against_paper(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
