@@ -24,7 +24,9 @@ ADVICE = {
     ),
     "qa_cube": (
         "Re-seat the QA cube so that the lidar sees at least two of its side faces over the "
-        "turn, and retry."
+        "turn, scan more turns (steps.cube_scan.revolutions), and retry. With a range noise "
+        "near 1 mm the shape strategy rarely reaches the default limits (docs/algorithms.md, "
+        "shape sweep): the periodicity strategy on the spin target does."
     ),
 }
 
