@@ -20,6 +20,7 @@ import copy
 import itertools
 import json
 import math
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -150,6 +151,20 @@ def _line(row: dict) -> str:
             f"{'; refused: ' + row['refused'][0] if row['refused'] else ''}")
 
 
+def run_all(run: Callable[..., dict], jobs: list[tuple], log_path: Path, workers: int,
+            line: Callable[[dict], str]) -> list[dict]:
+    """``run(*job)`` for every job on ``workers`` processes; each row appended to the JSON-lines
+    log and printed as it arrives. Returns the rows."""
+    rows = []
+    with log_path.open("a") as log, ProcessPoolExecutor(workers) as pool:
+        for row in pool.map(run, *zip(*jobs, strict=True)):
+            rows.append(row)
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            print(line(row), flush=True)
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--runs", type=int, default=120)
@@ -164,15 +179,8 @@ def main() -> None:
     if args.table:
         table([json.loads(line) for line in log_path.read_text().splitlines()])
         return
-    rows = []
     ks = range(args.first, args.first + args.runs)
-    with log_path.open("a") as log, ProcessPoolExecutor(args.jobs) as pool:
-        for row in pool.map(one, ks, [args.out] * len(ks)):
-            rows.append(row)
-            log.write(json.dumps(row) + "\n")
-            log.flush()
-            print(_line(row), flush=True)
-    table(rows)
+    table(run_all(one, [(k, args.out) for k in ks], log_path, args.jobs, _line))
 
 
 if __name__ == "__main__":

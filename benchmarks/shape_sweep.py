@@ -14,12 +14,10 @@ accepted errors. Accepted runs should stay within 1 mm and 0.1°.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from ry_sweep import REPO, SCENARIOS, sim_recipe
+from ry_sweep import REPO, SCENARIOS, run_all, sim_recipe
 
 from calstation.cube import check_cube
 from calstation.errors import CalstationError
@@ -96,15 +94,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "out" / "shape-sweep")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    jobs = [(k, rate, args.noise, args.out) for rate in RATES for k in range(args.runs)]
-    rows = []
-    with (args.out / "runs.jsonl").open("a") as log, ProcessPoolExecutor(args.jobs) as pool:
-        for row in pool.map(one, jobs):
-            rows.append(row)
-            log.write(json.dumps(row) + "\n")
-            log.flush()
-            print(_line(row), flush=True)
-    table(rows)
+    jobs = [((k, rate, args.noise, args.out),) for rate in RATES for k in range(args.runs)]
+    table(run_all(one, jobs, args.out / "runs.jsonl", args.jobs, _line))
 
 
 if __name__ == "__main__":

@@ -138,19 +138,12 @@ def register(app: typer.Typer) -> None:
         from ..errors import VerificationError
         from ..quiet import stdout_to_stderr
         from ..recipe import load_recipe
-        from ..recording import read_recording
         from ..result import CalibrationResult
 
         console = Console(stderr=True)
         rc = load_recipe(recipe).recipe
         calib = CalibrationResult.load(calibration)
-        with console.status(f"reading {cube}"):
-            rec = read_recording(cube)
-        if rec.kind != "cube":
-            raise VerificationError(
-                f"{cube}: this is a {rec.kind!r} recording, not a scan of the QA cube; verify "
-                "needs the cube's spin scan (recording kind 'cube', cube.mcap of a run)"
-            )
+        rec = _read_cube(console, cube, VerificationError, "verify needs the cube's spin scan")
         with console.status("measuring the QA cube"), stdout_to_stderr():
             check = check_cube(
                 rec,
@@ -284,16 +277,9 @@ def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any,
     from ..errors import CalibrationError
     from ..joint import fine_tune_with_cube
     from ..quiet import stdout_to_stderr
-    from ..recording import read_recording
     from ..reprocess import recording_disagreements
 
-    with console.status(f"reading {cube}"):
-        rec = read_recording(cube)
-    if rec.kind != "cube":
-        raise CalibrationError(
-            f"{cube}: this is a {rec.kind!r} recording, not a scan of the QA cube (recording "
-            "kind 'cube', cube.mcap of a run)"
-        )
+    rec = _read_cube(console, cube, CalibrationError, "--cube needs the cube's spin scan")
     _warn(console, recording_disagreements(rec, loaded))
     with console.status("combining ry with the cube's side faces"), stdout_to_stderr():
         combined, check, failure = fine_tune_with_cube(result, rec, loaded.recipe)
@@ -308,6 +294,20 @@ def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any,
                  f"{math.degrees(combined.H.ry):.3f}° ± {math.degrees(combined.sigma['ry']):.3f}°")
     console.print(escape(line), highlight=False)
     return combined, failure
+
+
+def _read_cube(console: Any, path: Path, error: type[Exception], need: str) -> Any:
+    """The recording at ``path``, which must be a scan of the QA cube (else ``error``)."""
+    from ..recording import read_recording
+
+    with console.status(f"reading {path}"):
+        rec = read_recording(path)
+    if rec.kind != "cube":
+        raise error(
+            f"{path}: this is a {rec.kind!r} recording, not a scan of the QA cube; {need} "
+            "(recording kind 'cube', cube.mcap of a run)"
+        )
+    return rec
 
 
 def _refuse(result: Any, rc: Any, fixture: str, joint_failure: str | None = None) -> None:
