@@ -90,17 +90,19 @@ def test_errors_are_clean_messages(sim_run, tmp_path, capsys) -> None:
     assert code == 2 and "error:" in err
 
 
-def test_calibrate_with_the_cube_combines_ry(sim_run, capsys) -> None:
+def test_calibrate_with_the_cube_combines_ry(sim_run, tmp_path, capsys) -> None:
     run = sim_run()
     argv = ["calibrate", RECIPE, "--static", str(run["static"]), "--spin", str(run["spin"])]
-    code, out, _ = _run([*argv, "--json"], capsys)
-    alone = json.loads(out)
-    code, out, err = _run([*argv, "--cube", str(run["cube"]), "--json"], capsys)
+    saved = tmp_path / "joint.json"
+    code, out, err = _run([*argv, "--cube", str(run["cube"]), "--json", "--out", str(saved)],
+                          capsys)
     assert code == 0, err
     both = json.loads(out)
     assert both["strategy"] == "periodicity+cube" and "side-face twist" in err
     # the cube's faces add to ry: the combined σ is smaller, and it covers the real error
-    assert both["sigma_ry"] < alone["sigma_ry"]
+    joint = CalibrationResult.load(saved).diagnostics["joint"]
+    assert both["sigma_ry"] < joint["sigma_ry_spin_target"]
+    assert both["sigma_ry"] < joint["sigma_ry_cube"]
     truth = read_recording(run["spin"]).truth
     assert truth is not None
     assert abs(both["ry"] - truth.ry) <= 3 * both["sigma_ry"]
