@@ -6,7 +6,8 @@
 Each variant is recipes/sim-periodicity.yaml with one simulation setting changed, written to
 ``out/bench-<variant>/recipe.yaml``; ``calstation bench paper`` then runs on it (the nine
 scenarios, the initial calibration and ``--starts`` set-A and set-B starts per scenario and
-method, no cost landscapes or ablations) and writes ``<report-root>/<variant>/results.md``.
+method, no cost landscapes, and the ablations from the initial calibration only) and writes
+``<report-root>/<variant>/results.md``.
 ``default`` is the recipe unchanged.
 """
 
@@ -60,7 +61,7 @@ def main() -> int:
         label = (f"Variant **{name}** of the paper bench (`benchmarks/paper_variants.py`): "
                  f"recipes/sim-periodicity.yaml with {changed or 'nothing'} changed; "
                  f"{args.starts} set-A and {args.starts} set-B starts per scenario and method, "
-                 "no cost landscapes or ablations.")
+                 "no cost landscapes, and the ablations from the initial calibration only.")
         command = [
             str(Path(sys.executable).parent / "calstation"), "bench", "paper",
             "--recipe", str(recipe),
