@@ -78,7 +78,12 @@ def finish(client: TestClient, headers: dict[str, str]) -> dict[str, Any]:
             answer = "continue" if st["prompt"]["kind"] == "fixture" else "abort"
             r = client.post("/api/answer", headers=headers,
                             json={"prompt_id": st["prompt"]["id"], "answer": answer})
-            assert r.status_code == 200, r.text
+            # a snapshot read just before the run moved on holds a prompt that is no longer
+            # pending: the server says so (409), and the page reloads, as this loop does
+            assert r.status_code == 200 or (
+                r.status_code == 409 and "is not pending" in r.text), r.text
+            if r.status_code == 409:
+                continue
         version = st["version"]
         wait_until(lambda v=version: client.get("/state.json").json()["version"] != v,
                    timeout=60, period=0.05)

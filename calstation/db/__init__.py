@@ -20,8 +20,10 @@ from __future__ import annotations
 
 import datetime as dt
 import os
+import sqlite3
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -134,7 +136,7 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
             dbapi_connection.isolation_level = None  # transactions are begun below
             cursor = dbapi_connection.cursor()
             cursor.execute(f"PRAGMA busy_timeout={int(timeout * 1000)}")
-            cursor.execute("PRAGMA journal_mode=WAL")
+            _retry_locked(lambda: cursor.execute("PRAGMA journal_mode=WAL"), timeout)
             cursor.execute("PRAGMA foreign_keys=ON")
             cursor.close()
 
@@ -153,6 +155,23 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
 
         event.listen(engine, "connect", pg_connect)
     return engine
+
+
+def _retry_locked(statement: Callable[[], Any], timeout: float) -> None:
+    """Run ``statement`` until SQLite stops answering "database is locked", for up to
+    ``timeout`` seconds. Switching a fresh database to WAL needs an exclusive lock; when two
+    processes open it together each may hold a read lock the other's switch waits for, and
+    SQLite then answers busy at once instead of calling the busy handler (a deadlock it
+    refuses), so the wait happens here."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            statement()
+            return
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() >= deadline:
+                raise
+            time.sleep(0.05)
 
 
 @contextmanager
