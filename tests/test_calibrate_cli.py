@@ -7,23 +7,13 @@ import math
 from pathlib import Path
 
 import pytest
+from clirun import run_cli as _run
 
-from calstation.cli import main
 from calstation.metrics import axis_errors
 from calstation.recording import read_recording
 from calstation.result import CalibrationResult
 
 RECIPE = str(Path(__file__).resolve().parents[1] / "recipes" / "sim-periodicity.yaml")
-
-
-def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    code = 0
-    try:
-        main(argv)
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def test_calibrate_json_then_verify(sim_run, tmp_path, capsys) -> None:

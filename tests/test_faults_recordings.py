@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from clirun import run_cli as _run
 from sqlalchemy import select
 
 from calstation import hookimpl, plugins
-from calstation.cli import main
 from calstation.db import Artifact, Database, Run, Step, open_database
 from calstation.drivers import EncoderSample, LidarInfo, LidarLine
 from calstation.errors import DriverError
@@ -56,16 +56,6 @@ def _recording(path: Path, kind: str = "spin", valid: float = 0.9, lines: int = 
                 point_period_ns=40_000.0,
             ))
     return path
-
-
-def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    code = 0
-    try:
-        main(argv)
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture

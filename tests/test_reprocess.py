@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 import yaml
+from clirun import run_cli as _run
 
-from calstation.cli import main
 from calstation.db import Artifact, Calibration, Database, Run, Station, Step, open_database
 from calstation.metrics import axis_errors
 from calstation.recipe import load_recipe
@@ -23,16 +23,6 @@ from calstation.station import file_sha256
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "sim-periodicity.yaml"
-
-
-def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    code = 0
-    try:
-        main(argv)
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _store_run(db: Database, files: dict[str, Path], status: str = "passed") -> int:
