@@ -284,54 +284,17 @@ def trend_points(
     station: str, param: str, db: str | None, serial: str | None = None
 ) -> list[dict[str, Any]]:
     """The accepted calibrations of ``station`` (of unit ``serial`` only, when given), oldest
-    first, with drift vs the previous one.
-
-    Each point: run_id, date (the run's start, UTC ISO-8601), unit_serial, value (m/rad), delta
-    (vs the previous point, None for the first), limit (m/rad, from that run's recipe), flagged.
-    """
-    from sqlalchemy import select
-
-    from ..db import Calibration, Run, Station, open_database
-    from ..recipe import parse_recipe
-    from ..report import iso
+    first, with drift vs the previous one: :func:`calstation.web.qa.trend_points`, as the web
+    station's trend page shows them."""
+    from ..db import open_database
+    from ..web.qa import trend_points as query
 
     database = open_database(db)
-    points: list[dict[str, Any]] = []
-    with database.session() as s:
-        stmt = (
-            select(Run, Calibration)
-            .join(Station, Run.station_id == Station.id)
-            .join(Calibration, Calibration.run_id == Run.id)
-            .where(Station.name == station, Calibration.accepted)
-            .order_by(Run.started_at, Run.id)
-        )
-        if serial:
-            stmt = stmt.where(Run.unit_serial == serial)
-        previous: float | None = None
-        for run, cal in s.execute(stmt).all():
-            qa = parse_recipe(run.recipe_text, f"recipe of run {run.id}").qa
-            if param in CUBE_PARAMS:
-                checks = run.cube_checks
-                if not checks:
-                    continue
-                value = float(getattr(checks[-1], param))
-                limit = {"edge_error": qa.edge_error, "obb_error": qa.obb_edge_error,
-                         "flatness_rms": qa.flatness_rms}[param]
-                delta = None if previous is None else value - previous
-                flagged = value > limit
-            else:
-                value = float(getattr(cal, param))
-                limit = (qa.drift_translation if param.startswith("t")
-                         else math.radians(qa.drift_rotation_deg))
-                delta = None if previous is None else value - previous
-                flagged = delta is not None and abs(delta) > limit
-            points.append({
-                "run_id": run.id, "date": iso(run.started_at) or "",
-                "unit_serial": run.unit_serial, "value": value,
-                "delta": delta, "limit": limit, "flagged": flagged,
-            })
-            previous = value
-    database.dispose()
+    try:
+        with database.session() as s:
+            points = query(s, station, param, serial)
+    finally:
+        database.dispose()
     return points
 
 

@@ -104,15 +104,31 @@ def choices(session: Session) -> dict[str, list[str]]:
     }
 
 
-def trend(session: Session, station: str, param: str) -> dict[str, Any]:
-    """One parameter of ``station``'s accepted calibrations by date, with 1σ and drift limits.
-
-    Each point: run_id, date, value and sigma (m/rad; sigma None when not estimated), delta to
-    the previous point, limit (the recipe's drift limit, or the cube limit), flagged.
-    """
+def trend(
+    session: Session, station: str, param: str, serial: str | None = None
+) -> dict[str, Any]:
+    """One parameter of ``station``'s accepted calibrations (of unit ``serial`` only, when
+    given) by date, with 1σ and drift limits: :func:`trend_points` and how to draw them.
+    :class:`QueryError` for a parameter the trend page does not offer."""
     if param not in TREND_PARAMS + CUBE_TREND_PARAMS:
         raise QueryError(
             f"param: {param!r} is not one of {', '.join(TREND_PARAMS + CUBE_TREND_PARAMS)}")
+    kind = "cube" if param in CUBE_TREND_PARAMS else "drift"
+    return {"station": station, "param": param, "limit_kind": kind,
+            "points": trend_points(session, station, param, serial)}
+
+
+def trend_points(
+    session: Session, station: str, param: str, serial: str | None = None
+) -> list[dict[str, Any]]:
+    """``param`` (a calibration parameter, or a cube figure of :data:`CUBE_TREND_PARAMS`) of
+    ``station``'s accepted calibrations, of unit ``serial`` only when given, by the run's
+    start date.
+
+    Each point: run_id, date (UTC ISO-8601), unit_serial, value and sigma (m/rad; sigma None
+    when not estimated), delta to the previous point, limit (the run's recipe's drift limit,
+    or the cube limit), flagged.
+    """
     stmt = (
         select(Run, Calibration)
         .join(Station, Run.station_id == Station.id)
@@ -120,6 +136,8 @@ def trend(session: Session, station: str, param: str) -> dict[str, Any]:
         .where(Station.name == station, Calibration.accepted)
         .order_by(Run.started_at, Run.id)
     )
+    if serial:
+        stmt = stmt.where(Run.unit_serial == serial)
     points: list[dict[str, Any]] = []
     previous: float | None = None
     for run, cal in session.execute(stmt).all():
@@ -140,11 +158,11 @@ def trend(session: Session, station: str, param: str) -> dict[str, Any]:
                      else math.radians(qa.drift_rotation_deg))
             delta = None if previous is None else value - previous
             flagged = delta is not None and abs(delta) > limit
-        points.append({"run_id": run.id, "date": iso(run.started_at), "value": value,
-                       "sigma": sigma, "delta": delta, "limit": limit, "flagged": flagged})
+        points.append({"run_id": run.id, "date": iso(run.started_at),
+                       "unit_serial": run.unit_serial, "value": value, "sigma": sigma,
+                       "delta": delta, "limit": limit, "flagged": flagged})
         previous = value
-    kind = "cube" if param in CUBE_TREND_PARAMS else "drift"
-    return {"station": station, "param": param, "limit_kind": kind, "points": points}
+    return points
 
 
 def display_scale(param: str) -> tuple[float, str]:
