@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from rich.markup import escape
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 from transitions import Machine
 
 from . import plugins
@@ -1184,6 +1185,18 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
+def resumable_run(session: Session, run_id: int, force: bool) -> Run:
+    """Run ``run_id`` from ``session`` if it may be resumed: :class:`StationError` when there
+    is none, it already passed, or another live process executes it (unless ``force``)."""
+    run = session.get(Run, run_id)
+    if run is None:
+        raise StationError(f"no run {run_id} in the database")
+    if run.status == "passed":
+        raise StationError(f"run {run_id} already passed; nothing to resume")
+    _check_not_running_elsewhere(run, force)
+    return run
+
+
 def _check_not_running_elsewhere(run: Run, force: bool) -> None:
     """Refuse to resume a run another live process is executing (two processes, one motor)."""
     if run.status != "running" or force or run.pid is None:
@@ -1211,12 +1224,7 @@ def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False) 
     for note in journal.recover(db):  # results journalled by an earlier process, first
         ui.info(escape(note))
     with db.session() as s:
-        run = s.get(Run, run_id)
-        if run is None:
-            raise StationError(f"no run {run_id} in the database")
-        if run.status == "passed":
-            raise StationError(f"run {run_id} already passed; nothing to resume")
-        _check_not_running_elsewhere(run, force)
+        run = resumable_run(s, run_id, force)
         text, path = run.recipe_text, run.recipe_path
         run_dir = Path(run.data_dir)
     source = f"recipe of run {run_id}"

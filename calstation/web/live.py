@@ -27,15 +27,15 @@ from typing import Any
 import numpy as np
 from rich.text import Text
 
-from ..db import Database, Run
+from ..db import Database
 from ..errors import CalstationError, StationError
 from ..operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
 from ..station import (
     STEPS,
     AbortRun,
     Station,
-    _check_not_running_elsewhere,
     create_run,
+    resumable_run,
     resume_run,
 )
 
@@ -402,13 +402,8 @@ class Runner:
         self._take()
         try:
             with self.db.session() as s:
-                run = s.get(Run, run_id)
-                if run is None:
-                    raise StationError(f"no run {run_id} in the database")
-                if run.status == "passed":
-                    raise StationError(f"run {run_id} already passed; nothing to resume")
                 # refused here, with its reason, rather than in the run's thread
-                _check_not_running_elsewhere(run, force)
+                run = resumable_run(s, run_id, force)
                 recipe = parse_recipe(run.recipe_text, f"recipe of run {run_id}")
                 operator = run.operator
             self.live.begin(run_id, recipe.name, operator, None)
