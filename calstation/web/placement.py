@@ -14,23 +14,12 @@ import math
 from html import escape
 from typing import Any
 
+from ..recipe import frustum_outline
+
 SIZE = 360
 """Width and height of the picture (px)."""
 
 MARGIN = 34
-
-
-def _frustum_outline(geom: Any) -> list[tuple[float, float]]:
-    """The frustum's base polygon (y, z), metres: the recipe's, or the default concave heptagon
-    (regular, circumradius, vertex 0 pulled in by ``notch_depth``)."""
-    if getattr(geom, "polygon", None):
-        return [(float(y), float(z)) for y, z in geom.polygon]
-    out = []
-    for k in range(7):
-        a = 2.0 * math.pi * k / 7
-        r = geom.circumradius * ((1.0 - geom.notch_depth) if k == 0 else 1.0)
-        out.append((r * math.cos(a), r * math.sin(a)))
-    return out
 
 
 def _place(points: list[tuple[float, float]], offset: Any, yaw_deg: float
@@ -62,7 +51,7 @@ def fixture_outlines(geom: Any) -> list[dict[str, Any]]:
              "label": f"short end {geom.h_short * 1000:.0f} mm"},
         ]
     if kind == "frustum":
-        poly = _frustum_outline(geom)
+        poly = frustum_outline(geom)
         return [
             {"points": _place(poly, offset, yaw), "role": "body",
              "label": f"spin target (height {geom.height * 1000:.0f} mm)"},
