@@ -190,6 +190,20 @@ def _lean_db(tmp_path: Path) -> Database:
     return db
 
 
+def _run_losing_step_updates_after(
+    tmp_path: Path, step: str, ui: ScriptedOperator | None = None
+) -> tuple[Database, FailingWrites, int]:
+    """A lean run whose step updates fail from ``step`` on: (its database, the failing writes
+    to disarm, the run id); the run ended ``interrupted``."""
+    db = _lean_db(tmp_path)
+    failing = FailingWrites(db, lambda sql: sql.startswith("UPDATE step"))
+    plugins.get_plugin_manager().register(ArmAfter(failing, step))
+    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db,
+                               ui or ScriptedOperator(), operator="ann", data_dir=tmp_path)
+    assert status == "interrupted"
+    return db, failing, run_id
+
+
 def _step_rows(db: Database, run_id: int) -> list[tuple[str, str]]:
     with db.session() as s:
         return [(r.name, r.status) for r in
@@ -199,13 +213,8 @@ def _step_rows(db: Database, run_id: int) -> list[tuple[str, str]]:
 def test_a_lost_step_end_is_journalled_and_written_by_the_next_command(
     tmp_path: Path, station_plugin: StationTestPlugin
 ) -> None:
-    db = _lean_db(tmp_path)
-    failing = FailingWrites(db, lambda sql: sql.startswith("UPDATE step"))
-    plugins.get_plugin_manager().register(ArmAfter(failing, "place_spin_target"))
     ui = ScriptedOperator()
-    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ui, operator="ann",
-                               data_dir=tmp_path)
-    assert status == "interrupted"
+    db, failing, run_id = _run_losing_step_updates_after(tmp_path, "place_spin_target", ui)
     run_dir = tmp_path / "runs" / str(run_id)
     entries = journal_mod.read(run_dir / "journal.jsonl")
     assert [e["op"] for e in entries] == ["step_end", "run_end"]
@@ -242,12 +251,7 @@ def test_a_lost_step_end_is_journalled_and_written_by_the_next_command(
 def test_a_lost_calibration_is_journalled_with_its_step_and_written_later(
     tmp_path: Path, station_plugin: StationTestPlugin
 ) -> None:
-    db = _lean_db(tmp_path)
-    failing = FailingWrites(db, lambda sql: sql.startswith("UPDATE step"))
-    plugins.get_plugin_manager().register(ArmAfter(failing, "spin_scan"))
-    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ScriptedOperator(),
-                               operator="ann", data_dir=tmp_path)
-    assert status == "interrupted"
+    db, failing, run_id = _run_losing_step_updates_after(tmp_path, "spin_scan")
     entries = journal_mod.read(tmp_path / "runs" / str(run_id) / "journal.jsonl")
     fine = entries[0]["calibration"]
     assert entries[0]["status"] == "passed" and fine["stage"] == "fine"
@@ -276,12 +280,7 @@ def test_a_lost_calibration_is_journalled_with_its_step_and_written_later(
 def test_report_json_never_claims_a_verdict_the_database_does_not_hold(
     tmp_path: Path, station_plugin: StationTestPlugin
 ) -> None:
-    db = _lean_db(tmp_path)
-    failing = FailingWrites(db, lambda sql: sql.startswith("UPDATE step"))
-    plugins.get_plugin_manager().register(ArmAfter(failing, "cube_scan"))
-    run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ScriptedOperator(),
-                               operator="ann", data_dir=tmp_path)
-    assert status == "interrupted"
+    db, failing, run_id = _run_losing_step_updates_after(tmp_path, "cube_scan")
     run_dir = tmp_path / "runs" / str(run_id)
     assert not (run_dir / "report.json").exists()  # staged, not in place
     assert (run_dir / "report.json.pending").exists()
