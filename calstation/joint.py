@@ -14,6 +14,7 @@ one of them is wrong, and the cube check's twist limit reports it.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -136,12 +137,15 @@ def ry_with_cube(
 
 
 def fine_tune_with_cube(
-    result: CalibrationResult, cube: Recording, recipe: Recipe
+    result: CalibrationResult,
+    cube: Recording,
+    recipe: Recipe,
+    progress: Callable[[str, float], None] | None = None,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` with ry combined from the cube scan ``cube``, as
-    the station does at its cube step: (the combined result, strategy ``<name>+cube``, or
-    ``result`` when nothing could be combined; the cube check under that H; the failure of
-    :func:`ry_with_cube` or None)."""
+    the station does at its cube step: (the combined result, strategy ``<name>+cube``, with
+    ``result``'s diagnostics and the ``joint`` details, or ``result`` itself when nothing could
+    be combined; the cube check under that H; the failure of :func:`ry_with_cube` or None)."""
     from .cube import check_cube
 
     args = (recipe.fixtures.qa_cube, recipe.qa)
@@ -154,6 +158,8 @@ def fine_tune_with_cube(
     )
     if joint is None:
         return result, check, failure
+    if progress is not None:
+        progress("measuring the cube with ry from both scans", 0.6)
     combined = CalibrationResult(
         H=joint.H, sigma=joint.sigma, cost=result.cost, iterations=result.iterations,
         strategy=f"{result.strategy}+cube", timings=dict(result.timings),
@@ -161,3 +167,13 @@ def fine_tune_with_cube(
                      "covariance": joint.details["covariance"]},
     )
     return combined, check_cube(cube, joint.H, *args, platter_radius=radius), failure
+
+
+def joint_summary(combined: CalibrationResult) -> str:
+    """One line of what :func:`fine_tune_with_cube` combined (degrees)."""
+    d = combined.diagnostics["joint"]
+    return (f"ry from the spin target {math.degrees(d['ry_spin_target']):.3f}° ± "
+            f"{math.degrees(d['sigma_ry_spin_target']):.3f}°, from the cube "
+            f"{math.degrees(d['ry_cube']):.3f}° ± {math.degrees(d['sigma_ry_cube']):.3f}° → "
+            f"combined {math.degrees(combined.H.ry):.3f}° ± "
+            f"{math.degrees(combined.sigma['ry']):.3f}°")

@@ -620,43 +620,29 @@ class Station:
         """
         from .cube import check_cube
         from .frames import Extrinsics
-        from .joint import ry_with_cube
+        from .joint import fine_tune_with_cube, joint_summary
 
         H = Extrinsics.from_dict(fine.params())
-        args = (self.recipe.fixtures.qa_cube, self.recipe.qa)
-        radius = self.recipe.fixtures.platter.radius
-        check = check_cube(recording, H, *args, platter_radius=radius)
         if self._strategy().fixture != "spin_target":
+            check = check_cube(recording, H, self.recipe.fixtures.qa_cube, self.recipe.qa,
+                               platter_radius=self.recipe.fixtures.platter.radius)
             return check, None, None
         diagnostics = fine.diagnostics or {}
-        joint, failure = ry_with_cube(
-            H, diagnostics.get("covariance"),
-            fine.sigma_ry if fine.sigma_ry is not None else math.nan,
-            math.radians(check.twist_deg), math.radians(check.twist_sigma_deg),
-            math.radians(self.recipe.calibration.max_sigma.ry_deg),
-        )
-        if joint is None:
-            return check, None, failure
-        progress("measuring the cube with ry from both scans", 0.6)
-        check = check_cube(recording, joint.H, *args, platter_radius=radius)
-        result = CalibrationResult(
-            H=joint.H,
-            sigma=joint.sigma,
+        stored = CalibrationResult(
+            H=H,
+            sigma={p: math.nan if v is None else float(v) for p, v in fine.sigmas().items()},
             cost=float(fine.cost) if fine.cost is not None else math.nan,
             iterations=int(fine.iterations or 0),
-            strategy=f"{fine.strategy}+cube",
+            strategy=fine.strategy,
             timings={},
-            diagnostics={"joint": joint.details, "from_calibration": fine.id,
-                         "gauge": diagnostics.get("gauge"),
-                         "covariance": joint.details["covariance"]},
+            diagnostics={"gauge": diagnostics.get("gauge"),
+                         "covariance": diagnostics.get("covariance")},
         )
-        self.ui.info(
-            f"  ry from the spin target {math.degrees(joint.details['ry_spin_target']):.3f}° "
-            f"± {math.degrees(joint.details['sigma_ry_spin_target']):.3f}°, from the cube "
-            f"{math.degrees(joint.details['ry_cube']):.3f}° ± "
-            f"{math.degrees(joint.details['sigma_ry_cube']):.3f}° → combined "
-            f"{math.degrees(joint.H.ry):.3f}° ± {math.degrees(joint.sigma['ry']):.3f}°"
-        )
+        result, check, failure = fine_tune_with_cube(stored, recording, self.recipe, progress)
+        if result is stored:
+            return check, None, failure
+        result.diagnostics["from_calibration"] = fine.id
+        self.ui.info(f"  {joint_summary(result)}")
         return check, result, failure
 
     def _step_report(self, step_id: int) -> StepOutcome:

@@ -275,7 +275,7 @@ def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any,
     from rich.markup import escape
 
     from ..errors import CalibrationError
-    from ..joint import fine_tune_with_cube
+    from ..joint import fine_tune_with_cube, joint_summary
     from ..quiet import stdout_to_stderr
     from ..reprocess import recording_disagreements
 
@@ -283,15 +283,10 @@ def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any,
     _warn(console, recording_disagreements(rec, loaded))
     with console.status("combining ry with the cube's side faces"), stdout_to_stderr():
         combined, check, failure = fine_tune_with_cube(result, rec, loaded.recipe)
-    joint = combined.diagnostics.get("joint") or {}
     line = (f"cube: side-face twist {check.twist_deg:+.3f}° ± {check.twist_sigma_deg:.3f}°, "
             f"edge error {check.edge_error * 1e3:.2f} mm")
-    if joint:
-        line += (f"; ry from the spin target {math.degrees(joint['ry_spin_target']):.3f}° ± "
-                 f"{math.degrees(joint['sigma_ry_spin_target']):.3f}°, from the cube "
-                 f"{math.degrees(joint['ry_cube']):.3f}° ± "
-                 f"{math.degrees(joint['sigma_ry_cube']):.3f}° → combined "
-                 f"{math.degrees(combined.H.ry):.3f}° ± {math.degrees(combined.sigma['ry']):.3f}°")
+    if combined is not result:
+        line += f"; {joint_summary(combined)}"
     console.print(escape(line), highlight=False)
     return combined, failure
 
