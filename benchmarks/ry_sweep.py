@@ -27,9 +27,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from calstation.cube import check_cube
 from calstation.initial import initial_calibration
-from calstation.joint import ry_with_cube
+from calstation.joint import fine_tune_with_cube
 from calstation.metrics import axis_errors
 from calstation.observability import sigma_problems
 from calstation.recipe import LoadedRecipe, parse_recipe
@@ -73,17 +72,16 @@ def one(k: int, out: Path) -> dict[str, object]:
     fine = PeriodicityStrategy().run(read_recording(paths["spin"]), initial.H, recipe)
     limits = recipe.calibration.max_sigma
     refused = sigma_problems(fine, limits, skip=("ry",))
-    cube = read_recording(paths["cube"])
-    args = (recipe.fixtures.qa_cube, recipe.qa)
-    radius = recipe.fixtures.platter.radius
-    check = check_cube(cube, fine.H, *args, platter_radius=radius)
-    twist, twist_sigma = math.radians(check.twist_deg), math.radians(check.twist_sigma_deg)
-    joint, failure = ry_with_cube(fine.H, fine.diagnostics.get("covariance"), fine.sigma["ry"],
-                                  twist, twist_sigma, math.radians(limits.ry_deg))
-    H, sigma = (fine.H, fine.sigma) if joint is None else (joint.H, joint.sigma)
+    # the station's cube step: the side faces' twist combined into ry, the ry gate
+    outcome, final, failure = fine_tune_with_cube(fine, read_recording(paths["cube"]), recipe)
+    joint = outcome.diagnostics.get("joint") if outcome is not fine else None
+    if joint is not None:  # the twist measured under the fine-tuned H
+        twist = joint["ry_cube"] - joint["ry_spin_target"]
+        twist_sigma = joint["sigma_ry_cube"]
+    else:
+        twist, twist_sigma = math.radians(final.twist_deg), math.radians(final.twist_sigma_deg)
     if failure:
         refused.append(failure)
-    final = check_cube(cube, H, *args, platter_radius=radius) if joint is not None else check
     for name in paths.values():  # the recordings are large; the rows keep what matters
         Path(name).unlink(missing_ok=True)
     noise, background, offset, rate = CONDITIONS[k % len(CONDITIONS)]
@@ -91,7 +89,7 @@ def one(k: int, out: Path) -> dict[str, object]:
             "line_rate": rate, "scenario": SCENARIOS[k % len(SCENARIOS)],
             "periodicity": {"err": axis_errors(fine.H, truth), "sigma": fine.sigma},
             "twist": [twist, twist_sigma], "joint": joint is not None,
-            "err": axis_errors(H, truth), "sigma": sigma, "refused": refused,
+            "err": axis_errors(outcome.H, truth), "sigma": outcome.sigma, "refused": refused,
             "cube_passed": final.passed, "edge_error": final.edge_error,
             "noise_estimate": fine.diagnostics.get("range_noise_m"),
             "cell": fine.diagnostics.get("final_cell_m")}

@@ -16,10 +16,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from calstation.cube import check_cube
 from calstation.errors import CalstationError
 from calstation.initial import initial_calibration
-from calstation.joint import ry_with_cube
+from calstation.joint import fine_tune_with_cube
 from calstation.metrics import axis_errors
 from calstation.observability import sigma_problems
 from calstation.recipe import load_recipe
@@ -80,19 +79,12 @@ def test_periodicity_with_the_cube_is_within_3_sigma_or_refused(
     if sigma_problems(fine, limits, skip=("ry",)):
         assert not low_noise, sigma_problems(fine, limits)
         return  # refused at the fine-tune step, with the observability message
-    cube = read_recording(run["cube"])
-    check = check_cube(cube, fine.H, recipe.fixtures.qa_cube, recipe.qa,
-                       platter_radius=recipe.fixtures.platter.radius)
-    joint, failure = ry_with_cube(
-        fine.H, fine.diagnostics["covariance"], fine.sigma["ry"],
-        math.radians(check.twist_deg), math.radians(check.twist_sigma_deg),
-        math.radians(limits.ry_deg),
-    )
+    outcome, _, failure = fine_tune_with_cube(fine, read_recording(run["cube"]), recipe)
     if failure:
         assert "ry" in failure and not low_noise, failure
         return
-    H, sigma = (fine.H, fine.sigma) if joint is None else (joint.H, joint.sigma)
-    assert joint is not None or not low_noise  # the cube's faces add to ry
+    assert outcome is not fine or not low_noise  # the cube's faces add to ry
+    H, sigma = outcome.H, outcome.sigma
     err = axis_errors(H, truth)
     for name in ("tx", "tz", "ry", "rz"):
         assert abs(err[f"{name}_error"]) <= 3 * sigma[name], (name, err, sigma)
