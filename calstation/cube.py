@@ -291,8 +291,6 @@ def face_twist(
     bias that range noise leaves added in quadrature (:func:`twist_noise_bias`). (NaN, NaN)
     with fewer than two faces of 30 returns.
     """
-    from .periodicity import block_ids, parameter_sigma
-
     rng = np.random.default_rng(0)
     faces = []
     for p, f in zip(faces_L, faces_phi, strict=True):
@@ -325,11 +323,26 @@ def face_twist(
         x_scale=np.array([1e-3]),
         max_nfev=50,
     )
-    q = np.concatenate([lidar_to_dynamic(p, f, H) for p, f in faces])
-    sigma = parameter_sigma(res, [4], blocks=block_ids(q, 0.02))["ry"]
     Hs = H.with_(ry=H.ry + float(res.x[0]))
-    bias = twist_noise_bias(face_range_noise([p for p, _ in faces], [f for _, f in faces], Hs))
-    return float(res.x[0]), float(math.hypot(sigma, bias))
+    return float(res.x[0]), flatness_ry_sigma(res, [4], [p for p, _ in faces],
+                                              [f for _, f in faces], Hs)
+
+
+def flatness_ry_sigma(
+    res: Any, free: list[int], faces_L: list[FloatArray], faces_phi: list[FloatArray],
+    H: Extrinsics,
+) -> float:
+    """1σ (rad) of ry from a face-flatness fit (``scipy.optimize.least_squares`` result
+    ``res`` over the parameters ``free``, its residuals the faces' returns in order) solved at
+    H: the cluster-robust sandwich over 2 cm blocks of the faces, with the bias range noise
+    leaves (:func:`twist_noise_bias`, the noise measured on the faces) in quadrature."""
+    from .periodicity import block_ids, parameter_sigma
+
+    q = np.concatenate([lidar_to_dynamic(p, f, H) for p, f in zip(faces_L, faces_phi,
+                                                                   strict=True)])
+    sigma = parameter_sigma(res, free, blocks=block_ids(q, 0.02))["ry"]
+    bias = twist_noise_bias(face_range_noise(faces_L, faces_phi, H))
+    return float(math.hypot(sigma, bias))
 
 
 def face_range_noise(

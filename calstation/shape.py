@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from .cube import check_cube_points, face_range_noise, twist_noise_bias
+from .cube import check_cube_points, face_range_noise, flatness_ry_sigma
 from .errors import FineTuningError, VerificationError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from .geometry import (
@@ -399,16 +399,18 @@ def _shape_pass(
             raise FineTuningError("no cube face has enough returns to estimate ry")
         idx = [PARAMETER_NAMES.index(n) for n in ("tz", "ry", "rz")]
         base = x6.copy()
+        faces_L, faces_phi = [pts_L[sel] for sel in faces], [ph[sel] for sel in faces]
 
         def flatness(x: FloatArray) -> FloatArray:
             v = base.copy()
             v[idx] = x
-            q = lidar_to_dynamic(pts_L, ph, Extrinsics.from_vector(v))
-            out = np.zeros(q.shape[0])
-            for sel in faces:
-                d = q[sel] - q[sel].mean(axis=0)
-                out[sel] = d @ np.linalg.svd(d, full_matrices=False)[2][2]
-            return out
+            Hx = Extrinsics.from_vector(v)
+            out = []
+            for p, f in zip(faces_L, faces_phi, strict=True):
+                q = lidar_to_dynamic(p, f, Hx)
+                d = q - q.mean(axis=0)
+                out.append(d @ np.linalg.svd(d, full_matrices=False)[2][2])
+            return np.concatenate(out)
 
         centre = start6[idx]
         # a set-B start is 2° off and the true ry up to 0.5° from the initial 0 (as periodicity)
@@ -424,11 +426,9 @@ def _shape_pass(
             x_scale=np.full(3, 1e-3),
             max_nfev=settings.max_nfev,
         )
-        # σ as the cube check's twist: 2 cm blocks, and the bias range noise leaves
+        # σ as the cube check's twist's
         Hr = Extrinsics.from_vector(np.where(np.arange(6) == ry_i, r.x[1], x6))
-        sigma = parameter_sigma(r, idx, blocks=block_ids(lidar_to_dynamic(pts_L, ph, Hr), 0.02))
-        noise = face_range_noise([pts_L[sel] for sel in faces], [ph[sel] for sel in faces], Hr)
-        return float(r.x[1]), math.hypot(sigma["ry"], twist_noise_bias(noise))
+        return float(r.x[1]), flatness_ry_sigma(r, idx, faces_L, faces_phi, Hr)
 
     if estimate_ry and box == "upright":
         # the box cost is nearly flat and jumpy in ry: settle tx, tz, rz with ry held, then
