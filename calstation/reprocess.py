@@ -158,7 +158,7 @@ def reprocess_run(
     from . import plugins
     from .initial import initial_calibration
     from .joint import fine_tune_with_cube
-    from .observability import sigma_problems
+    from .observability import problems_with_cube
     from .recording import read_recording
     from .strategies import run_strategy
 
@@ -200,9 +200,7 @@ def reprocess_run(
         cube = read_recording(paths["cube"])
         warnings += recording_disagreements(cube, loaded)
         result, _, joint_failure = fine_tune_with_cube(result, cube, rc)
-    refused = sigma_problems(result, rc.calibration.max_sigma,
-                             ("ry",) if joint_failure is not None else ())
-    refused += [joint_failure] if joint_failure is not None else []
+    refused = problems_with_cube(result, rc.calibration.max_sigma, joint_failure)
     recordings = {k: str(v) for k, v in paths.items()}
     result = replace(result, diagnostics={
         **result.diagnostics,

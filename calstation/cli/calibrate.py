@@ -194,7 +194,7 @@ def _calibrate_files(
     from .. import plugins
     from ..errors import CalibrationError
     from ..initial import initial_calibration
-    from ..observability import sigma_problems
+    from ..observability import problems_with_cube
     from ..quiet import stdout_to_stderr
     from ..recipe import load_recipe
     from ..recording import read_recording
@@ -253,10 +253,7 @@ def _calibrate_files(
     result = replace(result, diagnostics=diagnostics)
     if out is not None:
         result.save(out)
-    later = ("ry",) if joint_failure is not None else ()
-    refused = sigma_problems(result, rc.calibration.max_sigma, later)
-    if joint_failure is not None:
-        refused.append(joint_failure)
+    refused = problems_with_cube(result, rc.calibration.max_sigma, joint_failure)
     if as_json:
         summary = result.summary()
         summary["initial"] = initial.H.as_dict()
