@@ -44,12 +44,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
-from scipy.spatial import cKDTree
 
 from .errors import FineTuningError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, euler_to_matrix, lidar_to_polar
+from .neighbours import knn, local_planes, mutual_neighbours, pair, tree
 from .recipe import DEFAULT_PLATTER_RADIUS, PeriodicitySettings
 from .result import CalibrationResult
+from .spinscan import SpinScan, from_recording, prepare
+from .spinscan import static_mask as static_mask  # re-exported: shape and the bench use it
 
 if TYPE_CHECKING:
     from .recording import Recording
@@ -147,35 +149,11 @@ CELL_NOISE_RATIO = 1.0 / 3.0
 """The last stage's cells must average the range noise down to this fraction of their size."""
 
 
-def range_noise(p_L: FloatArray, static: NDArray[np.bool_], *, az_quantum: float = 1e-4) -> float:
-    """Range noise σ (m) of the lidar, from the static returns of one scan.
-
-    Static returns (the platter ring, the background) come back at the same range for the same
-    azimuth whatever the platter angle, so their spread per azimuth is the range noise. Azimuths
-    are grouped in ``az_quantum`` rad (0.1 mm across at 1 m); the σ is 1.4826 × the median of the
-    per-azimuth median absolute deviations (robust to mixed pixels). NaN when fewer than 20
-    azimuths have 5 static returns.
-    """
-    if int(static.sum()) < 100:
-        return math.nan
-    rng, az = lidar_to_polar(p_L[static])
-    key = np.floor(az / az_quantum).astype(np.int64)
-    order = np.lexsort((rng, key))  # by azimuth group, then range
-    key, rng = key[order], rng[order]
-    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
-    counts = np.diff(np.r_[starts, key.size])
-    group = np.repeat(np.arange(starts.size), counts)
-    mid = starts + (counts - 1) // 2
-    dev = np.abs(rng - rng[mid][group])
-    mad = dev[np.lexsort((dev, group))][mid]
-    ok = counts >= 5
-    if int(ok.sum()) < 20:
-        return math.nan
-    return float(1.4826 * np.median(mad[ok]))
-
-
 def final_cell_size(
-    halves_p_L: list[FloatArray], halves_phi: list[FloatArray], noise: float
+    halves_p_L: list[FloatArray],
+    halves_phi: list[FloatArray],
+    noise: float,
+    halves_polar: list[tuple[FloatArray, FloatArray]] | None = None,
 ) -> float:
     """The smallest cell size of :data:`CELL_SIZES` whose cells average the range noise down to
     :data:`CELL_NOISE_RATIO` of their size (m).
@@ -183,13 +161,20 @@ def final_cell_size(
     Mutual nearest neighbours between the two half-turns prefer pairs whose noise cancels their
     misalignment; when a cell's noise (σ/√returns) is comparable to the cell spacing, each outer
     iteration recovers only a few per cent of an ry error, and ry stays biased (docs/algorithms.md).
-    The count per cell is the median over the target's cells of both halves.
+    The count per cell is the median over the target's cells of both halves. ``halves_polar``:
+    the (range, azimuth) of each half's returns, when already known.
     """
     if not math.isfinite(noise) or noise <= 0:
         return CELL_SIZES[0]
+    polar = halves_polar or [lidar_to_polar(p) for p in halves_p_L]
     for size in CELL_SIZES:
         counts = np.concatenate(
-            [_cell_counts(p, ph, size) for p, ph in zip(halves_p_L, halves_phi, strict=True)]
+            [
+                _cell_counts(r, a, ph, size)
+                for (r, a), ph in zip(polar, halves_phi, strict=True)
+                if ph.size
+            ]
+            or [np.zeros(0, dtype=np.int64)]
         )
         per_cell = float(np.median(counts)) if counts.size else 1.0
         if noise / math.sqrt(per_cell) <= CELL_NOISE_RATIO * size:
@@ -198,10 +183,9 @@ def final_cell_size(
 
 
 def _cell_keys(
-    p_L: FloatArray, phi: FloatArray, size: float, radius_ref: float
+    rng: FloatArray, az: FloatArray, phi: FloatArray, size: float, radius_ref: float
 ) -> NDArray[np.int64]:
     """(N,) cell index of each return on the sensor grid (platter angle × azimuth)."""
-    rng, az = lidar_to_polar(p_L)
     az_step = size / float(np.median(rng))
     phi_step = size / radius_ref
     ia = np.floor(az / az_step).astype(np.int64)
@@ -212,14 +196,26 @@ def _cell_keys(
     return out
 
 
+def _groups(key: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(inverse, counts) of the distinct values of ``key`` (≥ 0), in ascending order: by a
+    dense count when the keys are few (no sort over millions of returns), else ``np.unique``."""
+    top = int(key.max()) + 1
+    if top <= 4 * key.size + 1_000_000:
+        dense = np.bincount(key, minlength=top)
+        used = np.flatnonzero(dense)
+        index = np.zeros(top, dtype=np.int64)
+        index[used] = np.arange(used.size)
+        return index[key], dense[used]
+    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    return inv.reshape(-1), counts
+
+
 def _cell_counts(
-    p_L: FloatArray, phi: FloatArray, size: float, radius_ref: float = 0.15
+    rng: FloatArray, az: FloatArray, phi: FloatArray, size: float, radius_ref: float = 0.15
 ) -> NDArray[np.int64]:
-    if p_L.shape[0] == 0:
+    if rng.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
-    _, counts = np.unique(_cell_keys(p_L, phi, size, radius_ref), return_counts=True)
-    out: NDArray[np.int64] = counts
-    return out
+    return _groups(_cell_keys(rng, az, phi, size, radius_ref))[1]
 
 
 # --- geometry helpers ------------------------------------------------------------------------
@@ -237,44 +233,13 @@ def to_dynamic(
     return np.column_stack([q[:, 0], y, z])
 
 
-def static_mask(
-    p_L: FloatArray, *, bin_deg: float = 0.1, range_cell: float = 0.001, fraction: float = 0.6
-) -> NDArray[np.bool_]:
-    """(N,) True for returns that sit at the same place in L for most of the scan.
-
-    Per azimuth bin of ``bin_deg``, a return is static when at least ``fraction`` of the bin's
-    returns lie within ±2.5 ``range_cell`` of it: the platter ring, the background, faces of
-    revolution. Independent of H.
-    """
-    rng, az = lidar_to_polar(p_L)
-    if rng.size == 0:
-        return np.zeros(0, dtype=bool)
-    b = np.floor(az / math.radians(bin_deg)).astype(np.int64)
-    b -= b.min()
-    c = np.floor(rng / range_cell).astype(np.int64)
-    c -= c.min()
-    ncell = int(c.max()) + 5
-    key = b * ncell + c + 2
-    size = (int(b.max()) + 1) * ncell
-    if size <= 50_000_000:
-        # dense counts: no sort over millions of returns
-        counts = np.bincount(key, minlength=size)
-        near_all = sum(counts[key + k] for k in (-2, -1, 0, 1, 2))
-    else:
-        uniq, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-        near = np.zeros_like(cnt)
-        for k in (-2, -1, 0, 1, 2):
-            pos = np.searchsorted(uniq, uniq + k)
-            hit = (pos < uniq.size) & (uniq[np.minimum(pos, uniq.size - 1)] == uniq + k)
-            near[hit] += cnt[pos[hit]]
-        near_all = near[inv]
-    per_bin = np.bincount(b)
-    out: NDArray[np.bool_] = near_all >= fraction * np.maximum(per_bin[b], 1)
-    return out
-
-
 def sensor_cells(
-    p_L: FloatArray, phi: FloatArray, size: float, *, radius_ref: float = 0.15
+    p_L: FloatArray,
+    phi: FloatArray,
+    size: float,
+    *,
+    radius_ref: float = 0.15,
+    polar: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Average returns over cells of the sensor grid (platter angle × azimuth), ~``size`` m wide.
 
@@ -282,18 +247,17 @@ def sensor_cells(
     grid in D would select points by their noisy position and pull the averages toward voxel
     centres). A cell spans ``size / radius_ref`` of platter angle and ``size / median range`` of
     azimuth; cells whose ranges spread more than 4·``size`` (a depth edge) are dropped.
-    Returns ((C, 3) mean returns in L, (C,) mean φ).
+    ``polar``: the returns' (range, azimuth), when already known. Returns ((C, 3) mean returns
+    in L, (C,) mean φ).
     """
     if p_L.shape[0] == 0:
         return p_L, phi
-    rng, _ = lidar_to_polar(p_L)
-    key = _cell_keys(p_L, phi, size, radius_ref)
-    _, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
+    rng, az = lidar_to_polar(p_L) if polar is None else polar
+    inv, counts = _groups(_cell_keys(rng, az, phi, size, radius_ref))
     m = counts.size
-    mean = np.empty((m, 3))
+    mean = np.zeros((m, 3))
     for j in range(2):
         mean[:, j] = np.bincount(inv, weights=p_L[:, j], minlength=m) / counts
-    mean[:, 2] = np.bincount(inv, weights=p_L[:, 2], minlength=m) / counts
     ph = np.bincount(inv, weights=phi, minlength=m) / counts
     r_mean = np.bincount(inv, weights=rng, minlength=m) / counts
     r_sq = np.bincount(inv, weights=rng * rng, minlength=m) / counts
@@ -302,59 +266,28 @@ def sensor_cells(
     return mean[keep], ph[keep]
 
 
-def weighted_normals(
-    points: FloatArray, k: int, query: NDArray[np.int64] | None = None
-) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Unit normals and planarity weights from the k nearest points (paper §IV-C).
-
-    ``points`` (N, 3); ``query`` optional indices of the points that need a normal (default
-    all). Returns ((Q, 3) unit normals, (Q,) weights, (Q, 3) neighbourhood centroids) with
-    ``w = 2(λ2 − λ3)/(λ1 + λ2 + λ3)``, λ1 ≥ λ2 ≥ λ3 the covariance eigenvalues: 1 on a plane,
-    0 on an edge or in a blob.
-    """
-    n = points.shape[0]
-    q = np.arange(n) if query is None else np.asarray(query, dtype=np.int64)
-    if n < 3 or q.size == 0:
-        return np.zeros((q.size, 3)), np.zeros(q.size), np.zeros((q.size, 3))
-    k = min(k, n)
-    _, idx = cKDTree(points).query(points[q], k=k)
-    nb = points[idx]  # (Q, k, 3)
-    mean = nb.mean(axis=1)
-    cov = np.empty((q.size, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            v = (nb[:, :, a] * nb[:, :, b]).mean(axis=1) - mean[:, a] * mean[:, b]
-            cov[:, a, b] = v
-            cov[:, b, a] = v
-    lam, vec = np.linalg.eigh(cov)  # ascending
-    l3, l2, l1 = lam[:, 0], lam[:, 1], lam[:, 2]
-    total = np.maximum(l1 + l2 + l3, 1e-30)
-    w = np.clip(2.0 * (l2 - l3) / total, 0.0, 1.0)
-    return vec[:, :, 0], w, mean
-
-
-def mutual_neighbours(
-    a: FloatArray, b: FloatArray, radius: float
-) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Index pairs (i, j) of mutual nearest neighbours between (N, 3) a and (M, 3) b within
-    ``radius`` metres (KD-tree)."""
-    if a.shape[0] == 0 or b.shape[0] == 0:
-        empty = np.zeros(0, dtype=np.int64)
-        return empty, empty.copy()
-    da, ia = cKDTree(b).query(a, distance_upper_bound=radius)
-    _, ib = cKDTree(a).query(b, distance_upper_bound=radius)
-    ok = np.isfinite(da)
-    i = np.flatnonzero(ok)
-    j = ia[ok]
-    mutual = ib[j] == i
-    return i[mutual].astype(np.int64), j[mutual].astype(np.int64)
-
-
 # --- the problem ------------------------------------------------------------------------------
 @dataclass
 class _Half:
+    """Returns (or cells) of one half-turn; ``rng``/``az`` their polar coordinates if known."""
+
     p_L: FloatArray
     phi: FloatArray
+    rng: FloatArray | None = None
+    az: FloatArray | None = None
+
+    def take(self, idx: NDArray[np.int64] | NDArray[np.bool_]) -> _Half:
+        polar = self.rng is not None and self.az is not None
+        return _Half(
+            self.p_L[idx],
+            self.phi[idx],
+            self.rng[idx] if polar and self.rng is not None else None,
+            self.az[idx] if polar and self.az is not None else None,
+        )
+
+    def cells(self, size: float) -> _Half:
+        polar = None if self.rng is None or self.az is None else (self.rng, self.az)
+        return _Half(*sensor_cells(self.p_L, self.phi, size, polar=polar))
 
 
 @dataclass
@@ -391,6 +324,9 @@ class _Problem:
         self.platter_weight = platter_weight
         self.free = free
         self.base = x6.copy()
+        self.swa = np.sqrt(matched.wa)
+        self.swb = np.sqrt(matched.wb)
+        self._nq: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
 
     def row_blocks(self) -> NDArray[np.int64]:
         """(rows,) the spatial block of each residual, in the order of :meth:`residuals`."""
@@ -405,18 +341,84 @@ class _Problem:
         x6[self.free] = x
         return x6
 
+    def _normals_in_q(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """Each match's normals turned back by its platter angles: with ``q = Rᵀ(p − t)``,
+        ``n·(D(pa) − D(pb)) = ña·qa − ñb·qb``, so the residuals and their derivatives need no
+        per-point rotation."""
+        if self._nq is None:
+            m = self.m
+
+            def back(n: FloatArray, c: FloatArray, s: FloatArray) -> FloatArray:
+                return np.column_stack(
+                    [n[:, 0], c * n[:, 1] - s * n[:, 2], s * n[:, 1] + c * n[:, 2]]
+                )
+
+            self._nq = (
+                back(m.na, m.ca, m.sa),
+                back(m.na, m.cb, m.sb),
+                back(m.nb, m.ca, m.sa),
+                back(m.nb, m.cb, m.sb),
+            )
+        return self._nq
+
     def residuals(self, x: FloatArray) -> FloatArray:
         x6 = self.full(x)
         m = self.m
-        d = to_dynamic(m.pa, m.ca, m.sa, x6) - to_dynamic(m.pb, m.cb, m.sb, x6)
+        R = _rotation(x6)
+        aa, ab, ba, bb = self._normals_in_q()
+        ua, ub = m.pa - x6[:3], m.pb - x6[:3]
         # point of B against A's local plane, and point of A against B's local plane
-        ra = np.sqrt(m.wa) * (np.einsum("ij,ij->i", m.na, d) + m.oa)
-        rb = np.sqrt(m.wb) * (np.einsum("ij,ij->i", m.nb, d) - m.ob)
+        ra = self.swa * (_rowdot(ua, aa @ R.T) - _rowdot(ub, ab @ R.T) + m.oa)
+        rb = self.swb * (_rowdot(ua, ba @ R.T) - _rowdot(ub, bb @ R.T) - m.ob)
         parts = [ra, rb]
         if self.platter is not None and self.platter.shape[0]:
-            axis = _rotation(x6)[:, 0]
-            parts.append(self.platter_weight * ((self.platter - x6[:3]) @ axis))
+            parts.append(self.platter_weight * ((self.platter - x6[:3]) @ R[:, 0]))
         return np.concatenate(parts)
+
+    def jacobian(self, x: FloatArray) -> FloatArray:
+        """(rows, free) derivatives of :meth:`residuals`, in closed form (the rotation's
+        derivatives by central differences of the 3×3 matrix, exact to ~1e-12)."""
+        x6 = self.full(x)
+        m = self.m
+        R = _rotation(x6)
+        aa, ab, ba, bb = self._normals_in_q()
+        ua, ub = m.pa - x6[:3], m.pb - x6[:3]
+        has_platter = self.platter is not None and self.platter.shape[0] > 0
+        cols = []
+        for i in self.free:
+            if i < 3:
+                ca = -self.swa * ((aa - ab) @ R.T)[:, i]
+                cb = -self.swb * ((ba - bb) @ R.T)[:, i]
+                cp = (
+                    np.full(self.platter.shape[0], -self.platter_weight * R[i, 0])
+                    if (has_platter and self.platter is not None)
+                    else np.zeros(0)
+                )
+            else:
+                dR = _rotation_derivative(x6, i)
+                ca = self.swa * (_rowdot(ua, aa @ dR.T) - _rowdot(ub, ab @ dR.T))
+                cb = self.swb * (_rowdot(ua, ba @ dR.T) - _rowdot(ub, bb @ dR.T))
+                cp = (
+                    self.platter_weight * ((self.platter - x6[:3]) @ dR[:, 0])
+                    if has_platter and self.platter is not None
+                    else np.zeros(0)
+                )
+            cols.append(np.concatenate([ca, cb, cp]))
+        return np.column_stack(cols)
+
+
+def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
+    out: FloatArray = np.einsum("ij,ij->i", a, b)
+    return out
+
+
+def _rotation_derivative(x6: FloatArray, i: int, h: float = 1e-6) -> FloatArray:
+    """∂R/∂x6[i] (i = 3, 4, 5: rx, ry, rz) by a central difference."""
+    up, down = x6.copy(), x6.copy()
+    up[i] += h
+    down[i] -= h
+    out: FloatArray = (_rotation(up) - _rotation(down)) / (2 * h)
+    return out
 
 
 def _free(gauge_ty: bool) -> list[int]:
@@ -462,19 +464,18 @@ def _platter_samples(
 def _subset(half: _Half, n: int | None, rng: np.random.Generator) -> _Half:
     if n is None or half.p_L.shape[0] <= n:
         return half
-    idx = np.sort(rng.choice(half.p_L.shape[0], n, replace=False))
-    return _Half(half.p_L[idx], half.phi[idx])
+    return half.take(np.sort(rng.choice(half.p_L.shape[0], n, replace=False)))
 
 
-def static_samples(p_static: FloatArray, n: int = 150_000, seed: int = 0) -> FloatArray:
-    """A fixed random subset of at most ``n`` static returns, (S, 3) in L.
+def static_samples(static: NDArray[np.int64], n: int = 150_000, seed: int = 0) -> NDArray[np.int64]:
+    """A fixed random subset of at most ``n`` of the indices ``static`` of static returns.
 
     Raw returns rather than per-bin averages: grouping by noisy range would bias the averages.
     """
-    if p_static.shape[0] <= n:
-        return p_static
+    if static.shape[0] <= n:
+        return static
     rng = np.random.default_rng(seed)
-    return p_static[np.sort(rng.choice(p_static.shape[0], n, replace=False))]
+    return static[np.sort(rng.choice(static.shape[0], n, replace=False))]
 
 
 # --- the algorithm ---------------------------------------------------------------------------
@@ -496,7 +497,6 @@ def periodicity_fine_tune_points(
     :class:`CalibrationResult` (strategy ``"periodicity"``, cost = mean weighted squared
     point-to-plane distance in m² at the last stage).
     """
-    t_start = time.perf_counter()
     p_L = np.asarray(p_L, dtype=np.float64)
     phi = np.asarray(phi, dtype=np.float64).reshape(-1)
     if p_L.ndim != 2 or p_L.shape[1] != 3 or p_L.shape[0] != phi.shape[0]:
@@ -508,78 +508,112 @@ def periodicity_fine_tune_points(
             f"the spin scan has only {p_L.shape[0]} valid returns; periodicity needs a full "
             "revolution of the spin target"
         )
-    span = float(np.nanmax(phi) - np.nanmin(phi))
+    return periodicity_fine_tune_scan(
+        prepare(p_L, phi),
+        start,
+        settings,
+        platter_radius=platter_radius,
+        progress=progress,
+        stages=stages,
+    )
+
+
+def _whole_revolutions(scan: SpinScan) -> NDArray[np.bool_]:
+    """(N,) the returns of the whole revolutions of the scan, so that every half-turn is seen
+    equally often; a clear error when the scan holds less than one."""
+    if scan.n_points < 1000:
+        raise FineTuningError(
+            f"the spin scan has only {scan.n_points} valid returns; periodicity needs a full "
+            "revolution of the spin target"
+        )
+    lo = float(np.nanmin(scan.phi))
+    span = float(np.nanmax(scan.phi)) - lo
     if span < 2 * math.pi * 0.98:
         raise FineTuningError(
             f"the spin scan covers {math.degrees(span):.0f}° of platter rotation; periodicity "
             "needs one full revolution (360°)"
         )
-    # whole revolutions only, so that every half-turn is seen equally often
     revolutions = max(1, math.floor(span / (2 * math.pi) + 0.02))
-    keep = phi < np.nanmin(phi) + revolutions * 2 * math.pi
-    p_L, phi = p_L[keep], phi[keep]
-    timings: dict[str, float] = {}
+    out: NDArray[np.bool_] = scan.phi < lo + revolutions * 2 * math.pi
+    return out
 
-    t0 = time.perf_counter()
-    static, noise = _static_and_noise(p_L)
-    p_static_all = static_samples(p_L[static])
-    rng = np.random.default_rng(0)
-    start6 = start.with_(rx=0.0).as_vector()
-    # generous region of interest around the platter under the start H
-    q0 = (p_L - start6[:3]) @ _rotation(start6)
-    roi = (
-        (q0[:, 0] > -0.2)
-        & (q0[:, 0] < 0.6)
-        & (np.hypot(q0[:, 1], q0[:, 2]) < platter_radius + 0.25)
-    )
-    phi_w = np.mod(phi, 2 * math.pi)
-    half_a = phi_w < math.pi
-    p_dyn = p_L[~static]
-    halves = [
-        _Half(p_L[sel & roi & ~static], phi_w[sel & roi & ~static]) for sel in (half_a, ~half_a)
-    ]
-    # the last stage keeps the static returns too and drops the platter by the height of its
-    # cells: the static test decides per noisy return, and near the target's foot it would keep
-    # the returns whose noise moved them off the platter's range (a selection on the noise)
-    halves_all = [_Half(p_L[sel & roi], phi_w[sel & roi]) for sel in (half_a, ~half_a)]
-    timings["prepare"] = time.perf_counter() - t0
+
+def _split(
+    scan: SpinScan, keep: NDArray[np.bool_], start6: FloatArray, platter_radius: float
+) -> tuple[list[_Half], list[_Half], FloatArray]:
+    """The two half-turns of the moving returns, the two half-turns of all returns, and a
+    subset of the static returns, within a generous region around the platter under the start.
+
+    The last stage keeps the static returns too and drops the platter by the height of its
+    cells: the static test decides per noisy return, and near the target's foot it would keep
+    the returns whose noise moved them off the platter's range (a selection on the noise).
+    """
+    R = _rotation(start6)
+    t_P = start6[:3] @ R
+    # x_P first, then the radius on what is left; the returns lie in the scan plane (z_L = 0)
+    x_P = scan.p_L[:, :2] @ R[:2, 0] - t_P[0]
+    idx = np.flatnonzero(keep & (x_P > -0.2) & (x_P < 0.6))
+    yz = scan.p_L[idx, :2] @ R[:2, 1:] - t_P[1:]
+    idx = idx[np.hypot(yz[:, 0], yz[:, 1]) < platter_radius + 0.25]
+    phi_w = np.mod(scan.phi[idx], 2 * math.pi)
+    first = phi_w < math.pi
+    moving = ~scan.static[idx]
+
+    def half(sel: NDArray[np.bool_]) -> _Half:
+        j = idx[sel]
+        return _Half(scan.p_L[j], phi_w[sel], scan.rng[j], scan.az[j])
+
+    halves_all = [half(first), half(~first)]
+    halves = [half(first & moving), half(~first & moving)]
+    static_idx = np.flatnonzero(keep & scan.static)
+    p_static = scan.p_L[static_samples(static_idx)]
     if min(h.p_L.shape[0] for h in halves) < 500:
         raise FineTuningError(
             f"too few moving returns on the spin target ({halves[0].p_L.shape[0]} and "
             f"{halves[1].p_L.shape[0]} in the two half-turns); is the spin target on the platter?"
         )
+    return halves, halves_all, p_static
 
-    final_voxel = final_cell_size([h.p_L for h in halves], [h.phi for h in halves], noise)
-    schedule_ = schedule(settings, final_voxel)[:stages]
-    x6 = start6.copy()
-    if settings.coarse_to_fine:
-        # keep the centroid alignment only where it helps: the view asymmetry of the two
-        # half-turns biases the centroids, so a good start can be better than its result
-        centred = _centre_halves(halves, x6, settings, np.random.default_rng(1))
-        first = schedule_[0]
-        cells = [_Half(*sensor_cells(h.p_L, h.phi, first.voxel)) for h in halves]
-        if _match(cells, centred, first)[0].pa.shape[0] > _match(cells, x6, first)[0].pa.shape[0]:
-            x6 = centred
-    history: list[dict[str, Any]] = []
-    last: tuple[Any, _Problem] | None = None
-    total_outer = 0
-    final_cost = math.nan
-    for s_i, stage in enumerate(schedule_):
-        t_stage = time.perf_counter()
+
+class _Run:
+    """The outer iterations of the stages: matching, solving, and what they leave behind."""
+
+    def __init__(
+        self,
+        start6: FloatArray,
+        p_static: FloatArray,
+        settings: PeriodicitySettings,
+        platter_radius: float,
+        progress: Progress | None,
+        n_stages: int,
+    ) -> None:
+        self.start6 = start6
+        self.p_static = p_static
+        self.settings = settings
+        self.platter_radius = platter_radius
+        self.progress = progress
+        self.n_stages = n_stages
+        self.history: list[dict[str, Any]] = []
+        self.last: tuple[Any, _Problem] | None = None
+        self.outer = 0
+        self.cost = math.nan
+        self.timings = {"cells": 0.0, "match": 0.0, "solve": 0.0}
+
+    def stage(self, s_i: int, stage: Stage, match: _Matcher, x6: FloatArray) -> FloatArray:
+        """Iterate one stage from ``x6``; returns the H (as a vector) it ends on."""
+        settings = self.settings
         gauge_ty = settings.gauge == "ty" or not stage.use_platter
         free = [i for i in _free(gauge_ty) if not (stage.hold_ry and i == IDX["ry"])]
-        source = halves if stage.hold_ry else halves_all
-        stage_halves = [
-            _Half(*sensor_cells(h.p_L, h.phi, stage.voxel))
-            for h in (_subset(h, stage.max_points, rng) for h in source)
-        ]
         for outer in range(stage.max_outer):
-            if progress is not None:
-                progress(
-                    f"periodicity stage {s_i + 1}/{len(schedule_)} ({stage.voxel * 1e3:.0f} mm)",
-                    (s_i + outer / stage.max_outer) / len(schedule_),
+            if self.progress is not None:
+                self.progress(
+                    f"periodicity stage {s_i + 1}/{self.n_stages} ({stage.voxel * 1e3:.0f} mm)",
+                    (s_i + outer / stage.max_outer) / self.n_stages,
                 )
-            matched, n_pts = _match(stage_halves, x6, stage)
+            t0 = time.perf_counter()
+            matched, n_pts = match(x6)
+            platter = self._platter(stage, x6)
+            t1 = time.perf_counter()
             n_matches = matched.pa.shape[0]
             if n_matches < 50:
                 raise FineTuningError(
@@ -588,21 +622,12 @@ def periodicity_fine_tune_points(
                     f"{stage.match_radius * 1e3:.0f} mm); the start is too far off or the spin "
                     "target is not seen in both half-turns"
                 )
-            platter = None
-            if stage.use_platter:
-                platter = _platter_samples(
-                    p_static_all, x6, max(0.003, stage.voxel), platter_radius
-                )
-                if platter.shape[0] < 20:
-                    raise FineTuningError(
-                        "gauge 'platter': the platter top is not visible in the spin scan "
-                        f"({platter.shape[0]} static returns near x_P = 0); use gauge: ty"
-                    )
             problem = _Problem(matched, platter, 1.0, free, x6)
-            lo, hi = _bounds(x6, start6, free, settings)
+            lo, hi = _bounds(x6, self.start6, free, settings)
             res = least_squares(
                 problem.residuals,
                 x6[free],
+                jac=problem.jacobian,
                 bounds=(lo, hi),
                 method="trf",
                 x_scale=np.full(len(free), 1e-3),
@@ -610,27 +635,87 @@ def periodicity_fine_tune_points(
                 ftol=settings.ftol,
                 max_nfev=settings.max_nfev,
             )
+            self.timings["match"] += t1 - t0
+            self.timings["solve"] += time.perf_counter() - t1
             new6 = problem.full(res.x)
             step = np.abs(new6 - x6)
             x6 = new6
-            total_outer += 1
-            final_cost = float(np.mean(res.fun**2))
-            last = (res, problem)
-            history.append(
+            self.outer += 1
+            self.cost = float(np.mean(res.fun**2))
+            self.last = (res, problem)
+            self.history.append(
                 {
                     "stage": s_i + 1,
                     "voxel_m": stage.voxel,
                     "points": n_pts,
                     "matches": int(n_matches),
                     "platter_samples": 0 if platter is None else int(platter.shape[0]),
-                    "cost": final_cost,
+                    "cost": self.cost,
                     "nfev": int(res.nfev),
                 }
             )
-            if _converged(history, outer, step, stage):
+            if _converged(self.history, outer, step, stage):
                 break
-        timings[f"stage{s_i + 1}"] = time.perf_counter() - t_stage
+        return x6
 
+    def _platter(self, stage: Stage, x6: FloatArray) -> FloatArray | None:
+        if not stage.use_platter:
+            return None
+        platter = _platter_samples(self.p_static, x6, max(0.003, stage.voxel), self.platter_radius)
+        if platter.shape[0] < 20:
+            raise FineTuningError(
+                "gauge 'platter': the platter top is not visible in the spin scan "
+                f"({platter.shape[0]} static returns near x_P = 0); use gauge: ty"
+            )
+        return platter
+
+
+def periodicity_fine_tune_scan(
+    scan: SpinScan,
+    start: Extrinsics,
+    settings: PeriodicitySettings = PeriodicitySettings(),
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    progress: Progress | None = None,
+    stages: int | None = None,
+) -> CalibrationResult:
+    """Periodicity fine-tuning on a prepared :class:`~calstation.spinscan.SpinScan`: as
+    :func:`periodicity_fine_tune_points`, without the per-scan preparation (done as the lines
+    arrived, or once for several fine-tunings)."""
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {f"scan_{k}": v for k, v in scan.timings.items()}
+    keep = _whole_revolutions(scan)
+    start6 = start.with_(rx=0.0).as_vector()
+    halves, halves_all, p_static_all = _split(scan, keep, start6, platter_radius)
+    noise = scan.noise
+    timings["prepare"] = time.perf_counter() - t_start
+    final_voxel = final_cell_size(
+        [h.p_L for h in halves],
+        [h.phi for h in halves],
+        noise,
+        [(h.rng, h.az) for h in halves if h.rng is not None and h.az is not None],
+    )
+    schedule_ = schedule(settings, final_voxel)[:stages]
+    x6 = start6.copy()
+    if settings.coarse_to_fine:
+        # keep the centroid alignment only where it helps: the view asymmetry of the two
+        # half-turns biases the centroids, so a good start can be better than its result
+        centred = _centre_halves(halves, x6, settings, np.random.default_rng(1))
+        first = schedule_[0]
+        cells = [h.cells(first.voxel) for h in halves]
+        if _match(cells, centred, first)[0].pa.shape[0] > _match(cells, x6, first)[0].pa.shape[0]:
+            x6 = centred
+    rng = np.random.default_rng(0)
+    run = _Run(start6, p_static_all, settings, platter_radius, progress, len(schedule_))
+    for s_i, stage in enumerate(schedule_):
+        t_stage = time.perf_counter()
+        source = halves if stage.hold_ry else halves_all
+        stage_halves = [_subset(h, stage.max_points, rng).cells(stage.voxel) for h in source]
+        run.timings["cells"] += time.perf_counter() - t_stage
+        x6 = run.stage(s_i, stage, _Matcher(stage_halves, stage), x6)
+        timings[f"stage{s_i + 1}"] = time.perf_counter() - t_stage
+    timings.update(run.timings)
+    history, last, total_outer, final_cost = run.history, run.last, run.outer, run.cost
     assert last is not None
     res, problem = last
     sigma_independent = parameter_sigma(res, problem.free)
@@ -663,14 +748,14 @@ def periodicity_fine_tune_points(
             "coarse_to_fine": settings.coarse_to_fine,
             "matches_per_iteration": [h["matches"] for h in history],
             "iterations": history,
-            "static_returns": int(static.sum()),
+            "static_returns": int(scan.static.sum()),
             "range_noise_m": noise,
             "sigma_independent": sigma_independent,
             "sigma_blocks": sigma_blocks,
             "sigma_noise_inflation": inflation,
             "covariance": covariance_record(reported_cov, problem.free),
             "final_cell_m": final_voxel,
-            "moving_returns": int(p_dyn.shape[0]),
+            "moving_returns": int((~scan.static).sum()),
             "ry_at_bound": bool(at_bound),
             "ry_bound_rad": [ry_lo, ry_hi],
             "rms_m": math.sqrt(final_cost),
@@ -678,23 +763,7 @@ def periodicity_fine_tune_points(
     )
 
 
-def _static_and_noise(p_L: FloatArray) -> tuple[NDArray[np.bool_], float]:
-    """The static returns and the range noise σ (m) of a spin scan.
-
-    The static test's range window must be wider than the noise, or a noisy platter ring is not
-    found static and its σ is underestimated: a first pass with 1 mm cells estimates σ, a second
-    uses cells of 1.5 σ (at least 1 mm).
-    """
-    static = static_mask(p_L)
-    noise = range_noise(p_L, static)
-    if math.isfinite(noise) and 1.5 * noise > 0.001:
-        noise = range_noise(p_L, static_mask(p_L, range_cell=1.5 * noise))
-    return static, noise
-
-
-def _converged(
-    history: list[dict[str, Any]], outer: int, step: FloatArray, stage: Stage
-) -> bool:
+def _converged(history: list[dict[str, Any]], outer: int, step: FloatArray, stage: Stage) -> bool:
     """Stop the outer loop of a stage?
 
     While ry is held, a stalled cost or a step below the cell's resolution ends the stage. Once
@@ -739,31 +808,103 @@ def _centre_halves(
     return out
 
 
+class _Matcher:
+    """Matches the two half-turns' cells of one stage under successive H.
+
+    The cells, their platter angles and each cell's neighbourhood within its own half are fixed
+    for the stage. A neighbourhood (the ``normal_neighbours`` nearest cells in D) is found under
+    the H of the stage's first iteration, and again only once H has moved by more than a cell:
+    a half-turn's reconstruction deforms smoothly with H, so its neighbourhoods stay while the
+    planes through them are refitted at every H. Only the matching between the halves, which
+    is what H changes, is searched again at every iteration. Cells well below the platter drop
+    (the platter top itself) are left out of the neighbourhoods until they are refreshed.
+    """
+
+    def __init__(self, halves: list[_Half], stage: Stage) -> None:
+        self.halves = halves
+        self.stage = stage
+        self.cs = [(np.cos(h.phi), np.sin(h.phi)) for h in halves]
+        self.candidates: list[NDArray[np.int64]] = []
+        self.frozen: list[FloatArray] = []
+        self.trees: list[Any] = []
+        self.neighbourhoods: list[NDArray[np.int64]] = []
+        self.x6: FloatArray | None = None
+
+    def _stale(self, x6: FloatArray) -> bool:
+        if self.x6 is None:
+            return True
+        moved = np.abs(x6 - self.x6)
+        return bool(moved[:3].max() > self.stage.voxel or moved[3:].max() * 0.3 > self.stage.voxel)
+
+    def _refresh(self, d_all: list[FloatArray], x6: FloatArray) -> None:
+        drop = self.stage.platter_drop
+        # half the drop height: clear of the platter top, with room for H to move
+        self.candidates = [
+            np.arange(d.shape[0]) if drop is None else np.flatnonzero(d[:, 0] > drop / 2)
+            for d in d_all
+        ]
+        self.frozen = [d[cand] for d, cand in zip(d_all, self.candidates, strict=True)]
+        self.trees = [tree(f) for f in self.frozen]
+        k = min(self.stage.normal_neighbours, *(f.shape[0] for f in self.frozen))
+        self.neighbourhoods = [np.full((f.shape[0], k), -1, dtype=np.int64) for f in self.frozen]
+        self.x6 = x6.copy()
+
+    def _neighbourhoods(self, half: int, pos: NDArray[np.int64]) -> NDArray[np.int64]:
+        """(Q, k) neighbourhoods (indices into the half's cells) of the candidates ``pos``,
+        searched on first use under the H of the last refresh."""
+        table = self.neighbourhoods[half]
+        missing = np.unique(pos[table[pos, 0] < 0])
+        if missing.size:
+            found = knn(self.trees[half], self.frozen[half][missing], table.shape[1])
+            table[missing] = self.candidates[half][found]
+        return table[pos]
+
+    def __call__(self, x6: FloatArray) -> tuple[_Matched, int]:
+        """Map both halves to D under H, drop the platter, match, fit the local planes."""
+        stage = self.stage
+        stale = self._stale(x6)
+        (ha, hb), (ca, sa), (cb, sb) = self.halves, self.cs[0], self.cs[1]
+        d_all = list(pair(to_dynamic, (ha.p_L, ca, sa, x6), (hb.p_L, cb, sb, x6)))
+        if stale:
+            self._refresh(d_all, x6)
+        kept = []  # positions in the candidates
+        for d, cand in zip(d_all, self.candidates, strict=True):
+            drop = stage.platter_drop
+            kept.append(np.arange(cand.size) if drop is None else np.flatnonzero(d[cand, 0] > drop))
+        ka, kb = self.candidates[0][kept[0]], self.candidates[1][kept[1]]
+        da, db = d_all[0][ka], d_all[1][kb]
+        i, j = mutual_neighbours(da, db, stage.match_radius)
+        (na, wa, ma), (nb, wb, mb) = pair(
+            local_planes,
+            (d_all[0], self._neighbourhoods(0, kept[0][i])),
+            (d_all[1], self._neighbourhoods(1, kept[1][j])),
+        )
+        # each residual measures a point against the other half's local plane fit (through its
+        # neighbourhood centroid), not against one noisy point; the offset moves with the point
+        oa = np.einsum("ij,ij->i", na, ma - da[i])
+        ob = np.einsum("ij,ij->i", nb, mb - db[j])
+        gi, gj = ka[i], kb[j]
+        matched = _Matched(
+            ha.p_L[gi],
+            ca[gi],
+            sa[gi],
+            hb.p_L[gj],
+            cb[gj],
+            sb[gj],
+            na,
+            nb,
+            wa,
+            wb,
+            oa,
+            ob,
+            block_ids(da[i], SIGMA_BLOCK),
+        )
+        return matched, int(da.shape[0] + db.shape[0])
+
+
 def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched, int]:
-    """Map both half-turns' cells to D under H, drop the platter, match, compute normals."""
-    mapped: list[tuple[FloatArray, FloatArray, FloatArray, FloatArray]] = []
-    n_pts = 0
-    for h in halves:
-        c, s = np.cos(h.phi), np.sin(h.phi)
-        d = to_dynamic(h.p_L, c, s, x6)
-        if stage.platter_drop is not None:
-            keep = d[:, 0] > stage.platter_drop
-            d, pl, c, s = d[keep], h.p_L[keep], c[keep], s[keep]
-        else:
-            pl = h.p_L
-        mapped.append((d, pl, c, s))
-        n_pts += d.shape[0]
-    (da, pa, ca, sa), (db, pb, cb, sb) = mapped
-    i, j = mutual_neighbours(da, db, stage.match_radius)
-    na, wa, ma = weighted_normals(da, stage.normal_neighbours, i)
-    nb, wb, mb = weighted_normals(db, stage.normal_neighbours, j)
-    # each residual measures a point against the other half's local plane fit (through its
-    # neighbourhood centroid), not against one noisy point; the offset moves with the point
-    oa = np.einsum("ij,ij->i", na, ma - da[i])
-    ob = np.einsum("ij,ij->i", nb, mb - db[j])
-    block = block_ids(da[i], SIGMA_BLOCK)
-    matched = _Matched(pa[i], ca[i], sa[i], pb[j], cb[j], sb[j], na, nb, wa, wb, oa, ob, block)
-    return matched, n_pts
+    """Match the two half-turns' cells once under H (:class:`_Matcher`)."""
+    return _Matcher(halves, stage)(x6)
 
 
 SIGMA_BLOCK = 0.02
@@ -775,9 +916,10 @@ def block_ids(points: FloatArray, size: float) -> NDArray[np.int64]:
     if points.shape[0] == 0:
         return np.zeros(0, dtype=np.int64)
     cells = np.floor(points / size).astype(np.int64)
-    _, inv = np.unique(cells, axis=0, return_inverse=True)
-    out: NDArray[np.int64] = inv.reshape(-1).astype(np.int64)
-    return out
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    return _groups(key)[0]
 
 
 NOISE_BIAS_GAIN = 0.5
@@ -873,10 +1015,13 @@ def periodicity_fine_tune(
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Periodicity fine-tuning on a spin-scan :class:`~calstation.recording.Recording`."""
-    p_L, phi = recording.points_lidar()
     try:
-        return periodicity_fine_tune_points(
-            p_L, phi, start, settings, platter_radius=platter_radius, progress=progress
+        return periodicity_fine_tune_scan(
+            from_recording(recording),
+            start,
+            settings,
+            platter_radius=platter_radius,
+            progress=progress,
         )
     except FineTuningError as exc:
         raise FineTuningError(f"{recording.path}: {exc}") from None

@@ -10,16 +10,15 @@ import pytest
 from calstation.errors import FineTuningError
 from calstation.frames import Extrinsics, polar_to_lidar
 from calstation.metrics import axis_errors
+from calstation.neighbours import mutual_neighbours, weighted_normals
 from calstation.periodicity import (
-    mutual_neighbours,
     periodicity_fine_tune,
     periodicity_fine_tune_points,
     sensor_cells,
-    static_mask,
-    weighted_normals,
 )
 from calstation.recipe import PeriodicitySettings, load_recipe
 from calstation.recording import read_recording
+from calstation.spinscan import static_mask
 
 
 def test_weighted_normals_plane_and_line() -> None:

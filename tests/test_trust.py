@@ -20,10 +20,11 @@ from calstation.errors import ObservabilityError
 from calstation.frames import Extrinsics, polar_to_lidar
 from calstation.metrics import axis_errors
 from calstation.observability import check_sigma, sigma_problems
-from calstation.periodicity import final_cell_size, noise_inflation, range_noise
+from calstation.periodicity import final_cell_size, noise_inflation
 from calstation.recipe import SigmaLimits, load_recipe
 from calstation.recording import read_recording
 from calstation.result import CalibrationResult
+from calstation.spinscan import range_noise
 from calstation.strategies import PeriodicityStrategy
 
 REPO = Path(__file__).resolve().parents[1]

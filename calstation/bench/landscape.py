@@ -159,13 +159,9 @@ def _periodicity_cost(
     cost = mean over matches of w·(n·(x − x′))², both ends' planes. The platter gauge residual
     is not included (it is calstation's gauge, not the paper's cost).
     """
-    from ..periodicity import (
-        mutual_neighbours,
-        sensor_cells,
-        static_mask,
-        to_dynamic,
-        weighted_normals,
-    )
+    from ..neighbours import mutual_neighbours, weighted_normals
+    from ..periodicity import sensor_cells, to_dynamic
+    from ..spinscan import static_mask
 
     settings = recipe.calibration.periodicity
     p_L, phi = recording.points_lidar()
@@ -215,8 +211,8 @@ def _shape_cost(
     the recipe selects (``calibration.options.shape.box``, default upright)."""
     from ..frames import lidar_to_dynamic
     from ..geometry import segment_above_platter
-    from ..periodicity import static_mask
     from ..shape import ShapeCost
+    from ..spinscan import static_mask
 
     cube = recipe.fixtures.qa_cube
     radius = recipe.fixtures.platter.radius

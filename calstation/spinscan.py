@@ -1,0 +1,178 @@
+"""A spin scan made ready for fine-tuning: returns in L with their platter angles, their polar
+coordinates, the static returns and the range noise.
+
+This is the per-scan work of the fine-tuning, done once: the periodicity stages and the shape
+passes reuse it. :class:`SpinScanBuilder` does the per-line part as the lines arrive (in the
+station and in ``calstation run``), so that only the whole-scan part is left when the scan
+ends (docs/performance.md).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .frames import FloatArray, lidar_to_polar
+
+if TYPE_CHECKING:
+    from .recording import Recording
+
+STATIC_BIN_DEG = 0.1
+"""Azimuth bin of the static test (degrees)."""
+
+DENSE_LIMIT = 20_000_000
+"""Largest (azimuth bin × range cell) grid counted densely (int64 counts: 160 MB)."""
+
+NOISE_SAMPLE = 300_000
+"""Returns used to estimate the range noise (a regular subset of the scan)."""
+
+
+def static_mask(
+    p_L: FloatArray | None = None,
+    *,
+    polar: tuple[FloatArray, FloatArray] | None = None,
+    bin_deg: float = STATIC_BIN_DEG,
+    range_cell: float = 0.001,
+    fraction: float = 0.6,
+) -> NDArray[np.bool_]:
+    """(N,) True for returns that sit at the same place in L for most of the scan.
+
+    Per azimuth bin of ``bin_deg``, a return is static when at least ``fraction`` of the bin's
+    returns lie within ±2.5 ``range_cell`` of it: the platter ring, the background, faces of
+    revolution. Independent of H. Give the returns as (N, 3) ``p_L`` or as ``polar`` (range,
+    azimuth) arrays.
+    """
+    if polar is None:
+        if p_L is None:
+            raise ValueError("static_mask needs the returns as p_L or as polar")
+        polar = lidar_to_polar(p_L)
+    rng, az = polar
+    if rng.size == 0:
+        return np.zeros(0, dtype=bool)
+    b = np.floor(az / math.radians(bin_deg)).astype(np.int64)
+    b -= b.min()
+    c = np.floor(rng / range_cell).astype(np.int64)
+    c -= c.min()
+    # two empty cells either side of each bin's range cells keep the windows inside the bin
+    ncell = int(c.max()) + 5
+    key = b * ncell + c
+    key += 2
+    size = (int(b.max()) + 1) * ncell
+    if size <= DENSE_LIMIT:
+        # the count in the window key − 2 … key + 2 from a running sum: no sort of the returns
+        running = np.zeros(size + 1, dtype=np.int64)
+        np.cumsum(np.bincount(key, minlength=size), out=running[1:])
+        near = running[key + 3] - running[key - 2]
+    else:
+        uniq, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+        near_u = np.zeros_like(cnt)
+        for k in (-2, -1, 0, 1, 2):
+            pos = np.searchsorted(uniq, uniq + k)
+            hit = (pos < uniq.size) & (uniq[np.minimum(pos, uniq.size - 1)] == uniq + k)
+            near_u[hit] += cnt[pos[hit]]
+        near = near_u[inv]
+    per_bin = np.bincount(b)
+    out: NDArray[np.bool_] = near >= fraction * np.maximum(per_bin[b], 1)
+    return out
+
+
+def range_noise(
+    p_L: FloatArray | None,
+    static: NDArray[np.bool_],
+    *,
+    polar: tuple[FloatArray, FloatArray] | None = None,
+    az_quantum: float = 1e-4,
+) -> float:
+    """Range noise σ (m) of the lidar, from the static returns of one scan.
+
+    Static returns (the platter ring, the background) come back at the same range for the same
+    azimuth whatever the platter angle, so their spread per azimuth is the range noise. Azimuths
+    are grouped in ``az_quantum`` rad (0.1 mm across at 1 m); the σ is 1.4826 × the median of the
+    per-azimuth median absolute deviations (robust to mixed pixels). NaN when fewer than 20
+    azimuths have 5 static returns.
+    """
+    if int(static.sum()) < 100:
+        return math.nan
+    if polar is None:
+        assert p_L is not None
+        rng, az = lidar_to_polar(p_L[static])
+    else:
+        rng, az = polar[0][static], polar[1][static]
+    key = np.floor(az / az_quantum).astype(np.int64)
+    order = np.lexsort((rng, key))  # by azimuth group, then range
+    key, rng = key[order], rng[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    counts = np.diff(np.r_[starts, key.size])
+    group = np.repeat(np.arange(starts.size), counts)
+    mid = starts + (counts - 1) // 2
+    dev = np.abs(rng - rng[mid][group])
+    mad = dev[np.lexsort((dev, group))][mid]
+    ok = counts >= 5
+    if int(ok.sum()) < 20:
+        return math.nan
+    return float(1.4826 * np.median(mad[ok]))
+
+
+def static_and_noise(rng: FloatArray, az: FloatArray) -> tuple[NDArray[np.bool_], float]:
+    """The static returns (1 mm range cells) and the range noise σ (m) of a spin scan.
+
+    The static test's range window must be wider than the noise, or a noisy platter ring is not
+    found static and its σ is underestimated: a first pass with 1 mm cells estimates σ, a second
+    uses cells of 1.5 σ (at least 1 mm). The σ comes from a regular subset of
+    :data:`NOISE_SAMPLE` returns (every azimuth keeps its share; the static test is a fraction,
+    so it is unchanged by the subset).
+    """
+    static = static_mask(polar=(rng, az))
+    step = max(1, math.ceil(rng.size / NOISE_SAMPLE))
+    sub = (rng[::step], az[::step])
+    noise = range_noise(None, static[::step], polar=sub)
+    if math.isfinite(noise) and 1.5 * noise > 0.001:
+        noise = range_noise(None, static_mask(polar=sub, range_cell=1.5 * noise), polar=sub)
+    return static, noise
+
+
+@dataclass
+class SpinScan:
+    """A spin scan ready for fine-tuning (all arrays share the order of the returns)."""
+
+    p_L: FloatArray
+    """(N, 3) valid returns in L (m)"""
+    phi: FloatArray
+    """(N,) platter angles (rad, unwrapped)"""
+    rng: FloatArray
+    """(N,) ranges (m)"""
+    az: FloatArray
+    """(N,) azimuths (rad)"""
+    static: NDArray[np.bool_]
+    """(N,) returns that stay put over the scan (:func:`static_mask`)"""
+    noise: float
+    """range noise σ (m); NaN when the scan has too few static returns"""
+    timings: dict[str, float] = field(default_factory=dict)
+    """seconds spent preparing, by step"""
+
+    @property
+    def n_points(self) -> int:
+        return int(self.phi.shape[0])
+
+
+def prepare(p_L: FloatArray, phi: FloatArray) -> SpinScan:
+    """:class:`SpinScan` from (N, 3) returns in L and their (N,) platter angles."""
+    t0 = time.perf_counter()
+    p_L = np.asarray(p_L, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64).reshape(-1)
+    rng, az = lidar_to_polar(p_L) if p_L.shape[0] else (np.zeros(0), np.zeros(0))
+    t1 = time.perf_counter()
+    static, noise = static_and_noise(rng, az) if rng.size else (np.zeros(0, bool), math.nan)
+    t2 = time.perf_counter()
+    return SpinScan(p_L, phi, rng, az, static, noise, {"polar": t1 - t0, "static": t2 - t1})
+
+
+def from_recording(recording: Recording) -> SpinScan:
+    """:class:`SpinScan` of a recording's valid returns with a known platter angle."""
+    p_L, phi = recording.points_lidar()
+    return prepare(p_L, phi)
