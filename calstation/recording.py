@@ -527,6 +527,30 @@ def _recording_from_lines(w: RecordingWriter, buf: _CloudBuffer, max_points: int
     )
 
 
+def encoder_angle(
+    t_ns: NDArray[np.int64],
+    encoder_t_ns: NDArray[np.int64],
+    encoder_count: NDArray[np.int64],
+    counts_per_revolution: int,
+    encoder_direction: int,
+    encoder_latency_s: float,
+) -> NDArray[np.float64]:
+    """Platter angle φ (rad, unwrapped) at lidar times ``t_ns`` from encoder readings in time
+    order (at least one), as :meth:`Recording.platter_angle` describes: linear interpolation of
+    the counts after shifting the encoder's times by its latency; NaN outside the readings'
+    span unless the platter never moved."""
+    counts = encoder_count.astype(np.float64)
+    if np.all(encoder_count == encoder_count[0]):
+        phi0 = counts_to_angle(counts[0], counts_per_revolution, encoder_direction)
+        return np.full(t_ns.shape, float(phi0))
+    t0 = int(encoder_t_ns[0])
+    latency_ns = round(encoder_latency_s * 1e9)
+    enc_s = (encoder_t_ns - t0 - latency_ns).astype(np.float64) * 1e-9
+    query_s = (t_ns - t0).astype(np.float64) * 1e-9
+    c = np.interp(query_s, enc_s, counts, left=np.nan, right=np.nan)
+    return counts_to_angle(c, counts_per_revolution, encoder_direction)
+
+
 # --- the recording -------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Recording:
@@ -622,22 +646,30 @@ class Recording:
             raise RecordingError(
                 f"recording {self.path} has no encoder readings: the platter angle is unknown"
             )
-        counts = self.encoder_count.astype(np.float64)
-        if np.all(self.encoder_count == self.encoder_count[0]):
-            phi0 = counts_to_angle(counts[0], self.counts_per_revolution, self.encoder_direction)
-            return np.full(t.shape, float(phi0))
-        t0 = int(self.encoder_t_ns[0])
-        latency_ns = round(self.encoder_latency_s * 1e9)
-        enc_s = (self.encoder_t_ns - t0 - latency_ns).astype(np.float64) * 1e-9
-        query_s = (t - t0).astype(np.float64) * 1e-9
-        c = np.interp(query_s, enc_s, counts, left=np.nan, right=np.nan)
-        return counts_to_angle(c, self.counts_per_revolution, self.encoder_direction)
+        return encoder_angle(
+            t,
+            self.encoder_t_ns,
+            self.encoder_count,
+            self.counts_per_revolution,
+            self.encoder_direction,
+            self.encoder_latency_s,
+        )
 
     def points_lidar(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Valid points with a known platter angle: ((N, 3) in frame L, metres; (N,) φ, rad).
 
         Invalid returns and points outside the encoder's time span (φ NaN) are left out.
         """
+        p_L, phi, _, _ = self.valid_returns()
+        return p_L, phi
+
+    def valid_returns(
+        self,
+    ) -> tuple[
+        NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]
+    ]:
+        """As :meth:`points_lidar`, plus the same returns' (N,) ranges (m) and azimuths (rad)
+        as measured: ``(p_L, φ, range, azimuth)``."""
         idx = np.flatnonzero(self.valid)
         phi = self.platter_angle(self.t_ns[idx])
         keep = np.isfinite(phi)
@@ -649,7 +681,7 @@ class Recording:
         p_L = np.zeros((len(idx), 3))
         np.multiply(rng, np.sin(az), out=p_L[:, 0])
         np.multiply(rng, np.cos(az), out=p_L[:, 1])
-        return p_L, phi
+        return p_L, phi, rng, az
 
     def line_bounds(self) -> NDArray[np.int64]:
         """(L+1,) offsets: the points of line i are ``[bounds[i], bounds[i+1])``."""

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -20,6 +22,7 @@ from numpy.typing import NDArray
 from .frames import FloatArray, lidar_to_polar
 
 if TYPE_CHECKING:
+    from .drivers import EncoderSample, LidarLine
     from .recording import Recording
 
 STATIC_BIN_DEG = 0.1
@@ -160,12 +163,19 @@ class SpinScan:
         return int(self.phi.shape[0])
 
 
-def prepare(p_L: FloatArray, phi: FloatArray) -> SpinScan:
-    """:class:`SpinScan` from (N, 3) returns in L and their (N,) platter angles."""
+def prepare(
+    p_L: FloatArray,
+    phi: FloatArray,
+    polar: tuple[FloatArray, FloatArray] | None = None,
+) -> SpinScan:
+    """:class:`SpinScan` from (N, 3) returns in L and their (N,) platter angles; ``polar``: the
+    returns' (range, azimuth) as measured, when known (else computed from ``p_L``)."""
     t0 = time.perf_counter()
     p_L = np.asarray(p_L, dtype=np.float64)
     phi = np.asarray(phi, dtype=np.float64).reshape(-1)
-    rng, az = lidar_to_polar(p_L) if p_L.shape[0] else (np.zeros(0), np.zeros(0))
+    if polar is None:
+        polar = lidar_to_polar(p_L) if p_L.shape[0] else (np.zeros(0), np.zeros(0))
+    rng, az = polar
     t1 = time.perf_counter()
     static, noise = static_and_noise(rng, az) if rng.size else (np.zeros(0, bool), math.nan)
     t2 = time.perf_counter()
@@ -173,6 +183,138 @@ def prepare(p_L: FloatArray, phi: FloatArray) -> SpinScan:
 
 
 def from_recording(recording: Recording) -> SpinScan:
-    """:class:`SpinScan` of a recording's valid returns with a known platter angle."""
-    p_L, phi = recording.points_lidar()
-    return prepare(p_L, phi)
+    """:class:`SpinScan` of a recording's valid returns with a known platter angle.
+
+    When the scan was prepared while it was recorded (:class:`SpinScanBuilder` handed to
+    :func:`remember`) and the file is unchanged since, that preparation is finished and used.
+    """
+    builder = _take_remembered(recording.path)
+    if builder is not None:
+        return builder.finish()
+    t0 = time.perf_counter()
+    p_L, phi, rng, az = recording.valid_returns()
+    t1 = time.perf_counter()
+    scan = prepare(p_L, phi, (rng, az))
+    scan.timings["points"] = t1 - t0
+    return scan
+
+
+class SpinScanBuilder:
+    """Prepares a spin scan while its lines arrive.
+
+    Fed beside the recording writer (the same ``write_line`` / ``write_encoder`` /
+    ``write_turntable`` calls), it keeps each line's valid returns, converts them to L and
+    stamps their times as the line arrives. :meth:`finish` then only interpolates the platter
+    angles and finds the static returns and the range noise over the whole scan. The result is
+    the :class:`SpinScan` that :func:`prepare` makes from the recording's points.
+    """
+
+    def __init__(
+        self, counts_per_revolution: int, encoder_direction: int, encoder_latency_s: float
+    ) -> None:
+        self.counts_per_revolution = counts_per_revolution
+        self.encoder_direction = encoder_direction
+        self.encoder_latency_s = encoder_latency_s
+        self._t: list[NDArray[np.int64]] = []
+        self._p: list[FloatArray] = []
+        self._rng: list[FloatArray] = []
+        self._az: list[FloatArray] = []
+        self._enc_t: list[int] = []
+        self._enc_c: list[int] = []
+        self.during_s = 0.0
+        """seconds of per-line work done while the scan ran"""
+        self._done: SpinScan | None = None
+
+    def write_line(self, line: LidarLine) -> None:
+        t0 = time.perf_counter()
+        valid = np.asarray(line.valid, dtype=bool)
+        rng = np.asarray(line.range_m, dtype=np.float64)[valid]
+        az = np.asarray(line.azimuth_rad, dtype=np.float64)[valid]
+        p = np.zeros((rng.size, 3))
+        np.multiply(rng, np.sin(az), out=p[:, 0])
+        np.multiply(rng, np.cos(az), out=p[:, 1])
+        self._t.append(line.point_times_ns()[valid])
+        self._p.append(p)
+        self._rng.append(rng)
+        self._az.append(az)
+        self.during_s += time.perf_counter() - t0
+
+    def write_encoder(self, samples: Iterable[EncoderSample]) -> None:
+        for sample in samples:
+            self._enc_t.append(int(sample.timestamp_ns))
+            self._enc_c.append(int(sample.count))
+
+    def write_turntable(self, status: object) -> None:
+        """Turntable states carry nothing the fine-tuning needs."""
+
+    def finish(self) -> SpinScan:
+        """The prepared scan (computed once; later calls return the same object)."""
+        if self._done is not None:
+            return self._done
+        from .errors import RecordingError
+        from .recording import encoder_angle
+
+        t0 = time.perf_counter()
+        if not self._enc_t:
+            raise RecordingError(
+                "the spin scan has no encoder readings: the platter angle is unknown"
+            )
+        enc_t = np.asarray(self._enc_t, dtype=np.int64)
+        order = np.argsort(enc_t, kind="stable")
+        t = np.concatenate(self._t) if self._t else np.zeros(0, dtype=np.int64)
+        phi = encoder_angle(
+            t,
+            enc_t[order],
+            np.asarray(self._enc_c, dtype=np.int64)[order],
+            self.counts_per_revolution,
+            self.encoder_direction,
+            self.encoder_latency_s,
+        )
+        keep = np.isfinite(phi)
+        p_L = np.concatenate(self._p) if self._p else np.zeros((0, 3))
+        rng = np.concatenate(self._rng) if self._rng else np.zeros(0)
+        az = np.concatenate(self._az) if self._az else np.zeros(0)
+        if not keep.all():
+            p_L, phi, rng, az = p_L[keep], phi[keep], rng[keep], az[keep]
+        self._t, self._p, self._rng, self._az = [], [], [], []
+        t1 = time.perf_counter()
+        static, noise = static_and_noise(rng, az) if rng.size else (np.zeros(0, bool), math.nan)
+        t2 = time.perf_counter()
+        self._done = SpinScan(
+            p_L,
+            phi,
+            rng,
+            az,
+            static,
+            noise,
+            {"during_scan": self.during_s, "points": t1 - t0, "static": t2 - t1},
+        )
+        return self._done
+
+
+_REMEMBERED: dict[str, tuple[int, int, SpinScanBuilder]] = {}
+"""The last spin scan prepared while it was recorded: resolved path → (size, mtime, builder)."""
+
+
+def remember(path: Path, builder: SpinScanBuilder) -> None:
+    """Keep ``builder`` for the recording just written at ``path`` (only the latest is kept:
+    one spin scan's returns are a few hundred MB)."""
+    st = path.stat()
+    _REMEMBERED.clear()
+    _REMEMBERED[str(path.resolve())] = (st.st_size, st.st_mtime_ns, builder)
+
+
+def _take_remembered(path: Path | str) -> SpinScanBuilder | None:
+    key = str(Path(path).resolve())
+    entry = _REMEMBERED.get(key)
+    if entry is None:
+        return None
+    size, mtime, builder = entry
+    try:
+        st = Path(path).stat()
+    except OSError:
+        return None
+    if (st.st_size, st.st_mtime_ns) != (size, mtime):
+        _REMEMBERED.pop(key, None)  # the file changed since: read it again
+        return None
+    return builder

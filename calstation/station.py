@@ -70,6 +70,8 @@ from .operator import Operator, publish
 from .recipe import LoadedRecipe, check_plugins, parse_recipe
 from .report import previous_accepted, run_brief, run_summary
 from .result import CalibrationResult
+from .spinscan import SpinScanBuilder
+from .spinscan import remember as remember_spin_scan
 
 if TYPE_CHECKING:
     from .frames import Extrinsics
@@ -234,6 +236,8 @@ class Station:
         db.log_path = self.run_dir / "database.log"  # SQL of database faults, never the console
         db.on_wait = lambda message: ui.warn(escape(message))
         self._partial: list[tuple[str, Path]] = []
+        self._scan_ended: float | None = None
+        """when this process's last spin scan ended (monotonic s)"""
         self.machine = Machine(
             model=self, states=list(STATES), initial="idle", auto_transitions=False
         )
@@ -547,6 +551,11 @@ class Station:
         for warning in warnings:
             self.ui.warn(warning)
         self.ui.info(f"  {strategy.name}: {_fmt_h(result.H.as_dict())}")
+        after_scan = None
+        if self._scan_ended is not None:
+            # the spin scan was taken by this process: how long the operator waited for H
+            after_scan = time.monotonic() - self._scan_ended
+            self.ui.info(f"  result ready {after_scan:.1f} s after the scan ended")
         # a spin-target strategy's ry is gated after the cube scan has added its faces to it
         later = ("ry",) if strategy.fixture == "spin_target" else ()
         try:
@@ -557,7 +566,8 @@ class Station:
             raise
         return StepOutcome(
             {"strategy": strategy.name, "H": result.H.as_dict(), "cost": plain(result.cost),
-             "iterations": result.iterations},
+             "iterations": result.iterations, "after_scan_s": after_scan,
+             "prepared_while_scanning": "scan_during_scan" in result.timings},
             calibration=("fine", result),
         )
 
@@ -745,8 +755,19 @@ class Station:
             ) as writer,
             self.ui.progress(f"{kind} scan") as progress,
         ):
-            acquire(_PublishingWriter(writer, self.ui, kind), progress)
+            # the spin scan's per-line work for the fine-tuning is done as the lines arrive
+            builder = (
+                SpinScanBuilder(
+                    d.encoder.counts_per_revolution, enc.direction, enc.latency_s
+                )
+                if kind == "spin"
+                else None
+            )
+            acquire(_PublishingWriter(writer, self.ui, kind, builder), progress)
         self._partial = []
+        if builder is not None:
+            self._scan_ended = time.monotonic()
+            remember_spin_scan(path, builder)
         return path
 
     def _attempts(self, step: str) -> int:
@@ -958,14 +979,23 @@ class Station:
 
 
 class _PublishingWriter:
-    """A recording writer that also publishes each lidar line to the operator (live preview)."""
+    """A recording writer that also publishes each lidar line to the operator (live preview)
+    and, for a spin scan, hands it to the fine-tuning's preparation (``builder``)."""
 
-    def __init__(self, inner: Any, ui: Operator, kind: str) -> None:
-        self._inner, self._ui, self._kind = inner, ui, kind
+    def __init__(self, inner: Any, ui: Operator, kind: str, builder: Any = None) -> None:
+        self._inner, self._ui, self._kind, self._builder = inner, ui, kind, builder
 
     def write_line(self, line: Any) -> None:
         self._inner.write_line(line)
+        if self._builder is not None:
+            self._builder.write_line(line)
         publish(self._ui, "lidar_line", kind=self._kind, line=line)
+
+    def write_encoder(self, samples: Any) -> None:
+        batch = list(samples)
+        self._inner.write_encoder(batch)
+        if self._builder is not None:
+            self._builder.write_encoder(batch)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._inner, name)

@@ -236,6 +236,12 @@ def test_run_until_abort_commits_each_step_and_stops_the_motor(
         ("spin_scan", 1, "passed"), ("fine_tune", 1, "passed"), ("place_qa_cube", 1, "aborted"),
     ]
     assert ui.placed == ["static_target", "spin_target", "qa_cube"]
+    # the spin scan was prepared as it arrived: the fine-tuning says how long after the scan
+    # its result was ready
+    with db.session() as s:
+        fine = s.query(Step).filter_by(run_id=run_id, name="fine_tune").one().result
+    assert fine is not None and 0 < fine["after_scan_s"] < 120
+    assert any("after the scan ended" in line for line in ui.messages)
     # abort: the motor got an emergency stop and a stop, whatever it was doing
     assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]
     run_dir = tmp_path / "data" / "runs" / str(run_id)
