@@ -589,6 +589,9 @@ class Recording:
     line_point_period_ns: NDArray[np.float64] | None = None
     line_has_offsets: NDArray[np.bool_] | None = None
     attachments: dict[str, bytes] = field(default_factory=dict)
+    derived: dict[str, Any] = field(default_factory=dict, init=False, compare=False, repr=False)
+    """What is computed once from the data and reused (the prepared spin scan of
+    :func:`calstation.spinscan.from_recording`)."""
 
     # --- summaries -----------------------------------------------------------------------
     @property

@@ -58,3 +58,11 @@ def test_a_remembered_scan_is_used_only_while_its_file_is_unchanged(sim_run, tmp
     path.unlink()
     path.write_bytes(data + b"\0")
     assert from_recording(read_recording(path)) is not builder.finish()
+
+
+def test_several_fine_tunings_of_one_recording_prepare_it_once(sim_run) -> None:
+    rec = read_recording(sim_run()["spin"])
+    first = from_recording(rec)
+    assert from_recording(rec) is first
+    # another reading of the file is prepared on its own
+    assert from_recording(read_recording(sim_run()["spin"])) is not first
