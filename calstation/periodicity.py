@@ -341,6 +341,13 @@ class _Problem:
         x6[self.free] = x
         return x6
 
+    def solution(self, x: FloatArray) -> Any:
+        """The residuals and the Jacobian at ``x`` in full, as the covariance reads them
+        (``fun``, ``jac``, ``x``)."""
+        from types import SimpleNamespace
+
+        return SimpleNamespace(x=x, fun=self.residuals(x), jac=self.jacobian(x))
+
     def _normals_in_q(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Each match's normals turned back by its platter angles: with ``q = Rᵀ(p − t)``,
         ``n·(D(pa) − D(pb)) = ña·qa − ñb·qb``, so the residuals and their derivatives need no
@@ -383,28 +390,52 @@ class _Problem:
         R = _rotation(x6)
         aa, ab, ba, bb = self._normals_in_q()
         ua, ub = m.pa - x6[:3], m.pb - x6[:3]
-        has_platter = self.platter is not None and self.platter.shape[0] > 0
-        cols = []
-        for i in self.free:
+        platter = self.platter if self.platter is not None else np.zeros((0, 3))
+        w = self.platter_weight
+        rows = 2 * aa.shape[0] + platter.shape[0]
+        J = np.empty((rows, len(self.free)))
+        n = aa.shape[0]
+        # ∂/∂t: the same three columns for every translation
+        ta = -self.swa[:, None] * ((aa - ab) @ R.T)
+        tb = -self.swb[:, None] * ((ba - bb) @ R.T)
+        for col, i in enumerate(self.free):
             if i < 3:
-                ca = -self.swa * ((aa - ab) @ R.T)[:, i]
-                cb = -self.swb * ((ba - bb) @ R.T)[:, i]
-                cp = (
-                    np.full(self.platter.shape[0], -self.platter_weight * R[i, 0])
-                    if (has_platter and self.platter is not None)
-                    else np.zeros(0)
-                )
-            else:
-                dR = _rotation_derivative(x6, i)
-                ca = self.swa * (_rowdot(ua, aa @ dR.T) - _rowdot(ub, ab @ dR.T))
-                cb = self.swb * (_rowdot(ua, ba @ dR.T) - _rowdot(ub, bb @ dR.T))
-                cp = (
-                    self.platter_weight * ((self.platter - x6[:3]) @ dR[:, 0])
-                    if has_platter and self.platter is not None
-                    else np.zeros(0)
-                )
-            cols.append(np.concatenate([ca, cb, cp]))
-        return np.column_stack(cols)
+                J[:n, col] = ta[:, i]
+                J[n : 2 * n, col] = tb[:, i]
+                J[2 * n :, col] = -w * R[i, 0]
+                continue
+            dR = _rotation_derivative(x6, i)
+            va, vb = ua @ dR, ub @ dR
+            J[:n, col] = self.swa * (_rowdot(va, aa) - _rowdot(vb, ab))
+            J[n : 2 * n, col] = self.swb * (_rowdot(va, ba) - _rowdot(vb, bb))
+            J[2 * n :, col] = w * ((platter - x6[:3]) @ dR[:, 0])
+        return J
+
+
+class _Reduced:
+    """The inner solve of one outer iteration on n + 1 rows instead of millions.
+
+    With J₀ = Q·R (thin QR) at the start x₀, ``[Qᵀ·r(x), ‖r₀ − Q·Qᵀ·r₀‖]`` has the full
+    problem's gradient direction to first order (the part of r outside the span of J₀ does not
+    move with x) and its cost at x₀, so TRF takes the same steps and its tolerances keep their
+    meaning, while its linear algebra runs on n + 1 rows. The residuals and the Jacobian are
+    still evaluated in full (closed form); the outer loop re-matches and re-linearises anyway.
+    """
+
+    def __init__(self, problem: _Problem, x0: FloatArray) -> None:
+        self.problem = problem
+        J0 = problem.jacobian(x0)
+        r0 = problem.residuals(x0)
+        self.Q, _ = np.linalg.qr(J0)
+        rest = r0 - self.Q @ (self.Q.T @ r0)
+        self.rest = float(np.sqrt(rest @ rest))
+
+    def residuals(self, x: FloatArray) -> FloatArray:
+        return np.append(self.Q.T @ self.problem.residuals(x), self.rest)
+
+    def jacobian(self, x: FloatArray) -> FloatArray:
+        J = self.Q.T @ self.problem.jacobian(x)
+        return np.vstack([J, np.zeros((1, J.shape[1]))])
 
 
 def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -594,7 +625,8 @@ class _Run:
         self.progress = progress
         self.n_stages = n_stages
         self.history: list[dict[str, Any]] = []
-        self.last: tuple[Any, _Problem] | None = None
+        self.last: tuple[FloatArray, _Problem] | None = None
+        """the last inner solution and its problem"""
         self.outer = 0
         self.cost = math.nan
         self.timings = {"cells": 0.0, "match": 0.0, "solve": 0.0}
@@ -624,10 +656,11 @@ class _Run:
                 )
             problem = _Problem(matched, platter, 1.0, free, x6)
             lo, hi = _bounds(x6, self.start6, free, settings)
+            reduced = _Reduced(problem, x6[free])
             res = least_squares(
-                problem.residuals,
+                reduced.residuals,
                 x6[free],
-                jac=problem.jacobian,
+                jac=reduced.jacobian,
                 bounds=(lo, hi),
                 method="trf",
                 x_scale=np.full(len(free), 1e-3),
@@ -641,8 +674,8 @@ class _Run:
             step = np.abs(new6 - x6)
             x6 = new6
             self.outer += 1
-            self.cost = float(np.mean(res.fun**2))
-            self.last = (res, problem)
+            self.cost = float(np.mean(problem.residuals(res.x) ** 2))
+            self.last = (res.x, problem)
             self.history.append(
                 {
                     "stage": s_i + 1,
@@ -717,7 +750,8 @@ def periodicity_fine_tune_scan(
     timings.update(run.timings)
     history, last, total_outer, final_cost = run.history, run.last, run.outer, run.cost
     assert last is not None
-    res, problem = last
+    x_last, problem = last
+    res = problem.solution(x_last)
     sigma_independent = parameter_sigma(res, problem.free)
     covariance = parameter_covariance(res, problem.free, blocks=problem.row_blocks())
     sigma_blocks = sigma_from_covariance(covariance, problem.free)
