@@ -66,9 +66,10 @@ def mutual_neighbours(
     da, ia = tb.query(a, distance_upper_bound=radius, workers=WORKERS)
     i = np.flatnonzero(np.isfinite(da))
     j = ia[i]
-    # only the candidates need the reverse query
-    _, back = ta.query(b[j], workers=WORKERS)
-    mutual = back == i
+    # only the candidates need the reverse query, each once (many points of a share one)
+    cand, inverse = np.unique(j, return_inverse=True)
+    _, back = ta.query(b[cand], distance_upper_bound=radius, workers=WORKERS)
+    mutual = back[inverse.reshape(-1)] == i
     return i[mutual].astype(np.int64), j[mutual].astype(np.int64)
 
 
