@@ -130,12 +130,24 @@ def static_and_noise(rng: FloatArray, az: FloatArray) -> tuple[NDArray[np.bool_]
     :data:`NOISE_SAMPLE` returns (every azimuth keeps its share; the static test is a fraction,
     so it is unchanged by the subset).
     """
-    static = static_mask(polar=(rng, az))
+    from .neighbours import pair
+
     step = max(1, math.ceil(rng.size / NOISE_SAMPLE))
-    sub = (rng[::step], az[::step])
-    noise = range_noise(None, static[::step], polar=sub)
-    if math.isfinite(noise) and 1.5 * noise > 0.001:
-        noise = range_noise(None, static_mask(polar=sub, range_cell=1.5 * noise), polar=sub)
+    sub = (np.ascontiguousarray(rng[::step]), np.ascontiguousarray(az[::step]))
+
+    def noise_of_subset() -> float:
+        noise = range_noise(None, static_mask(polar=sub), polar=sub)
+        if math.isfinite(noise) and 1.5 * noise > 0.001:
+            noise = range_noise(None, static_mask(polar=sub, range_cell=1.5 * noise), polar=sub)
+        return noise
+
+    # the whole scan's static test and the noise (on its subset) side by side, on two cores
+    static, noise = pair(
+        lambda which: static_mask(polar=(rng, az)) if which == "static" else noise_of_subset(),
+        ("static",),
+        ("noise",),
+    )
+    assert isinstance(static, np.ndarray) and isinstance(noise, float)
     return static, noise
 
 
