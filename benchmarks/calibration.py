@@ -1,22 +1,41 @@
-"""Time the calibration engine on simulated recordings and print the figures.
+"""Time the calibration engine on simulated recordings and print the figures, each with the
+accuracy against the simulator's truth beside it.
 
     .venv/bin/python benchmarks/calibration.py [--recipe R] [--range 1.25] [--pitch 45]
-                                               [--seed 1] [--repeat 3] [--out DIR]
+        [--seed 1] [--repeat 3] [--out DIR] [--scaling] [--compare REV]
 
 Simulates one run (static, spin and cube scans) unless DIR already holds one, then times, each
-``--repeat`` times: reading the recordings, the initial calibration, periodicity fine-tuning from
-the initial calibration, shape fine-tuning from it, and the cube check. Prints the median and
-the extremes per stage, plus the accuracy against the simulator's truth (DESIGN §8) so a speed-up
-that costs accuracy shows. Targets (issue "calibration engine"): initial ≤ 1 s, each fine-tuning
-≤ 10 s, cube check ≤ 2 s on a 2-core machine. Figures taken on a busy machine are pessimistic.
+``--repeat`` times on freshly read recordings:
+
+- reading the three recordings;
+- the initial calibration;
+- periodicity fine-tuning from the recording (preparation of the spin scan included), and the
+  two parts of the station's path: the per-line work done while the spin scan runs
+  (:class:`calstation.spinscan.SpinScanBuilder`), then what is left when the scan ends (finishing
+  the preparation and fine-tuning), which is the operator's wait;
+- shape fine-tuning and the cube check.
+
+It prints the peak memory (the process's peak resident set), the processing ÷ acquisition ratio
+(processing after the scans, as at a station, ÷ the scans' own duration; and the same with
+everything processed from the files), and the targets of docs/performance.md with PASS/MISS:
+read ≤ 0.3 s, periodicity after the scan ≤ 1.5 s, shape ≤ 1.5 s, cube check ≤ 0.5 s,
+processing ÷ acquisition ≤ 0.3, peak memory ≤ 1 GB. ``--scaling`` adds spin scans of about
+0.5, 1, 2 and 4 M points (line rate 159–635 Hz, and 15.75 rpm for 4 M). ``--compare REV`` measures
+another git revision side by side (a temporary worktree, the same recordings, runs alternated
+A, B, A, B) and prints both with their ratio. The load average is printed at the start and end:
+figures taken on a busy machine are pessimistic.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
+import resource
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -24,97 +43,322 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
+TARGETS = {
+    "read": 0.3,
+    "periodicity after scan": 1.5,
+    "shape": 1.5,
+    "cube check": 0.5,
+    "ratio": 0.3,
+    "peak memory MB": 1024.0,
+}
+SCALING = {0.5: (159.0, 20.0), 1.0: (317.0, 20.0), 2.0: (635.0, 20.0), 4.0: (1000.0, 15.75)}
+"""million spin-scan points → (line rate Hz, rpm) with the default 1000 points per line"""
 
 
-def _time(fn: Callable[[], Any], repeat: int) -> tuple[list[float], Any]:
-    times, out = [], None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return times, out
+def peak_mb() -> float:
+    """The process's peak resident set so far (MB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _row(name: str, times: list[float], note: str = "") -> None:
-    print(
-        f"{name:<26} median {statistics.median(times):7.3f} s   "
-        f"min {min(times):7.3f} s   max {max(times):7.3f} s   {note}"
-    )
+def _timed(fn: Callable[[], Any]) -> tuple[float, Any]:
+    t0 = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t0, out
+
+
+def simulate(recipe_path: Path, out: Path, seed: int, range_m: float, pitch: float,
+             patch: dict[str, Any] | None = None) -> None:
+    """Simulate the run into ``out`` unless it is there already; ``patch`` maps dotted recipe
+    keys (``"steps.spin_scan.rpm"``) to values."""
+    if (out / "truth.json").exists():
+        return
+    import yaml
+    from calstation_sim import simulate_run
+
+    from calstation.recipe import LoadedRecipe, parse_recipe
+
+    data = yaml.safe_load(recipe_path.read_text())
+    for key, value in (patch or {}).items():
+        *path, name = key.split(".")
+        node = data
+        for part in path:
+            node = node.setdefault(part, {})
+        node[name] = value
+    text = yaml.safe_dump(data)
+    loaded = LoadedRecipe(parse_recipe(text, str(recipe_path)), None, text)
+    t, _ = _timed(lambda: simulate_run(
+        loaded, out, seed=seed, range_m=range_m, pitch_deg=pitch, progress=False))
+    print(f"simulated run in {t:.1f} s → {out}", flush=True)
+
+
+def measure(recipe_path: Path, out: Path, with_shape: bool = True) -> dict[str, Any]:
+    """One measurement of every stage on freshly read recordings; seconds, accuracy, memory."""
+    from calstation.cube import check_cube
+    from calstation.initial import initial_calibration
+    from calstation.metrics import axis_errors
+    from calstation.recipe import load_recipe
+    from calstation.recording import read_recording
+    from calstation.strategies import PeriodicityStrategy, ShapeStrategy
+
+    rc = load_recipe(recipe_path).recipe
+    t: dict[str, float] = {}
+    mem: dict[str, float] = {}
+    _preload()
+    t["read"], recs = _timed(
+        lambda: {k: read_recording(out / f"{k}.mcap") for k in ("static", "spin", "cube")})
+    mem["read"] = peak_mb()
+    truth = recs["spin"].truth
+    t["initial"], initial = _timed(lambda: initial_calibration(
+        recs["static"], rc.fixtures.static_target, rc.calibration.initial))
+    t["periodicity"], per = _timed(lambda: PeriodicityStrategy().run(recs["spin"], initial.H, rc))
+    mem["periodicity"] = peak_mb()
+    results = {"initial": initial.H, "periodicity": per.H}
+    if with_shape:
+        t["shape"], shp = _timed(lambda: ShapeStrategy().run(recs["cube"], initial.H, rc))
+        results["shape"] = shp.H
+        mem["shape"] = peak_mb()
+    t["cube check"], check = _timed(lambda: check_cube(
+        recs["cube"], per.H, rc.fixtures.qa_cube, rc.qa,
+        platter_radius=rc.fixtures.platter.radius))
+    mem["cube check"] = peak_mb()
+    acquisition = sum(_duration(r) for r in recs.values())
+    accuracy = {}
+    if truth is not None:
+        for name, H in results.items():
+            e = axis_errors(H, truth)
+            accuracy[name] = {"offset_mm": e["axis_offset_m"] * 1e3,
+                              "direction_deg": math.degrees(e["axis_angle_rad"]),
+                              "ry_deg": math.degrees(e["ry_error"])}
+    return {
+        "t": t, "mem": mem, "accuracy": accuracy, "acquisition_s": acquisition,
+        "points": {k: r.n_points for k, r in recs.items()},
+        "edge_error_mm": check.edge_error * 1e3, "cube_passed": bool(check.passed),
+        "iterations": per.iterations,
+    }
+
+
+def _preload() -> None:
+    """Import the engine first: a station has it loaded before its scans end."""
+    import calstation.cube
+    import calstation.initial
+    import calstation.periodicity
+    import calstation.shape  # noqa: F401
+
+
+def measure_station(recipe_path: Path, out: Path) -> dict[str, Any]:
+    """The station's path in a process of its own (for its memory): the spin scan fed line by
+    line to the preparation as it would arrive, then finished and fine-tuned. Empty on a
+    revision without it."""
+    try:
+        from calstation.drivers import EncoderSample
+        from calstation.periodicity import periodicity_fine_tune_scan
+        from calstation.spinscan import SpinScanBuilder
+    except ImportError:
+        return {}
+    from calstation.initial import initial_calibration
+    from calstation.metrics import axis_errors
+    from calstation.recipe import load_recipe
+    from calstation.recording import read_recording
+
+    rc = load_recipe(recipe_path).recipe
+    _preload()
+    static = read_recording(out / "static.mcap")
+    start = initial_calibration(static, rc.fixtures.static_target, rc.calibration.initial).H
+    spin = read_recording(out / "spin.mcap")
+    builder = SpinScanBuilder(spin.counts_per_revolution, spin.encoder_direction,
+                              spin.encoder_latency_s)
+    builder.write_encoder(EncoderSample(int(a), int(b))
+                          for a, b in zip(spin.encoder_t_ns, spin.encoder_count, strict=True))
+    for line in spin.lines():
+        builder.write_line(line)
+    truth = spin.truth
+    del spin  # a station holds the lines it has prepared, not the recording
+
+    def after() -> Any:
+        return periodicity_fine_tune_scan(builder.finish(), start, rc.calibration.periodicity,
+                                          platter_radius=rc.fixtures.platter.radius)
+
+    t_after, res = _timed(after)
+    e = axis_errors(res.H, truth) if truth is not None else None
+    return {
+        "t": {"spin per-line work": builder.during_s, "periodicity after scan": t_after},
+        "peak_mb": peak_mb(),
+        "accuracy": None if e is None else {
+            "offset_mm": e["axis_offset_m"] * 1e3,
+            "direction_deg": math.degrees(e["axis_angle_rad"]),
+            "ry_deg": math.degrees(e["ry_error"])},
+    }
+
+
+def _duration(rec: Any) -> float:
+    """Seconds the scan took: its first to its last return."""
+    return float(rec.t_ns[-1] - rec.t_ns[0]) * 1e-9 if rec.n_points else 0.0
+
+
+def processing(m: dict[str, Any]) -> dict[str, float]:
+    """Processing after the scans (station) and from the files, and their ratios."""
+    t = m["t"]
+    after = t["initial"] + t.get("periodicity after scan", t["periodicity"]) + t["cube check"]
+    files = t["read"] + t["initial"] + t["periodicity"] + t["cube check"]
+    acq = m["acquisition_s"]
+    return {"after scans": after, "from files": files, "acquisition": acq,
+            "ratio": after / acq, "ratio from files": files / acq}
+
+
+def _mark(name: str, value: float) -> str:
+    target = TARGETS.get(name)
+    if target is None:
+        return ""
+    unit = "" if name in ("ratio",) else (" MB" if "MB" in name else " s")
+    return f"target ≤ {target:g}{unit}: {'PASS' if value <= target else 'MISS'}"
+
+
+def report(runs: list[dict[str, Any]], label: str = "") -> dict[str, float]:
+    """Print the median of each stage with its target and the accuracy; the medians."""
+    med = {k: statistics.median(r["t"][k] for r in runs) for k in runs[0]["t"]}
+    print(f"\n{label}stage times, median of {len(runs)} (min–max):")
+    for name, value in med.items():
+        lo = min(r["t"][name] for r in runs)
+        hi = max(r["t"][name] for r in runs)
+        print(f"  {name:<26} {value:7.3f} s  ({lo:.3f}–{hi:.3f})  {_mark(name, value)}")
+    proc = [processing(r) for r in runs]
+    ratio = statistics.median(p["ratio"] for p in proc)
+    print(f"  processing after the scans {statistics.median(p['after scans'] for p in proc):.2f} s"
+          f" for {proc[0]['acquisition']:.2f} s of scans: ratio {ratio:.2f}  "
+          f"{_mark('ratio', ratio)}")
+    print(f"  everything from the files  {statistics.median(p['from files'] for p in proc):.2f} s:"
+          f" ratio {statistics.median(p['ratio from files'] for p in proc):.2f}")
+    peak = max(max(r["mem"].values()) for r in runs)
+    print(f"  peak memory {peak:.0f} MB  {_mark('peak memory MB', peak)}; after each stage: "
+          + ", ".join(f"{k} {v:.0f}" for k, v in runs[-1]["mem"].items()))
+    points = runs[0]["points"]
+    print(f"  {points['spin']:,} spin-scan points, {points['cube']:,} cube points; "
+          f"{runs[0]['iterations']} periodicity iterations")
+    _accuracy(runs[-1])
+    med["ratio"] = ratio
+    med["peak memory MB"] = peak
+    return med
+
+
+def _accuracy(m: dict[str, Any]) -> None:
+    print("  accuracy against the simulator's truth:")
+    for name, a in m["accuracy"].items():
+        print(f"    {name:<22} axis offset {a['offset_mm']:6.3f} mm   direction "
+              f"{a['direction_deg']:6.3f}°   ry {a['ry_deg']:+7.3f}°")
+    print(f"    cube check (periodicity H): face-fit edge error {m['edge_error_mm']:.3f} mm, "
+          f"passed={m['cube_passed']}")
+
+
+def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[str, Any]:
+    """One measurement in a fresh process, of this revision or of the one in ``rev_dir``."""
+    env = dict(os.environ)
+    if rev_dir is not None:
+        env["PYTHONPATH"] = os.pathsep.join([str(rev_dir), env.get("PYTHONPATH", "")])
+    found: dict[str, Any] = {}
+    for mode in ("--json", "--json-station"):
+        cmd = [sys.executable, str(Path(__file__).resolve()), mode, "--out", str(out),
+               "--recipe", str(args.recipe)] + ([] if args.shape else ["--no-shape"])
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=rev_dir or REPO)
+        if proc.returncode != 0:
+            raise SystemExit(f"measurement failed ({rev_dir or 'this revision'}):\n"
+                             f"{proc.stderr[-2000:]}")
+        part = dict(json.loads(proc.stdout.strip().splitlines()[-1]))
+        if mode == "--json":
+            found = part
+        elif part:
+            found["t"].update(part["t"])
+            found["mem"]["station (own process)"] = part["peak_mb"]
+            if part["accuracy"] is not None:
+                found["accuracy"]["periodicity (station)"] = part["accuracy"]
+    return found
+
+
+def compare(args: argparse.Namespace, out: Path) -> None:
+    """Measure this revision and ``args.compare`` side by side, alternating."""
+    rev = subprocess.run(["git", "rev-parse", "--short", args.compare], cwd=REPO,
+                         capture_output=True, text=True, check=True).stdout.strip()
+    tmp = Path(tempfile.mkdtemp(prefix="calstation-rev-"))
+    subprocess.run(["git", "worktree", "add", "--detach", str(tmp), rev], cwd=REPO,
+                   check=True, capture_output=True)
+    try:
+        mine: list[dict[str, Any]] = []
+        theirs: list[dict[str, Any]] = []
+        for i in range(args.repeat):
+            print(f"round {i + 1}/{args.repeat}: this revision, then {rev}", flush=True)
+            mine.append(_child(None, args, out))
+            theirs.append(_child(tmp, args, out))
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(tmp)], cwd=REPO,
+                       capture_output=True)
+    a = report(mine, "this revision — ")
+    b = report(theirs, f"{rev} — ")
+    print(f"\n{'stage':<26} {'this':>9} {rev:>9}  {rev} ÷ this")
+    for name in a:
+        if name in b and a[name] > 0:
+            print(f"{name:<26} {a[name]:9.3f} {b[name]:9.3f}  {b[name] / a[name]:6.2f}")
+
+
+def scaling(args: argparse.Namespace, base: Path) -> None:
+    """Periodicity time, memory and accuracy against the spin scan's size."""
+    print("\nscaling with the spin scan's size (periodicity from the recording, and the "
+          "station's wait after the scan):")
+    for millions, (rate, rpm) in SCALING.items():
+        out = base / f"scaling-{millions:g}M"
+        simulate(args.recipe, out, args.seed, args.range_m, args.pitch,
+                 {"simulation.lidar.line_rate_hz": rate, "steps.spin_scan.rpm": rpm})
+        m = _child(None, argparse.Namespace(**{**vars(args), "shape": False}), out)
+        a = m["accuracy"]["periodicity"]
+        print(f"  {m['points']['spin'] / 1e6:4.2f} M points: periodicity "
+              f"{m['t']['periodicity']:6.2f} s, after the scan "
+              f"{m['t'].get('periodicity after scan', math.nan):6.2f} s, peak "
+              f"{max(m['mem'].values()):5.0f} MB; axis offset {a['offset_mm']:.3f} mm, "
+              f"direction {a['direction_deg']:.3f}°, ry {a['ry_deg']:+.3f}°", flush=True)
+
+
+def _revision() -> str:
+    rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO,
+                         capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=REPO,
+                           capture_output=True, text=True).stdout.strip()
+    return rev + ("+dirty" if dirty else "")
+
+
+def _load() -> str:
+    return "load average " + " ".join(f"{x:.2f}" for x in os.getloadavg())
 
 
 def main() -> None:
     """Run the benchmark and print its figures."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--recipe", default=str(REPO / "recipes/sim-periodicity.yaml"))
+    ap.add_argument("--recipe", type=Path, default=REPO / "recipes/sim-periodicity.yaml")
     ap.add_argument("--range", type=float, default=1.25, dest="range_m")
     ap.add_argument("--pitch", type=float, default=45.0)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--out", type=Path, default=None, help="folder for (or with) the recordings")
+    ap.add_argument("--scaling", action="store_true", help="also 0.5, 1, 2 and 4 M points")
+    ap.add_argument("--compare", metavar="REV", help="measure this git revision side by side")
+    ap.add_argument("--no-shape", dest="shape", action="store_false", help="skip shape")
+    ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--json-station", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
-
-    from calstation.cube import check_cube
-    from calstation.initial import initial_calibration
-    from calstation.metrics import axis_errors, reconstruction_distortion
-    from calstation.recipe import load_recipe
-    from calstation.recording import read_recording
-    from calstation.strategies import PeriodicityStrategy, ShapeStrategy
-
-    loaded = load_recipe(args.recipe)
-    rc = loaded.recipe
     out = args.out or Path(tempfile.mkdtemp(prefix="calstation-bench-"))
-    if not (out / "truth.json").exists():
-        from calstation_sim import simulate_run
-
-        t0 = time.perf_counter()
-        simulate_run(
-            loaded, out, seed=args.seed, range_m=args.range_m, pitch_deg=args.pitch, progress=False
-        )
-        print(f"simulated run in {time.perf_counter() - t0:.1f} s → {out}")
-    print(
-        f"scenario: range {args.range_m} m, pitch {args.pitch}°, seed {args.seed}; "
-        f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}"
-    )
-    t_read, recs = _time(
-        lambda: {k: read_recording(out / f"{k}.mcap") for k in ("static", "spin", "cube")}, 1
-    )
-    _row("read recordings", t_read, f"{recs['spin'].n_points:,} spin-scan points")
-    truth = recs["spin"].truth
-
-    t_init, initial = _time(
-        lambda: initial_calibration(
-            recs["static"], rc.fixtures.static_target, rc.calibration.initial
-        ),
-        args.repeat,
-    )
-    _row("initial calibration", t_init)
-    results = {"initial": initial}
-    for strat, key in ((PeriodicityStrategy(), "spin"), (ShapeStrategy(), "cube")):
-        times, res = _time(lambda s=strat, k=key: s.run(recs[k], initial.H, rc), args.repeat)
-        _row(f"{strat.name} fine-tuning", times, f"{res.iterations} iterations")
-        results[strat.name] = res
-    t_cube, check = _time(
-        lambda: check_cube(recs["cube"], results["periodicity"].H, rc.fixtures.qa_cube, rc.qa),
-        args.repeat,
-    )
-    _row("cube check", t_cube, f"{check.points:,} cube points, passed={check.passed}")
-
-    if truth is not None:
-        print("\naccuracy against the simulator's truth:")
-        for name, res in results.items():
-            e = axis_errors(res.H, truth)
-            d = reconstruction_distortion(recs["cube"], res.H, truth)
-            print(
-                f"  {name:<12} axis offset {e['axis_offset_m'] * 1e3:6.3f} mm   "
-                f"direction {math.degrees(e['axis_angle_rad']):6.3f}°   "
-                f"rz {math.degrees(e['rz_error']):+7.4f}°   "
-                f"ry {math.degrees(e['ry_error']):+7.3f}°   "
-                f"cube distortion {d['rms_m'] * 1e3:.3f} mm RMS"
-            )
-        print(
-            f"  cube check (periodicity H): face-fit edge error {check.edge_error * 1e3:.3f} mm, "
-            f"paper OBB e = {check.obb_error * 1e3:.2f} mm"
-        )
+    if args.json:  # one measurement for a parent process
+        print(json.dumps(measure(args.recipe, out, args.shape)))
+        return
+    if args.json_station:
+        print(json.dumps(measure_station(args.recipe, out)))
+        return
+    simulate(args.recipe, out, args.seed, args.range_m, args.pitch)
+    print(f"calstation {_revision()}; scenario: range {args.range_m} m, pitch {args.pitch}°, "
+          f"seed {args.seed}; {os.cpu_count()} CPUs, {_load()}", flush=True)
+    if args.compare:
+        compare(args, out)
+    else:
+        report([_child(None, args, out) for _ in range(args.repeat)])
+    if args.scaling:
+        scaling(args, out.parent if args.out else out)
+    print(f"\nend: {_load()}")
 
 
 if __name__ == "__main__":
