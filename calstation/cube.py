@@ -407,8 +407,12 @@ def check_cube(
     *,
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
 ) -> CubeCheck:
-    """Cube check on a QA-cube spin-scan recording with the calibration H."""
-    p_L, phi = recording.points_lidar()
+    """Cube check on a QA-cube spin-scan recording with the calibration H (its returns
+    prepared once per recording, or as the scan ran: :func:`calstation.spinscan.from_recording`)."""
+    from .spinscan import from_recording
+
+    scan = from_recording(recording)
+    p_L, phi = scan.p_L, scan.phi
     try:
         return check_cube_points(p_L, phi, H, cube, limits, platter_radius=platter_radius)
     except VerificationError as exc:

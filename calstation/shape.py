@@ -43,12 +43,7 @@ from .geometry import (
     signed_face_distances,
     upright_box,
 )
-from .periodicity import (
-    block_ids,
-    parameter_sigma,
-    periodicity_fine_tune_points,
-    static_mask,
-)
+from .periodicity import block_ids, parameter_sigma, periodicity_fine_tune_scan
 from .recipe import (
     DEFAULT_PLATTER_RADIUS,
     CubeGeometry,
@@ -57,6 +52,7 @@ from .recipe import (
     ShapeSettings,
 )
 from .result import CalibrationResult
+from .spinscan import SpinScan, from_recording, prepare
 
 if TYPE_CHECKING:
     from .recording import Recording
@@ -247,9 +243,7 @@ def axis_sigma_floor(edge_error: float, noise: float) -> float:
 
 
 def _shape_pass(
-    p_L: FloatArray,
-    phi: FloatArray,
-    moving: NDArray[np.bool_],
+    scan: SpinScan,
     start: Extrinsics,
     cube: CubeGeometry,
     settings: ShapeSettings,
@@ -262,10 +256,11 @@ def _shape_pass(
     progress: Progress | None,
 ) -> CalibrationResult:
     """One pass of :func:`shape_fine_tune_points` (coarse alignment, box, faces) from
-    ``start``; ``moving`` marks the returns that are not static in L."""
+    ``start`` on the prepared cube scan."""
     start = start.with_(rx=0.0)
     # the platter ring and the background are static in L: they never belong to the cube
-    p_mov, phi_mov = p_L[moving], phi[moving]
+    moving = ~scan.static
+    p_mov, phi_mov = scan.p_L[moving], scan.phi[moving]
     coarse_report: dict[str, Any] = {"used": False}
     if coarse:
         # the box cost has no basin wider than the cube: bring a far start within reach with
@@ -273,9 +268,8 @@ def _shape_pass(
         skipped = []
         for n_stages in range(COARSE_STAGES, 0, -1):
             try:
-                pre = periodicity_fine_tune_points(
-                    p_L,
-                    phi,
+                pre = periodicity_fine_tune_scan(
+                    scan,
                     start,
                     PeriodicitySettings(gauge="ty"),
                     platter_radius=platter_radius,
@@ -512,6 +506,7 @@ def shape_fine_tune_points(
     estimate_ry: bool = True,
     coarse: bool = True,
     progress: Progress | None = None,
+    scan: SpinScan | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
 
@@ -522,8 +517,9 @@ def shape_fine_tune_points(
     joint solve; ``False`` holds ry at its start. ``coarse``: align a far start first with the
     coarse periodicity stages on the same scan; when only the coarsest stage could run (the
     start's ry too far off for the second), the whole pass is repeated from its result
-    (docs/algorithms.md). Returns a :class:`CalibrationResult` with strategy ``"shape"`` and
-    cost ``C1 + C2`` (m²).
+    (docs/algorithms.md). ``scan``: the same returns already prepared
+    (:mod:`calstation.spinscan`). Returns a :class:`CalibrationResult` with strategy
+    ``"shape"`` and cost ``C1 + C2`` (m²).
     """
     t0 = time.perf_counter()
     p_L = np.asarray(p_L, dtype=np.float64)
@@ -532,13 +528,11 @@ def shape_fine_tune_points(
         raise FineTuningError(
             f"shape needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
         )
-    moving = ~static_mask(p_L)
+    prepared = prepare(p_L, phi) if scan is None else scan
 
     def run(h: Extrinsics) -> CalibrationResult:
         return _shape_pass(
-            p_L,
-            phi,
-            moving,
+            prepared,
             h,
             cube,
             settings,
@@ -585,11 +579,11 @@ def shape_fine_tune(
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on a QA-cube spin-scan recording."""
-    p_L, phi = recording.points_lidar()
+    scan = from_recording(recording)
     try:
         return shape_fine_tune_points(
-            p_L,
-            phi,
+            scan.p_L,
+            scan.phi,
             start,
             cube,
             settings,
@@ -598,6 +592,7 @@ def shape_fine_tune(
             estimate_ry=estimate_ry,
             coarse=coarse,
             progress=progress,
+            scan=scan,
         )
     except FineTuningError as exc:
         raise FineTuningError(f"{recording.path}: {exc}") from None

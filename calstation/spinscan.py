@@ -153,7 +153,11 @@ def static_and_noise(rng: FloatArray, az: FloatArray) -> tuple[NDArray[np.bool_]
 
 @dataclass
 class SpinScan:
-    """A spin scan ready for fine-tuning (all arrays share the order of the returns)."""
+    """A spin scan ready for fine-tuning (all arrays share the order of the returns).
+
+    The static returns and the range noise are found on first use (the cube check needs only
+    the returns) and kept.
+    """
 
     p_L: FloatArray
     """(N, 3) valid returns in L (m)"""
@@ -163,16 +167,34 @@ class SpinScan:
     """(N,) ranges (m)"""
     az: FloatArray
     """(N,) azimuths (rad)"""
-    static: NDArray[np.bool_]
-    """(N,) returns that stay put over the scan (:func:`static_mask`)"""
-    noise: float
-    """range noise σ (m); NaN when the scan has too few static returns"""
     timings: dict[str, float] = field(default_factory=dict)
     """seconds spent preparing, by step"""
+    _static: NDArray[np.bool_] | None = field(default=None, repr=False)
+    _noise: float = math.nan
 
     @property
     def n_points(self) -> int:
         return int(self.phi.shape[0])
+
+    @property
+    def static(self) -> NDArray[np.bool_]:
+        """(N,) returns that stay put over the scan (:func:`static_mask`)."""
+        return self._static_and_noise()[0]
+
+    @property
+    def noise(self) -> float:
+        """Range noise σ (m); NaN when the scan has too few static returns."""
+        return self._static_and_noise()[1]
+
+    def _static_and_noise(self) -> tuple[NDArray[np.bool_], float]:
+        if self._static is None:
+            t0 = time.perf_counter()
+            if self.rng.size:
+                self._static, self._noise = static_and_noise(self.rng, self.az)
+            else:
+                self._static, self._noise = np.zeros(0, dtype=bool), math.nan
+            self.timings["static"] = time.perf_counter() - t0
+        return self._static, self._noise
 
 
 def prepare(
@@ -188,10 +210,7 @@ def prepare(
     if polar is None:
         polar = lidar_to_polar(p_L) if p_L.shape[0] else (np.zeros(0), np.zeros(0))
     rng, az = polar
-    t1 = time.perf_counter()
-    static, noise = static_and_noise(rng, az) if rng.size else (np.zeros(0, bool), math.nan)
-    t2 = time.perf_counter()
-    return SpinScan(p_L, phi, rng, az, static, noise, {"polar": t1 - t0, "static": t2 - t1})
+    return SpinScan(p_L, phi, rng, az, {"polar": time.perf_counter() - t0})
 
 
 def from_recording(recording: Recording) -> SpinScan:
@@ -224,7 +243,7 @@ class SpinScanBuilder:
     Fed beside the recording writer (the same ``write_line`` / ``write_encoder`` /
     ``write_turntable`` calls), it keeps each line's valid returns, converts them to L and
     stamps their times as the line arrives. :meth:`finish` then only interpolates the platter
-    angles and finds the static returns and the range noise over the whole scan. The result is
+    angles (the static returns and the range noise are found when first used). The result is
     the :class:`SpinScan` that :func:`prepare` makes from the recording's points.
     """
 
@@ -296,17 +315,12 @@ class SpinScanBuilder:
         if not keep.all():
             p_L, phi, rng, az = p_L[keep], phi[keep], rng[keep], az[keep]
         self._t, self._p, self._rng, self._az = [], [], [], []
-        t1 = time.perf_counter()
-        static, noise = static_and_noise(rng, az) if rng.size else (np.zeros(0, bool), math.nan)
-        t2 = time.perf_counter()
         self._done = SpinScan(
             p_L,
             phi,
             rng,
             az,
-            static,
-            noise,
-            {"during_scan": self.during_s, "points": t1 - t0, "static": t2 - t1},
+            {"during_scan": self.during_s, "points": time.perf_counter() - t0},
         )
         return self._done
 

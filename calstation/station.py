@@ -755,18 +755,20 @@ class Station:
             ) as writer,
             self.ui.progress(f"{kind} scan") as progress,
         ):
-            # the spin scan's per-line work for the fine-tuning is done as the lines arrive
+            # a spin scan's per-line work for the fine-tuning and the cube check is done as
+            # the lines arrive
             builder = (
                 SpinScanBuilder(
                     d.encoder.counts_per_revolution, enc.direction, enc.latency_s
                 )
-                if kind == "spin"
+                if kind in ("spin", "cube")
                 else None
             )
             acquire(_PublishingWriter(writer, self.ui, kind, builder), progress)
         self._partial = []
         if builder is not None:
-            self._scan_ended = time.monotonic()
+            if kind == "spin":
+                self._scan_ended = time.monotonic()
             remember_spin_scan(path, builder)
         return path
 
