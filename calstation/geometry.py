@@ -31,7 +31,9 @@ def radius_outlier_mask(points: FloatArray, radius: float, neighbours: int) -> N
         return np.ones(points.shape[0], dtype=bool)
     if points.shape[0] <= neighbours:
         return np.zeros(points.shape[0], dtype=bool)
-    dist, _ = cKDTree(points).query(points, k=neighbours + 1, distance_upper_bound=radius)
+    dist, _ = cKDTree(points).query(
+        points, k=neighbours + 1, distance_upper_bound=radius, workers=-1
+    )
     out: NDArray[np.bool_] = np.isfinite(dist[:, -1])
     return out
 
@@ -203,7 +205,7 @@ def density_outlier_mask(p: FloatArray, neighbours: int = 8) -> NDArray[np.bool_
     if p.shape[0] <= neighbours + 1:
         return np.ones(p.shape[0], dtype=bool)
     tree = cKDTree(p)
-    dist, _ = tree.query(p, k=neighbours + 1)
+    dist, _ = tree.query(p, k=neighbours + 1, workers=-1)
     radius = 3.0 * float(np.median(dist[:, -1]))
     out: NDArray[np.bool_] = dist[:, -1] <= radius
     return out

@@ -133,7 +133,7 @@ class ShapeCost:
         self._radius_from_data = True
         if k <= 0 or points.shape[0] <= k + 1:
             return
-        dist, _ = cKDTree(points).query(points, k=k + 1)
+        dist, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
         if np.mean(dist[:, -1] <= self.outlier_radius) >= 0.5:
             return  # the configured radius keeps most returns: the scan is dense enough
         self.outlier_radius = max(self.outlier_radius, 2.5 * float(np.median(dist[:, -1])))
