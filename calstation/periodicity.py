@@ -534,11 +534,6 @@ def periodicity_fine_tune_points(
         raise FineTuningError(
             f"periodicity needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
         )
-    if p_L.shape[0] < 1000:
-        raise FineTuningError(
-            f"the spin scan has only {p_L.shape[0]} valid returns; periodicity needs a full "
-            "revolution of the spin target"
-        )
     return periodicity_fine_tune_scan(
         prepare(p_L, phi),
         start,
