@@ -242,9 +242,12 @@ class SpinScanBuilder:
 
     Fed beside the recording writer (the same ``write_line`` / ``write_encoder`` /
     ``write_turntable`` calls), it keeps each line's valid returns, converts them to L and
-    stamps their times as the line arrives. :meth:`finish` then only interpolates the platter
-    angles (the static returns and the range noise are found when first used). The result is
-    the :class:`SpinScan` that :func:`prepare` makes from the recording's points.
+    stamps their times as the line arrives, and gives them their platter angles as soon as
+    encoder readings on both sides of the line have arrived. :meth:`finish` is left with the
+    last lines' angles and the concatenation (the static returns and the range noise are found
+    when first used). The result is the :class:`SpinScan` that :func:`prepare` makes from the
+    recording's points: an angle interpolated between two readings does not depend on the
+    readings that come later.
     """
 
     def __init__(
@@ -253,12 +256,17 @@ class SpinScanBuilder:
         self.counts_per_revolution = counts_per_revolution
         self.encoder_direction = encoder_direction
         self.encoder_latency_s = encoder_latency_s
+        self._latency_ns = round(encoder_latency_s * 1e9)
         self._t: list[NDArray[np.int64]] = []
         self._p: list[FloatArray] = []
         self._rng: list[FloatArray] = []
         self._az: list[FloatArray] = []
+        self._phi: list[FloatArray] = []
+        """angles of the first ``len(_phi)`` lines, found while scanning"""
         self._enc_t: list[int] = []
         self._enc_c: list[int] = []
+        self._enc_ordered = True
+        self._enc_arrays: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
         self.during_s = 0.0
         """seconds of per-line work done while the scan ran"""
         self._done: SpinScan | None = None
@@ -275,22 +283,65 @@ class SpinScanBuilder:
         self._p.append(p)
         self._rng.append(rng)
         self._az.append(az)
+        self._angles_so_far()
         self.during_s += time.perf_counter() - t0
 
     def write_encoder(self, samples: Iterable[EncoderSample]) -> None:
+        t0 = time.perf_counter()
         for sample in samples:
-            self._enc_t.append(int(sample.timestamp_ns))
+            t = int(sample.timestamp_ns)
+            if self._enc_t and t < self._enc_t[-1]:
+                self._enc_ordered = False  # out of order: the angles wait for the sort
+            self._enc_t.append(t)
             self._enc_c.append(int(sample.count))
+        self._angles_so_far()
+        self.during_s += time.perf_counter() - t0
 
     def write_turntable(self, status: object) -> None:
         """Turntable states carry nothing the fine-tuning needs."""
+
+    def _angles_so_far(self) -> None:
+        """Angles of the waiting lines that lie between the first and the last reading."""
+        if not self._enc_ordered or len(self._enc_t) < 2 or len(self._phi) == len(self._t):
+            return
+        lo = self._enc_t[0] - self._latency_ns
+        hi = self._enc_t[-1] - self._latency_ns
+        ready = len(self._phi)
+        while ready < len(self._t):
+            t = self._t[ready]
+            if t.size and (int(t[0]) < lo or int(t[-1]) > hi):
+                break
+            ready += 1
+        if ready == len(self._phi):
+            return
+        if self._enc_arrays is None or self._enc_arrays[0].size != len(self._enc_t):
+            self._enc_arrays = (
+                np.asarray(self._enc_t, dtype=np.int64),
+                np.asarray(self._enc_c, dtype=np.int64),
+            )
+        enc_t, enc_c = self._enc_arrays
+        for t in self._t[len(self._phi) : ready]:
+            self._phi.append(self._angle(t, enc_t, enc_c))
+
+    def _angle(
+        self, t: NDArray[np.int64], enc_t: NDArray[np.int64], enc_c: NDArray[np.int64]
+    ) -> FloatArray:
+        from .recording import encoder_angle
+
+        return encoder_angle(
+            t,
+            enc_t,
+            enc_c,
+            self.counts_per_revolution,
+            self.encoder_direction,
+            self.encoder_latency_s,
+        )
 
     def finish(self) -> SpinScan:
         """The prepared scan (computed once; later calls return the same object)."""
         if self._done is not None:
             return self._done
         from .errors import RecordingError
-        from .recording import encoder_angle
 
         t0 = time.perf_counter()
         if not self._enc_t:
@@ -299,22 +350,20 @@ class SpinScanBuilder:
             )
         enc_t = np.asarray(self._enc_t, dtype=np.int64)
         order = np.argsort(enc_t, kind="stable")
-        t = np.concatenate(self._t) if self._t else np.zeros(0, dtype=np.int64)
-        phi = encoder_angle(
-            t,
-            enc_t[order],
-            np.asarray(self._enc_c, dtype=np.int64)[order],
-            self.counts_per_revolution,
-            self.encoder_direction,
-            self.encoder_latency_s,
-        )
+        enc_t, enc_c = enc_t[order], np.asarray(self._enc_c, dtype=np.int64)[order]
+        if not self._enc_ordered:
+            self._phi = []
+        rest = self._t[len(self._phi) :]
+        if rest:
+            self._phi.append(self._angle(np.concatenate(rest), enc_t, enc_c))
+        phi = np.concatenate(self._phi) if self._phi else np.zeros(0)
         keep = np.isfinite(phi)
         p_L = np.concatenate(self._p) if self._p else np.zeros((0, 3))
         rng = np.concatenate(self._rng) if self._rng else np.zeros(0)
         az = np.concatenate(self._az) if self._az else np.zeros(0)
         if not keep.all():
             p_L, phi, rng, az = p_L[keep], phi[keep], rng[keep], az[keep]
-        self._t, self._p, self._rng, self._az = [], [], [], []
+        self._t, self._p, self._rng, self._az, self._phi = [], [], [], [], []
         self._done = SpinScan(
             p_L,
             phi,
