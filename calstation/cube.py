@@ -133,6 +133,10 @@ def _angle_deg(n1: FloatArray, n2: FloatArray) -> float:
     return math.degrees(math.acos(min(1.0, abs(float(np.dot(n1, n2))))))
 
 
+PLATTER_WINDOW = 0.02
+"""The platter top is looked for within this distance of x_D = 0 (m)."""
+
+
 def check_cube_points(
     p_L: FloatArray,
     phi: FloatArray,
@@ -145,11 +149,21 @@ def check_cube_points(
     """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H."""
     t0 = time.perf_counter()
     s = cube.edge
+    # height along the axis and distance from it do not depend on the platter angle: keep
+    # only the returns the steps below can use (the platter within PLATTER_WINDOW, the cube
+    # above it) before turning each by its angle
+    q = (p_L - H.t) @ H.R
+    near = np.flatnonzero(
+        (q[:, 0] > -2 * PLATTER_WINDOW)
+        & (q[:, 0] < 3 * s + 2 * PLATTER_WINDOW)
+        & (np.hypot(q[:, 1], q[:, 2]) < platter_radius)
+    )
+    p_L, phi = p_L[near], phi[near]
     p_D = lidar_to_dynamic(p_L, phi, H)
     # measure from the platter as seen, not from x_D = 0: a calibration's origin along the axis
     # is a gauge (the shape strategy holds ty), and a few millimetres there would otherwise
     # lift the platter itself above the segmentation cut
-    level = platter_level(p_D, platter_radius)
+    level = platter_level(p_D, platter_radius, window=PLATTER_WINDOW)
     p_D[:, 0] -= level
     seg = segment_above_platter(p_D, margin=SEGMENT_MARGIN, radius=platter_radius, height=3 * s)
     idx = np.flatnonzero(seg)
