@@ -1,10 +1,13 @@
 """CANopen drivers for calstation: a CiA 402 turntable drive and a CiA 406 encoder, with
-emulators of both on python-can."""
+emulators of both on python-can.
 
-from .bus import CanopenError, SharedBus
-from .drive import Cia402Turntable
-from .emulator import DriveEmulator, EmulatedNode, EncoderEmulator, RampPlatter
-from .encoder import Cia406Encoder, Unwrapper
+The package's names load their modules (and python-can) when first used, so that registering
+the plugin costs nothing at start-up.
+"""
+
+from __future__ import annotations
+
+from typing import Any
 
 __all__ = [
     "CanopenError",
@@ -17,3 +20,24 @@ __all__ = [
     "SharedBus",
     "Unwrapper",
 ]
+
+_WHERE = {
+    "CanopenError": "bus",
+    "SharedBus": "bus",
+    "Cia402Turntable": "drive",
+    "DriveEmulator": "emulator",
+    "EmulatedNode": "emulator",
+    "EncoderEmulator": "emulator",
+    "RampPlatter": "emulator",
+    "Cia406Encoder": "encoder",
+    "Unwrapper": "encoder",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import the module that defines ``name`` when it is first used."""
+    if name not in _WHERE:
+        raise AttributeError(f"module 'calstation_canopen' has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)

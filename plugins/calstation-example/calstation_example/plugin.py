@@ -21,7 +21,6 @@ import typer
 from calstation import hookimpl
 from calstation.hookspecs import RegisterDriver, RegisterStrategy
 
-from . import drivers
 from .strategy import RyHeldStrategy
 
 ENV = "CALSTATION_EXAMPLE_LOG"
@@ -30,9 +29,31 @@ ENV = "CALSTATION_EXAMPLE_LOG"
 @hookimpl
 def calstation_register_drivers(register: RegisterDriver) -> None:
     """Register the ``example`` lidar, turntable and encoder."""
-    register("lidar", "example", drivers.lidar_factory)
-    register("turntable", "example", drivers.turntable_factory)
-    register("encoder", "example", drivers.encoder_factory)
+    register("lidar", "example", lidar_factory)
+    register("turntable", "example", turntable_factory)
+    register("encoder", "example", encoder_factory)
+
+
+# the drivers (and NumPy with them) load when a run builds one, not at registration
+def lidar_factory(settings: Mapping[str, Any], context: Any) -> Any:
+    """The ``example`` lidar (:func:`calstation_example.drivers.lidar_factory`)."""
+    from .drivers import lidar_factory as make
+
+    return make(settings, context)
+
+
+def turntable_factory(settings: Mapping[str, Any], context: Any) -> Any:
+    """The ``example`` turntable (:func:`calstation_example.drivers.turntable_factory`)."""
+    from .drivers import turntable_factory as make
+
+    return make(settings, context)
+
+
+def encoder_factory(settings: Mapping[str, Any], context: Any) -> Any:
+    """The ``example`` encoder (:func:`calstation_example.drivers.encoder_factory`)."""
+    from .drivers import encoder_factory as make
+
+    return make(settings, context)
 
 
 @hookimpl

@@ -13,13 +13,12 @@ from typing import TYPE_CHECKING, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from calstation.frames import Extrinsics
-from calstation.recipe import Recipe
-from calstation.result import CalibrationResult
-from calstation.strategies import Progress, strategy_options
-
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the engine loads when the strategy runs, not when it is registered
+    from calstation.frames import Extrinsics
+    from calstation.recipe import Recipe
     from calstation.recording import Recording
+    from calstation.result import CalibrationResult
+    from calstation.strategies import Progress
 
 
 class RyHeldOptions(BaseModel):
@@ -50,6 +49,7 @@ class RyHeldStrategy:
         from dataclasses import replace
 
         from calstation.shape import shape_fine_tune
+        from calstation.strategies import strategy_options
 
         options: RyHeldOptions = strategy_options(self, recipe)
         result = shape_fine_tune(

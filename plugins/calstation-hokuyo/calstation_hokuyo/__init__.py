@@ -1,10 +1,12 @@
-"""Hokuyo SCIP 2.0 line scanners for calstation: the ``hokuyo`` lidar driver and its emulator."""
+"""Hokuyo SCIP 2.0 line scanners for calstation: the ``hokuyo`` lidar driver and its emulator.
 
-from calstation.testing.transports import PtyServer, TcpServer
+The package's names load their modules (and NumPy and pyserial) when first used, so that
+registering the plugin costs nothing at start-up.
+"""
 
-from .driver import ClockSync, HokuyoLidar, SensorParameters, StepMapping
-from .emulator import ScipParameters, ScipSensor, WallScene
-from .scip import HokuyoError, ScipChecksumError, ScipStatusError, ScipTimeout
+from __future__ import annotations
+
+from typing import Any
 
 __all__ = [
     "ClockSync",
@@ -21,3 +23,28 @@ __all__ = [
     "TcpServer",
     "WallScene",
 ]
+
+_WHERE = {
+    "ClockSync": ".driver",
+    "HokuyoLidar": ".driver",
+    "SensorParameters": ".driver",
+    "StepMapping": ".driver",
+    "ScipParameters": ".emulator",
+    "ScipSensor": ".emulator",
+    "WallScene": ".emulator",
+    "HokuyoError": ".scip",
+    "ScipChecksumError": ".scip",
+    "ScipStatusError": ".scip",
+    "ScipTimeout": ".scip",
+    "PtyServer": "calstation.testing.transports",
+    "TcpServer": "calstation.testing.transports",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """Import the module that defines ``name`` when it is first used."""
+    if name not in _WHERE:
+        raise AttributeError(f"module 'calstation_hokuyo' has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(_WHERE[name], __name__), name)

@@ -1,4 +1,8 @@
-"""Registers the ``hokuyo`` lidar driver and the ``calstation emulate hokuyo`` command."""
+"""Registers the ``hokuyo`` lidar driver and the ``calstation emulate hokuyo`` command.
+
+The factory imports the driver (and NumPy and pyserial) when a run builds one
+(:mod:`calstation_hokuyo.emulated`), so that registering it costs nothing at start-up.
+"""
 
 from __future__ import annotations
 
@@ -6,47 +10,22 @@ import contextlib
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
 from calstation import hookimpl
 from calstation.cli import command_group
-from calstation.drivers import DriverContext
-from calstation.testing.transports import PtyServer, TcpServer
 
-from .driver import HokuyoLidar
-from .emulator import ScipParameters, ScipSensor, WallScene
-from .scip import HokuyoError
+if TYPE_CHECKING:
+    from calstation.drivers import DriverContext
 
 
-class EmulatedHokuyo(HokuyoLidar):
-    """The ``hokuyo`` driver talking, through real SCIP bytes on a local TCP port, to an emulator
-    backed by the run's simulated station (``settings.emulate: true``). Closing the driver stops
-    the emulator."""
-
-    def __init__(self, settings: Mapping[str, Any], context: DriverContext) -> None:
-        from .simscene import simulated_station
-
-        station = simulated_station(context)
-        # the emulated sensor is mounted the way the driver's settings say (azimuth_sign)
-        params = ScipParameters(azimuth_sign=int(settings.get("azimuth_sign", -1)))
-        self.emulator = ScipSensor(station.scan_line, params, now_ns=context.clock.now_ns)
-        self.server = TcpServer(self.emulator)
-        cfg = {k: v for k, v in settings.items() if k not in ("emulate", "port")}
-        super().__init__({**cfg, "port": self.server.url}, clock=context.clock)
-
-    def close(self) -> None:
-        """Close the driver, then the emulator."""
-        super().close()
-        self.server.close()
-
-
-def make_lidar(settings: Mapping[str, Any], context: DriverContext) -> HokuyoLidar:
+def make_lidar(settings: Mapping[str, Any], context: DriverContext) -> Any:
     """Factory of the ``hokuyo`` lidar driver (settings: see docs/drivers.md)."""
-    if settings.get("emulate"):
-        return EmulatedHokuyo(settings, context)
-    return HokuyoLidar(settings, clock=context.clock)
+    from .emulated import make_lidar as make
+
+    return make(settings, context)
 
 
 @hookimpl
@@ -83,6 +62,10 @@ def calstation_register_commands(cli: Any) -> None:
         Type 'place FIXTURE' or 'spin RPM' on stdin to change the scene while it runs.
         """
         from calstation.clock import HostClock
+        from calstation.testing.transports import PtyServer, TcpServer
+
+        from .emulator import ScipParameters, ScipSensor, WallScene
+        from .scip import HokuyoError
 
         clock = HostClock()
         station: Any = None
