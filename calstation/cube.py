@@ -30,8 +30,7 @@ from .geometry import (
     fit_plane,
     largest_cluster,
     minimal_obb,
-    platter_level,
-    segment_above_platter,
+    platter_level_of,
     upright_box,
 )
 from .recipe import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
@@ -135,6 +134,11 @@ def _angle_deg(n1: FloatArray, n2: FloatArray) -> float:
 
 PLATTER_WINDOW = 0.02
 """The platter top is looked for within this distance of x_D = 0 (m)."""
+RING_BAND = 0.004
+"""The platter plane beside the cube is fitted to the returns within this distance of its
+level (m)."""
+RING_POINTS = 150_000
+"""At most this many of those, a regular subset (the platter gives ~0.75 M in a 3 M scan)."""
 
 
 def check_cube_points(
@@ -145,29 +149,33 @@ def check_cube_points(
     limits: QALimits,
     *,
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    paper_obb: bool = True,
 ) -> CubeCheck:
-    """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H."""
+    """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H.
+    ``paper_obb=False`` leaves out the paper's minimum-volume box (its edges NaN), for callers
+    that need only the face-fit dimensions."""
     t0 = time.perf_counter()
     s = cube.edge
-    # height along the axis and distance from it do not depend on the platter angle: keep
-    # only the returns the steps below can use (the platter within PLATTER_WINDOW, the cube
-    # above it) before turning each by its angle
-    q = (p_L - H.t) @ H.R
-    near = np.flatnonzero(
-        (q[:, 0] > -2 * PLATTER_WINDOW)
-        & (q[:, 0] < 3 * s + 2 * PLATTER_WINDOW)
-        & (np.hypot(q[:, 1], q[:, 2]) < platter_radius)
-    )
-    p_L, phi = p_L[near], phi[near]
-    p_D = lidar_to_dynamic(p_L, phi, H)
+    # height along the axis and distance from it do not depend on the platter angle: find the
+    # platter and the returns the steps below can use before turning any by its angle
+    q = p_L @ H.R
+    q -= H.t @ H.R
+    x, r2 = q[:, 0], np.einsum("ij,ij->i", q[:, 1:], q[:, 1:])  # r2: squared distance from it
     # measure from the platter as seen, not from x_D = 0: a calibration's origin along the axis
     # is a gauge (the shape strategy holds ty), and a few millimetres there would otherwise
     # lift the platter itself above the segmentation cut
-    level = platter_level(p_D, platter_radius, window=PLATTER_WINDOW)
+    level = platter_level_of(x, r2, platter_radius, window=PLATTER_WINDOW)
+    above = np.flatnonzero(
+        (x - level > SEGMENT_MARGIN) & (x - level < 3 * s) & (r2 < platter_radius**2)
+    )
+    ring = np.flatnonzero((np.abs(x - level) < RING_BAND) & (r2 < (platter_radius - 0.005) ** 2))
+    ring = ring[:: max(1, -(-ring.size // RING_POINTS))]
+    p_ring = lidar_to_dynamic(p_L[ring], phi[ring], H)
+    p_ring[:, 0] -= level
+    p_L, phi = p_L[above], phi[above]
+    p_D = lidar_to_dynamic(p_L, phi, H)
     p_D[:, 0] -= level
-    seg = segment_above_platter(p_D, margin=SEGMENT_MARGIN, radius=platter_radius, height=3 * s)
-    idx = np.flatnonzero(seg)
-    idx = idx[density_outlier_mask(p_D[idx])]
+    idx = np.flatnonzero(density_outlier_mask(p_D))
     idx = idx[largest_cluster(p_D[idx])]
     pts = p_D[idx]
     if pts.shape[0] < 500:
@@ -177,12 +185,14 @@ def check_cube_points(
         )
     t1 = time.perf_counter()
     # the paper's metric: minimum-volume OBB of the unsmoothed cloud
-    _, obb_axes, obb_ext = minimal_obb(pts)
-    vertical = int(np.argmax(np.abs(obb_axes[0, :])))
-    obb_ext = obb_ext.copy()
-    obb_ext[vertical] += SEGMENT_MARGIN
-    obb_edges = np.sort(obb_ext)
-    obb_error = float(np.max(obb_edges - s))
+    obb_edges, obb_error = np.full(3, math.nan), math.nan
+    if paper_obb:
+        _, obb_axes, obb_ext = minimal_obb(pts)
+        vertical = int(np.argmax(np.abs(obb_axes[0, :])))
+        obb_ext = obb_ext.copy()
+        obb_ext[vertical] += SEGMENT_MARGIN
+        obb_edges = np.sort(obb_ext)
+        obb_error = float(np.max(obb_edges - s))
     t2 = time.perf_counter()
     # robust dimensioning: planes on the faces
     centre, axes, ext = upright_box(pts)
@@ -202,7 +212,7 @@ def check_cube_points(
         n = (a.normal + nb) / np.linalg.norm(a.normal + nb)
         edges.append(abs(float(np.dot(b.centroid - a.centroid, n))))
     if "top" in faces:
-        height = _height(p_D, faces["top"], centre, ext, platter_radius)
+        height = _height(p_ring, faces["top"], centre, ext, platter_radius)
     else:
         height = float(hi[0])  # the box's top above x_D = 0
     face_edges = np.array([height, *edges])
@@ -291,6 +301,34 @@ TWIST_NOISE_BIAS_DEG = 0.04
 """Empirical bias bound of the twist at 1 mm range noise (degrees; it grows with the noise²)."""
 
 
+class FaceFlatness:
+    """Residuals of returns on plane faces about each face's own best-fit plane, as a function
+    of H: the faces' returns ((N_f, 3) in L) with their platter angles' cosines and sines
+    computed once. A face's normal is the smallest-eigenvalue direction of its scatter, its
+    sign fixed (largest component positive) so that the residuals are continuous in H."""
+
+    def __init__(self, faces_L: list[FloatArray], faces_phi: list[FloatArray]) -> None:
+        self.p_L = np.concatenate(faces_L)
+        phi = np.concatenate(faces_phi)
+        self._cos, self._sin = np.cos(phi), np.sin(phi)
+        self._bounds = np.cumsum([0, *(p.shape[0] for p in faces_L)])
+
+    def __call__(self, H: Extrinsics) -> FloatArray:
+        p_P = self.p_L @ H.R
+        p_P -= H.t @ H.R
+        q = np.column_stack([
+            p_P[:, 0],
+            self._cos * p_P[:, 1] + self._sin * p_P[:, 2],
+            -self._sin * p_P[:, 1] + self._cos * p_P[:, 2],
+        ])
+        out = np.empty(q.shape[0])
+        for a, b in zip(self._bounds[:-1], self._bounds[1:], strict=True):
+            d = q[a:b] - q[a:b].mean(axis=0)
+            n = np.linalg.eigh(d.T @ d)[1][:, 0]
+            out[a:b] = d @ (n if n[np.argmax(np.abs(n))] > 0 else -n)
+        return out
+
+
 def face_twist(
     faces_L: list[FloatArray], faces_phi: list[FloatArray], H: Extrinsics
 ) -> tuple[float, float]:
@@ -316,14 +354,10 @@ def face_twist(
     if len(faces) < 2:
         return math.nan, math.nan
 
+    flat = FaceFlatness([p for p, _ in faces], [f for _, f in faces])
+
     def flatness(x: FloatArray) -> FloatArray:
-        Hx = H.with_(ry=H.ry + float(x[0]))
-        out = []
-        for p, f in faces:
-            q = lidar_to_dynamic(p, f, Hx)
-            d = q - q.mean(axis=0)
-            out.append(d @ np.linalg.svd(d, full_matrices=False)[2][2])
-        return np.concatenate(out)
+        return flat(H.with_(ry=H.ry + float(x[0])))
 
     bound = math.radians(TWIST_BOUND_DEG)
     res = least_squares(

@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from .cube import check_cube_points, face_range_noise, flatness_ry_sigma
+from .cube import FaceFlatness, check_cube_points, face_range_noise, flatness_ry_sigma
 from .errors import FineTuningError, VerificationError
 from .frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from .geometry import (
@@ -86,6 +86,7 @@ class ShapeCost:
         box: str = "upright",
     ) -> None:
         self.p_L, self.phi = p_L, phi
+        self._cos, self._sin = np.cos(phi), np.sin(phi)
         self.edge = cube.edge
         self.settings = settings
         self.platter_radius = platter_radius
@@ -94,16 +95,28 @@ class ShapeCost:
         self.box = box
         self.evaluations = 0
         self.frozen: NDArray[np.bool_] | None = None
+        self._frozen_idx: NDArray[np.intp] | None = None
         self.last_edge_errors = np.zeros(3)
 
     def freeze(self, H: Extrinsics | None) -> None:
         """Hold the cube's point set fixed at its segmentation under H (None: re-segment at
         every evaluation, as the paper does). A fixed set keeps the residuals continuous."""
         self.frozen = None if H is None else self.cloud(H)[1]
+        self._frozen_idx = None if self.frozen is None else np.flatnonzero(self.frozen)
+
+    def to_dynamic(self, H: Extrinsics, idx: NDArray[np.intp] | None = None) -> FloatArray:
+        """The returns (all, or those at ``idx``) in D under H: :func:`lidar_to_dynamic` with
+        the platter angles' cosines and sines computed once."""
+        p, c, s = (self.p_L, self._cos, self._sin) if idx is None else (
+            self.p_L[idx], self._cos[idx], self._sin[idx])
+        p_P = (p - H.t) @ H.R
+        y = c * p_P[:, 1] + s * p_P[:, 2]
+        z = -s * p_P[:, 1] + c * p_P[:, 2]
+        return np.column_stack([p_P[:, 0], y, z])
 
     def cloud(self, H: Extrinsics) -> tuple[FloatArray, NDArray[np.bool_]]:
         """(N, 3) all returns in D and the mask of the segmented, cleaned cube points."""
-        p_D = lidar_to_dynamic(self.p_L, self.phi, H)
+        p_D = self.to_dynamic(H)
         seg = segment_above_platter(
             p_D,
             margin=self.settings.segment_margin,
@@ -143,17 +156,18 @@ class ShapeCost:
         self.evaluations += 1
         if self.frozen is not None:
             mask = self.frozen
-            p_D = lidar_to_dynamic(self.p_L, self.phi, H)
+            pts = self.to_dynamic(H, self._frozen_idx)
         else:
             p_D, mask = self.cloud(H)
+            pts = p_D[mask]
         out = np.zeros(self.p_L.shape[0] + 3)
-        n = int(mask.sum())
+        n = pts.shape[0]
         if n < 50:
             out[-3:] = self.edge  # no cube: as bad as a missing cube
             return out
         fit = upright_box if self.box == "upright" else minimal_obb
-        centre, axes, extents = fit(p_D[mask])
-        d = signed_face_distances(p_D[mask], centre, axes, extents)
+        centre, axes, extents = fit(pts)
+        d = signed_face_distances(pts, centre, axes, extents)
         out[: self.p_L.shape[0]][mask] = d / math.sqrt(n)
         self.last_edge_errors = extents - self.expected_extents(axes)
         if self.box == "minimal":
@@ -176,13 +190,13 @@ def _near_cube(
     p_L: FloatArray, phi: FloatArray, H: Extrinsics, cube: CubeGeometry, platter_radius: float
 ) -> tuple[FloatArray, FloatArray]:
     """The returns ((N, 3) in L, (N,) φ) in a generous region above the platter under H (the
-    start may be a few cm off)."""
-    near = segment_above_platter(
-        lidar_to_dynamic(p_L, phi, H),
-        margin=0.0,
-        radius=platter_radius + 0.05,
-        height=3.0 * cube.edge + 0.05,
-    )
+    start may be a few cm off). Height along the axis and distance from it do not depend on
+    the platter angle: the test needs no turn into D."""
+    q = p_L @ H.R
+    q -= H.t @ H.R
+    r2 = np.einsum("ij,ij->i", q[:, 1:], q[:, 1:])
+    height = 3.0 * cube.edge + 0.05
+    near = (q[:, 0] > 0.0) & (q[:, 0] < height) & (r2 < (platter_radius + 0.05) ** 2)
     return p_L[near], phi[near]
 
 
@@ -394,17 +408,12 @@ def _shape_pass(
         idx = [PARAMETER_NAMES.index(n) for n in ("tz", "ry", "rz")]
         base = x6.copy()
         faces_L, faces_phi = [pts_L[sel] for sel in faces], [ph[sel] for sel in faces]
+        flat = FaceFlatness(faces_L, faces_phi)
 
         def flatness(x: FloatArray) -> FloatArray:
             v = base.copy()
             v[idx] = x
-            Hx = Extrinsics.from_vector(v)
-            out = []
-            for p, f in zip(faces_L, faces_phi, strict=True):
-                q = lidar_to_dynamic(p, f, Hx)
-                d = q - q.mean(axis=0)
-                out.append(d @ np.linalg.svd(d, full_matrices=False)[2][2])
-            return np.concatenate(out)
+            return flat(Extrinsics.from_vector(v))
 
         centre = start6[idx]
         # a set-B start is 2° off and the true ry up to 0.5° from the initial 0 (as periodicity)
@@ -451,7 +460,7 @@ def _shape_pass(
     total = float(np.sum(final**2))
     # the box cost's residuals are neighbours on one shape: a cluster-robust σ over 2 cm blocks
     # (the three edge residuals are blocks of their own)
-    blocks = block_ids(lidar_to_dynamic(cost.p_L, cost.phi, H), 0.02)
+    blocks = block_ids(cost.to_dynamic(H), 0.02)
     blocks = np.concatenate([blocks, blocks.max(initial=-1) + 1 + np.arange(3)])
     sigma = parameter_sigma(res, free, blocks=blocks)
     pts_L, ph, faces = labelled_faces(H)
@@ -554,7 +563,7 @@ def shape_fine_tune_points(
     # what the residuals cannot see: the cube's own dimensions under the result
     try:
         edge_error = check_cube_points(
-            p_L, phi, result.H, cube, QALimits(), platter_radius=platter_radius
+            p_L, phi, result.H, cube, QALimits(), platter_radius=platter_radius, paper_obb=False
         ).edge_error
     except VerificationError:
         edge_error = math.nan

@@ -1,0 +1,99 @@
+"""The geometry helpers' shortcuts against their plain definitions."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import ConvexHull
+
+from calstation.cube import FaceFlatness
+from calstation.frames import Extrinsics, lidar_to_dynamic
+from calstation.geometry import _hull_candidates, platter_level, platter_level_of, upright_box
+
+
+def _hull(points: np.ndarray) -> set[tuple[float, float]]:
+    return {tuple(v) for v in points[ConvexHull(points).vertices]}
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(64, 4000),
+    angle=st.floats(0.0, 2 * np.pi),
+    aspect=st.floats(0.05, 1.0),
+    rounded=st.booleans(),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_hull_candidates_keep_every_hull_vertex(
+    n: int, angle: float, aspect: float, rounded: bool, seed: int
+) -> None:
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(-1.0, 1.0, (n, 2)) * [1.0, aspect]
+    c, s = np.cos(angle), np.sin(angle)
+    pts = pts @ np.array([[c, s], [-s, c]])
+    if rounded:  # repeated extreme points and collinear hull edges
+        pts = np.round(pts, 1)
+    kept = _hull_candidates(pts)
+    assert kept.shape[0] <= pts.shape[0]
+    assert _hull(kept) == _hull(pts)
+
+
+def test_hull_candidates_drop_the_interior() -> None:
+    pts = np.random.default_rng(1).normal(size=(5000, 2))
+    assert _hull_candidates(pts).shape[0] < 500
+
+
+def test_upright_box_of_a_rotated_cube() -> None:
+    rng = np.random.default_rng(2)
+    # returns on the four sides and the top of a 0.1 m cube turned by 0.3 rad about X
+    u = rng.uniform(-0.05, 0.05, 20000)
+    h = rng.uniform(0.0, 0.1, 20000)
+    side = rng.integers(0, 5, 20000)
+    local = np.column_stack([h, u, np.full_like(u, 0.05)])
+    local[side == 1, 2] = -0.05
+    local[side == 2] = np.column_stack([h, np.full_like(u, 0.05), u])[side == 2]
+    local[side == 3] = np.column_stack([h, np.full_like(u, -0.05), u])[side == 3]
+    local[side == 4] = np.column_stack([np.full_like(u, 0.1), u, rng.uniform(-0.05, 0.05, 20000)])[
+        side == 4
+    ]
+    local += rng.normal(0.0, 0.0005, local.shape)
+    c, s = np.cos(0.3), np.sin(0.3)
+    pts = local @ np.array([[1, 0, 0], [0, c, s], [0, -s, c]]) + [0.0, 0.2, -0.1]
+    centre, axes, extents = upright_box(pts)
+    assert np.allclose(np.sort(extents[1:]), [0.1, 0.1], atol=3e-4)
+    assert abs(extents[0] - 0.1) < 1e-3
+    assert abs(abs(axes[1, 1]) - c) < 1e-3 or abs(abs(axes[1, 1]) - s) < 1e-3
+    assert np.allclose(centre[1:], [0.2, -0.1], atol=3e-4)
+
+
+def test_platter_level_from_height_and_radius_alone() -> None:
+    rng = np.random.default_rng(3)
+    n = 50000
+    r = np.sqrt(rng.uniform(0.0, 0.15**2, n))
+    a = rng.uniform(0.0, 2 * np.pi, n)
+    x = rng.normal(0.002, 0.0005, n)
+    x[:2000] = rng.uniform(0.0, 0.1, 2000)  # a cube's returns above it
+    p_D = np.column_stack([x, r * np.cos(a), r * np.sin(a)])
+    level = platter_level(p_D, 0.15)
+    assert abs(level - 0.002) < 2e-5
+    assert level == platter_level_of(x, p_D[:, 1] ** 2 + p_D[:, 2] ** 2, 0.15)
+
+
+def test_face_flatness_is_the_plane_fit_residual() -> None:
+    rng = np.random.default_rng(4)
+    H = Extrinsics(tx=0.01, ty=1.2, tz=-0.02, rx=0.0, ry=0.01, rz=-0.8)
+    faces_L, faces_phi = [], []
+    for _ in range(3):
+        pts = rng.normal(size=(500, 3)) * [0.3, 0.3, 0.0]
+        faces_L.append(pts)
+        faces_phi.append(rng.uniform(0.0, 2 * np.pi, 500))
+    got = FaceFlatness(faces_L, faces_phi)(H)
+    start = 0
+    for p, f in zip(faces_L, faces_phi, strict=True):
+        q = lidar_to_dynamic(p, f, H)
+        d = q - q.mean(axis=0)
+        want = d @ np.linalg.svd(d, full_matrices=False)[2][2]
+        part = got[start : start + p.shape[0]]
+        assert np.allclose(np.abs(part), np.abs(want), atol=1e-12)
+        assert np.allclose(part, want, atol=1e-12) or np.allclose(part, -want, atol=1e-12)
+        start += p.shape[0]
