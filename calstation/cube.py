@@ -149,10 +149,10 @@ def check_cube_points(
     limits: QALimits,
     *,
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
-    paper_obb: bool = True,
+    edges_only: bool = False,
 ) -> CubeCheck:
     """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H.
-    ``paper_obb=False`` leaves out the paper's minimum-volume box (its edges NaN), for callers
+    ``edges_only`` leaves out the paper's minimum-volume box and the twist (NaN), for callers
     that need only the face-fit dimensions."""
     t0 = time.perf_counter()
     s = cube.edge
@@ -186,7 +186,7 @@ def check_cube_points(
     t1 = time.perf_counter()
     # the paper's metric: minimum-volume OBB of the unsmoothed cloud
     obb_edges, obb_error = np.full(3, math.nan), math.nan
-    if paper_obb:
+    if not edges_only:
         _, obb_axes, obb_ext = minimal_obb(pts)
         vertical = int(np.argmax(np.abs(obb_axes[0, :])))
         obb_ext = obb_ext.copy()
@@ -237,9 +237,11 @@ def check_cube_points(
         default=math.nan,
     )
     sides = [faces[n].members for n in ("1-", "1+", "2-", "2+") if n in faces]
-    twist, twist_sigma = face_twist(
-        [p_L[idx[m]] for m in sides], [phi[idx[m]] for m in sides], H
-    )
+    twist, twist_sigma = math.nan, math.nan
+    if not edges_only:
+        twist, twist_sigma = face_twist(
+            [p_L[idx[m]] for m in sides], [phi[idx[m]] for m in sides], H
+        )
     t3 = time.perf_counter()
     failures = []
     if missing:
@@ -264,7 +266,9 @@ def check_cube_points(
         )
     if perp > limits.perpendicularity_deg:
         failures.append(f"perpendicularity {perp:.3f}° > {limits.perpendicularity_deg:.3f}°")
-    if not math.isfinite(twist):
+    if edges_only:
+        pass  # no twist was measured
+    elif not math.isfinite(twist):
         failures.append(
             "the twist of the side faces cannot be measured (fewer than two side faces with "
             "enough returns): the check cannot see an error of ry"

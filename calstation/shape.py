@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -212,7 +213,18 @@ def _subsample(
     return p_L, phi, math.sqrt(n_all / p_L.shape[0])
 
 
-def _box_fit(
+@dataclass(frozen=True)
+class _BoxLook:
+    """How the cube looks under an H: the box cost and how far the plain (extreme-point) box's
+    horizontal edges are from the cube's."""
+
+    cost: float
+    """C1 + C2 of the upright box (m²); inf when no cube is found above the platter"""
+    edge_excess: float
+    """max |extent − s| of the plain box's two horizontal edges (m); inf without a cube"""
+
+
+def _box_look(
     p_L: FloatArray,
     phi: FloatArray,
     H: Extrinsics,
@@ -220,18 +232,91 @@ def _box_fit(
     settings: ShapeSettings,
     platter_radius: float,
     max_points: int,
-) -> float:
-    """C1 + C2 of the upright box (m²) for the cube scan's moving returns ((N, 3) in L, (N,) φ)
-    under H; inf when no cube is found above the platter."""
+) -> _BoxLook:
+    """:class:`_BoxLook` of the cube scan's moving returns ((N, 3) in L, (N,) φ) under H."""
     p_L, phi = _near_cube(p_L, phi, H, cube, platter_radius)
     if p_L.shape[0] < 200:
-        return math.inf
+        return _BoxLook(math.inf, math.inf)
     p_L, phi, density_scale = _subsample(p_L, phi, max_points)
     cost = ShapeCost(
         p_L, phi, cube, settings, platter_radius=platter_radius, density_scale=density_scale
     )
+    cost.freeze(H)  # one segmentation for the cost and the plain box
     r = cost.residuals_of(H)
-    return float(np.sum(r[:-3] ** 2) + np.sum(cost.last_edge_errors**2))
+    if cost._frozen_idx is None or cost._frozen_idx.size < 50:
+        return _BoxLook(math.inf, math.inf)
+    _, _, extents = upright_box(cost.to_dynamic(H, cost._frozen_idx), robust=False)
+    return _BoxLook(
+        float(np.sum(r[:-3] ** 2) + np.sum(cost.last_edge_errors**2)),
+        float(np.max(np.abs(extents[1:] - cube.edge))),
+    )
+
+
+COARSE_GATE_M = 0.005
+"""The coarse alignment runs when the start's plain box is more than this plus 6 σ of range
+noise off the cube's edge (m): an offset δ of the axis widens it by ~2δ, so starts within a few
+millimetres, well inside the box cost's reach, skip it."""
+
+
+def _coarse_alignment(
+    scan: SpinScan,
+    p_mov: FloatArray,
+    phi_mov: FloatArray,
+    start: Extrinsics,
+    cube: CubeGeometry,
+    settings: ShapeSettings,
+    *,
+    platter_radius: float,
+    max_points: int,
+) -> tuple[Extrinsics, dict[str, Any]]:
+    """A far start brought within the box cost's reach, and what was done.
+
+    The box cost has no basin wider than the cube: the coarse stages of the periodicity
+    matching run on the cube's own scan (ty and ry held) unless the start already shows the
+    cube's size (:data:`COARSE_GATE_M`). The two half-turns of a cube see different faces,
+    which biases that matching at low pitch, so the alignment is kept only where the box fits
+    better than at the start.
+    """
+    look = _box_look(p_mov, phi_mov, start, cube, settings, platter_radius, max_points)
+    noise = scan.noise if math.isfinite(scan.noise) else 0.001
+    gate = COARSE_GATE_M + 6.0 * noise
+    if look.edge_excess <= gate:
+        return start, {
+            "used": False,
+            "needed": False,
+            "start_edge_excess_m": look.edge_excess,
+            "gate_m": gate,
+        }
+    skipped = []
+    for n_stages in range(COARSE_STAGES, 0, -1):
+        try:
+            pre = periodicity_fine_tune_scan(
+                scan,
+                start,
+                PeriodicitySettings(gauge="ty"),
+                platter_radius=platter_radius,
+                stages=n_stages,
+            )
+        except FineTuningError as exc:
+            skipped.append(str(exc))
+            continue
+        aligned = pre.H.with_(ty=start.ty, ry=start.ry, rx=0.0)
+        after = _box_look(p_mov, phi_mov, aligned, cube, settings, platter_radius, max_points)
+        report = {
+            "used": after.cost < look.cost,
+            "needed": True,
+            "start_edge_excess_m": look.edge_excess,
+            "gate_m": gate,
+            "stages": n_stages,
+            "start": start.as_dict(),
+            "aligned": aligned.as_dict(),
+            "box_cost_start": look.cost,
+            "box_cost_aligned": after.cost,
+            "seconds": pre.timings["total"],
+            "skipped": skipped,
+        }
+        return (aligned if after.cost < look.cost else start), report
+    return start, {"used": False, "needed": True, "skipped": skipped}
 
 
 BOX_NOISE_M = 0.0003
@@ -275,43 +360,18 @@ def _shape_pass(
     # the platter ring and the background are static in L: they never belong to the cube
     moving = ~scan.static
     p_mov, phi_mov = scan.p_L[moving], scan.phi[moving]
-    coarse_report: dict[str, Any] = {"used": False}
+    coarse_report: dict[str, Any] = {"used": False, "needed": None}
     if coarse:
-        # the box cost has no basin wider than the cube: bring a far start within reach with
-        # the coarse stages of the periodicity matching on this same scan (ty and ry held)
-        skipped = []
-        for n_stages in range(COARSE_STAGES, 0, -1):
-            try:
-                pre = periodicity_fine_tune_scan(
-                    scan,
-                    start,
-                    PeriodicitySettings(gauge="ty"),
-                    platter_radius=platter_radius,
-                    stages=n_stages,
-                )
-            except FineTuningError as exc:
-                skipped.append(str(exc))
-                continue
-            aligned = pre.H.with_(ty=start.ty, ry=start.ry, rx=0.0)
-            # the two half-turns of a cube see different faces, which biases the matching at
-            # low pitch: keep the alignment only where the box fits better than at the start
-            before = _box_fit(p_mov, phi_mov, start, cube, settings, platter_radius, max_points)
-            after = _box_fit(p_mov, phi_mov, aligned, cube, settings, platter_radius, max_points)
-            coarse_report = {
-                "used": after < before,
-                "stages": n_stages,
-                "start": start.as_dict(),
-                "aligned": aligned.as_dict(),
-                "box_cost_start": before,
-                "box_cost_aligned": after,
-                "seconds": pre.timings["total"],
-                "skipped": skipped,
-            }
-            if after < before:
-                start = aligned
-            break
-        else:
-            coarse_report = {"used": False, "skipped": skipped}
+        start, coarse_report = _coarse_alignment(
+            scan,
+            p_mov,
+            phi_mov,
+            start,
+            cube,
+            settings,
+            platter_radius=platter_radius,
+            max_points=max_points,
+        )
     # all of them near the cube: the face-flatness ry step needs the density
     p_L_near, phi_near = _near_cube(p_mov, phi_mov, start, cube, platter_radius)
     n_all = p_L_near.shape[0]
@@ -563,7 +623,7 @@ def shape_fine_tune_points(
     # what the residuals cannot see: the cube's own dimensions under the result
     try:
         edge_error = check_cube_points(
-            p_L, phi, result.H, cube, QALimits(), platter_radius=platter_radius, paper_obb=False
+            p_L, phi, result.H, cube, QALimits(), platter_radius=platter_radius, edges_only=True
         ).edge_error
     except VerificationError:
         edge_error = math.nan

@@ -138,3 +138,22 @@ def test_ry_from_the_face_flatness_with_a_large_true_ry(sim_run) -> None:
         rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape, estimate_ry=False
     )
     assert held.H.ry == initial.H.ry and held.diagnostics["ry_source"] == "held"
+
+
+def test_the_coarse_alignment_runs_only_for_a_start_the_cube_does_not_confirm(sim_run) -> None:
+    """A start from the L-target shows the cube's size and skips the coarse alignment; a start
+    60 mm off does not, and the alignment brings it back."""
+    recipe, initial, rec = _from_initial(sim_run)
+    truth = rec.truth
+    assert truth is not None
+    near = shape_fine_tune(rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape)
+    coarse = near.diagnostics["coarse"]
+    assert coarse["needed"] is False and coarse["start_edge_excess_m"] < coarse["gate_m"]
+    far_start = initial.H.with_(tx=initial.H.tx + 0.06, tz=initial.H.tz - 0.04)
+    far = shape_fine_tune(rec, far_start, recipe.fixtures.qa_cube, recipe.calibration.shape)
+    coarse = far.diagnostics["coarse"]
+    assert coarse["needed"] is True and coarse["start_edge_excess_m"] > coarse["gate_m"]
+    assert coarse["used"] is True
+    e = axis_errors(far.H, truth)
+    assert e["axis_offset_m"] <= 2e-3
+    assert math.degrees(e["axis_angle_rad"]) <= 0.3
