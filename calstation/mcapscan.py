@@ -17,6 +17,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -104,7 +105,8 @@ def _decompress(compression: str, data: memoryview, size: int) -> bytes:
     raise Damaged(f"unknown chunk compression {compression!r}")
 
 
-def _chunk(buf: memoryview, pos: int, end: int, on: Handlers) -> None:
+def _chunk_body(buf: memoryview, pos: int, end: int) -> tuple[str, memoryview, int, int]:
+    """(compression, compressed records, uncompressed size, CRC) of a chunk record's body."""
     if pos + _CHUNK.size > end:
         raise Damaged("a chunk header runs past its record")
     _, _, size, crc = _CHUNK.unpack_from(buf, pos)
@@ -113,8 +115,14 @@ def _chunk(buf: memoryview, pos: int, end: int, on: Handlers) -> None:
     pos += 8
     if pos + n > end:
         raise Damaged("chunk records run past the chunk")
+    return compression, buf[pos : pos + n], size, crc
+
+
+def _inflate(buf: memoryview, pos: int, end: int) -> bytes:
+    """A chunk's records, decompressed and checked against its size and CRC."""
+    compression, data, size, crc = _chunk_body(buf, pos, end)
     try:
-        raw = _decompress(compression, buf[pos : pos + n], size)
+        raw = _decompress(compression, data, size)
     except Damaged:
         raise
     except Exception as exc:  # zstd raises its own error types
@@ -123,11 +131,70 @@ def _chunk(buf: memoryview, pos: int, end: int, on: Handlers) -> None:
         raise Damaged(f"chunk holds {len(raw)} bytes, its header says {size}")
     if crc and zlib.crc32(raw) != crc:
         raise Damaged("chunk CRC mismatch")
-    _records(memoryview(raw), 0, on, inner=True)
+    return raw
 
 
-def _records(buf: memoryview, pos: int, on: Handlers, *, inner: bool) -> ScanResult:
-    """Walk records from ``pos``; in a chunk (``inner``) any incomplete record is damage."""
+AHEAD = 3
+"""Chunks decompressed ahead, on a worker thread, while the current one's records are read
+(decompression and the CRC release the GIL; the records are read in Python)."""
+
+_WORKER: ThreadPoolExecutor | None = None
+
+
+class _ChunksAhead:
+    """The file's chunks decompressed in order, up to :data:`AHEAD` ahead of the reader.
+
+    The chunk records are found by their headers alone, up to the first record that runs past
+    the end of the file; the reader still walks every record itself and meets any damage where
+    it is.
+    """
+
+    def __init__(self, buf: memoryview, pos: int) -> None:
+        global _WORKER
+        self.buf = buf
+        self.spans: list[tuple[int, int]] = []
+        total = len(buf)
+        while pos + _RECORD.size <= total:
+            op, length = _RECORD.unpack_from(buf, pos)
+            start = pos + _RECORD.size
+            if start + length > total or op == OP_FOOTER:
+                break
+            if op == OP_CHUNK:
+                self.spans.append((start, start + length))
+            pos = start + length
+        self.pending: dict[int, Future[bytes]] = {}
+        self.next = 0
+        if len(self.spans) > 1:
+            if _WORKER is None:
+                _WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="calstation-mcap")
+            self._top_up()
+
+    def _top_up(self) -> None:
+        assert _WORKER is not None
+        while self.next < len(self.spans) and len(self.pending) < AHEAD:
+            start, end = self.spans[self.next]
+            self.pending[start] = _WORKER.submit(_inflate, self.buf, start, end)
+            self.next += 1
+
+    def records(self, start: int, end: int) -> bytes:
+        """The decompressed records of the chunk record whose body is ``buf[start:end]``."""
+        future = self.pending.pop(start, None)
+        if future is None:
+            return _inflate(self.buf, start, end)
+        self._top_up()
+        return future.result()
+
+    def cancel(self) -> None:
+        for future in self.pending.values():
+            future.cancel()
+        self.pending.clear()
+
+
+def _records(
+    buf: memoryview, pos: int, on: Handlers, *, inner: bool, chunks: _ChunksAhead | None = None
+) -> ScanResult:
+    """Walk records from ``pos``; in a chunk (``inner``) any incomplete record is damage.
+    ``chunks`` decompresses the top level's chunks ahead of the walk."""
     total = len(buf)
     while True:
         if pos == total:
@@ -158,7 +225,8 @@ def _records(buf: memoryview, pos: int, on: Handlers, *, inner: bool) -> ScanRes
             encoding, _ = _string(buf, p, end)
             on.channel(channel_id, topic, encoding)
         elif op == OP_CHUNK and not inner:
-            _chunk(buf, start, end, on)
+            raw = _inflate(buf, start, end) if chunks is None else chunks.records(start, end)
+            _records(memoryview(raw), 0, on, inner=True)
         elif op == OP_METADATA and not inner:
             name, p = _string(buf, start, end)
             values, _ = _string_map(buf, p, end)
@@ -180,7 +248,10 @@ def scan(data: bytes, on: Handlers) -> ScanResult:
     ``on``'s handlers. Stops at the footer (clean) or at the first incomplete or damaged record
     (``problem`` says which); the handlers' own exceptions propagate."""
     buf = memoryview(data)
+    chunks = _ChunksAhead(buf, len(MAGIC))
     try:
-        return _records(buf, len(MAGIC), on, inner=False)
+        return _records(buf, len(MAGIC), on, inner=False, chunks=chunks)
     except (Damaged, struct.error, UnicodeDecodeError) as exc:
         return ScanResult(False, f"damaged record: {exc}")
+    finally:
+        chunks.cancel()
