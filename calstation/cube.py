@@ -29,8 +29,8 @@ from .geometry import (
     density_outlier_mask,
     fit_plane,
     largest_cluster,
+    level_of_heights,
     minimal_obb,
-    platter_level_of,
     upright_box,
 )
 from .recipe import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
@@ -158,17 +158,25 @@ def check_cube_points(
     s = cube.edge
     # height along the axis and distance from it do not depend on the platter angle: find the
     # platter and the returns the steps below can use before turning any by its angle
-    q = p_L @ H.R
-    q -= H.t @ H.R
-    x, r2 = q[:, 0], np.einsum("ij,ij->i", q[:, 1:], q[:, 1:])  # r2: squared distance from it
+    t_P = H.t @ H.R
+    x = p_L @ H.R[:, 0]
+    x -= t_P[0]
+
+    def within(idx: NDArray[np.intp], radius: float) -> NDArray[np.intp]:
+        """Those of ``idx`` closer than ``radius`` to the axis."""
+        yz = p_L[idx] @ H.R[:, 1:]
+        yz -= t_P[1:]
+        out: NDArray[np.intp] = idx[np.einsum("ij,ij->i", yz, yz) < radius**2]
+        return out
+
     # measure from the platter as seen, not from x_D = 0: a calibration's origin along the axis
     # is a gauge (the shape strategy holds ty), and a few millimetres there would otherwise
     # lift the platter itself above the segmentation cut
-    level = platter_level_of(x, r2, platter_radius, window=PLATTER_WINDOW)
-    above = np.flatnonzero(
-        (x - level > SEGMENT_MARGIN) & (x - level < 3 * s) & (r2 < platter_radius**2)
-    )
-    ring = np.flatnonzero((np.abs(x - level) < RING_BAND) & (r2 < (platter_radius - 0.005) ** 2))
+    window = np.flatnonzero(np.abs(x) < PLATTER_WINDOW)
+    level = level_of_heights(x[within(window, platter_radius - 0.005)])
+    x -= level
+    above = within(np.flatnonzero((x > SEGMENT_MARGIN) & (x < 3 * s)), platter_radius)
+    ring = within(np.flatnonzero(np.abs(x) < RING_BAND), platter_radius - 0.005)
     ring = ring[:: max(1, -(-ring.size // RING_POINTS))]
     p_ring = lidar_to_dynamic(p_L[ring], phi[ring], H)
     p_ring[:, 0] -= level

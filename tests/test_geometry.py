@@ -9,7 +9,7 @@ from scipy.spatial import ConvexHull
 
 from calstation.cube import FaceFlatness
 from calstation.frames import Extrinsics, lidar_to_dynamic
-from calstation.geometry import _hull_candidates, platter_level, platter_level_of, upright_box
+from calstation.geometry import _hull_candidates, level_of_heights, platter_level, upright_box
 
 
 def _hull(points: np.ndarray) -> set[tuple[float, float]]:
@@ -76,7 +76,8 @@ def test_platter_level_from_height_and_radius_alone() -> None:
     p_D = np.column_stack([x, r * np.cos(a), r * np.sin(a)])
     level = platter_level(p_D, 0.15)
     assert abs(level - 0.002) < 2e-5
-    assert level == platter_level_of(x, p_D[:, 1] ** 2 + p_D[:, 2] ** 2, 0.15)
+    on_platter = (np.abs(x) < 0.02) & (r < 0.145)
+    assert level == level_of_heights(x[on_platter])
 
 
 def test_face_flatness_is_the_plane_fit_residual() -> None:
