@@ -138,7 +138,10 @@ def measure(recipe_path: Path, out: Path, with_shape: bool = True) -> dict[str, 
 
 
 def _preload() -> None:
-    """Import the engine first: a station has it loaded before its scans end."""
+    """Import the engine first: a station has it loaded before its scans end
+    (``calstation.station.preload_engine`` imports it, Open3D included, when a run starts)."""
+    import open3d  # noqa: F401
+
     import calstation.cube
     import calstation.initial
     import calstation.periodicity

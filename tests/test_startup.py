@@ -50,3 +50,21 @@ def test_quick_commands_leave_the_heavy_modules_alone(
     args: list[str], allowed: set[str], tmp_path: Path
 ) -> None:
     assert _imported(args, tmp_path) <= allowed
+
+
+def test_a_run_preloads_the_engine_in_the_background() -> None:
+    """The station imports the engine and Open3D on a thread of its own when a run starts, so
+    that the steps after the scans do not wait for the imports."""
+    probe = (
+        "import sys, json\n"
+        "from calstation.station import preload_engine, _ENGINE_MODULES\n"
+        "before = [m for m in _ENGINE_MODULES if m in sys.modules]\n"
+        "preload_engine().join(timeout=100)\n"
+        "print(json.dumps([before, [m for m in _ENGINE_MODULES if m in sys.modules]]))\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, timeout=120
+    )
+    before, after = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert "open3d" not in before and "calstation.shape" not in before
+    assert after == ["calstation.periodicity", "calstation.shape", "calstation.cube", "open3d"]
