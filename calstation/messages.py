@@ -227,6 +227,22 @@ Buffer = bytes | memoryview
 def _timestamp_ns(value: int | bytes | memoryview) -> int:
     if isinstance(value, int):
         raise RecordingError("malformed protobuf: a timestamp is not a message")
+    # the usual layout (sec = 1, nsec = 2, both varints) read directly: one per lidar line
+    sec = nsec = pos = 0
+    n = len(value)
+    while pos < n:
+        key = value[pos]
+        if key not in (0x08, 0x10):
+            return _timestamp_fields(value)
+        v, pos = pw.read_varint(value, pos + 1)
+        if key == 0x08:
+            sec = pw.as_int64(v)
+        else:
+            nsec = pw.as_int64(v)
+    return sec * 1_000_000_000 + nsec
+
+
+def _timestamp_fields(value: bytes | memoryview) -> int:
     sec = nsec = 0
     for f, _, v in pw.fields(value):
         if f == 1:
@@ -253,17 +269,24 @@ class ScanFields:
 
 def decode_laser_scan(data: Buffer) -> ScanFields:
     """The timestamp, ranges and intensities of a ``foxglove.LaserScan``."""
-    out = ScanFields(0, b"", None)
+    return ScanFields(*laser_scan_parts(data))
+
+
+def laser_scan_parts(data: Buffer) -> tuple[int, Buffer, Buffer | None]:
+    """(timestamp ns, ranges, intensities or None) of a ``foxglove.LaserScan``."""
+    ts = 0
+    ranges: Buffer = b""
+    intensities: Buffer | None = None
     for f, _, v in pw.fields(data):
         if f == 1:
-            out.timestamp_ns = _timestamp_ns(v)
+            ts = _timestamp_ns(v)
         elif f == 6:
-            out.ranges = _buf(v, "ranges")
+            ranges = _buf(v, "ranges")
         elif f == 7:
-            out.intensities = _buf(v, "intensities")
-    if out.intensities is not None and len(out.intensities) == 0:
-        out.intensities = None
-    return out
+            intensities = _buf(v, "intensities")
+    if intensities is not None and len(intensities) == 0:
+        intensities = None
+    return ts, ranges, intensities
 
 
 @dataclass
@@ -281,23 +304,36 @@ class TimingFields:
 
 def decode_line_timing(data: Buffer) -> TimingFields:
     """Decode a ``calstation.LidarLineTiming``."""
-    out = TimingFields(0, 0.0, 0, b"", b"", None, b"")
+    return TimingFields(*line_timing_parts(data))
+
+
+def line_timing_parts(
+    data: Buffer,
+) -> tuple[int, float, int, Buffer, Buffer, Buffer | None, Buffer]:
+    """The fields of a ``calstation.LidarLineTiming`` as a tuple, in :class:`TimingFields`'
+    order."""
+    ts = count = 0
+    period = 0.0
+    azimuth: Buffer = b""
+    valid: Buffer = b""
+    offsets: Buffer | None = None
+    invalid: Buffer = b""
     for f, _, v in pw.fields(data):
         if f == 1:
-            out.timestamp_ns = pw.as_int64(v)
+            ts = pw.as_int64(v)
         elif f == 2:
-            out.point_period_ns = pw.as_double(v)
+            period = pw.as_double(v)
         elif f == 3:
-            out.count = pw.as_int64(v)
+            count = pw.as_int64(v)
         elif f == 4:
-            out.azimuth = _buf(v, "azimuth_rad")
+            azimuth = _buf(v, "azimuth_rad")
         elif f == 5:
-            out.valid = _buf(v, "valid")
+            valid = _buf(v, "valid")
         elif f == 6:
-            out.time_offset = _buf(v, "time_offset_ns")
+            offsets = _buf(v, "time_offset_ns")
         elif f == 7:
-            out.invalid_range = _buf(v, "invalid_range_m")
-    return out
+            invalid = _buf(v, "invalid_range_m")
+    return ts, period, count, azimuth, valid, offsets, invalid
 
 
 def decode_encoder_samples(data: Buffer) -> tuple[Buffer, Buffer]:

@@ -68,7 +68,8 @@ def string_field(field: int, text: str) -> bytes:
 
 
 # --- decoding ------------------------------------------------------------------------------
-def _read_varint(buf: bytes | memoryview, pos: int) -> tuple[int, int]:
+def read_varint(buf: bytes | memoryview, pos: int) -> tuple[int, int]:
+    """(value, position after it) of the varint at ``pos``."""
     result = shift = 0
     while True:
         b = buf[pos]
@@ -98,7 +99,7 @@ def fields(buf: bytes | memoryview) -> list[tuple[int, int, int | bytes | memory
             key = view[pos]
             pos += 1
             if key >= 0x80:
-                key, pos = _read_varint(view, pos - 1)
+                key, pos = read_varint(view, pos - 1)
             wire = key & 7
             if wire in (LEN, VARINT):
                 v = view[pos]

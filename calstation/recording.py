@@ -805,7 +805,9 @@ def _collect(p: Path, f: IO[bytes]) -> _Collected:
     readers: dict[int, Callable[[Buffer], None]] = {}
 
     def on_channel(channel_id: int, topic: str, encoding: str) -> None:
-        if topic in _READ_TOPICS:
+        if topic in (SCAN_TOPIC, LIDAR_TOPIC) and encoding == "protobuf":
+            readers[channel_id] = _line_reader(p, col, topic)
+        elif topic in _READ_TOPICS:
             readers[channel_id] = functools.partial(_message, p, col, (topic, encoding))
         else:  # transforms and clouds are derived data: the arrays come from the raw channels
             readers.pop(channel_id, None)
@@ -839,6 +841,45 @@ def _decode_metadata(p: Path, name: str, raw: Mapping[str, str]) -> dict[str, An
 _READ_TOPICS = (SCAN_TOPIC, LIDAR_TOPIC, ENCODER_TOPIC, TURNTABLE_TOPIC)
 
 
+def _line_reader(p: Path, col: _Collected, topic: str) -> Callable[[Buffer], None]:
+    """The reader of a protobuf ``/lidar/scan`` or ``/lidar/line`` channel: :func:`_message`
+    for one topic, its appends bound once (two of these messages per lidar line)."""
+    if topic == SCAN_TOPIC:
+        decode: Callable[[Buffer], tuple[Any, ...]] = pb.laser_scan_parts
+        appends: list[Callable[[Any], None]] = [
+            col.scan_ts.append,
+            col.range_.append,
+            col.intensity.append,
+        ]
+    else:
+        decode = pb.line_timing_parts
+        appends = [
+            col.line_ts.append,
+            col.line_period.append,
+            col.line_count.append,
+            col.azimuth.append,
+            col.valid.append,
+            col.line_offsets.append,
+            col.invalid_range.append,
+        ]
+
+    def read(data: Buffer) -> None:
+        if col.v2 is not True:
+            if col.v2 is False:
+                raise RecordingError(f"recording {p}: {topic} mixes JSON and protobuf messages")
+            col.v2 = True
+        try:
+            parts = decode(data)
+        except RecordingError:
+            raise
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RecordingError(f"recording {p}: malformed message on {topic}: {exc!r}") from exc
+        for append, value in zip(appends, parts, strict=True):
+            append(value)
+
+    return read
+
+
 def _message(p: Path, col: _Collected, channel: tuple[str, str], data: Buffer) -> None:
     topic, encoding = channel
     try:
@@ -852,21 +893,7 @@ def _message(p: Path, col: _Collected, channel: tuple[str, str], data: Buffer) -
             raise RecordingError(f"recording {p}: {topic} mixes JSON and protobuf messages")
         if not v2:
             _message_v1(p, col, topic, json.loads(bytes(data)))
-        elif topic == SCAN_TOPIC:
-            scan = pb.decode_laser_scan(data)
-            col.scan_ts.append(scan.timestamp_ns)
-            col.range_.append(scan.ranges)
-            col.intensity.append(scan.intensities)
-        elif topic == LIDAR_TOPIC:
-            timing = pb.decode_line_timing(data)
-            col.line_ts.append(timing.timestamp_ns)
-            col.line_period.append(timing.point_period_ns)
-            col.line_count.append(timing.count)
-            col.azimuth.append(timing.azimuth)
-            col.valid.append(timing.valid)
-            col.line_offsets.append(timing.time_offset)
-            col.invalid_range.append(timing.invalid_range)
-        else:
+        else:  # the encoder (protobuf lidar lines go to _line_reader)
             t, c = pb.decode_encoder_samples(data)
             if len(t) != len(c) or len(t) % 8:
                 raise RecordingError(
