@@ -14,7 +14,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from .errors import RecipeError
+from .errors import PluginError, RecipeError
 from .yamlsafe import YamlProblem, check_regular_file, load_yaml, read_text_file
 
 Coordinate = Annotated[float, Field(ge=-1.5, le=1.5)]
@@ -934,6 +934,25 @@ def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[P
     return problems
 
 
+def settings_model_of(factory: object) -> Any:
+    """The pydantic model a driver factory declares for its ``settings`` (None if none): its
+    ``settings_model``, given as the class or, so that registering costs no import, as the
+    class's import path ``"package.module:Class"`` (imported here, when a recipe is checked)."""
+    model = getattr(factory, "settings_model", None)
+    if isinstance(model, str):
+        import importlib
+
+        module, _, name = model.partition(":")
+        try:
+            model = getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError) as exc:
+            raise PluginError(
+                f"the driver factory {factory!r} declares settings_model {model!r}, which cannot "
+                f"be imported: {exc}"
+            ) from exc
+    return model
+
+
 def plugin_problems(recipe: Recipe) -> list[Problem]:
     """Checks against the installed plugins: drivers and strategies named must be registered,
     each driver's ``settings`` must fit the ``settings_model`` its factory declares, and each
@@ -945,7 +964,7 @@ def plugin_problems(recipe: Recipe) -> list[Problem]:
     for kind in plugins.DRIVER_KINDS:
         config = getattr(recipe.station, kind)
         name = config.driver
-        settings_model = getattr(registered[(kind, name)].factory, "settings_model", None) if (
+        settings_model = settings_model_of(registered[(kind, name)].factory) if (
             kind, name) in registered else None
         if settings_model is not None:
             try:

@@ -16,12 +16,12 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from .errors import FineTuningError, PluginError
-from .frames import PARAMETER_NAMES, Extrinsics
 from .recipe import Recipe, ShapeOptions
-from .result import CalibrationResult
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # NumPy loads when a strategy runs: `recipes validate` checks options only
+    from .frames import Extrinsics
     from .recording import Recording
+    from .result import CalibrationResult
 
 Progress = Callable[[str, float], None]
 """``progress(message, fraction)`` with fraction in [0, 1]."""
@@ -232,6 +232,9 @@ def check_result(
     the strategy's ``result_bounds``. Warnings: a non-finite cost, rx moved off its start (rx is
     the gauge, DESIGN §2), a result labelled with another strategy's name.
     """
+    from .frames import PARAMETER_NAMES
+    from .result import CalibrationResult
+
     name = getattr(strategy, "name", "?")
     if not isinstance(result, CalibrationResult):
         raise FineTuningError(

@@ -188,3 +188,17 @@ def test_trace_variable_prints_hook_calls() -> None:
     assert proc.returncode == 0, proc.stderr
     assert "[calstation hook] calstation_register_drivers(register) → " in proc.stderr
     assert "[calstation hook] calstation_register_commands(cli)" in proc.stderr
+
+
+def test_a_settings_model_named_by_path_loads_when_a_recipe_is_checked() -> None:
+    from calstation.errors import PluginError
+    from calstation.recipe import settings_model_of
+
+    def factory(settings: object, context: object) -> None: ...
+
+    factory.settings_model = "calstation_sim.settings:SimSettings"  # type: ignore[attr-defined]
+    model = settings_model_of(factory)
+    assert model.__name__ == "SimSettings" and model.model_validate({"seed": 3}).seed == 3
+    factory.settings_model = "calstation_sim.settings:NoSuchModel"  # type: ignore[attr-defined]
+    with pytest.raises(PluginError, match="NoSuchModel"):
+        settings_model_of(factory)

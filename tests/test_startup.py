@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-HEAVY = ("numpy", "scipy", "open3d", "can", "canopen", "serial", "sqlalchemy", "alembic")
+HEAVY = ("numpy", "scipy", "open3d", "can", "canopen", "serial", "sqlalchemy", "alembic", "pydantic")
 
 PROBE = """
 import json, sys
@@ -41,8 +41,8 @@ def _imported(args: list[str], tmp_path: Path) -> set[str]:
     ("args", "allowed"),
     [
         (["--help"], set()),
-        (["recipes", "validate", "recipes/sim-periodicity.yaml"], {"numpy"}),
-        (["history"], {"sqlalchemy", "alembic"}),
+        (["recipes", "validate", "recipes/sim-periodicity.yaml"], {"pydantic"}),
+        (["history"], {"sqlalchemy", "alembic", "pydantic"}),
     ],
     ids=["help", "recipes validate", "history"],
 )

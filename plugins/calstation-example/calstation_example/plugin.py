@@ -21,8 +21,6 @@ import typer
 from calstation import hookimpl
 from calstation.hookspecs import RegisterDriver, RegisterStrategy
 
-from .strategy import RyHeldStrategy
-
 ENV = "CALSTATION_EXAMPLE_LOG"
 
 
@@ -58,7 +56,10 @@ def encoder_factory(settings: Mapping[str, Any], context: Any) -> Any:
 
 @hookimpl
 def calstation_register_cost_strategies(register: RegisterStrategy) -> None:
-    """Register the ``example-ry-held`` strategy."""
+    """Register the ``example-ry-held`` strategy (its options model, and pydantic with it,
+    loads when the strategy registry is built, not at start-up)."""
+    from .strategy import RyHeldStrategy
+
     register(RyHeldStrategy())
 
 

@@ -7,8 +7,6 @@ from typing import Any
 from calstation import hookimpl
 from calstation.hookspecs import RegisterDriver
 
-from .settings import SimSettings
-
 
 @hookimpl
 def calstation_register_drivers(register: RegisterDriver) -> None:
@@ -38,7 +36,8 @@ def _encoder(*args: Any, **kwargs: Any) -> Any:
 
 
 for _factory in (_lidar, _turntable, _encoder):
-    _factory.settings_model = SimSettings  # type: ignore[attr-defined]
+    # named by path: pydantic loads when a recipe is checked, not at registration
+    _factory.settings_model = "calstation_sim.settings:SimSettings"  # type: ignore[attr-defined]
 
 
 @hookimpl
