@@ -9,7 +9,7 @@ minimises it within ±20 mm / ±2° of the start (xtol 1e-12, ftol 1e-10, 100 ev
 
 calstation additions (docs/algorithms.md): a fixed random subset of the raw returns (the outlier
 radius scaled with the density, so the neighbour count keeps its meaning) for speed; a finite
-difference step of 0.1 mm / 0.006° (the cost is piecewise: the box jumps); ty held at its start
+difference step relative to each parameter (:data:`DIFF_STEP`); ty held at its start
 (the cube, like the periodicity cost, cannot see a shift along the axis); the expected height
 of the box is ``s − margin`` (the segmentation cuts the bottom off); by default an *upright* box
 (one axis along X_D: the cube stands on the platter) whose faces are the medians of the points
@@ -61,7 +61,8 @@ if TYPE_CHECKING:
 Progress = Callable[[str, float], None]
 
 DIFF_STEP = 1e-4
-"""Relative finite-difference step: 0.1 mm / 0.1 mrad (the cost is piecewise)."""
+"""SciPy's ``diff_step``: relative to each parameter's value (~0.3–0.6 µm in tx and tz, ~0.08
+mrad in rz at a typical start; docs/algorithms.md)."""
 COARSE_STAGES = 2
 """Periodicity stages (20 and 10 mm cells) run on the cube scan before the shape cost."""
 FREE = ("tx", "tz", "ry", "rz")
