@@ -80,21 +80,23 @@ def distortion_points(
     The object is the returns more than ``margin`` above the platter (under the true H) and
     inside the platter. Returns ``rms_m``, ``max_m`` after Kabsch alignment, ``points``.
     """
-    true_D = lidar_to_dynamic(p_L, phi, truth)
-    r = np.hypot(true_D[:, 1], true_D[:, 2])
-    sel = (true_D[:, 0] > margin) & (true_D[:, 0] < 1.0) & (r < platter_radius)
-    if sel.sum() < 10:
+    # height along the axis and distance from it need no platter angle: select in P first
+    q = p_L @ truth.R
+    q -= truth.t @ truth.R
+    r2 = np.einsum("ij,ij->i", q[:, 1:], q[:, 1:])
+    sel = np.flatnonzero((q[:, 0] > margin) & (q[:, 0] < 1.0) & (r2 < platter_radius**2))
+    if sel.size < 10:
         raise CalibrationError(
-            f"only {int(sel.sum())} returns above the platter: no object to measure distortion on"
+            f"only {sel.size} returns above the platter: no object to measure distortion on"
         )
     est_D = lidar_to_dynamic(p_L[sel], phi[sel], estimate)
-    true_D = true_D[sel]
+    true_D = lidar_to_dynamic(p_L[sel], phi[sel], truth)
     R, t = kabsch(est_D, true_D)
     d = np.linalg.norm(est_D @ R.T + t - true_D, axis=1)
     return {
         "rms_m": float(np.sqrt(np.mean(d**2))),
         "max_m": float(np.max(d)),
-        "points": float(sel.sum()),
+        "points": float(sel.size),
     }
 
 
@@ -102,6 +104,10 @@ def reconstruction_distortion(
     recording: Recording, estimate: Extrinsics, truth: Extrinsics
 ) -> dict[str, float]:
     """Distortion of a recording's object (e.g. the QA cube) reconstructed with ``estimate``
-    instead of ``truth``: ``rms_m``, ``max_m`` (metres) after the best rigid alignment."""
-    p_L, phi = recording.points_lidar()
-    return distortion_points(p_L, phi, estimate, truth)
+    instead of ``truth``: ``rms_m``, ``max_m`` (metres) after the best rigid alignment. The
+    returns come from the recording's prepared scan (:func:`calstation.spinscan.from_recording`,
+    made once per recording)."""
+    from .spinscan import from_recording
+
+    scan = from_recording(recording)
+    return distortion_points(scan.p_L, scan.phi, estimate, truth)
