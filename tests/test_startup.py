@@ -12,7 +12,9 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-HEAVY = ("numpy", "scipy", "open3d", "can", "canopen", "serial", "sqlalchemy", "alembic", "pydantic")
+HEAVY = (
+    "numpy", "scipy", "open3d", "can", "canopen", "serial", "sqlalchemy", "alembic", "pydantic",
+)
 
 PROBE = """
 import json, sys
