@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
-from scipy.spatial import ConvexHull
+from scipy.spatial import ConvexHull, QhullError
 
 from calstation.cube import FaceFlatness
 from calstation.frames import Extrinsics, lidar_to_dynamic
@@ -33,9 +33,13 @@ def test_hull_candidates_keep_every_hull_vertex(
     pts = pts @ np.array([[c, s], [-s, c]])
     if rounded:  # repeated extreme points and collinear hull edges
         pts = np.round(pts, 1)
+    try:
+        full = _hull(pts)
+    except QhullError:  # rounding left the points on one line: no 2-D hull to compare with
+        assume(False)
     kept = _hull_candidates(pts)
     assert kept.shape[0] <= pts.shape[0]
-    assert _hull(kept) == _hull(pts)
+    assert _hull(kept) == full
 
 
 def test_hull_candidates_drop_the_interior() -> None:
