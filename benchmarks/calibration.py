@@ -345,7 +345,9 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--json-station", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    out = args.out or Path(tempfile.mkdtemp(prefix="calstation-bench-"))
+    # absolute: the measurements of another revision run in its own worktree
+    out = (args.out or Path(tempfile.mkdtemp(prefix="calstation-bench-"))).resolve()
+    args.recipe = args.recipe.resolve()
     if args.json:  # one measurement for a parent process
         print(json.dumps(measure(args.recipe, out, args.shape)))
         return

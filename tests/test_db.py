@@ -13,6 +13,7 @@ from alembic.script import ScriptDirectory
 from sqlalchemy import inspect, select, text
 
 from calstation.db import (
+    SCHEMA_HEAD,
     Artifact,
     Base,
     Calibration,
@@ -49,6 +50,17 @@ def _assert_matches_models(db: Database) -> None:
             MigrationContext.configure(conn, opts={"compare_type": True}), Base.metadata
         )
     assert diff == [], f"migrations and models differ: {diff}"
+
+
+def test_the_schema_head_constant_is_the_newest_migration() -> None:
+    assert head_revision() == SCHEMA_HEAD
+
+
+def test_a_database_at_another_revision_is_not_taken_for_current(tmp_path: Path) -> None:
+    db = Database(f"sqlite:///{tmp_path / 'old.db'}")
+    db.upgrade("0002")
+    with pytest.raises(DatabaseError, match="needs " + SCHEMA_HEAD):
+        db.ensure_schema()
 
 
 def test_upgrade_to_head_matches_models(tmp_path: Path) -> None:

@@ -54,6 +54,13 @@ def test_quick_commands_leave_the_heavy_modules_alone(
     assert _imported(args, tmp_path) <= allowed
 
 
+def test_a_database_at_the_newest_revision_opens_without_alembic(tmp_path: Path) -> None:
+    """The first command on a new database creates its tables with Alembic; the next ones find
+    it at the newest revision from the version table alone."""
+    assert "alembic" in _imported(["history"], tmp_path)
+    assert _imported(["history"], tmp_path) <= {"sqlalchemy", "pydantic"}
+
+
 def test_a_run_preloads_the_engine_in_the_background() -> None:
     """The station imports the engine and Open3D on a thread of its own when a run starts, so
     that the steps after the scans do not wait for the imports."""

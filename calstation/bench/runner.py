@@ -117,7 +117,7 @@ class BenchConfig:
     sets: tuple[str, ...] = ("A", "B")
     perturbed_methods: tuple[str, ...] | None = None
     seed: int = PERTURBATION_SEED
-    round_starts: int = 1
+    round_starts: int = 5
     deadline: float | None = None
     quick: bool = False
     command: str = ""
@@ -706,9 +706,10 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
     Phases: simulate; initial calibration; both fine-tunings from the initial calibration with
     the ablation; cost landscapes; then the perturbed starts in rounds of
     ``config.round_starts`` set-A and set-B starts per scenario and method, until
-    ``config.starts_per_set``. With a
-    ``config.deadline`` (Unix time) no round is started that would not finish in time (estimated
-    from the previous round) and a phase still running at the deadline is cut; the metadata then
+    ``config.starts_per_set`` (a worker reads and prepares each scenario's scans once per
+    round). With a ``config.deadline`` (Unix time) a round holds only the starts that will
+    finish in time (estimated from the previous phase) and a phase still running at the
+    deadline is cut; the metadata then
     says how many starts per set were completed (``starts_completed``), which the report uses.
     Records go to ``config.out / "records.jsonl"``; simulated scenarios are reused when the recipe
     and seed match.
@@ -766,23 +767,27 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
 
                 phase("cost landscapes", landscape_tasks(config, store), ex)
             done = 0
+            methods = config.perturbed_methods or config.methods
             while done < config.starts_per_set:
                 nxt = min(config.starts_per_set, done + max(1, config.round_starts))
+                if config.deadline is not None and per_task > 0:
+                    # as many starts as still fit before the deadline, up to a whole round
+                    one = finetune_tasks(config, initial, config.scenarios, methods,
+                                         range(done, done + 1), False, sets=config.sets)
+                    need = 1.2 * per_task * len(one)
+                    fit = int((config.deadline - time.time()) // need) if need > 0 else nxt
+                    if fit < 1:
+                        console.print(
+                            f"deadline: stopping after {done} start(s) per set "
+                            f"(the next start needs ~{need / 60:.0f} min)"
+                        )
+                        meta["cut_by_deadline"] = True
+                        break
+                    nxt = min(nxt, done + fit)
                 tasks = finetune_tasks(
-                    config, initial, config.scenarios,
-                    config.perturbed_methods or config.methods, range(done, nxt), False,
+                    config, initial, config.scenarios, methods, range(done, nxt), False,
                     sets=config.sets,
                 )
-                todo = [t for t in tasks if t.id not in store.records]
-                if config.deadline is not None and per_task > 0 and (
-                    time.time() + 1.2 * per_task * len(todo) > config.deadline
-                ):
-                    console.print(
-                        f"deadline: stopping after {done} start(s) per set "
-                        f"(next round needs ~{per_task * len(todo) / 60:.0f} min)"
-                    )
-                    meta["cut_by_deadline"] = True
-                    break
                 dt = phase(f"perturbed starts {done + 1}-{nxt} of {config.starts_per_set}",
                            tasks, ex)
                 per_task = dt or per_task

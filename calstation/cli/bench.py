@@ -64,10 +64,11 @@ def register(app: typer.Typer) -> None:
         ),
         deadline: str | None = typer.Option(
             None, "--deadline",
-            help="UTC time HH:MM (today): start no round of starts that would end later",
+            help="UTC time HH:MM (today): run only the perturbed starts that will end before it",
         ),
         round_starts: int = typer.Option(
-            1, "--round-starts", min=1, help="set-A and set-B starts added per round"
+            5, "--round-starts", min=1,
+            help="set-A and set-B starts added per round (each round reads every scenario)",
         ),
         label: str | None = typer.Option(
             None, "--label", help="a note printed at the top of results.md (e.g. a reduced run)"
