@@ -59,6 +59,8 @@ if TYPE_CHECKING:
 Progress = Callable[[str, float], None]
 
 IDX = {name: i for i, name in enumerate(PARAMETER_NAMES)}
+MIN_MATCHES = 50
+"""Fewest matched cells between the two half-turns an iteration accepts."""
 
 
 @dataclass(frozen=True)
@@ -642,7 +644,7 @@ class _Run:
             platter = self._platter(stage, x6)
             t1 = time.perf_counter()
             n_matches = matched.pa.shape[0]
-            if n_matches < 50:
+            if n_matches < MIN_MATCHES:
                 raise FineTuningError(
                     f"periodicity stage {s_i + 1}: only {n_matches} matches between the two "
                     f"half-turns (voxel {stage.voxel * 1e3:.0f} mm, radius "
@@ -693,7 +695,9 @@ class _Run:
         if platter.shape[0] < 20:
             raise FineTuningError(
                 "gauge 'platter': the platter top is not visible in the spin scan "
-                f"({platter.shape[0]} static returns near x_P = 0); use gauge: ty"
+                f"({platter.shape[0]} static returns near x_P = 0 under the current estimate); "
+                "the start may be too far off (run the coarse stages, or start from the initial "
+                "calibration), or the platter is hidden (use gauge: ty)"
             )
         return platter
 
@@ -900,6 +904,13 @@ class _Matcher:
         for d, cand in zip(d_all, self.candidates, strict=True):
             drop = stage.platter_drop
             kept.append(np.arange(cand.size) if drop is None else np.flatnonzero(d[cand, 0] > drop))
+        if min(k.size for k in kept) < MIN_MATCHES:
+            raise FineTuningError(
+                f"periodicity ({stage.voxel * 1e3:.0f} mm cells): only {kept[0].size} and "
+                f"{kept[1].size} cells of the two half-turns lie above the platter under the "
+                "current estimate; the start is too far off (run the coarse stages, or start "
+                "from the initial calibration) or the spin target is not in view"
+            )
         ka, kb = self.candidates[0][kept[0]], self.candidates[1][kept[1]]
         da, db = d_all[0][ka], d_all[1][kb]
         i, j = mutual_neighbours(da, db, stage.match_radius)

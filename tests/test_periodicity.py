@@ -104,3 +104,16 @@ def test_ty_gauge_holds_ty(sim_run) -> None:
     assert res.H.ty == start.ty and math.isnan(res.sigma["ty"])
     e = axis_errors(res.H, truth)
     assert e["axis_offset_m"] <= 1e-3
+
+
+@pytest.mark.parametrize("gauge", ["platter", "ty"])
+def test_a_start_far_off_without_the_coarse_stages_is_a_clear_error(sim_run, gauge: str) -> None:
+    """15 cm and 9 cm off with the coarse stages switched off: no return of the spin target
+    reconstructs above the platter, and the message says why instead of failing inside."""
+    rec = read_recording(sim_run()["spin"])
+    truth = rec.truth
+    assert truth is not None
+    start = truth.with_(tx=truth.tx + 0.15, tz=truth.tz + 0.09, ry=0.027, rz=truth.rz + 0.2)
+    settings = PeriodicitySettings(coarse_to_fine=False, gauge=gauge)
+    with pytest.raises(FineTuningError, match="too far off"):
+        periodicity_fine_tune(rec, start, settings)
