@@ -141,21 +141,28 @@ RING_POINTS = 150_000
 """At most this many of those, a regular subset (the platter gives ~0.75 M in a 3 M scan)."""
 
 
-def check_cube_points(
-    p_L: FloatArray,
-    phi: FloatArray,
-    H: Extrinsics,
-    cube: CubeGeometry,
-    limits: QALimits,
-    *,
-    platter_radius: float = DEFAULT_PLATTER_RADIUS,
-    edges_only: bool = False,
-) -> CubeCheck:
-    """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H.
-    ``edges_only`` leaves out the paper's minimum-volume box and the twist (NaN), for callers
-    that need only the face-fit dimensions."""
-    t0 = time.perf_counter()
-    s = cube.edge
+@dataclass(frozen=True)
+class _CubeCloud:
+    """The cube's returns under one H, found from a spin scan's returns."""
+
+    level: float
+    """the platter top's height along X_D"""
+    p_ring: FloatArray
+    """(M, 3) a regular subset of the platter ring's returns in D, heights from ``level``"""
+    p_L: FloatArray
+    """(K, 3) the returns above the platter near the axis, in L"""
+    phi: FloatArray
+    """(K,) their platter angles"""
+    idx: NDArray[np.intp]
+    """positions in ``p_L`` of the cube's cleaned returns"""
+    pts: FloatArray
+    """(n, 3) the cube's cleaned returns in D, heights from ``level``"""
+
+
+def _cube_cloud(
+    p_L: FloatArray, phi: FloatArray, H: Extrinsics, s: float, platter_radius: float
+) -> _CubeCloud:
+    """Find the platter and the cube's returns under H (the cube check's segmentation)."""
     # height along the axis and distance from it do not depend on the platter angle: find the
     # platter and the returns the steps below can use before turning any by its angle
     t_P = H.t @ H.R
@@ -185,7 +192,38 @@ def check_cube_points(
     p_D[:, 0] -= level
     idx = np.flatnonzero(density_outlier_mask(p_D))
     idx = idx[largest_cluster(p_D[idx])]
-    pts = p_D[idx]
+    return _CubeCloud(level, p_ring, p_L, phi, idx, p_D[idx])
+
+
+def check_cube_points(
+    p_L: FloatArray,
+    phi: FloatArray,
+    H: Extrinsics,
+    cube: CubeGeometry,
+    limits: QALimits,
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    edges_only: bool = False,
+    memo: dict[str, Any] | None = None,
+) -> CubeCheck:
+    """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H.
+    ``edges_only`` leaves out the paper's minimum-volume box and the twist (NaN), for callers
+    that need only the face-fit dimensions. ``memo``: a mapping kept with these returns
+    (:attr:`calstation.spinscan.SpinScan.memo`) in which the cube's segmentation under the
+    last H is kept, so that a second check under the same H (the shape strategy's σ floor,
+    then the cube check of its result) does not segment again."""
+    t0 = time.perf_counter()
+    s = cube.edge
+    key = (H.as_vector().tobytes(), s, platter_radius)
+    found = memo.get("cube_cloud") if memo is not None else None
+    if found is not None and found[0] == key:
+        cloud: _CubeCloud = found[1]
+    else:
+        cloud = _cube_cloud(p_L, phi, H, s, platter_radius)
+        if memo is not None:
+            memo["cube_cloud"] = (key, cloud)
+    level, p_ring, p_L, phi, idx, pts = (
+        cloud.level, cloud.p_ring, cloud.p_L, cloud.phi, cloud.idx, cloud.pts)
     if pts.shape[0] < 500:
         raise VerificationError(
             f"the QA cube was not found: {pts.shape[0]} returns more than "
@@ -472,8 +510,9 @@ def check_cube(
     from .spinscan import from_recording
 
     scan = from_recording(recording)
-    p_L, phi = scan.p_L, scan.phi
     try:
-        return check_cube_points(p_L, phi, H, cube, limits, platter_radius=platter_radius)
+        return check_cube_points(
+            scan.p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=scan.memo
+        )
     except VerificationError as exc:
         raise VerificationError(f"{recording.path}: {exc}") from None

@@ -624,7 +624,8 @@ def shape_fine_tune_points(
     # what the residuals cannot see: the cube's own dimensions under the result
     try:
         edge_error = check_cube_points(
-            p_L, phi, result.H, cube, QALimits(), platter_radius=platter_radius, edges_only=True
+            prepared.p_L, prepared.phi, result.H, cube, QALimits(),
+            platter_radius=platter_radius, edges_only=True, memo=prepared.memo,
         ).edge_error
     except VerificationError:
         edge_error = math.nan

@@ -14,7 +14,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -209,6 +209,9 @@ class SpinScan:
     """seconds spent preparing, by step"""
     cells: tuple[NDArray[np.int32], NDArray[np.int32]] | None = field(default=None, repr=False)
     """the static test's cells of the returns (:func:`static_cells`), when found while scanning"""
+    memo: dict[str, Any] = field(default_factory=dict, repr=False)
+    """results derived from the returns that later steps may reuse (the cube check's
+    segmentation under the last H: :func:`calstation.cube.check_cube_points`)"""
     _static: NDArray[np.bool_] | None = field(default=None, repr=False)
     _noise: float = math.nan
 

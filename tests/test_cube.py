@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -13,6 +14,7 @@ from calstation.frames import Extrinsics
 from calstation.geometry import fit_plane
 from calstation.recipe import Recipe, load_recipe
 from calstation.recording import Recording, read_recording
+from calstation.spinscan import from_recording
 
 
 def _cube_scan(sim_run) -> tuple[Recipe, Recording, Extrinsics]:
@@ -48,6 +50,31 @@ def test_true_calibration_passes_and_a_wrong_one_fails(sim_run) -> None:
     assert not bad.passed and any("edge error" in f for f in bad.failures)
     d = bad.to_dict()
     assert d["passed"] is False and len(d["face_edges_m"]) == 3
+
+
+def _same(a, b) -> bool:
+    da, db = a.to_dict(), b.to_dict()
+    da.pop("timings", None), db.pop("timings", None)
+    return bool(json.dumps(da, sort_keys=True) == json.dumps(db, sort_keys=True))
+
+
+def test_a_second_check_under_the_same_h_reuses_the_segmentation(sim_run) -> None:
+    """The shape strategy's edges-only check, then the full check of its result: the second
+    reuses the first's segmentation (kept with the prepared scan) and gives what a check of
+    its own gives; another H segments again."""
+    recipe, rec, truth = _cube_scan(sim_run)
+    cube, qa = recipe.fixtures.qa_cube, recipe.qa
+    scan = from_recording(rec)
+    H = truth.with_(tx=truth.tx + 0.0004)
+    fresh = check_cube_points(scan.p_L, scan.phi, H, cube, qa)
+    edges = check_cube_points(scan.p_L, scan.phi, H, cube, qa, edges_only=True, memo=scan.memo)
+    assert edges.edge_error == fresh.edge_error and math.isnan(edges.obb_error)
+    kept = scan.memo["cube_cloud"][1]
+    full = check_cube(rec, H, cube, qa)
+    assert scan.memo["cube_cloud"][1] is kept and _same(full, fresh)
+    other = check_cube(rec, truth, cube, qa)
+    assert scan.memo["cube_cloud"][1] is not kept
+    assert _same(other, check_cube_points(scan.p_L, scan.phi, truth, cube, qa))
 
 
 def test_a_smeared_cube_is_a_failed_check_not_an_error(sim_run) -> None:
