@@ -117,7 +117,7 @@ class BenchConfig:
     sets: tuple[str, ...] = ("A", "B")
     perturbed_methods: tuple[str, ...] | None = None
     seed: int = PERTURBATION_SEED
-    round_starts: int = 5
+    round_starts: int = 50
     deadline: float | None = None
     quick: bool = False
     command: str = ""

@@ -67,8 +67,9 @@ def register(app: typer.Typer) -> None:
             help="UTC time HH:MM (today): run only the perturbed starts that will end before it",
         ),
         round_starts: int = typer.Option(
-            5, "--round-starts", min=1,
-            help="set-A and set-B starts added per round (each round reads every scenario)",
+            50, "--round-starts", min=1,
+            help="set-A and set-B starts added per round; each round reads every scenario "
+            "again, and a run stopped between rounds has every scenario at the same starts",
         ),
         label: str | None = typer.Option(
             None, "--label", help="a note printed at the top of results.md (e.g. a reduced run)"
