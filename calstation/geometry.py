@@ -31,10 +31,15 @@ def radius_outlier_mask(points: FloatArray, radius: float, neighbours: int) -> N
         return np.ones(points.shape[0], dtype=bool)
     if points.shape[0] <= neighbours:
         return np.zeros(points.shape[0], dtype=bool)
-    dist, _ = cKDTree(points).query(
-        points, k=neighbours + 1, distance_upper_bound=radius, workers=-1
+    # exact whatever the tree's shape; unbalanced and queried in its own order, as
+    # kth_neighbour_distance
+    tree = cKDTree(points, balanced_tree=False, compact_nodes=False)
+    order = tree.indices
+    dist, _ = tree.query(
+        points[order], k=neighbours + 1, distance_upper_bound=radius, workers=-1
     )
-    out: NDArray[np.bool_] = np.isfinite(dist[:, -1])
+    out = np.empty(points.shape[0], dtype=bool)
+    out[order] = np.isfinite(dist[:, -1])
     return out
 
 

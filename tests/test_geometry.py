@@ -9,7 +9,13 @@ from scipy.spatial import ConvexHull, QhullError
 
 from calstation.cube import FaceFlatness
 from calstation.frames import Extrinsics, lidar_to_dynamic
-from calstation.geometry import _hull_candidates, level_of_heights, platter_level, upright_box
+from calstation.geometry import (
+    _hull_candidates,
+    level_of_heights,
+    platter_level,
+    radius_outlier_mask,
+    upright_box,
+)
 
 
 def _hull(points: np.ndarray) -> set[tuple[float, float]]:
@@ -102,3 +108,20 @@ def test_face_flatness_is_the_plane_fit_residual() -> None:
         assert np.allclose(np.abs(part), np.abs(want), atol=1e-12)
         assert np.allclose(part, want, atol=1e-12) or np.allclose(part, -want, atol=1e-12)
         start += p.shape[0]
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(20, 600),
+    radius=st.floats(0.01, 0.3),
+    neighbours=st.integers(1, 10),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_radius_outlier_mask_counts_neighbours_within_the_radius(
+    n: int, radius: float, neighbours: int, seed: int
+) -> None:
+    rng = np.random.default_rng(seed)
+    pts = np.concatenate([rng.normal(0.0, 0.05, (n, 3)), rng.uniform(-1.0, 1.0, (n // 10, 3))])
+    d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
+    others = (d <= radius).sum(axis=1) - 1
+    assert np.array_equal(radius_outlier_mask(pts, radius, neighbours), others >= neighbours)
