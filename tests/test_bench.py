@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -152,6 +153,7 @@ def test_quick_bench_completes_and_periodicity_meets_thresholds(tmp_path: Path) 
                     "Against the true H", "Spread over perturbed starts", "Cost landscapes",
                     "Ablation", "Time per stage", "Git commit"):
         assert heading in md
+    assert re.search(r"load average \d+\.\d at the start and \d+\.\d at the end", md)
     for png in ("param_spread.png", "cube_error.png", "ablation.png",
                 "landscape_translation.png", "landscape_rotation.png"):
         data = (out / "results" / png).read_bytes()

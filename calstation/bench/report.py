@@ -338,6 +338,15 @@ def _ablation_offsets(records: Sequence[dict[str, Any]], scenarios: Sequence[str
     return out
 
 
+def _load_note(meta: dict[str, Any]) -> str:
+    """What the machine's load was during the run, as far as the metadata says."""
+    start, end = meta.get("load_start"), meta.get("load_end")
+    if start is None or end is None:
+        return "the machine's load was not recorded; times depend on it"
+    return (f"load average {start:.1f} at the start and {end:.1f} at the end; times on a busier "
+            "machine are longer")
+
+
 def main_records(records: Sequence[dict[str, Any]], starts: int) -> list[dict[str, Any]]:
     """The records of the main protocol: everything except ablation variants, and set-A/B
     starts numbered ``starts`` or more (rounds the run did not complete for every scenario)."""
@@ -595,8 +604,7 @@ def _compose(
         f"- Git commit: `{meta.get('git_commit', '?')}`",
         f"- Started {meta.get('started_utc', '?')}, finished {meta.get('finished_utc', '?')}; "
         f"wall time {_fmt((wall or float('nan')) / 60.0, 1)} min on {meta.get('cpu_count', '?')} "
-        f"cores with {cfg.get('workers', '?')} workers (machine shared with other jobs, so "
-        "timings are pessimistic).",
+        f"cores with {cfg.get('workers', '?')} workers ({_load_note(meta)}).",
         "- Phases (s): " + ", ".join(f"{k} {v:.0f}" for k, v in phases.items()),
         f"- Recipe: `{cfg.get('recipe', '?')}`; scenarios "
         + ", ".join(f"{s['name']} ({s['range_m']:.2f} m, {s['pitch_deg']:.0f}°, seed {s['seed']})"

@@ -728,6 +728,7 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
         "phases_s": {},
         "starts_completed": 0,
         "cut_by_deadline": False,
+        "load_start": _load(),
     }
     if previous is not None:
         meta["previous_runs"] = [*previous.pop("previous_runs", []), previous]
@@ -740,6 +741,7 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
             float(p.get("wall_s", 0.0)) for p in meta.get("previous_runs", [])
         )
         meta["records"] = len(store.records)
+        meta["load_end"] = _load()
         (config.out / "run.json").write_text(json.dumps(meta, indent=2))
 
     def phase(name: str, tasks: Sequence[Task], ex: Executor) -> float:
@@ -800,6 +802,14 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
     meta["finished_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     save()
     return meta
+
+
+def _load() -> float | None:
+    """The 1-minute load average (None where the system does not report one)."""
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return None
 
 
 def _previous_meta(out: Path) -> dict[str, Any] | None:
