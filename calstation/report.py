@@ -14,7 +14,6 @@ import json
 import math
 from typing import TYPE_CHECKING, Any
 
-import yaml
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -129,6 +128,7 @@ def run_summary(run: Run) -> dict[str, Any]:
 def qa_limits(recipe_text: str) -> dict[str, Any] | None:
     """The pass/fail and drift limits of a stored recipe (metres, degrees; ``qa`` section with its
     defaults), None when the text is not a recipe mapping."""
+    import yaml
     from pydantic import ValidationError
 
     from .recipe import QALimits
@@ -232,6 +232,8 @@ def export_calibration(
     }
     if fmt == "json":
         return json.dumps(data, indent=2) + "\n"
+    import yaml
+
     return yaml.safe_dump(data, sort_keys=False)
 
 

@@ -217,6 +217,11 @@ def test_history_shows_serial_operator_recipe_and_reason(cli: CliRunner, db_url:
     res = cli.invoke(app, ["history", "--json", "--db", db_url])
     (row_c,) = [r for r in json.loads(res.output) if r["id"] == c]
     assert row_c["failure_reason"].startswith("cube check")
+    # stored names are printed as they are, not as emoji codes
+    _add_run(db, "st-1", "passed", H1, t0 + dt.timedelta(days=3), serial="LX-1003",
+             operator=":smile:")
+    res = cli.invoke(app, ["history", "--db", db_url, "--serial", "LX-1003"])
+    assert ":smile:" in res.output
     db.dispose()
 
 
