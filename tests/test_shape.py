@@ -22,7 +22,7 @@ from calstation.metrics import axis_errors
 from calstation.recipe import Recipe, load_recipe
 from calstation.recording import Recording, read_recording
 from calstation.result import CalibrationResult
-from calstation.shape import shape_fine_tune
+from calstation.shape import rz_sigma_floor, shape_fine_tune
 
 
 def _cube_surface(s: float, yaw: float, n: int, noise: float, seed: int = 0) -> np.ndarray:
@@ -121,6 +121,9 @@ def test_simulated_cube_from_the_initial_calibration(sim_run) -> None:
     assert math.degrees(e["axis_angle_rad"]) <= 0.3
     assert res.H.ty == initial.H.ty  # the gauge
     assert res.strategy == "shape" and res.iterations <= recipe.calibration.shape.max_nfev + 2
+    # the σ of rz carries the box cost's noise bias, which its residuals do not show
+    assert res.sigma["rz"] >= rz_sigma_floor(res.diagnostics["range_noise_m"]) > 0
+    assert abs(e["rz_error"]) <= 3 * res.sigma["rz"]
 
 
 def test_ry_from_the_face_flatness_with_a_large_true_ry(sim_run) -> None:
@@ -134,6 +137,7 @@ def test_ry_from_the_face_flatness_with_a_large_true_ry(sim_run) -> None:
     assert math.degrees(e["axis_angle_rad"]) <= 0.15
     assert res.diagnostics["ry_source"] == "face flatness" and res.diagnostics["ry_rounds"]
     assert 0 < res.sigma["ry"] < math.radians(0.2)
+    assert abs(e["rz_error"]) <= 3 * res.sigma["rz"]
     held = shape_fine_tune(
         rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape, estimate_ry=False
     )
