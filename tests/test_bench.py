@@ -172,3 +172,67 @@ def test_variant_reports_are_summarised_with_a_link(tmp_path) -> None:
     assert "## Harder stations" in text
     assert "[its report](bench-variants/noise-2mm/results.md)" in text
     assert "| periodicity | 0.05 |" in text and "| not | this |" not in text
+
+
+def test_basin_starts_move_the_named_parameters_by_the_levels_distance() -> None:
+    from calstation.bench.basin import PARAMS, ROTATIONS_DEG, TRANSLATIONS_M, basin_starts
+
+    truth = Extrinsics(0.01, 1.25, 0.002, 0.0, 0.003, -0.78)
+    starts = basin_starts(truth, 3)
+    assert starts == basin_starts(truth, 3)  # repeatable
+    assert len(starts) == (len(PARAMS) + 1) * len(TRANSLATIONS_M) * 3
+    for s in starts:
+        x = dict(zip(("tx", "ty", "tz", "rx", "ry", "rz"), s["start"], strict=True))
+        assert x["ty"] == truth.ty and x["rx"] == 0.0
+        moved = PARAMS if s["group"] == "joint" else (s["group"],)
+        for p in PARAMS:
+            d = abs(x[p] - getattr(truth, p))
+            full = (TRANSLATIONS_M[s["level"]] if p in ("tx", "tz")
+                    else math.radians(ROTATIONS_DEG[s["level"]]))
+            if p in moved:
+                assert 0.8 * full - 1e-12 <= d <= full + 1e-12
+            else:
+                assert d == 0.0
+
+
+def test_basin_section_counts_refused_starts_as_not_converged(tmp_path: Path) -> None:
+    from calstation.bench.basin import basin_figure, basin_markdown
+
+    records = [
+        {"id": f"r{i}", "method": "periodicity", "group": "tx", "level": 0, "status": status,
+         "converged": conv}
+        for i, (status, conv) in enumerate([("ok", True), ("ok", False), ("failed", False),
+                                            ("ok", True)])
+    ]
+    meta = {"methods": ["periodicity"], "command": "calstation bench basin", "git_commit": "x",
+            "wall_s": 60.0, "workers": 2, "scenario": "D5", "starts": 4}
+    md = basin_markdown(records, meta)
+    assert "| tx | 5 mm: 50% |" in md and "1 of them refused" in md
+    basin_figure(records, ["periodicity"], tmp_path / "basin.png")
+    assert (tmp_path / "basin.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_basin_run_on_the_simulator_and_its_section_in_results(tmp_path: Path) -> None:
+    """One start per parameter and level, periodicity only (~40 s on two cores): close starts
+    converge, a start 500 mm off in tx is refused, and the section lands in the report."""
+    out = tmp_path / "basin"
+    exe = Path(sys.executable).parent / "calstation"
+    proc = subprocess.run(
+        [str(exe), "bench", "basin", "--starts", "1", "--methods", "periodicity", "--out",
+         str(out), "--recipe", str(RECIPE)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    records = [json.loads(line) for line in (out / "records.jsonl").read_text().splitlines()]
+    by = {(r["group"], r["level"]): r for r in records}
+    assert all(by[(g, 0)]["converged"] for g in ("tx", "tz", "ry", "rz", "joint"))
+    assert by[("tx", 6)]["status"] == "failed" and not by[("tx", 6)]["converged"]
+    md = (out / "basin.md").read_text()
+    assert "## Basin of convergence" in md and "| joint |" in md
+    assert (out / "results" / "basin.png").is_file()
+    bad = subprocess.run(
+        [str(exe), "bench", "basin", "--methods", "nope", "--out", str(out)],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert bad.returncode != 0 and "unknown strategy nope" in bad.stdout + bad.stderr

@@ -452,6 +452,9 @@ def write_report(
 
     text = _compose(records, every, meta, methods, abl_sc, landscape_md, label)
     text += variants_section(report_dir)
+    basin = report_dir / "basin.md"
+    if basin.is_file():  # written by `calstation bench basin --report-dir` (calstation.bench.basin)
+        text += "\n" + basin.read_text()
     path = report_dir / "results.md"
     path.write_text(text)
     return path

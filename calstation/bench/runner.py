@@ -166,7 +166,7 @@ class Task:
     """One unit of work for a worker. Carries paths and six numbers, never recordings."""
 
     id: str
-    kind: str  # "simulate" | "initial" | "finetune" | "landscape"
+    kind: str  # "simulate" | "initial" | "finetune" | "landscape" | "basin"
     scenario: str
     directory: str
     method: str = "initial"
@@ -352,6 +352,8 @@ def run_task(task: Task) -> dict[str, Any]:
         "index": task.index,
         "variant": task.variant,
     }
+    if task.kind == "basin":  # kept with a refused start too: it counts as not converged
+        record.update(group=task.landscape["group"], level=task.landscape["level"])
     t0 = time.perf_counter()
     try:
         if task.kind == "simulate":
@@ -364,6 +366,10 @@ def run_task(task: Task) -> dict[str, Any]:
             from .landscape import run_landscape_row
 
             record.update(run_landscape_row(task, _recording, _recipe(task.overrides)))
+        elif task.kind == "basin":
+            from .basin import run_basin_task
+
+            record.update(run_basin_task(task, _recording, _recipe(task.overrides)))
         else:
             raise BenchError(f"unknown task kind {task.kind!r}")
         record.setdefault("status", "ok")
@@ -375,7 +381,7 @@ def run_task(task: Task) -> dict[str, Any]:
         if not isinstance(exc, CalstationError):
             record["traceback"] = traceback.format_exc(limit=8)
     record["wall_s"] = time.perf_counter() - t0
-    if task.kind in ("initial", "finetune"):
+    if task.kind in ("initial", "finetune", "basin"):
         record["converged"] = converged(task.method, record)
     return _jsonable(record)  # type: ignore[no-any-return]
 

@@ -121,6 +121,48 @@ def register(app: typer.Typer) -> None:
         path = write_report(out, report_dir or out, meta, label)
         console.print(f"bench finished in {meta['wall_s'] / 60.0:.1f} min; report: {path}")
 
+    @bench.command("basin")
+    def basin(
+        out: Path = typer.Option(
+            Path("out/bench-basin"), "--out", help="folder for the recordings and records"
+        ),
+        report_dir: Path | None = typer.Option(
+            None, "--report-dir",
+            help="where basin.md and results/basin.png go (default: --out); `bench report` "
+            "adds basin.md found there to results.md",
+        ),
+        recipe: Path = typer.Option(
+            Path("recipes/sim-periodicity.yaml"), "--recipe", help="simulated-station recipe"
+        ),
+        scenario: str = typer.Option("D5", "--scenario", help="one of the paper's D1–D9"),
+        methods: str = typer.Option(
+            "periodicity,shape", "--methods", help="comma-separated fine-tuning strategies"
+        ),
+        starts: int = typer.Option(4, "--starts", min=1, help="starts per parameter and level"),
+        workers: int = typer.Option(2, "--workers", min=1, help="worker processes"),
+    ) -> None:
+        """The basin of convergence: the fraction of starts that converge against the start's
+        distance from the true H, per parameter and jointly, out to ±500 mm and ±10°."""
+        from rich.console import Console
+
+        from ..bench import BenchError
+        from ..bench.basin import run_basin
+
+        if not recipe.is_file():
+            raise BenchError(f"{recipe}: recipe not found (give --recipe)")
+        command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        console = Console(stderr=True)
+        from .. import plugins
+
+        chosen = [m.strip() for m in methods.split(",") if m.strip()]
+        unknown = [m for m in chosen if m not in plugins.strategies()]
+        if unknown or not chosen:
+            raise BenchError(f"--methods {methods!r}: unknown strategy {', '.join(unknown)}; "
+                             f"installed: {', '.join(sorted(plugins.strategies()))}")
+        path = run_basin(recipe, out, report_dir or out, scenario, chosen, starts, workers,
+                         command, console)
+        console.print(f"basin of convergence: {path}")
+
     @bench.command("report")
     def report(
         out: Path = typer.Option(

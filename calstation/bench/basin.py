@@ -1,0 +1,202 @@
+"""The basin of convergence: the fraction of starts from which each fine-tuning converges,
+against the distance of the start from the true H.
+
+Per parameter (tx, tz, ry, rz: one of them off by the level's distance, the others true) and
+jointly (all four off, each by 80–100 % of the level's distance with a random sign), at seven
+levels out to ±500 mm and ±10°. ty is the gauge (kept true) and rx 0. "Converged" is the bench's
+:data:`~calstation.bench.runner.CONVERGENCE` for the method; a start the strategy refuses with an
+error counts as not converged. The starts are drawn from a fixed seed, so a run is repeatable.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..frames import PARAMETER_NAMES, Extrinsics
+
+PARAMS = ("tx", "tz", "ry", "rz")
+TRANSLATIONS_M = (0.005, 0.020, 0.050, 0.100, 0.200, 0.300, 0.500)
+ROTATIONS_DEG = (0.25, 1.0, 2.0, 4.0, 6.0, 8.0, 10.0)
+"""The levels: level i moves a translation by TRANSLATIONS_M[i] and a rotation by
+ROTATIONS_DEG[i]; the joint starts move all four by level i at once."""
+BASIN_SEED = 2027
+
+
+def _offset(param: str, level: int) -> float:
+    """The distance of ``level`` for ``param`` in SI units (m or rad)."""
+    if param in ("tx", "tz"):
+        return TRANSLATIONS_M[level]
+    return math.radians(ROTATIONS_DEG[level])
+
+
+def basin_starts(truth: Extrinsics, starts: int, seed: int = BASIN_SEED) -> list[dict[str, Any]]:
+    """Every start: ``{"group": param or "joint", "level": i, "index": j, "start": (6,)}``."""
+    rng = np.random.default_rng(seed)
+    out: list[dict[str, Any]] = []
+    base = truth.with_(rx=0.0).as_vector()
+    for group in (*PARAMS, "joint"):
+        for level in range(len(TRANSLATIONS_M)):
+            for j in range(starts):
+                x = base.copy()
+                for p in PARAMS if group == "joint" else (group,):
+                    sign = 1.0 if (j % 2 == 0 if group != "joint" else rng.random() < 0.5) else -1.0
+                    x[PARAMETER_NAMES.index(p)] += sign * rng.uniform(0.8, 1.0) * _offset(p, level)
+                out.append({"group": group, "level": level, "index": j,
+                            "start": tuple(float(v) for v in x)})
+    return out
+
+
+def basin_tasks(
+    scenario: str, directory: Path, truth: Extrinsics, methods: Sequence[str], starts: int
+) -> list[Any]:
+    """One fine-tuning task per (method, start)."""
+    from .runner import Task
+
+    tasks = []
+    for method in methods:
+        for s in basin_starts(truth, starts):
+            tasks.append(
+                Task(
+                    f"{scenario}/basin/{method}/{s['group']}/{s['level']}/{s['index']:02d}",
+                    "basin",
+                    scenario,
+                    str(directory),
+                    method=method,
+                    index=s["index"],
+                    start=s["start"],
+                    landscape={"group": s["group"], "level": s["level"]},
+                )
+            )
+    return tasks
+
+
+def run_basin_task(task: Any, recording: Any, recipe: Any) -> dict[str, Any]:
+    """Fine-tune from the task's start; the estimate's errors against the truth."""
+    from .. import plugins
+    from ..metrics import axis_errors
+
+    assert task.start is not None
+    strategy = plugins.strategy(task.method)
+    fixture = getattr(strategy, "fixture", "spin_target")
+    rec = recording(task.directory, "cube" if fixture == "qa_cube" else "spin")
+    truth: Extrinsics = recording(task.directory, "truth")
+    t0 = time.perf_counter()
+    result = strategy.run(rec, Extrinsics(*task.start), recipe)
+    return {
+        "stage_s": time.perf_counter() - t0,
+        "H": {n: float(getattr(result.H, n)) for n in PARAMETER_NAMES},
+        "error": {n: float(getattr(result.H, n) - getattr(truth, n)) for n in PARAMETER_NAMES},
+        "axis": {k: float(v) for k, v in axis_errors(result.H, truth).items()},
+    }
+
+
+def _fractions(records: Sequence[dict[str, Any]], method: str, group: str) -> list[float]:
+    out = []
+    for level in range(len(TRANSLATIONS_M)):
+        sel = [r for r in records
+               if r["method"] == method and r.get("group") == group and r.get("level") == level]
+        out.append(sum(bool(r.get("converged")) for r in sel) / len(sel) if sel else math.nan)
+    return out
+
+
+def _level_label(group: str, level: int) -> str:
+    if group in ("tx", "tz"):
+        return f"{TRANSLATIONS_M[level] * 1e3:g} mm"
+    if group in ("ry", "rz"):
+        return f"{ROTATIONS_DEG[level]:g}°"
+    return f"{TRANSLATIONS_M[level] * 1e3:g} mm / {ROTATIONS_DEG[level]:g}°"
+
+
+def basin_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> str:
+    """The section for results.md: how it was made, a table per method, the figure."""
+    methods = [m for m in meta["methods"] if any(r["method"] == m for r in records)]
+    failed = sum(r.get("status") != "ok" for r in records)
+    lines = [
+        "## Basin of convergence",
+        "",
+        f"Command: `{meta['command']}` (commit `{meta['git_commit']}`, "
+        f"{meta['wall_s'] / 60:.1f} min on {meta['workers']} workers). Scenario "
+        f"{meta['scenario']}; from the true H, one parameter off by the level's distance (the "
+        "others true) or all four at once (each by 80–100 % of it, random signs); "
+        f"{meta['starts']} starts per level, {len(records)} fine-tunings, {failed} of them "
+        "refused with an error (not converged). Converged: the thresholds above. Fractions of "
+        "the starts that converged:",
+        "",
+    ]
+    for method in methods:
+        head = "| start off in | " + " | ".join(
+            f"level {i + 1}" for i in range(len(TRANSLATIONS_M))) + " |"
+        lines += [f"**{method}**", "", head, "|---" * (len(TRANSLATIONS_M) + 1) + "|"]
+        for group in (*PARAMS, "joint"):
+            fr = _fractions(records, method, group)
+            cells = [f"{_level_label(group, i)}: {f:.0%}" if math.isfinite(f) else "—"
+                     for i, f in enumerate(fr)]
+            lines.append(f"| {group} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += ["![basin of convergence](results/basin.png)", ""]
+    return "\n".join(lines)
+
+
+def basin_figure(records: Sequence[dict[str, Any]], methods: Sequence[str], path: Path) -> None:
+    """One panel per parameter and one for the joint starts: converged fraction against the
+    start's distance, a line per method."""
+    from .figures import METHOD_COLOURS, METHOD_LABELS, _plt
+
+    plt = _plt()
+    groups = (*PARAMS, "joint")
+    fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups), 3.0), sharey=True)
+    for ax, group in zip(axes, groups, strict=True):
+        x = (np.array(TRANSLATIONS_M) * 1e3 if group in ("tx", "tz", "joint")
+             else np.array(ROTATIONS_DEG))
+        for method in methods:
+            fr = _fractions(records, method, group)
+            ax.plot(x, fr, "o-", color=METHOD_COLOURS.get(method), label=METHOD_LABELS.get(method,
+                                                                                         method))
+        ax.set_xscale("log")
+        ax.set_ylim(-0.05, 1.05)
+        unit = "mm" if group in ("tx", "tz") else "°" if group in ("ry", "rz") else "mm (and °)"
+        ax.set_xlabel(f"{group} off by ({unit})")
+        ax.grid(True, alpha=0.3)
+    axes[0].set_ylabel("converged fraction")
+    axes[-1].legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_basin(
+    recipe: Path, out: Path, report_dir: Path, scenario_name: str, methods: Sequence[str],
+    starts: int, workers: int, command: str, console: Any,
+) -> Path:
+    """Simulate the scenario (or reuse it), run every start, write ``basin.md`` and
+    ``results/basin.png`` to ``report_dir``; returns the path of ``basin.md``."""
+    from .runner import Executor, RecordStore, _run_phase, git_commit
+    from .scenarios import load_truth, select_scenarios, simulate_scenario
+
+    (scenario,) = select_scenarios([scenario_name])
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    data = simulate_scenario(recipe, scenario, out / "scenarios" / scenario.name)
+    truth = load_truth(data.directory / "truth.json")
+    store = RecordStore(out / "records.jsonl", resume=True)
+    tasks = basin_tasks(scenario.name, data.directory, truth, methods, starts)
+    with Executor(recipe, workers) as ex:
+        _run_phase(ex, store, tasks, "basin of convergence", console)
+    ids = {t.id for t in tasks}
+    records = [r for r in store.records.values() if r["id"] in ids]
+    meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
+            "workers": workers, "scenario": f"{scenario.name} ({scenario.range_m:.2f} m, "
+            f"{scenario.pitch_deg:.0f}°)", "starts": starts, "methods": list(methods)}
+    (out / "basin.json").write_text(json.dumps(meta, indent=2))
+    basin_figure(records, methods, report_dir / "results" / "basin.png")
+    path = report_dir / "basin.md"
+    path.write_text(basin_markdown(records, meta))
+    return path
