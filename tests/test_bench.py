@@ -196,18 +196,25 @@ def test_basin_starts_move_the_named_parameters_by_the_levels_distance() -> None
 
 
 def test_basin_section_counts_refused_starts_as_not_converged(tmp_path: Path) -> None:
-    from calstation.bench.basin import basin_figure, basin_markdown
+    from calstation.bench.basin import basin_figure, basin_markdown, silently_wrong
 
+    H = {"tx": 0.01, "ty": 1.25, "tz": 0.0, "rx": 0.0, "ry": 0.0, "rz": -0.78}
+    small = {"tx": 1e-5, "ty": 1e-5, "tz": 1e-5, "rx": math.nan, "ry": 1e-4, "rz": 1e-4}
+    large = {**small, "ry": 0.01}
     records = [
         {"id": f"r{i}", "method": "periodicity", "group": "tx", "level": 0, "status": status,
-         "converged": conv}
-        for i, (status, conv) in enumerate([("ok", True), ("ok", False), ("failed", False),
-                                            ("ok", True)])
+         "converged": conv, "H": H, "sigma": sigma}
+        for i, (status, conv, sigma) in enumerate([
+            ("ok", True, small), ("ok", False, small), ("failed", False, {}), ("ok", True, small),
+            ("ok", False, large)])
     ]
     meta = {"methods": ["periodicity"], "command": "calstation bench basin", "git_commit": "x",
             "wall_s": 60.0, "workers": 2, "scenario": "D5", "starts": 4}
     md = basin_markdown(records, meta)
-    assert "| tx | 5 mm: 50% |" in md and "1 of them refused" in md
+    assert "| tx | 5 mm: 40% |" in md and "1 of them refused" in md
+    # of the two estimates outside the thresholds, only r1's σ would pass the default limits
+    assert silently_wrong(records) == [records[1]]
+    assert "Of the 2 estimates returned outside the thresholds, 1 has" in md
     basin_figure(records, ["periodicity"], tmp_path / "basin.png")
     assert (tmp_path / "basin.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

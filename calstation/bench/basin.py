@@ -92,6 +92,7 @@ def run_basin_task(task: Any, recording: Any, recipe: Any) -> dict[str, Any]:
     return {
         "stage_s": time.perf_counter() - t0,
         "H": {n: float(getattr(result.H, n)) for n in PARAMETER_NAMES},
+        "sigma": {k: float(v) for k, v in dict(result.sigma).items()},
         "error": {n: float(getattr(result.H, n) - getattr(truth, n)) for n in PARAMETER_NAMES},
         "axis": {k: float(v) for k, v in axis_errors(result.H, truth).items()},
     }
@@ -104,6 +105,24 @@ def _fractions(records: Sequence[dict[str, Any]], method: str, group: str) -> li
                if r["method"] == method and r.get("group") == group and r.get("level") == level]
         out.append(sum(bool(r.get("converged")) for r in sel) / len(sel) if sel else math.nan)
     return out
+
+
+def silently_wrong(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The estimates that missed the thresholds yet whose σ a station with the default
+    ``calibration.max_sigma`` would accept: the ones a user could not tell from good ones."""
+    from ..observability import sigma_problems
+    from ..recipe import SigmaLimits
+    from ..result import CalibrationResult
+
+    limits = SigmaLimits()
+
+    def result(r: dict[str, Any]) -> CalibrationResult:
+        return CalibrationResult(Extrinsics.from_dict(r["H"]), dict(r.get("sigma", {})), 0.0, 0,
+                                 r["method"])
+
+    return [r for r in records
+            if r.get("status") == "ok" and not r.get("converged")
+            and not sigma_problems(result(r), limits)]
 
 
 def _level_label(group: str, level: int) -> str:
@@ -140,7 +159,18 @@ def basin_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
                      for i, f in enumerate(fr)]
             lines.append(f"| {group} | " + " | ".join(cells) + " |")
         lines.append("")
-    lines += ["![basin of convergence](results/basin.png)", ""]
+    missed = [r for r in records if r.get("status") == "ok" and not r.get("converged")]
+    silent = silently_wrong(records)
+    lines += [
+        f"Of the {len(missed)} estimates returned outside the thresholds, {len(silent)} "
+        + ("has" if len(silent) == 1 else "have") + " a σ "
+        "that the default `calibration.max_sigma` accepts"
+        + (": " + ", ".join(r["id"] for r in silent[:8]) if silent else "")
+        + "; a station refuses the others by their σ.",
+        "",
+        "![basin of convergence](results/basin.png)",
+        "",
+    ]
     return "\n".join(lines)
 
 
