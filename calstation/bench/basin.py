@@ -149,6 +149,14 @@ def basin_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
         "the starts that converged:",
         "",
     ]
+    if "ry_bound_deg" in meta:
+        lines += [
+            f"Periodicity searches ry within {meta['ry_bound_deg']:g}° of its start "
+            "(`calibration.periodicity.ry_bound_deg`: ry is nearly unobservable and would walk "
+            "to a moving bound) and shape within 2.5° (its faces' flatness step), so a start "
+            "further off in ry cannot converge.",
+            "",
+        ]
     for method in methods:
         head = "| start off in | " + " | ".join(
             f"level {i + 1}" for i in range(len(TRANSLATIONS_M))) + " |"
@@ -222,7 +230,11 @@ def run_basin(
         _run_phase(ex, store, tasks, "basin of convergence", console)
     ids = {t.id for t in tasks}
     records = [r for r in store.records.values() if r["id"] in ids]
+    from ..recipe import load_recipe
+
+    ry_bound = load_recipe(recipe).recipe.calibration.periodicity.ry_bound_deg
     meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
+            "ry_bound_deg": ry_bound,
             "workers": workers, "scenario": f"{scenario.name} ({scenario.range_m:.2f} m, "
             f"{scenario.pitch_deg:.0f}°)", "starts": starts, "methods": list(methods)}
     (out / "basin.json").write_text(json.dumps(meta, indent=2))
