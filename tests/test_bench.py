@@ -243,3 +243,42 @@ def test_basin_run_on_the_simulator_and_its_section_in_results(tmp_path: Path) -
         capture_output=True, text=True, timeout=120,
     )
     assert bad.returncode != 0 and "unknown strategy nope" in bad.stdout + bad.stderr
+
+
+def test_speed_recipe_changes_only_the_scans_speed(tmp_path: Path) -> None:
+    from calstation.bench.speed import speed_recipe
+
+    fast = load_recipe(RECIPE).recipe
+    path, ppl = speed_recipe(RECIPE, 10.0, tmp_path / "r10.yaml")
+    ten = load_recipe(path).recipe
+    assert ten.steps.spin_scan.rpm == 10.0 and ten.steps.cube_scan.rpm == 10.0
+    assert ppl == 1000 and ten.simulation == fast.simulation
+    assert ten.calibration == fast.calibration
+    assert ten.steps.spin_scan.revolutions == fast.steps.spin_scan.revolutions
+    # 1 rpm at 1000 lines/s would make ~63 M returns: fewer points per line, the same line rate
+    path, ppl = speed_recipe(RECIPE, 1.0, tmp_path / "r1.yaml")
+    one = load_recipe(path).recipe  # valid: within the simulator's 25 M returns per scan
+    assert one.simulation is not None and fast.simulation is not None
+    assert one.simulation.lidar.points_per_line == ppl < 400
+    assert one.simulation.lidar.line_rate_hz == fast.simulation.lidar.line_rate_hz
+
+
+@pytest.mark.slow
+def test_speed_run_and_its_section(tmp_path: Path) -> None:
+    out = tmp_path / "speed"
+    exe = Path(sys.executable).parent / "calstation"
+    proc = subprocess.run(
+        [str(exe), "bench", "speed", "--rpm", "10", "--methods", "periodicity", "--out",
+         str(out), "--recipe", str(RECIPE)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (rec,) = json.loads((out / "records.json").read_text())
+    assert rec["rpm"] == 10 and rec["status"] == "ok" and rec["axis_offset_m"] < 0.5e-3
+    assert rec["lines"] > 6000  # 1.05 turns at 1000 lines/s
+    md = (out / "speed.md").read_text()
+    assert "| 10 rpm | 6,000 | 1000 | periodicity |" in md
+    assert (out / "results" / "speed.png").is_file()
+    bad = subprocess.run([str(exe), "bench", "speed", "--rpm", "0"], capture_output=True,
+                         text=True, timeout=120)
+    assert bad.returncode != 0 and "within 0.1–120 rpm" in bad.stdout + bad.stderr

@@ -452,9 +452,10 @@ def write_report(
 
     text = _compose(records, every, meta, methods, abl_sc, landscape_md, label)
     text += variants_section(report_dir)
-    basin = report_dir / "basin.md"
-    if basin.is_file():  # written by `calstation bench basin --report-dir` (calstation.bench.basin)
-        text += "\n" + basin.read_text()
+    # sections of their own commands (calstation.bench.basin, calstation.bench.speed)
+    for name in ("basin.md", "speed.md"):
+        if (report_dir / name).is_file():
+            text += "\n" + (report_dir / name).read_text()
     path = report_dir / "results.md"
     path.write_text(text)
     return path

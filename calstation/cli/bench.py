@@ -163,6 +163,54 @@ def register(app: typer.Typer) -> None:
                          command, console)
         console.print(f"basin of convergence: {path}")
 
+    @bench.command("speed")
+    def speed(
+        out: Path = typer.Option(
+            Path("out/bench-speed"), "--out", help="folder for the recordings and records"
+        ),
+        report_dir: Path | None = typer.Option(
+            None, "--report-dir",
+            help="where speed.md and results/speed.png go (default: --out); `bench report` "
+            "adds speed.md found there to results.md",
+        ),
+        recipe: Path = typer.Option(
+            Path("recipes/sim-periodicity.yaml"), "--recipe", help="simulated-station recipe"
+        ),
+        scenario: str = typer.Option("D5", "--scenario", help="one of the paper's D1–D9"),
+        methods: str = typer.Option(
+            "periodicity,shape", "--methods", help="comma-separated fine-tuning strategies"
+        ),
+        speeds: str = typer.Option(
+            "1,2,5,10,20", "--rpm", help="comma-separated platter speeds (rpm)"
+        ),
+    ) -> None:
+        """Accuracy against platter speed at the sensor's line rate: each speed simulated,
+        calibrated and measured against the true H (1 rpm holds ~63 M returns per turn)."""
+        from rich.console import Console
+
+        from .. import plugins
+        from ..bench import BenchError
+        from ..bench.speed import run_speed
+
+        if not recipe.is_file():
+            raise BenchError(f"{recipe}: recipe not found (give --recipe)")
+        try:
+            rpms = [float(x) for x in speeds.split(",") if x.strip()]
+        except ValueError:
+            raise BenchError(f"--rpm {speeds!r}: expected numbers such as 1,2,5") from None
+        if not rpms or any(not 0.1 <= r <= 120 for r in rpms):
+            raise BenchError(f"--rpm {speeds!r}: each speed must lie within 0.1–120 rpm")
+        chosen = [m.strip() for m in methods.split(",") if m.strip()]
+        unknown = [m for m in chosen if m not in plugins.strategies()]
+        if unknown or not chosen:
+            raise BenchError(f"--methods {methods!r}: unknown strategy {', '.join(unknown)}; "
+                             f"installed: {', '.join(sorted(plugins.strategies()))}")
+        command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        console = Console(stderr=True)
+        path = run_speed(recipe, out, report_dir or out, scenario, chosen, rpms, command,
+                         console)
+        console.print(f"accuracy against platter speed: {path}")
+
     @bench.command("report")
     def report(
         out: Path = typer.Option(
