@@ -104,8 +104,9 @@ def speed_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
         f"{meta['wall_s'] / 60:.1f} min). Scenario {meta['scenario']}, the recipe's line rate "
         f"({meta['line_rate_hz']:g} lines/s); the spin and cube scans at each speed, every other "
         "setting as in the recipe; each fine-tuning from the initial calibration, against the "
-        "true H. Where a turn would make more returns than a simulated scan may hold (25 M), the "
-        "lidar's points per line are lowered to fit and the line rate kept.",
+        "true H; one simulated run per speed (the scenario's seed), so a row's scatter is one "
+        "draw of the noise. Where a turn would make more returns than a simulated scan may hold "
+        "(25 M), the lidar's points per line are lowered to fit and the line rate kept.",
         "",
         "| platter speed | lines per turn | points per line | method | returns | axis offset mm "
         "| axis direction ° | rz error ° | time s |",
