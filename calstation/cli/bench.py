@@ -23,6 +23,22 @@ def _parse_deadline(text: str) -> float:
         raise BenchError(f"--deadline {text!r}: expected HH:MM (UTC)") from None
 
 
+def _strategies(recipe: Path, methods: str) -> list[str]:
+    """The strategies named in ``methods`` (comma-separated), after checking that the recipe
+    exists and each strategy is installed."""
+    from .. import plugins
+    from ..bench import BenchError
+
+    if not recipe.is_file():
+        raise BenchError(f"{recipe}: recipe not found (give --recipe)")
+    chosen = [m.strip() for m in methods.split(",") if m.strip()]
+    unknown = [m for m in chosen if m not in plugins.strategies()]
+    if unknown or not chosen:
+        raise BenchError(f"--methods {methods!r}: unknown strategy {', '.join(unknown)}; "
+                         f"installed: {', '.join(sorted(plugins.strategies()))}")
+    return chosen
+
+
 def register(app: typer.Typer) -> None:
     """Add the ``bench`` command group."""
     bench = typer.Typer(
@@ -145,20 +161,11 @@ def register(app: typer.Typer) -> None:
         distance from the true H, per parameter and jointly, out to ±500 mm and ±10°."""
         from rich.console import Console
 
-        from ..bench import BenchError
         from ..bench.basin import run_basin
 
-        if not recipe.is_file():
-            raise BenchError(f"{recipe}: recipe not found (give --recipe)")
+        chosen = _strategies(recipe, methods)
         command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         console = Console(stderr=True)
-        from .. import plugins
-
-        chosen = [m.strip() for m in methods.split(",") if m.strip()]
-        unknown = [m for m in chosen if m not in plugins.strategies()]
-        if unknown or not chosen:
-            raise BenchError(f"--methods {methods!r}: unknown strategy {', '.join(unknown)}; "
-                             f"installed: {', '.join(sorted(plugins.strategies()))}")
         path = run_basin(recipe, out, report_dir or out, scenario, chosen, starts, workers,
                          command, console)
         console.print(f"basin of convergence: {path}")
@@ -185,26 +192,20 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Accuracy against platter speed at the sensor's line rate: each speed simulated,
-        calibrated and measured against the true H (1 rpm holds ~63 M returns per turn)."""
+        calibrated and measured against the true H (a slow turn is held to the simulator's 25 M
+        returns per scan)."""
         from rich.console import Console
 
-        from .. import plugins
         from ..bench import BenchError
         from ..bench.speed import run_speed
 
-        if not recipe.is_file():
-            raise BenchError(f"{recipe}: recipe not found (give --recipe)")
         try:
             rpms = [float(x) for x in speeds.split(",") if x.strip()]
         except ValueError:
             raise BenchError(f"--rpm {speeds!r}: expected numbers such as 1,2,5") from None
         if not rpms or any(not 0.1 <= r <= 120 for r in rpms):
             raise BenchError(f"--rpm {speeds!r}: each speed must lie within 0.1–120 rpm")
-        chosen = [m.strip() for m in methods.split(",") if m.strip()]
-        unknown = [m for m in chosen if m not in plugins.strategies()]
-        if unknown or not chosen:
-            raise BenchError(f"--methods {methods!r}: unknown strategy {', '.join(unknown)}; "
-                             f"installed: {', '.join(sorted(plugins.strategies()))}")
+        chosen = _strategies(recipe, methods)
         command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         console = Console(stderr=True)
         path = run_speed(recipe, out, report_dir or out, scenario, chosen, rpms, command,
