@@ -78,24 +78,18 @@ def basin_tasks(
 
 
 def run_basin_task(task: Any, recording: Any, recipe: Any) -> dict[str, Any]:
-    """Fine-tune from the task's start; the estimate's errors against the truth."""
+    """Fine-tune from the task's start; the estimate, its σ and its errors against the truth."""
     from .. import plugins
-    from ..metrics import axis_errors
+    from .runner import against_truth, result_fields, scan_of
 
     assert task.start is not None
     strategy = plugins.strategy(task.method)
-    fixture = getattr(strategy, "fixture", "spin_target")
-    rec = recording(task.directory, "cube" if fixture == "qa_cube" else "spin")
-    truth: Extrinsics = recording(task.directory, "truth")
+    rec = recording(task.directory, scan_of(strategy))
     t0 = time.perf_counter()
     result = strategy.run(rec, Extrinsics(*task.start), recipe)
-    return {
-        "stage_s": time.perf_counter() - t0,
-        "H": {n: float(getattr(result.H, n)) for n in PARAMETER_NAMES},
-        "sigma": {k: float(v) for k, v in dict(result.sigma).items()},
-        "error": {n: float(getattr(result.H, n) - getattr(truth, n)) for n in PARAMETER_NAMES},
-        "axis": {k: float(v) for k, v in axis_errors(result.H, truth).items()},
-    }
+    out = {"stage_s": time.perf_counter() - t0, **result_fields(result)}
+    out.update(against_truth(result.H, recording(task.directory, "truth")))
+    return out
 
 
 def _fractions(records: Sequence[dict[str, Any]], method: str, group: str) -> list[float]:
@@ -216,6 +210,7 @@ def run_basin(
 ) -> Path:
     """Simulate the scenario (or reuse it), run every start, write ``basin.md`` and
     ``results/basin.png`` to ``report_dir``; returns the path of ``basin.md``."""
+    from ..recipe import load_recipe
     from .runner import Executor, RecordStore, _run_phase, git_commit
     from .scenarios import load_truth, select_scenarios, simulate_scenario
 
@@ -230,8 +225,6 @@ def run_basin(
         _run_phase(ex, store, tasks, "basin of convergence", console)
     ids = {t.id for t in tasks}
     records = [r for r in store.records.values() if r["id"] in ids]
-    from ..recipe import load_recipe
-
     ry_bound = load_recipe(recipe).recipe.calibration.periodicity.ry_bound_deg
     meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
             "ry_bound_deg": ry_bound,

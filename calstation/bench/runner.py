@@ -259,12 +259,14 @@ def _h_dict(h: Extrinsics) -> dict[str, float]:
     return {n: float(getattr(h, n)) for n in PARAMETER_NAMES}
 
 
-def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
-    """Everything measured about an estimate ``H``: errors against the truth, axis errors, the
-    paper's cube check on the QA-cube scan, and the reconstruction distortion of that scan. A
-    measurement that fails is recorded as ``{"failed": message}``; the estimate stays valid."""
-    truth: Extrinsics = _recording(directory, "truth")
-    cube_rec = _recording(directory, "cube")
+def scan_of(strategy: Any) -> str:
+    """Which of a scenario's scans ("spin" or "cube") a fine-tuning strategy runs on."""
+    return "cube" if getattr(strategy, "fixture", "spin_target") == "qa_cube" else "spin"
+
+
+def against_truth(H: Extrinsics, truth: Extrinsics) -> dict[str, Any]:
+    """An estimate's per-parameter errors and axis errors against the truth (the axis errors as
+    ``{"failed": message}`` if they cannot be computed)."""
     out: dict[str, Any] = {
         "truth": _h_dict(truth),
         "error": {n: float(getattr(H, n) - getattr(truth, n)) for n in PARAMETER_NAMES},
@@ -275,6 +277,16 @@ def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
         out["axis"] = {k: float(v) for k, v in axis_errors(H, truth).items()}
     except Exception as exc:
         out["axis"] = {"failed": f"{type(exc).__name__}: {exc}"}
+    return out
+
+
+def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
+    """Everything measured about an estimate ``H``: errors against the truth, axis errors, the
+    paper's cube check on the QA-cube scan, and the reconstruction distortion of that scan. A
+    measurement that fails is recorded as ``{"failed": message}``; the estimate stays valid."""
+    truth: Extrinsics = _recording(directory, "truth")
+    cube_rec = _recording(directory, "cube")
+    out = against_truth(H, truth)
     t0 = time.perf_counter()
     out["cube"] = _cube_check(directory, H, recipe)
     t1 = time.perf_counter()
@@ -391,7 +403,7 @@ def _run_simulate(task: Task, record: dict[str, Any]) -> None:
     simulate_scenario(_WORKER["recipe_path"], scenario, Path(task.directory))
 
 
-def _result_fields(result: Any) -> dict[str, Any]:
+def result_fields(result: Any) -> dict[str, Any]:
     return {
         "H": _h_dict(result.H),
         "sigma": {k: float(v) for k, v in dict(result.sigma).items()},
@@ -424,7 +436,7 @@ def _run_initial(task: Task, record: dict[str, Any]) -> None:
     t0 = time.perf_counter()
     result = initial_calibration(static, recipe.fixtures.static_target, recipe.calibration.initial)
     record["stage_s"] = time.perf_counter() - t0
-    record.update(_result_fields(result))
+    record.update(result_fields(result))
     record.update(_evaluate(task.directory, result.H, recipe))
     # the cube checked with the true H: the floor of the paper's metric on this sensor
     truth = _recording(task.directory, "truth")
@@ -439,12 +451,11 @@ def _run_finetune(task: Task, record: dict[str, Any]) -> None:
     start = Extrinsics(*task.start)
     record["start"] = _h_dict(start)
     strategy = plugins.strategy(task.method)
-    fixture = getattr(strategy, "fixture", "spin_target")
-    recording = _recording(task.directory, "cube" if fixture == "qa_cube" else "spin")
+    recording = _recording(task.directory, scan_of(strategy))
     t0 = time.perf_counter()
     result = strategy.run(recording, start, recipe)
     record["stage_s"] = time.perf_counter() - t0
-    record.update(_result_fields(result))
+    record.update(result_fields(result))
     record.update(_evaluate(task.directory, result.H, recipe))
 
 

@@ -18,8 +18,6 @@ from typing import Any
 
 from ..frames import PARAMETER_NAMES
 
-SPEEDS_RPM = (1.0, 2.0, 5.0, 10.0, 20.0)
-
 
 def speed_recipe(recipe: Path, rpm: float, out: Path) -> tuple[Path, int]:
     """A copy of ``recipe`` whose spin and cube scans turn at ``rpm``, written to ``out``, and
@@ -56,6 +54,7 @@ def run_speed_case(recipe: Path, scenario: Any, rpm: float, out: Path,
     from ..metrics import axis_errors
     from ..recipe import load_recipe
     from ..recording import read_recording
+    from .runner import scan_of
     from .scenarios import load_truth, simulate_scenario
 
     path, ppl = speed_recipe(recipe, rpm, out / f"recipe-{rpm:g}rpm.yaml")
@@ -69,8 +68,7 @@ def run_speed_case(recipe: Path, scenario: Any, rpm: float, out: Path,
     records = []
     for method in methods:
         strategy = plugins.strategy(method)
-        fixture = getattr(strategy, "fixture", "spin_target")
-        rec = read_recording(data.cube if fixture == "qa_cube" else data.spin)
+        rec = read_recording(getattr(data, scan_of(strategy)))
         record: dict[str, Any] = {"rpm": rpm, "method": method, "points": rec.n_points,
                                   "lines": rec.n_lines, "points_per_line": ppl,
                                   "simulate_s": simulate_s}
