@@ -24,6 +24,14 @@ from calstation.frames import Extrinsics
 from calstation.recipe import load_recipe
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def _calstation(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    """``calstation ARGS`` in a process of its own, as an operator runs it."""
+    exe = Path(sys.executable).parent / "calstation"
+    return subprocess.run([str(exe), *args], capture_output=True, text=True, timeout=timeout)
+
+
 RECIPE = ROOT / "recipes" / "sim-periodicity.yaml"
 
 
@@ -97,14 +105,8 @@ def _axis_errors(H: dict[str, float], truth: dict[str, float]) -> tuple[float, f
 
 def test_quick_bench_completes_and_periodicity_meets_thresholds(tmp_path: Path) -> None:
     out = tmp_path / "bench"
-    exe = Path(sys.executable).parent / "calstation"
-    proc = subprocess.run(
-        [str(exe), "bench", "paper", "--quick", "--workers", "2", "--out", str(out),
-         "--recipe", str(RECIPE)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = _calstation("bench", "paper", "--quick", "--workers", "2", "--out", str(out),
+                       "--recipe", str(RECIPE))
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     records = [json.loads(line) for line in (out / "records.jsonl").read_text().splitlines()]
@@ -224,12 +226,8 @@ def test_basin_run_on_the_simulator_and_its_section_in_results(tmp_path: Path) -
     """One start per parameter and level, periodicity only (~40 s on two cores): close starts
     converge, a start 500 mm off in tx is refused, and the section lands in the report."""
     out = tmp_path / "basin"
-    exe = Path(sys.executable).parent / "calstation"
-    proc = subprocess.run(
-        [str(exe), "bench", "basin", "--starts", "1", "--methods", "periodicity", "--out",
-         str(out), "--recipe", str(RECIPE)],
-        capture_output=True, text=True, timeout=600,
-    )
+    proc = _calstation("bench", "basin", "--starts", "1", "--methods", "periodicity", "--out",
+                       str(out), "--recipe", str(RECIPE))
     assert proc.returncode == 0, proc.stderr[-3000:]
     records = [json.loads(line) for line in (out / "records.jsonl").read_text().splitlines()]
     by = {(r["group"], r["level"]): r for r in records}
@@ -238,10 +236,7 @@ def test_basin_run_on_the_simulator_and_its_section_in_results(tmp_path: Path) -
     md = (out / "basin.md").read_text()
     assert "## Basin of convergence" in md and "| joint |" in md
     assert (out / "results" / "basin.png").is_file()
-    bad = subprocess.run(
-        [str(exe), "bench", "basin", "--methods", "nope", "--out", str(out)],
-        capture_output=True, text=True, timeout=120,
-    )
+    bad = _calstation("bench", "basin", "--methods", "nope", "--out", str(out), timeout=120)
     assert bad.returncode != 0 and "unknown strategy nope" in bad.stdout + bad.stderr
 
 
@@ -266,12 +261,8 @@ def test_speed_recipe_changes_only_the_scans_speed(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_speed_run_and_its_section(tmp_path: Path) -> None:
     out = tmp_path / "speed"
-    exe = Path(sys.executable).parent / "calstation"
-    proc = subprocess.run(
-        [str(exe), "bench", "speed", "--rpm", "10", "--methods", "periodicity", "--out",
-         str(out), "--recipe", str(RECIPE)],
-        capture_output=True, text=True, timeout=600,
-    )
+    proc = _calstation("bench", "speed", "--rpm", "10", "--methods", "periodicity", "--out",
+                       str(out), "--recipe", str(RECIPE))
     assert proc.returncode == 0, proc.stderr[-3000:]
     (rec,) = json.loads((out / "records.json").read_text())
     assert rec["rpm"] == 10 and rec["status"] == "ok" and rec["axis_offset_m"] < 0.5e-3
@@ -279,6 +270,5 @@ def test_speed_run_and_its_section(tmp_path: Path) -> None:
     md = (out / "speed.md").read_text()
     assert "| 10 rpm | 6,000 | 1000 | periodicity |" in md
     assert (out / "results" / "speed.png").is_file()
-    bad = subprocess.run([str(exe), "bench", "speed", "--rpm", "0"], capture_output=True,
-                         text=True, timeout=120)
+    bad = _calstation("bench", "speed", "--rpm", "0", timeout=120)
     assert bad.returncode != 0 and "within 0.1–120 rpm" in bad.stdout + bad.stderr
