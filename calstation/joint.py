@@ -165,6 +165,9 @@ def fine_tune_with_cube(
         strategy=f"{result.strategy}+cube", timings=dict(result.timings),
         diagnostics={**result.diagnostics, "joint": joint.details,
                      "covariance": joint.details["covariance"]},
+        # the time offset does not depend on ry (calstation.timeoffset): it carries over
+        encoder_latency_s=result.encoder_latency_s,
+        sigma_encoder_latency_s=result.sigma_encoder_latency_s,
     )
     return combined, check_cube(cube, joint.H, *args, platter_radius=radius), failure
 

@@ -58,6 +58,16 @@ def sigma_problems(
                 f"{name}: σ {sigma * scale:.3f} {unit} > {limit * scale:.3f} {unit} "
                 f"(calibration.max_sigma.{field})"
             )
+    latency = result.sigma_encoder_latency_s
+    if result.encoder_latency_s is not None and (
+        latency is None or not latency <= limits.encoder_latency_ms * 1e-3
+    ):
+        shown = "unknown" if latency is None else f"{latency * 1e3:.3f} ms"
+        problems.append(
+            f"lidar–encoder time offset: σ {shown} > {limits.encoder_latency_ms:.3f} ms "
+            "(calibration.max_sigma.encoder_latency_ms): turn the second pass the other way or "
+            "faster, so that the two passes differ more in speed"
+        )
     return problems
 
 

@@ -314,6 +314,12 @@ class SpinScanStep(Model):
     rpm: float = Field(20.0, ge=0.5, le=120)
     revolutions: float = Field(1.05, ge=1.0, le=10.0, description="a little over one turn")
     settle_s: float = Field(0.5, ge=0, le=60)
+    second_pass_rpm: float | None = Field(
+        None, ge=-120, le=120,
+        description="scan the same turns again at this signed speed (negative: the other way): "
+        "the spin scan's two passes give the lidar–encoder time offset, the cube's are measured "
+        "together, which shows whether that offset is right",
+    )
 
 
 class Steps(Model):
@@ -389,13 +395,18 @@ class SigmaLimits(Model):
 
     A result with a larger σ is refused (the data do not determine that parameter well
     enough), with a message that names the parameter and what to do. ty is the gauge along the
-    axis and has no limit. Lengths in metres, angles in degrees.
+    axis and has no limit. Lengths in metres, angles in degrees, the time offset (estimated when
+    the spin scan has a second pass) in milliseconds.
     """
 
     tx: float = Field(0.0005, gt=0, le=0.1)
     tz: float = Field(0.0005, gt=0, le=0.1)
     ry_deg: float = Field(0.05, gt=0, le=10)
     rz_deg: float = Field(0.05, gt=0, le=10)
+    encoder_latency_ms: float = Field(
+        0.2, gt=0, le=100,
+        description="the lidar–encoder time offset, when a second pass estimates it",
+    )
 
 
 class CalibrationSettings(Model):
@@ -777,6 +788,48 @@ def _size_field(geometry: Any) -> str:
     return "edge"
 
 
+SECOND_PASS_CONTRAST = 0.5
+"""A second pass's speed must differ from the first's by at least this fraction of it: the time
+offset is seen through the difference of the two speeds."""
+
+
+def _scans(steps: Steps) -> list[tuple[str, SpinScanStep]]:
+    """Each spin scan a run takes, by its step name (a second pass as one more scan)."""
+    out = []
+    for name in ("spin_scan", "cube_scan"):
+        cfg: SpinScanStep = getattr(steps, name)
+        out.append((name, cfg))
+        rpm2 = cfg.second_pass_rpm
+        if rpm2 is not None and abs(rpm2) >= 0.5:
+            out.append((name, cfg.model_copy(update={"rpm": rpm2})))
+    return out
+
+
+def _second_pass_problems(steps: Steps, turntable: str) -> list[Problem]:
+    """A second pass turns at a usable speed that differs enough from the first pass's (and is
+    not asked of the replay drivers, which play one recording per fixture)."""
+    problems: list[Problem] = []
+    for name in ("spin_scan", "cube_scan"):
+        cfg: SpinScanStep = getattr(steps, name)
+        first, second = cfg.rpm, cfg.second_pass_rpm
+        if second is None:
+            continue
+        where = ("steps", name, "second_pass_rpm")
+        if turntable == "replay":
+            problems.append((where, "the replay drivers play one recording per fixture and "
+                                    "cannot replay a second pass: re-process the run with "
+                                    "`calstation calibrate --run N`, or remove it"))
+        elif abs(second) < 0.5:
+            problems.append((where, f"{second:g} rpm: a second pass turns at 0.5 … 120 rpm, "
+                                    "either way (negative turns the other way)"))
+        elif abs(second - first) < SECOND_PASS_CONTRAST * abs(first):
+            problems.append((where, f"{second:g} rpm is too close to the first pass's {first:g} "
+                                    "rpm to show the time offset: turn the other way "
+                                    f"({-first:g}) or differ by at least "
+                                    f"{SECOND_PASS_CONTRAST * abs(first):g} rpm"))
+    return problems
+
+
 def _scan_problems(recipe: Recipe) -> list[Problem]:
     """Scans must end: bounded in time, and (simulated) in the number of points."""
     problems: list[Problem] = []
@@ -787,9 +840,9 @@ def _scan_problems(recipe: Recipe) -> list[Problem]:
     line_rate = 0.0 if sim is None else sim.lidar.line_rate_hz
     sample_rate = 0.0 if sim is None else sim.encoder.sample_rate_hz
     accel = 60.0 if sim is None else sim.turntable.acceleration_rpm_s
-    for name in ("spin_scan", "cube_scan"):
-        cfg: SpinScanStep = getattr(recipe.steps, name)
-        seconds = cfg.settle_s + cfg.rpm / accel + cfg.revolutions * 60.0 / cfg.rpm
+    problems += _second_pass_problems(recipe.steps, recipe.station.turntable.driver)
+    for name, cfg in _scans(recipe.steps):
+        seconds = cfg.settle_s + abs(cfg.rpm) / accel + cfg.revolutions * 60.0 / abs(cfg.rpm)
         if seconds > MAX_SCAN_SECONDS:
             problems.append((("steps", name, "revolutions"),
                              f"{cfg.revolutions:g} turns at {cfg.rpm:g} rpm take {seconds:.0f} s, "

@@ -22,12 +22,17 @@ from .frames import PARAMETER_NAMES, Extrinsics, lidar_to_dynamic
 from .recording import Recording
 
 
-def reconstruct(recording: Recording, H: Extrinsics) -> NDArray[np.float64]:
+def reconstruct(
+    recording: Recording, H: Extrinsics, encoder_latency_s: float | None = None
+) -> NDArray[np.float64]:
     """The recording's valid points in frame D: (N, 3) metres.
 
     Invalid returns and points outside the encoder's time span are left out (see
-    :meth:`Recording.points_lidar`).
+    :meth:`Recording.points_lidar`). ``encoder_latency_s``, when given (a calibration's
+    estimated lidar–encoder time offset), replaces the recording's configured latency.
     """
+    if encoder_latency_s is not None:
+        recording = recording.with_encoder_latency(encoder_latency_s)
     p_L, phi = recording.points_lidar()
     return lidar_points_to_dynamic(p_L, phi, H)
 
@@ -163,6 +168,31 @@ def load_extrinsics(path: str | Path, *, source: str = "calibration") -> Extrins
             )
         values[name] = float(v)
     return Extrinsics(**values)
+
+
+def load_encoder_latency(path: str | Path, *, source: str = "calibration") -> float | None:
+    """The encoder latency (s) a calibration file estimated (``encoder_latency_s``), or the true
+    one of a simulator ``truth.json`` (``encoder.latency_s``); None when the file has none.
+    Raises :class:`RecordingError` naming the file and field when it is not a number."""
+    from .yamlsafe import read_text_file
+
+    p = Path(path)
+    try:
+        data = _parse_mapping(p, read_text_file(p, f"{source} file", 10_000_000), source)
+    except (OSError, ValueError) as exc:
+        raise RecordingError(f"cannot read {source} file {p}: {exc}") from None
+    if source == "calibration":
+        value, where = data.get("encoder_latency_s"), "encoder_latency_s"
+    else:
+        encoder = data.get("encoder")
+        value = encoder.get("latency_s") if isinstance(encoder, Mapping) else None
+        where = "encoder.latency_s"
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise RecordingError(f"{source} file {p}: field {where} must be a finite number of "
+                             f"seconds, got {value!r}")
+    return float(value)
 
 
 def _parse_mapping(p: Path, text: str, source: str) -> Mapping[str, Any]:

@@ -32,7 +32,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any, Protocol
 
@@ -632,6 +632,15 @@ class Recording:
         """The recipe the scan was taken with (attachment ``recipe.yaml``), if stored."""
         data = self.attachments.get(RECIPE_ATTACHMENT)
         return None if data is None else data.decode("utf-8")
+
+    def with_encoder_latency(self, latency_s: float) -> Recording:
+        """The same recording read with another encoder latency (encoder time minus lidar time,
+        s): an estimated one (:mod:`calstation.timeoffset`) in place of the configured one."""
+        if not math.isfinite(latency_s):
+            raise RecordingError(f"encoder latency must be finite, got {latency_s}")
+        if latency_s == self.encoder_latency_s:
+            return self
+        return replace(self, encoder_latency_s=float(latency_s))
 
     # --- geometry ------------------------------------------------------------------------
     def platter_angle(self, t_ns: ArrayLike) -> NDArray[np.float64]:

@@ -58,7 +58,8 @@ def run_brief(run: Run) -> dict[str, Any]:
 
 
 def calibration_dict(c: Calibration) -> dict[str, Any]:
-    """A stored calibration: H and sigma (m, rad), cost, strategy, accepted, diagnostics."""
+    """A stored calibration: H and sigma (m, rad), the estimated encoder latency and its sigma
+    (s, None when not estimated), cost, strategy, accepted, diagnostics."""
     return {
         "id": c.id,
         "stage": c.stage,
@@ -66,6 +67,8 @@ def calibration_dict(c: Calibration) -> dict[str, Any]:
         "accepted": c.accepted,
         "H": c.params(),
         "sigma": c.sigmas(),
+        "encoder_latency_s": c.encoder_latency_s,
+        "sigma_encoder_latency_s": c.sigma_encoder_latency_s,
         "cost": c.cost,
         "iterations": c.iterations,
         "diagnostics": c.diagnostics,
@@ -187,6 +190,11 @@ def export_calibration(
         f"calstation run {run.id}, station {run.station.name}: {cal.stage} calibration "
         f"({cal.strategy}{', accepted' if cal.accepted else ''})"
     )
+    if cal.encoder_latency_s is not None:
+        sigma_ms = "" if cal.sigma_encoder_latency_s is None else (
+            f" ± {cal.sigma_encoder_latency_s * 1e3:.3f}")
+        title += (f"; lidar–encoder time offset {cal.encoder_latency_s * 1e3:.3f}{sigma_ms} ms "
+                  "(encoder time minus lidar time)")
     if fmt == "tf":
         return ros.tf_export(H, title, names)
     if fmt == "urdf":
@@ -201,11 +209,14 @@ def export_calibration(
         buf = io.StringIO()
         header = ["run_id", "station", "stage", "strategy", "accepted", *PARAMS]
         header += [f"sigma_{p}" for p in PARAMS] + ["cost", "iterations"]
+        header += ["encoder_latency_s", "sigma_encoder_latency_s"]
         header += ["qx", "qy", "qz", "qw"]  # rotation of P in L, quaternion order x y z w
         row: list[Any] = [run.id, run.station.name, cal.stage, cal.strategy, cal.accepted]
         row += [repr(v) for v in cal.params().values()]
         row += ["" if s is None else repr(s) for s in cal.sigmas().values()]
         row += ["" if cal.cost is None else repr(cal.cost), cal.iterations]
+        row += ["" if v is None else repr(v)
+                for v in (cal.encoder_latency_s, cal.sigma_encoder_latency_s)]
         row += [repr(float(q)) for q in H.as_quaternion()]
         writer = csv.writer(buf, lineterminator="\n")
         writer.writerow(header)
@@ -219,6 +230,8 @@ def export_calibration(
         iterations=cal.iterations or 0,
         strategy=cal.strategy,
         diagnostics=dict(cal.diagnostics or {}),
+        encoder_latency_s=cal.encoder_latency_s,
+        sigma_encoder_latency_s=cal.sigma_encoder_latency_s,
     )
     data = result.to_dict()
     data["run"] = {

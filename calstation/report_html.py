@@ -309,7 +309,8 @@ def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
 
 
 def calibration_rows(calibrations: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Every stored calibration with H and 1σ in display units."""
+    """Every stored calibration with H and 1σ in display units, and the lidar–encoder time
+    offset (ms) where a second pass estimated it."""
     rows = []
     for c in calibrations:
         rows.append({
@@ -318,6 +319,10 @@ def calibration_rows(calibrations: list[dict[str, Any]]) -> list[dict[str, Any]]
             "values": {p: display_value(p, v) for p, v in c["H"].items()},
             "sigma": {p: display_value(p, v) for p, v in c["sigma"].items()},
             "gauge": (c.get("diagnostics") or {}).get("gauge_note"),
+            "latency_ms": None if c.get("encoder_latency_s") is None
+            else 1e3 * float(c["encoder_latency_s"]),
+            "latency_sigma_ms": None if c.get("sigma_encoder_latency_s") is None
+            else 1e3 * float(c["sigma_encoder_latency_s"]),
             "timings": (c.get("diagnostics") or {}).get("timings") or {},
         })
     return rows

@@ -179,6 +179,8 @@ def reprocess_run(
         kind = spin_recording_kind(_spin_fixture(run, loaded), strategy.fixture)
         paths = {"static": stored_recording(run, "static"), kind: stored_recording(run, kind)}
         warnings: list[str] = []
+        if loaded.recipe.steps.spin_scan.second_pass_rpm is not None and kind == "spin":
+            paths["spin-pass2"] = stored_recording(run, "spin-pass2")
         if strategy.fixture == "spin_target" and kind != "cube":
             try:  # the cube scan adds its side faces to ry, as at the station
                 paths["cube"] = stored_recording(run, "cube")
@@ -194,6 +196,13 @@ def reprocess_run(
     warnings += recording_disagreements(spin, loaded)
     result, strategy_warnings = run_strategy(strategy, spin, initial.H, rc, progress)
     warnings += strategy_warnings
+    if "spin-pass2" in paths:
+        from .timeoffset import with_time_offset
+
+        say(f"lidar–encoder time offset with {paths['spin-pass2']}")
+        second = read_recording(paths["spin-pass2"])
+        warnings += recording_disagreements(second, loaded)
+        result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
     joint_failure = None
     if "cube" in paths and kind != "cube":
         say(f"combining ry with the cube scan {paths['cube']}")

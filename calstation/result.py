@@ -41,6 +41,26 @@ def _plain(value: Any) -> Any:
     return value
 
 
+def _optional(value: float | None) -> float | None:
+    return None if value is None else _plain(float(value))
+
+
+def _seconds(d: dict[str, Any], key: str) -> float | None:
+    """The optional finite number ``d[key]`` (seconds), None when absent or null."""
+    value = d.get(key)
+    if value is None:
+        return None
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise CalibrationError(
+            f"calibration field '{key}': expected seconds, got {value!r}"
+        ) from None
+    if not math.isfinite(out):
+        raise CalibrationError(f"calibration field '{key}': expected a finite number of seconds")
+    return out
+
+
 @dataclass(frozen=True)
 class CalibrationResult:
     """A calibration H with its uncertainty and how it was obtained.
@@ -53,6 +73,10 @@ class CalibrationResult:
     - ``strategy``: ``"initial"``, ``"periodicity"``, ``"shape"``, or a plugin's name.
     - ``timings``: seconds per named phase.
     - ``diagnostics``: free-form details (matches per iteration, gauge, segments seen, …).
+    - ``encoder_latency_s`` / ``sigma_encoder_latency_s``: the lidar–encoder time offset
+      (encoder time minus lidar time, s) and its 1σ, when the spin scan had a second pass to
+      estimate it (:mod:`calstation.timeoffset`); reconstruction then uses it in place of the
+      recording's configured latency. None otherwise.
     """
 
     H: Extrinsics
@@ -62,6 +86,8 @@ class CalibrationResult:
     strategy: str
     timings: dict[str, float] = field(default_factory=dict)
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    encoder_latency_s: float | None = None
+    sigma_encoder_latency_s: float | None = None
 
     # --- serialisation -----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -74,6 +100,8 @@ class CalibrationResult:
             "sigma": {n: _plain(float(self.sigma.get(n, math.nan))) for n in PARAMETER_NAMES},
             "cost": _plain(float(self.cost)),
             "iterations": int(self.iterations),
+            "encoder_latency_s": _optional(self.encoder_latency_s),
+            "sigma_encoder_latency_s": _optional(self.sigma_encoder_latency_s),
             "timings": _plain(dict(self.timings)),
             "diagnostics": _plain(dict(self.diagnostics)),
             "T_L_P": self.as_matrix().tolist(),
@@ -97,6 +125,7 @@ class CalibrationResult:
             for n in PARAMETER_NAMES
         }
         cost = d.get("cost")
+        latency = _seconds(d, "encoder_latency_s")
         return cls(
             H=H,
             sigma=sigma,
@@ -105,6 +134,10 @@ class CalibrationResult:
             strategy=str(d.get("strategy", "unknown")),
             timings={str(k): float(v) for k, v in (d.get("timings") or {}).items()},
             diagnostics=dict(d.get("diagnostics") or {}),
+            encoder_latency_s=latency,
+            sigma_encoder_latency_s=(
+                None if latency is None else _seconds(d, "sigma_encoder_latency_s")
+            ),
         )
 
     def to_yaml(self) -> str:
@@ -156,7 +189,8 @@ class CalibrationResult:
     def summary(self) -> dict[str, Any]:
         """The flat mapping ``calstation calibrate --json`` prints.
 
-        tx, ty, tz (m), rx, ry, rz (rad), ``sigma_<name>`` for each, strategy, cost, iterations.
+        tx, ty, tz (m), rx, ry, rz (rad), ``sigma_<name>`` for each, strategy, cost, iterations,
+        ``encoder_latency_s`` and its ``sigma_encoder_latency_s`` (s, None when not estimated).
         """
         out: dict[str, Any] = {n: float(getattr(self.H, n)) for n in PARAMETER_NAMES}
         for n in PARAMETER_NAMES:
@@ -165,5 +199,7 @@ class CalibrationResult:
         out["strategy"] = self.strategy
         out["cost"] = _plain(float(self.cost))
         out["iterations"] = int(self.iterations)
+        out["encoder_latency_s"] = _optional(self.encoder_latency_s)
+        out["sigma_encoder_latency_s"] = _optional(self.sigma_encoder_latency_s)
         out["timings"] = _plain(dict(self.timings))
         return out

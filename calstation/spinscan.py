@@ -269,7 +269,7 @@ def from_recording(recording: Recording) -> SpinScan:
     if isinstance(done, SpinScan):
         return done
     builder = _take_remembered(recording.path)
-    if builder is not None:
+    if builder is not None and builder.encoder_latency_s == recording.encoder_latency_s:
         scan = builder.finish()
     else:
         t0 = time.perf_counter()

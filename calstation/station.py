@@ -105,6 +105,10 @@ RETRY_FROM: dict[str, str] = {"fine_tune": "place_spin_target"}
 is retried by re-placing the spin target and scanning again, not by re-reading the same scan."""
 
 RECORDING_OF: dict[str, str] = {"static_scan": "static", "spin_scan": "spin", "cube_scan": "cube"}
+SECOND_PASS = "spin-pass2"
+"""File stem and artifact kind of the spin scan's second pass (``second_pass_rpm``)."""
+CUBE_SECOND_PASS = "cube-pass2"
+"""… and of the cube scan's, measured together with the first (the time offset's check)."""
 """Scan step → recording kind (and file stem in the run folder)."""
 
 PREFLIGHT_LINES = 10
@@ -238,6 +242,7 @@ class Station:
         db.log_path = self.run_dir / "database.log"  # SQL of database faults, never the console
         db.on_wait = lambda message: ui.warn(escape(message))
         self._partial: list[tuple[str, Path]] = []
+        self._finished: list[tuple[str, Path]] = []  # a step's complete recordings so far
         self._scan_ended: float | None = None
         """when this process's last spin scan ended (monotonic s)"""
         self.machine = Machine(
@@ -351,6 +356,7 @@ class Station:
         step_id, attempt = self._begin_step(step)
         self._verdict_failure = False
         self._partial = []
+        self._finished = []
         try:
             publish(self.ui, "step_started", step=step, attempt=attempt)
             handler = getattr(self, f"_step_{step}")
@@ -532,11 +538,20 @@ class Station:
         d = self._drivers()
         cfg = self.recipe.steps.spin_scan
         path = self._record("spin_scan", step_id, lambda w, p: _acquire_spin(d, w, cfg, p))
-        return StepOutcome(
-            {"recording": str(path), "rpm": cfg.rpm, "revolutions": cfg.revolutions,
-             "fixture": self._strategy().fixture},
-            artifacts=[("spin", path)],
-        )
+        result: dict[str, Any] = {"recording": str(path), "rpm": cfg.rpm,
+                                  "revolutions": cfg.revolutions,
+                                  "fixture": self._strategy().fixture}
+        artifacts = [("spin", path)]
+        if cfg.second_pass_rpm is not None:
+            # the same turns again at another speed: the fine-tune estimates the lidar–encoder
+            # time offset from the two (a fault here keeps the first pass: ``_finished``)
+            self._finished.append(("spin", path))
+            second = cfg.model_copy(update={"rpm": cfg.second_pass_rpm})
+            path2 = self._record("spin_scan", step_id,
+                                 lambda w, p: _acquire_spin(d, w, second, p), SECOND_PASS)
+            result.update(second_pass={"recording": str(path2), "rpm": cfg.second_pass_rpm})
+            artifacts.append((SECOND_PASS, path2))
+        return StepOutcome(result, artifacts=artifacts)
 
     def _step_fine_tune(self, step_id: int) -> StepOutcome:
         from .frames import Extrinsics
@@ -551,6 +566,17 @@ class Station:
             result, warnings = run_strategy(
                 strategy, recording, Extrinsics.from_dict(start.params()), self.recipe, progress
             )
+            if self.recipe.steps.spin_scan.second_pass_rpm is not None:
+                from .timeoffset import with_time_offset
+
+                second = read_recording(self._artifact_path(SECOND_PASS))
+                result = with_time_offset(result, recording, second,
+                                          self.recipe.fixtures.platter.radius, progress)
+                latency = result.encoder_latency_s or 0.0
+                self.ui.info(
+                    f"  lidar–encoder time offset: {latency * 1e3:.3f} ± "
+                    f"{(result.sigma_encoder_latency_s or math.nan) * 1e3:.3f} ms"
+                )
         for warning in warnings:
             self.ui.warn(warning)
         self.ui.info(f"  {strategy.name}: {_fmt_h(result.H.as_dict())}")
@@ -582,11 +608,22 @@ class Station:
         if self.failed_step == "cube_scan":  # the operator's retry: re-seat the cube, rescan
             self._place("qa_cube")
         path = self._record("cube_scan", step_id, lambda w, p: _acquire_spin(d, w, cfg, p))
+        artifacts = [("cube", path)]
+        path2 = None
+        if cfg.second_pass_rpm is not None:
+            self._finished.append(("cube", path))
+            second = cfg.model_copy(update={"rpm": cfg.second_pass_rpm})
+            path2 = self._record("cube_scan", step_id,
+                                 lambda w, p: _acquire_spin(d, w, second, p), CUBE_SECOND_PASS)
+            artifacts.append((CUBE_SECOND_PASS, path2))
         fine = self._stored_calibration("fine")
         recording = read_recording(path)
         with self.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
             check, joint, ry_failure = self._check_cube_joint(recording, fine, progress)
+            if path2 is not None:
+                progress("measuring the cube from both passes", 0.8)
+                check = self._check_cube_passes(recording, read_recording(path2), joint, fine)
         cube = plain(
             {
                 "obb_edges": check.obb_edges,
@@ -615,10 +652,30 @@ class Station:
              "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
              "points": int(getattr(check, "points", 0)),
              "joint_ry": None if joint is None else plain(joint.diagnostics["joint"])},
-            artifacts=[("cube", path)],
+            artifacts=artifacts,
             calibration=None if joint is None else ("fine", joint),
             cube=(None if joint is not None else fine.id, cube),
             failure=None if not failures else "cube check failed: " + "; ".join(failures),
+        )
+
+    def _check_cube_passes(
+        self, first: Any, second: Any, joint: CalibrationResult | None, fine: Calibration
+    ) -> Any:
+        """The cube check on both cube passes together, under the final H and the estimated
+        lidar–encoder time offset (the configured latency when none was estimated)."""
+        from .cube import check_cube_passes
+        from .frames import Extrinsics
+
+        H = joint.H if joint is not None else Extrinsics.from_dict(fine.params())
+        latency = fine.encoder_latency_s
+        self.ui.info(
+            "  cube measured from both passes, "
+            + ("with the configured encoder latency" if latency is None
+               else f"with the estimated encoder latency {latency * 1e3:.3f} ms")
+        )
+        return check_cube_passes(
+            [first, second], H, self.recipe.fixtures.qa_cube, self.recipe.qa,
+            encoder_latency_s=latency, platter_radius=self.recipe.fixtures.platter.radius,
         )
 
     def _check_cube_joint(
@@ -649,7 +706,11 @@ class Station:
             strategy=fine.strategy,
             timings={},
             diagnostics={"gauge": diagnostics.get("gauge"),
-                         "covariance": diagnostics.get("covariance")},
+                         "covariance": diagnostics.get("covariance"),
+                         **({"time_offset": diagnostics["time_offset"]}
+                            if "time_offset" in diagnostics else {})},
+            encoder_latency_s=fine.encoder_latency_s,
+            sigma_encoder_latency_s=fine.sigma_encoder_latency_s,
         )
         result, check, failure = fine_tune_with_cube(stored, recording, self.recipe, progress)
         if result is stored:
@@ -716,17 +777,23 @@ class Station:
         return plugins.strategy(self.recipe.calibration.strategy)
 
     def _record(
-        self, step: str, step_id: int, acquire: Callable[[Any, Callable[[str, float], None]], None]
+        self,
+        step: str,
+        step_id: int,
+        acquire: Callable[[Any, Callable[[str, float], None]], None],
+        stem: str | None = None,
     ) -> Path:
-        """Write the step's recording while acquiring; returns its path."""
+        """Write the step's recording while acquiring; returns its path. ``stem`` names the file
+        (and the artifact) when a step takes a second recording, default the recording's kind."""
         from .recording import RecordingWriter
 
         d = self._drivers()
         kind = RECORDING_OF[step]
-        path = self.run_dir / f"{kind}.mcap"
+        stem = stem or kind
+        path = self.run_dir / f"{stem}.mcap"
         if path.exists():  # a previous attempt's file (failed or killed): keep it aside
             n = 1
-            while (aside := path.with_name(f"{kind}.attempt{n}.mcap")).exists():
+            while (aside := path.with_name(f"{stem}.attempt{n}.mcap")).exists():
                 n += 1
             path.rename(aside)
             with self.db.session("moving a partial recording aside") as s:
@@ -741,7 +808,7 @@ class Station:
         if truth is not None:
             metadata["truth"] = truth
         calibration, source = self._latest_calibration()
-        self._partial = [(kind, path)]  # until the recording is complete
+        self._partial = [(stem, path)]  # until the recording is complete
         with (
             RecordingWriter(
                 path,
@@ -756,7 +823,7 @@ class Station:
                 calibration=calibration,
                 calibration_source=source,
             ) as writer,
-            self.ui.progress(f"{kind} scan") as progress,
+            self.ui.progress(f"{stem} scan") as progress,
         ):
             # a spin scan's per-line work for the fine-tuning and the cube check is done as
             # the lines arrive
@@ -764,14 +831,14 @@ class Station:
                 SpinScanBuilder(
                     d.encoder.counts_per_revolution, enc.direction, enc.latency_s
                 )
-                if kind in ("spin", "cube")
+                if kind in ("spin", "cube") and stem == kind
                 else None
             )
             acquire(_PublishingWriter(writer, self.ui, kind, builder), progress)
         self._partial = []
+        if kind == "spin":
+            self._scan_ended = time.monotonic()
         if builder is not None:
-            if kind == "spin":
-                self._scan_ended = time.monotonic()
             remember_spin_scan(path, builder)
         return path
 
@@ -800,13 +867,17 @@ class Station:
     ) -> None:
         """Commit the step's end, its artifacts and results in one transaction.
 
-        Recordings cut short (``_partial``) are stored with the status ``partial``. If the
+        Recordings cut short (``_partial``) are stored with the status ``partial``, those a step
+        finished before it failed (``_finished``) as ``complete``. If the
         database fails, the change is journalled in the run folder and ResultJournalled raised
         (:func:`calstation.db.journal.store`)."""
         files = [(kind, path, path, "complete") for kind, path in outcome.artifacts]
         files += [(kind, final, tmp, "complete") for kind, tmp, final in outcome.staged]
         files += [(kind, path, path, "partial") for kind, path in self._partial if path.exists()]
+        files += [(kind, path, path, "complete") for kind, path in self._finished
+                  if (kind, path) not in outcome.artifacts and path.exists()]
         self._partial = []
+        self._finished = []
         artifacts = [
             {"kind": kind, "path": str(final), "size_bytes": source.stat().st_size,
              "sha256": file_sha256(source), "status": state}
@@ -1071,6 +1142,8 @@ def _calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> 
         **{f"sigma_{p}": sigma.get(p) for p in H},
         cost=plain(float(res.cost)),
         iterations=int(res.iterations),
+        encoder_latency_s=plain(getattr(res, "encoder_latency_s", None)),
+        sigma_encoder_latency_s=plain(getattr(res, "sigma_encoder_latency_s", None)),
         accepted=False,
         diagnostics=diagnostics,
     )

@@ -462,6 +462,62 @@ def test_ctrl_c_during_the_spin_scan_aborts_and_stops_the_motor(
     assert any("motor stopped by emergency_stop then stop" in m for m in ui.messages)
 
 
+def test_ctrl_c_during_the_second_pass_keeps_the_first_as_complete(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    path = lean_recipe(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["steps"]["spin_scan"]["second_pass_rpm"] = -60
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    ui = ScriptedOperator(interrupt_in="spin-pass2 scan")
+    run_id, status = start_run(load_recipe(path), db, ui, operator="ann", data_dir=tmp_path)
+    assert status == "aborted"
+    assert _steps(db, run_id)[-1] == ("spin_scan", 1, "aborted")
+    assert "spin scan" in ui.progress_titles and "spin-pass2 scan" in ui.progress_titles
+    with db.session() as s:
+        arts = {a.kind: (a.status, a.path, a.sha256) for a in
+                s.query(Artifact).filter_by(run_id=run_id)}
+    # the first pass had finished: kept whole; the second was cut short
+    assert {k: v[0] for k, v in arts.items()} == {
+        "static": "complete", "spin": "complete", "spin-pass2": "partial"}
+    assert file_sha256(Path(arts["spin"][1])) == arts["spin"][2]
+
+
+def test_resume_after_a_kill_in_the_second_pass_registers_both_recordings(
+    tmp_path: Path, db: Database
+) -> None:
+    """A process killed during the second pass: recovery stores the first pass as complete and
+    the second as partial (calstation.db.journal)."""
+    import socket
+    import subprocess
+
+    from calstation.db import Station as StationRow
+    from calstation.db.journal import recover
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "spin.mcap").write_bytes(b"first pass")
+    (run_dir / "spin-pass2.mcap").write_bytes(b"second, cut short")
+    with db.session() as s:
+        station = StationRow(name="st")
+        s.add(station)
+        s.flush()
+        run = Run(station_id=station.id, recipe_name="r", recipe_path="r.yaml", recipe_text="",
+                  recipe_sha256="0" * 64, operator="o", unattended=True, data_dir=str(run_dir),
+                  status="running", host=socket.gethostname(), pid=dead.pid)
+        s.add(run)
+        s.flush()
+        s.add(Step(run_id=run.id, name="spin_scan", attempt=1, status="running"))
+        run_id = run.id
+    recover(db)
+    with db.session() as s:
+        kinds = {a.kind: a.status for a in s.query(Artifact).filter_by(run_id=run_id)}
+    assert kinds == {"spin": "complete", "spin-pass2": "partial"}
+
+
 def _qa_recipe(tmp_path: Path, name: str, seed: int = 0, **qa: Any) -> Path:
     """The lean recipe with its qa section replaced by ``qa`` (and the simulation's seed)."""
     path = lean_recipe(tmp_path)

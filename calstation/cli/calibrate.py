@@ -49,6 +49,13 @@ def register(app: typer.Typer) -> None:
             "for shape (MCAP).",
             show_default=False,
         ),
+        spin_pass2: Path | None = typer.Option(
+            None,
+            "--spin-pass2",
+            help="The spin scan's second pass at another speed or the other way (MCAP, "
+            "spin-pass2.mcap of a run): the lidar–encoder time offset is estimated from the two.",
+            show_default=False,
+        ),
         cube: Path | None = typer.Option(
             None,
             "--cube",
@@ -98,12 +105,15 @@ def register(app: typer.Typer) -> None:
         recipe's calibration.max_sigma is printed (and written with --out) but refused: exit
         code 3, with what to do on stderr (``refused`` in the JSON). With --cube, the cube
         scan's side-face twist is combined into ry (strategy ``periodicity+cube``) and the ry
-        limit applies to the combined σ; the cube check under the result is printed.
+        limit applies to the combined σ; the cube check under the result is printed. With
+        --spin-pass2 the lidar–encoder time offset is estimated too (encoder_latency_s and its σ,
+        refused above calibration.max_sigma.encoder_latency_ms).
         """
         from ..errors import CalstationError
 
         if run is not None:
-            if recipe is not None or static is not None or spin is not None or cube is not None:
+            given = (recipe, static, spin, spin_pass2, cube)
+            if any(v is not None for v in given):
                 raise CalstationError(
                     "--run takes the recipe and the recordings from the database: give either "
                     "--run N, or RECIPE --static FILE --spin FILE"
@@ -118,7 +128,7 @@ def register(app: typer.Typer) -> None:
             )
         if accept:
             raise CalstationError("--accept applies to a stored run: use it with --run N")
-        _calibrate_files(recipe, static, spin, strategy, out, as_json, cube)
+        _calibrate_files(recipe, static, spin, strategy, out, as_json, cube, spin_pass2)
 
     @app.command("verify")
     def verify_cmd(
@@ -184,7 +194,7 @@ def _warn(console: Any, warnings: list[str]) -> None:
 
 def _calibrate_files(
     recipe: Path, static: Path, spin: Path, strategy: str | None, out: Path | None,
-    as_json: bool, cube: Path | None = None,
+    as_json: bool, cube: Path | None = None, spin_pass2: Path | None = None,
 ) -> None:
     """``calibrate RECIPE --static --spin``: nothing is stored."""
     from dataclasses import replace
@@ -242,9 +252,13 @@ def _calibrate_files(
     joint_failure = None
     if cube is not None:
         result, joint_failure = _with_cube(console, result, cube, loaded)
+    if spin_pass2 is not None:
+        result = _with_second_pass(console, result, sp, spin_pass2, loaded)
     diagnostics = dict(result.diagnostics)
     diagnostics["initial"] = {"H": initial.H.as_dict(), "timings": dict(initial.timings)}
     diagnostics["recordings"] = {"static": str(static), "spin": str(spin)}
+    if spin_pass2 is not None:
+        diagnostics["recordings"]["spin_pass2"] = str(spin_pass2)
     if cube is not None:
         diagnostics["recordings"]["cube"] = str(cube)
     diagnostics["recipe"] = {"name": rc.name, "sha256": loaded.sha256}
@@ -264,6 +278,21 @@ def _calibrate_files(
         typer.echo(_timing_line(result) + (f"; written to {out}" if out is not None else ""))
     if refused:
         _refuse(result, rc, strat.fixture, joint_failure)
+
+
+def _with_second_pass(console: Any, result: Any, first: Any, path: Path, loaded: Any) -> Any:
+    """``result`` with the lidar–encoder time offset from the spin scan's two passes."""
+    from ..errors import CalibrationError
+    from ..reprocess import recording_disagreements
+    from ..timeoffset import with_time_offset
+
+    second = _read_kind(console, path, "spin", CalibrationError,
+                        "--spin-pass2 takes the spin scan's second pass", "spin-pass2.mcap")
+    _warn(console, recording_disagreements(second, loaded))
+    with console.status("lidar–encoder time offset"):
+        return with_time_offset(
+            result, first, second, loaded.recipe.fixtures.platter.radius
+        )
 
 
 def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any, str | None]:
@@ -290,14 +319,23 @@ def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any,
 
 def _read_cube(console: Any, path: Path, error: type[Exception], need: str) -> Any:
     """The recording at ``path``, which must be a scan of the QA cube (else ``error``)."""
+    return _read_kind(console, path, "cube", error, need, "cube.mcap")
+
+
+def _read_kind(
+    console: Any, path: Path, kind: str, error: type[Exception], need: str, file: str
+) -> Any:
+    """The recording at ``path``, which must be of ``kind`` (else ``error`` saying ``need`` and
+    which ``file`` of a run that is)."""
     from ..recording import read_recording
 
     with console.status(f"reading {path}"):
         rec = read_recording(path)
-    if rec.kind != "cube":
+    if rec.kind != kind:
+        what = "a scan of the QA cube" if kind == "cube" else f"a {kind!r} recording"
         raise error(
-            f"{path}: this is a {rec.kind!r} recording, not a scan of the QA cube; {need} "
-            "(recording kind 'cube', cube.mcap of a run)"
+            f"{path}: this is a {rec.kind!r} recording, not {what}; {need} "
+            f"(recording kind {kind!r}, {file} of a run)"
         )
     return rec
 
@@ -345,6 +383,16 @@ def _print_result(initial: Any, result: Any) -> None:
     for n in ("rx", "ry", "rz"):
         table.add_row(f"{n} (°)", _deg(getattr(initial, n)), _deg(getattr(result.H, n)),
                       _deg(result.sigma.get(n, math.nan)))
+    if result.encoder_latency_s is not None:
+        offset = result.diagnostics.get("time_offset", {})
+        configured = offset.get("configured_s")
+        sigma = result.sigma_encoder_latency_s
+        table.add_row(
+            "encoder latency (ms)",
+            "—" if configured is None else f"{configured * 1e3:.3f}",
+            f"{result.encoder_latency_s * 1e3:.3f}",
+            "—" if sigma is None else f"{sigma * 1e3:.3f}",
+        )
     Console().print(table)
 
 

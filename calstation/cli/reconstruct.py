@@ -12,8 +12,9 @@ def register(app: typer.Typer) -> None:
 
     @app.command("reconstruct")
     def reconstruct_cmd(
-        recording: Path = typer.Argument(
-            ..., help="An MCAP recording (a spin scan).", metavar="RECORDING", show_default=False
+        recordings: list[Path] = typer.Argument(
+            ..., help="MCAP recordings (spin scans) of one object: their clouds are merged.",
+            metavar="RECORDING...", show_default=False,
         ),
         calibration: Path | None = typer.Option(
             None,
@@ -30,16 +31,19 @@ def register(app: typer.Typer) -> None:
         ),
         out: Path = typer.Option(..., "--out", "-o", help="Output PLY file.", show_default=False),
     ) -> None:
-        """Reconstruct RECORDING into a point cloud in frame D (metres) and write it as PLY.
+        """Reconstruct RECORDINGs into one point cloud in frame D (metres) and write it as PLY.
 
         Each point's platter angle is interpolated from the encoder at the point's own time.
-        Give exactly one of --calibration or --truth.
+        Give exactly one of --calibration or --truth. A calibration that estimated the
+        lidar–encoder time offset (encoder_latency_s) replaces the recordings' configured encoder
+        latency, so that scans taken at other speeds, or turning the other way, fit together.
         """
+        import numpy as np
         from rich.console import Console
 
         from ..errors import RecordingError
         from ..quiet import stdout_to_stderr
-        from ..reconstruct import load_extrinsics, reconstruct, write_ply
+        from ..reconstruct import load_encoder_latency, load_extrinsics, reconstruct, write_ply
         from ..recording import read_recording
 
         if (calibration is None) == (truth is None):
@@ -48,20 +52,34 @@ def register(app: typer.Typer) -> None:
         h_path = calibration if calibration is not None else truth
         assert h_path is not None
         H = load_extrinsics(h_path, source=source)
+        latency = load_encoder_latency(h_path, source=source)
         console = Console(stderr=True)
-        with console.status(f"reading {recording}"):
-            rec = read_recording(recording)
-        with console.status(f"reconstructing {rec.n_points:,} points"), stdout_to_stderr():
-            points = reconstruct(rec, H)
+        clouds, lines, truncated = [], 0, []
+        for path in recordings:
+            with console.status(f"reading {path}"):
+                rec = read_recording(path)
+            if latency is not None and latency != rec.encoder_latency_s:
+                console.print(
+                    f"{path}: encoder latency {latency * 1e3:.3f} ms from {h_path} "
+                    f"(the recording says {rec.encoder_latency_s * 1e3:.3f} ms)"
+                )
+            with console.status(f"reconstructing {rec.n_points:,} points"), stdout_to_stderr():
+                clouds.append(reconstruct(rec, H, latency))
+            lines += rec.n_lines
+            if rec.truncated:
+                truncated.append(str(path))
+        points = np.concatenate(clouds)
         if len(points) == 0:
+            whose = "its" if len(recordings) == 1 else "their"
             raise RecordingError(
-                f"{recording}: none of its {rec.n_lines:,} lines holds a valid return: nothing "
-                f"to reconstruct, {out} not written"
+                f"{', '.join(map(str, recordings))}: none of {whose} {lines:,} lines holds a "
+                f"valid return: nothing to reconstruct, {out} not written"
             )
         with console.status(f"writing {out}"), stdout_to_stderr():
             write_ply(out, points)
-        note = " (recording truncated: read up to its last complete chunk)" if rec.truncated else ""
+        note = (f" ({', '.join(truncated)} truncated: read up to the last complete chunk)"
+                if truncated else "")
         typer.echo(
-            f"wrote {len(points):,} points (frame D, metres) from {rec.n_lines:,} lines "
+            f"wrote {len(points):,} points (frame D, metres) from {lines:,} lines "
             f"to {out}{note}"
         )

@@ -238,8 +238,13 @@ def _owner_alive(host: str | None, pid: int | None) -> bool | None:
     return True
 
 
-SCAN_RECORDINGS = {"static_scan": "static", "spin_scan": "spin", "cube_scan": "cube"}
-"""Scan step → its recording's kind and file stem in the run folder (as the station writes)."""
+SCAN_RECORDINGS = {
+    "static_scan": ("static",),
+    "spin_scan": ("spin", "spin-pass2"),
+    "cube_scan": ("cube", "cube-pass2"),
+}
+"""Scan step → the file stems (and artifact kinds) of its recordings in the run folder, in the
+order the station writes them (the spin scan's second pass last)."""
 
 
 def _register_partial_recordings(s: Session, run_id: int, run_dir: Path) -> list[str]:
@@ -248,14 +253,17 @@ def _register_partial_recordings(s: Session, run_id: int, run_dir: Path) -> list
 
     kept = []
     for step in s.scalars(select(Step).where(Step.run_id == run_id, Step.status == "running")):
-        kind = SCAN_RECORDINGS.get(step.name)
-        path = run_dir / f"{kind}.mcap"
-        if kind is None or not path.is_file():
-            continue
-        if s.scalars(select(Artifact.id).where(Artifact.path == str(path))).first() is None:
+        stems = SCAN_RECORDINGS.get(step.name, ())
+        paths = [(kind, run_dir / f"{kind}.mcap") for kind in stems]
+        present = [(kind, path) for kind, path in paths if path.is_file()]
+        for i, (kind, path) in enumerate(present):
+            if s.scalars(select(Artifact.id).where(Artifact.path == str(path))).first() is not None:
+                continue
+            # a recording followed by the step's next one was finished before that began
+            status = "complete" if i < len(present) - 1 else "partial"
             s.add(Artifact(run_id=run_id, step_id=step.id, kind=kind, path=str(path),
                            size_bytes=path.stat().st_size, sha256=file_sha256(path),
-                           status="partial"))
+                           status=status))
             kept.append(path.name)
     return kept
 

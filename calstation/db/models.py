@@ -138,7 +138,9 @@ class Calibration(Base):
     """A calibration H produced by a run (initial or fine-tuned).
 
     tx, ty, tz in metres and rx, ry, rz in radians (DESIGN §2); ``sigma_*`` their 1σ (None when
-    not estimated). ``accepted`` marks the run's final calibration when the run passed.
+    not estimated). ``encoder_latency_s``: the estimated lidar–encoder time offset (encoder time
+    minus lidar time, s) when the spin scan had a second pass, else None. ``accepted`` marks the
+    run's final calibration when the run passed.
     """
 
     __tablename__ = "calibration"
@@ -160,6 +162,8 @@ class Calibration(Base):
     sigma_rx: Mapped[float | None] = mapped_column(Float)
     sigma_ry: Mapped[float | None] = mapped_column(Float)
     sigma_rz: Mapped[float | None] = mapped_column(Float)
+    encoder_latency_s: Mapped[float | None] = mapped_column(Float)
+    sigma_encoder_latency_s: Mapped[float | None] = mapped_column(Float)
     cost: Mapped[float | None] = mapped_column(Float)
     iterations: Mapped[int | None] = mapped_column(Integer)
     accepted: Mapped[bool] = mapped_column(Boolean, default=False, index=True)

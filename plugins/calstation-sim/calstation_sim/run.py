@@ -19,6 +19,24 @@ from .station import SimulatedStation
 RECORDINGS = (("static", "static_target"), ("spin", "spin_target"), ("cube", "qa_cube"))
 """(recording kind, fixture on the platter) in the order a run takes them."""
 
+SECOND_PASS = {"spin": "spin-pass2", "cube": "cube-pass2"}
+"""File stems of the second passes (``steps.spin_scan``/``cube_scan.second_pass_rpm``)."""
+
+
+def _scans(recipe: LoadedRecipe) -> list[tuple[str, str, str, SpinScanStep | None]]:
+    """(file stem, recording kind, fixture, spin step or None for the static scan) in run order."""
+    steps = recipe.recipe.steps
+    out: list[tuple[str, str, str, SpinScanStep | None]] = [
+        ("static", "static", "static_target", None)
+    ]
+    for kind, fixture, step in (("spin", "spin_target", steps.spin_scan),
+                                ("cube", "qa_cube", steps.cube_scan)):
+        out.append((kind, kind, fixture, step))
+        if step.second_pass_rpm is not None:
+            second = step.model_copy(update={"rpm": step.second_pass_rpm})
+            out.append((SECOND_PASS[kind], kind, fixture, second))
+    return out
+
 
 @contextmanager
 def _progress_bars(enabled: bool) -> Iterator[Callable[[str, str], Callable[[str, float], None]]]:
@@ -62,9 +80,12 @@ def simulate_run(
 
     Writes ``static.mcap`` (the L-target at rest, ``steps.static_scan.lines`` lines),
     ``spin.mcap`` (the spin target, ``steps.spin_scan``), ``cube.mcap`` (the QA cube,
-    ``steps.cube_scan``) and ``truth.json`` (:meth:`SimulatedStation.truth_dict`; also stored as
-    the ``"truth"`` metadata of each recording). Returns ``{"static", "spin", "cube", "truth"}``
-    → paths. ``seed``, ``range_m`` (m) and ``pitch_deg`` override the recipe's simulation.
+    ``steps.cube_scan``), each followed by ``spin-pass2.mcap`` / ``cube-pass2.mcap`` (the same
+    turns again) when the step has a ``second_pass_rpm``, and ``truth.json``
+    (:meth:`SimulatedStation.truth_dict`; also stored as the ``"truth"`` metadata of each
+    recording). Returns ``{"static", "spin", "cube", "truth"}`` (plus the second passes) →
+    paths. ``seed``, ``range_m`` (m) and ``pitch_deg`` override the
+    recipe's simulation.
     """
     from calstation.recording import RecordingWriter
 
@@ -81,10 +102,11 @@ def simulate_run(
     truth = station.truth_dict()
     truth_H = Extrinsics.from_dict({k: truth[k] for k in PARAMETER_NAMES})
     with _progress_bars(progress) as task:
-        for kind, fixture in RECORDINGS:
-            station.place(fixture)
-            path = out / f"{kind}.mcap"
-            update = task(kind, f"{kind} scan ({fixture})")
+        for stem, kind, fixture, step in _scans(recipe):
+            if station.current_fixture != fixture:
+                station.place(fixture)
+            path = out / f"{stem}.mcap"
+            update = task(stem, f"{stem} scan ({fixture})")
             with RecordingWriter(
                 path,
                 kind=kind,
@@ -99,12 +121,11 @@ def simulate_run(
                 calibration=truth_H,
                 calibration_source="truth",
             ) as writer:
-                if kind == "static":
+                if step is None:
                     acquire_static(
                         lidar, encoder, writer, lines=r.steps.static_scan.lines, progress=update
                     )
                 else:
-                    step: SpinScanStep = r.steps.spin_scan if kind == "spin" else r.steps.cube_scan
                     acquire_spin(
                         lidar,
                         turntable,
@@ -116,7 +137,7 @@ def simulate_run(
                         clock=station.clock,
                         progress=update,
                     )
-            paths[kind] = path
+            paths[stem] = path
     paths["truth"] = write_truth(out / "truth.json", station.truth_dict())
     return paths
 
