@@ -410,9 +410,14 @@ class SigmaLimits(Model):
 
 
 class CalibrationSettings(Model):
-    """Which fine-tuning strategy to run, and each stage's settings."""
+    """Which fine-tuning strategy to run, where it starts, and each stage's settings."""
 
     strategy: str = "periodicity"
+    start: Literal["l_target", "platter"] = Field(
+        "l_target",
+        description="where the fine-tuning starts: the L-target's static scan (the paper), or "
+        "the platter's chord in the spin scan itself (no L-target, no static scan)",
+    )
     initial: InitialSettings = InitialSettings()
     shape: ShapeSettings = ShapeSettings()
     periodicity: PeriodicitySettings = PeriodicitySettings()

@@ -161,6 +161,7 @@ def reprocess_run(
     from .observability import problems_with_cube
     from .recording import read_recording
     from .strategies import run_strategy
+    from .targetless import fine_tune_targetless
 
     say = status or (lambda message: None)
     with db.session() as s:
@@ -177,7 +178,10 @@ def reprocess_run(
         name = strategy_name or rc.calibration.strategy
         strategy = plugins.strategy(name)
         kind = spin_recording_kind(_spin_fixture(run, loaded), strategy.fixture)
-        paths = {"static": stored_recording(run, "static"), kind: stored_recording(run, kind)}
+        targetless = rc.calibration.start == "platter"
+        paths = {kind: stored_recording(run, kind)}
+        if not targetless:
+            paths["static"] = stored_recording(run, "static")
         warnings: list[str] = []
         if loaded.recipe.steps.spin_scan.second_pass_rpm is not None and kind == "spin":
             paths["spin-pass2"] = stored_recording(run, "spin-pass2")
@@ -186,15 +190,19 @@ def reprocess_run(
                 paths["cube"] = stored_recording(run, "cube")
             except RecordingError as exc:
                 warnings.append(f"ry from the spin target alone: {exc}")
-    say(f"reading {paths['static']}")
-    static = read_recording(paths["static"])
-    warnings += recording_disagreements(static, loaded)
-    say("initial calibration")
-    initial = initial_calibration(static, rc.fixtures.static_target, rc.calibration.initial)
     say(f"reading {paths[kind]}")
     spin = read_recording(paths[kind])
     warnings += recording_disagreements(spin, loaded)
-    result, strategy_warnings = run_strategy(strategy, spin, initial.H, rc, progress)
+    if targetless:
+        say("start from the platter's chord, then the fine-tuning")
+        result, strategy_warnings, initial = fine_tune_targetless(strategy, spin, rc, progress)
+    else:
+        say(f"reading {paths['static']}")
+        static = read_recording(paths["static"])
+        warnings += recording_disagreements(static, loaded)
+        say("initial calibration")
+        initial = initial_calibration(static, rc.fixtures.static_target, rc.calibration.initial)
+        result, strategy_warnings = run_strategy(strategy, spin, initial.H, rc, progress)
     warnings += strategy_warnings
     if "spin-pass2" in paths:
         from .timeoffset import with_time_offset

@@ -93,6 +93,17 @@ STEPS: tuple[str, ...] = (
 
 STATES: tuple[str, ...] = ("idle", *STEPS, "failed", "aborted", "done")
 
+TARGETLESS_DROPS = ("place_static_target", "static_scan")
+"""The steps a run without the L-target leaves out (``calibration.start: platter``)."""
+
+
+def run_steps(recipe: Any) -> tuple[str, ...]:
+    """The steps a run of ``recipe`` takes, in order: :data:`STEPS`, without the L-target's
+    placement and static scan when the fine-tuning starts from the platter."""
+    if recipe.calibration.start == "platter":
+        return tuple(s for s in STEPS if s not in TARGETLESS_DROPS)
+    return STEPS
+
 SCAN_PLACEMENT: dict[str, str] = {
     "static_scan": "place_static_target",
     "spin_scan": "place_spin_target",
@@ -245,18 +256,19 @@ class Station:
         self._finished: list[tuple[str, Path]] = []  # a step's complete recordings so far
         self._scan_ended: float | None = None
         """when this process's last spin scan ended (monotonic s)"""
+        self.steps = run_steps(self.recipe)
         self.machine = Machine(
             model=self, states=list(STATES), initial="idle", auto_transitions=False
         )
         self.machine.add_ordered_transitions(
-            states=[*STEPS, "done"], trigger="advance", loop=False
+            states=[*self.steps, "done"], trigger="advance", loop=False
         )
-        for step in STEPS:
+        for step in self.steps:
             self.machine.add_transition("begin", "idle", step, conditions=[self._is_first(step)])
             self.machine.add_transition(
                 "retry", "failed", step, conditions=[self._is_failed(step)]
             )
-        self.machine.add_transition("fail", list(STEPS), "failed")
+        self.machine.add_transition("fail", list(self.steps), "failed")
         # a QA verdict (failed cube check) the operator does not retry still gets its report
         self.machine.add_transition("conclude", "failed", "report")
         self.machine.add_transition("abort", "*", "aborted")
@@ -295,7 +307,8 @@ class Station:
                 self._plan.pop(0)
                 if not self._plan:
                     break
-                if self._plan[0] != self._next_in_order(step):  # plans are suffixes of STEPS
+                # plans are suffixes of the run's steps
+                if self._plan[0] != self._next_in_order(step, self.steps):
                     raise StationError(f"cannot go from {step} to {self._plan[0]}")
                 self.trigger("advance")
             verdict = self._verdict()
@@ -321,13 +334,13 @@ class Station:
         """Leave the failed state for ``step`` (the failed step or an earlier one) and plan
         every step from there again."""
         self.failed_step = step
-        self._plan = list(STEPS[STEPS.index(step) :])
+        self._plan = list(self.steps[self.steps.index(step) :])
         self.trigger("retry")
 
     @staticmethod
-    def _next_in_order(step: str) -> str:
-        i = STEPS.index(step)
-        return STEPS[i + 1] if i + 1 < len(STEPS) else "done"
+    def _next_in_order(step: str, steps: tuple[str, ...] = STEPS) -> str:
+        i = steps.index(step)
+        return steps[i + 1] if i + 1 < len(steps) else "done"
 
     def _remaining_steps(self) -> list[str]:
         """Steps still to do: from the first without a passed attempt; a scan's placement first."""
@@ -337,11 +350,11 @@ class Station:
                     select(Step.name).where(Step.run_id == self.run_id, Step.status == "passed")
                 )
             )
-        todo = [step for step in STEPS if step not in passed]
+        todo = [step for step in self.steps if step not in passed]
         if not todo:
             return ["report"]
-        first = STEPS.index(todo[0])
-        plan = list(STEPS[first:])
+        first = self.steps.index(todo[0])
+        plan = list(self.steps[first:])
         placement = SCAN_PLACEMENT.get(plan[0])
         if placement is not None and placement in passed:
             plan.insert(0, placement)
@@ -558,14 +571,23 @@ class Station:
         from .recording import read_recording
 
         strategy = self._strategy()
-        start = self._stored_calibration("initial")
         recording = read_recording(self._artifact_path("spin"))
         from .strategies import run_strategy
 
         with self.ui.progress(f"fine-tuning ({strategy.name})") as progress:
-            result, warnings = run_strategy(
-                strategy, recording, Extrinsics.from_dict(start.params()), self.recipe, progress
-            )
+            if self.recipe.calibration.start == "platter":
+                from .targetless import fine_tune_targetless
+
+                result, warnings, first = fine_tune_targetless(
+                    strategy, recording, self.recipe, progress)
+                self.ui.info(f"  start from the platter: {_fmt_h(first.H.as_dict())} "
+                             f"(chord {first.diagnostics['chord']})")
+            else:
+                start = self._stored_calibration("initial")
+                result, warnings = run_strategy(
+                    strategy, recording, Extrinsics.from_dict(start.params()), self.recipe,
+                    progress
+                )
             if self.recipe.steps.spin_scan.second_pass_rpm is not None:
                 from .timeoffset import with_time_offset
 

@@ -272,3 +272,25 @@ def test_speed_run_and_its_section(tmp_path: Path) -> None:
     assert (out / "results" / "speed.png").is_file()
     bad = _calstation("bench", "speed", "--rpm", "0", timeout=120)
     assert bad.returncode != 0 and "within 0.1–120 rpm" in bad.stdout + bad.stderr
+
+
+@pytest.mark.slow
+def test_targetless_run_and_its_section(tmp_path: Path) -> None:
+    """One station of D5 and one of E2: both fine-tunings converge from both starts, and the
+    section counts them."""
+    out = tmp_path / "targetless"
+    proc = _calstation("bench", "targetless", "--seeds", "1", "--scenarios", "D5,E2", "--out",
+                       str(out), "--recipe", str(RECIPE))
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    records = json.loads((out / "records.json").read_text())
+    assert [r["scenario"] for r in records] == ["D5", "E2"]
+    for r in records:
+        assert r["targetless"]["converged"] and r["l_target"]["converged"], r
+        # the start came from the platter's chord: rz within a tenth of a degree
+        assert abs(r["targetless"]["start"]["error"]["rz"]) < math.radians(0.1)
+    md = (out / "targetless.md").read_text()
+    assert "**Converged: 2/2 from the platter (100.0 %), 2/2 from the L-target.**" in md
+    assert (out / "results" / "targetless.png").is_file()
+    bad = _calstation("bench", "targetless", "--scenarios", "D10", "--out", str(out),
+                      timeout=120)
+    assert bad.returncode != 0 and "expected some of" in bad.stdout + bad.stderr

@@ -462,6 +462,37 @@ def test_ctrl_c_during_the_spin_scan_aborts_and_stops_the_motor(
     assert any("motor stopped by emergency_stop then stop" in m for m in ui.messages)
 
 
+def test_a_targetless_run_takes_no_l_target_and_resumes_in_its_own_steps(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    path = lean_recipe(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["calibration"]["start"] = "platter"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    ui = ScriptedOperator(place=_stop_at("qa_cube"))
+    run_id, status = start_run(load_recipe(path), db, ui, operator="ann", data_dir=tmp_path)
+    assert status == "aborted"
+    assert _steps(db, run_id) == [
+        ("preflight", 1, "passed"), ("place_spin_target", 1, "passed"),
+        ("spin_scan", 1, "passed"), ("fine_tune", 1, "passed"), ("place_qa_cube", 1, "aborted"),
+    ]
+    assert ui.placed == ["spin_target", "qa_cube"]
+    assert any(m.startswith("  start from the platter") for m in ui.messages)
+    with db.session() as s:
+        kinds = {a.kind for a in s.query(Artifact).filter_by(run_id=run_id)}
+        (fine,) = s.query(Calibration).filter_by(run_id=run_id).all()
+        start = (fine.diagnostics or {})["start"]
+    assert kinds == {"spin"} and fine.stage == "fine"
+    # the toy strategy moved the platter's start by 0.1 mm, from each tz candidate (0, ±|tz|)
+    assert fine.tx == pytest.approx(start["H"]["tx"] + 1e-4)
+    assert start["strategy"] == "platter" and len(start["candidates"]) in (1, 3)
+    # resumed: it goes on at the cube's placement, within the targetless steps
+    ui2 = ScriptedOperator()
+    resume_run(run_id, db, ui2)  # the toy's start is mm off: its cube check may fail
+    assert ui2.placed == ["qa_cube"]
+    assert [name for name, _, _ in _steps(db, run_id)][5:7] == ["place_qa_cube", "cube_scan"]
+
+
 def test_ctrl_c_during_the_second_pass_keeps_the_first_as_complete(
     tmp_path: Path, db: Database, station_plugin: StationTestPlugin
 ) -> None:
@@ -578,3 +609,16 @@ def test_drift_beyond_limits_fails_the_run_when_the_recipe_says_so(
         assert preflight.result is not None
         assert run.unit_serial == preflight.result["lidar"]["serial"] == "sim-7"
         assert preflight.result["unit_serial"] == "sim-7"
+
+
+def test_a_targetless_recipe_drops_the_l_target_steps_everywhere() -> None:
+    from calstation.station import TARGETLESS_DROPS, run_steps
+    from calstation.web.live import LiveState
+
+    targetless = load_recipe(RECIPES / "sim-targetless.yaml").recipe
+    steps = run_steps(targetless)
+    assert steps == tuple(s for s in STEPS if s not in TARGETLESS_DROPS)
+    assert run_steps(load_recipe(RECIPES / "sim-periodicity.yaml").recipe) == STEPS
+    live = LiveState()
+    live.begin(1, "sim-targetless", "ann", None, steps)
+    assert tuple(live.steps) == steps  # the operator page lists only the steps the run takes

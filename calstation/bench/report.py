@@ -452,8 +452,8 @@ def write_report(
 
     text = _compose(records, every, meta, methods, abl_sc, landscape_md, label)
     text += variants_section(report_dir)
-    # sections of their own commands (calstation.bench.basin, calstation.bench.speed)
-    for name in ("basin.md", "speed.md"):
+    # sections of their own commands (calstation.bench.basin, .speed, .targetless)
+    for name in ("basin.md", "speed.md", "targetless.md"):
         if (report_dir / name).is_file():
             text += "\n" + (report_dir / name).read_text()
     path = report_dir / "results.md"

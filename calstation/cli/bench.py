@@ -212,6 +212,45 @@ def register(app: typer.Typer) -> None:
                          console)
         console.print(f"accuracy against platter speed: {path}")
 
+    @bench.command("targetless")
+    def targetless(
+        out: Path = typer.Option(
+            Path("out/bench-targetless"), "--out", help="folder for the records"
+        ),
+        report_dir: Path | None = typer.Option(
+            None, "--report-dir",
+            help="where targetless.md and results/targetless.png go (default: --out); `bench "
+            "report` adds targetless.md found there to results.md",
+        ),
+        recipe: Path = typer.Option(
+            Path("recipes/sim-periodicity.yaml"), "--recipe",
+            help="simulated-station recipe (with the L-target, to compare both starts)",
+        ),
+        method: str = typer.Option("periodicity", "--method", help="fine-tuning strategy"),
+        seeds: int = typer.Option(5, "--seeds", min=1, max=50, help="stations per scenario"),
+        scenarios: str | None = typer.Option(
+            None, "--scenarios", help="comma-separated D1–D9, E1–E3 (default: all twelve)"
+        ),
+    ) -> None:
+        """The targetless start on the paper's nine scenarios and three more, several seeds
+        each: converged fraction from the platter's chord, beside the L-target's start."""
+        from rich.console import Console
+
+        from ..bench import BenchError
+        from ..bench.targetless import run_targetless, targetless_scenarios
+
+        (chosen,) = _strategies(recipe, method)
+        names = [n.strip().upper() for n in scenarios.split(",")] if scenarios else None
+        known = {s.name for s in targetless_scenarios()}
+        if names and not set(names) <= known:
+            raise BenchError(f"--scenarios {scenarios!r}: expected some of "
+                             f"{', '.join(sorted(known))}")
+        command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        console = Console(stderr=True)
+        path = run_targetless(recipe, out, report_dir or out, chosen, seeds, names, command,
+                              console)
+        console.print(f"targetless start: {path}")
+
     @bench.command("report")
     def report(
         out: Path = typer.Option(

@@ -97,6 +97,9 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Initial calibration from --static, then fine-tuning from --spin; or re-process a run.
 
+        Without --static the fine-tuning starts from the platter's chord in the spin scan (no
+        L-target: docs/algorithms.md, targetless start).
+
         Prints H (mm, degrees) with a 1σ per parameter; --json prints tx, ty, tz (m), rx, ry,
         rz (rad), sigma_* for each, strategy and cost on stdout. With --run N the result is stored
         with run N as a re-processing (not accepted unless --accept) and compared with the run's
@@ -120,11 +123,11 @@ def register(app: typer.Typer) -> None:
                 )
             _reprocess(run, strategy, accept, out, as_json, db)
             return
-        if recipe is None or static is None or spin is None:
-            missing = [n for n, v in (("RECIPE", recipe), ("--static", static), ("--spin", spin))
-                       if v is None]
+        if recipe is None or spin is None:
+            missing = [n for n, v in (("RECIPE", recipe), ("--spin", spin)) if v is None]
             raise CalstationError(
-                f"missing {', '.join(missing)}: give RECIPE --static FILE --spin FILE, or --run N"
+                f"missing {', '.join(missing)}: give RECIPE [--static FILE] --spin FILE, or "
+                "--run N"
             )
         if accept:
             raise CalstationError("--accept applies to a stored run: use it with --run N")
@@ -193,23 +196,21 @@ def _warn(console: Any, warnings: list[str]) -> None:
 
 
 def _calibrate_files(
-    recipe: Path, static: Path, spin: Path, strategy: str | None, out: Path | None,
+    recipe: Path, static: Path | None, spin: Path, strategy: str | None, out: Path | None,
     as_json: bool, cube: Path | None = None, spin_pass2: Path | None = None,
 ) -> None:
-    """``calibrate RECIPE --static --spin``: nothing is stored."""
+    """``calibrate RECIPE [--static] --spin``: nothing is stored. Without ``static`` the start
+    comes from the platter's chord in the spin scan (:mod:`calstation.targetless`)."""
     from dataclasses import replace
 
     from rich.console import Console
 
     from .. import plugins
     from ..errors import CalibrationError
-    from ..initial import initial_calibration
     from ..observability import problems_with_cube
-    from ..quiet import stdout_to_stderr
     from ..recipe import load_recipe
     from ..recording import read_recording
     from ..reprocess import recording_disagreements
-    from ..strategies import run_strategy
 
     console = Console(stderr=True)
     loaded = load_recipe(recipe)
@@ -221,14 +222,17 @@ def _calibrate_files(
             f"--cube: the {name} strategy fine-tunes on the cube scan itself; give the cube "
             "scan as --spin (--cube adds the cube to a spin-target strategy's ry)"
         )
-    with console.status(f"reading {static}"):
-        st = read_recording(static)
-    if st.kind in ("spin", "cube"):
-        raise CalibrationError(
-            f"{static}: this is a {st.kind!r} recording, not the static scan of the L-target "
-            "(recording kind 'static', static.mcap of a run)"
-        )
-    warnings = recording_disagreements(st, loaded)
+    warnings: list[str] = []
+    st = None
+    if static is not None:
+        with console.status(f"reading {static}"):
+            st = read_recording(static)
+        if st.kind in ("spin", "cube"):
+            raise CalibrationError(
+                f"{static}: this is a {st.kind!r} recording, not the static scan of the L-target "
+                "(recording kind 'static', static.mcap of a run)"
+            )
+        warnings = recording_disagreements(st, loaded)
     with console.status(f"reading {spin}"):
         sp = read_recording(spin)
     if sp.kind == "static":
@@ -236,18 +240,9 @@ def _calibrate_files(
             f"{spin}: this is a 'static' recording; fine-tuning needs a spin scan "
             f"({'spin' if strat.fixture == 'spin_target' else 'cube'}.mcap of a run)"
         )
-    with console.status("initial calibration"), stdout_to_stderr():
-        initial = initial_calibration(st, rc.fixtures.static_target, rc.calibration.initial)
     warnings += recording_disagreements(sp, loaded)
     _warn(console, warnings)
-    with _progress_bar(console) as bar, stdout_to_stderr():
-        task = bar.add_task(f"{name} fine-tuning", total=1.0)
-
-        def progress(message: str, fraction: float) -> None:
-            bar.update(task, description=message, completed=max(0.0, min(1.0, fraction)))
-
-        result, strategy_warnings = run_strategy(strat, sp, initial.H, rc, progress)
-        bar.update(task, completed=1.0)
+    initial, result, strategy_warnings = _start_and_fine_tune(console, strat, st, sp, rc)
     _warn(console, strategy_warnings)
     joint_failure = None
     if cube is not None:
@@ -255,8 +250,11 @@ def _calibrate_files(
     if spin_pass2 is not None:
         result = _with_second_pass(console, result, sp, spin_pass2, loaded)
     diagnostics = dict(result.diagnostics)
-    diagnostics["initial"] = {"H": initial.H.as_dict(), "timings": dict(initial.timings)}
-    diagnostics["recordings"] = {"static": str(static), "spin": str(spin)}
+    diagnostics["initial"] = {"H": initial.H.as_dict(), "timings": dict(initial.timings),
+                              "strategy": initial.strategy}
+    diagnostics["recordings"] = {"spin": str(spin)}
+    if static is not None:
+        diagnostics["recordings"]["static"] = str(static)
     if spin_pass2 is not None:
         diagnostics["recordings"]["spin_pass2"] = str(spin_pass2)
     if cube is not None:
@@ -278,6 +276,35 @@ def _calibrate_files(
         typer.echo(_timing_line(result) + (f"; written to {out}" if out is not None else ""))
     if refused:
         _refuse(result, rc, strat.fixture, joint_failure)
+
+
+def _start_and_fine_tune(
+    console: Any, strat: Any, static: Any, spin: Any, rc: Any
+) -> tuple[Any, Any, list[str]]:
+    """(the start, the fine-tuned result, its warnings): the start from the L-target's
+    ``static`` scan, or without one from the platter's chord in the ``spin`` scan."""
+    from ..initial import initial_calibration
+    from ..quiet import stdout_to_stderr
+    from ..strategies import run_strategy
+    from ..targetless import fine_tune_targetless
+
+    initial = None
+    if static is not None:
+        with console.status("initial calibration"), stdout_to_stderr():
+            initial = initial_calibration(static, rc.fixtures.static_target,
+                                          rc.calibration.initial)
+    with _progress_bar(console) as bar, stdout_to_stderr():
+        task = bar.add_task(f"{strat.name} fine-tuning", total=1.0)
+
+        def progress(message: str, fraction: float) -> None:
+            bar.update(task, description=message, completed=max(0.0, min(1.0, fraction)))
+
+        if initial is None:
+            result, warnings, initial = fine_tune_targetless(strat, spin, rc, progress)
+        else:
+            result, warnings = run_strategy(strat, spin, initial.H, rc, progress)
+        bar.update(task, completed=1.0)
+    return initial, result, warnings
 
 
 def _with_second_pass(console: Any, result: Any, first: Any, path: Path, loaded: Any) -> Any:

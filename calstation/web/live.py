@@ -37,6 +37,7 @@ from ..station import (
     create_run,
     resumable_run,
     resume_run,
+    run_steps,
 )
 
 LINE_PREVIEW_PERIOD_S = 0.2
@@ -107,10 +108,15 @@ class LiveState:
         self.version += 1
         self._cond.notify_all()
 
-    def begin(self, run_id: int, recipe: str, operator: str, serial: str | None) -> None:
-        """A new (or resumed) run starts."""
+    def begin(
+        self, run_id: int, recipe: str, operator: str, serial: str | None,
+        steps: tuple[str, ...] = STEPS,
+    ) -> None:
+        """A new (or resumed) run starts; ``steps`` are the ones it takes (a run without the
+        L-target leaves two out)."""
         with self._cond:
             self._reset()
+            self.steps = {k: v for k, v in self.steps.items() if k in steps}
             self.run_id, self.recipe, self.operator, self.serial = run_id, recipe, operator, serial
             self.status = "running"
             self._changed()
@@ -387,7 +393,8 @@ class Runner:
             serial = (serial or "").strip() or None
             run_id = create_run(loaded, self.db, operator=operator.strip(), unattended=False,
                                 data_dir=self.data_dir, serial=serial)
-            self.live.begin(run_id, loaded.recipe.name, operator.strip(), serial)
+            self.live.begin(run_id, loaded.recipe.name, operator.strip(), serial,
+                            run_steps(loaded.recipe))
             ui = WebOperator(self.live, loaded.recipe)
             self._launch(run_id, lambda: Station(self.db, run_id, loaded, ui).run())
         except BaseException:
@@ -406,7 +413,7 @@ class Runner:
                 run = resumable_run(s, run_id, force)
                 recipe = parse_recipe(run.recipe_text, f"recipe of run {run_id}")
                 operator = run.operator
-            self.live.begin(run_id, recipe.name, operator, None)
+            self.live.begin(run_id, recipe.name, operator, None, run_steps(recipe))
             ui = WebOperator(self.live, recipe)
             self._launch(run_id, lambda: resume_run(run_id, self.db, ui, force=force))
         except BaseException:

@@ -26,9 +26,9 @@ SECOND_PASS = {"spin": "spin-pass2", "cube": "cube-pass2"}
 def _scans(recipe: LoadedRecipe) -> list[tuple[str, str, str, SpinScanStep | None]]:
     """(file stem, recording kind, fixture, spin step or None for the static scan) in run order."""
     steps = recipe.recipe.steps
-    out: list[tuple[str, str, str, SpinScanStep | None]] = [
-        ("static", "static", "static_target", None)
-    ]
+    out: list[tuple[str, str, str, SpinScanStep | None]] = []
+    if recipe.recipe.calibration.start != "platter":  # a targetless run has no static scan
+        out.append(("static", "static", "static_target", None))
     for kind, fixture, step in (("spin", "spin_target", steps.spin_scan),
                                 ("cube", "qa_cube", steps.cube_scan)):
         out.append((kind, kind, fixture, step))
@@ -78,7 +78,8 @@ def simulate_run(
 ) -> dict[str, Path]:
     """Simulate a whole run of ``recipe`` and write its recordings into ``out_dir``.
 
-    Writes ``static.mcap`` (the L-target at rest, ``steps.static_scan.lines`` lines),
+    Writes ``static.mcap`` (the L-target at rest, ``steps.static_scan.lines`` lines; not for a
+    recipe whose ``calibration.start`` is ``platter``),
     ``spin.mcap`` (the spin target, ``steps.spin_scan``), ``cube.mcap`` (the QA cube,
     ``steps.cube_scan``), each followed by ``spin-pass2.mcap`` / ``cube-pass2.mcap`` (the same
     turns again) when the step has a ``second_pass_rpm``, and ``truth.json``

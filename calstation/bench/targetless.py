@@ -1,0 +1,209 @@
+"""The targetless start on many simulated stations: the paper's nine scenarios plus three more,
+several seeds each. Every spin scan is fine-tuned twice, from the platter's chord
+(:mod:`calstation.targetless`) and from the L-target's initial calibration, and both results
+are held to the bench's convergence thresholds against the true H.
+
+The seed changes the simulated station (its true H's small ry and tz, the placements, the
+noise), so each run is a different station, not a different draw of one.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from .scenarios import Scenario
+
+EXTRA_SCENARIOS: tuple[tuple[str, float, float], ...] = (
+    ("E1", 0.9, 40.0),
+    ("E2", 1.1, 50.0),
+    ("E3", 1.4, 35.0),
+)
+"""Stations the paper did not measure: (name, range m, pitch °)."""
+
+SEED_BASE = 3000
+
+
+def targetless_scenarios() -> list[Scenario]:
+    """The paper's D1–D9 and :data:`EXTRA_SCENARIOS` (seeds are given per run)."""
+    from .scenarios import paper_scenarios
+
+    return [*paper_scenarios(), *(Scenario(n, r, p, 0) for n, r, p in EXTRA_SCENARIOS)]
+
+
+def _errors(H: Any, truth: Any, method: str) -> dict[str, Any]:
+    from .runner import CONVERGENCE, against_truth
+
+    e = against_truth(H, truth)
+    axis = e["axis"]
+    limits = CONVERGENCE[method]
+    converged = "failed" not in axis and (
+        axis["axis_offset_m"] <= limits["axis_offset_m"]
+        and axis["axis_angle_rad"] <= limits["axis_angle_rad"]
+        and abs(axis.get("rz_error", 0.0)) <= limits.get("rz_rad", math.inf)
+    )
+    return {"axis": axis, "error": e["error"], "converged": bool(converged)}
+
+
+def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
+             ) -> dict[str, Any]:
+    """Simulate one station, fine-tune its scan from both starts; its record."""
+    from calstation_sim import simulate_run
+
+    from .. import plugins
+    from ..initial import initial_calibration
+    from ..recipe import load_recipe
+    from ..recording import read_recording
+    from ..strategies import run_strategy
+    from ..targetless import fine_tune_targetless
+
+    loaded = load_recipe(recipe)
+    rc = loaded.recipe
+    folder = out / f"{scenario.name}-s{seed}"
+    files = simulate_run(loaded, folder, seed=seed, range_m=scenario.range_m,
+                         pitch_deg=scenario.pitch_deg, progress=False)
+    strategy = plugins.strategy(method)
+    spin = read_recording(files["spin" if strategy.fixture == "spin_target" else "cube"])
+    truth = spin.truth
+    assert truth is not None
+    record: dict[str, Any] = {"scenario": scenario.name, "range_m": scenario.range_m,
+                              "pitch_deg": scenario.pitch_deg, "seed": seed, "method": method,
+                              "truth": {"tz": truth.tz, "ry": truth.ry}}
+    t0 = time.perf_counter()
+    try:
+        result, _, start = fine_tune_targetless(strategy, spin, rc)
+    except Exception as exc:  # a failure is a result of the sweep, kept with its reason
+        record["targetless"] = {"status": "failed", "message": f"{type(exc).__name__}: {exc}",
+                                "converged": False}
+    else:
+        record["targetless"] = {"status": "ok", **_errors(result.H, truth, method),
+                                "start": _errors(start.H, truth, method),
+                                "tz_from_chord_m": start.diagnostics["tz_from_chord_m"],
+                                "candidates": result.diagnostics["start"]["candidates"]}
+    record["targetless"]["time_s"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    try:
+        initial = initial_calibration(read_recording(files["static"]),
+                                      rc.fixtures.static_target, rc.calibration.initial)
+        from_l, _ = run_strategy(strategy, spin, initial.H, rc)
+    except Exception as exc:
+        record["l_target"] = {"status": "failed", "message": f"{type(exc).__name__}: {exc}",
+                              "converged": False}
+    else:
+        record["l_target"] = {"status": "ok", **_errors(from_l.H, truth, method)}
+    record["l_target"]["time_s"] = time.perf_counter() - t1
+    return record
+
+
+def targetless_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> str:
+    """The section for results.md."""
+    n = len(records)
+    conv_t = sum(r["targetless"]["converged"] for r in records)
+    conv_l = sum(r["l_target"]["converged"] for r in records)
+    lines = [
+        "## The targetless start",
+        "",
+        f"Command: `{meta['command']}` (commit `{meta['git_commit']}`, "
+        f"{meta['wall_s'] / 60:.1f} min). {meta['method']} fine-tuning of each spin scan from the "
+        "platter's chord (no L-target) and from the L-target's initial calibration, against the "
+        "true H and the bench's convergence thresholds; D1–D9 are the paper's range × pitch, "
+        f"E1–E3 three more; seeds {meta['seeds']} (each a different simulated station).",
+        "",
+        f"**Converged: {conv_t}/{n} from the platter ({100.0 * conv_t / max(n, 1):.1f} %), "
+        f"{conv_l}/{n} from the L-target.**",
+        "",
+        "| scenario | runs | converged from the platter | from the L-target | start's axis "
+        "offset mm (median / max) | start's rz error ° (max) | axis offset mm from the platter "
+        "(max) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name in dict.fromkeys(r["scenario"] for r in records):
+        sel = [r for r in records if r["scenario"] == name]
+        ok = [r["targetless"] for r in sel if r["targetless"]["status"] == "ok"]
+        starts = sorted(t["start"]["axis"].get("axis_offset_m", math.nan) * 1e3 for t in ok)
+        rz = [abs(math.degrees(t["start"]["error"]["rz"])) for t in ok]
+        final = [t["axis"].get("axis_offset_m", math.nan) * 1e3 for t in ok]
+        r0 = sel[0]
+        lines.append(
+            f"| {name} ({r0['range_m']:.2f} m, {r0['pitch_deg']:.0f}°) | {len(sel)} | "
+            f"{sum(r['targetless']['converged'] for r in sel)} | "
+            f"{sum(r['l_target']['converged'] for r in sel)} | "
+            + (f"{starts[len(starts) // 2]:.1f} / {max(starts):.1f} | {max(rz):.3f} | "
+               f"{max(final):.3f} |" if ok else "— | — | — |"))
+    missed = [r for r in records if not r["targetless"]["converged"]]
+    if missed:
+        lines += ["", "Not converged from the platter:", ""]
+        for r in missed:
+            t = r["targetless"]
+            axis = t.get("axis", {})
+            why = t.get("message") or (
+                f"axis offset {axis['axis_offset_m'] * 1e3:.2f} mm, "
+                f"direction {math.degrees(axis['axis_angle_rad']):.3f}°")
+            lines.append(f"- {r['scenario']} seed {r['seed']}: {why[:300]}")
+    lines += ["", "![targetless start](results/targetless.png)", ""]
+    return "\n".join(lines)
+
+
+def targetless_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
+    """The start's distance from the truth against the final one (the targetless start's basin:
+    how far from the truth its starts land, and whether they converge)."""
+    from .figures import _plt
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5.0, 3.4))
+    for converged, colour, label in ((True, "tab:green", "converged"),
+                                     (False, "tab:red", "not converged")):
+        sel = [r["targetless"] for r in records if r["targetless"]["status"] == "ok"
+               and r["targetless"]["converged"] is converged]
+        ax.scatter([t["start"]["axis"]["axis_offset_m"] * 1e3 for t in sel],
+                   [max(t["axis"]["axis_offset_m"] * 1e3, 1e-4) for t in sel],
+                   s=14, color=colour, label=f"{label} ({len(sel)})")
+    ax.set_xlabel("start's axis offset from the truth (mm)")
+    ax.set_ylabel("fine-tuned axis offset (mm)")
+    ax.set_yscale("log")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds: int,
+                   scenario_names: Sequence[str] | None, command: str, console: Any) -> Path:
+    """Every scenario × seed in turn; writes ``targetless.md`` and ``results/targetless.png`` to
+    ``report_dir`` and the records to ``out/records.json``; returns the path of the section."""
+    import shutil
+
+    from .. import plugins
+    from .runner import git_commit
+
+    plugins.load_plugins()
+    chosen = targetless_scenarios()
+    if scenario_names:
+        wanted = {n.strip().upper() for n in scenario_names}
+        chosen = [s for s in chosen if s.name in wanted]
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    records: list[dict[str, Any]] = []
+    for i, scenario in enumerate(chosen):
+        for k in range(seeds):
+            seed = SEED_BASE + 100 * k + i
+            record = run_case(recipe, scenario, seed, out, method)
+            records.append(record)
+            t = record["targetless"]
+            console.print(f"{scenario.name} seed {seed}: "
+                          + ("converged" if t["converged"] else f"NOT converged ({t['status']})")
+                          + f" from the platter, {t['time_s']:.1f} s")
+            shutil.rmtree(out / f"{scenario.name}-s{seed}", ignore_errors=True)
+            (out / "records.json").write_text(json.dumps(records, indent=2))
+    meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
+            "method": method, "seeds": f"{SEED_BASE} + 100·k + scenario index, k < {seeds}"}
+    targetless_figure(records, report_dir / "results" / "targetless.png")
+    path = report_dir / "targetless.md"
+    path.write_text(targetless_markdown(records, meta))
+    return path
