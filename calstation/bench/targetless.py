@@ -108,9 +108,10 @@ def targetless_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any])
         "## The targetless start",
         "",
         f"Command: `{meta['command']}` (commit `{meta['git_commit']}`, "
-        f"{meta['wall_s'] / 60:.1f} min). {meta['method']} fine-tuning of each spin scan from the "
-        "platter's chord (no L-target) and from the L-target's initial calibration, against the "
-        "true H and the bench's convergence thresholds; D1–D9 are the paper's range × pitch, "
+        f"{meta['wall_s'] / 60:.1f} min). The {meta['method']} fine-tuning of each spin scan "
+        "from the platter's chord (no L-target) and from the L-target's initial calibration, "
+        "against the true H and the bench's convergence thresholds; D1–D9 are the paper's "
+        "range × pitch, "
         f"E1–E3 three more; seeds {meta['seeds']} (each a different simulated station).",
         "",
         f"**Converged: {conv_t}/{n} from the platter ({100.0 * conv_t / max(n, 1):.1f} %), "
