@@ -165,7 +165,8 @@ def fine_tune_with_cube(
         strategy=f"{result.strategy}+cube", timings=dict(result.timings),
         diagnostics={**result.diagnostics, "joint": joint.details,
                      "covariance": joint.details["covariance"]},
-        # the time offset does not depend on ry (calstation.timeoffset): it carries over
+        # the time offset barely depends on ry (calstation.timeoffset): it carries over (the
+        # station estimates it again under the combined H)
         encoder_latency_s=result.encoder_latency_s,
         sigma_encoder_latency_s=result.sigma_encoder_latency_s,
     )

@@ -211,6 +211,8 @@ def test_station_run_both_ways_stores_and_exports_the_offset(
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "lidar–encoder time offset" in proc.stdout
     assert "cube measured from both passes, with the estimated encoder latency" in proc.stdout
+    # ry combined with the cube's faces: the offset estimated again under that H
+    assert "time offset under the combined H" in proc.stdout
     db = Database(url)
     with db.session() as s:
         (run,) = s.query(Run).all()
