@@ -204,19 +204,19 @@ def reprocess_run(
         initial = initial_calibration(static, rc.fixtures.static_target, rc.calibration.initial)
         result, strategy_warnings = run_strategy(strategy, spin, initial.H, rc, progress)
     warnings += strategy_warnings
-    if "spin-pass2" in paths:
-        from .timeoffset import with_time_offset
-
-        say(f"lidar–encoder time offset with {paths['spin-pass2']}")
-        second = read_recording(paths["spin-pass2"])
-        warnings += recording_disagreements(second, loaded)
-        result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
     joint_failure = None
     if "cube" in paths and kind != "cube":
         say(f"combining ry with the cube scan {paths['cube']}")
         cube = read_recording(paths["cube"])
         warnings += recording_disagreements(cube, loaded)
         result, _, joint_failure = fine_tune_with_cube(result, cube, rc)
+    if "spin-pass2" in paths:  # under the final H (it moves a little with ry)
+        from .timeoffset import with_time_offset
+
+        say(f"lidar–encoder time offset with {paths['spin-pass2']}")
+        second = read_recording(paths["spin-pass2"])
+        warnings += recording_disagreements(second, loaded)
+        result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
     refused = problems_with_cube(result, rc.calibration.max_sigma, joint_failure)
     recordings = {k: str(v) for k, v in paths.items()}
     result = replace(result, diagnostics={

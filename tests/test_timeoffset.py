@@ -239,6 +239,11 @@ def test_station_run_both_ways_stores_and_exports_the_offset(
     cal.write_text(out)
     assert CalibrationResult.load(cal).encoder_latency_s == latency
 
+    # re-processed from its recordings: the offset again, stored with the re-processing
+    code, out, err = run_cli(["calibrate", "--run", str(run_id), "--db", url, "--json"], capsys)
+    assert code == 0, err
+    assert json.loads(out)["encoder_latency_s"] == pytest.approx(latency, abs=0.05e-3)
+
     # both passes merged into one cloud, read with the estimated latency
     ply = tmp_path / "merged.ply"
     code, out, err = run_cli(
