@@ -279,7 +279,8 @@ def test_targetless_run_and_its_section(tmp_path: Path) -> None:
     """One station of D5 and one of E2: both fine-tunings converge from both starts, and the
     section counts them."""
     out = tmp_path / "targetless"
-    proc = _calstation("bench", "targetless", "--seeds", "1", "--scenarios", "D5,E2", "--out",
+    proc = _calstation("bench", "targetless", "--seeds", "1", "--scenarios", "D5,E2",
+                       "--no-geometry", "--out",
                        str(out), "--recipe", str(RECIPE))
     assert proc.returncode == 0, proc.stderr[-3000:]
     records = json.loads((out / "records.json").read_text())
@@ -294,3 +295,21 @@ def test_targetless_run_and_its_section(tmp_path: Path) -> None:
     bad = _calstation("bench", "targetless", "--scenarios", "D10", "--out", str(out),
                       timeout=120)
     assert bad.returncode != 0 and "expected some of" in bad.stdout + bad.stderr
+
+
+def test_geometry_rows_say_whose_failure_it_is() -> None:
+    """A station the strategy cannot calibrate even from the true H is not blamed on the
+    start; a start outside the basin is marked NO."""
+    from calstation.bench.targetless import geometry_markdown
+
+    ok = {"param": "tz_mm", "value": 50.0, "scenario": "D5", "seed": 3004, "status": "ok",
+          "tz_from_chord_m": 0.0556, "start_axis_offset_m": 0.005, "same": True,
+          "axis_offset_m": 6e-5, "axis_angle_rad": math.radians(0.17)}
+    off = {**ok, "param": "ry_deg", "value": 2.0, "same": False}
+    beyond = {"param": "tz_mm", "value": 250.0, "scenario": "D5", "seed": 3004,
+              "status": "station", "message": "even from the true H: no cells", "same": False}
+    md = "\n".join(geometry_markdown([ok, off, beyond]))
+    assert "| tz = +50 mm | 55.6 | 5.0 | yes | 0.060 / 0.170 |" in md
+    assert "| ry +2° off nominal | 55.6 | 5.0 | NO |" in md
+    assert "| tz = +250 mm | — | — | no: even from the true H: no cells | — |" in md
+    assert geometry_markdown([]) == []

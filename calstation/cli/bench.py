@@ -231,9 +231,15 @@ def register(app: typer.Typer) -> None:
         scenarios: str | None = typer.Option(
             None, "--scenarios", help="comma-separated D1–D9, E1–E3 (default: all twelve)"
         ),
+        geometry: bool = typer.Option(
+            True, "--geometry/--no-geometry",
+            help="also the stations of D5 with tz (±50–250 mm) or ry (±1–2°) far from what the "
+            "start assumes",
+        ),
     ) -> None:
         """The targetless start on the paper's nine scenarios and three more, several seeds
-        each: converged fraction from the platter's chord, beside the L-target's start."""
+        each: converged fraction from the platter's chord, beside the L-target's start; then
+        its basin: stations whose tz or ry break the start's assumptions."""
         from rich.console import Console
 
         from ..bench import BenchError
@@ -248,7 +254,7 @@ def register(app: typer.Typer) -> None:
         command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         console = Console(stderr=True)
         path = run_targetless(recipe, out, report_dir or out, chosen, seeds, names, command,
-                              console)
+                              console, geometry)
         console.print(f"targetless start: {path}")
 
     @bench.command("report")
