@@ -182,8 +182,8 @@ def geometry_markdown(rows: Sequence[dict[str, Any]]) -> list[str]:
         "scan: the start was inside the strategy's basin (how close that lands to the truth is "
         "the strategy's own accuracy, shown beside it).",
         "",
-        "| station | |tz| from the chord mm | start's axis offset mm | same as from the truth | "
-        "axis offset mm / direction ° against the truth |",
+        "| station | \\|tz\\| from the chord mm | start's axis offset mm | same as from the "
+        "truth | axis offset mm / direction ° against the truth |",
         "|---|---|---|---|---|",
     ]
     for r in rows:
