@@ -180,6 +180,8 @@ class LiveState:
                     f"{', '.join(p['answers'])}"
                 )
             self._answer = (prompt_id, answer)
+            # answered: no longer pending for any page, before the run's thread wakes to it
+            self.prompt = None
             self._changed()
 
     def request_abort(self, reason: str) -> bool:
