@@ -321,6 +321,12 @@ class SpinScanStep(Model):
         "together, which shows whether that offset is right",
     )
 
+    def second_pass(self) -> SpinScanStep | None:
+        """The second pass as a scan of its own (this one at ``second_pass_rpm``), or None."""
+        if self.second_pass_rpm is None:
+            return None
+        return self.model_copy(update={"rpm": self.second_pass_rpm, "second_pass_rpm": None})
+
 
 class Steps(Model):
     """Acquisition settings per step."""
@@ -804,9 +810,9 @@ def _scans(steps: Steps) -> list[tuple[str, SpinScanStep]]:
     for name in ("spin_scan", "cube_scan"):
         cfg: SpinScanStep = getattr(steps, name)
         out.append((name, cfg))
-        rpm2 = cfg.second_pass_rpm
-        if rpm2 is not None and abs(rpm2) >= 0.5:
-            out.append((name, cfg.model_copy(update={"rpm": rpm2})))
+        second = cfg.second_pass()
+        if second is not None and abs(second.rpm) >= 0.5:  # else refused by its own check
+            out.append((name, second))
     return out
 
 

@@ -555,16 +555,23 @@ class Station:
                                   "revolutions": cfg.revolutions,
                                   "fixture": self._strategy().fixture}
         artifacts = [("spin", path)]
-        if cfg.second_pass_rpm is not None:
-            # the same turns again at another speed: the fine-tune estimates the lidar–encoder
-            # time offset from the two (a fault here keeps the first pass: ``_finished``)
-            self._finished.append(("spin", path))
-            second = cfg.model_copy(update={"rpm": cfg.second_pass_rpm})
-            path2 = self._record("spin_scan", step_id,
-                                 lambda w, p: _acquire_spin(d, w, second, p), SECOND_PASS)
+        # the same turns again at another speed: the fine-tune estimates the lidar–encoder time
+        # offset from the two
+        path2 = self._second_pass("spin_scan", step_id, path, SECOND_PASS)
+        if path2 is not None:
             result.update(second_pass={"recording": str(path2), "rpm": cfg.second_pass_rpm})
             artifacts.append((SECOND_PASS, path2))
         return StepOutcome(result, artifacts=artifacts)
+
+    def _second_pass(self, step: str, step_id: int, first: Path, stem: str) -> Path | None:
+        """The scan step's second pass (``second_pass_rpm``) recorded as ``stem``; None when
+        the recipe asks for none. A fault in it keeps the ``first`` pass (``_finished``)."""
+        second = getattr(self.recipe.steps, step).second_pass()
+        if second is None:
+            return None
+        d = self._drivers()
+        self._finished.append((RECORDING_OF[step], first))
+        return self._record(step, step_id, lambda w, p: _acquire_spin(d, w, second, p), stem)
 
     def _step_fine_tune(self, step_id: int) -> StepOutcome:
         from .frames import Extrinsics
@@ -589,16 +596,7 @@ class Station:
                     progress
                 )
             if self.recipe.steps.spin_scan.second_pass_rpm is not None:
-                from .timeoffset import with_time_offset
-
-                second = read_recording(self._artifact_path(SECOND_PASS))
-                result = with_time_offset(result, recording, second,
-                                          self.recipe.fixtures.platter.radius, progress)
-                latency = result.encoder_latency_s or 0.0
-                self.ui.info(
-                    f"  lidar–encoder time offset: {latency * 1e3:.3f} ± "
-                    f"{(result.sigma_encoder_latency_s or math.nan) * 1e3:.3f} ms"
-                )
+                result = self._time_offset(result, recording, progress, "")
         for warning in warnings:
             self.ui.warn(warning)
         self.ui.info(f"  {strategy.name}: {_fmt_h(result.H.as_dict())}")
@@ -631,12 +629,8 @@ class Station:
             self._place("qa_cube")
         path = self._record("cube_scan", step_id, lambda w, p: _acquire_spin(d, w, cfg, p))
         artifacts = [("cube", path)]
-        path2 = None
-        if cfg.second_pass_rpm is not None:
-            self._finished.append(("cube", path))
-            second = cfg.model_copy(update={"rpm": cfg.second_pass_rpm})
-            path2 = self._record("cube_scan", step_id,
-                                 lambda w, p: _acquire_spin(d, w, second, p), CUBE_SECOND_PASS)
+        path2 = self._second_pass("cube_scan", step_id, path, CUBE_SECOND_PASS)
+        if path2 is not None:
             artifacts.append((CUBE_SECOND_PASS, path2))
         fine = self._stored_calibration("fine")
         recording = read_recording(path)
@@ -740,27 +734,31 @@ class Station:
         result.diagnostics["from_calibration"] = fine.id
         self.ui.info(f"  {joint_summary(result)}")
         if result.encoder_latency_s is not None:
-            result = self._time_offset_again(result, progress)
+            # estimated again under the H whose ry the cube changed: the estimate moves a
+            # little with ry (~0.08 ms per 0.1°, docs/algorithms.md)
+            from .recording import read_recording
+
+            result = self._time_offset(result, read_recording(self._artifact_path("spin")),
+                                       progress, " under the combined H")
         return check, result, failure
 
-    def _time_offset_again(self, result: CalibrationResult, progress: Any) -> CalibrationResult:
-        """The time offset estimated again under the H whose ry the cube changed: the estimate
-        moves a little with ry (~0.08 ms per 0.1°, docs/algorithms.md)."""
+    def _time_offset(
+        self, result: CalibrationResult, first: Any, progress: Any, under: str
+    ) -> CalibrationResult:
+        """``result`` with the lidar–encoder time offset from the spin scan's ``first`` pass and
+        its stored second pass; ``under`` says which H, for the operator."""
         from .recording import read_recording
         from .timeoffset import with_time_offset
 
-        progress("the time offset under the combined H", 0.7)
-        again = with_time_offset(
-            result, read_recording(self._artifact_path("spin")),
-            read_recording(self._artifact_path(SECOND_PASS)),
-            self.recipe.fixtures.platter.radius,
+        out = with_time_offset(
+            result, first, read_recording(self._artifact_path(SECOND_PASS)),
+            self.recipe.fixtures.platter.radius, progress,
         )
         self.ui.info(
-            f"  lidar–encoder time offset under the combined H: "
-            f"{(again.encoder_latency_s or 0.0) * 1e3:.3f} ± "
-            f"{(again.sigma_encoder_latency_s or math.nan) * 1e3:.3f} ms"
+            f"  lidar–encoder time offset{under}: {(out.encoder_latency_s or 0.0) * 1e3:.3f} ± "
+            f"{(out.sigma_encoder_latency_s or math.nan) * 1e3:.3f} ms"
         )
-        return again
+        return out
 
     def _step_report(self, step_id: int) -> StepOutcome:
         """report.json and calibration.yaml, carrying the verdict the database will hold.

@@ -32,8 +32,8 @@ def _scans(recipe: LoadedRecipe) -> list[tuple[str, str, str, SpinScanStep | Non
     for kind, fixture, step in (("spin", "spin_target", steps.spin_scan),
                                 ("cube", "qa_cube", steps.cube_scan)):
         out.append((kind, kind, fixture, step))
-        if step.second_pass_rpm is not None:
-            second = step.model_copy(update={"rpm": step.second_pass_rpm})
+        second = step.second_pass()
+        if second is not None:
             out.append((SECOND_PASS[kind], kind, fixture, second))
     return out
 
