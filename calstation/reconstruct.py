@@ -130,6 +130,16 @@ def load_extrinsics(path: str | Path, *, source: str = "calibration") -> Extrins
     tx, ty, tz, rx, ry, rz. ``source="truth"``: a simulator ``truth.json`` with tx..rz at top level.
     Raises :class:`RecordingError` naming the file and field on any problem.
     """
+    return load_calibration_file(path, source=source)[0]
+
+
+def load_calibration_file(
+    path: str | Path, *, source: str = "calibration"
+) -> tuple[Extrinsics, float | None]:
+    """H (as :func:`load_extrinsics`) and the encoder latency (s) from one read of the file: the
+    one a calibration estimated (``encoder_latency_s``), or the true one of a simulator
+    ``truth.json`` (``encoder.latency_s``); None when the file has none. Raises
+    :class:`RecordingError` naming the file and field on any problem."""
     if source not in ("calibration", "truth"):
         raise ValueError(f"source must be 'calibration' or 'truth', not {source!r}")
     from .yamlsafe import read_text_file
@@ -152,8 +162,12 @@ def load_extrinsics(path: str | Path, *, source: str = "calibration") -> Extrins
         where = "H."
         if not isinstance(h, Mapping):
             raise RecordingError(f"calibration file {p}: 'H' must be a mapping, got {h!r}")
+        latency, latency_field = data.get("encoder_latency_s"), "encoder_latency_s"
     else:
         h, where = data, ""
+        encoder = data.get("encoder")
+        latency = encoder.get("latency_s") if isinstance(encoder, Mapping) else None
+        latency_field = "encoder.latency_s"
     values: dict[str, float] = {}
     for name in PARAMETER_NAMES:
         if name not in h:
@@ -161,37 +175,17 @@ def load_extrinsics(path: str | Path, *, source: str = "calibration") -> Extrins
                 values[name] = 0.0
                 continue
             raise RecordingError(f"{source} file {p} is missing field {where}{name}")
-        v = h[name]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise RecordingError(
-                f"{source} file {p}: field {where}{name} must be a finite number, got {v!r}"
-            )
-        values[name] = float(v)
-    return Extrinsics(**values)
+        values[name] = _finite(h[name], f"{source} file {p}: field {where}{name}", "")
+    seconds = None if latency is None else _finite(
+        latency, f"{source} file {p}: field {latency_field}", " of seconds")
+    return Extrinsics(**values), seconds
 
 
-def load_encoder_latency(path: str | Path, *, source: str = "calibration") -> float | None:
-    """The encoder latency (s) a calibration file estimated (``encoder_latency_s``), or the true
-    one of a simulator ``truth.json`` (``encoder.latency_s``); None when the file has none.
-    Raises :class:`RecordingError` naming the file and field when it is not a number."""
-    from .yamlsafe import read_text_file
-
-    p = Path(path)
-    try:
-        data = _parse_mapping(p, read_text_file(p, f"{source} file", 10_000_000), source)
-    except (OSError, ValueError) as exc:
-        raise RecordingError(f"cannot read {source} file {p}: {exc}") from None
-    if source == "calibration":
-        value, where = data.get("encoder_latency_s"), "encoder_latency_s"
-    else:
-        encoder = data.get("encoder")
-        value = encoder.get("latency_s") if isinstance(encoder, Mapping) else None
-        where = "encoder.latency_s"
-    if value is None:
-        return None
+def _finite(value: Any, what: str, unit: str) -> float:
+    """``value`` as a float; :class:`RecordingError` (``what`` must be a finite number) if it
+    is not one."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise RecordingError(f"{source} file {p}: field {where} must be a finite number of "
-                             f"seconds, got {value!r}")
+        raise RecordingError(f"{what} must be a finite number{unit}, got {value!r}")
     return float(value)
 
 

@@ -148,6 +148,24 @@ def test_load_extrinsics(tmp_path: Path) -> None:
         load_extrinsics(tmp_path / "nope.yaml")
 
 
+def test_load_calibration_file_gives_the_encoder_latency_with_h(tmp_path: Path) -> None:
+    from calstation.reconstruct import load_calibration_file
+
+    h = H.as_dict()
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps({"H": h}))
+    assert load_calibration_file(cal) == (H, None)  # no estimate: the recording's latency
+    cal.write_text(json.dumps({"H": h, "encoder_latency_s": 0.0052}))
+    assert load_calibration_file(cal) == (H, 0.0052)
+    truth = tmp_path / "truth.json"
+    truth.write_text(json.dumps({**h, "encoder": {"latency_s": 0.005}}))
+    assert load_calibration_file(truth, source="truth") == (H, 0.005)
+    cal.write_text(json.dumps({"H": h, "encoder_latency_s": "late"}))
+    with pytest.raises(RecordingError, match=r"cal\.json: field encoder_latency_s must be a "
+                                             r"finite number of seconds, got 'late'"):
+        load_calibration_file(cal)
+
+
 def _app() -> typer.Typer:
     app = typer.Typer()
 

@@ -43,7 +43,7 @@ def register(app: typer.Typer) -> None:
 
         from ..errors import RecordingError
         from ..quiet import stdout_to_stderr
-        from ..reconstruct import load_encoder_latency, load_extrinsics, reconstruct, write_ply
+        from ..reconstruct import load_calibration_file, reconstruct, write_ply
         from ..recording import read_recording
 
         if (calibration is None) == (truth is None):
@@ -51,8 +51,7 @@ def register(app: typer.Typer) -> None:
         source = "calibration" if calibration is not None else "truth"
         h_path = calibration if calibration is not None else truth
         assert h_path is not None
-        H = load_extrinsics(h_path, source=source)
-        latency = load_encoder_latency(h_path, source=source)
+        H, latency = load_calibration_file(h_path, source=source)
         console = Console(stderr=True)
         clouds, lines, truncated = [], 0, []
         for path in recordings:
