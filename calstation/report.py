@@ -14,8 +14,8 @@ import json
 import math
 from typing import TYPE_CHECKING, Any
 
-from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy import Select, select
+from sqlalchemy.orm import Session, selectinload
 
 from .db import PARAMS, Calibration, CubeCheckRecord, Run
 from .errors import DatabaseError
@@ -74,6 +74,24 @@ def calibration_dict(c: Calibration) -> dict[str, Any]:
         "diagnostics": c.diagnostics,
         "created_at": iso(c.created_at),
     }
+
+
+def with_results(stmt: Select[Run], *, steps: bool = False) -> Select[Run]:
+    """``stmt``, a query of runs, loading their calibrations and cube checks (and their steps,
+    with ``steps``) in one query each for all the runs, instead of one per run."""
+    stmt = stmt.options(selectinload(Run.calibrations), selectinload(Run.cube_checks))
+    return stmt.options(selectinload(Run.steps)) if steps else stmt
+
+
+def history_item(run: Run) -> dict[str, Any]:
+    """A run as the history lists it: :func:`run_brief`, its final calibration (the accepted
+    one, else the last fine-tuning, else the last) and its last cube check."""
+    item = run_brief(run)
+    fine = [c for c in run.calibrations if c.stage == "fine"]
+    picks = [c for c in run.calibrations if c.accepted] or fine or run.calibrations
+    item["calibration"] = calibration_dict(picks[-1]) if picks else None
+    item["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+    return item
 
 
 def cube_dict(c: CubeCheckRecord) -> dict[str, Any]:

@@ -19,30 +19,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 from calstation.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
 from calstation.frames import Extrinsics
 from calstation.station import STEPS, file_sha256, wait_for_step
+from calstation.testing import lean_recipe
 
 pytest.importorskip("calstation_sim")
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 AXIS_OFFSET_M = 0.5e-3
 AXIS_ANGLE_RAD = math.radians(0.1)
 RZ_RAD = math.radians(0.05)
-
-
-def lean_recipe(tmp_path: Path) -> Path:
-    """recipes/sim-periodicity.yaml with fewer static lines and a faster spin."""
-    data = yaml.safe_load((RECIPES / "sim-periodicity.yaml").read_text())
-    data["name"] = "sim-periodicity-lean"
-    data["steps"]["static_scan"]["lines"] = 60
-    for scan in ("spin_scan", "cube_scan"):
-        data["steps"][scan].update({"rpm": 30, "revolutions": 1.02, "settle_s": 0.2})
-    path = tmp_path / "lean.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    return path
 
 
 def _env(tmp_path: Path) -> dict[str, str]:

@@ -77,3 +77,48 @@ def test_a_run_preloads_the_engine_in_the_background() -> None:
     before, after = json.loads(proc.stdout.strip().splitlines()[-1])
     assert "open3d" not in before and "calstation.shape" not in before
     assert after == ["calstation.periodicity", "calstation.shape", "calstation.cube", "open3d"]
+
+
+GC_PROBE = """
+import gc, json, sys
+import calstation.db
+seen = []
+
+def spy(self, *args, **kwargs):
+    seen.append(gc.isenabled())
+    raise SystemExit(0)
+
+calstation.db.Database.__init__ = spy
+from calstation.cli import main
+try:
+    main(json.loads(sys.argv[1]))
+except SystemExit:
+    pass
+print(json.dumps([seen, gc.isenabled()]))
+"""
+
+
+@pytest.mark.parametrize(
+    ("args", "collector_on"),
+    [
+        (["history"], False),
+        (["show", "1"], False),
+        (["db", "info"], True),
+        (["calibrate", "--run", "1"], True),
+    ],
+    ids=["history", "show", "db info", "calibrate"],
+)
+def test_only_the_quick_commands_run_without_the_cyclic_collector(
+    args: list[str], collector_on: bool, tmp_path: Path
+) -> None:
+    """The quick commands leave Python's cyclic garbage collector off while they open the
+    database; every other command has it on by then. Called in-process, ``main`` leaves it as it
+    found it."""
+    env = {**os.environ, "CALSTATION_HOME": str(tmp_path / "home")}
+    proc = subprocess.run(
+        [sys.executable, "-c", GC_PROBE, json.dumps(args)],
+        capture_output=True, text=True, cwd=REPO, env=env, timeout=120,
+    )
+    seen, after = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert seen == [collector_on], proc.stderr[-2000:]
+    assert after is True

@@ -8,6 +8,8 @@ through the ``calstation_register_commands`` hook.
 
 from __future__ import annotations
 
+import atexit
+import gc
 import importlib
 import pkgutil
 import sys
@@ -63,19 +65,47 @@ def command_group(cli: typer.Typer, name: str, help: str) -> typer.Typer:
     return sub
 
 
+QUICK_COMMANDS = frozenset({"history", "show", "recipes", "version", "plugins"})
+"""Commands (and groups) that read, print and end within a second. They run with Python's cyclic
+garbage collector off, as ``--help`` does: the collections that their imports trigger, and the
+interpreter's last ones over every imported module at exit, took a quarter of their time and free
+nothing that the exit does not (docs/performance.md, *Start-up*). Every other command, the
+plugins' included, turns it back on before it starts."""
+
+_collector = {"restore": True}
+
+
 @app.callback()
-def _root() -> None:
+def _root(ctx: typer.Context) -> None:
     """Calibrate a static line-scanning lidar against a motorised turntable."""
+    if ctx.invoked_subcommand not in QUICK_COMMANDS and _collector["restore"]:
+        gc.enable()
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Entry point of the ``calstation`` script: errors print as one clear message, exit code 2."""
+    """Entry point of the ``calstation`` script (``argv`` from the command line when None):
+    errors print as one clear message, exit code 2."""
+    _collector["restore"] = gc.isenabled()
+    gc.disable()
+    try:
+        _run(sys.argv[1:] if argv is None else argv)
+    finally:
+        quick = not gc.isenabled()
+        if _collector["restore"]:
+            gc.enable()
+        if quick and argv is None:
+            # The process ends with the command: what the command leaves is freed by the exit
+            # without a last search for reference cycles among every imported module's objects.
+            atexit.register(gc.freeze)
+
+
+def _run(argv: list[str]) -> None:
     from rich.console import Console
 
     err = Console(stderr=True)
     try:
         _build()
-        app(args=optional_port(sys.argv[1:] if argv is None else argv))
+        app(args=optional_port(argv))
     except CalstationError as exc:
         from rich.markup import escape
 

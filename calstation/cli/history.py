@@ -82,12 +82,12 @@ def register(app: typer.Typer) -> None:
         from sqlalchemy import select
 
         from ..db import Run, Station, open_database
-        from ..report import calibration_dict, cube_dict, run_brief
+        from ..report import history_item, with_results
 
         database = open_database(db)
         rows: list[dict[str, Any]] = []
         with database.session() as s:
-            stmt = select(Run).join(Station).order_by(Run.id.desc()).limit(limit)
+            stmt = with_results(select(Run).join(Station).order_by(Run.id.desc()).limit(limit))
             if station:
                 stmt = stmt.where(Station.name == station)
             if status:
@@ -97,11 +97,7 @@ def register(app: typer.Typer) -> None:
             if since:
                 stmt = stmt.where(Run.started_at >= _parse_since(since))
             for run in s.scalars(stmt):
-                item = run_brief(run)
-                fine = [c for c in run.calibrations if c.stage == "fine"]
-                picks = [c for c in run.calibrations if c.accepted] or fine or run.calibrations
-                item["calibration"] = calibration_dict(picks[-1]) if picks else None
-                item["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+                item = history_item(run)
                 item["failure_reason"] = failure_reason(item) or None
                 rows.append(item)
         database.dispose()

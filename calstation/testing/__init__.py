@@ -9,7 +9,8 @@
 - :mod:`calstation.testing.fixtures`: pytest fixtures giving the recordings of a simulated run
   (through the ``calstation-sim`` plugin when installed) for a strategy test; import them into a
   ``conftest.py``.
-- :func:`simulate_scans` and :func:`strategy_start` below: the same without pytest.
+- :func:`simulate_scans` and :func:`strategy_start` below: the same without pytest;
+  :func:`lean_recipe`, the simulated recipe made quick for whole runs.
 
 Nothing here is imported by calstation itself; only tests and emulators use it.
 """
@@ -26,6 +27,21 @@ from ..recipe import LoadedRecipe, load_recipe
 
 SHIPPED_RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 """The recipes shipped with calstation (the simulated station's among them)."""
+
+
+def lean_recipe(folder: Path) -> Path:
+    """``recipes/sim-periodicity.yaml`` with fewer static lines and a quicker spin, written to
+    ``folder/lean.yaml``: a whole simulated ``calstation run`` in a few seconds."""
+    import yaml
+
+    data = yaml.safe_load((SHIPPED_RECIPES / "sim-periodicity.yaml").read_text())
+    data["name"] = "sim-periodicity-lean"
+    data["steps"]["static_scan"]["lines"] = 60
+    for scan in ("spin_scan", "cube_scan"):
+        data["steps"][scan].update({"rpm": 30, "revolutions": 1.02, "settle_s": 0.2})
+    path = folder / "lean.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session
 from ..db import PARAMS, Calibration, Run, Station
 from ..errors import CalstationError
 from ..recipe import parse_recipe
-from ..report import calibration_dict, cube_dict, iso, run_brief
+from ..report import history_item, iso, with_results
 
 STATUSES = ("running", "passed", "failed", "aborted")
 TREND_PARAMS = tuple(p for p in PARAMS if p != "rx")  # rx is the gauge, held at 0
@@ -65,7 +65,7 @@ def history(session: Session, f: HistoryFilter) -> list[dict[str, Any]]:
 
     if f.status and f.status not in STATUSES:
         raise QueryError(f"status: {f.status!r} is not one of {', '.join(STATUSES)}")
-    stmt = select(Run).join(Station).order_by(Run.id.desc())
+    stmt = with_results(select(Run).join(Station).order_by(Run.id.desc()), steps=True)
     if f.station:
         stmt = stmt.where(Station.name == f.station)
     if f.status:
@@ -80,11 +80,7 @@ def history(session: Session, f: HistoryFilter) -> list[dict[str, Any]]:
         stmt = stmt.where(Run.unit_serial == f.serial)
     rows: list[dict[str, Any]] = []
     for run in session.scalars(stmt.limit(max(1, min(f.limit, 5000)) * (4 if f.serial else 1))):
-        item = run_brief(run)
-        fine = [c for c in run.calibrations if c.stage == "fine"]
-        picks = [c for c in run.calibrations if c.accepted] or fine or run.calibrations
-        item["calibration"] = calibration_dict(picks[-1]) if picks else None
-        item["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+        item = history_item(run)
         item["serial"] = unit_serial({**item, "steps": [
             {"name": s.name, "status": s.status, "result": s.result} for s in run.steps]})
         if f.serial and item["serial"] != f.serial:
