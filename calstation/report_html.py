@@ -384,7 +384,7 @@ def report_data(db: Database, run_id: int, *, views: bool = True) -> dict[str, A
     from .frames import Extrinsics
     from .report import get_run, run_summary
 
-    with db.session() as s:
+    with db.session("reading the run", read_only=True) as s:
         run: Run = get_run(s, run_id)
         summary = run_summary(run)
         recipe_text = run.recipe_text

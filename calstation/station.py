@@ -1025,7 +1025,7 @@ class Station:
         try:
             journal.store(self.db, self.run_dir, journal.run_end(self.run_id, status, error),
                           f"the end of run {self.run_id}")
-            with self.db.session("reading the run") as s:
+            with self.db.session("reading the run", read_only=True) as s:
                 run = s.get(Run, self.run_id)
                 assert run is not None
                 summary = run_summary(run)
@@ -1282,7 +1282,7 @@ def start_run(
 
 
 def _run_dir(db: Database, run_id: int) -> Path:
-    with db.session() as s:
+    with db.session("reading the run", read_only=True) as s:
         run = s.get(Run, run_id)
         assert run is not None
         return Path(run.data_dir)
@@ -1415,7 +1415,7 @@ def wait_for_step(
     """Poll until ``step`` of ``run_id`` has an attempt with ``status`` (for tests and tools)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        with db.session() as s:
+        with db.session("reading the steps", read_only=True) as s:
             found = s.scalars(
                 select(Step.id).where(
                     Step.run_id == run_id, Step.name == step, Step.status == status

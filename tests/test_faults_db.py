@@ -106,6 +106,38 @@ def test_a_lock_past_the_timeout_is_one_sentence_with_details_in_the_log(tmp_pat
     db.dispose()
 
 
+def test_the_qa_commands_read_while_another_process_holds_the_write_lock(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """history, show and export read the last commit without waiting for a writer (WAL): a
+    station that is writing never holds a QA engineer up, and is never held up by one."""
+    from clirun import run_cli
+
+    monkeypatch.setenv("CALSTATION_HOME", str(tmp_path / "home"))
+    path = tmp_path / "r.db"
+    url = f"sqlite:///{path}"
+    db = open_database(url)
+    station_id = get_or_create_station(db, "reader")
+    with db.session() as s:
+        run = Run(station_id=station_id, recipe_name="sim", recipe_text="x: 1", recipe_sha256="ab",
+                  operator="qa", data_dir=str(tmp_path), status="passed", unit_serial="S-17")
+        s.add(run)
+        s.flush()
+        s.add(Calibration(run=run, stage="fine", strategy="periodicity", accepted=True,
+                          tx=0.0123, ty=-0.004, tz=0.2, rx=0.0, ry=0.001, rz=0.5))
+    db.dispose()
+    monkeypatch.setenv("CALSTATION_DB_LOCK_TIMEOUT", "1")
+    holder = hold_lock(path, 4.0)
+    with pytest.raises(DatabaseError, match="stayed locked"):  # the lock is really held
+        get_or_create_station(Database(url), "writer")
+    for argv in (["history", "--json"], ["show", "1", "--json"], ["export", "1", "-f", "json"]):
+        code, out, err = run_cli([*argv, "--db", url], capsys)
+        assert code == 0, err
+        assert "S-17" in out or "0.0123" in out, (argv, out)
+    assert holder.is_alive()  # all of it while the lock was held
+    holder.join()
+
+
 def test_lock_timeout_is_configurable_and_checked(monkeypatch: pytest.MonkeyPatch,
                                                   tmp_path: Path) -> None:
     monkeypatch.setenv("CALSTATION_DB_LOCK_TIMEOUT", "7.5")

@@ -86,7 +86,7 @@ def register(app: typer.Typer) -> None:
 
         database = open_database(db)
         rows: list[dict[str, Any]] = []
-        with database.session() as s:
+        with database.session("reading the runs", read_only=True) as s:
             stmt = with_results(select(Run).join(Station).order_by(Run.id.desc()).limit(limit))
             if station:
                 stmt = stmt.where(Station.name == station)
@@ -146,7 +146,7 @@ def register(app: typer.Typer) -> None:
         from ..report import get_run, run_summary
 
         database = open_database(db)
-        with database.session() as s:
+        with database.session("reading the runs", read_only=True) as s:
             summary = run_summary(get_run(s, run_id))
         database.dispose()
         if as_json:
@@ -214,7 +214,7 @@ def register(app: typer.Typer) -> None:
             )
         frames = Frames(lidar_frame, platform_frame, platter_frame)
         database = open_database(db)
-        with database.session() as s:
+        with database.session("reading the runs", read_only=True) as s:
             text = export_calibration(get_run(s, run_id), fmt, parent=parent, frames=frames)
         database.dispose()
         if out is None:
@@ -287,7 +287,7 @@ def trend_points(
 
     database = open_database(db)
     try:
-        with database.session() as s:
+        with database.session("reading the runs", read_only=True) as s:
             points = query(s, station, param, serial)
     finally:
         database.dispose()

@@ -113,10 +113,16 @@ def lock_timeout_s() -> float:
     return value
 
 
+READ_ONLY = "calstation_read_only"
+"""Execution option of the engine behind :meth:`Database.session` ``(read_only=True)``."""
+
+
 def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
     """An engine for ``url``; SQLite gets WAL mode, foreign keys, its folder created, and
     transactions that take the write lock when they begin (``BEGIN IMMEDIATE``: a transaction
-    that read first can then never fail to upgrade its lock). A lock is waited for
+    that read first can then never fail to upgrade its lock), except on connections with the
+    execution option :data:`READ_ONLY`, whose transactions only read and so take no lock: in WAL
+    mode they read the last commit while another process writes. A lock is waited for
     ``lock_timeout`` seconds (default :func:`lock_timeout_s`), on PostgreSQL too."""
     timeout = lock_timeout_s() if lock_timeout is None else lock_timeout
     try:
@@ -141,7 +147,8 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
             cursor.close()
 
         def begin(conn: Any) -> None:
-            conn.exec_driver_sql("BEGIN IMMEDIATE")
+            read_only = conn.get_execution_options().get(READ_ONLY, False)
+            conn.exec_driver_sql("BEGIN" if read_only else "BEGIN IMMEDIATE")
 
         event.listen(engine, "connect", connect)
         event.listen(engine, "begin", begin)
@@ -274,6 +281,9 @@ class Database:
         self.lock_timeout = lock_timeout_s() if lock_timeout is None else float(lock_timeout)
         self.engine = make_engine(self.url, self.lock_timeout)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+        self.reader: Engine = self.engine.execution_options(**{READ_ONLY: True})
+        """The engine for reading only: its connections take no lock (see :func:`make_engine`)."""
+        self._readers = sessionmaker(self.reader, expire_on_commit=False)
         self.on_wait: Callable[[str], None] = on_wait or _say_waiting
         self.log_path: Path = calstation_home() / "database.log"
 
@@ -337,13 +347,15 @@ class Database:
 
     # --- sessions ----------------------------------------------------------------------------
     @contextmanager
-    def session(self, doing: str = "writing") -> Iterator[Session]:
+    def session(self, doing: str = "writing", *, read_only: bool = False) -> Iterator[Session]:
         """A session that commits on success and rolls back on error.
 
         A lock is waited for (bounded by :attr:`lock_timeout`, announced through
-        :attr:`on_wait`); a database failure is a :class:`DatabaseError` of one sentence.
+        :attr:`on_wait`); a database failure is a :class:`DatabaseError` of one sentence. A
+        ``read_only`` session must not write: on SQLite it takes no lock, so it never waits for
+        a run that is writing (and never holds one up); it reads the last commit.
         """
-        session = self._sessions()
+        session = (self._readers if read_only else self._sessions)()
         try:
             with self._waiting_notice():
                 yield session
@@ -362,7 +374,7 @@ class Database:
         from alembic.runtime.migration import MigrationContext
 
         try:
-            with self.engine.connect() as conn:
+            with self.reader.connect() as conn:
                 return MigrationContext.configure(conn).get_current_revision()
         except SQLAlchemyError as exc:
             raise self.error(exc, "opening it") from None
@@ -374,7 +386,7 @@ class Database:
         from sqlalchemy import text
 
         try:
-            with self.engine.connect() as conn:
+            with self.reader.connect() as conn:
                 rows = conn.execute(text("SELECT version_num FROM alembic_version")).all()
         except SQLAlchemyError:
             return False

@@ -276,7 +276,7 @@ def recover(db: Database) -> list[str]:
     marked ``interrupted``, with its running steps.
     """
     notes: list[str] = []
-    with db.session("reading the runs") as s:
+    with db.session("reading the runs", read_only=True) as s:
         rows = s.execute(
             select(Run.id, Run.data_dir, Run.host, Run.pid).where(Run.status == "running")
         ).all()

@@ -209,7 +209,7 @@ def _resumable(db: Database) -> list[dict[str, Any]]:
     from ..station import _process_alive
 
     out = []
-    with db.session() as s:
+    with db.session("reading the runs", read_only=True) as s:
         for run in s.scalars(select(Run).where(Run.status == "running").order_by(Run.id.desc())
                              .limit(20)):
             if run.host == socket.gethostname() and run.pid is not None and (
@@ -239,14 +239,14 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
     def runs_json(request: Request) -> dict[str, Any]:
         """History as JSON (stored units)."""
         f = history_filter(request)
-        with ctx.db.session() as s:
+        with ctx.db.session("reading the runs", read_only=True) as s:
             return {"filters": f.as_dict(), "runs": qa.history(s, f)}
 
     @app.get("/runs", response_class=HTMLResponse)
     def runs_page(request: Request) -> HTMLResponse:
         """History, filtered by station, status, operator, serial and date."""
         f = history_filter(request)
-        with ctx.db.session() as s:
+        with ctx.db.session("reading the runs", read_only=True) as s:
             rows, options = qa.history(s, f), qa.choices(s)
         return ctx.page(request, "history.html", {"rows": rows, "f": f, "options": options,
                                                   "query": str(request.url.query)})
@@ -269,7 +269,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
     @app.get("/runs/{run_id}/report.html", response_model=None)
     def run_report_file(run_id: int) -> Response:
         """The self-contained ``report.html`` of the run folder (opens offline)."""
-        with ctx.db.session() as s:
+        with ctx.db.session("reading the runs", read_only=True) as s:
             run = s.get(Run, run_id)
             folder = Path(run.data_dir) if run is not None else None
         if folder is None or not (folder / "report.html").is_file():
@@ -281,7 +281,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
         """The run's final calibration as yaml, json, urdf or csv (a download)."""
         from ..report import export_calibration, get_run
 
-        with ctx.db.session() as s:
+        with ctx.db.session("reading the runs", read_only=True) as s:
             text = export_calibration(get_run(s, run_id), fmt)
         media = {"json": "application/json", "csv": "text/csv", "urdf": "application/xml"}
         return Response(text, media_type=media.get(fmt, "text/yaml"), headers={
@@ -289,7 +289,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
 
     def trend_data(request: Request) -> dict[str, Any]:
         q = request.query_params
-        with ctx.db.session() as s:
+        with ctx.db.session("reading the runs", read_only=True) as s:
             stations = qa.choices(s)["stations"]
             station = q.get("station") or (stations[0] if stations else "")
             param = q.get("param") or "tx"
