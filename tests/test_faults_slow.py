@@ -96,13 +96,24 @@ def test_two_runs_started_together_both_end_stored(tmp_path: Path, fresh: bool) 
     db.dispose()
 
 
+def _real_time(recipe: Path) -> Path:
+    """``recipe`` with its simulated station on the host's clock: every step takes the time it
+    takes at a real station (the preflight's spin-up ~2 s), long enough to be hit."""
+    data = yaml.safe_load(recipe.read_text())
+    for device in ("lidar", "turntable", "encoder"):
+        data["station"][device].setdefault("settings", {})["real_time"] = True
+    recipe.write_text(yaml.safe_dump(data, sort_keys=False))
+    return recipe
+
+
 # the placements (unattended) and the report take milliseconds: too brief to be hit reliably
 @pytest.mark.parametrize("step", ["preflight", "static_scan", "spin_scan", "fine_tune",
                                   "cube_scan"])
 def test_sigkill_at_every_step_resumes_to_pass(tmp_path: Path, step: str) -> None:
     url = f"sqlite:///{tmp_path / 'kill.db'}"
     env = _env(tmp_path)
-    proc = subprocess.Popen(_cli("run", str(lean_recipe(tmp_path)), "--yes", "--db", url),
+    recipe = _real_time(lean_recipe(tmp_path))
+    proc = subprocess.Popen(_cli("run", str(recipe), "--yes", "--db", url),
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     db = Database(url)
     try:

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from calstation.clock import Clock, SimClock
+from calstation.clock import Clock, HostClock, SimClock
 from calstation.drivers import (
     DriverContext,
     EncoderSample,
@@ -261,13 +261,15 @@ class SimEncoder:
 
 
 # --- factories --------------------------------------------------------------------------------
-_SETTINGS = {"seed", "range_m", "pitch_deg"}
+_SETTINGS = {"seed", "range_m", "pitch_deg", "real_time"}
 
 
 def station_from_context(settings: Mapping[str, Any], context: DriverContext) -> SimulatedStation:
     """The run's :class:`SimulatedStation` from ``context.shared["sim"]``, created on first use
     from ``context.recipe`` and the driver ``settings`` (optional ``seed``, ``range_m``,
-    ``pitch_deg``). The station runs on ``context.clock`` if that is a SimClock, else on its own.
+    ``pitch_deg``, ``real_time``). The station runs on ``context.clock`` if that is a SimClock,
+    else on a SimClock of its own; with ``real_time``, on the host's clock (``context.clock``
+    when that is not a SimClock).
     """
     unknown = set(settings) - _SETTINGS
     if unknown:
@@ -275,7 +277,9 @@ def station_from_context(settings: Mapping[str, Any], context: DriverContext) ->
             f"sim driver: unknown setting(s) {', '.join(sorted(unknown))}; "
             f"known: {', '.join(sorted(_SETTINGS))}"
         )
-    clock = context.clock if isinstance(context.clock, SimClock) else None
+    clock: Clock | None = context.clock if isinstance(context.clock, SimClock) else None
+    if settings.get("real_time"):
+        clock = HostClock() if isinstance(context.clock, SimClock) else context.clock
     return shared_station(
         context,
         clock=clock,

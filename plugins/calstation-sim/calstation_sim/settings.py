@@ -14,3 +14,6 @@ class SimSettings(BaseModel):
     seed: int | None = Field(None, ge=0, le=2**63 - 1)
     range_m: float | None = Field(None, ge=0.2, le=20.0)
     pitch_deg: float | None = Field(None, gt=5, lt=85)
+    real_time: bool = False
+    """Run on the host's clock, at a real station's pace (a run takes as long as its scans and
+    waits), rather than on a simulated clock that moves as fast as the computation."""

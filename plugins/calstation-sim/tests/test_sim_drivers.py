@@ -6,6 +6,7 @@ import itertools
 import math
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,7 +15,7 @@ import pytest
 from calstation_sim import SimEncoder, SimLidar, SimTurntable, SimulatedStation
 
 from calstation import plugins
-from calstation.clock import SimClock
+from calstation.clock import HostClock, SimClock
 from calstation.drivers import DriverContext, Encoder, Lidar, Turntable, TurntableState
 from calstation.errors import DriverError
 from calstation.recipe import LoadedRecipe
@@ -52,6 +53,35 @@ def test_registered_drivers_satisfy_the_protocols_and_share_one_station(
 def test_unknown_driver_setting_is_an_error(make_recipe: Callable[..., LoadedRecipe]) -> None:
     with pytest.raises(DriverError, match=r"unknown setting.*speed"):
         _drivers(make_recipe(), speed=3)
+
+
+def test_real_time_runs_the_station_on_the_host_clock(
+    make_recipe: Callable[..., LoadedRecipe],
+) -> None:
+    """With ``real_time`` the lines come at the lidar's line rate and the platter turns in wall
+    time, as at a real station."""
+    lidar, turntable, encoder, _ = _drivers(make_recipe(), real_time=True)
+    assert isinstance(lidar, SimLidar) and isinstance(turntable, SimTurntable)
+    assert isinstance(encoder, SimEncoder)
+    assert isinstance(lidar.clock, HostClock) and lidar.clock is turntable.clock is encoder.clock
+    period_s = 1.0 / lidar.info().line_rate_hz
+    start = time.monotonic()
+    lidar.start()
+    stamps = []
+    for line in lidar.lines():
+        stamps.append(line.timestamp_ns)
+        if len(stamps) == 100:
+            lidar.stop()
+    assert time.monotonic() - start >= 99 * period_s
+    assert np.allclose(np.diff(stamps), period_s * 1e9)
+    turntable.enable()
+    turntable.spin(60.0)
+    first = encoder.read()
+    time.sleep(0.4)
+    last = encoder.read()
+    turntable.stop()
+    assert last.timestamp_ns - first.timestamp_ns >= 0.4e9
+    assert last.count != first.count
 
 
 def test_lidar_streams_on_a_grid_and_advances_the_clock(
