@@ -47,6 +47,7 @@ bench: setup
 	$(BIN)/python benchmarks/simulate_revolution.py
 	$(BIN)/python benchmarks/recording_io.py
 	$(BIN)/python benchmarks/calibration.py
+	$(BIN)/python benchmarks/startup.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .mypy_cache .ruff_cache
