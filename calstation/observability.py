@@ -58,17 +58,35 @@ def sigma_problems(
                 f"{name}: σ {sigma * scale:.3f} {unit} > {limit * scale:.3f} {unit} "
                 f"(calibration.max_sigma.{field})"
             )
+    problem = _time_offset_problem(result, limits)
+    return problems if problem is None else [*problems, problem]
+
+
+def _time_offset_problem(result: CalibrationResult, limits: SigmaLimits) -> str | None:
+    """Why the estimated lidar–encoder time offset is refused, or None."""
     latency = result.sigma_encoder_latency_s
-    if result.encoder_latency_s is not None and (
-        latency is None or not latency <= limits.encoder_latency_ms * 1e-3
+    if result.encoder_latency_s is None or (
+        latency is not None and latency <= limits.encoder_latency_ms * 1e-3
     ):
-        shown = "unknown" if latency is None else f"{latency * 1e3:.3f} ms"
-        problems.append(
-            f"lidar–encoder time offset: σ {shown} > {limits.encoder_latency_ms:.3f} ms "
-            "(calibration.max_sigma.encoder_latency_ms): turn the second pass the other way or "
-            "faster, so that the two passes differ more in speed"
+        return None
+    details = result.diagnostics.get("time_offset") or {}
+    if latency is not None and math.isinf(latency) and "groups_aligned" in details:
+        return (
+            f"lidar–encoder time offset: its σ could not be measured: only "
+            f"{details['groups_aligned']} of the {details['groups']} groups of sectors of the "
+            "turn could be aligned on their own (at least 3 are needed), so the two passes' "
+            "returns of the spin target are too few or too noisy for the estimate. Scan both "
+            "passes over more turns (steps.spin_scan.revolutions), so that more returns fall on "
+            "the target; or "
+            "leave out steps.spin_scan.second_pass_rpm and set station.encoder.latency_s from a "
+            "measurement made elsewhere"
         )
-    return problems
+    shown = "unknown" if latency is None else f"{latency * 1e3:.3f} ms"
+    return (
+        f"lidar–encoder time offset: σ {shown} > {limits.encoder_latency_ms:.3f} ms "
+        "(calibration.max_sigma.encoder_latency_ms): turn the second pass the other way or "
+        "faster, so that the two passes differ more in speed"
+    )
 
 
 def problems_with_cube(

@@ -79,7 +79,9 @@ class TimeOffset:
     ``sigma_s`` its 1σ; ``configured_s`` what the recordings assumed, so ``latency_s −
     configured_s`` is the correction. ``rotation_rad`` is the turn that aligned the second pass
     to the first, ``speeds_rad_s`` the passes' mean signed speeds, ``pairs`` the point pairs of
-    the final fit.
+    the final fit, ``groups_aligned`` how many of the :data:`SECTORS` / 2 groups of sectors gave
+    an estimate of their own for the σ (in the weaker of the two directions; fewer than three
+    leave the σ infinite).
     """
 
     latency_s: float
@@ -88,6 +90,7 @@ class TimeOffset:
     rotation_rad: float
     speeds_rad_s: tuple[float, float]
     pairs: int
+    groups_aligned: int
     timings: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -105,6 +108,8 @@ class TimeOffset:
             "rotation_rad": self.rotation_rad,
             "speeds_rad_s": list(self.speeds_rad_s),
             "pairs": self.pairs,
+            "groups_aligned": self.groups_aligned,
+            "groups": SECTORS // 2,
             "timings": dict(self.timings),
         }
 
@@ -221,10 +226,11 @@ def _sectors(p: FloatArray, widen: float = 0.0) -> list[NDArray[np.intp]]:
             for d in ((0.0,) if widen == 0.0 else (-widen, 0.0, widen))]
 
 
-def _group_sigma(fixed: FloatArray, turned: FloatArray, theta: float) -> float:
-    """1σ of the turn from :data:`GROUPS` independent estimates, each from its own sectors of
+def _group_sigma(fixed: FloatArray, turned: FloatArray, theta: float) -> tuple[float, int]:
+    """1σ of the turn from independent estimates on the :data:`SECTORS` / 2 groups of sectors of
     the turn in both passes (sectors k and k + SECTORS/2 form a group): their information-weighted
-    spread, which holds every error that differs across the turn, in either pass."""
+    spread, which holds every error that differs across the turn, in either pass; and how many
+    groups gave an estimate (the σ is infinite with fewer than three)."""
     groups = SECTORS // 2
     in_a = [s % groups for s in _sectors(fixed, SECTOR_MARGIN)]
     (in_b,) = [s % groups for s in _sectors(turned)]
@@ -241,10 +247,11 @@ def _group_sigma(fixed: FloatArray, turned: FloatArray, theta: float) -> float:
         est.append(theta_g)
         info.append(float(np.sum(J * J)))
     if len(est) < 3:
-        return math.inf
+        return math.inf, len(est)
     th, w = np.array(est), np.array(info)
     mean = float(np.sum(w * th) / np.sum(w))
-    return float(math.sqrt(np.sum(w * (th - mean) ** 2) / ((len(est) - 1) * np.sum(w))))
+    sigma = math.sqrt(np.sum(w * (th - mean) ** 2) / ((len(est) - 1) * np.sum(w)))
+    return float(sigma), len(est)
 
 
 def _fit_to(
@@ -259,8 +266,11 @@ def _fit_to(
     return _fit(a, normals, weights, t_a, turned, theta, max_distance)
 
 
-def _align(fixed: FloatArray, turned: FloatArray, limit: float) -> tuple[float, float, int]:
-    """The turn about X_D (rad) that puts ``turned`` onto ``fixed``, its 1σ and the pairs used.
+def _align(
+    fixed: FloatArray, turned: FloatArray, limit: float
+) -> tuple[float, float, int, int]:
+    """The turn about X_D (rad) that puts ``turned`` onto ``fixed``, its 1σ, the pairs used and
+    the groups of sectors that gave the σ.
 
     ``fixed`` is averaged in cubes of :data:`VOXEL` and given normals; ``turned`` stays as
     measured (averaged on the same grid its cubes would lock onto ``fixed``'s at no turn). A
@@ -288,7 +298,8 @@ def _align(fixed: FloatArray, turned: FloatArray, limit: float) -> tuple[float, 
     # the wide first fit only brings the turn close: a quarter of the returns do
     theta, _, _, _ = _fit(a, normals, weights, t_a, b[::4], theta, 2.0 * VOXEL)
     theta, used, _, _ = _fit(a, normals, weights, t_a, b, theta, VOXEL)
-    return theta, _group_sigma(fixed, b, theta), int(used.size)
+    sigma, groups = _group_sigma(fixed, b, theta)
+    return theta, sigma, int(used.size), groups
 
 
 def estimate_time_offset(
@@ -348,6 +359,7 @@ def estimate_time_offset(
         rotation_rad=theta,
         speeds_rad_s=(w1, w2),
         pairs=pairs,
+        groups_aligned=min(forward[3], backward[3]),
         timings=timings,
     )
 

@@ -18,10 +18,12 @@ from hypothesis import strategies as st
 
 from calstation.errors import FineTuningError, RecipeError
 from calstation.frames import PARAMETER_NAMES, Extrinsics
-from calstation.recipe import load_recipe
+from calstation.observability import sigma_problems
+from calstation.recipe import SigmaLimits, load_recipe
 from calstation.recording import read_recording
 from calstation.result import CalibrationResult
 from calstation.timeoffset import (
+    TimeOffset,
     _align,
     _turn,
     estimate_time_offset,
@@ -67,10 +69,30 @@ def test_align_recovers_a_known_turn_of_a_noisy_cloud() -> None:
     fixed = _frustum_cloud(rng, 150_000, 0.0005)
     for turn in (0.0, 0.004, -0.02):
         turned = _turn(_frustum_cloud(rng, 60_000, 0.0005), -turn)
-        theta, sigma, pairs = _align(fixed, turned, 0.1)
-        assert pairs > 10_000
+        theta, sigma, pairs, groups = _align(fixed, turned, 0.1)
+        assert pairs > 10_000 and groups == 6
         assert abs(theta - turn) < 3e-4, (turn, theta)
         assert abs(theta - turn) <= 4 * sigma + 1e-5, (turn, theta, sigma)
+
+
+def test_a_sparse_pass_leaves_the_sigma_unmeasured_and_the_gate_says_why() -> None:
+    """Too few returns for the groups of sectors to align on their own: the turn is still found,
+    but its σ cannot be measured, and the σ gate refuses it saying so (not "turn faster")."""
+    rng = np.random.default_rng(11)
+    fixed = _frustum_cloud(rng, 150_000, 0.0005)
+    turned = _turn(_frustum_cloud(rng, 9_000, 0.0005), -0.004)
+    theta, sigma, pairs, groups = _align(fixed, turned, 0.1)
+    assert abs(theta - 0.004) < 1e-3 and pairs >= 2_000
+    assert groups < 3 and math.isinf(sigma)
+    offset = TimeOffset(latency_s=0.001, sigma_s=sigma, configured_s=0.0, rotation_rad=theta,
+                        speeds_rad_s=(2.0, -2.0), pairs=pairs, groups_aligned=groups)
+    result = CalibrationResult(
+        H=Extrinsics(), sigma={p: 1e-6 for p in PARAMETER_NAMES}, cost=0.0, iterations=1,
+        strategy="periodicity", encoder_latency_s=offset.latency_s,
+        sigma_encoder_latency_s=offset.sigma_s, diagnostics={"time_offset": offset.as_dict()})
+    (problem,) = sigma_problems(result, SigmaLimits())
+    assert f"only {groups} of the 6 groups of sectors" in problem
+    assert "steps.spin_scan.revolutions" in problem
 
 
 def test_align_refuses_an_offset_beyond_the_search() -> None:
