@@ -129,6 +129,29 @@ def test_enable_sequence_then_spin_turns_the_platter(
     assert abs(platter.platter_speed_rpm(clock.now_ns())) < 0.05
 
 
+def test_a_second_pass_turns_the_other_way(
+    drive: DriveEmulator, turntable: Cia402Turntable, platter: RampPlatter, clock: HostClock,
+) -> None:
+    """A spin scan's second pass (steps.spin_scan.second_pass_rpm < 0): after a stop, a negative
+    speed turns the platter backwards, and the drive reports the signed speed."""
+    turntable.enable()
+    turntable.spin(20.0)
+    time.sleep(0.3)
+    assert platter.platter_speed_rpm(clock.now_ns()) == pytest.approx(20.0)
+    turntable.stop()
+    turntable.spin(-20.0)
+    time.sleep(0.3)
+    before = turntable.status()
+    time.sleep(0.2)
+    after = turntable.status()
+    assert platter.platter_speed_rpm(clock.now_ns()) == pytest.approx(-20.0)
+    assert after.state is TurntableState.MOVING and after.speed_rpm == pytest.approx(-20.0)
+    turned = after.position_rad - before.position_rad
+    seconds = (after.timestamp_ns - before.timestamp_ns) * 1e-9
+    assert turned == pytest.approx(-20.0 / 60.0 * 2 * math.pi * seconds, abs=0.05)
+    turntable.stop()
+
+
 def test_drive_fault_is_reported_and_reset(
     drive: DriveEmulator, turntable: Cia402Turntable, platter: RampPlatter, clock: HostClock
 ) -> None:
