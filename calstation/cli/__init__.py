@@ -72,26 +72,27 @@ interpreter's last ones over every imported module at exit, took a quarter of th
 nothing that the exit does not (docs/performance.md, *Start-up*). Every other command, the
 plugins' included, turns it back on before it starts."""
 
-_collector = {"restore": True}
+_collector = {"was_on": True}
+"""Whether the collector was on when :func:`main` was called (it is left as it was found)."""
 
 
 @app.callback()
 def _root(ctx: typer.Context) -> None:
     """Calibrate a static line-scanning lidar against a motorised turntable."""
-    if ctx.invoked_subcommand not in QUICK_COMMANDS and _collector["restore"]:
+    if ctx.invoked_subcommand not in QUICK_COMMANDS and _collector["was_on"]:
         gc.enable()
 
 
 def main(argv: list[str] | None = None) -> None:
     """Entry point of the ``calstation`` script (``argv`` from the command line when None):
     errors print as one clear message, exit code 2."""
-    _collector["restore"] = gc.isenabled()
+    _collector["was_on"] = gc.isenabled()
     gc.disable()
     try:
         _run(sys.argv[1:] if argv is None else argv)
     finally:
         quick = not gc.isenabled()
-        if _collector["restore"]:
+        if _collector["was_on"]:
             gc.enable()
         if quick and argv is None:
             # The process ends with the command: what the command leaves is freed by the exit
