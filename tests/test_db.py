@@ -95,6 +95,17 @@ def test_sqlite_is_in_wal_mode_with_foreign_keys(tmp_path: Path) -> None:
     db.dispose()
 
 
+def test_a_read_only_session_refuses_to_write(tmp_path: Path) -> None:
+    """Its transaction holds no lock to write with: a change is refused and nothing is written."""
+    db = open_database(f"sqlite:///{tmp_path / 'r.db'}")
+    with (pytest.raises(DatabaseError, match="read-only database session"),
+          db.session("reading", read_only=True) as s):
+        s.add(Station(name="never"))
+    with db.session("reading", read_only=True) as s:
+        assert s.query(Station).count() == 0
+    db.dispose()
+
+
 def test_default_location_follows_calstation_home(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

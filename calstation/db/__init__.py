@@ -117,6 +117,19 @@ READ_ONLY = "calstation_read_only"
 """Execution option of the engine behind :meth:`Database.session` ``(read_only=True)``."""
 
 
+class ReadingSession(Session):
+    """The session of :meth:`Database.session` ``(read_only=True)``: it refuses to write, since
+    its transaction holds no lock to write with."""
+
+    def flush(self, objects: Any = None) -> None:
+        """Refuse pending changes (an error in calstation, not in the database)."""
+        if self.new or self.dirty or self.deleted:
+            raise DatabaseError(
+                "calstation tried to write in a read-only database session; nothing was written"
+            )
+        super().flush(objects)
+
+
 def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
     """An engine for ``url``; SQLite gets WAL mode, foreign keys, its folder created, and
     transactions that take the write lock when they begin (``BEGIN IMMEDIATE``: a transaction
@@ -283,7 +296,7 @@ class Database:
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         self.reader: Engine = self.engine.execution_options(**{READ_ONLY: True})
         """The engine for reading only: its connections take no lock (see :func:`make_engine`)."""
-        self._readers = sessionmaker(self.reader, expire_on_commit=False)
+        self._readers = sessionmaker(self.reader, class_=ReadingSession, expire_on_commit=False)
         self.on_wait: Callable[[str], None] = on_wait or _say_waiting
         self.log_path: Path = calstation_home() / "database.log"
 
