@@ -26,6 +26,7 @@ from .errors import DatabaseError, RecordingError
 from .frames import Extrinsics
 from .recipe import LoadedRecipe, parse_recipe
 from .result import CalibrationResult
+from .runfolder import second_pass
 
 if TYPE_CHECKING:
     from .recording import Recording
@@ -184,7 +185,7 @@ def reprocess_run(
             paths["static"] = stored_recording(run, "static")
         warnings: list[str] = []
         if loaded.recipe.steps.spin_scan.second_pass_rpm is not None and kind == "spin":
-            paths["spin-pass2"] = stored_recording(run, "spin-pass2")
+            paths[second_pass("spin")] = stored_recording(run, second_pass("spin"))
         if strategy.fixture == "spin_target" and kind != "cube":
             try:  # the cube scan adds its side faces to ry, as at the station
                 paths["cube"] = stored_recording(run, "cube")
@@ -213,8 +214,8 @@ def reprocess_run(
     if "spin-pass2" in paths:  # under the final H (it moves a little with ry)
         from .timeoffset import with_time_offset
 
-        say(f"lidar–encoder time offset with {paths['spin-pass2']}")
-        second = read_recording(paths["spin-pass2"])
+        say(f"lidar–encoder time offset with {paths[second_pass('spin')]}")
+        second = read_recording(paths[second_pass("spin")])
         warnings += recording_disagreements(second, loaded)
         result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
     refused = problems_with_cube(result, rc.calibration.max_sigma, joint_failure)

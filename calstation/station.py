@@ -72,6 +72,7 @@ from .operator import Operator, publish
 from .recipe import LoadedRecipe, check_plugins, parse_recipe
 from .report import previous_accepted, run_brief, run_summary
 from .result import CalibrationResult
+from .runfolder import RECORDING_OF, second_pass
 from .spinscan import SpinScanBuilder
 from .spinscan import remember as remember_spin_scan
 
@@ -115,12 +116,10 @@ RETRY_FROM: dict[str, str] = {"fine_tune": "place_spin_target"}
 """Where a retry of a failed step starts: a fine-tuning refused for what its scan could see
 is retried by re-placing the spin target and scanning again, not by re-reading the same scan."""
 
-RECORDING_OF: dict[str, str] = {"static_scan": "static", "spin_scan": "spin", "cube_scan": "cube"}
-SECOND_PASS = "spin-pass2"
+SECOND_PASS = second_pass("spin")
 """File stem and artifact kind of the spin scan's second pass (``second_pass_rpm``)."""
-CUBE_SECOND_PASS = "cube-pass2"
+CUBE_SECOND_PASS = second_pass("cube")
 """… and of the cube scan's, measured together with the first (the time offset's check)."""
-"""Scan step → recording kind (and file stem in the run folder)."""
 
 PREFLIGHT_LINES = 10
 PREFLIGHT_SPIN_S = 0.5

@@ -27,6 +27,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from ..errors import DatabaseError, ResultJournalled
+from ..runfolder import SCAN_RECORDINGS
 from . import Database
 from .models import Artifact, Calibration, CubeCheckRecord, Run, Step, utcnow
 
@@ -238,13 +239,6 @@ def _owner_alive(host: str | None, pid: int | None) -> bool | None:
     return True
 
 
-SCAN_RECORDINGS = {
-    "static_scan": ("static",),
-    "spin_scan": ("spin", "spin-pass2"),
-    "cube_scan": ("cube", "cube-pass2"),
-}
-"""Scan step → the file stems (and artifact kinds) of its recordings in the run folder, in the
-order the station writes them (the spin scan's second pass last)."""
 
 
 def _register_partial_recordings(s: Session, run_id: int, run_dir: Path) -> list[str]:

@@ -12,6 +12,7 @@ from calstation.acquisition import acquire_spin, acquire_static
 from calstation.errors import SimulationError
 from calstation.frames import PARAMETER_NAMES, Extrinsics
 from calstation.recipe import LoadedRecipe, SpinScanStep
+from calstation.runfolder import second_pass
 
 from .drivers import SimEncoder, SimLidar, SimTurntable
 from .station import SimulatedStation
@@ -19,7 +20,6 @@ from .station import SimulatedStation
 RECORDINGS = (("static", "static_target"), ("spin", "spin_target"), ("cube", "qa_cube"))
 """(recording kind, fixture on the platter) in the order a run takes them."""
 
-SECOND_PASS = {"spin": "spin-pass2", "cube": "cube-pass2"}
 """File stems of the second passes (``steps.spin_scan``/``cube_scan.second_pass_rpm``)."""
 
 
@@ -34,7 +34,7 @@ def _scans(recipe: LoadedRecipe) -> list[tuple[str, str, str, SpinScanStep | Non
         out.append((kind, kind, fixture, step))
         second = step.second_pass()
         if second is not None:
-            out.append((SECOND_PASS[kind], kind, fixture, second))
+            out.append((second_pass(kind), kind, fixture, second))
     return out
 
 

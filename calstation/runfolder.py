@@ -1,0 +1,25 @@
+"""The recordings a run writes into its folder: the file stem (and artifact kind) of each scan
+step's recordings.
+
+No imports, so that the station, the database's journal (loaded by every command that opens the
+database), the re-processing and the simulator share one definition at no cost.
+"""
+
+from __future__ import annotations
+
+RECORDING_OF: dict[str, str] = {"static_scan": "static", "spin_scan": "spin", "cube_scan": "cube"}
+"""Scan step → the kind (and file stem) of its recording."""
+
+
+def second_pass(kind: str) -> str:
+    """The kind (and file stem) of the second pass of a ``kind`` scan
+    (``steps.spin_scan.second_pass_rpm``, ``steps.cube_scan.second_pass_rpm``)."""
+    return f"{kind}-pass2"
+
+
+SCAN_RECORDINGS: dict[str, tuple[str, ...]] = {
+    step: (kind,) if step == "static_scan" else (kind, second_pass(kind))
+    for step, kind in RECORDING_OF.items()
+}
+"""Scan step → the kinds of its recordings, in the order the station writes them (a second
+pass after the first)."""
