@@ -211,11 +211,12 @@ def reprocess_run(
         cube = read_recording(paths["cube"])
         warnings += recording_disagreements(cube, loaded)
         result, _, joint_failure = fine_tune_with_cube(result, cube, rc)
-    if "spin-pass2" in paths:  # under the final H (it moves a little with ry)
+    pass2 = paths.get(second_pass("spin"))
+    if pass2 is not None:  # under the final H (it moves a little with ry)
         from .timeoffset import with_time_offset
 
-        say(f"lidar–encoder time offset with {paths[second_pass('spin')]}")
-        second = read_recording(paths[second_pass("spin")])
+        say(f"lidar–encoder time offset with {pass2}")
+        second = read_recording(pass2)
         warnings += recording_disagreements(second, loaded)
         result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
     refused = problems_with_cube(result, rc.calibration.max_sigma, joint_failure)

@@ -23,6 +23,11 @@ def _parse_deadline(text: str) -> float:
         raise BenchError(f"--deadline {text!r}: expected HH:MM (UTC)") from None
 
 
+def _command_line() -> str:
+    """This command as typed (quoted for a shell), for the reports' provenance."""
+    return "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
 def _strategies(recipe: Path, methods: str) -> list[str]:
     """The strategies named in ``methods`` (comma-separated), after checking that the recipe
     exists and each strategy is installed."""
@@ -104,7 +109,7 @@ def register(app: typer.Typer) -> None:
 
         if not recipe.is_file():
             raise BenchError(f"{recipe}: recipe not found (give --recipe)")
-        command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        command = _command_line()
         make = BenchConfig.quick_config if quick else BenchConfig.full
         config = make(recipe, out, workers=workers, command=command)
         if scenarios:
@@ -164,7 +169,7 @@ def register(app: typer.Typer) -> None:
         from ..bench.basin import run_basin
 
         chosen = _strategies(recipe, methods)
-        command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        command = _command_line()
         console = Console(stderr=True)
         path = run_basin(recipe, out, report_dir or out, scenario, chosen, starts, workers,
                          command, console)
@@ -206,7 +211,7 @@ def register(app: typer.Typer) -> None:
         if not rpms or any(not 0.1 <= r <= 120 for r in rpms):
             raise BenchError(f"--rpm {speeds!r}: each speed must lie within 0.1–120 rpm")
         chosen = _strategies(recipe, methods)
-        command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        command = _command_line()
         console = Console(stderr=True)
         path = run_speed(recipe, out, report_dir or out, scenario, chosen, rpms, command,
                          console)
@@ -233,7 +238,7 @@ def register(app: typer.Typer) -> None:
         ),
         geometry: bool = typer.Option(
             True, "--geometry/--no-geometry",
-            help="also the stations of D5 with tz (±50–250 mm) or ry (±1–2°) far from what the "
+            help="also the stations of D5 with tz (±25–100 mm) or ry (±1–2°) far from what the "
             "start assumes",
         ),
     ) -> None:
@@ -251,7 +256,7 @@ def register(app: typer.Typer) -> None:
         if names and not set(names) <= known:
             raise BenchError(f"--scenarios {scenarios!r}: expected some of "
                              f"{', '.join(sorted(known))}")
-        command = "calstation " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        command = _command_line()
         console = Console(stderr=True)
         path = run_targetless(recipe, out, report_dir or out, chosen, seeds, names, command,
                               console, geometry)

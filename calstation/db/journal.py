@@ -239,8 +239,6 @@ def _owner_alive(host: str | None, pid: int | None) -> bool | None:
     return True
 
 
-
-
 def _register_partial_recordings(s: Session, run_id: int, run_dir: Path) -> list[str]:
     """Store the recordings of scans a dead process left running as ``partial`` artifacts."""
     from ..station import file_sha256

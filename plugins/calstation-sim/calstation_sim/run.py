@@ -17,11 +17,6 @@ from calstation.runfolder import second_pass
 from .drivers import SimEncoder, SimLidar, SimTurntable
 from .station import SimulatedStation
 
-RECORDINGS = (("static", "static_target"), ("spin", "spin_target"), ("cube", "qa_cube"))
-"""(recording kind, fixture on the platter) in the order a run takes them."""
-
-"""File stems of the second passes (``steps.spin_scan``/``cube_scan.second_pass_rpm``)."""
-
 
 def _scans(recipe: LoadedRecipe) -> list[tuple[str, str, str, SpinScanStep | None]]:
     """(file stem, recording kind, fixture, spin step or None for the static scan) in run order."""
