@@ -69,12 +69,14 @@ def _time_offset_problem(result: CalibrationResult, limits: SigmaLimits) -> str 
         latency is not None and latency <= limits.encoder_latency_ms * 1e-3
     ):
         return None
+    # from the estimate's details, not the σ's value: a stored σ that was infinite reads None
     details = result.diagnostics.get("time_offset") or {}
-    if latency is not None and math.isinf(latency) and "groups_aligned" in details:
+    aligned, needed = details.get("groups_aligned"), details.get("groups_needed")
+    if aligned is not None and needed is not None and aligned < needed:
         return (
-            f"lidar–encoder time offset: its σ could not be measured: only "
-            f"{details['groups_aligned']} of the {details['groups']} groups of sectors of the "
-            "turn could be aligned on their own (at least 3 are needed), so the two passes' "
+            f"lidar–encoder time offset: its σ could not be measured: only {aligned} of the "
+            f"{details['groups']} groups of sectors of the turn could be aligned on their own "
+            f"(at least {needed} are needed), so the two passes' "
             "returns of the spin target are too few or too noisy for the estimate. Scan both "
             "passes over more turns (steps.spin_scan.revolutions), so that more returns fall on "
             "the target; or "

@@ -67,6 +67,8 @@ smallest speed difference a recipe allows, far below the noise. (Near the soluti
 pairs change from one iteration to the next, and the turn cycles within about 1e-6 rad.)"""
 
 MIN_PAIRS = 2_000
+MIN_GROUPS = 3
+"""Groups of sectors that must give an estimate of their own for the σ to be measured."""
 MIN_SPEED_RATIO = 0.5
 """The passes' speeds must differ by this fraction of the faster one (as the recipe checks)."""
 
@@ -80,8 +82,8 @@ class TimeOffset:
     configured_s`` is the correction. ``rotation_rad`` is the turn that aligned the second pass
     to the first, ``speeds_rad_s`` the passes' mean signed speeds, ``pairs`` the point pairs of
     the final fit, ``groups_aligned`` how many of the :data:`SECTORS` / 2 groups of sectors gave
-    an estimate of their own for the σ (in the weaker of the two directions; fewer than three
-    leave the σ infinite).
+    an estimate of their own for the σ (in the weaker of the two directions; fewer than
+    :data:`MIN_GROUPS` leave the σ infinite).
     """
 
     latency_s: float
@@ -110,6 +112,7 @@ class TimeOffset:
             "pairs": self.pairs,
             "groups_aligned": self.groups_aligned,
             "groups": SECTORS // 2,
+            "groups_needed": MIN_GROUPS,
             "timings": dict(self.timings),
         }
 
@@ -230,7 +233,7 @@ def _group_sigma(fixed: FloatArray, turned: FloatArray, theta: float) -> tuple[f
     """1σ of the turn from independent estimates on the :data:`SECTORS` / 2 groups of sectors of
     the turn in both passes (sectors k and k + SECTORS/2 form a group): their information-weighted
     spread, which holds every error that differs across the turn, in either pass; and how many
-    groups gave an estimate (the σ is infinite with fewer than three)."""
+    groups gave an estimate (the σ is infinite with fewer than :data:`MIN_GROUPS`)."""
     groups = SECTORS // 2
     in_a = [s % groups for s in _sectors(fixed, SECTOR_MARGIN)]
     (in_b,) = [s % groups for s in _sectors(turned)]
@@ -246,7 +249,7 @@ def _group_sigma(fixed: FloatArray, turned: FloatArray, theta: float) -> tuple[f
             continue
         est.append(theta_g)
         info.append(float(np.sum(J * J)))
-    if len(est) < 3:
+    if len(est) < MIN_GROUPS:
         return math.inf, len(est)
     th, w = np.array(est), np.array(info)
     mean = float(np.sum(w * th) / np.sum(w))

@@ -93,6 +93,10 @@ def test_a_sparse_pass_leaves_the_sigma_unmeasured_and_the_gate_says_why() -> No
     (problem,) = sigma_problems(result, SigmaLimits())
     assert f"only {groups} of the 6 groups of sectors" in problem
     assert "steps.spin_scan.revolutions" in problem
+    # stored and read back, the infinite σ is None: the refusal says the same
+    again = CalibrationResult.from_dict(result.to_dict())
+    assert again.sigma_encoder_latency_s is None
+    assert sigma_problems(again, SigmaLimits()) == [problem]
 
 
 def test_align_refuses_an_offset_beyond_the_search() -> None:
