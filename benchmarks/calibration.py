@@ -11,7 +11,8 @@ Simulates one run (static, spin and cube scans) unless DIR already holds one, th
 - the initial calibration;
 - periodicity fine-tuning from the recording (preparation of the spin scan included), and the
   two parts of the station's path: the per-line work done while the spin scan runs
-  (:class:`calstation.spinscan.SpinScanBuilder`), then what is left when the scan ends (finishing
+  (:class:`calstation.engine.spinscan.SpinScanBuilder`), then what is left when the scan ends
+  (finishing
   the preparation and fine-tuning), which is the operator's wait;
 - shape fine-tuning and the cube check.
 
@@ -75,7 +76,7 @@ def simulate(recipe_path: Path, out: Path, seed: int, range_m: float, pitch: flo
     import yaml
     from calstation_sim import simulate_run
 
-    from calstation.recipe import LoadedRecipe, parse_recipe
+    from calstation.recipes import LoadedRecipe, parse_recipe
 
     data = yaml.safe_load(recipe_path.read_text())
     for key, value in (patch or {}).items():
@@ -93,12 +94,12 @@ def simulate(recipe_path: Path, out: Path, seed: int, range_m: float, pitch: flo
 
 def measure(recipe_path: Path, out: Path, with_shape: bool = True) -> dict[str, Any]:
     """One measurement of every stage on freshly read recordings; seconds, accuracy, memory."""
-    from calstation.cube import check_cube
-    from calstation.initial import initial_calibration
-    from calstation.metrics import axis_errors
-    from calstation.recipe import load_recipe
-    from calstation.recording import read_recording
-    from calstation.strategies import PeriodicityStrategy, ShapeStrategy
+    from calstation.engine.cube import check_cube
+    from calstation.engine.initial import initial_calibration
+    from calstation.engine.metrics import axis_errors
+    from calstation.plugins.cost_strategies import PeriodicityStrategy, ShapeStrategy
+    from calstation.recipes import load_recipe
+    from calstation.recordings.recording import read_recording
 
     rc = load_recipe(recipe_path).recipe
     t: dict[str, float] = {}
@@ -139,13 +140,13 @@ def measure(recipe_path: Path, out: Path, with_shape: bool = True) -> dict[str, 
 
 def _preload() -> None:
     """Import the engine first: a station has it loaded before its scans end
-    (``calstation.station.preload_engine`` imports it, Open3D included, when a run starts)."""
+    (``calstation.station.run.preload_engine`` imports it, Open3D included, when a run starts)."""
     import open3d  # noqa: F401
 
-    import calstation.cube
-    import calstation.initial
-    import calstation.periodicity
-    import calstation.shape  # noqa: F401
+    import calstation.engine.cube
+    import calstation.engine.initial
+    import calstation.engine.periodicity
+    import calstation.engine.shape  # noqa: F401
 
 
 def measure_station(recipe_path: Path, out: Path) -> dict[str, Any]:
@@ -154,14 +155,14 @@ def measure_station(recipe_path: Path, out: Path) -> dict[str, Any]:
     revision without it."""
     try:
         from calstation.drivers import EncoderSample
-        from calstation.periodicity import periodicity_fine_tune_scan
-        from calstation.spinscan import SpinScanBuilder
+        from calstation.engine.periodicity import periodicity_fine_tune_scan
+        from calstation.engine.spinscan import SpinScanBuilder
     except ImportError:
         return {}
-    from calstation.initial import initial_calibration
-    from calstation.metrics import axis_errors
-    from calstation.recipe import load_recipe
-    from calstation.recording import read_recording
+    from calstation.engine.initial import initial_calibration
+    from calstation.engine.metrics import axis_errors
+    from calstation.recipes import load_recipe
+    from calstation.recordings.recording import read_recording
 
     rc = load_recipe(recipe_path).recipe
     _preload()

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from calstation.drivers import EncoderSample, LidarInfo, LidarLine
-from calstation.frames import Extrinsics
-from calstation.reconstruct import reconstruct, write_ply
-from calstation.recording import RecordingWriter, read_recording
+from calstation.engine.frames import Extrinsics
+from calstation.engine.reconstruct import reconstruct, write_ply
+from calstation.recordings.recording import RecordingWriter, read_recording
 
 
 def main() -> None:

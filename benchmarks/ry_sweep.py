@@ -8,7 +8,7 @@ Each run simulates recipes/sim-periodicity.yaml with one combination of range no
 lines/s), the scenario cycling through the paper's nine and 0.9 m / 40°, and decides as the
 station does: periodicity fine-tuning from the initial calibration, its σ gate on tx, tz and rz,
 the cube check under that H, ry combined with the cube's side-face twist
-(:func:`calstation.joint.ry_with_cube`) and the ry gate on the result. It prints, per run and
+(:func:`calstation.engine.joint.ry_with_cube`) and the ry gate on the result. It prints, per run and
 then per noise level, the axis direction error of the periodicity alone and of the outcome,
 what was refused, and the σ coverage (|error| ≤ 3σ) of both. One run takes 30-90 s on one core.
 """
@@ -27,13 +27,13 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from calstation.initial import initial_calibration
-from calstation.joint import fine_tune_with_cube
-from calstation.metrics import axis_errors
-from calstation.observability import sigma_problems
-from calstation.recipe import LoadedRecipe, parse_recipe
-from calstation.recording import read_recording
-from calstation.strategies import PeriodicityStrategy
+from calstation.engine.initial import initial_calibration
+from calstation.engine.joint import fine_tune_with_cube
+from calstation.engine.metrics import axis_errors
+from calstation.engine.observability import sigma_problems
+from calstation.plugins.cost_strategies import PeriodicityStrategy
+from calstation.recipes import LoadedRecipe, parse_recipe
+from calstation.recordings.recording import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = [(r, p) for r in (1.0, 1.25, 1.5) for p in (30.0, 45.0, 60.0)] + [(0.9, 40.0)]

@@ -19,13 +19,13 @@ from pathlib import Path
 
 from ry_sweep import REPO, SCENARIOS, run_all, sim_recipe
 
-from calstation.cube import check_cube
+from calstation.engine.cube import check_cube
+from calstation.engine.initial import initial_calibration
+from calstation.engine.metrics import axis_errors
+from calstation.engine.observability import sigma_problems
 from calstation.errors import CalstationError
-from calstation.initial import initial_calibration
-from calstation.metrics import axis_errors
-from calstation.observability import sigma_problems
-from calstation.recording import read_recording
-from calstation.strategies import ShapeStrategy
+from calstation.plugins.cost_strategies import ShapeStrategy
+from calstation.recordings.recording import read_recording
 
 RATES = (180.0, 360.0, 1000.0)
 

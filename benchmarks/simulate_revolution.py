@@ -36,9 +36,9 @@ def main() -> None:
 
     from calstation_sim import SimEncoder, SimLidar, SimTurntable, SimulatedStation
 
-    from calstation.acquisition import acquire_spin
-    from calstation.recipe import SimulationConfig, load_recipe
-    from calstation.recording import RecordingWriter
+    from calstation.recipes import SimulationConfig, load_recipe
+    from calstation.recordings.recording import RecordingWriter
+    from calstation.station.acquisition import acquire_spin
 
     recipe = load_recipe(args.recipe)
     base = _peak_mib()

@@ -41,7 +41,7 @@ def _copy_rows(url: str, runs: int) -> None:
     it holds ``runs`` runs over four stations (ids remapped; everything else as stored)."""
     from sqlalchemy import select
 
-    from calstation.db import Base, Database
+    from calstation.storage.db import Base, Database
 
     tables = Base.metadata.tables
     db = Database(url)

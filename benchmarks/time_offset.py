@@ -27,12 +27,12 @@ from typing import Any
 import yaml
 
 from calstation import plugins
-from calstation.cube import check_cube, check_cube_passes
-from calstation.initial import initial_calibration
-from calstation.recipe import load_recipe
-from calstation.recording import read_recording
-from calstation.strategies import run_strategy
-from calstation.timeoffset import with_time_offset
+from calstation.engine.cube import check_cube, check_cube_passes
+from calstation.engine.initial import initial_calibration
+from calstation.engine.timeoffset import with_time_offset
+from calstation.plugins.cost_strategies import run_strategy
+from calstation.recipes import load_recipe
+from calstation.recordings.recording import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "sim-periodicity-both-ways.yaml"

@@ -19,8 +19,8 @@ from typing import Any, Literal, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from .clock import Clock
-from .errors import DriverError
+from calstation.clock import Clock
+from calstation.errors import DriverError
 
 DriverKind = Literal["lidar", "turntable", "encoder"]
 
@@ -166,7 +166,7 @@ class DriverContext:
     """What a driver factory gets besides its own settings; one per run.
 
     - ``clock``: the host clock drivers stamp data with.
-    - ``recipe``: the :class:`~calstation.recipe.LoadedRecipe`, for drivers that need fixture
+    - ``recipe``: the :class:`~calstation.recipes.LoadedRecipe`, for drivers that need fixture
       geometry (the simulator).
     - ``shared``: a per-run dictionary where the drivers of one plugin keep state they share (the
       simulated lidar, turntable and encoder share one scene through it). Keys are plugin names.

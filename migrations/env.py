@@ -2,7 +2,7 @@
 
 Uses the connection in ``config.attributes["connection"]`` when one is given (calstation's own
 ``Database.upgrade`` and the tests pass theirs, with SQLite's foreign keys already off: see
-``calstation.db.foreign_keys_off``); otherwise connects to ``-x url=...``, the
+``calstation.storage.db.foreign_keys_off``); otherwise connects to ``-x url=...``, the
 ``sqlalchemy.url`` option, ``CALSTATION_DB_URL`` or the default SQLite file.
 """
 
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from alembic import context
 
-from calstation.db import default_database_url, foreign_keys_off, make_engine
-from calstation.db.models import Base
+from calstation.storage.db import default_database_url, foreign_keys_off, make_engine
+from calstation.storage.db.models import Base
 
 config = context.config
 target_metadata = Base.metadata

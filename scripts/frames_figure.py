@@ -15,8 +15,8 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from calstation import ros
-from calstation.frames import Extrinsics
+from calstation.engine.frames import Extrinsics
+from calstation.storage import ros
 
 H = Extrinsics(ty=1.0, rz=np.radians(-45.0))
 PLATTER_RADIUS = 0.2925

@@ -39,7 +39,7 @@ def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., dict[str,
     ) -> dict[str, Path]:
         from calstation_sim import simulate_run
 
-        from calstation.recipe import load_recipe
+        from calstation.recipes import load_recipe
 
         path = Path(recipe) if Path(recipe).is_absolute() else REPO / recipe
         key = (float(range_m), float(pitch_deg), int(seed), str(path))

@@ -16,13 +16,13 @@ import math
 import numpy as np
 import pytest
 
-from calstation.cube import check_cube
-from calstation.frames import Extrinsics
-from calstation.initial import initial_calibration
-from calstation.metrics import axis_errors, reconstruction_distortion
-from calstation.recipe import load_recipe
-from calstation.recording import read_recording
-from calstation.strategies import PeriodicityStrategy, ShapeStrategy
+from calstation.engine.cube import check_cube
+from calstation.engine.frames import Extrinsics
+from calstation.engine.initial import initial_calibration
+from calstation.engine.metrics import axis_errors, reconstruction_distortion
+from calstation.plugins.cost_strategies import PeriodicityStrategy, ShapeStrategy
+from calstation.recipes import load_recipe
+from calstation.recordings.recording import read_recording
 
 pytestmark = pytest.mark.slow
 

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from calstation.acquisition import acquire_spin, acquire_static
 from calstation.drivers import EncoderSample, LidarLine, TurntableStatus
+from calstation.engine.frames import Extrinsics
+from calstation.engine.reconstruct import reconstruct
 from calstation.errors import DriverError
-from calstation.frames import Extrinsics
-from calstation.recipe import load_recipe
-from calstation.reconstruct import reconstruct
-from calstation.recording import RecordingWriter, read_recording
+from calstation.recipes import load_recipe
+from calstation.recordings.recording import RecordingWriter, read_recording
+from calstation.station.acquisition import acquire_spin, acquire_static
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "sim-periodicity.yaml"
@@ -162,7 +162,7 @@ def small_station(tmp_path: Path, **lidar: Any) -> Any:
     import yaml
     from calstation_sim import SimulatedStation
 
-    from calstation.recipe import load_recipe
+    from calstation.recipes import load_recipe
 
     data = yaml.safe_load(RECIPE.read_text())
     data["simulation"]["lidar"].update({**SMALL, **lidar})

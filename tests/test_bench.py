@@ -20,8 +20,8 @@ from calstation.bench.scenarios import (
     sample_starts,
     select_scenarios,
 )
-from calstation.frames import Extrinsics
-from calstation.recipe import load_recipe
+from calstation.engine.frames import Extrinsics
+from calstation.recipes import load_recipe
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -87,7 +87,7 @@ def test_recipe_overrides_are_validated() -> None:
 
 def _axis_errors(H: dict[str, float], truth: dict[str, float]) -> tuple[float, float]:
     """Axis offset (m) and direction error (rad), computed here from the definitions in
-    DESIGN §8, independently of calstation.metrics."""
+    DESIGN §8, independently of calstation.engine.metrics."""
     from scipy.spatial.transform import Rotation
 
     def axis(h: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from calstation.binning import azimuth_bin_median
+from calstation.engine.binning import azimuth_bin_median
 from calstation.errors import CalibrationError
 
 

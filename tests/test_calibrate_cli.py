@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 from clirun import run_cli as _run
 
-from calstation.metrics import axis_errors
-from calstation.recording import read_recording
-from calstation.result import CalibrationResult
+from calstation.engine.metrics import axis_errors
+from calstation.engine.result import CalibrationResult
+from calstation.recordings.recording import read_recording
 
 RECIPE = str(Path(__file__).resolve().parents[1] / "recipes" / "sim-periodicity.yaml")
 

@@ -14,7 +14,8 @@ import yaml
 from typer.testing import CliRunner
 
 from calstation.cli import _build, app
-from calstation.db import (
+from calstation.engine.result import CalibrationResult
+from calstation.storage.db import (
     Artifact,
     Calibration,
     CubeCheckRecord,
@@ -24,7 +25,6 @@ from calstation.db import (
     Step,
     open_database,
 )
-from calstation.result import CalibrationResult
 
 RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "sim-periodicity.yaml"
 

@@ -8,13 +8,13 @@ import math
 import numpy as np
 import pytest
 
-from calstation.cube import check_cube, check_cube_points
+from calstation.engine.cube import check_cube, check_cube_points
+from calstation.engine.frames import Extrinsics
+from calstation.engine.geometry import fit_plane
+from calstation.engine.spinscan import from_recording
 from calstation.errors import VerificationError
-from calstation.frames import Extrinsics
-from calstation.geometry import fit_plane
-from calstation.recipe import Recipe, load_recipe
-from calstation.recording import Recording, read_recording
-from calstation.spinscan import from_recording
+from calstation.recipes import Recipe, load_recipe
+from calstation.recordings.recording import Recording, read_recording
 
 
 def _cube_scan(sim_run) -> tuple[Recipe, Recording, Extrinsics]:
@@ -90,7 +90,7 @@ def test_a_smeared_cube_is_a_failed_check_not_an_error(sim_run) -> None:
 def test_the_check_measures_from_the_platter_it_sees(sim_run) -> None:
     """The origin along the axis is a gauge: 4 mm of it must not lift the platter into the cube
     (it did: the largest cluster then took in a patch of platter, 175 mm long)."""
-    from calstation.metrics import axis_errors
+    from calstation.engine.metrics import axis_errors
 
     recipe, rec, truth = _cube_scan(sim_run)
     for shift in (0.004, -0.004):

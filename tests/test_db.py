@@ -12,7 +12,8 @@ from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
 from sqlalchemy import inspect, select, text
 
-from calstation.db import (
+from calstation.errors import DatabaseError
+from calstation.storage.db import (
     SCHEMA_HEAD,
     Artifact,
     Base,
@@ -27,7 +28,6 @@ from calstation.db import (
     head_revision,
     open_database,
 )
-from calstation.errors import DatabaseError
 
 
 def test_revision_chain_is_linear() -> None:

@@ -20,9 +20,9 @@ from typing import Any
 
 import pytest
 
-from calstation.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
-from calstation.frames import Extrinsics
-from calstation.station import STEPS, file_sha256, wait_for_step
+from calstation.engine.frames import Extrinsics
+from calstation.station.run import STEPS, file_sha256, wait_for_step
+from calstation.storage.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
 from calstation.testing import lean_recipe
 
 pytest.importorskip("calstation_sim")
@@ -45,7 +45,7 @@ def _cli(*args: str) -> list[str]:
 
 
 def _truth(db: Database, run_id: int) -> Extrinsics:
-    from calstation.recording import read_recording
+    from calstation.recordings.recording import read_recording
 
     with db.session() as s:
         art = s.query(Artifact).filter_by(run_id=run_id, kind="static").one()
@@ -55,7 +55,7 @@ def _truth(db: Database, run_id: int) -> Extrinsics:
 
 
 def _assert_accurate_and_passed(db: Database, run_id: int) -> dict[str, Any]:
-    from calstation.metrics import axis_errors
+    from calstation.engine.metrics import axis_errors
 
     with db.session() as s:
         run = s.get(Run, run_id)
@@ -134,7 +134,7 @@ def _assert_well_known_schemas(run_dir: Path, stored: dict[str, dict[str, float]
     spin and cube scans carry the calibration known when they started, and their cloud."""
     from mcap.reader import make_reader
 
-    from calstation.messages import decode_frame_transform
+    from calstation.recordings.messages import decode_frame_transform
 
     for kind, calibration in (("static", None), ("spin", "initial"), ("cube", "fine")):
         with open(run_dir / f"{kind}.mcap", "rb") as f:

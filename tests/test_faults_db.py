@@ -22,7 +22,10 @@ import pytest
 from sqlalchemy import event, func, select, text
 
 from calstation import hookimpl, plugins
-from calstation.db import (
+from calstation.errors import DatabaseError
+from calstation.recipes import load_recipe
+from calstation.station.run import STEPS, file_sha256, resume_run, start_run
+from calstation.storage.db import (
     Artifact,
     Calibration,
     CubeCheckRecord,
@@ -33,10 +36,7 @@ from calstation.db import (
     get_or_create_station,
     open_database,
 )
-from calstation.db import journal as journal_mod
-from calstation.errors import DatabaseError
-from calstation.recipe import load_recipe
-from calstation.station import STEPS, file_sha256, resume_run, start_run
+from calstation.storage.db import journal as journal_mod
 
 pytest.importorskip("calstation_sim")
 from calstation_sim import plugin as sim_plugin

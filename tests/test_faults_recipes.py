@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from calstation import hookimpl, plugins
 from calstation.cli import main
 from calstation.errors import RecipeError
-from calstation.recipe import check_plugins, load_recipe, parse_recipe
+from calstation.recipes import check_plugins, load_recipe, parse_recipe
 
 REPO = Path(__file__).resolve().parents[1]
 BASE = (REPO / "recipes" / "sim-periodicity.yaml").read_text(encoding="utf-8")

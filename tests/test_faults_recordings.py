@@ -20,14 +20,14 @@ from clirun import run_cli as _run
 from sqlalchemy import select
 
 from calstation import hookimpl, plugins
-from calstation.db import Artifact, Database, Run, Step, open_database
 from calstation.drivers import EncoderSample, LidarInfo, LidarLine
+from calstation.engine.frames import Extrinsics
 from calstation.errors import DriverError
-from calstation.frames import Extrinsics
 from calstation.quiet import quiet_open3d, stdout_to_stderr
-from calstation.recipe import load_recipe
-from calstation.recording import RecordingWriter
-from calstation.station import file_sha256, resume_run, start_run
+from calstation.recipes import load_recipe
+from calstation.recordings.recording import RecordingWriter
+from calstation.station.run import file_sha256, resume_run, start_run
+from calstation.storage.db import Artifact, Database, Run, Step, open_database
 
 pytest.importorskip("calstation_sim")
 from calstation_sim import drivers as sim_drivers

@@ -15,9 +15,9 @@ import pytest
 import yaml
 from test_e2e import _cli, _env, lean_recipe
 
-from calstation.db import Artifact, Database, Run, Step
-from calstation.recipe import load_recipe
-from calstation.station import STEPS, file_sha256, wait_for_step
+from calstation.recipes import load_recipe
+from calstation.station.run import STEPS, file_sha256, wait_for_step
+from calstation.storage.db import Artifact, Database, Run, Step
 
 pytestmark = pytest.mark.slow
 pytest.importorskip("calstation_sim")

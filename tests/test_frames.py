@@ -1,4 +1,4 @@
-"""Round trips and conventions of calstation.frames (DESIGN §2)."""
+"""Round trips and conventions of calstation.engine.frames (DESIGN §2)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
-from calstation import frames
+from calstation.engine import frames
+from calstation.engine.frames import Extrinsics
 from calstation.errors import FrameError
-from calstation.frames import Extrinsics
 
 finite = st.floats(-5.0, 5.0, allow_nan=False, allow_infinity=False)
 angle = st.floats(-math.pi + 1e-3, math.pi - 1e-3)

@@ -7,9 +7,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, QhullError
 
-from calstation.cube import FaceFlatness
-from calstation.frames import Extrinsics, lidar_to_dynamic
-from calstation.geometry import (
+from calstation.engine.cube import FaceFlatness
+from calstation.engine.frames import Extrinsics, lidar_to_dynamic
+from calstation.engine.geometry import (
     _hull_candidates,
     level_of_heights,
     platter_level,

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from calstation.engine.frames import Extrinsics, lidar_to_polar, platform_to_lidar
+from calstation.engine.initial import initial_calibration, initial_from_returns
 from calstation.errors import InitialCalibrationError
-from calstation.frames import Extrinsics, lidar_to_polar, platform_to_lidar
-from calstation.initial import initial_calibration, initial_from_returns
-from calstation.recipe import InitialSettings, LTargetGeometry, load_recipe
-from calstation.recording import read_recording
+from calstation.recipes import InitialSettings, LTargetGeometry, load_recipe
+from calstation.recordings.recording import read_recording
 
 TARGET = LTargetGeometry()
 
@@ -100,7 +100,7 @@ def test_simulated_static_scan_within_set_a_of_truth(sim_run) -> None:
 def test_empty_recording_is_a_clear_error(tmp_path) -> None:
     from calstation.drivers import LidarInfo, LidarLine
     from calstation.errors import CalstationError
-    from calstation.recording import RecordingWriter
+    from calstation.recordings.recording import RecordingWriter
 
     info = LidarInfo("sim", "line", "0", math.radians(72), 100, 1000.0, 0.2, 10.0)
     kw = {"kind": "static", "lidar_info": info, "counts_per_revolution": 4096}

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from calstation.engine.lines import fit_line, intersect_lines, segment_profile, split_at_gaps
 from calstation.errors import CalibrationError
-from calstation.lines import fit_line, intersect_lines, segment_profile, split_at_gaps
 
 
 def _polyline(corners: list[tuple[float, float]], step: float) -> np.ndarray:

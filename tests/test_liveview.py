@@ -19,9 +19,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from calstation import recording
-from calstation.messages import decode_frame_transform, decode_laser_scan
-from calstation.recipe import load_recipe
+from calstation.recipes import load_recipe
+from calstation.recordings import recording
+from calstation.recordings.messages import decode_frame_transform, decode_laser_scan
 
 DATA = Path(__file__).parent / "data" / "v1"
 # the Foxglove WebSocket protocol: foxglove-sdk 0.30 speaks it as "foxglove.sdk.v1", the
@@ -94,7 +94,7 @@ def test_live_view_streams_a_simulated_scan(tmp_path: Path) -> None:
     platter angle and the calibration as transforms."""
     from calstation_sim import simulate_run
 
-    from calstation.liveview import start_live_view
+    from calstation.recordings.liveview import start_live_view
 
     view = start_live_view(port=0)
     try:
@@ -173,7 +173,7 @@ def test_run_foxglove_option_streams_laserscans(tmp_path: Path) -> None:
 
 
 def test_port_in_use_is_a_clear_error() -> None:
-    from calstation.liveview import LiveViewError, start_live_view
+    from calstation.recordings.liveview import LiveViewError, start_live_view
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

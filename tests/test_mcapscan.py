@@ -8,7 +8,7 @@ import struct
 import pytest
 from mcap.writer import CompressionType, Writer
 
-from calstation import mcapscan
+from calstation.recordings import mcapscan
 
 
 def _file(n_messages: int = 400, chunk_size: int = 2000) -> bytes:

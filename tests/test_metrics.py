@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calstation.frames import Extrinsics
-from calstation.metrics import axis_errors, distortion_points, kabsch
+from calstation.engine.frames import Extrinsics
+from calstation.engine.metrics import axis_errors, distortion_points, kabsch
 
 TRUTH = Extrinsics(0.002, 1.25, 0.003, 0.0, math.radians(0.1), math.radians(-45))
 
@@ -57,7 +57,7 @@ def test_distortion_zero_for_truth_and_positive_for_an_error() -> None:
         [rng.uniform(0.01, 0.1, n), rng.uniform(-0.05, 0.05, n), rng.uniform(-0.05, 0.05, n)]
     )
     phi = rng.uniform(0, 2 * math.pi, n)
-    from calstation.frames import dynamic_to_lidar
+    from calstation.engine.frames import dynamic_to_lidar
 
     p_L = dynamic_to_lidar(p_D, phi, TRUTH)
     d0 = distortion_points(p_L, phi, TRUTH, TRUTH)

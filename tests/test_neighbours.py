@@ -1,4 +1,4 @@
-"""Nearest neighbours and local planes (calstation.neighbours), and the periodicity problem's
+"""Nearest neighbours and local planes (calstation.engine.neighbours), and the periodicity problem's
 closed-form Jacobian."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize._numdiff import approx_derivative
 
-from calstation.neighbours import local_planes, mutual_neighbours, smallest_eigenvectors
-from calstation.periodicity import _Matched, _Problem
+from calstation.engine.neighbours import local_planes, mutual_neighbours, smallest_eigenvectors
+from calstation.engine.periodicity import _Matched, _Problem
 
 
 @settings(max_examples=60, deadline=None)

@@ -7,18 +7,18 @@ import math
 import numpy as np
 import pytest
 
-from calstation.errors import FineTuningError
-from calstation.frames import Extrinsics, polar_to_lidar
-from calstation.metrics import axis_errors
-from calstation.neighbours import mutual_neighbours, weighted_normals
-from calstation.periodicity import (
+from calstation.engine.frames import Extrinsics, polar_to_lidar
+from calstation.engine.metrics import axis_errors
+from calstation.engine.neighbours import mutual_neighbours, weighted_normals
+from calstation.engine.periodicity import (
     periodicity_fine_tune,
     periodicity_fine_tune_points,
     sensor_cells,
 )
-from calstation.recipe import PeriodicitySettings, load_recipe
-from calstation.recording import read_recording
-from calstation.spinscan import static_mask
+from calstation.engine.spinscan import static_mask
+from calstation.errors import FineTuningError
+from calstation.recipes import PeriodicitySettings, load_recipe
+from calstation.recordings.recording import read_recording
 
 
 def test_weighted_normals_plane_and_line() -> None:

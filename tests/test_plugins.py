@@ -14,8 +14,9 @@ from typing import Any
 
 import pytest
 
-from calstation import hookimpl, hookspecs, plugins
+from calstation import hookimpl, plugins
 from calstation.errors import PluginError
+from calstation.plugins import hookspecs
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "plugins.md"
 
@@ -192,7 +193,7 @@ def test_trace_variable_prints_hook_calls() -> None:
 
 def test_a_settings_model_named_by_path_loads_when_a_recipe_is_checked() -> None:
     from calstation.errors import PluginError
-    from calstation.recipe import settings_model_of
+    from calstation.recipes import settings_model_of
 
     def factory(settings: object, context: object) -> None: ...
 

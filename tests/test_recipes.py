@@ -12,7 +12,7 @@ import pytest
 from calstation import hookimpl, plugins
 from calstation.cli import main
 from calstation.errors import RecipeError
-from calstation.recipe import check_plugins, load_recipe
+from calstation.recipes import check_plugins, load_recipe
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 

@@ -14,16 +14,16 @@ from typer.testing import CliRunner
 
 from calstation.cli import reconstruct as reconstruct_cli
 from calstation.drivers import EncoderSample, LidarInfo, LidarLine
-from calstation.errors import RecordingError
-from calstation.frames import (
+from calstation.engine.frames import (
     Extrinsics,
     dynamic_to_lidar,
     lidar_to_dynamic,
     lidar_to_polar,
     polar_to_lidar,
 )
-from calstation.reconstruct import load_extrinsics, read_ply, reconstruct, write_ply
-from calstation.recording import RecordingWriter, read_recording
+from calstation.engine.reconstruct import load_extrinsics, read_ply, reconstruct, write_ply
+from calstation.errors import RecordingError
+from calstation.recordings.recording import RecordingWriter, read_recording
 
 T0 = 1_767_225_600_000_000_000
 CPR = 4096
@@ -149,7 +149,7 @@ def test_load_extrinsics(tmp_path: Path) -> None:
 
 
 def test_load_calibration_file_gives_the_encoder_latency_with_h(tmp_path: Path) -> None:
-    from calstation.reconstruct import load_calibration_file
+    from calstation.engine.reconstruct import load_calibration_file
 
     h = H.as_dict()
     cal = tmp_path / "cal.json"

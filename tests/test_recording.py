@@ -22,10 +22,10 @@ from calstation.drivers import (
     TurntableState,
     TurntableStatus,
 )
+from calstation.engine.frames import Extrinsics, polar_to_lidar
 from calstation.errors import RecordingError
-from calstation.frames import Extrinsics, polar_to_lidar
-from calstation.recipe import LoadedRecipe, parse_recipe
-from calstation.recording import (
+from calstation.recipes import LoadedRecipe, parse_recipe
+from calstation.recordings.recording import (
     FORMAT_VERSION,
     RecordingTruncatedWarning,
     RecordingWriter,
@@ -442,8 +442,8 @@ def test_cloud_only_for_a_completed_scan_with_a_calibration(tmp_path: Path) -> N
     assert rec.calibration == H and rec.metadata["calibration"]["source"] == "initial"
     with open(tmp_path / "done.mcap", "rb") as f:
         (msg,) = [m for _, _, m in make_reader(f).iter_messages(topics=["/platter/cloud"])]
-    from calstation.messages import point_cloud
-    from calstation.reconstruct import reconstruct
+    from calstation.engine.reconstruct import reconstruct
+    from calstation.recordings.messages import point_cloud
 
     # every k-th point (valid or not) of the scan, k = ceil(2000 / 500), reconstructed
     points = reconstruct(rec, H)

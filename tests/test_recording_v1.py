@@ -16,10 +16,15 @@ import numpy as np
 import pytest
 
 from calstation import plugins
-from calstation.frames import Extrinsics
-from calstation.initial import initial_calibration
-from calstation.recipe import load_recipe
-from calstation.recording import FORMAT_VERSION, Recording, RecordingWriter, read_recording
+from calstation.engine.frames import Extrinsics
+from calstation.engine.initial import initial_calibration
+from calstation.recipes import load_recipe
+from calstation.recordings.recording import (
+    FORMAT_VERSION,
+    Recording,
+    RecordingWriter,
+    read_recording,
+)
 
 DATA = Path(__file__).parent / "data" / "v1"
 EXPECTED = json.loads((DATA / "expected.json").read_text(encoding="utf-8"))

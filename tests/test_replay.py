@@ -10,8 +10,6 @@ import numpy as np
 import pytest
 
 from calstation import plugins
-from calstation.acquisition import acquire_spin, acquire_static
-from calstation.builtin_plugins import replay
 from calstation.clock import HostClock
 from calstation.drivers import (
     DriverContext,
@@ -25,7 +23,9 @@ from calstation.drivers import (
     TurntableStatus,
 )
 from calstation.errors import DriverError
-from calstation.recording import Recording, RecordingWriter, read_recording
+from calstation.plugins.builtin import replay
+from calstation.recordings.recording import Recording, RecordingWriter, read_recording
+from calstation.station.acquisition import acquire_spin, acquire_static
 
 T0 = 1_767_225_600_000_000_000
 MS = 1_000_000
@@ -100,7 +100,7 @@ def _assert_same_lines(a: Recording, b: Recording) -> None:
 
 
 def test_registered_as_builtin_plugin() -> None:
-    assert "calstation.builtin_plugins.replay" in plugins.DEFAULT_PLUGINS
+    assert "calstation.plugins.builtin.replay" in plugins.DEFAULT_PLUGINS
     assert set(_factories()) == {("lidar", "replay"), ("turntable", "replay"),
                                  ("encoder", "replay")}
 
@@ -243,7 +243,7 @@ def test_simulated_run_replays_identically(
     sim_run: Any, tmp_path: Path
 ) -> None:
     """A simulated run's folder replayed through the acquisition loops gives the same scans."""
-    from calstation.recipe import load_recipe
+    from calstation.recipes import load_recipe
 
     paths = sim_run()
     steps = load_recipe(Path(__file__).parents[1] / "recipes/sim-periodicity.yaml").recipe.steps

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calstation.report_html import half_turn_residuals, local_plane_residuals
+from calstation.storage.report_html import half_turn_residuals, local_plane_residuals
 
 
 def test_half_turn_residuals_measure_the_offset_between_half_turns() -> None:

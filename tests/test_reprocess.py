@@ -14,12 +14,12 @@ import pytest
 import yaml
 from clirun import run_cli as _run
 
-from calstation.db import Artifact, Calibration, Database, Run, Station, Step, open_database
-from calstation.metrics import axis_errors
-from calstation.recipe import load_recipe
-from calstation.recording import read_recording
-from calstation.reprocess import recording_disagreements
-from calstation.station import file_sha256
+from calstation.engine.metrics import axis_errors
+from calstation.recipes import load_recipe
+from calstation.recordings.recording import read_recording
+from calstation.station.reprocess import recording_disagreements
+from calstation.station.run import file_sha256
+from calstation.storage.db import Artifact, Calibration, Database, Run, Station, Step, open_database
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "sim-periodicity.yaml"
@@ -27,7 +27,7 @@ RECIPE = REPO / "recipes" / "sim-periodicity.yaml"
 
 def _store_run(db: Database, files: dict[str, Path], status: str = "passed") -> int:
     """A finished periodicity run of ``files`` as the station stores it; returns its id."""
-    from calstation.initial import initial_calibration
+    from calstation.engine.initial import initial_calibration
 
     loaded = load_recipe(RECIPE)
     static = read_recording(files["static"])
@@ -88,7 +88,7 @@ def test_reprocessing_with_shape_stores_a_second_calibration(
         # the shape strategy used the run's cube scan, and lands near the truth
         assert new.diagnostics["reprocess"]["recordings"]["cube"] == str(files["cube"])
         assert new.diagnostics["timings"]["total"] > 0
-        from calstation.frames import Extrinsics
+        from calstation.engine.frames import Extrinsics
 
         H = Extrinsics.from_dict(new.params())
         assert axis_errors(H, truth)["axis_offset_m"] < 3e-3  # shape: mm-level, not sub-mm

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from calstation.engine.frames import Extrinsics
+from calstation.engine.result import CalibrationResult
 from calstation.errors import CalibrationError
-from calstation.frames import Extrinsics
-from calstation.result import CalibrationResult
 
 
 def _result() -> CalibrationResult:

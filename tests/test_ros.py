@@ -15,11 +15,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from calstation import ros
 from calstation.cli import _build, app
-from calstation.db import Calibration, Run, Station, open_database
+from calstation.engine.frames import Extrinsics, euler_to_matrix, polar_to_lidar
 from calstation.errors import CalstationError
-from calstation.frames import Extrinsics, euler_to_matrix, polar_to_lidar
+from calstation.storage import ros
+from calstation.storage.db import Calibration, Run, Station, open_database
 
 H = Extrinsics(0.0123456789, 1.2498765432, -0.0004321098, 0.0, 0.0012345678, -0.7856781234)
 

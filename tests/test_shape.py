@@ -8,9 +8,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from calstation.errors import FineTuningError
-from calstation.frames import Extrinsics
-from calstation.geometry import (
+from calstation.engine.frames import Extrinsics
+from calstation.engine.geometry import (
     face_labels,
     largest_cluster,
     minimal_obb,
@@ -18,11 +17,12 @@ from calstation.geometry import (
     signed_face_distances,
     upright_box,
 )
-from calstation.metrics import axis_errors
-from calstation.recipe import Recipe, load_recipe
-from calstation.recording import Recording, read_recording
-from calstation.result import CalibrationResult
-from calstation.shape import rz_sigma_floor, shape_fine_tune
+from calstation.engine.metrics import axis_errors
+from calstation.engine.result import CalibrationResult
+from calstation.engine.shape import rz_sigma_floor, shape_fine_tune
+from calstation.errors import FineTuningError
+from calstation.recipes import Recipe, load_recipe
+from calstation.recordings.recording import Recording, read_recording
 
 
 def _cube_surface(s: float, yaw: float, n: int, noise: float, seed: int = 0) -> np.ndarray:
@@ -91,7 +91,7 @@ def test_outlier_filters() -> None:
 def test_no_cube_is_a_clear_error() -> None:
     H = Extrinsics(ty=1.25, rz=math.radians(-45))
     recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
-    from calstation.shape import shape_fine_tune_points
+    from calstation.engine.shape import shape_fine_tune_points
 
     with pytest.raises(FineTuningError, match="QA cube"):
         shape_fine_tune_points(np.zeros((100, 3)), np.zeros(100), H, recipe.fixtures.qa_cube)
@@ -99,7 +99,7 @@ def test_no_cube_is_a_clear_error() -> None:
 
 def _from_initial(sim_run, **scenario: Any) -> tuple[Recipe, CalibrationResult, Recording]:
     """A simulated scenario's recipe, initial calibration and QA-cube recording (with truth)."""
-    from calstation.initial import initial_calibration
+    from calstation.engine.initial import initial_calibration
 
     run = sim_run(**scenario)
     recipe = load_recipe("recipes/sim-periodicity.yaml").recipe

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from calstation.drivers import EncoderSample
-from calstation.recording import read_recording
-from calstation.spinscan import SpinScanBuilder, from_recording, remember
+from calstation.engine.spinscan import SpinScanBuilder, from_recording, remember
+from calstation.recordings.recording import read_recording
 
 
 def _builder_fed_from(path: Path) -> SpinScanBuilder:

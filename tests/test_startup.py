@@ -66,7 +66,7 @@ def test_a_run_preloads_the_engine_in_the_background() -> None:
     that the steps after the scans do not wait for the imports."""
     probe = (
         "import sys, json\n"
-        "from calstation.station import preload_engine, _ENGINE_MODULES\n"
+        "from calstation.station.run import preload_engine, _ENGINE_MODULES\n"
         "before = [m for m in _ENGINE_MODULES if m in sys.modules]\n"
         "preload_engine().join(timeout=100)\n"
         "print(json.dumps([before, [m for m in _ENGINE_MODULES if m in sys.modules]]))\n"
@@ -75,20 +75,25 @@ def test_a_run_preloads_the_engine_in_the_background() -> None:
         [sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, timeout=120
     )
     before, after = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert "open3d" not in before and "calstation.shape" not in before
-    assert after == ["calstation.periodicity", "calstation.shape", "calstation.cube", "open3d"]
+    assert "open3d" not in before and "calstation.engine.shape" not in before
+    assert after == [
+        "calstation.engine.periodicity",
+        "calstation.engine.shape",
+        "calstation.engine.cube",
+        "open3d",
+    ]
 
 
 GC_PROBE = """
 import gc, json, sys
-import calstation.db
+import calstation.storage.db
 seen = []
 
 def spy(self, *args, **kwargs):
     seen.append(gc.isenabled())
     raise SystemExit(0)
 
-calstation.db.Database.__init__ = spy
+calstation.storage.db.Database.__init__ = spy
 from calstation.cli import main
 try:
     main(json.loads(sys.argv[1]))

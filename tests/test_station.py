@@ -18,11 +18,11 @@ import pytest
 import yaml
 
 from calstation import hookimpl, plugins
-from calstation.db import Artifact, Calibration, Database, Run, Step, open_database
+from calstation.engine.result import CalibrationResult
 from calstation.errors import FineTuningError, RecipeError, StationError
-from calstation.recipe import load_recipe
-from calstation.result import CalibrationResult
-from calstation.station import STEPS, Station, file_sha256, resume_run, start_run
+from calstation.recipes import load_recipe
+from calstation.station.run import STEPS, Station, file_sha256, resume_run, start_run
+from calstation.storage.db import Artifact, Calibration, Database, Run, Step, open_database
 
 calstation_sim = pytest.importorskip("calstation_sim")
 from calstation_sim import drivers as sim_drivers  # noqa: E402
@@ -261,7 +261,7 @@ def test_run_until_abort_commits_each_step_and_stops_the_motor(
     assert ("spin_scan", "passed") in station_plugin.events
     assert station_plugin.events[-1] == ("run", "aborted")
     # the simulator's ground truth went into the recordings
-    from calstation.recording import read_recording
+    from calstation.recordings.recording import read_recording
 
     rec = read_recording(arts["static"].path)
     assert rec.truth is not None and rec.metadata["run"]["id"] == run_id
@@ -363,7 +363,7 @@ def test_console_operator_prompts_and_abort(
 
     from rich.console import Console
 
-    from calstation.operator import ConsoleOperator
+    from calstation.station.operator import ConsoleOperator
 
     # the operator presses Enter for the static and spin targets, then types "a" at the cube
     monkeypatch.setattr("sys.stdin", io.StringIO("\n\na\n"))
@@ -518,12 +518,12 @@ def test_resume_after_a_kill_in_the_second_pass_registers_both_recordings(
     tmp_path: Path, db: Database
 ) -> None:
     """A process killed during the second pass: recovery stores the first pass as complete and
-    the second as partial (calstation.db.journal)."""
+    the second as partial (calstation.storage.db.journal)."""
     import socket
     import subprocess
 
-    from calstation.db import Station as StationRow
-    from calstation.db.journal import recover
+    from calstation.storage.db import Station as StationRow
+    from calstation.storage.db.journal import recover
 
     dead = subprocess.Popen(["true"])
     dead.wait()
@@ -612,7 +612,7 @@ def test_drift_beyond_limits_fails_the_run_when_the_recipe_says_so(
 
 
 def test_a_targetless_recipe_drops_the_l_target_steps_everywhere() -> None:
-    from calstation.station import TARGETLESS_DROPS, run_steps
+    from calstation.station.run import TARGETLESS_DROPS, run_steps
     from calstation.web.live import LiveState
 
     targetless = load_recipe(RECIPES / "sim-targetless.yaml").recipe

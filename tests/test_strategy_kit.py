@@ -14,11 +14,11 @@ import pytest
 from pydantic import BaseModel, ConfigDict
 
 from calstation import hookimpl, plugins
+from calstation.engine.frames import Extrinsics
+from calstation.engine.result import CalibrationResult
 from calstation.errors import FineTuningError, PluginError, RecipeError
-from calstation.frames import Extrinsics
-from calstation.recipe import parse_recipe
-from calstation.result import CalibrationResult
-from calstation.strategies import check_result, recipe_option_problems, run_strategy
+from calstation.plugins.cost_strategies import check_result, recipe_option_problems, run_strategy
+from calstation.recipes import parse_recipe
 
 START = Extrinsics(tx=0.01, ty=1.0, tz=0.002, rx=0.0, ry=0.001, rz=-0.78)
 
@@ -138,7 +138,7 @@ def test_plugins_command_lists_each_strategy_with_its_plugin() -> None:
     )
     assert proc.returncode == 0, proc.stderr
     rows = {s["name"]: s for s in json.loads(proc.stdout)["strategies"]}
-    assert rows["shape"]["plugin"] == "calstation.builtin_plugins.strategies"
+    assert rows["shape"]["plugin"] == "calstation.plugins.builtin.strategies"
     assert rows["shape"]["options"] == ["box", "estimate_ry", "coarse"]
     assert rows["periodicity"]["options"] == []  # its settings are calibration.periodicity
     if "example-ry-held" in rows:  # the example plugin, when installed

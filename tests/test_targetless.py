@@ -1,4 +1,4 @@
-"""The targetless start (calstation.targetless): the platter's chord in a spin scan gives the
+"""The targetless start (calstation.engine.targetless): the platter's chord in a spin scan gives the
 initial calibration, so that a run needs no L-target; a scan without the rim fails clearly.
 The simulator's true H is the reference."""
 
@@ -14,12 +14,12 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
+from calstation.engine.frames import Extrinsics
+from calstation.engine.metrics import axis_errors
+from calstation.engine.targetless import PlatterChord, extrinsics_from_chord, targetless_start
 from calstation.errors import InitialCalibrationError
-from calstation.frames import Extrinsics
-from calstation.metrics import axis_errors
-from calstation.recipe import load_recipe
-from calstation.recording import read_recording
-from calstation.targetless import PlatterChord, extrinsics_from_chord, targetless_start
+from calstation.recipes import load_recipe
+from calstation.recordings.recording import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 TARGETLESS = REPO / "recipes" / "sim-targetless.yaml"
@@ -106,7 +106,7 @@ def test_an_axis_far_from_the_scan_plane_is_found_from_the_platter(
     from calstation_sim import simulate_run
 
     from calstation import plugins
-    from calstation.targetless import fine_tune_targetless
+    from calstation.engine.targetless import fine_tune_targetless
 
     data = yaml.safe_load(TARGETLESS.read_text())
     data["simulation"]["truth"] = {"H": {"tx": 0.015, "ty": 1.25, "tz": tz, "ry": 0.003,

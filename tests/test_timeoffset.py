@@ -1,4 +1,4 @@
-"""The lidar–encoder time offset from a spin scan's two passes (calstation.timeoffset).
+"""The lidar–encoder time offset from a spin scan's two passes (calstation.engine.timeoffset).
 
 The simulator's encoder runs late by a latency the station's configuration does not know; the
 estimate must find that latency (the simulator's truth) within 0.2 ms, with a σ that covers it.
@@ -16,13 +16,10 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from calstation.errors import FineTuningError, RecipeError
-from calstation.frames import PARAMETER_NAMES, Extrinsics
-from calstation.observability import sigma_problems
-from calstation.recipe import SigmaLimits, load_recipe
-from calstation.recording import read_recording
-from calstation.result import CalibrationResult
-from calstation.timeoffset import (
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
+from calstation.engine.observability import sigma_problems
+from calstation.engine.result import CalibrationResult
+from calstation.engine.timeoffset import (
     TimeOffset,
     _align,
     _turn,
@@ -30,6 +27,9 @@ from calstation.timeoffset import (
     voxel_means,
     with_time_offset,
 )
+from calstation.errors import FineTuningError, RecipeError
+from calstation.recipes import SigmaLimits, load_recipe
+from calstation.recordings.recording import read_recording
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 BOTH_WAYS = RECIPES / "sim-periodicity-both-ways.yaml"
@@ -157,8 +157,8 @@ def test_a_wrong_offset_doubles_the_cube_and_the_estimate_mends_it(
 ) -> None:
     """Both cube passes measured together: the spin scan's estimate of the offset makes the
     cube whole again, the configured latency leaves its two passes turned apart."""
-    from calstation.cube import check_cube_passes
-    from calstation.recipe import QALimits
+    from calstation.engine.cube import check_cube_passes
+    from calstation.recipes import QALimits
 
     files = late_encoder
     truth = json.loads(files["truth"].read_text())
@@ -218,7 +218,7 @@ def test_station_run_both_ways_stores_and_exports_the_offset(
 
     from clirun import run_cli
 
-    from calstation.db import Artifact, Calibration, Database, Run
+    from calstation.storage.db import Artifact, Calibration, Database, Run
 
     data = yaml.safe_load(BOTH_WAYS.read_text())
     data["steps"]["static_scan"]["lines"] = 60

@@ -15,17 +15,17 @@ import numpy as np
 import pytest
 import yaml
 
-from calstation.cube import check_cube
+from calstation.engine.cube import check_cube
+from calstation.engine.frames import Extrinsics, polar_to_lidar
+from calstation.engine.metrics import axis_errors
+from calstation.engine.observability import check_sigma, sigma_problems
+from calstation.engine.periodicity import final_cell_size, noise_inflation
+from calstation.engine.result import CalibrationResult
+from calstation.engine.spinscan import range_noise
 from calstation.errors import ObservabilityError
-from calstation.frames import Extrinsics, polar_to_lidar
-from calstation.metrics import axis_errors
-from calstation.observability import check_sigma, sigma_problems
-from calstation.periodicity import final_cell_size, noise_inflation
-from calstation.recipe import SigmaLimits, load_recipe
-from calstation.recording import read_recording
-from calstation.result import CalibrationResult
-from calstation.spinscan import range_noise
-from calstation.strategies import PeriodicityStrategy
+from calstation.plugins.cost_strategies import PeriodicityStrategy
+from calstation.recipes import SigmaLimits, load_recipe
+from calstation.recordings.recording import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -108,7 +108,7 @@ def hard_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def test_centred_target_is_within_3_sigma_or_refused(hard_run: dict[str, Path]) -> None:
-    from calstation.initial import initial_calibration
+    from calstation.engine.initial import initial_calibration
 
     recipe = load_recipe(hard_run["recipe"]).recipe
     static = read_recording(hard_run["static"])
@@ -149,7 +149,7 @@ def test_cube_check_sees_an_ry_error(sim_run) -> None:
 
 
 def test_ry_with_cube_combines_agreeing_estimates_and_refuses_the_rest() -> None:
-    from calstation.joint import ry_with_cube
+    from calstation.engine.joint import ry_with_cube
 
     H = Extrinsics(0.01, 1.0, 0.02, 0.0, math.radians(0.4), -0.78)
     names = ["tx", "tz", "ry", "rz"]

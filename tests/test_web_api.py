@@ -18,9 +18,9 @@ from test_station import StationTestPlugin, lean_recipe
 from webstation import run_status, steps_of, wait_until
 
 from calstation import plugins
-from calstation.db import Database, Run, open_database
 from calstation.errors import CalstationError
-from calstation.report import export_calibration, get_run
+from calstation.storage.db import Database, Run, open_database
+from calstation.storage.report import export_calibration, get_run
 from calstation.web.app import create_app
 from calstation.web.placement import SIZE, placement_svg
 
@@ -325,7 +325,7 @@ def test_trends_and_compare_pages(
 
 
 def test_placement_picture_follows_the_recipe_geometry(tmp_path: Path) -> None:
-    from calstation.recipe import CubeGeometry, LTargetGeometry
+    from calstation.recipes import CubeGeometry, LTargetGeometry
 
     svg = placement_svg(0.2925, LTargetGeometry(), "place the static target")
     # seen from above with the lidar at the bottom, +Z_P points left: the tall end (z = −w/2)
@@ -347,8 +347,8 @@ def test_placement_picture_follows_the_recipe_geometry(tmp_path: Path) -> None:
 def test_a_run_left_running_by_a_stopped_server_is_resumed_from_the_page(
     tmp_path: Path, db: Database, station_plugin: StationTestPlugin
 ) -> None:
-    from calstation.recipe import load_recipe
-    from calstation.station import create_run
+    from calstation.recipes import load_recipe
+    from calstation.station.run import create_run
 
     with make_client(tmp_path, db) as client:
         # a run the server created and then lost (killed before any step finished)

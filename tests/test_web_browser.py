@@ -22,7 +22,7 @@ from test_station import StationTestPlugin, lean_recipe
 from webstation import CHROMIUM, CHROMIUM_ARGS, copy_recipe, run_status, served, steps_of
 
 from calstation import plugins
-from calstation.db import Database, Run, open_database
+from calstation.storage.db import Database, Run, open_database
 from calstation.web.app import create_app
 
 playwright_api = pytest.importorskip("playwright.sync_api")
@@ -179,9 +179,9 @@ def test_a_full_simulated_run_by_clicking_with_a_reload(
 
 def _qa_pages(page: Any, url: str, db: Database, recipe: Path, first: int) -> None:
     """Pictures of history, trends and compare for the docs (a second, unattended run)."""
-    from calstation.operator import ConsoleOperator
-    from calstation.recipe import load_recipe
-    from calstation.station import start_run
+    from calstation.recipes import load_recipe
+    from calstation.station.operator import ConsoleOperator
+    from calstation.station.run import start_run
 
     data = yaml.safe_load(recipe.read_text())
     data["simulation"]["seed"] = 7  # another day, other noise

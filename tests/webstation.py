@@ -13,7 +13,7 @@ from typing import Any
 
 import uvicorn
 
-from calstation.db import Database, Run, Step
+from calstation.storage.db import Database, Run, Step
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [

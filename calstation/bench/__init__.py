@@ -10,7 +10,7 @@ the simulator's true H (DESIGN §8). :mod:`.scenarios` builds the scenarios and 
 
 from __future__ import annotations
 
-from ..errors import CalstationError
+from calstation.errors import CalstationError
 
 
 class BenchError(CalstationError):

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ..frames import PARAMETER_NAMES, Extrinsics
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 
 PARAMS = ("tx", "tz", "ry", "rz")
 TRANSLATIONS_M = (0.005, 0.020, 0.050, 0.100, 0.200, 0.300, 0.500)
@@ -57,7 +57,7 @@ def basin_tasks(
     scenario: str, directory: Path, truth: Extrinsics, methods: Sequence[str], starts: int
 ) -> list[Any]:
     """One fine-tuning task per (method, start)."""
-    from .runner import Task
+    from calstation.bench.runner import Task
 
     tasks = []
     for method in methods:
@@ -79,8 +79,8 @@ def basin_tasks(
 
 def run_basin_task(task: Any, recording: Any, recipe: Any) -> dict[str, Any]:
     """Fine-tune from the task's start; the estimate, its σ and its errors against the truth."""
-    from .. import plugins
-    from .runner import against_truth, result_fields, scan_of
+    from calstation import plugins
+    from calstation.bench.runner import against_truth, result_fields, scan_of
 
     assert task.start is not None
     strategy = plugins.strategy(task.method)
@@ -104,9 +104,9 @@ def _fractions(records: Sequence[dict[str, Any]], method: str, group: str) -> li
 def silently_wrong(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """The estimates that missed the thresholds yet whose σ a station with the default
     ``calibration.max_sigma`` would accept: the ones a user could not tell from good ones."""
-    from ..observability import sigma_problems
-    from ..recipe import SigmaLimits
-    from ..result import CalibrationResult
+    from calstation.engine.observability import sigma_problems
+    from calstation.engine.result import CalibrationResult
+    from calstation.recipes import SigmaLimits
 
     limits = SigmaLimits()
 
@@ -179,7 +179,7 @@ def basin_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
 def basin_figure(records: Sequence[dict[str, Any]], methods: Sequence[str], path: Path) -> None:
     """One panel per parameter and one for the joint starts: converged fraction against the
     start's distance, a line per method."""
-    from .figures import METHOD_COLOURS, METHOD_LABELS, _plt
+    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _plt
 
     plt = _plt()
     groups = (*PARAMS, "joint")
@@ -210,9 +210,9 @@ def run_basin(
 ) -> Path:
     """Simulate the scenario (or reuse it), run every start, write ``basin.md`` and
     ``results/basin.png`` to ``report_dir``; returns the path of ``basin.md``."""
-    from ..recipe import load_recipe
-    from .runner import Executor, RecordStore, _run_phase, git_commit
-    from .scenarios import load_truth, select_scenarios, simulate_scenario
+    from calstation.bench.runner import Executor, RecordStore, _run_phase, git_commit
+    from calstation.bench.scenarios import load_truth, select_scenarios, simulate_scenario
+    from calstation.recipes import load_recipe
 
     (scenario,) = select_scenarios([scenario_name])
     out.mkdir(parents=True, exist_ok=True)

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from ..frames import PARAMETER_NAMES, Extrinsics
-from . import BenchError
+from calstation.bench import BenchError
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 
 PAIRS: dict[str, tuple[str, str]] = {"translation": ("tx", "tz"), "rotation": ("ry", "rz")}
 """The two landscapes: over two translations (ty is the gauge/fixed one) and over ry × rz."""
@@ -24,7 +24,7 @@ PAIRS: dict[str, tuple[str, str]] = {"translation": ("tx", "tz"), "rotation": ("
 def landscape_tasks(config: Any, store: Any) -> list[Any]:
     """One task per (method, pair, grid row) for ``config.landscape_scenario``, centred on each
     method's result from the initial calibration (skipped if that run failed)."""
-    from .runner import Task, scenario_dir
+    from calstation.bench.runner import Task, scenario_dir
 
     scen = next((s for s in config.scenarios if s.name == config.landscape_scenario), None)
     if scen is None:
@@ -81,7 +81,7 @@ def run_landscape_row(
     method, (p, q) = spec["method"], spec["pair"]
     centre = Extrinsics(*spec["centre"])
     truth = Extrinsics(*spec["truth"])
-    from .. import plugins
+    from calstation import plugins
 
     strategy = plugins.strategy(method)
     fixture = getattr(strategy, "fixture", "spin_target")
@@ -150,18 +150,19 @@ def _periodicity_cost(
     recording: Any, recipe: Any, centre: Extrinsics
 ) -> tuple[Callable[[Extrinsics], float], str]:
     """The paper's periodicity cost, re-matched at every H (as the optimiser's outer loop sees
-    it), built from the public helpers of :mod:`calstation.periodicity`.
+    it), built from the public helpers of :mod:`calstation.engine.periodicity`.
 
-    calstation/periodicity.py exposes no public whole-cost function, so: static returns dropped
+    calstation/engine/periodicity.py exposes no public whole-cost function, so: static returns
+    dropped
     (``static_mask``), both half-turns averaged over ``sensor_cells`` of 5 mm (independent of H),
     mapped to D (``to_dynamic``), platter points (x_P ≤ 5 mm) dropped, ``mutual_neighbours``
     within the recipe's ``match_distance`` (paper: 20 cm), planes from ``weighted_normals``;
     cost = mean over matches of w·(n·(x − x′))², both ends' planes. The platter gauge residual
     is not included (it is calstation's gauge, not the paper's cost).
     """
-    from ..neighbours import mutual_neighbours, weighted_normals
-    from ..periodicity import sensor_cells, to_dynamic
-    from ..spinscan import static_mask
+    from calstation.engine.neighbours import mutual_neighbours, weighted_normals
+    from calstation.engine.periodicity import sensor_cells, to_dynamic
+    from calstation.engine.spinscan import static_mask
 
     settings = recipe.calibration.periodicity
     p_L, phi = recording.points_lidar()
@@ -197,7 +198,7 @@ def _periodicity_cost(
         return float(np.mean(np.concatenate([ra, rb])))
 
     return cost, (
-        "calstation.periodicity public helpers (static_mask, sensor_cells 5 mm, to_dynamic, "
+        "calstation.engine.periodicity public helpers (static_mask, sensor_cells 5 mm, to_dynamic, "
         "mutual_neighbours, weighted_normals); re-matched at every H"
     )
 
@@ -205,14 +206,15 @@ def _periodicity_cost(
 def _shape_cost(
     recording: Any, recipe: Any, centre: Extrinsics
 ) -> tuple[Callable[[Extrinsics], float], str]:
-    """The shape-constrained cost C1 + C2 of :class:`calstation.shape.ShapeCost` (the engine's
+    """The shape-constrained cost C1 + C2 of :class:`calstation.engine.shape.ShapeCost` (the
+    engine's
     public cost object), on the returns the strategy itself would use: moving returns
     (``static_mask``) near the cube under the centre H, a fixed subset of 20 000, the box kind
     the recipe selects (``calibration.options.shape.box``, default upright)."""
-    from ..frames import lidar_to_dynamic
-    from ..geometry import segment_above_platter
-    from ..shape import ShapeCost
-    from ..spinscan import static_mask
+    from calstation.engine.frames import lidar_to_dynamic
+    from calstation.engine.geometry import segment_above_platter
+    from calstation.engine.shape import ShapeCost
+    from calstation.engine.spinscan import static_mask
 
     cube = recipe.fixtures.qa_cube
     radius = recipe.fixtures.platter.radius
@@ -238,4 +240,4 @@ def _shape_cost(
         r = shape_cost.residuals_of(H)
         return float(np.sum(r**2))
 
-    return cost, f"calstation.shape.ShapeCost ({box} box), C1 + C2 on the strategy's returns"
+    return cost, f"calstation.engine.shape.ShapeCost ({box} box), C1 + C2 on the strategy's returns"

@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from . import BenchError
-from .figures import (
+from calstation.bench import BenchError
+from calstation.bench.figures import (
     METHOD_LABELS,
     ablation_figure,
     cube_boxplots,
@@ -22,8 +22,8 @@ from .figures import (
     landscape_figure,
     param_boxplots,
 )
-from .runner import ABLATION_VARIANTS, ABLATIONS, CONVERGENCE, FINE_TUNING_METHODS
-from .scenarios import PERTURBATION_SEED, SCENARIO_SEED_BASE, paper_scenarios
+from calstation.bench.runner import ABLATION_VARIANTS, ABLATIONS, CONVERGENCE, FINE_TUNING_METHODS
+from calstation.bench.scenarios import PERTURBATION_SEED, SCENARIO_SEED_BASE, paper_scenarios
 
 PAPER_TABLE_I = {"initial": 5.1, "shape": 3.2, "periodicity": 2.7}
 """Paper Table II (first): median cube edge error (mm), fine-tuning from the initial calibration."""
@@ -433,7 +433,8 @@ def write_report(
         landscape_md += [
             "Cost functions: " + "; ".join(f"{m}: {src}" for m, src in sources.items()) + ".",
             "",
-            "calstation/periodicity.py has no public function that evaluates the whole cost at "
+            "calstation/engine/periodicity.py has no public function that evaluates the whole cost "
+            "at "
             "a given H (only the optimiser's private residuals), so that landscape is assembled "
             "from its public building blocks as listed; the shape landscape uses the engine's "
             "public `ShapeCost`. Each grid point re-segments (shape) or re-matches "
@@ -629,7 +630,8 @@ def _compose(
         "## Median cube edge error, fine-tuning from the initial calibration (paper Table II)",
         "",
         "The paper's metric: e = max_i(ŝ_i − s), edges ŝ_i of a minimum-volume oriented bounding "
-        "box of the unsmoothed 10 cm cube cloud (`calstation.cube.check_cube(...).obb_error`), "
+        "box of the unsmoothed 10 cm cube cloud "
+        "(`calstation.engine.cube.check_cube(...).obb_error`), "
         "median over the scenarios. The face-fit column is calstation's robust dimensioning "
         "(distance between opposite fitted face planes).",
         "",
@@ -647,13 +649,14 @@ def _compose(
         "",
         "Axis offset: distance between the estimated and the true rotation axis, perpendicular "
         "to the true axis at the platter centre; axis direction: angle between them "
-        "(`calstation.metrics.axis_errors`). Per-parameter columns: median of |estimate − truth|; "
+        "(`calstation.engine.metrics.axis_errors`). Per-parameter columns: median of |estimate − "
+        "truth|; "
         "the periodicity gauge (the origin along the axis) comes from the engine's configured "
         "gauge, so the tx and ty errors include the gauge choice, which the axis metrics do not. "
         "Cube "
         "distortion: the QA-cube scan reconstructed with the estimated and with the true H, RMS "
         "and maximum point displacement after the best rigid alignment "
-        "(`calstation.metrics.reconstruction_distortion`).",
+        "(`calstation.engine.metrics.reconstruction_distortion`).",
         "",
         "Converged means within the engine issue's thresholds:",
         "",

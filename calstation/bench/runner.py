@@ -25,9 +25,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..frames import PARAMETER_NAMES, Extrinsics
-from . import BenchError
-from .scenarios import (
+from calstation.bench import BenchError
+from calstation.bench.scenarios import (
     PERTURBATION_SEED,
     PERTURBATION_SETS,
     Scenario,
@@ -37,6 +36,7 @@ from .scenarios import (
     sample_starts,
     simulate_scenario,
 )
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 
 FINE_TUNING_METHODS: tuple[str, ...] = ("shape", "periodicity")
 """The paper's two fine-tuning strategies, run by name through the plugin registry."""
@@ -198,8 +198,8 @@ def _init_worker(recipe_path: str) -> None:
     """Load the recipe and the plugins once per worker process."""
     warnings.simplefilter("ignore")
     os.environ.setdefault("MPLBACKEND", "Agg")
-    from .. import plugins
-    from ..recipe import load_recipe
+    from calstation import plugins
+    from calstation.recipes import load_recipe
 
     _WORKER.clear()
     _WORKER["recipe_path"] = Path(recipe_path)
@@ -212,7 +212,7 @@ def _init_worker(recipe_path: str) -> None:
 def _recording(directory: str, which: str) -> Any:
     """The scenario's ``which`` recording ("static" | "spin" | "cube"), read once per worker and
     kept until a task of another scenario arrives."""
-    from ..recording import read_recording
+    from calstation.recordings.recording import read_recording
 
     if _WORKER["cache_dir"] != directory:
         _WORKER["cache"] = {}
@@ -241,7 +241,7 @@ def _recipe(overrides: str) -> Any:
 def apply_overrides(recipe: Any, patch: dict[str, Any]) -> Any:
     """A copy of the recipe model with ``patch`` (nested mapping) deep-merged in, re-validated
     (so a misspelled setting is an error, not silently ignored)."""
-    from ..recipe import Recipe
+    from calstation.recipes import Recipe
 
     def merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
         out = dict(a)
@@ -272,7 +272,7 @@ def against_truth(H: Extrinsics, truth: Extrinsics) -> dict[str, Any]:
         "error": {n: float(getattr(H, n) - getattr(truth, n)) for n in PARAMETER_NAMES},
     }
     try:
-        from ..metrics import axis_errors
+        from calstation.engine.metrics import axis_errors
 
         out["axis"] = {k: float(v) for k, v in axis_errors(H, truth).items()}
     except Exception as exc:
@@ -291,7 +291,7 @@ def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
     out["cube"] = _cube_check(directory, H, recipe)
     t1 = time.perf_counter()
     try:
-        from ..metrics import reconstruction_distortion
+        from calstation.engine.metrics import reconstruction_distortion
 
         out["distortion"] = {
             k: float(v) for k, v in reconstruction_distortion(cube_rec, H, truth).items()
@@ -307,7 +307,7 @@ def _cube_check(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
     """The engine's cube check of the scenario's QA-cube scan with ``H``, as a plain mapping
     (``{"failed": message}`` if the cube could not be measured)."""
     try:
-        from ..cube import check_cube
+        from calstation.engine.cube import check_cube
 
         check = check_cube(
             _recording(directory, "cube"), H, recipe.fixtures.qa_cube, recipe.qa,
@@ -375,11 +375,11 @@ def run_task(task: Task) -> dict[str, Any]:
         elif task.kind == "finetune":
             _run_finetune(task, record)
         elif task.kind == "landscape":
-            from .landscape import run_landscape_row
+            from calstation.bench.landscape import run_landscape_row
 
             record.update(run_landscape_row(task, _recording, _recipe(task.overrides)))
         elif task.kind == "basin":
-            from .basin import run_basin_task
+            from calstation.bench.basin import run_basin_task
 
             record.update(run_basin_task(task, _recording, _recipe(task.overrides)))
         else:
@@ -388,7 +388,7 @@ def run_task(task: Task) -> dict[str, Any]:
     except Exception as exc:
         record["status"] = "failed"
         record["error_message"] = f"{type(exc).__name__}: {exc}"
-        from ..errors import CalstationError
+        from calstation.errors import CalstationError
 
         if not isinstance(exc, CalstationError):
             record["traceback"] = traceback.format_exc(limit=8)
@@ -429,7 +429,7 @@ def _small_diagnostics(diag: dict[str, Any]) -> dict[str, Any]:
 
 
 def _run_initial(task: Task, record: dict[str, Any]) -> None:
-    from ..initial import initial_calibration
+    from calstation.engine.initial import initial_calibration
 
     recipe = _recipe(task.overrides)
     static = _recording(task.directory, "static")
@@ -444,7 +444,7 @@ def _run_initial(task: Task, record: dict[str, Any]) -> None:
 
 
 def _run_finetune(task: Task, record: dict[str, Any]) -> None:
-    from .. import plugins
+    from calstation import plugins
 
     recipe = _recipe(task.overrides)
     assert task.start is not None
@@ -782,7 +782,7 @@ def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[s
             first.sort(key=lambda t: order.get(t.scenario, 0))  # one read per scenario
             per_task = phase("fine-tuning from the initial calibration, ablation", first, ex)
             if config.landscape_scenario:
-                from .landscape import landscape_tasks
+                from calstation.bench.landscape import landscape_tasks
 
                 phase("cost landscapes", landscape_tasks(config, store), ex)
             done = 0
@@ -864,7 +864,7 @@ def ablation_tasks(config: BenchConfig, initial: dict[str, Extrinsics]) -> list[
 
 
 def _simulate(config: BenchConfig, ex: Executor, store: RecordStore, console: Any) -> None:
-    from ..recipe import load_recipe
+    from calstation.recipes import load_recipe
 
     sha = load_recipe(config.recipe).sha256
     todo = [

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from ..frames import Extrinsics
-from . import BenchError
+from calstation.bench import BenchError
+from calstation.engine.frames import Extrinsics
 
 SCENARIO_SEED_BASE = 1000
 """Scenario ``D<i>`` is simulated with seed ``SCENARIO_SEED_BASE + i``."""
@@ -168,7 +168,7 @@ def simulate_scenario(recipe_path: Path, scenario: Scenario, directory: Path) ->
     there. A stamp file written last marks a complete simulation."""
     from calstation_sim import simulate_run
 
-    from ..recipe import load_recipe
+    from calstation.recipes import load_recipe
 
     loaded = load_recipe(recipe_path)
     if is_simulated(scenario, directory, loaded.sha256):

@@ -16,17 +16,17 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from ..frames import PARAMETER_NAMES
+from calstation.engine.frames import PARAMETER_NAMES
 
 
 def speed_recipe(recipe: Path, rpm: float, out: Path) -> tuple[Path, int]:
     """A copy of ``recipe`` whose spin and cube scans turn at ``rpm``, written to ``out``, and
     the lidar's points per line in it: the recipe's, or fewer where a turn at ``rpm`` would make
-    more returns than a scan may hold (:data:`calstation.recipe.MAX_SCAN_POINTS`); the line rate
+    more returns than a scan may hold (:data:`calstation.recipes.MAX_SCAN_POINTS`); the line rate
     stays the sensor's."""
     import yaml
 
-    from ..recipe import MAX_SCAN_POINTS, load_recipe
+    from calstation.recipes import MAX_SCAN_POINTS, load_recipe
 
     base = load_recipe(recipe).recipe
     data = yaml.safe_load(recipe.read_text())
@@ -49,13 +49,13 @@ def run_speed_case(recipe: Path, scenario: Any, rpm: float, out: Path,
                    methods: Sequence[str]) -> list[dict[str, Any]]:
     """Simulate ``scenario`` at ``rpm``, calibrate, fine-tune with each method from the initial
     calibration; one record per method (a refused fine-tuning is a record with its message)."""
-    from .. import plugins
-    from ..initial import initial_calibration
-    from ..metrics import axis_errors
-    from ..recipe import load_recipe
-    from ..recording import read_recording
-    from .runner import scan_of
-    from .scenarios import load_truth, simulate_scenario
+    from calstation import plugins
+    from calstation.bench.runner import scan_of
+    from calstation.bench.scenarios import load_truth, simulate_scenario
+    from calstation.engine.initial import initial_calibration
+    from calstation.engine.metrics import axis_errors
+    from calstation.recipes import load_recipe
+    from calstation.recordings.recording import read_recording
 
     path, ppl = speed_recipe(recipe, rpm, out / f"recipe-{rpm:g}rpm.yaml")
     t0 = time.perf_counter()
@@ -126,7 +126,7 @@ def speed_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
 
 def speed_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
     """Axis offset and direction error against platter speed, a line per method."""
-    from .figures import METHOD_COLOURS, METHOD_LABELS, _plt
+    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _plt
 
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(8.0, 3.0))
@@ -155,10 +155,10 @@ def run_speed(recipe: Path, out: Path, report_dir: Path, scenario_name: str,
               console: Any) -> Path:
     """Every speed in turn (one at a time: a slow turn holds up to 25 M returns); writes
     ``speed.md`` and ``results/speed.png`` to ``report_dir``; returns the path of speed.md."""
-    from .. import plugins
-    from ..recipe import load_recipe
-    from .runner import git_commit
-    from .scenarios import select_scenarios
+    from calstation import plugins
+    from calstation.bench.runner import git_commit
+    from calstation.bench.scenarios import select_scenarios
+    from calstation.recipes import load_recipe
 
     plugins.load_plugins()
     (scenario,) = select_scenarios([scenario_name])

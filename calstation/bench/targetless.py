@@ -1,6 +1,6 @@
 """The targetless start on many simulated stations: the paper's nine scenarios plus three more,
 several seeds each. Every spin scan is fine-tuned twice, from the platter's chord
-(:mod:`calstation.targetless`) and from the L-target's initial calibration, and both results
+(:mod:`calstation.engine.targetless`) and from the L-target's initial calibration, and both results
 are held to the bench's convergence thresholds against the true H.
 
 The seed changes the simulated station (its true H's small ry and tz, the placements, the
@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from .scenarios import Scenario
+from calstation.bench.scenarios import Scenario
 
 EXTRA_SCENARIOS: tuple[tuple[str, float, float], ...] = (
     ("E1", 0.9, 40.0),
@@ -39,7 +39,7 @@ cut by the scan plane in both half-turns, and the periodicity fails even from th
 
 def targetless_scenarios() -> list[Scenario]:
     """The paper's D1–D9 and :data:`EXTRA_SCENARIOS` (seeds are given per run)."""
-    from .scenarios import paper_scenarios
+    from calstation.bench.scenarios import paper_scenarios
 
     return [*paper_scenarios(), *(Scenario(n, r, p, 0) for n, r, p in EXTRA_SCENARIOS)]
 
@@ -47,7 +47,7 @@ def targetless_scenarios() -> list[Scenario]:
 def _errors(H: Any, truth: Any, method: str) -> dict[str, Any]:
     """An estimate against the truth, and whether it meets the bench's thresholds for
     ``method`` (:func:`calstation.bench.runner.converged`)."""
-    from .runner import against_truth, converged
+    from calstation.bench.runner import against_truth, converged
 
     e = {"status": "ok", **against_truth(H, truth)}
     return {"axis": e["axis"], "error": e["error"], "converged": converged(method, e)}
@@ -58,12 +58,12 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
     """Simulate one station, fine-tune its scan from both starts; its record."""
     from calstation_sim import simulate_run
 
-    from .. import plugins
-    from ..initial import initial_calibration
-    from ..recipe import load_recipe
-    from ..recording import read_recording
-    from ..strategies import run_strategy
-    from ..targetless import fine_tune_targetless
+    from calstation import plugins
+    from calstation.engine.initial import initial_calibration
+    from calstation.engine.targetless import fine_tune_targetless
+    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.recipes import load_recipe
+    from calstation.recordings.recording import read_recording
 
     loaded = load_recipe(recipe)
     rc = loaded.recipe
@@ -118,12 +118,12 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
     import yaml
     from calstation_sim import SimulatedStation, simulate_run
 
-    from .. import plugins
-    from ..metrics import axis_errors
-    from ..recipe import load_recipe
-    from ..recording import read_recording
-    from ..strategies import run_strategy
-    from ..targetless import fine_tune_targetless
+    from calstation import plugins
+    from calstation.engine.metrics import axis_errors
+    from calstation.engine.targetless import fine_tune_targetless
+    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.recipes import load_recipe
+    from calstation.recordings.recording import read_recording
 
     nominal = SimulatedStation(load_recipe(recipe), seed=seed, range_m=scenario.range_m,
                                pitch_deg=scenario.pitch_deg).truth
@@ -248,7 +248,7 @@ def targetless_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any])
 def targetless_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
     """The start's distance from the truth against the final one (the targetless start's basin:
     how far from the truth its starts land, and whether they converge)."""
-    from .figures import _plt
+    from calstation.bench.figures import _plt
 
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.0, 3.4))
@@ -278,8 +278,8 @@ def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds
     to ``out/records.json`` and ``out/geometry.json``; returns the path of the section."""
     import shutil
 
-    from .. import plugins
-    from .runner import git_commit
+    from calstation import plugins
+    from calstation.bench.runner import git_commit
 
     plugins.load_plugins()
     chosen = targetless_scenarios()

@@ -16,7 +16,7 @@ import sys
 
 import typer
 
-from ..errors import CalstationError
+from calstation.errors import CalstationError
 
 app = typer.Typer(
     name="calstation",
@@ -49,7 +49,7 @@ def _build() -> None:
         if info.name.startswith("_"):
             continue
         importlib.import_module(f"{__name__}.{info.name}").register(app)
-    from .. import plugins
+    from calstation import plugins
 
     plugins.register_commands(app)
 

@@ -13,7 +13,7 @@ def _parse_deadline(text: str) -> float:
     """``HH:MM`` (UTC, today) → Unix time."""
     import datetime as dt
 
-    from ..bench import BenchError
+    from calstation.bench import BenchError
 
     try:
         hh, mm = (int(x) for x in text.split(":"))
@@ -31,8 +31,8 @@ def _command_line() -> str:
 def _strategies(recipe: Path, methods: str) -> list[str]:
     """The strategies named in ``methods`` (comma-separated), after checking that the recipe
     exists and each strategy is installed."""
-    from .. import plugins
-    from ..bench import BenchError
+    from calstation import plugins
+    from calstation.bench import BenchError
 
     if not recipe.is_file():
         raise BenchError(f"{recipe}: recipe not found (give --recipe)")
@@ -102,10 +102,10 @@ def register(app: typer.Typer) -> None:
 
         from rich.console import Console
 
-        from ..bench import BenchError
-        from ..bench.report import write_report
-        from ..bench.runner import BenchConfig, run_bench
-        from ..bench.scenarios import select_scenarios
+        from calstation.bench import BenchError
+        from calstation.bench.report import write_report
+        from calstation.bench.runner import BenchConfig, run_bench
+        from calstation.bench.scenarios import select_scenarios
 
         if not recipe.is_file():
             raise BenchError(f"{recipe}: recipe not found (give --recipe)")
@@ -166,7 +166,7 @@ def register(app: typer.Typer) -> None:
         distance from the true H, per parameter and jointly, out to ±500 mm and ±10°."""
         from rich.console import Console
 
-        from ..bench.basin import run_basin
+        from calstation.bench.basin import run_basin
 
         chosen = _strategies(recipe, methods)
         command = _command_line()
@@ -201,8 +201,8 @@ def register(app: typer.Typer) -> None:
         returns per scan)."""
         from rich.console import Console
 
-        from ..bench import BenchError
-        from ..bench.speed import run_speed
+        from calstation.bench import BenchError
+        from calstation.bench.speed import run_speed
 
         try:
             rpms = [float(x) for x in speeds.split(",") if x.strip()]
@@ -247,8 +247,8 @@ def register(app: typer.Typer) -> None:
         its basin: stations whose tz or ry break the start's assumptions."""
         from rich.console import Console
 
-        from ..bench import BenchError
-        from ..bench.targetless import run_targetless, targetless_scenarios
+        from calstation.bench import BenchError
+        from calstation.bench.targetless import run_targetless, targetless_scenarios
 
         (chosen,) = _strategies(recipe, method)
         names = [n.strip().upper() for n in scenarios.split(",")] if scenarios else None
@@ -276,7 +276,7 @@ def register(app: typer.Typer) -> None:
         `bench paper` run."""
         from rich.console import Console
 
-        from ..bench.report import write_report
+        from calstation.bench.report import write_report
 
         path = write_report(out, report_dir or out, None, label)
         Console(stderr=True).print(f"report: {path}")

@@ -112,7 +112,7 @@ def register(app: typer.Typer) -> None:
         --spin-pass2 the lidar–encoder time offset is estimated too (encoder_latency_s and its σ,
         refused above calibration.max_sigma.encoder_latency_ms).
         """
-        from ..errors import CalstationError
+        from calstation.errors import CalstationError
 
         if run is not None:
             given = (recipe, static, spin, spin_pass2, cube)
@@ -147,11 +147,11 @@ def register(app: typer.Typer) -> None:
         """Dimension the QA cube with a calibration; exit code 1 when the check fails."""
         from rich.console import Console
 
-        from ..cube import check_cube
-        from ..errors import VerificationError
-        from ..quiet import stdout_to_stderr
-        from ..recipe import load_recipe
-        from ..result import CalibrationResult
+        from calstation.engine.cube import check_cube
+        from calstation.engine.result import CalibrationResult
+        from calstation.errors import VerificationError
+        from calstation.quiet import stdout_to_stderr
+        from calstation.recipes import load_recipe
 
         console = Console(stderr=True)
         rc = load_recipe(recipe).recipe
@@ -200,17 +200,17 @@ def _calibrate_files(
     as_json: bool, cube: Path | None = None, spin_pass2: Path | None = None,
 ) -> None:
     """``calibrate RECIPE [--static] --spin``: nothing is stored. Without ``static`` the start
-    comes from the platter's chord in the spin scan (:mod:`calstation.targetless`)."""
+    comes from the platter's chord in the spin scan (:mod:`calstation.engine.targetless`)."""
     from dataclasses import replace
 
     from rich.console import Console
 
-    from .. import plugins
-    from ..errors import CalibrationError
-    from ..observability import problems_with_cube
-    from ..recipe import load_recipe
-    from ..recording import read_recording
-    from ..reprocess import recording_disagreements
+    from calstation import plugins
+    from calstation.engine.observability import problems_with_cube
+    from calstation.errors import CalibrationError
+    from calstation.recipes import load_recipe
+    from calstation.recordings.recording import read_recording
+    from calstation.station.reprocess import recording_disagreements
 
     console = Console(stderr=True)
     loaded = load_recipe(recipe)
@@ -283,10 +283,10 @@ def _start_and_fine_tune(
 ) -> tuple[Any, Any, list[str]]:
     """(the start, the fine-tuned result, its warnings): the start from the L-target's
     ``static`` scan, or without one from the platter's chord in the ``spin`` scan."""
-    from ..initial import initial_calibration
-    from ..quiet import stdout_to_stderr
-    from ..strategies import run_strategy
-    from ..targetless import fine_tune_targetless
+    from calstation.engine.initial import initial_calibration
+    from calstation.engine.targetless import fine_tune_targetless
+    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.quiet import stdout_to_stderr
 
     initial = None
     if static is not None:
@@ -309,9 +309,9 @@ def _start_and_fine_tune(
 
 def _with_second_pass(console: Any, result: Any, first: Any, path: Path, loaded: Any) -> Any:
     """``result`` with the lidar–encoder time offset from the spin scan's two passes."""
-    from ..errors import CalibrationError
-    from ..reprocess import recording_disagreements
-    from ..timeoffset import with_time_offset
+    from calstation.engine.timeoffset import with_time_offset
+    from calstation.errors import CalibrationError
+    from calstation.station.reprocess import recording_disagreements
 
     second = _read_kind(console, path, "spin", CalibrationError,
                         "--spin-pass2 takes the spin scan's second pass", "spin-pass2.mcap")
@@ -327,10 +327,10 @@ def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any,
     failure of that combination or None; prints the cube's figures."""
     from rich.markup import escape
 
-    from ..errors import CalibrationError
-    from ..joint import fine_tune_with_cube, joint_summary
-    from ..quiet import stdout_to_stderr
-    from ..reprocess import recording_disagreements
+    from calstation.engine.joint import fine_tune_with_cube, joint_summary
+    from calstation.errors import CalibrationError
+    from calstation.quiet import stdout_to_stderr
+    from calstation.station.reprocess import recording_disagreements
 
     rec = _read_cube(console, cube, CalibrationError, "--cube needs the cube's spin scan")
     _warn(console, recording_disagreements(rec, loaded))
@@ -354,7 +354,7 @@ def _read_kind(
 ) -> Any:
     """The recording at ``path``, which must be of ``kind`` (else ``error`` saying ``need`` and
     which ``file`` of a run that is)."""
-    from ..recording import read_recording
+    from calstation.recordings.recording import read_recording
 
     with console.status(f"reading {path}"):
         rec = read_recording(path)
@@ -373,8 +373,8 @@ def _refuse(result: Any, rc: Any, fixture: str, joint_failure: str | None = None
     from rich.console import Console
     from rich.markup import escape
 
-    from ..errors import ObservabilityError
-    from ..observability import check_sigma
+    from calstation.engine.observability import check_sigma
+    from calstation.errors import ObservabilityError
 
     console = Console(stderr=True)
     try:
@@ -431,8 +431,8 @@ def _reprocess(
     from rich.console import Console
     from rich.table import Table
 
-    from ..db import open_database
-    from ..reprocess import difference_rows, reprocess_run
+    from calstation.station.reprocess import difference_rows, reprocess_run
+    from calstation.storage.db import open_database
 
     console = Console(stderr=True)
     database = open_database(db)

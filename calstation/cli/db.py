@@ -23,7 +23,7 @@ def register(app: typer.Typer) -> None:
         revision: str = typer.Option("head", help="Target revision."),
     ) -> None:
         """Apply the database migrations (creates the database if needed)."""
-        from ..db import Database
+        from calstation.storage.db import Database
 
         database = Database(db)
         before, after = database.upgrade(revision)
@@ -36,7 +36,7 @@ def register(app: typer.Typer) -> None:
         db: str | None = DbOption,
     ) -> None:
         """Undo migrations down to REVISION, keeping every row (refused where rows would go)."""
-        from ..db import Database
+        from calstation.storage.db import Database
 
         database = Database(db)
         before, after = database.downgrade(revision)
@@ -46,7 +46,7 @@ def register(app: typer.Typer) -> None:
     @db_app.command("info")
     def info(db: str | None = DbOption) -> None:
         """Print the database URL and its revision."""
-        from ..db import Database, head_revision, known_revisions
+        from calstation.storage.db import Database, head_revision, known_revisions
 
         database = Database(db)
         current = database.current_revision()

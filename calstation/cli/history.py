@@ -16,7 +16,7 @@ from typing import Any
 import typer
 from rich.markup import escape
 
-from ._console import wide_console
+from calstation.cli._console import wide_console
 
 H_PARAMS = ("tx", "ty", "tz", "rx", "ry", "rz")
 CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms")
@@ -37,7 +37,7 @@ def _unit(param: str) -> str:
 
 
 def _parse_since(text: str) -> dt.datetime:
-    from ..errors import CalstationError
+    from calstation.errors import CalstationError
 
     try:
         t = dt.datetime.fromisoformat(text)
@@ -81,8 +81,8 @@ def register(app: typer.Typer) -> None:
         from rich.table import Table
         from sqlalchemy import select
 
-        from ..db import Run, Station, open_database
-        from ..report import history_item, with_results
+        from calstation.storage.db import Run, Station, open_database
+        from calstation.storage.report import history_item, with_results
 
         database = open_database(db)
         rows: list[dict[str, Any]] = []
@@ -141,9 +141,9 @@ def register(app: typer.Typer) -> None:
         """Everything about one run: steps, calibrations, cube check, recordings."""
         from rich.table import Table
 
-        from ..db import open_database
-        from ..operator import render_summary
-        from ..report import get_run, run_summary
+        from calstation.station.operator import render_summary
+        from calstation.storage.db import open_database
+        from calstation.storage.report import get_run, run_summary
 
         database = open_database(db)
         with database.session("reading the runs", read_only=True) as s:
@@ -204,9 +204,9 @@ def register(app: typer.Typer) -> None:
         db: str = typer.Option(None, "--db", help=DB_HELP),
     ) -> None:
         """Export a run's final calibration (yaml/json load with `calibrate`/`verify`)."""
-        from ..db import open_database
-        from ..report import export_calibration, get_run
-        from ..ros import Frames
+        from calstation.storage.db import open_database
+        from calstation.storage.report import export_calibration, get_run
+        from calstation.storage.ros import Frames
 
         if parent not in ("lidar", "platform"):
             raise typer.BadParameter(
@@ -244,7 +244,7 @@ def register(app: typer.Typer) -> None:
         """
         from rich.table import Table
 
-        from ..errors import CalstationError
+        from calstation.errors import CalstationError
 
         if param not in H_PARAMS + CUBE_PARAMS:
             raise CalstationError(
@@ -282,8 +282,8 @@ def trend_points(
     """The accepted calibrations of ``station`` (of unit ``serial`` only, when given), oldest
     first, with drift vs the previous one: :func:`calstation.web.qa.trend_points`, as the web
     station's trend page shows them."""
-    from ..db import open_database
-    from ..web.qa import trend_points as query
+    from calstation.storage.db import open_database
+    from calstation.web.qa import trend_points as query
 
     database = open_database(db)
     try:

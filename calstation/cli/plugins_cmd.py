@@ -6,7 +6,7 @@ import json
 
 import typer
 
-from ._console import wide_console
+from calstation.cli._console import wide_console
 
 
 def register(app: typer.Typer) -> None:
@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
         """List each plugin and its hooks, and the drivers and strategies they register."""
         from rich.table import Table
 
-        from .. import plugins
+        from calstation import plugins
 
         infos = plugins.plugin_report()
         drivers = plugins.drivers()
@@ -73,7 +73,7 @@ def register(app: typer.Typer) -> None:
 
 def _options_schema(strategy: object) -> list[str] | None:
     """The option names of a strategy's ``options_model`` (None: it declares none)."""
-    from ..strategies import options_model_of
+    from calstation.plugins.cost_strategies import options_model_of
 
     model = options_model_of(strategy)
     return None if model is None else list(model.model_fields)

@@ -18,7 +18,7 @@ from typing import Any
 
 import typer
 
-from ..errors import DriverError
+from calstation.errors import DriverError
 
 
 def _parse_sets(items: list[str]) -> dict[str, Any]:
@@ -73,13 +73,13 @@ def probe(kind: str, driver_name: str, settings: dict[str, Any],
           recipe: Path | None = None) -> dict[str, Any]:
     """Open driver ``driver_name`` of ``kind`` with ``settings``; return its identity and one
     sample as a JSON-ready mapping. The driver is always closed."""
-    from .. import plugins
-    from ..clock import HostClock
-    from ..drivers import DriverContext
+    from calstation import plugins
+    from calstation.clock import HostClock
+    from calstation.drivers import DriverContext
 
     loaded = None
     if recipe is not None:
-        from ..recipe import load_recipe
+        from calstation.recipes import load_recipe
 
         loaded = load_recipe(recipe)
     context = DriverContext(clock=HostClock(), recipe=loaded)

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import typer
 
-from ._console import wide_console
+from calstation.cli._console import wide_console
 
 
 def recipe_dirs() -> list[Path]:
     """Folders ``recipes list`` searches (``$CALSTATION_RECIPES``, ./recipes, shipped, home)."""
-    from ..db import calstation_home
+    from calstation.storage.db import calstation_home
 
     candidates = [
         Path.cwd() / "recipes",
@@ -44,8 +44,8 @@ def register(app: typer.Typer) -> None:
         ),
     ) -> None:
         """Validate recipe files: every problem with its field and YAML line."""
-        from ..errors import RecipeError
-        from ..recipe import check_plugins, load_recipe
+        from calstation.errors import RecipeError
+        from calstation.recipes import check_plugins, load_recipe
 
         failures = []
         for f in files:
@@ -72,8 +72,8 @@ def register(app: typer.Typer) -> None:
         """List the recipes found, with station, drivers, strategy and validity."""
         from rich.table import Table
 
-        from ..errors import RecipeError
-        from ..recipe import load_recipe
+        from calstation.errors import RecipeError
+        from calstation.recipes import load_recipe
 
         dirs = [d.resolve() for d in folders] if folders else recipe_dirs()
         table = Table(title="Recipes")

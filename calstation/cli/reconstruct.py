@@ -41,10 +41,10 @@ def register(app: typer.Typer) -> None:
         import numpy as np
         from rich.console import Console
 
-        from ..errors import RecordingError
-        from ..quiet import stdout_to_stderr
-        from ..reconstruct import load_calibration_file, reconstruct, write_ply
-        from ..recording import read_recording
+        from calstation.engine.reconstruct import load_calibration_file, reconstruct, write_ply
+        from calstation.errors import RecordingError
+        from calstation.quiet import stdout_to_stderr
+        from calstation.recordings.recording import read_recording
 
         if (calibration is None) == (truth is None):
             raise typer.BadParameter("give exactly one of --calibration FILE or --truth FILE")

@@ -33,7 +33,7 @@ def _live_view(port: int | None) -> Iterator[None]:
         return
     from rich.console import Console
 
-    from ..liveview import start_live_view
+    from calstation.recordings.liveview import start_live_view
 
     view = start_live_view(port)
     Console(stderr=True).print(f"live view: open [bold]{view.url}[/] in Foxglove")
@@ -79,10 +79,10 @@ def register(app: typer.Typer) -> None:
 
         Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted.
         """
-        from ..db import open_database
-        from ..operator import ConsoleOperator
-        from ..recipe import load_recipe
-        from ..station import start_run
+        from calstation.recipes import load_recipe
+        from calstation.station.operator import ConsoleOperator
+        from calstation.station.run import start_run
+        from calstation.storage.db import open_database
 
         loaded = load_recipe(recipe)
         database = open_database(db)
@@ -116,9 +116,9 @@ def register(app: typer.Typer) -> None:
 
         Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted.
         """
-        from ..db import open_database
-        from ..operator import ConsoleOperator
-        from ..station import resume_run
+        from calstation.station.operator import ConsoleOperator
+        from calstation.station.run import resume_run
+        from calstation.storage.db import open_database
 
         database = open_database(db)
         try:

@@ -40,9 +40,9 @@ def register(app: typer.Typer) -> None:
         """
         import uvicorn
 
-        from ..db import calstation_home, open_database
-        from ..web.app import create_app
-        from ..web.security import load_token
+        from calstation.storage.db import calstation_home, open_database
+        from calstation.web.app import create_app
+        from calstation.web.security import load_token
 
         token = load_token(token_file)
         database = open_database(db)

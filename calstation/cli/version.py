@@ -11,6 +11,6 @@ def register(app: typer.Typer) -> None:
     @app.command("version")
     def version() -> None:
         """Print calstation's version."""
-        from .. import __version__
+        from calstation import __version__
 
         typer.echo(f"calstation {__version__}")

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ..errors import PluginError
-from ..frames import Extrinsics
-from ..recipe import LoadedRecipe, load_recipe
+from calstation.engine.frames import Extrinsics
+from calstation.errors import PluginError
+from calstation.recipes import LoadedRecipe, load_recipe
 
 SHIPPED_RECIPES = Path(__file__).resolve().parents[2] / "recipes"
 """The recipes shipped with calstation (the simulated station's among them)."""
@@ -96,7 +96,7 @@ def simulate_scans(
     files: dict[str, Any] = simulate_run(
         loaded, Path(out_dir), seed=seed, range_m=range_m, pitch_deg=pitch_deg, progress=False
     )
-    from ..recording import read_recording
+    from calstation.recordings.recording import read_recording
 
     truth = read_recording(files["static"]).truth
     if truth is None:
@@ -107,8 +107,8 @@ def simulate_scans(
 
 def strategy_start(scans: SimulatedScans) -> Extrinsics:
     """The start a station gives a strategy: the initial calibration of the static scan."""
-    from ..initial import initial_calibration
-    from ..recording import read_recording
+    from calstation.engine.initial import initial_calibration
+    from calstation.recordings.recording import read_recording
 
     rc = scans.recipe.recipe
     return initial_calibration(

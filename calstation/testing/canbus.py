@@ -33,7 +33,7 @@ from collections.abc import Callable
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
-from ..clock import Clock, HostClock
+from calstation.clock import Clock, HostClock
 
 log = logging.getLogger(__name__)
 

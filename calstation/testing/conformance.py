@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from ..clock import Clock, HostClock
-from ..drivers import (
+from calstation.clock import Clock, HostClock
+from calstation.drivers import (
     Encoder,
     EncoderSample,
     Lidar,

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import pytest
 
-from ..frames import Extrinsics
-from . import SimulatedScans, simulate_scans
-from . import strategy_start as _strategy_start
+from calstation.engine.frames import Extrinsics
+from calstation.testing import SimulatedScans, simulate_scans
+from calstation.testing import strategy_start as _strategy_start
 
 
 @pytest.fixture(scope="session")

@@ -24,10 +24,11 @@ from fastapi.responses import (
     StreamingResponse,
 )
 
-from ..db import Database, Run
-from ..errors import CalstationError
-from .live import Busy, NoSuchPrompt, Runner
-from .security import (
+from calstation.errors import CalstationError
+from calstation.storage.db import Database, Run
+from calstation.storage.templating import environment
+from calstation.web.live import Busy, NoSuchPrompt, Runner
+from calstation.web.security import (
     CSRF_COOKIE,
     SESSION_COOKIE,
     AccessError,
@@ -35,7 +36,6 @@ from .security import (
     is_local_host,
     new_csrf_value,
 )
-from .templating import environment
 
 STATIC = Path(__file__).parent / "static"
 EVENT_KEEPALIVE_S = 15.0
@@ -132,7 +132,7 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
     @app.get("/", response_class=HTMLResponse)
     def operator_page(request: Request) -> HTMLResponse:
         """The operator page: start a run, answer its prompts, follow it live."""
-        from ..cli.run import _default_operator
+        from calstation.cli.run import _default_operator
 
         return ctx.page(request, "operator.html", {
             "state": runner.live.snapshot(), "recipes": runner.recipes(),
@@ -189,7 +189,7 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
     def static(name: str) -> Response:
         """The pages' script and style, and plotly.js from the installed plotly package."""
         if name == "plotly.min.js":
-            from ..report_html import plotly_js
+            from calstation.storage.report_html import plotly_js
 
             return Response(plotly_js(), media_type="text/javascript",
                             headers={"Cache-Control": "max-age=86400"})
@@ -206,7 +206,7 @@ def _resumable(db: Database) -> list[dict[str, Any]]:
 
     from sqlalchemy import select
 
-    from ..station import _process_alive
+    from calstation.station.run import _process_alive
 
     out = []
     with db.session("reading the runs", read_only=True) as s:
@@ -222,7 +222,7 @@ def _resumable(db: Database) -> list[dict[str, Any]]:
 
 # --- runs, trends, compare -------------------------------------------------------------------
 def _run_routes(app: FastAPI, ctx: _Pages) -> None:
-    from . import qa
+    from calstation.web import qa
 
     def history_filter(request: Request) -> qa.HistoryFilter:
         q = request.query_params
@@ -254,14 +254,14 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
     @app.get("/runs/{run_id}.json")
     def run_json(run_id: int) -> dict[str, Any]:
         """One run as JSON: what its page shows, without the 3D point clouds."""
-        from ..report_html import report_data
+        from calstation.storage.report_html import report_data
 
         return report_data(ctx.db, run_id, views=False)
 
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
     def run_page(run_id: int) -> HTMLResponse:
         """A run's page: its report, rendered from the database and recordings."""
-        from ..report_html import render_report, report_data
+        from calstation.storage.report_html import render_report, report_data
 
         data = report_data(ctx.db, run_id)
         return HTMLResponse(render_report(data, plotly_src="/static/plotly.min.js", nav=True))
@@ -279,7 +279,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
     @app.get("/runs/{run_id}/export.{fmt}")
     def export(run_id: int, fmt: str) -> Response:
         """The run's final calibration as yaml, json, urdf or csv (a download)."""
-        from ..report import export_calibration, get_run
+        from calstation.storage.report import export_calibration, get_run
 
         with ctx.db.session("reading the runs", read_only=True) as s:
             text = export_calibration(get_run(s, run_id), fmt)
@@ -312,7 +312,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
                                                  "figure": qa.trend_figure(t)})
 
     def compare_data(request: Request) -> dict[str, Any]:
-        from ..report_html import report_data
+        from calstation.storage.report_html import report_data
 
         q = request.query_params
         try:

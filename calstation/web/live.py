@@ -1,11 +1,12 @@
-"""The web front end of a run: an :class:`~calstation.operator.Operator` that keeps the run's live
+"""The web front end of a run: an :class:`~calstation.station.operator.Operator` that keeps the
+run's live
 state for the pages and takes the operator's answers from them, and the runner that executes one
 run at a time in a background thread of the server process.
 
-The station (:mod:`calstation.station`) is the same one the console drives: :class:`WebOperator`
+The station (:mod:`calstation.station.run`) is the same one the console drives: :class:`WebOperator`
 only records what it is told (steps, progress, prompts, lidar lines, the verdict) into a
 :class:`LiveState`, and blocks the run's thread at a prompt until a page answers. Abort from a page
-raises :class:`~calstation.station.AbortRun` inside the run at its next progress report or lidar
+raises :class:`~calstation.station.run.AbortRun` inside the run at its next progress report or lidar
 line (or answers the pending prompt with abort), which is what Ctrl-C does on the console: the
 station closes the step as aborted and stops the motor (``emergency_stop`` then ``stop``).
 
@@ -27,10 +28,9 @@ from typing import Any
 import numpy as np
 from rich.text import Text
 
-from ..db import Database
-from ..errors import CalstationError, StationError
-from ..operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
-from ..station import (
+from calstation.errors import CalstationError, StationError
+from calstation.station.operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
+from calstation.station.run import (
     STEPS,
     AbortRun,
     Station,
@@ -39,6 +39,7 @@ from ..station import (
     resume_run,
     run_steps,
 )
+from calstation.storage.db import Database
 
 LINE_PREVIEW_PERIOD_S = 0.2
 """At most this often the live lidar line is refreshed (the lidar gives ~1000 lines/s)."""
@@ -247,7 +248,7 @@ class WebOperator:
 
     def confirm_fixture(self, fixture: str, description: str) -> bool:
         """Show the placement picture with Continue and Abort; wait for the answer."""
-        from .placement import placement_svg
+        from calstation.web.placement import placement_svg
 
         self._check_abort()
         geometry = getattr(self.recipe.fixtures, fixture, None)
@@ -385,7 +386,7 @@ class Runner:
     # --- runs ------------------------------------------------------------------------------
     def start(self, recipe: str, operator: str, serial: str | None) -> int:
         """Create a run of the recipe file ``recipe`` and execute it in the background."""
-        from ..recipe import load_recipe
+        from calstation.recipes import load_recipe
 
         if not operator.strip():
             raise StationError("enter the operator's name")
@@ -406,7 +407,7 @@ class Runner:
 
     def resume(self, run_id: int, force: bool = False) -> int:
         """Continue run ``run_id`` at its first unfinished step (as ``calstation resume``)."""
-        from ..recipe import parse_recipe
+        from calstation.recipes import parse_recipe
 
         self._take()
         try:
@@ -469,7 +470,7 @@ class Runner:
         self._thread.start()
 
     def _end_screen(self, run_id: int) -> dict[str, Any] | None:
-        from ..report_html import report_data
+        from calstation.storage.report_html import report_data
 
         try:
             data = report_data(self.db, run_id, views=False)

@@ -14,7 +14,7 @@ import math
 from html import escape
 from typing import Any
 
-from ..recipe import frustum_outline
+from calstation.recipes import frustum_outline
 
 SIZE = 360
 """Width and height of the picture (px)."""

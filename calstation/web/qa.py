@@ -15,10 +15,10 @@ from typing import Any
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from ..db import PARAMS, Calibration, Run, Station
-from ..errors import CalstationError
-from ..recipe import parse_recipe
-from ..report import history_item, iso, with_results
+from calstation.errors import CalstationError
+from calstation.recipes import parse_recipe
+from calstation.storage.db import PARAMS, Calibration, Run, Station
+from calstation.storage.report import history_item, iso, with_results
 
 STATUSES = ("running", "passed", "failed", "aborted")
 TREND_PARAMS = tuple(p for p in PARAMS if p != "rx")  # rx is the gauge, held at 0
@@ -61,7 +61,7 @@ def parse_date(text: str, field: str, end: bool = False) -> dt.datetime:
 
 def history(session: Session, f: HistoryFilter) -> list[dict[str, Any]]:
     """Runs, newest first, each with its final calibration and cube check."""
-    from ..report_html import unit_serial
+    from calstation.storage.report_html import unit_serial
 
     if f.status and f.status not in STATUSES:
         raise QueryError(f"status: {f.status!r} is not one of {', '.join(STATUSES)}")
@@ -208,7 +208,7 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
 
 def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
     """Rows of two runs' final calibrations and cube checks side by side (display units)."""
-    from ..report_html import display_value
+    from calstation.storage.report_html import display_value
 
     rows: list[dict[str, Any]] = []
     fa, fb = a.get("final"), b.get("final")

@@ -24,7 +24,7 @@ import secrets
 from pathlib import Path
 from urllib.parse import urlsplit
 
-from ..errors import CalstationError
+from calstation.errors import CalstationError
 
 CSRF_COOKIE = "calstation_csrf"
 SESSION_COOKIE = "calstation_session"

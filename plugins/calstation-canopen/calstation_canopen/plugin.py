@@ -74,7 +74,7 @@ def calstation_register_commands(cli: Any) -> None:
         from calstation_sim import SimulatedStation
 
         from calstation.clock import HostClock
-        from calstation.recipe import load_recipe
+        from calstation.recipes import load_recipe
 
         from .emulator import DriveEmulator, EncoderEmulator
 

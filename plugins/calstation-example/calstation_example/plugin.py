@@ -19,7 +19,7 @@ from typing import Any
 import typer
 
 from calstation import hookimpl
-from calstation.hookspecs import RegisterDriver, RegisterStrategy
+from calstation.plugins.hookspecs import RegisterDriver, RegisterStrategy
 
 ENV = "CALSTATION_EXAMPLE_LOG"
 

@@ -2,8 +2,11 @@
 
 A template for a strategy plugin: it declares its fixture (the QA cube) and an options model
 (``calibration.options.example-ry-held`` in a recipe, checked by ``calstation recipes validate``
-with file and line), reads its options with :func:`calstation.strategies.strategy_options`, and
-re-uses calstation's engine (:func:`calstation.shape.shape_fine_tune`). calstation checks what it
+with file and line), reads its options with
+:func:`calstation.plugins.cost_strategies.strategy_options`,
+and
+re-uses calstation's engine (:func:`calstation.engine.shape.shape_fine_tune`). calstation checks
+what it
 returns (finite, near its start) and times it.
 """
 
@@ -14,11 +17,11 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 if TYPE_CHECKING:  # the engine loads when the strategy runs, not when it is registered
-    from calstation.frames import Extrinsics
-    from calstation.recipe import Recipe
-    from calstation.recording import Recording
-    from calstation.result import CalibrationResult
-    from calstation.strategies import Progress
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.result import CalibrationResult
+    from calstation.plugins.cost_strategies import Progress
+    from calstation.recipes import Recipe
+    from calstation.recordings.recording import Recording
 
 
 class RyHeldOptions(BaseModel):
@@ -48,8 +51,8 @@ class RyHeldStrategy:
         """Refine tx, ty, tz, rz from the cube's spin scan; ry stays at ``start.ry``."""
         from dataclasses import replace
 
-        from calstation.shape import shape_fine_tune
-        from calstation.strategies import strategy_options
+        from calstation.engine.shape import shape_fine_tune
+        from calstation.plugins.cost_strategies import strategy_options
 
         options: RyHeldOptions = strategy_options(self, recipe)
         result = shape_fine_tune(

@@ -9,11 +9,11 @@ from calstation_example import plugin as example
 from calstation_example.strategy import RyHeldStrategy
 
 from calstation import plugins
+from calstation.engine.metrics import axis_errors
 from calstation.errors import RecipeError
-from calstation.metrics import axis_errors
-from calstation.recipe import check_plugins, load_recipe
-from calstation.recording import read_recording
-from calstation.strategies import run_strategy
+from calstation.plugins.cost_strategies import run_strategy
+from calstation.recipes import check_plugins, load_recipe
+from calstation.recordings.recording import read_recording
 from calstation.testing import SimulatedScans
 
 

@@ -72,7 +72,7 @@ def calstation_register_commands(cli: Any) -> None:
         if recipe is not None:
             from calstation_sim import SimulatedStation
 
-            from calstation.recipe import load_recipe
+            from calstation.recipes import load_recipe
 
             station = SimulatedStation(load_recipe(recipe), seed=seed, clock=clock)
             station.place(fixture)

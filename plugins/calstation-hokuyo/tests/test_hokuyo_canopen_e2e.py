@@ -29,10 +29,10 @@ RZ_RAD = math.radians(0.05)
 
 @pytest.mark.slow
 def test_calibration_through_the_real_drivers_and_emulators(tmp_path: Path) -> None:
-    from calstation.db import Artifact, Calibration, Database, Run
-    from calstation.frames import Extrinsics
-    from calstation.metrics import axis_errors
-    from calstation.recording import read_recording
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.metrics import axis_errors
+    from calstation.recordings.recording import read_recording
+    from calstation.storage.db import Artifact, Calibration, Database, Run
 
     url = f"sqlite:///{tmp_path / 'e2e.db'}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("CALSTATION_")}
@@ -69,7 +69,7 @@ def test_emulated_drivers_share_one_simulated_station() -> None:
     from calstation import plugins
     from calstation.clock import HostClock
     from calstation.drivers import DriverContext
-    from calstation.recipe import load_recipe
+    from calstation.recipes import load_recipe
 
     loaded = load_recipe(RECIPE)
     context = DriverContext(clock=HostClock(), recipe=loaded)

@@ -24,7 +24,7 @@ def simulate(
     """Simulate a run: static.mcap, spin.mcap, cube.mcap and truth.json in --out."""
     from rich.console import Console
 
-    from calstation.recipe import load_recipe
+    from calstation.recipes import load_recipe
 
     from .run import simulate_run
 

@@ -17,7 +17,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from calstation.errors import SimulationError
-from calstation.recipe import (
+from calstation.recipes import (
     CubeGeometry,
     FrustumGeometry,
     LoadedRecipe,

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from calstation import hookimpl
-from calstation.hookspecs import RegisterDriver
+from calstation.plugins.hookspecs import RegisterDriver
 
 
 @hookimpl

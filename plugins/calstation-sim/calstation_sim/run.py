@@ -8,11 +8,11 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from calstation.acquisition import acquire_spin, acquire_static
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 from calstation.errors import SimulationError
-from calstation.frames import PARAMETER_NAMES, Extrinsics
-from calstation.recipe import LoadedRecipe, SpinScanStep
-from calstation.runfolder import second_pass
+from calstation.recipes import LoadedRecipe, SpinScanStep
+from calstation.recordings.runfolder import second_pass
+from calstation.station.acquisition import acquire_spin, acquire_static
 
 from .drivers import SimEncoder, SimLidar, SimTurntable
 from .station import SimulatedStation
@@ -83,7 +83,7 @@ def simulate_run(
     paths. ``seed``, ``range_m`` (m) and ``pitch_deg`` override the
     recipe's simulation.
     """
-    from calstation.recording import RecordingWriter
+    from calstation.recordings.recording import RecordingWriter
 
     out = Path(out_dir)
     try:

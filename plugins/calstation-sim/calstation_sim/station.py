@@ -22,9 +22,9 @@ from numpy.typing import NDArray
 
 from calstation.clock import Clock, SimClock
 from calstation.drivers import DriverContext, LidarInfo, LidarLine
+from calstation.engine.frames import Extrinsics, counts_per_revolution
 from calstation.errors import FrameError, SimulationError
-from calstation.frames import Extrinsics, counts_per_revolution
-from calstation.recipe import LoadedRecipe, Recipe, SimulationConfig
+from calstation.recipes import LoadedRecipe, Recipe, SimulationConfig
 
 from . import meshes
 from .motion import PlatterMotion, rpm_to_rad_s

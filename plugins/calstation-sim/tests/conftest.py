@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 import yaml
 
-from calstation.recipe import LoadedRecipe, load_recipe
+from calstation.recipes import LoadedRecipe, load_recipe
 
 DEFAULT_RECIPE = Path(__file__).resolve().parents[3] / "recipes" / "sim-periodicity.yaml"
 

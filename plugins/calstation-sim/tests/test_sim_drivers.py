@@ -18,8 +18,8 @@ from calstation import plugins
 from calstation.clock import HostClock, SimClock
 from calstation.drivers import DriverContext, Encoder, Lidar, Turntable, TurntableState
 from calstation.errors import DriverError
-from calstation.recipe import LoadedRecipe
-from calstation.recording import read_recording
+from calstation.recipes import LoadedRecipe
+from calstation.recordings.recording import read_recording
 
 
 def _drivers(

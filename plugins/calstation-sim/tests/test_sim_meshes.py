@@ -11,9 +11,9 @@ import open3d as o3d
 import pytest
 from calstation_sim import SimulatedStation, meshes
 
+from calstation.engine.frames import lidar_to_platform, polar_to_lidar
 from calstation.errors import RecipeError, SimulationError
-from calstation.frames import lidar_to_platform, polar_to_lidar
-from calstation.recipe import (
+from calstation.recipes import (
     CubeGeometry,
     FrustumGeometry,
     LoadedRecipe,
@@ -44,7 +44,7 @@ def test_solid_meshes_are_closed_with_recipe_dimensions() -> None:
 
 
 def _platter():  # type: ignore[no-untyped-def]
-    from calstation.recipe import PlatterGeometry
+    from calstation.recipes import PlatterGeometry
 
     return PlatterGeometry()
 

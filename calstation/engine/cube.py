@@ -1,0 +1,546 @@
+"""Cube verification: dimension the QA cube from its own spin scan (DESIGN §5, §8).
+
+Two measurements of the same cleaned cloud in frame D:
+
+- the paper's metric ``e = max_i(ŝ_i − s)`` from Open3D's minimum-volume oriented bounding box
+  of the unsmoothed cloud (comparable with the paper's tables; biased upward by the noise);
+- a robust dimensioning: planes fitted (SVD, trimmed at 3σ) to the four side faces and the top,
+  the platter plane next to the cube as the bottom; edge = distance between opposite faces (the
+  top face to the platter for the height); face flatness (RMS of the plane residuals) and
+  perpendicularity (largest deviation from 90° between adjacent faces).
+
+Pass/fail against the recipe's ``qa`` limits.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from calstation.engine.frames import Extrinsics, FloatArray, lidar_to_dynamic
+from calstation.engine.geometry import (
+    density_outlier_mask,
+    fit_plane,
+    largest_cluster,
+    level_of_heights,
+    minimal_obb,
+    upright_box,
+)
+from calstation.errors import VerificationError
+from calstation.recipes import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
+
+if TYPE_CHECKING:
+    from calstation.recordings.recording import Recording
+
+SEGMENT_MARGIN = 0.005
+"""Cube points are those more than 5 mm above the platter top (the OBB height adds it back)."""
+
+
+@dataclass(frozen=True)
+class CubeCheck:
+    """Result of a cube check. Lengths in metres, angles in degrees.
+
+    - ``obb_edges`` (3,) sorted extents of the minimum-volume OBB (height corrected for the
+      segmentation margin), ``obb_error`` the paper's ``max_i(ŝ_i − s)``;
+    - ``face_edges`` (3,) face-fit edges (height, then the two horizontal edges),
+      ``edge_error`` ``max_i |ŝ_i − s|`` of those;
+    - ``flatness_rms`` the worst face's plane-fit RMS; ``perpendicularity_deg`` the worst
+      deviation from 90° between adjacent faces;
+    - ``twist_deg`` the ry correction (≈ true ry − the checked ry) that makes the four side
+      faces flattest, and its ``twist_sigma_deg``: an error of ry shears every side face in
+      proportion to height, which the edges and the flatness barely see;
+    - ``passed`` and the ``failures`` (one message per limit exceeded);
+    - ``platter_level`` the platter top's height along X_D, from which heights are measured.
+    """
+
+    edge: float
+    obb_edges: FloatArray
+    obb_error: float
+    face_edges: FloatArray
+    edge_error: float
+    flatness_rms: float
+    perpendicularity_deg: float
+    passed: bool
+    failures: list[str] = field(default_factory=list)
+    points: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+    platter_level: float = 0.0
+    twist_deg: float = math.nan
+    twist_sigma_deg: float = math.nan
+
+    def to_dict(self) -> dict[str, Any]:
+        """A plain mapping (YAML/JSON ready), metres and degrees."""
+        return {
+            "edge_m": self.edge,
+            "obb_edges_m": [float(v) for v in self.obb_edges],
+            "obb_error_m": float(self.obb_error),
+            "face_edges_m": [float(v) for v in self.face_edges],
+            "edge_error_m": float(self.edge_error),
+            "flatness_rms_m": float(self.flatness_rms),
+            "perpendicularity_deg": float(self.perpendicularity_deg),
+            "twist_deg": float(self.twist_deg),
+            "twist_sigma_deg": float(self.twist_sigma_deg),
+            "passed": bool(self.passed),
+            "failures": list(self.failures),
+            "points": int(self.points),
+            "timings": dict(self.timings),
+            "platter_level_m": float(self.platter_level),
+        }
+
+
+@dataclass(frozen=True)
+class _Face:
+    centroid: FloatArray
+    normal: FloatArray
+    rms: float
+    n: int
+    members: NDArray[np.intp]
+    """indices of the face's returns in the cleaned cube cloud"""
+
+
+def _faces(
+    cube: FloatArray, axes: FloatArray, lo: FloatArray, hi: FloatArray, band: float, keep_out: float
+) -> dict[str, _Face]:
+    local = cube @ axes
+    faces: dict[str, _Face] = {}
+    inner_top = local[:, 0] < hi[0] - keep_out
+    for j in (1, 2):
+        other = 3 - j
+        inner = (local[:, other] > lo[other] + keep_out) & (local[:, other] < hi[other] - keep_out)
+        for name, ref in ((f"{j}-", lo[j]), (f"{j}+", hi[j])):
+            sel = (np.abs(local[:, j] - ref) < band) & inner & inner_top
+            if sel.sum() >= 30:
+                c, n, rms = fit_plane(cube[sel])
+                faces[name] = _Face(c, n, rms, int(sel.sum()), np.flatnonzero(sel))
+    inner = np.ones(local.shape[0], dtype=bool)
+    for j in (1, 2):
+        inner &= (local[:, j] > lo[j] + keep_out) & (local[:, j] < hi[j] - keep_out)
+    sel = inner & (np.abs(local[:, 0] - hi[0]) < band)
+    if sel.sum() >= 30:
+        c, n, rms = fit_plane(cube[sel])
+        faces["top"] = _Face(c, n, rms, int(sel.sum()), np.flatnonzero(sel))
+    return faces
+
+
+def _angle_deg(n1: FloatArray, n2: FloatArray) -> float:
+    return math.degrees(math.acos(min(1.0, abs(float(np.dot(n1, n2))))))
+
+
+PLATTER_WINDOW = 0.02
+"""The platter top is looked for within this distance of x_D = 0 (m)."""
+RING_BAND = 0.004
+"""The platter plane beside the cube is fitted to the returns within this distance of its
+level (m)."""
+RING_POINTS = 150_000
+"""At most this many of those, a regular subset (the platter gives ~0.75 M in a 3 M scan)."""
+
+
+@dataclass(frozen=True)
+class _CubeCloud:
+    """The cube's returns under one H, found from a spin scan's returns."""
+
+    level: float
+    """the platter top's height along X_D"""
+    p_ring: FloatArray
+    """(M, 3) a regular subset of the platter ring's returns in D, heights from ``level``"""
+    p_L: FloatArray
+    """(K, 3) the returns above the platter near the axis, in L"""
+    phi: FloatArray
+    """(K,) their platter angles"""
+    idx: NDArray[np.intp]
+    """positions in ``p_L`` of the cube's cleaned returns"""
+    pts: FloatArray
+    """(n, 3) the cube's cleaned returns in D, heights from ``level``"""
+
+
+def _cube_cloud(
+    p_L: FloatArray, phi: FloatArray, H: Extrinsics, s: float, platter_radius: float
+) -> _CubeCloud:
+    """Find the platter and the cube's returns under H (the cube check's segmentation)."""
+    # height along the axis and distance from it do not depend on the platter angle: find the
+    # platter and the returns the steps below can use before turning any by its angle
+    t_P = H.t @ H.R
+    x = p_L @ H.R[:, 0]
+    x -= t_P[0]
+
+    def within(idx: NDArray[np.intp], radius: float) -> NDArray[np.intp]:
+        """Those of ``idx`` closer than ``radius`` to the axis."""
+        yz = p_L[idx] @ H.R[:, 1:]
+        yz -= t_P[1:]
+        out: NDArray[np.intp] = idx[np.einsum("ij,ij->i", yz, yz) < radius**2]
+        return out
+
+    # measure from the platter as seen, not from x_D = 0: a calibration's origin along the axis
+    # is a gauge (the shape strategy holds ty), and a few millimetres there would otherwise
+    # lift the platter itself above the segmentation cut
+    window = np.flatnonzero(np.abs(x) < PLATTER_WINDOW)
+    level = level_of_heights(x[within(window, platter_radius - 0.005)])
+    x -= level
+    above = within(np.flatnonzero((x > SEGMENT_MARGIN) & (x < 3 * s)), platter_radius)
+    ring = within(np.flatnonzero(np.abs(x) < RING_BAND), platter_radius - 0.005)
+    ring = ring[:: max(1, -(-ring.size // RING_POINTS))]
+    p_ring = lidar_to_dynamic(p_L[ring], phi[ring], H)
+    p_ring[:, 0] -= level
+    p_L, phi = p_L[above], phi[above]
+    p_D = lidar_to_dynamic(p_L, phi, H)
+    p_D[:, 0] -= level
+    idx = np.flatnonzero(density_outlier_mask(p_D))
+    idx = idx[largest_cluster(p_D[idx])]
+    return _CubeCloud(level, p_ring, p_L, phi, idx, p_D[idx])
+
+
+def check_cube_points(
+    p_L: FloatArray,
+    phi: FloatArray,
+    H: Extrinsics,
+    cube: CubeGeometry,
+    limits: QALimits,
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    edges_only: bool = False,
+    memo: dict[str, Any] | None = None,
+) -> CubeCheck:
+    """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H.
+    ``edges_only`` leaves out the paper's minimum-volume box and the twist (NaN), for callers
+    that need only the face-fit dimensions. ``memo``: a mapping kept with these returns
+    (:attr:`calstation.engine.spinscan.SpinScan.memo`) in which the cube's segmentation under the
+    last H is kept, so that a second check under the same H (the shape strategy's σ floor,
+    then the cube check of its result) does not segment again."""
+    t0 = time.perf_counter()
+    s = cube.edge
+    key = (H.as_vector().tobytes(), s, platter_radius)
+    found = memo.get("cube_cloud") if memo is not None else None
+    if found is not None and found[0] == key:
+        cloud: _CubeCloud = found[1]
+    else:
+        cloud = _cube_cloud(p_L, phi, H, s, platter_radius)
+        if memo is not None:
+            memo["cube_cloud"] = (key, cloud)
+    level, p_ring, p_L, phi, idx, pts = (
+        cloud.level, cloud.p_ring, cloud.p_L, cloud.phi, cloud.idx, cloud.pts)
+    if pts.shape[0] < 500:
+        raise VerificationError(
+            f"the QA cube was not found: {pts.shape[0]} returns more than "
+            f"{SEGMENT_MARGIN * 1e3:.0f} mm above the platter (expected a {s * 1e3:.0f} mm cube)"
+        )
+    t1 = time.perf_counter()
+    # the paper's metric: minimum-volume OBB of the unsmoothed cloud
+    obb_edges, obb_error = np.full(3, math.nan), math.nan
+    if not edges_only:
+        _, obb_axes, obb_ext = minimal_obb(pts)
+        vertical = int(np.argmax(np.abs(obb_axes[0, :])))
+        obb_ext = obb_ext.copy()
+        obb_ext[vertical] += SEGMENT_MARGIN
+        obb_edges = np.sort(obb_ext)
+        obb_error = float(np.max(obb_edges - s))
+    t2 = time.perf_counter()
+    # robust dimensioning: planes on the faces
+    centre, axes, ext = upright_box(pts)
+    lo = axes.T @ centre - 0.5 * ext
+    hi = axes.T @ centre + 0.5 * ext
+    band = min(0.008, 0.1 * s)
+    keep_out = min(0.01, 0.1 * s)
+    faces = _faces(pts, axes, lo, hi, band, keep_out)
+    missing = [n for n in ("1-", "1+", "2-", "2+", "top") if n not in faces]
+    edges = []
+    for j in (1, 2):
+        if f"{j}-" not in faces or f"{j}+" not in faces:
+            edges.append(float(ext[j]))  # the robust box's extent stands in for the planes
+            continue
+        a, b = faces[f"{j}-"], faces[f"{j}+"]
+        nb = b.normal if np.dot(a.normal, b.normal) > 0 else -b.normal
+        n = (a.normal + nb) / np.linalg.norm(a.normal + nb)
+        edges.append(abs(float(np.dot(b.centroid - a.centroid, n))))
+    if "top" in faces:
+        height = _height(p_ring, faces["top"], centre, ext, platter_radius)
+    else:
+        height = float(hi[0])  # the box's top above x_D = 0
+    face_edges = np.array([height, *edges])
+    edge_error = float(np.max(np.abs(face_edges - s)))
+    flatness = max((f.rms for f in faces.values()), default=math.nan)
+    pairs = (
+        ("1-", "2-"),
+        ("1-", "2+"),
+        ("1+", "2-"),
+        ("1+", "2+"),
+        ("top", "1-"),
+        ("top", "1+"),
+        ("top", "2-"),
+        ("top", "2+"),
+    )
+    perp = max(
+        (
+            abs(90.0 - _angle_deg(faces[a].normal, faces[b].normal))
+            for a, b in pairs
+            if a in faces and b in faces
+        ),
+        default=math.nan,
+    )
+    sides = [faces[n].members for n in ("1-", "1+", "2-", "2+") if n in faces]
+    twist, twist_sigma = math.nan, math.nan
+    if not edges_only:
+        twist, twist_sigma = face_twist(
+            [p_L[idx[m]] for m in sides], [phi[idx[m]] for m in sides], H
+        )
+    t3 = time.perf_counter()
+    failures = []
+    if missing:
+        # a badly calibrated scan smears the cube until its faces are no longer planes: that
+        # is a failed check with a large error, not a missing cube
+        failures.append(
+            f"faces {', '.join(missing)} have too few returns for a plane fit "
+            f"({pts.shape[0]} cube returns): the cube is too distorted to dimension by its "
+            "faces (or not wholly in view); their edges are the robust box's extents"
+        )
+    if edge_error > limits.edge_error:
+        failures.append(
+            f"face-fit edge error {edge_error * 1e3:.2f} mm > {limits.edge_error * 1e3:.2f} mm"
+        )
+    if obb_error > limits.obb_edge_error:
+        failures.append(
+            f"OBB edge error {obb_error * 1e3:.2f} mm > {limits.obb_edge_error * 1e3:.2f} mm"
+        )
+    if flatness > limits.flatness_rms:
+        failures.append(
+            f"face flatness {flatness * 1e3:.2f} mm RMS > {limits.flatness_rms * 1e3:.2f} mm"
+        )
+    if perp > limits.perpendicularity_deg:
+        failures.append(f"perpendicularity {perp:.3f}° > {limits.perpendicularity_deg:.3f}°")
+    if edges_only:
+        pass  # no twist was measured
+    elif not math.isfinite(twist):
+        failures.append(
+            "the twist of the side faces cannot be measured (fewer than two side faces with "
+            "enough returns): the check cannot see an error of ry"
+        )
+    elif abs(math.degrees(twist)) > limits.twist_deg:
+        failures.append(
+            f"side faces twisted: ry off by {math.degrees(twist):+.3f}° "
+            f"(±{math.degrees(twist_sigma):.3f}°) > {limits.twist_deg:.3f}°; the calibration's "
+            "tilt of the axis out of the scan plane is wrong"
+        )
+    return CubeCheck(
+        edge=s,
+        obb_edges=obb_edges,
+        obb_error=obb_error,
+        face_edges=face_edges,
+        edge_error=edge_error,
+        flatness_rms=flatness,
+        perpendicularity_deg=perp,
+        twist_deg=math.degrees(twist),
+        twist_sigma_deg=math.degrees(twist_sigma),
+        passed=not failures,
+        failures=failures,
+        points=int(pts.shape[0]),
+        platter_level=level,
+        timings={"segment": t1 - t0, "obb": t2 - t1, "faces": t3 - t2, "total": t3 - t0},
+    )
+
+
+TWIST_BOUND_DEG = 3.0
+"""The ry correction the twist fit searches (±, degrees)."""
+TWIST_POINTS = 20000
+"""Returns per side face the twist fit uses at most (a fixed random subset)."""
+TWIST_NOISE_BIAS_DEG = 0.04
+"""Empirical bias bound of the twist at 1 mm range noise (degrees; it grows with the noise²)."""
+
+
+class FaceFlatness:
+    """Residuals of returns on plane faces about each face's own best-fit plane, as a function
+    of H: the faces' returns ((N_f, 3) in L) with their platter angles' cosines and sines
+    computed once. A face's normal is the smallest-eigenvalue direction of its scatter, its
+    sign fixed (largest component positive) so that the residuals are continuous in H."""
+
+    def __init__(self, faces_L: list[FloatArray], faces_phi: list[FloatArray]) -> None:
+        self.p_L = np.concatenate(faces_L)
+        phi = np.concatenate(faces_phi)
+        self._cos, self._sin = np.cos(phi), np.sin(phi)
+        self._bounds = np.cumsum([0, *(p.shape[0] for p in faces_L)])
+
+    def __call__(self, H: Extrinsics) -> FloatArray:
+        p_P = self.p_L @ H.R
+        p_P -= H.t @ H.R
+        q = np.column_stack([
+            p_P[:, 0],
+            self._cos * p_P[:, 1] + self._sin * p_P[:, 2],
+            -self._sin * p_P[:, 1] + self._cos * p_P[:, 2],
+        ])
+        out = np.empty(q.shape[0])
+        for a, b in zip(self._bounds[:-1], self._bounds[1:], strict=True):
+            d = q[a:b] - q[a:b].mean(axis=0)
+            n = np.linalg.eigh(d.T @ d)[1][:, 0]
+            out[a:b] = d @ (n if n[np.argmax(np.abs(n))] > 0 else -n)
+        return out
+
+
+def face_twist(
+    faces_L: list[FloatArray], faces_phi: list[FloatArray], H: Extrinsics
+) -> tuple[float, float]:
+    """The ry correction (rad) that makes the cube's side faces flattest, and its 1σ (rad).
+
+    ``faces_L`` holds each side face's returns ((N_f, 3) in L) and ``faces_phi`` their platter
+    angles. An ry error moves a return seen at height h by about ry·h perpendicular to the scan
+    plane, in opposite senses on the near and far side of the axis, so a side face seen over a
+    turn becomes a twisted surface; tx, tz and rz do not twist it (their displacements do not
+    grow with height). Each face's plane is re-fitted at every evaluation (soft-L1 against
+    mixed pixels); σ is the cluster-robust sandwich over 2 cm blocks of the faces, with the
+    bias that range noise leaves added in quadrature (:func:`twist_noise_bias`). (NaN, NaN)
+    with fewer than two faces of 30 returns.
+    """
+    rng = np.random.default_rng(0)
+    faces = []
+    for p, f in zip(faces_L, faces_phi, strict=True):
+        if p.shape[0] > TWIST_POINTS:
+            pick = np.sort(rng.choice(p.shape[0], TWIST_POINTS, replace=False))
+            p, f = p[pick], f[pick]
+        if p.shape[0] >= 30:
+            faces.append((p, f))
+    if len(faces) < 2:
+        return math.nan, math.nan
+
+    flat = FaceFlatness([p for p, _ in faces], [f for _, f in faces])
+
+    def flatness(x: FloatArray) -> FloatArray:
+        return flat(H.with_(ry=H.ry + float(x[0])))
+
+    bound = math.radians(TWIST_BOUND_DEG)
+    res = least_squares(
+        flatness,
+        np.zeros(1),
+        bounds=(-bound, bound),
+        method="trf",
+        loss="soft_l1",
+        f_scale=0.002,
+        diff_step=1e-3,
+        x_scale=np.array([1e-3]),
+        max_nfev=50,
+    )
+    Hs = H.with_(ry=H.ry + float(res.x[0]))
+    return float(res.x[0]), flatness_ry_sigma(res, [4], [p for p, _ in faces],
+                                              [f for _, f in faces], Hs)
+
+
+def flatness_ry_sigma(
+    res: Any, free: list[int], faces_L: list[FloatArray], faces_phi: list[FloatArray],
+    H: Extrinsics,
+) -> float:
+    """1σ (rad) of ry from a face-flatness fit (``scipy.optimize.least_squares`` result
+    ``res`` over the parameters ``free``, its residuals the faces' returns in order) solved at
+    H: the cluster-robust sandwich over 2 cm blocks of the faces, with the bias range noise
+    leaves (:func:`twist_noise_bias`, the noise measured on the faces) in quadrature."""
+    from calstation.engine.periodicity import block_ids, parameter_sigma
+
+    q = np.concatenate([lidar_to_dynamic(p, f, H) for p, f in zip(faces_L, faces_phi,
+                                                                   strict=True)])
+    sigma = parameter_sigma(res, free, blocks=block_ids(q, 0.02))["ry"]
+    bias = twist_noise_bias(face_range_noise(faces_L, faces_phi, H))
+    return float(math.hypot(sigma, bias))
+
+
+def face_range_noise(
+    faces_L: list[FloatArray], faces_phi: list[FloatArray], H: Extrinsics
+) -> float:
+    """Range noise (m, 1σ along the ray) seen on plane faces: each face's residual RMS about
+    its plane over the RMS of the normal component of a unit step along the ray, the median
+    over the faces (a face seen at grazing incidence shows little of the noise)."""
+    estimates = []
+    for p, f in zip(faces_L, faces_phi, strict=True):
+        q = lidar_to_dynamic(p, f, H)
+        _, n, rms = fit_plane(q)
+        unit = p / np.linalg.norm(p, axis=1, keepdims=True)
+        a = (lidar_to_dynamic(p + unit, f, H) - q) @ n
+        gain = float(np.sqrt(np.mean(a**2)))
+        if gain > 0.1:
+            estimates.append(rms / gain)
+    return float(np.median(estimates)) if estimates else math.nan
+
+
+def twist_noise_bias(noise: float) -> float:
+    """Bound (rad) on the twist's bias from range noise ``noise`` (m): the side faces' residuals
+    and the heights that carry ry share each return's noise, as in the periodicity cost. The
+    measured bias: −0.09° to +0.01° at 1 mm over the nine scenarios with the true H, −0.20° at
+    2 mm on a centred 0.9 m / 40° scene. With :data:`TWIST_NOISE_BIAS_DEG`·(σ_noise / 1 mm)²
+    added in quadrature to the sandwich σ every twist in those scenes and in the 120-run sweep
+    of docs/algorithms.md stayed within 2.3σ of the truth.
+    0 for an unknown noise."""
+    if not math.isfinite(noise) or noise <= 0:
+        return 0.0
+    return math.radians(TWIST_NOISE_BIAS_DEG) * (noise / 0.001) ** 2
+
+
+def _height(
+    p_D: FloatArray, top: _Face, centre: FloatArray, ext: FloatArray, platter_radius: float
+) -> float:
+    """Top face above the platter plane fitted in a ring around the cube (x_D = 0 if none)."""
+    r_cube = 0.5 * float(np.hypot(ext[1], ext[2]))
+    d = np.hypot(p_D[:, 1] - centre[1], p_D[:, 2] - centre[2])
+    ring = (
+        (np.abs(p_D[:, 0]) < 0.004)
+        & (d > r_cube + 0.005)
+        & (d < r_cube + 0.06)
+        & (np.hypot(p_D[:, 1], p_D[:, 2]) < platter_radius - 0.005)
+    )
+    if ring.sum() >= 100:
+        c, n, _ = fit_plane(p_D[ring])
+        if abs(n[0]) > 0.9:
+            # height of the platter plane below the top face's centroid, along X_D
+            x_plat = (
+                c[0] - (n[1] * (top.centroid[1] - c[1]) + n[2] * (top.centroid[2] - c[2])) / n[0]
+            )
+            return float(top.centroid[0] - x_plat)
+    return float(top.centroid[0])
+
+
+def check_cube(
+    recording: Recording,
+    H: Extrinsics,
+    cube: CubeGeometry,
+    limits: QALimits,
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+) -> CubeCheck:
+    """Cube check on a QA-cube spin-scan recording with the calibration H (its returns
+    prepared once per recording, or as the scan ran:
+    :func:`calstation.engine.spinscan.from_recording`)."""
+    from calstation.engine.spinscan import from_recording
+
+    scan = from_recording(recording)
+    try:
+        return check_cube_points(
+            scan.p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=scan.memo
+        )
+    except VerificationError as exc:
+        raise VerificationError(f"{recording.path}: {exc}") from None
+
+
+def check_cube_passes(
+    recordings: list[Recording],
+    H: Extrinsics,
+    cube: CubeGeometry,
+    limits: QALimits,
+    *,
+    encoder_latency_s: float | None = None,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+) -> CubeCheck:
+    """Cube check on several spin scans of the cube (passes at different speeds or directions)
+    measured together, each read with ``encoder_latency_s`` when given (a calibration's
+    estimated lidar–encoder time offset). A wrong offset turns the passes' clouds apart about the
+    axis, which doubles the faces and shows in the edge error and flatness."""
+    parts = []
+    for rec in recordings:
+        read = rec if encoder_latency_s is None else rec.with_encoder_latency(encoder_latency_s)
+        p_L, phi, _, _ = read.valid_returns()
+        parts.append((p_L, phi))
+    p_L = np.concatenate([p for p, _ in parts])
+    phi = np.concatenate([a for _, a in parts])
+    try:
+        return check_cube_points(p_L, phi, H, cube, limits, platter_radius=platter_radius)
+    except VerificationError as exc:
+        names = ", ".join(str(rec.path) for rec in recordings)
+        raise VerificationError(f"{names}: {exc}") from None

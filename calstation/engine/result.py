@@ -1,0 +1,205 @@
+"""The one result type of every calibration stage: H, its 1σ, cost, timings and diagnostics.
+
+A :class:`CalibrationResult` is what the initial calibration and every fine-tuning strategy
+return. It serialises to YAML/JSON (metres and radians, DESIGN §2) and exports the 4×4 transform
+T_L_P, a quaternion and a URDF ``<origin>`` snippet.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray
+from calstation.errors import CalibrationError, FrameError
+
+RESULT_FORMAT = "calstation-calibration"
+RESULT_VERSION = 1
+
+
+def _plain(value: Any) -> Any:
+    """Numpy scalars/arrays and tuples → plain Python for YAML/JSON; NaN/inf → None."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        f = float(value)
+        return f if math.isfinite(f) else None
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.bool_,)):
+        return bool(value)
+    return value
+
+
+def _optional(value: float | None) -> float | None:
+    return None if value is None else _plain(float(value))
+
+
+def _seconds(d: dict[str, Any], key: str) -> float | None:
+    """The optional finite number ``d[key]`` (seconds), None when absent or null."""
+    value = d.get(key)
+    if value is None:
+        return None
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise CalibrationError(
+            f"calibration field '{key}': expected seconds, got {value!r}"
+        ) from None
+    if not math.isfinite(out):
+        raise CalibrationError(f"calibration field '{key}': expected a finite number of seconds")
+    return out
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """A calibration H with its uncertainty and how it was obtained.
+
+    - ``H``: pose of P in L (metres, radians), rx held at 0.
+    - ``sigma``: 1σ per parameter name (tx … rz), metres / radians; NaN when the stage does not
+      estimate it (e.g. ry in the initial calibration, ty under the ``ty`` gauge).
+    - ``cost``: the stage's final cost (its own units, documented per strategy).
+    - ``iterations``: outer iterations (or function evaluations) used.
+    - ``strategy``: ``"initial"``, ``"periodicity"``, ``"shape"``, or a plugin's name.
+    - ``timings``: seconds per named phase.
+    - ``diagnostics``: free-form details (matches per iteration, gauge, segments seen, …).
+    - ``encoder_latency_s`` / ``sigma_encoder_latency_s``: the lidar–encoder time offset
+      (encoder time minus lidar time, s) and its 1σ, when the spin scan had a second pass to
+      estimate it (:mod:`calstation.engine.timeoffset`); reconstruction then uses it in place of the
+      recording's configured latency. None otherwise.
+    """
+
+    H: Extrinsics
+    sigma: dict[str, float]
+    cost: float
+    iterations: int
+    strategy: str
+    timings: dict[str, float] = field(default_factory=dict)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+    encoder_latency_s: float | None = None
+    sigma_encoder_latency_s: float | None = None
+
+    # --- serialisation -----------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """A plain mapping (YAML/JSON ready): H and sigma in metres and radians."""
+        return {
+            "format": RESULT_FORMAT,
+            "version": RESULT_VERSION,
+            "strategy": self.strategy,
+            "H": self.H.as_dict(),
+            "sigma": {n: _plain(float(self.sigma.get(n, math.nan))) for n in PARAMETER_NAMES},
+            "cost": _plain(float(self.cost)),
+            "iterations": int(self.iterations),
+            "encoder_latency_s": _optional(self.encoder_latency_s),
+            "sigma_encoder_latency_s": _optional(self.sigma_encoder_latency_s),
+            "timings": _plain(dict(self.timings)),
+            "diagnostics": _plain(dict(self.diagnostics)),
+            "T_L_P": self.as_matrix().tolist(),
+            "quaternion_xyzw": self.as_quaternion().tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> CalibrationResult:
+        """Inverse of :meth:`to_dict`; :class:`CalibrationError` names what is missing or wrong."""
+        if not isinstance(d, dict):
+            raise CalibrationError(f"a calibration must be a mapping, got {type(d).__name__}")
+        if "H" not in d:
+            raise CalibrationError("calibration is missing 'H' (tx, ty, tz, rx, ry, rz)")
+        try:
+            H = Extrinsics.from_dict(d["H"])
+        except FrameError as exc:
+            raise CalibrationError(f"calibration field 'H': {exc}") from None
+        raw_sigma = d.get("sigma") or {}
+        sigma = {
+            n: math.nan if raw_sigma.get(n) is None else float(raw_sigma[n])
+            for n in PARAMETER_NAMES
+        }
+        cost = d.get("cost")
+        latency = _seconds(d, "encoder_latency_s")
+        return cls(
+            H=H,
+            sigma=sigma,
+            cost=math.nan if cost is None else float(cost),
+            iterations=int(d.get("iterations", 0)),
+            strategy=str(d.get("strategy", "unknown")),
+            timings={str(k): float(v) for k, v in (d.get("timings") or {}).items()},
+            diagnostics=dict(d.get("diagnostics") or {}),
+            encoder_latency_s=latency,
+            sigma_encoder_latency_s=(
+                None if latency is None else _seconds(d, "sigma_encoder_latency_s")
+            ),
+        )
+
+    def to_yaml(self) -> str:
+        """YAML text of :meth:`to_dict`."""
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    def to_json(self) -> str:
+        """JSON text of :meth:`to_dict` (NaN written as null)."""
+        return json.dumps(self.to_dict(), indent=2)
+
+    def save(self, path: str | Path) -> None:
+        """Write YAML (``.yaml``/``.yml``) or JSON (any other suffix)."""
+        p = Path(path)
+        text = self.to_yaml() if p.suffix.lower() in (".yaml", ".yml") else self.to_json()
+        p.write_text(text, encoding="utf-8")
+
+    @classmethod
+    def load(cls, path: str | Path) -> CalibrationResult:
+        """Read a file written by :meth:`save` (YAML or JSON)."""
+        from calstation.yamlsafe import read_text_file
+
+        p = Path(path)
+        try:  # a regular file of bounded size only (a FIFO would block forever)
+            text = read_text_file(p, "calibration file", 10_000_000)
+        except ValueError as exc:
+            raise CalibrationError(f"{p}: {exc}") from None
+        try:
+            data = yaml.safe_load(text)  # JSON is YAML
+        except yaml.YAMLError as exc:
+            raise CalibrationError(f"{p}: not a YAML/JSON calibration file: {exc}") from None
+        try:
+            return cls.from_dict(data)
+        except CalibrationError as exc:
+            raise CalibrationError(f"{p}: {exc}") from None
+
+    # --- exports -------------------------------------------------------------------------------
+    def as_matrix(self) -> FloatArray:
+        """4×4 homogeneous T_L_P (P points → L)."""
+        return self.H.as_matrix()
+
+    def as_quaternion(self) -> FloatArray:
+        """Rotation of P in L as a unit quaternion (x, y, z, w), w ≥ 0."""
+        return self.H.as_quaternion()
+
+    def urdf_origin(self) -> str:
+        """URDF ``<origin xyz=… rpy=…/>`` of P in L."""
+        return self.H.urdf_origin()
+
+    def summary(self) -> dict[str, Any]:
+        """The flat mapping ``calstation calibrate --json`` prints.
+
+        tx, ty, tz (m), rx, ry, rz (rad), ``sigma_<name>`` for each, strategy, cost, iterations,
+        ``encoder_latency_s`` and its ``sigma_encoder_latency_s`` (s, None when not estimated).
+        """
+        out: dict[str, Any] = {n: float(getattr(self.H, n)) for n in PARAMETER_NAMES}
+        for n in PARAMETER_NAMES:
+            out[f"sigma_{n}"] = _plain(float(self.sigma.get(n, math.nan)))
+        out["sigma"] = {n: out[f"sigma_{n}"] for n in PARAMETER_NAMES}
+        out["strategy"] = self.strategy
+        out["cost"] = _plain(float(self.cost))
+        out["iterations"] = int(self.iterations)
+        out["encoder_latency_s"] = _optional(self.encoder_latency_s)
+        out["sigma_encoder_latency_s"] = _optional(self.sigma_encoder_latency_s)
+        out["timings"] = _plain(dict(self.timings))
+        return out

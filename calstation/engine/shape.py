@@ -1,0 +1,696 @@
+"""Shape-constrained fine-tuning on the QA cube (paper §III-B-1, §IV-B; DESIGN §5).
+
+For a candidate H the cube's spin scan is reconstructed in frame D, segmented above the platter
+(threshold along X_P with a 1 cm margin), cleaned by radius outlier removal (fewer than 8
+neighbours within 1 mm → dropped) and enclosed by Open3D's minimum-volume oriented bounding box.
+The cost is ``C1 + C2``: C1 the mean squared signed distance of the points to the nearest box
+face, C2 = Σ(s_i − s)² the squared deviation of the box edges from the true edge. SciPy's TRF
+minimises it within ±20 mm / ±2° of the start (xtol 1e-12, ftol 1e-10, 100 evaluations).
+
+calstation additions (docs/algorithms.md): a fixed random subset of the raw returns (the outlier
+radius scaled with the density, so the neighbour count keeps its meaning) for speed; a finite
+difference step relative to each parameter (:data:`DIFF_STEP`); ty held at its start
+(the cube, like the periodicity cost, cannot see a shift along the axis); the expected height
+of the box is ``s − margin`` (the segmentation cuts the bottom off); by default an *upright* box
+(one axis along X_D: the cube stands on the platter) whose faces are the medians of the points
+near them instead of the extremes, which removes the ~3σ noise inflation of the extremes from
+C2; and ry taken from the flatness of the cube's faces (an ry error twists them), alternating
+with the box solve of tx, tz and rz, because the box cost's own ry minimum is biased by a few
+tenths of a degree. ``box="minimal"`` keeps the paper's Open3D box and joint solve.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from calstation.engine.cube import (
+    FaceFlatness,
+    check_cube_points,
+    face_range_noise,
+    flatness_ry_sigma,
+)
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
+from calstation.engine.geometry import (
+    face_labels,
+    largest_cluster,
+    minimal_obb,
+    radius_outlier_mask,
+    segment_above_platter,
+    signed_face_distances,
+    upright_box,
+)
+from calstation.engine.periodicity import block_ids, parameter_sigma, periodicity_fine_tune_scan
+from calstation.engine.result import CalibrationResult
+from calstation.engine.spinscan import SpinScan, from_recording, prepare
+from calstation.errors import FineTuningError, VerificationError
+from calstation.recipes import (
+    DEFAULT_PLATTER_RADIUS,
+    CubeGeometry,
+    PeriodicitySettings,
+    QALimits,
+    ShapeSettings,
+)
+
+if TYPE_CHECKING:
+    from calstation.recordings.recording import Recording
+
+Progress = Callable[[str, float], None]
+
+DIFF_STEP = 1e-4
+"""SciPy's ``diff_step``: relative to each parameter's value (~0.3–0.6 µm in tx and tz, ~0.08
+mrad in rz at a typical start; docs/algorithms.md)."""
+COARSE_STAGES = 2
+"""Periodicity stages (20 and 10 mm cells) run on the cube scan before the shape cost."""
+FREE = ("tx", "tz", "ry", "rz")
+"""Parameters the shape strategy can estimate; ty is the gauge (held at its start)."""
+
+
+class ShapeCost:
+    """The paper's cost on a fixed subset of cube-scan returns, as least-squares residuals.
+
+    Residuals: ``d_k/√N`` for the N segmented, cleaned points (0 for the others, so the vector
+    keeps its length) followed by ``s_i − s``; their sum of squares is ``C1 + C2``.
+    """
+
+    def __init__(
+        self,
+        p_L: FloatArray,
+        phi: FloatArray,
+        cube: CubeGeometry,
+        settings: ShapeSettings,
+        *,
+        platter_radius: float,
+        density_scale: float,
+        box: str = "upright",
+    ) -> None:
+        self.p_L, self.phi = p_L, phi
+        self._cos, self._sin = np.cos(phi), np.sin(phi)
+        self.edge = cube.edge
+        self.settings = settings
+        self.platter_radius = platter_radius
+        self.outlier_radius = settings.outlier_radius * density_scale
+        self._radius_from_data = False
+        self.box = box
+        self.evaluations = 0
+        self.frozen: NDArray[np.bool_] | None = None
+        self._frozen_idx: NDArray[np.intp] | None = None
+        self.last_edge_errors = np.zeros(3)
+
+    def freeze(self, H: Extrinsics | None) -> None:
+        """Hold the cube's point set fixed at its segmentation under H (None: re-segment at
+        every evaluation, as the paper does). A fixed set keeps the residuals continuous."""
+        self.frozen = None if H is None else self.cloud(H)[1]
+        self._frozen_idx = None if self.frozen is None else np.flatnonzero(self.frozen)
+
+    def to_dynamic(self, H: Extrinsics, idx: NDArray[np.intp] | None = None) -> FloatArray:
+        """The returns (all, or those at ``idx``) in D under H: :func:`lidar_to_dynamic` with
+        the platter angles' cosines and sines computed once."""
+        p, c, s = (self.p_L, self._cos, self._sin) if idx is None else (
+            self.p_L[idx], self._cos[idx], self._sin[idx])
+        p_P = (p - H.t) @ H.R
+        y = c * p_P[:, 1] + s * p_P[:, 2]
+        z = -s * p_P[:, 1] + c * p_P[:, 2]
+        return np.column_stack([p_P[:, 0], y, z])
+
+    def cloud(self, H: Extrinsics) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """(N, 3) all returns in D and the mask of the segmented, cleaned cube points."""
+        p_D = self.to_dynamic(H)
+        seg = segment_above_platter(
+            p_D,
+            margin=self.settings.segment_margin,
+            radius=self.platter_radius,
+            height=3.0 * self.edge,
+        )
+        idx = np.flatnonzero(seg)
+        if not self._radius_from_data:
+            self._scale_radius_to_density(p_D[idx])
+        keep = radius_outlier_mask(p_D[idx], self.outlier_radius, self.settings.outlier_neighbours)
+        if self.box == "upright":
+            keep[keep] = largest_cluster(p_D[idx[keep]])
+        mask = np.zeros(p_D.shape[0], dtype=bool)
+        mask[idx[keep]] = True
+        return p_D, mask
+
+    def _scale_radius_to_density(self, points: FloatArray) -> None:
+        """Widen the outlier radius to the scan's real density, once (the first segmentation).
+
+        The paper's 1 mm for 8 neighbours assumes its sensor's density; at a lower line rate the
+        cube's own returns are farther apart than that and the filter removed the cube (180
+        lines/s: too few returns left). When the configured radius would drop most returns, it
+        becomes 2.5× the median distance to the ``outlier_neighbours``-th neighbour, so isolated
+        returns still go.
+        """
+        k = self.settings.outlier_neighbours
+        self._radius_from_data = True
+        if k <= 0 or points.shape[0] <= k + 1:
+            return
+        dist, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
+        if np.mean(dist[:, -1] <= self.outlier_radius) >= 0.5:
+            return  # the configured radius keeps most returns: the scan is dense enough
+        self.outlier_radius = max(self.outlier_radius, 2.5 * float(np.median(dist[:, -1])))
+
+    def residuals_of(self, H: Extrinsics) -> FloatArray:
+        """C1 and C2 terms as a fixed-length residual vector."""
+        self.evaluations += 1
+        if self.frozen is not None:
+            mask = self.frozen
+            pts = self.to_dynamic(H, self._frozen_idx)
+        else:
+            p_D, mask = self.cloud(H)
+            pts = p_D[mask]
+        out = np.zeros(self.p_L.shape[0] + 3)
+        n = pts.shape[0]
+        if n < 50:
+            out[-3:] = self.edge  # no cube: as bad as a missing cube
+            return out
+        fit = upright_box if self.box == "upright" else minimal_obb
+        centre, axes, extents = fit(pts)
+        d = signed_face_distances(pts, centre, axes, extents)
+        out[: self.p_L.shape[0]][mask] = d / math.sqrt(n)
+        self.last_edge_errors = extents - self.expected_extents(axes)
+        if self.box == "minimal":
+            out[-3:] = self.last_edge_errors
+        # upright: C1 only. Its faces are medians, and while the two half-turns disagree each
+        # face is doubled; the median then sits between the copies and the edge lengths no
+        # longer grow with the calibration error (C2 pulled the optimiser the wrong way).
+        return out
+
+    def expected_extents(self, axes: FloatArray) -> FloatArray:
+        """(3,) true extents along the box axes: the segmentation cuts ``segment_margin`` off
+        the bottom, so the axis closest to X_D expects ``s − margin``."""
+        out = np.full(3, self.edge)
+        vertical = int(np.argmax(np.abs(axes[0, :])))
+        out[vertical] = self.edge - self.settings.segment_margin
+        return out
+
+
+def _near_cube(
+    p_L: FloatArray, phi: FloatArray, H: Extrinsics, cube: CubeGeometry, platter_radius: float
+) -> tuple[FloatArray, FloatArray]:
+    """The returns ((N, 3) in L, (N,) φ) in a generous region above the platter under H (the
+    start may be a few cm off). Height along the axis and distance from it do not depend on
+    the platter angle: the test needs no turn into D."""
+    q = p_L @ H.R
+    q -= H.t @ H.R
+    r2 = np.einsum("ij,ij->i", q[:, 1:], q[:, 1:])
+    height = 3.0 * cube.edge + 0.05
+    near = (q[:, 0] > 0.0) & (q[:, 0] < height) & (r2 < (platter_radius + 0.05) ** 2)
+    return p_L[near], phi[near]
+
+
+def _subsample(
+    p_L: FloatArray, phi: FloatArray, max_points: int
+) -> tuple[FloatArray, FloatArray, float]:
+    """A fixed random subset of at most ``max_points`` returns, and the density scale
+    √(all / subset) for the outlier radius."""
+    n_all = p_L.shape[0]
+    if n_all > max_points:
+        pick = np.sort(np.random.default_rng(0).choice(n_all, max_points, replace=False))
+        p_L, phi = p_L[pick], phi[pick]
+    return p_L, phi, math.sqrt(n_all / p_L.shape[0])
+
+
+@dataclass(frozen=True)
+class _BoxLook:
+    """How the cube looks under an H: the box cost and how far the plain (extreme-point) box's
+    horizontal edges are from the cube's."""
+
+    cost: float
+    """C1 + C2 of the upright box (m²); inf when no cube is found above the platter"""
+    edge_excess: float
+    """max |extent − s| of the plain box's two horizontal edges (m); inf without a cube"""
+
+
+def _box_look(
+    p_L: FloatArray,
+    phi: FloatArray,
+    H: Extrinsics,
+    cube: CubeGeometry,
+    settings: ShapeSettings,
+    platter_radius: float,
+    max_points: int,
+) -> _BoxLook:
+    """:class:`_BoxLook` of the cube scan's moving returns ((N, 3) in L, (N,) φ) under H."""
+    p_L, phi = _near_cube(p_L, phi, H, cube, platter_radius)
+    if p_L.shape[0] < 200:
+        return _BoxLook(math.inf, math.inf)
+    p_L, phi, density_scale = _subsample(p_L, phi, max_points)
+    cost = ShapeCost(
+        p_L, phi, cube, settings, platter_radius=platter_radius, density_scale=density_scale
+    )
+    cost.freeze(H)  # one segmentation for the cost and the plain box
+    r = cost.residuals_of(H)
+    if cost._frozen_idx is None or cost._frozen_idx.size < 50:
+        return _BoxLook(math.inf, math.inf)
+    _, _, extents = upright_box(cost.to_dynamic(H, cost._frozen_idx), robust=False)
+    return _BoxLook(
+        float(np.sum(r[:-3] ** 2) + np.sum(cost.last_edge_errors**2)),
+        float(np.max(np.abs(extents[1:] - cube.edge))),
+    )
+
+
+COARSE_GATE_M = 0.005
+"""The coarse alignment runs when the start's plain box is more than this plus 6 σ of range
+noise off the cube's edge (m): an offset δ of the axis widens it by ~2δ, so starts within a few
+millimetres, well inside the box cost's reach, skip it."""
+
+
+def _coarse_alignment(
+    scan: SpinScan,
+    p_mov: FloatArray,
+    phi_mov: FloatArray,
+    start: Extrinsics,
+    cube: CubeGeometry,
+    settings: ShapeSettings,
+    *,
+    platter_radius: float,
+    max_points: int,
+) -> tuple[Extrinsics, dict[str, Any]]:
+    """A far start brought within the box cost's reach, and what was done.
+
+    The box cost has no basin wider than the cube: the coarse stages of the periodicity
+    matching run on the cube's own scan (ty and ry held) unless the start already shows the
+    cube's size (:data:`COARSE_GATE_M`). The two half-turns of a cube see different faces,
+    which biases that matching at low pitch, so the alignment is kept only where the box fits
+    better than at the start.
+    """
+    look = _box_look(p_mov, phi_mov, start, cube, settings, platter_radius, max_points)
+    noise = scan.noise if math.isfinite(scan.noise) else 0.001
+    gate = COARSE_GATE_M + 6.0 * noise
+    if look.edge_excess <= gate:
+        return start, {
+            "used": False,
+            "needed": False,
+            "start_edge_excess_m": look.edge_excess,
+            "gate_m": gate,
+        }
+    skipped = []
+    for n_stages in range(COARSE_STAGES, 0, -1):
+        try:
+            pre = periodicity_fine_tune_scan(
+                scan,
+                start,
+                PeriodicitySettings(gauge="ty"),
+                platter_radius=platter_radius,
+                stages=n_stages,
+            )
+        except FineTuningError as exc:
+            skipped.append(str(exc))
+            continue
+        aligned = pre.H.with_(ty=start.ty, ry=start.ry, rx=0.0)
+        after = _box_look(p_mov, phi_mov, aligned, cube, settings, platter_radius, max_points)
+        report = {
+            "used": after.cost < look.cost,
+            "needed": True,
+            "start_edge_excess_m": look.edge_excess,
+            "gate_m": gate,
+            "stages": n_stages,
+            "start": start.as_dict(),
+            "aligned": aligned.as_dict(),
+            "box_cost_start": look.cost,
+            "box_cost_aligned": after.cost,
+            "seconds": pre.timings["total"],
+            "skipped": skipped,
+        }
+        return (aligned if after.cost < look.cost else start), report
+    return start, {"used": False, "needed": True, "skipped": skipped}
+
+
+BOX_NOISE_M = 0.0003
+"""Empirical σ of the box cost's axis per 1 mm of range noise (metres), beyond what its
+residuals and the cube's dimensions show (see :func:`axis_sigma_floor`)."""
+
+
+def axis_sigma_floor(edge_error: float, noise: float) -> float:
+    """The part of the shape strategy's tx and tz σ (m) its cost's residuals cannot see.
+
+    An axis offset δ doubles each side face of the reconstructed cube about 2δ apart, so the
+    face-fit edges come out ≈ 2δ too long: ``edge_error`` (m, the cube check's
+    ``edge_error`` under the result) / 2 bounds the offset the cube's known size allows. To it
+    is added :data:`BOX_NOISE_M`·(σ_noise / 1 mm), ``noise`` in metres. On the shape sweep of
+    docs/algorithms.md (60 runs, 0.5 and 1 mm of noise, 180–1000 lines/s) the axis offset
+    stayed within 1.9 of the resulting σ; the residual sandwich alone had let 1–3 mm offsets
+    pass with σ of 0.02–0.09 mm. ``edge_error`` NaN (the cube could not be dimensioned): the
+    whole cube edge is the bound.
+    """
+    dims = 0.5 * edge_error if math.isfinite(edge_error) else 0.1
+    spread = BOX_NOISE_M * noise / 0.001 if math.isfinite(noise) and noise > 0 else 0.0
+    return math.hypot(dims, spread)
+
+
+RZ_NOISE_RAD_PER_M = 0.25
+RZ_NOISE_RAD_PER_M2 = 230.0
+"""The box cost's bias in rz (rad) per metre and per square metre of range noise, beyond what
+its residuals show (see :func:`rz_sigma_floor`)."""
+
+
+def rz_sigma_floor(noise: float) -> float:
+    """The part of the shape strategy's rz σ (rad) its cost's residuals cannot see.
+
+    The box cost's faces are medians of noisy returns, and their bias tilts the fitted axis in
+    the scan plane: on the shape sweeps of docs/algorithms.md (0.5, 1 and 2 mm of range noise,
+    180–1000 lines/s, the nine scenarios plus 0.9 m / 40°) the rz error reached 0.025°, 0.07°
+    and 0.24° while the residual sandwich said 0.001–0.01°. ``noise`` (m): the range noise on
+    the cube's faces; 0 when it is unknown.
+    """
+    if not math.isfinite(noise) or noise <= 0:
+        return 0.0
+    return RZ_NOISE_RAD_PER_M * noise + RZ_NOISE_RAD_PER_M2 * noise**2
+
+
+def _shape_pass(
+    scan: SpinScan,
+    start: Extrinsics,
+    cube: CubeGeometry,
+    settings: ShapeSettings,
+    *,
+    platter_radius: float,
+    max_points: int,
+    box: str,
+    estimate_ry: bool,
+    coarse: bool,
+    progress: Progress | None,
+) -> CalibrationResult:
+    """One pass of :func:`shape_fine_tune_points` (coarse alignment, box, faces) from
+    ``start`` on the prepared cube scan."""
+    start = start.with_(rx=0.0)
+    # the platter ring and the background are static in L: they never belong to the cube
+    moving = ~scan.static
+    p_mov, phi_mov = scan.p_L[moving], scan.phi[moving]
+    coarse_report: dict[str, Any] = {"used": False, "needed": None}
+    if coarse:
+        start, coarse_report = _coarse_alignment(
+            scan,
+            p_mov,
+            phi_mov,
+            start,
+            cube,
+            settings,
+            platter_radius=platter_radius,
+            max_points=max_points,
+        )
+    # all of them near the cube: the face-flatness ry step needs the density
+    p_L_near, phi_near = _near_cube(p_mov, phi_mov, start, cube, platter_radius)
+    n_all = p_L_near.shape[0]
+    if n_all < 200:
+        raise FineTuningError(
+            f"only {n_all} returns above the platter in the cube scan; is the QA cube "
+            "on the platter?"
+        )
+    p_L, phi, density_scale = _subsample(p_L_near, phi_near, max_points)
+    cost = ShapeCost(
+        p_L,
+        phi,
+        cube,
+        settings,
+        platter_radius=platter_radius,
+        density_scale=density_scale,
+        box=box,
+    )
+    names = FREE if estimate_ry else ("tx", "tz", "rz")
+    free = [PARAMETER_NAMES.index(n) for n in names]
+    x6 = start.as_vector()
+    tb, rb = settings.translation_bound, math.radians(settings.rotation_bound_deg)
+    start6 = x6.copy()
+
+    def solve(names: tuple[str, ...], nfev: int) -> Any:
+        idx = [PARAMETER_NAMES.index(n) for n in names]
+        base = x6.copy()
+
+        def fun(x: FloatArray) -> FloatArray:
+            if progress is not None:
+                progress("shape fine-tuning", min(1.0, cost.evaluations / settings.max_nfev))
+            v = base.copy()
+            v[idx] = x
+            return cost.residuals_of(Extrinsics.from_vector(v))
+
+        half = np.array([tb if i < 3 else rb for i in idx])
+        centre = start6[idx]
+        used = 0
+        r: Any = None
+        # upright: outer loop re-segmenting between inner solves on a fixed point set;
+        # minimal (paper): one solve re-segmenting at every evaluation
+        chunk = max(len(idx) + 2, 3 * (len(idx) + 1)) if box == "upright" else nfev
+        while used < nfev:
+            if box == "upright":
+                cost.freeze(Extrinsics.from_vector(x6))
+            before = cost.evaluations
+            x0 = np.clip(x6[idx], centre - half + 1e-12, centre + half - 1e-12)
+            r = least_squares(
+                fun,
+                x0,
+                bounds=(centre - half, centre + half),
+                method="trf",
+                xtol=settings.xtol,
+                ftol=settings.ftol,
+                max_nfev=min(chunk, nfev - used),
+                diff_step=DIFF_STEP,
+                x_scale=np.full(len(idx), 1e-3),
+            )
+            used += max(1, cost.evaluations - before)
+            step = np.abs(r.x - x6[idx])
+            x6[idx] = r.x
+            if box != "upright" or (step.max() < 1e-6):
+                break
+        cost.freeze(None)
+        return r
+
+    ry_i = PARAMETER_NAMES.index("ry")
+    ry_rounds: list[dict[str, float]] = []
+    ry_sigma = math.nan
+
+    def labelled_faces(H: Extrinsics) -> tuple[FloatArray, FloatArray, list[Any]]:
+        """The returns near the cube's faces under H (in L, their φ) and a mask per face."""
+        p_D, mask = cost.cloud(H)
+        if int(mask.sum()) < 50:
+            raise FineTuningError("too few cube returns to estimate ry from the faces")
+        labels = face_labels(lidar_to_dynamic(p_L_near, phi_near, H), *upright_box(p_D[mask]))
+        keep = labels >= 0
+        pts_L, ph, labels = p_L_near[keep], phi_near[keep], labels[keep]
+        faces = [labels == f for f in np.unique(labels) if np.count_nonzero(labels == f) >= 30]
+        return pts_L, ph, faces
+
+    def planar_ry() -> tuple[float, float]:
+        """ry from the cube faces' own flatness; (ry, 1σ) in rad.
+
+        Fits tz, ry and rz to the returns near each face (labelled by the upright box under
+        the current H, a plane per face re-fitted at every evaluation, soft-L1 loss against
+        mixed pixels) and keeps ry only: tz and rz also bend the faces, so they are freed here,
+        but the box cost places them better.
+        """
+        H = Extrinsics.from_vector(x6)
+        pts_L, ph, faces = labelled_faces(H)
+        if not faces:
+            raise FineTuningError("no cube face has enough returns to estimate ry")
+        idx = [PARAMETER_NAMES.index(n) for n in ("tz", "ry", "rz")]
+        base = x6.copy()
+        faces_L, faces_phi = [pts_L[sel] for sel in faces], [ph[sel] for sel in faces]
+        flat = FaceFlatness(faces_L, faces_phi)
+
+        def flatness(x: FloatArray) -> FloatArray:
+            v = base.copy()
+            v[idx] = x
+            return flat(Extrinsics.from_vector(v))
+
+        centre = start6[idx]
+        # a set-B start is 2° off and the true ry up to 0.5° from the initial 0 (as periodicity)
+        half = np.array([tb, max(rb, math.radians(2.5)), rb])
+        r = least_squares(
+            flatness,
+            np.clip(base[idx], centre - half + 1e-12, centre + half - 1e-12),
+            bounds=(centre - half, centre + half),
+            method="trf",
+            loss="soft_l1",
+            f_scale=0.002,
+            diff_step=DIFF_STEP,
+            x_scale=np.full(3, 1e-3),
+            max_nfev=settings.max_nfev,
+        )
+        # σ as the cube check's twist's
+        Hr = Extrinsics.from_vector(np.where(np.arange(6) == ry_i, r.x[1], x6))
+        return float(r.x[1]), flatness_ry_sigma(r, idx, faces_L, faces_phi, Hr)
+
+    if estimate_ry and box == "upright":
+        # the box cost is nearly flat and jumpy in ry: settle tx, tz, rz with ry held, then
+        # alternate ry from the faces' flatness with tx, tz, rz from the box
+        res = solve(("tx", "tz", "rz"), settings.max_nfev)
+        for _ in range(2):
+            ry, ry_sigma = planar_ry()
+            change = abs(ry - x6[ry_i])
+            x6[ry_i] = ry
+            res = solve(("tx", "tz", "rz"), max(4, settings.max_nfev // 2))
+            ry_rounds.append({"ry_rad": ry, "change_rad": change})
+            if change < math.radians(0.005):
+                break
+        free = [PARAMETER_NAMES.index(n) for n in ("tx", "tz", "rz")]
+    elif estimate_ry:
+        # the paper's joint solve; tz and ry twist the cloud alike, so settle the sharp
+        # parameters with ry held first
+        solve(("tx", "tz", "rz"), settings.max_nfev // 2)
+        res = solve(FREE, settings.max_nfev - settings.max_nfev // 2)
+    else:
+        res = solve(names, settings.max_nfev)
+    H = Extrinsics.from_vector(x6)
+    final = cost.residuals_of(H)
+    c1 = float(np.sum(final[:-3] ** 2))
+    c2 = float(np.sum(cost.last_edge_errors**2))
+    total = float(np.sum(final**2))
+    # the box cost's residuals are neighbours on one shape: a cluster-robust σ over 2 cm blocks
+    # (the three edge residuals are blocks of their own)
+    blocks = block_ids(cost.to_dynamic(H), 0.02)
+    blocks = np.concatenate([blocks, blocks.max(initial=-1) + 1 + np.arange(3)])
+    sigma = parameter_sigma(res, free, blocks=blocks)
+    pts_L, ph, faces = labelled_faces(H)
+    noise = face_range_noise([pts_L[f] for f in faces], [ph[f] for f in faces], H)
+    if ry_rounds:
+        sigma["ry"] = ry_sigma
+    p_D, mask = cost.cloud(H)
+    _, _, extents = (upright_box if box == "upright" else minimal_obb)(p_D[mask])
+    if progress is not None:
+        progress("shape fine-tuning", 1.0)
+    return CalibrationResult(
+        H=H,
+        sigma=sigma,
+        cost=total,
+        iterations=int(res.nfev),
+        strategy="shape",
+        timings={},
+        diagnostics={
+            "gauge": "ty",
+            "range_noise_m": noise,
+            "gauge_note": "ty held at its start value (the cube cannot see a shift along the axis)",
+            "box": box,
+            "estimate_ry": estimate_ry,
+            "ry_source": (
+                ("face flatness" if box == "upright" else "box cost") if estimate_ry else "held"
+            ),
+            "ry_rounds": ry_rounds,
+            "coarse": coarse_report,
+            "C1": c1,
+            "C2": c2,
+            "cost_terms": "C1 + C2" if box == "minimal" else "C1",
+            "obb_extents_m": np.sort(extents).tolist(),
+            "points_used": int(p_L.shape[0]),
+            "points_above_platter": int(n_all),
+            "cube_points": int(mask.sum()),
+            "outlier_radius_m": cost.outlier_radius,
+            "status": str(res.message),
+        },
+    )
+
+
+def shape_fine_tune_points(
+    p_L: FloatArray,
+    phi: FloatArray,
+    start: Extrinsics,
+    cube: CubeGeometry,
+    settings: ShapeSettings = ShapeSettings(),
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    max_points: int = 20_000,
+    box: str = "upright",
+    estimate_ry: bool = True,
+    coarse: bool = True,
+    progress: Progress | None = None,
+    scan: SpinScan | None = None,
+) -> CalibrationResult:
+    """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
+
+    ``p_L`` (N, 3) returns in L (m), ``phi`` (N,) platter angles (rad). ``box``: ``"upright"``
+    (calstation's default: a box standing on the platter) or ``"minimal"`` (the paper's
+    minimum-volume OBB from Open3D). ``estimate_ry``: with the upright box, ry from the faces'
+    flatness alternating with the box solve of tx, tz, rz; with the minimal box, the paper's
+    joint solve; ``False`` holds ry at its start. ``coarse``: align a far start first with the
+    coarse periodicity stages on the same scan; when only the coarsest stage could run (the
+    start's ry too far off for the second), the whole pass is repeated from its result
+    (docs/algorithms.md). ``scan``: the same returns already prepared
+    (:mod:`calstation.engine.spinscan`). Returns a :class:`CalibrationResult` with strategy
+    ``"shape"`` and cost ``C1 + C2`` (m²).
+    """
+    t0 = time.perf_counter()
+    p_L = np.asarray(p_L, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64).reshape(-1)
+    if p_L.ndim != 2 or p_L.shape[1] != 3 or p_L.shape[0] != phi.shape[0]:
+        raise FineTuningError(
+            f"shape needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
+        )
+    prepared = prepare(p_L, phi) if scan is None else scan
+
+    def run(h: Extrinsics) -> CalibrationResult:
+        return _shape_pass(
+            prepared,
+            h,
+            cube,
+            settings,
+            platter_radius=platter_radius,
+            max_points=max_points,
+            box=box,
+            estimate_ry=estimate_ry,
+            coarse=coarse,
+            progress=progress,
+        )
+
+    result = run(start)
+    passes = 1
+    report = result.diagnostics["coarse"]
+    if coarse and report.get("used") and report.get("stages", COARSE_STAGES) < COARSE_STAGES:
+        result = run(result.H)
+        passes = 2
+    result.diagnostics["passes"] = passes
+    # what the residuals cannot see: the cube's own dimensions under the result
+    try:
+        edge_error = check_cube_points(
+            prepared.p_L, prepared.phi, result.H, cube, QALimits(),
+            platter_radius=platter_radius, edges_only=True, memo=prepared.memo,
+        ).edge_error
+    except VerificationError:
+        edge_error = math.nan
+    noise = float(result.diagnostics.get("range_noise_m", math.nan))
+    floor = axis_sigma_floor(edge_error, noise)
+    for name in ("tx", "tz"):
+        result.sigma[name] = math.hypot(result.sigma[name], floor)
+    result.sigma["rz"] = math.hypot(result.sigma["rz"], rz_sigma_floor(noise))
+    result.diagnostics["edge_error_m"] = edge_error
+    result.timings["total"] = time.perf_counter() - t0
+    return result
+
+
+def shape_fine_tune(
+    recording: Recording,
+    start: Extrinsics,
+    cube: CubeGeometry,
+    settings: ShapeSettings = ShapeSettings(),
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    box: str = "upright",
+    estimate_ry: bool = True,
+    coarse: bool = True,
+    progress: Progress | None = None,
+) -> CalibrationResult:
+    """Shape-constrained fine-tuning on a QA-cube spin-scan recording."""
+    scan = from_recording(recording)
+    try:
+        return shape_fine_tune_points(
+            scan.p_L,
+            scan.phi,
+            start,
+            cube,
+            settings,
+            platter_radius=platter_radius,
+            box=box,
+            estimate_ry=estimate_ry,
+            coarse=coarse,
+            progress=progress,
+            scan=scan,
+        )
+    except FineTuningError as exc:
+        raise FineTuningError(f"{recording.path}: {exc}") from None

@@ -1,0 +1,319 @@
+"""The plugin manager and the small typed facade application code uses.
+
+Built-in plugins are ordinary modules listed in :data:`DEFAULT_PLUGINS`; third-party plugins (and
+the plugin packages shipped under ``plugins/``) come from the ``calstation`` entry-point group.
+
+Environment variables:
+
+- ``CALSTATION_BLOCK_PLUGINS``: comma-separated plugin names not to load (entry-point names or
+  built-in module names).
+- ``CALSTATION_TRACE_HOOKS``: when set to ``1``, every hook call and result is printed to stderr.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+import pluggy
+
+from calstation.errors import PluginError
+from calstation.plugins import hookspecs
+
+DEFAULT_PLUGINS: tuple[str, ...] = (
+    "calstation.plugins.builtin.strategies",
+    "calstation.plugins.builtin.replay",
+)
+"""Modules that register calstation's built-in strategies and drivers through the hooks."""
+
+ENTRY_POINT_GROUP = "calstation"
+DRIVER_KINDS = ("lidar", "turntable", "encoder")
+
+_pm: pluggy.PluginManager | None = None
+_loaded = False
+_lock = threading.RLock()
+
+
+def get_plugin_manager() -> pluggy.PluginManager:
+    """The one plugin manager (hook specs added, nothing loaded yet)."""
+    global _pm
+    with _lock:
+        if _pm is None:
+            _pm = pluggy.PluginManager("calstation")
+            _pm.add_hookspecs(hookspecs)
+        return _pm
+
+
+def blocked_plugins() -> set[str]:
+    """Names in ``CALSTATION_BLOCK_PLUGINS``."""
+    raw = os.environ.get("CALSTATION_BLOCK_PLUGINS", "")
+    return {name.strip() for name in raw.split(",") if name.strip()}
+
+
+def load_plugins() -> pluggy.PluginManager:
+    """Load built-in and entry-point plugins once; later calls return the same manager.
+
+    Raises :class:`PluginError` when a plugin cannot be imported or implements a hook that does not
+    exist (``check_pending``), naming the plugin.
+    """
+    global _loaded
+    pm = get_plugin_manager()
+    with _lock:
+        if _loaded:
+            return pm
+        blocked = blocked_plugins()
+        for name in blocked:
+            pm.set_blocked(name)
+        for modname in DEFAULT_PLUGINS:
+            if modname in blocked or pm.has_plugin(modname):
+                continue
+            try:
+                module = importlib.import_module(modname)
+            except ImportError as exc:
+                raise PluginError(f"built-in plugin {modname} failed to import: {exc}") from exc
+            pm.register(module, name=modname)
+        try:
+            pm.load_setuptools_entrypoints(ENTRY_POINT_GROUP)
+        except Exception as exc:  # a broken third-party plugin must not hide behind a traceback
+            raise PluginError(
+                f"a plugin in entry-point group '{ENTRY_POINT_GROUP}' failed to load: {exc}"
+            ) from exc
+        try:
+            pm.check_pending()
+        except pluggy.PluginValidationError as exc:
+            raise PluginError(f"plugin {exc.plugin!r} implements an unknown hook: {exc}") from exc
+        if os.environ.get("CALSTATION_TRACE_HOOKS") == "1":
+            _enable_tracing(pm)
+        _loaded = True
+        _registry_cache.clear()
+        return pm
+
+
+def _enable_tracing(pm: pluggy.PluginManager) -> None:
+    def before(hook_name: str, hook_impls: Any, kwargs: Any) -> None:
+        names = ", ".join(impl.plugin_name for impl in hook_impls)
+        print(f"[calstation hook] {hook_name}({', '.join(kwargs)}) → {names}", file=sys.stderr)
+
+    def after(outcome: Any, hook_name: str, hook_impls: Any, kwargs: Any) -> None:
+        print(f"[calstation hook] {hook_name} returned {outcome.get_result()!r}", file=sys.stderr)
+
+    pm.add_hookcall_monitoring(before, after)
+
+
+def _trace(message: str) -> None:
+    """Print a hook-trace line when ``CALSTATION_TRACE_HOOKS=1``."""
+    if os.environ.get("CALSTATION_TRACE_HOOKS") == "1":
+        print(f"[calstation hook] {message}", file=sys.stderr)
+
+
+def reset_for_tests() -> None:
+    """Forget loaded plugins and registries (tests only)."""
+    global _pm, _loaded
+    with _lock:
+        _pm = None
+        _loaded = False
+        _registry_cache.clear()
+
+
+@contextmanager
+def isolated(*plugins: object, builtins: bool = True) -> Iterator[pluggy.PluginManager]:
+    """A plugin manager holding only ``plugins`` (and the built-ins), for tests.
+
+    Entry-point plugins are not loaded, so a test sees exactly what it registers; the previous
+    manager is restored on exit, whatever happens.
+    """
+    global _pm, _loaded
+    with _lock:
+        saved = (_pm, _loaded, dict(_registry_cache))
+        pm = pluggy.PluginManager("calstation")
+        pm.add_hookspecs(hookspecs)
+        _pm, _loaded = pm, True
+        _registry_cache.clear()
+    try:
+        if builtins:
+            for modname in DEFAULT_PLUGINS:
+                pm.register(importlib.import_module(modname), name=modname)
+        for plugin in plugins:
+            pm.register(plugin, name=getattr(plugin, "__name__", None))
+        try:
+            pm.check_pending()
+        except pluggy.PluginValidationError as exc:
+            raise PluginError(f"plugin {exc.plugin!r} implements an unknown hook: {exc}") from exc
+        yield pm
+    finally:
+        with _lock:
+            _pm, _loaded = saved[0], saved[1]
+            _registry_cache.clear()
+            _registry_cache.update(saved[2])
+
+
+@dataclass(frozen=True)
+class PluginInfo:
+    """One loaded plugin: its name, where it comes from, and the hooks it implements."""
+
+    name: str
+    source: str
+    version: str | None
+    hooks: tuple[str, ...] = field(default_factory=tuple)
+
+
+def plugin_report() -> list[PluginInfo]:
+    """Every loaded plugin with the hooks it implements, built-ins first."""
+    pm = load_plugins()
+    dists = {id(plugin): dist for plugin, dist in pm.list_plugin_distinfo()}
+    infos = []
+    for name, plugin in pm.list_name_plugin():
+        if plugin is None:  # blocked
+            continue
+        hooks = tuple(sorted(h.name for h in pm.get_hookcallers(plugin) or ()))
+        dist = dists.get(id(plugin))
+        if dist is not None:
+            source = f"entry point of {dist.project_name}"
+            version = str(dist.version)
+        else:
+            source = "built-in" if name in DEFAULT_PLUGINS else "registered"
+            version = None
+        infos.append(PluginInfo(name=name, source=source, version=version, hooks=hooks))
+    infos.sort(key=lambda i: (i.source != "built-in", i.name))
+    return infos
+
+
+# --- registries ----------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DriverEntry:
+    """One registered driver factory."""
+
+    kind: str
+    name: str
+    factory: Callable[..., Any]
+    plugin: str
+
+
+_registry_cache: dict[str, Any] = {}
+
+
+def drivers() -> dict[tuple[str, str], DriverEntry]:
+    """Every registered driver, by (kind, name)."""
+    with _lock:
+        if "drivers" in _registry_cache:
+            return dict(_registry_cache["drivers"])
+        pm = load_plugins()
+        found: dict[tuple[str, str], DriverEntry] = {}
+        for impl in pm.hook.calstation_register_drivers.get_hookimpls():
+            plugin = impl.plugin_name
+
+            def register(
+                kind: str, name: str, factory: Callable[..., Any], _plugin: str = plugin
+            ) -> None:
+                if kind not in DRIVER_KINDS:
+                    raise PluginError(
+                        f"plugin {_plugin} registered driver {name!r} of unknown kind {kind!r}; "
+                        f"kinds are {', '.join(DRIVER_KINDS)}"
+                    )
+                if (kind, name) in found:
+                    other = found[(kind, name)].plugin
+                    raise PluginError(
+                        f"{kind} driver {name!r} registered twice: by {other} and by {_plugin}"
+                    )
+                found[(kind, name)] = DriverEntry(kind, name, factory, _plugin)
+
+            _trace(f"calstation_register_drivers(register) → {plugin}")
+            impl.function(register=register)
+        _registry_cache["drivers"] = found
+        return dict(found)
+
+
+def driver_factory(kind: str, name: str) -> Callable[..., Any]:
+    """The factory of driver ``name`` of ``kind``; :class:`PluginError` lists the known ones."""
+    entries = drivers()
+    if (kind, name) not in entries:
+        known = sorted(n for (k, n) in entries if k == kind)
+        raise PluginError(
+            f"no {kind} driver named {name!r}; installed: {', '.join(known) or 'none'}"
+        )
+    return entries[(kind, name)].factory
+
+
+def strategies() -> dict[str, Any]:
+    """Every registered fine-tuning strategy, by name."""
+    with _lock:
+        if "strategies" in _registry_cache:
+            return dict(_registry_cache["strategies"])
+        from calstation.plugins.cost_strategies import options_model_of
+
+        pm = load_plugins()
+        found: dict[str, Any] = {}
+        owners: dict[str, str] = {}
+        for impl in pm.hook.calstation_register_cost_strategies.get_hookimpls():
+            plugin = impl.plugin_name
+
+            def register(strategy: Any, _plugin: str = plugin) -> None:
+                name = getattr(strategy, "name", None)
+                if not isinstance(name, str) or not name:
+                    raise PluginError(f"plugin {_plugin} registered a strategy without a name")
+                if name in found:
+                    raise PluginError(
+                        f"strategy {name!r} registered twice: by {owners[name]} and by {_plugin}"
+                    )
+                try:
+                    options_model_of(strategy)
+                except PluginError as exc:
+                    raise PluginError(f"plugin {_plugin}: {exc}") from None
+                found[name] = strategy
+                owners[name] = _plugin
+
+            _trace(f"calstation_register_cost_strategies(register) → {plugin}")
+            impl.function(register=register)
+        _registry_cache["strategies"] = found
+        _registry_cache["strategy_plugins"] = owners
+        return dict(found)
+
+
+def strategy_plugin(name: str) -> str:
+    """The name of the plugin that registered strategy ``name`` (see :func:`strategies`)."""
+    strategy(name)
+    with _lock:
+        owners: dict[str, str] = _registry_cache.get("strategy_plugins", {})
+        return owners.get(name, "?")
+
+
+def strategy(name: str) -> Any:
+    """The strategy called ``name``; :class:`PluginError` lists the known ones."""
+    found = strategies()
+    if name not in found:
+        raise PluginError(
+            f"no fine-tuning strategy named {name!r}; installed: {', '.join(sorted(found))}"
+        )
+    return found[name]
+
+
+def fixture_placed(context: Any, fixture: str, geometry: Any) -> None:
+    """Tell plugins that ``fixture`` is now on the platter."""
+    hook = load_plugins().hook
+    hook.calstation_fixture_placed(context=context, fixture=fixture, geometry=geometry)
+
+
+def run_started(run: Any) -> None:
+    """Tell observers a run started (or was resumed)."""
+    load_plugins().hook.calstation_run_started(run=run)
+
+
+def step_finished(run: Any, step: str, status: str, result: Any) -> None:
+    """Tell observers a step finished."""
+    load_plugins().hook.calstation_step_finished(run=run, step=step, status=status, result=result)
+
+
+def run_finished(run: Any, status: str, summary: Any) -> None:
+    """Tell observers a run ended."""
+    load_plugins().hook.calstation_run_finished(run=run, status=status, summary=summary)
+
+
+def register_commands(cli: Any) -> None:
+    """Let plugins add CLI commands."""
+    load_plugins().hook.calstation_register_commands(cli=cli)

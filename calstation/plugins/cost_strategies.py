@@ -1,0 +1,294 @@
+"""The fine-tuning strategy interface and calstation's two built-in strategies.
+
+A strategy refines a starting H from the spin scan of one fixture. Plugins add strategies through
+the ``calstation_register_cost_strategies`` hook (see :mod:`calstation.plugins.hookspecs`); the
+built-ins
+register the same way (:mod:`calstation.plugins.builtin.strategies`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
+
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from calstation.errors import FineTuningError, PluginError
+from calstation.recipes import Recipe, ShapeOptions
+
+if TYPE_CHECKING:  # NumPy loads when a strategy runs: `recipes validate` checks options only
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.result import CalibrationResult
+    from calstation.recordings.recording import Recording
+
+Progress = Callable[[str, float], None]
+"""``progress(message, fraction)`` with fraction in [0, 1]."""
+
+
+@runtime_checkable
+class Strategy(Protocol):
+    """A fine-tuning strategy.
+
+    - ``name``: what recipes write in ``calibration.strategy`` and ``--strategy`` accepts;
+    - ``fixture``: which fixture's spin scan it needs, ``"spin_target"`` or ``"qa_cube"``;
+    - ``run``: refine ``start`` from that recording; settings come from ``recipe`` (its own
+      section, or ``calibration.options[name]`` for plugins). Raises
+      :class:`~calstation.errors.FineTuningError` when the data cannot support a result.
+
+    Optional attributes:
+
+    - ``options_model``: a pydantic model class of the strategy's ``calibration.options[name]``
+      mapping. ``calstation recipes validate`` (and every run) checks the recipe's options
+      against it and reports each problem with its YAML line; :func:`strategy_options` returns
+      the validated options inside ``run``. Without it, options are passed through unchecked.
+    - ``result_bounds``: ``(metres, radians)``, how far from ``start`` a result may plausibly
+      be (default :data:`DEFAULT_RESULT_BOUNDS`); :func:`run_strategy` rejects results beyond.
+    """
+
+    name: str
+    fixture: str
+
+    def run(
+        self,
+        recording: Recording,
+        start: Extrinsics,
+        recipe: Recipe,
+        progress: Progress | None = None,
+    ) -> CalibrationResult:
+        """Refine ``start`` (frame convention of DESIGN §2) from ``recording``."""
+        ...
+
+
+class NoOptions(BaseModel):
+    """The options model of a strategy that takes none: any key is an error."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class PeriodicityStrategy:
+    """Periodicity-constrained fine-tuning on the spin target (paper §III-B-2); its settings are
+    ``calibration.periodicity``, so ``calibration.options.periodicity`` takes no key."""
+
+    name = "periodicity"
+    fixture = "spin_target"
+    options_model = NoOptions
+
+    def run(
+        self,
+        recording: Recording,
+        start: Extrinsics,
+        recipe: Recipe,
+        progress: Progress | None = None,
+    ) -> CalibrationResult:
+        """See :func:`calstation.engine.periodicity.periodicity_fine_tune`."""
+        from calstation.engine.periodicity import periodicity_fine_tune
+
+        return periodicity_fine_tune(
+            recording,
+            start,
+            recipe.calibration.periodicity,
+            platter_radius=recipe.fixtures.platter.radius,
+            progress=progress,
+        )
+
+
+class ShapeStrategy:
+    """Shape-constrained fine-tuning on the QA cube (paper §III-B-1).
+
+    ``calibration.options.shape``: ``box`` — ``upright`` (default) or ``minimal`` (the
+    paper's box); ``estimate_ry`` — estimate ry too (default true; false holds it at its
+    start); ``coarse`` — align a far start first with the coarse periodicity stages on the cube
+    scan (default true).
+    """
+
+    name = "shape"
+    fixture = "qa_cube"
+    options_model = ShapeOptions
+
+    def run(
+        self,
+        recording: Recording,
+        start: Extrinsics,
+        recipe: Recipe,
+        progress: Progress | None = None,
+    ) -> CalibrationResult:
+        """See :func:`calstation.engine.shape.shape_fine_tune`."""
+        from calstation.engine.shape import shape_fine_tune
+
+        options = strategy_options(self, recipe)
+        return shape_fine_tune(
+            recording,
+            start,
+            recipe.fixtures.qa_cube,
+            recipe.calibration.shape,
+            platter_radius=recipe.fixtures.platter.radius,
+            box=options.box,
+            estimate_ry=options.estimate_ry,
+            coarse=options.coarse,
+            progress=progress,
+        )
+
+
+BUILTIN_STRATEGIES: tuple[Strategy, ...] = (PeriodicityStrategy(), ShapeStrategy())
+"""The strategies calstation registers itself."""
+
+
+def get_strategy(name: str) -> Strategy:
+    """The registered strategy ``name`` (built-in or plugin); PluginError lists the known ones."""
+    from calstation import plugins
+
+    found: Strategy = plugins.strategy(name)
+    return found
+
+
+# --- options -----------------------------------------------------------------------------------
+M = TypeVar("M", bound=BaseModel)
+
+OptionProblem = tuple[tuple[int | str, ...], str]
+"""A problem in a recipe's strategy options: the field path in the recipe and the message."""
+
+
+def options_model_of(strategy: Any) -> type[BaseModel] | None:
+    """The strategy's ``options_model`` (a pydantic model class), None when it declares none.
+
+    Raises :class:`PluginError` when the attribute is there but is not a pydantic model class.
+    """
+    model = getattr(strategy, "options_model", None)
+    if model is None:
+        return None
+    if not (isinstance(model, type) and issubclass(model, BaseModel)):
+        raise PluginError(
+            f"strategy {getattr(strategy, 'name', strategy)!r}: options_model must be a pydantic "
+            f"BaseModel subclass, got {model!r}"
+        )
+    return model
+
+
+def option_problems(
+    name: str, model: type[BaseModel] | None, options: Mapping[str, Any]
+) -> list[OptionProblem]:
+    """Problems of ``calibration.options[name]`` against ``model`` (none when it is None)."""
+    if model is None:
+        return []
+    try:
+        model.model_validate(dict(options))
+    except ValidationError as exc:
+        return [
+            (
+                ("calibration", "options", name, *err["loc"]),
+                "unknown option" if err["type"] == "extra_forbidden" else err["msg"],
+            )
+            for err in exc.errors()
+        ]
+    return []
+
+
+def strategy_options(strategy: Any, recipe: Recipe, model: type[M] | None = None) -> Any:
+    """The validated ``calibration.options[strategy.name]`` of ``recipe``.
+
+    An instance of the strategy's ``options_model`` (or of ``model`` when given); the raw
+    mapping when the strategy declares no model. A problem raises
+    :class:`~calstation.errors.FineTuningError` naming the option.
+    """
+    raw = dict(recipe.calibration.options.get(strategy.name, {}))
+    cls = model or options_model_of(strategy)
+    if cls is None:
+        return raw
+    problems = option_problems(strategy.name, cls, raw)
+    if problems:
+        loc, msg = problems[0]
+        raise FineTuningError(f"{'.'.join(str(x) for x in loc)}: {msg}")
+    return cls.model_validate(raw)
+
+
+def recipe_option_problems(recipe: Recipe, strategies: Mapping[str, Any]) -> list[OptionProblem]:
+    """Every problem of the recipe's ``calibration.options`` against the registered
+    ``strategies`` (by name) that declare an ``options_model``; unknown strategy names are left
+    to the caller."""
+    problems: list[OptionProblem] = []
+    for name, options in recipe.calibration.options.items():
+        if name in strategies:
+            problems += option_problems(name, options_model_of(strategies[name]), options)
+    return problems
+
+
+# --- guarded execution -------------------------------------------------------------------------
+DEFAULT_RESULT_BOUNDS: tuple[float, float] = (0.3, math.radians(10.0))
+"""How far (metres, radians per parameter) a fine-tuned H may be from its start.
+
+Wide enough for the paper's set-B starts (±200 mm, ±2°) to converge, narrow enough to catch a
+result that is no calibration of this station (a plugin's ry of 90°, tx of 760 mm)."""
+
+
+def check_result(
+    strategy: Any, result: Any, start: Extrinsics
+) -> tuple[CalibrationResult, list[str]]:
+    """Validate what a strategy's ``run`` returned; returns (result, warnings).
+
+    Errors (:class:`FineTuningError`, naming the strategy, parameter, start and result): not a
+    :class:`CalibrationResult`, a non-finite parameter, a parameter further from ``start`` than
+    the strategy's ``result_bounds``. Warnings: a non-finite cost, rx moved off its start (rx is
+    the gauge, DESIGN §2), a result labelled with another strategy's name.
+    """
+    from calstation.engine.frames import PARAMETER_NAMES
+    from calstation.engine.result import CalibrationResult
+
+    name = getattr(strategy, "name", "?")
+    if not isinstance(result, CalibrationResult):
+        raise FineTuningError(
+            f"strategy {name!r} returned {type(result).__name__}, not a CalibrationResult"
+        )
+    bound_t, bound_r = getattr(strategy, "result_bounds", DEFAULT_RESULT_BOUNDS)
+    new, old = result.H.as_dict(), start.as_dict()
+    warnings: list[str] = []
+    for p in PARAMETER_NAMES:
+        value, begin = float(new[p]), float(old[p])
+        if not math.isfinite(value):
+            raise FineTuningError(f"strategy {name!r} returned {p} = {value}: not a number")
+        rotation = p.startswith("r")
+        limit = bound_r if rotation else bound_t
+        if abs(value - begin) > limit:
+            raise FineTuningError(
+                f"strategy {name!r} returned {p} = {_shown(p, value)}, "
+                f"{_shown(p, value - begin)} from its start {_shown(p, begin)}; results further "
+                f"than {_shown(p, limit)} from the start are rejected as implausible"
+            )
+    if abs(new["rx"] - old["rx"]) > 1e-12:
+        warnings.append(
+            f"strategy {name!r} moved rx from {_shown('rx', old['rx'])} to "
+            f"{_shown('rx', new['rx'])}; rx is the encoder-zero gauge and is normally held"
+        )
+    if not math.isfinite(float(result.cost)):
+        warnings.append(f"strategy {name!r} reported a cost of {result.cost}")
+    if result.strategy != name:
+        warnings.append(f"strategy {name!r} labelled its result {result.strategy!r}")
+    return result, warnings
+
+
+def _shown(p: str, v: float) -> str:
+    return f"{math.degrees(v):.3f}°" if p.startswith("r") else f"{v * 1e3:.2f} mm"
+
+
+def run_strategy(
+    strategy: Any,
+    recording: Recording,
+    start: Extrinsics,
+    recipe: Recipe,
+    progress: Progress | None = None,
+) -> tuple[CalibrationResult, list[str]]:
+    """Run ``strategy`` and check its result (:func:`check_result`); returns (result, warnings).
+
+    The wall-clock time of the run is stored as ``timings["total"]`` when the strategy did not
+    report a finite one itself, so no caller ever prints a missing time.
+    """
+    t0 = time.perf_counter()
+    result = strategy.run(recording, start, recipe, progress)
+    elapsed = time.perf_counter() - t0
+    result, warnings = check_result(strategy, result, start)
+    total = result.timings.get("total")
+    if total is None or not math.isfinite(float(total)):
+        result = replace(result, timings={**result.timings, "total": elapsed})
+    return result, warnings

@@ -1,0 +1,244 @@
+"""Acquisition loops: a static scan and a spin scan, written to a recording while they run.
+
+Generic over the driver protocols of :mod:`calstation.drivers`: the same loops drive the simulated
+station and real hardware. The ``writer`` is a
+:class:`calstation.recordings.recording.RecordingWriter` (or
+anything with its ``write_line``/``write_encoder``/``write_turntable`` methods).
+
+Progress is reported through ``progress(phase, fraction)``: ``phase`` a short text ("waiting for
+speed", "scanning"), ``fraction`` in [0, 1] for that phase.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable
+from contextlib import suppress
+from typing import Any, Protocol
+
+from calstation.clock import Clock
+from calstation.drivers import Encoder, EncoderSample, Lidar, LidarLine, Turntable, TurntableStatus
+from calstation.errors import DriverError
+
+Progress = Callable[[str, float], None]
+"""``progress(phase, fraction)``: called as an acquisition advances."""
+
+PRE_ROLL_S = 0.05
+"""Encoder history (s) kept from just before the first line, so its first points interpolate."""
+
+SPEED_TOLERANCE = 0.05
+"""The turntable is at speed when within this fraction of the commanded rpm."""
+
+SPEED_POLL_S = 0.05
+STATUS_PERIOD_S = 0.1
+"""Turntable status is recorded at about this period during a spin scan."""
+
+
+class Writer(Protocol):
+    """What the acquisition loops need of a recording writer."""
+
+    def write_line(self, line: LidarLine) -> None:
+        """Append one lidar line."""
+        ...
+
+    def write_encoder(self, samples: Iterable[EncoderSample]) -> None:
+        """Append encoder samples (oldest first)."""
+        ...
+
+    def write_turntable(self, status: TurntableStatus) -> None:
+        """Append one turntable status."""
+        ...
+
+
+def _pre_roll(samples: list[EncoderSample], now: EncoderSample) -> list[EncoderSample]:
+    """The samples of the last ``PRE_ROLL_S`` before ``now`` (the rest is stale history)."""
+    horizon = now.timestamp_ns - round(PRE_ROLL_S * 1e9)
+    return [s for s in samples if horizon <= s.timestamp_ns < now.timestamp_ns]
+
+
+def _start_encoder(encoder: Encoder, writer: Writer) -> EncoderSample:
+    """Write a little encoder history plus a reading now; returns that reading."""
+    history = encoder.samples()
+    now = encoder.read()
+    writer.write_encoder([*_pre_roll(history, now), now])
+    return now
+
+
+def _finish_encoder(encoder: Encoder, writer: Writer) -> None:
+    """The stream's last samples plus a reading now, so the last points of the last line
+    interpolate rather than extrapolate."""
+    samples = encoder.samples()
+    last = encoder.read()
+    if not samples or last.timestamp_ns > samples[-1].timestamp_ns:
+        samples.append(last)
+    writer.write_encoder(samples)
+
+
+def acquire_static(
+    lidar: Lidar,
+    encoder: Encoder,
+    writer: Writer,
+    *,
+    lines: int,
+    progress: Progress | None = None,
+) -> None:
+    """Record ``lines`` lidar lines with the platter at rest, plus the encoder stream.
+
+    The lidar is started and always stopped again. Raises :class:`DriverError` if the lidar
+    stops streaming before ``lines`` lines arrived.
+    """
+    if lines <= 0:
+        raise DriverError(f"a static scan needs at least one line, got {lines}")
+    _start_encoder(encoder, writer)
+    n = 0
+    lidar.start()
+    try:
+        for line in lidar.lines():
+            writer.write_line(line)
+            writer.write_encoder(encoder.samples())
+            n += 1
+            if progress is not None:
+                progress("scanning", n / lines)
+            if n >= lines:
+                break
+    finally:
+        lidar.stop()
+    _finish_encoder(encoder, writer)
+    if n < lines:
+        raise DriverError(f"the lidar stopped after {n} of {lines} lines")
+
+
+def acquire_spin(
+    lidar: Lidar,
+    turntable: Turntable,
+    encoder: Encoder,
+    writer: Writer,
+    *,
+    rpm: float,
+    revolutions: float,
+    settle_s: float,
+    clock: Clock,
+    progress: Progress | None = None,
+    speed_timeout_s: float = 60.0,
+) -> None:
+    """Spin the platter at ``rpm`` and record lines, encoder and turntable status until the
+    encoder has covered ``revolutions`` turns since the first line.
+
+    Sequence: enable, spin, wait (polling ``turntable.status()``, sleeping on ``clock``) until
+    the speed is within :data:`SPEED_TOLERANCE` of ``rpm``, wait ``settle_s`` more, then scan.
+    The turntable is stopped in every case (``emergency_stop`` if a normal stop fails), and the
+    lidar stopped. Raises :class:`DriverError` if the speed is not reached within
+    ``speed_timeout_s`` or the encoder does not advance as the commanded speed implies.
+    """
+    if rpm == 0 or not math.isfinite(rpm):
+        raise DriverError(f"a spin scan needs a non-zero finite speed, got {rpm} rpm")
+    if revolutions <= 0:
+        raise DriverError(f"a spin scan needs a positive number of revolutions, got {revolutions}")
+    turntable.enable()
+    try:
+        turntable.spin(rpm)
+        _wait_for_speed(turntable, writer, rpm, clock, speed_timeout_s, progress)
+        if settle_s > 0:
+            clock.sleep(settle_s)
+        _scan_turns(lidar, turntable, encoder, writer, rpm, revolutions, clock, progress)
+    except BaseException as exc:
+        _stop_after_fault(turntable, writer, exc)
+        raise
+    try:
+        turntable.stop()
+    except Exception:
+        turntable.emergency_stop()
+        raise
+    finally:
+        writer.write_turntable(turntable.status())
+
+
+def _stop_after_fault(turntable: Any, writer: Any, exc: BaseException) -> None:
+    """Stop the platter after ``exc`` (emergency stop if ``stop`` fails) without hiding ``exc``:
+    the fault that ended the scan is the one the operator must read."""
+    try:
+        turntable.stop()
+    except Exception as stop_exc:
+        exc.add_note(f"then the turntable's stop failed: {stop_exc}")
+        with suppress(Exception):
+            turntable.emergency_stop()
+    with suppress(Exception):
+        writer.write_turntable(turntable.status())
+
+
+def _wait_for_speed(
+    turntable: Turntable,
+    writer: Writer,
+    rpm: float,
+    clock: Clock,
+    timeout_s: float,
+    progress: Progress | None,
+) -> None:
+    start = clock.now_ns()
+    first: float | None = None
+    while True:
+        status = turntable.status()
+        writer.write_turntable(status)
+        if status.faults:
+            raise DriverError(f"turntable fault while speeding up: {', '.join(status.faults)}")
+        if first is None:
+            first = status.speed_rpm
+        if abs(status.speed_rpm - rpm) <= SPEED_TOLERANCE * abs(rpm):
+            if progress is not None:
+                progress("waiting for speed", 1.0)
+            return
+        if progress is not None and rpm != first:
+            progress(
+                "waiting for speed", min(1.0, max(0.0, (status.speed_rpm - first) / (rpm - first)))
+            )
+        if (clock.now_ns() - start) * 1e-9 > timeout_s:
+            raise DriverError(
+                f"turntable did not reach {rpm:g} rpm within {timeout_s:g} s "
+                f"(last reported {status.speed_rpm:.3g} rpm)"
+            )
+        clock.sleep(SPEED_POLL_S)
+
+
+def _scan_turns(
+    lidar: Lidar,
+    turntable: Turntable,
+    encoder: Encoder,
+    writer: Writer,
+    rpm: float,
+    revolutions: float,
+    clock: Clock,
+    progress: Progress | None,
+) -> None:
+    cpr = encoder.counts_per_revolution
+    start = _start_encoder(encoder, writer)
+    # generous limit: twice the nominal time plus slack, so a stalled encoder cannot hang the scan
+    limit_ns = start.timestamp_ns + round((2.0 * revolutions * 60.0 / abs(rpm) + 5.0) * 1e9)
+    next_status = clock.now_ns()
+    turns = 0.0
+    lidar.start()
+    try:
+        for line in lidar.lines():
+            writer.write_line(line)
+            samples = encoder.samples()
+            writer.write_encoder(samples)
+            if samples:
+                turns = abs(samples[-1].count - start.count) / cpr
+            now = clock.now_ns()
+            if now >= next_status:
+                writer.write_turntable(turntable.status())
+                next_status = now + round(STATUS_PERIOD_S * 1e9)
+            if progress is not None:
+                progress("scanning", min(1.0, turns / revolutions))
+            if turns >= revolutions:
+                break
+            if now > limit_ns:
+                raise DriverError(
+                    f"the encoder covered only {turns:.3f} of {revolutions:g} turns in "
+                    f"{(now - start.timestamp_ns) * 1e-9:.1f} s at {rpm:g} rpm: is the platter "
+                    f"turning and the encoder connected?"
+                )
+    finally:
+        lidar.stop()
+    _finish_encoder(encoder, writer)
+    if turns < revolutions:
+        raise DriverError(f"the lidar stopped streaming after {turns:.3f} of {revolutions:g} turns")

@@ -1,0 +1,296 @@
+"""The operator's side of a run: the one interface between the station and its front ends.
+
+The station (:mod:`calstation.station.run`) talks to whoever runs it only through an
+:class:`Operator`: it asks (``confirm_fixture``, ``on_failure``), reports (``info``, ``warn``,
+``progress``, ``summary``) and publishes :class:`StationEvent` s (step started and finished, a
+preview of the lidar line being recorded) through :func:`publish`. Two front ends implement it:
+:class:`ConsoleOperator` here (``calstation run``, rich) and the web station's operator
+(:mod:`calstation.web.live`, ``calstation serve``). The state machine, the database writes and
+resume stay in the station.
+
+:class:`ConsoleOperator` is the interactive terminal UI; with ``unattended=True`` (``--yes``) it
+never asks: fixtures are placed by the ``calstation_fixture_placed`` hook (the simulator puts them
+into its scene) and a failed step fails the run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol
+
+from rich.console import Console
+from rich.markup import escape
+from rich.panel import Panel
+from rich.progress import (
+    BarColumn,
+    Progress,
+    SpinnerColumn,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+)
+from rich.table import Table
+
+ProgressCallback = Callable[[str, float], None]
+"""``progress(phase, fraction)``: a step reports what it does and how far it is (0..1)."""
+
+Decision = Literal["retry", "abort"]
+
+FIXTURE_PROMPTS: dict[str, str] = {
+    "static_target": (
+        "Place the L-shaped static target on the platter: base plate toward the lidar, the "
+        "corner of base and wall over the platter centre. Keep the platter still."
+    ),
+    "spin_target": (
+        "Place the heptagonal spin target off-centre, as the recipe's offset says (about 60 mm "
+        "from the axis): a centred target cannot show the axis tilt out of the scan plane (ry), "
+        "and the fine-tuning then refuses its result."
+    ),
+    "qa_cube": "Place the QA cube anywhere on the platter, standing on one face.",
+    "none": "Clear the platter.",
+}
+
+
+STEP_HINTS: dict[str, str] = {
+    "preflight": "Check that the lidar is powered and connected, that the platter turns freely "
+    "and that the encoder is connected, then retry.",
+    "static_scan": "Check the L-target: base plate toward the lidar, the corner of base and wall "
+    "over the platter centre, nothing between it and the lidar; then retry.",
+    "spin_scan": "Check that the platter turns and nothing touches the spin target, then retry "
+    "(the scan is taken again).",
+    "fine_tune": "Check that the spin target stood on the platter, fully in view, during the "
+    "spin scan; retry runs the fine-tuning again on the same recording.",
+    "cube_scan": "Check that the QA cube stands on one face, fully in view, and nothing touches "
+    "it; then retry (the scan is taken again).",
+    "report": "Check the free disk space and the database connection, then retry.",
+}
+"""What the operator can do about a failed step (shown beside its error)."""
+
+EVENT_KINDS: tuple[str, ...] = ("step_started", "step_finished", "lidar_line")
+"""What :class:`StationEvent` s a station publishes (prompts, progress and the final summary
+are the :class:`Operator` methods of the same names)."""
+
+
+@dataclass(frozen=True)
+class StationEvent:
+    """Something that happened in a run, for front ends to show.
+
+    - ``step_started``: ``step``, ``attempt``.
+    - ``step_finished``: ``step``, ``attempt``, ``status`` (``passed``/``failed``), ``result``
+      (the step's JSON result as stored) and ``error``.
+    - ``lidar_line``: ``kind`` (recording kind: static, spin, cube) and ``line`` (the
+      :class:`~calstation.drivers.LidarLine` just written); published for every line, so a
+      front end keeps only what it can show.
+    """
+
+    kind: str
+    data: dict[str, Any] = field(default_factory=dict)
+
+
+def publish(ui: Operator, kind: str, /, **data: Any) -> None:
+    """Give ``ui`` the event ``kind`` if it listens (an ``event(StationEvent)`` method).
+
+    Listening is optional so that a minimal operator (a script, a test) needs only the
+    :class:`Operator` methods. An exception from the listener propagates: that is how a front
+    end aborts a run mid-step (it raises ``AbortRun``).
+    """
+    listener = getattr(ui, "event", None)
+    if listener is not None:
+        listener(StationEvent(kind, data))
+
+
+class Operator(Protocol):
+    """What the station needs from whoever runs it."""
+
+    unattended: bool
+
+    def info(self, message: str) -> None:
+        """Show a line of information."""
+        ...
+
+    def warn(self, message: str) -> None:
+        """Show a warning."""
+        ...
+
+    def confirm_fixture(self, fixture: str, description: str) -> bool:
+        """Ask the operator to place ``fixture``; False means the operator aborts the run."""
+        ...
+
+    def on_failure(self, step: str, error: str, attempt: int) -> Decision:
+        """A step failed: retry it, or abort the run."""
+        ...
+
+    def progress(self, title: str) -> Any:
+        """A context manager yielding a :data:`ProgressCallback` for one long step."""
+        ...
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        """Show the run's final PASS/FAIL summary (``summary`` as from ``report.run_summary``)."""
+        ...
+
+    # Optional: ``def event(self, event: StationEvent) -> None`` receives every
+    # :class:`StationEvent` (see :func:`publish`).
+
+
+class ConsoleOperator:
+    """The terminal operator UI (rich). ``unattended`` answers every question itself."""
+
+    def __init__(
+        self, unattended: bool = False, console: Console | None = None, max_retries: int = 3
+    ) -> None:
+        self.unattended = unattended
+        self.console = console or Console()
+        self.max_retries = max_retries
+
+    def info(self, message: str) -> None:
+        """Print a line."""
+        self.console.print(message, highlight=False)
+
+    def event(self, event: StationEvent) -> None:
+        """Print the start of each step (the console shows no live lidar lines)."""
+        if event.kind == "step_started":
+            self.console.print(
+                f"[bold]▶ {event.data['step']}[/] (attempt {event.data['attempt']})",
+                highlight=False,
+            )
+
+    def warn(self, message: str) -> None:
+        """Print a warning."""
+        self.console.print(f"[yellow]warning:[/] {escape(message)}", highlight=False)
+
+    def confirm_fixture(self, fixture: str, description: str) -> bool:
+        """Prompt "place …, press Enter" (unattended: announce and go on)."""
+        text = FIXTURE_PROMPTS.get(fixture, f"Place the {fixture} on the platter.")
+        if description:
+            text += f"\n[dim]{escape(description)}[/]"
+        if self.unattended:
+            self.console.print(f"[cyan]→ {fixture}[/]: placed automatically (--yes)")
+            return True
+        self.console.print(Panel(text, title=f"operator: {fixture}", border_style="cyan"))
+        answer = self.console.input("Press [bold]Enter[/] when done, or type [bold]a[/] to abort: ")
+        return answer.strip().lower() not in ("a", "abort", "q")
+
+    def on_failure(self, step: str, error: str, attempt: int) -> Decision:
+        """Show the error; ask retry/abort (unattended: abort)."""
+        hint = STEP_HINTS.get(step)
+        self.console.print(
+            Panel(
+                escape(error) + (f"\n[dim]{escape(hint)}[/]" if hint else ""),
+                title=f"step {step} failed (attempt {attempt})", border_style="red",
+            )
+        )
+        if self.unattended or attempt > self.max_retries:
+            return "abort"
+        while True:
+            answer = self.console.input("[bold]r[/]etry the step or [bold]a[/]bort the run? ")
+            a = answer.strip().lower()
+            if a in ("r", "retry", ""):
+                return "retry"
+            if a in ("a", "abort"):
+                return "abort"
+
+    @contextmanager
+    def progress(self, title: str) -> Iterator[ProgressCallback]:
+        """A progress bar for one step; the callback sets its phase and fraction."""
+        with Progress(
+            SpinnerColumn(),
+            TextColumn("{task.description}"),
+            BarColumn(),
+            TaskProgressColumn(),
+            TimeElapsedColumn(),
+            console=self.console,
+            transient=False,
+        ) as bar:
+            task = bar.add_task(title, total=1.0)
+
+            def update(phase: str, fraction: float) -> None:
+                bar.update(
+                    task,
+                    description=f"{title}: {phase}" if phase else title,
+                    completed=max(0.0, min(1.0, float(fraction))),
+                )
+
+            yield update
+            bar.update(task, completed=1.0, description=title)
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        """The final verdict: PASS/FAIL banner, calibration (mm, deg) and cube check."""
+        render_summary(self.console, summary)
+
+
+def render_summary(console: Console, s: dict[str, Any]) -> None:
+    """Print a run summary in display units (mm, deg) with a PASS/FAIL banner."""
+    import math
+
+    status = s["status"]
+    style = {"passed": "bold white on green", "failed": "bold white on red"}.get(
+        status, "bold black on yellow"
+    )
+    verdict = {"passed": "PASS", "failed": "FAIL"}.get(status, status.upper())
+    table = Table(
+        title=f"run {s['id']} — station {s['station']} — recipe {s['recipe_name']}",
+        caption="tx, ty, tz in mm; rx, ry, rz in degrees; ✔ accepted",
+    )
+    table.add_column("")
+    for p in ("tx", "ty", "tz", "rx", "ry", "rz"):
+        table.add_column(p, justify="right")
+    table.add_column("strategy")
+    def shown(p: str, v: float) -> str:
+        return f"{v * 1000:.3f}" if p.startswith("t") else f"{math.degrees(v):.4f}"
+
+    for c in s["calibrations"]:
+        row = [c["stage"] + (" ✔" if c["accepted"] else "")]
+        for p, v in c["H"].items():
+            row.append(shown(p, v))
+        row.append(c["strategy"])
+        table.add_row(*row)
+        sig = c["sigma"]
+        if any(v is not None for v in sig.values()):
+            srow = ["  ±1σ"]
+            for p, v in sig.items():
+                if v is None:
+                    srow.append("—")
+                else:
+                    srow.append(shown(p, v))
+            srow.append("")
+            table.add_row(*srow, style="dim")
+    console.print(table)
+    cube = s.get("cube_check")
+    if cube:
+        edges = ", ".join(f"{e * 1000:.2f}" for e in cube["face_edges"])
+        console.print(
+            f"QA cube: face-fit edges [{edges}] mm, edge error {cube['edge_error'] * 1000:.2f} mm, "
+            f"OBB error {cube['obb_error'] * 1000:.2f} mm, flatness RMS "
+            f"{cube['flatness_rms'] * 1000:.2f} mm, perpendicularity "
+            f"{cube['perpendicularity_deg']:.3f}°, side-face twist "
+            f"{_twist(cube)} → {'pass' if cube['passed'] else 'FAIL'}",
+            highlight=False,
+        )
+        for f in cube.get("failures") or []:
+            console.print(f"  [red]✘[/] {escape(str(f))}")
+    limits = s.get("qa_limits")
+    if limits:
+        console.print(
+            f"limits: edge error ≤ {limits['edge_error'] * 1000:.2f} mm, OBB error ≤ "
+            f"{limits['obb_edge_error'] * 1000:.2f} mm, flatness RMS ≤ "
+            f"{limits['flatness_rms'] * 1000:.2f} mm, perpendicularity ≤ "
+            f"{limits['perpendicularity_deg']:.3f}°"
+            + (f", side-face twist ≤ {limits['twist_deg']:.3f}°" if "twist_deg" in limits else "")
+            + "; drift ≤ "
+            f"{limits['drift_translation'] * 1000:.2f} mm / {limits['drift_rotation_deg']:.3f}°"
+            + (" (fails the run)" if limits.get("drift_fails") else " (warns)"),
+            highlight=False,
+        )
+    if s.get("error"):
+        console.print(f"[red]{escape(s['error'])}[/]")
+    console.print(Panel(f"{verdict}", style=style, expand=False))
+
+
+def _twist(cube: dict[str, Any]) -> str:
+    """The side faces' twist as ``+0.012° (±0.030°)``, or ``—`` for checks stored without it."""
+    twist, sigma = cube.get("twist_deg"), cube.get("twist_sigma_deg")
+    if twist is None or twist != twist:
+        return "—"
+    return f"{twist:+.3f}° (±{sigma if sigma is not None else float('nan'):.3f}°)"

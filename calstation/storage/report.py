@@ -1,0 +1,280 @@
+"""Run records as plain mappings, and the exports of a run's calibration.
+
+What ``calstation show --json`` prints, what the ``calstation_run_finished`` hook receives and what
+the station writes to ``report.json`` are one mapping, built here from the database rows; values
+are exactly what is stored (metres, radians, UTC ISO-8601 times).
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as dt
+import io
+import json
+import math
+from typing import TYPE_CHECKING, Any
+
+from sqlalchemy import Select, select
+from sqlalchemy.orm import Session, selectinload
+
+from calstation.errors import DatabaseError
+from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord, Run
+
+if TYPE_CHECKING:
+    from calstation.storage.ros import Frames
+
+EXPORT_FORMATS = ("yaml", "json", "urdf", "csv", "tf", "ros2-yaml")
+
+
+def iso(t: dt.datetime | None) -> str | None:
+    """UTC ISO-8601 text of a stored time (SQLite returns naive UTC)."""
+    if t is None:
+        return None
+    if t.tzinfo is None:
+        t = t.replace(tzinfo=dt.UTC)
+    return t.astimezone(dt.UTC).isoformat()
+
+
+def run_brief(run: Run) -> dict[str, Any]:
+    """The run's own fields (no steps or results)."""
+    return {
+        "id": run.id,
+        "station": run.station.name,
+        "recipe_name": run.recipe_name,
+        "recipe_path": run.recipe_path,
+        "recipe_sha256": run.recipe_sha256,
+        "operator": run.operator,
+        "unit_serial": run.unit_serial,
+        "unattended": run.unattended,
+        "status": run.status,
+        "started_at": iso(run.started_at),
+        "finished_at": iso(run.finished_at),
+        "data_dir": run.data_dir,
+        "error": run.error,
+        "host": run.host,
+        "pid": run.pid,
+        "motor_stop": run.motor_stop,
+    }
+
+
+def calibration_dict(c: Calibration) -> dict[str, Any]:
+    """A stored calibration: H and sigma (m, rad), the estimated encoder latency and its sigma
+    (s, None when not estimated), cost, strategy, accepted, diagnostics."""
+    return {
+        "id": c.id,
+        "stage": c.stage,
+        "strategy": c.strategy,
+        "accepted": c.accepted,
+        "H": c.params(),
+        "sigma": c.sigmas(),
+        "encoder_latency_s": c.encoder_latency_s,
+        "sigma_encoder_latency_s": c.sigma_encoder_latency_s,
+        "cost": c.cost,
+        "iterations": c.iterations,
+        "diagnostics": c.diagnostics,
+        "created_at": iso(c.created_at),
+    }
+
+
+def with_results(stmt: Select[Run], *, steps: bool = False) -> Select[Run]:
+    """``stmt``, a query of runs, loading their calibrations and cube checks (and their steps,
+    with ``steps``) in one query each for all the runs, instead of one per run."""
+    stmt = stmt.options(selectinload(Run.calibrations), selectinload(Run.cube_checks))
+    return stmt.options(selectinload(Run.steps)) if steps else stmt
+
+
+def history_item(run: Run) -> dict[str, Any]:
+    """A run as the history lists it: :func:`run_brief`, its final calibration (the accepted
+    one, else the last fine-tuning, else the last) and its last cube check."""
+    item = run_brief(run)
+    fine = [c for c in run.calibrations if c.stage == "fine"]
+    picks = [c for c in run.calibrations if c.accepted] or fine or run.calibrations
+    item["calibration"] = calibration_dict(picks[-1]) if picks else None
+    item["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+    return item
+
+
+def cube_dict(c: CubeCheckRecord) -> dict[str, Any]:
+    """A stored cube check (lengths in metres)."""
+    return {
+        "id": c.id,
+        "calibration_id": c.calibration_id,
+        "obb_edges": c.obb_edges,
+        "obb_error": c.obb_error,
+        "face_edges": c.face_edges,
+        "edge_error": c.edge_error,
+        "flatness_rms": c.flatness_rms,
+        "perpendicularity_deg": c.perpendicularity_deg,
+        "twist_deg": c.twist_deg,
+        "twist_sigma_deg": c.twist_sigma_deg,
+        "passed": c.passed,
+        "failures": c.failures,
+        "created_at": iso(c.created_at),
+    }
+
+
+def run_summary(run: Run) -> dict[str, Any]:
+    """Everything stored about a run: brief, steps, calibrations, cube check, artifacts."""
+    steps = {s.id: s.name for s in run.steps}
+    out = run_brief(run)
+    out["steps"] = [
+        {
+            "name": s.name,
+            "attempt": s.attempt,
+            "status": s.status,
+            "started_at": iso(s.started_at),
+            "finished_at": iso(s.finished_at),
+            "result": s.result,
+            "error": s.error,
+        }
+        for s in run.steps
+    ]
+    out["calibrations"] = [calibration_dict(c) for c in run.calibrations]
+    out["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
+    out["qa_limits"] = qa_limits(run.recipe_text)
+    out["artifacts"] = [
+        {
+            "kind": a.kind,
+            "step": steps.get(a.step_id) if a.step_id is not None else None,
+            "path": a.path,
+            "size_bytes": a.size_bytes,
+            "sha256": a.sha256,
+            "status": a.status,
+        }
+        for a in run.artifacts
+    ]
+    return out
+
+
+def qa_limits(recipe_text: str) -> dict[str, Any] | None:
+    """The pass/fail and drift limits of a stored recipe (metres, degrees; ``qa`` section with its
+    defaults), None when the text is not a recipe mapping."""
+    import yaml
+    from pydantic import ValidationError
+
+    from calstation.recipes import QALimits
+
+    try:
+        data = yaml.safe_load(recipe_text)
+        section = data.get("qa") if isinstance(data, dict) else None
+        return QALimits.model_validate(section or {}).model_dump()
+    except (yaml.YAMLError, ValidationError):
+        return None
+
+
+def get_run(session: Session, run_id: int) -> Run:
+    """The run ``run_id``; :class:`DatabaseError` if there is none."""
+    run = session.get(Run, run_id)
+    if run is None:
+        raise DatabaseError(f"no run with id {run_id} in the database")
+    return run
+
+
+def final_calibration(run: Run) -> Calibration:
+    """The run's calibration to export: the accepted one, else the newest fine-tuned, else the
+    initial; :class:`DatabaseError` if the run has none."""
+    cals = run.calibrations
+    for pick in (
+        [c for c in cals if c.accepted],
+        [c for c in cals if c.stage == "fine"],
+        list(cals),
+    ):
+        if pick:
+            return pick[-1]
+    raise DatabaseError(f"run {run.id} has no calibration yet (status {run.status})")
+
+
+def export_calibration(
+    run: Run, fmt: str, *, parent: str = "lidar", frames: Frames | None = None
+) -> str:
+    """The run's final calibration as ``yaml``, ``json`` (both loadable by
+    ``CalibrationResult.load``), ``csv`` (one header row and one value row, floats written
+    exactly), or for ROS (:mod:`calstation.storage.ros`): ``tf`` (``static_transform_publisher``
+    arguments, both directions), ``urdf`` (links and joints) or ``ros2-yaml`` (a
+    ``geometry_msgs/TransformStamped``). ``parent`` (``lidar`` or ``platform``) picks the
+    direction of the URDF joint and the TransformStamped; ``frames`` the frame ids."""
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.result import CalibrationResult
+    from calstation.storage import ros
+
+    if fmt not in EXPORT_FORMATS:
+        raise DatabaseError(
+            f"unknown export format {fmt!r}; use one of {', '.join(EXPORT_FORMATS)}"
+        )
+    cal = final_calibration(run)
+    H = Extrinsics.from_dict(cal.params())
+    names = frames or ros.Frames()
+    title = (
+        f"calstation run {run.id}, station {run.station.name}: {cal.stage} calibration "
+        f"({cal.strategy}{', accepted' if cal.accepted else ''})"
+    )
+    if cal.encoder_latency_s is not None:
+        sigma_ms = "" if cal.sigma_encoder_latency_s is None else (
+            f" ± {cal.sigma_encoder_latency_s * 1e3:.3f}")
+        title += (f"; lidar–encoder time offset {cal.encoder_latency_s * 1e3:.3f}{sigma_ms} ms "
+                  "(encoder time minus lidar time)")
+    if fmt == "tf":
+        return ros.tf_export(H, title, names)
+    if fmt == "urdf":
+        return ros.urdf_export(H, title, names, parent)
+    if fmt == "ros2-yaml":
+        created = cal.created_at
+        stamp = round(
+            (created if created.tzinfo else created.replace(tzinfo=dt.UTC)).timestamp() * 1e9
+        )
+        return ros.ros2_yaml_export(H, title, stamp, names, parent)
+    if fmt == "csv":
+        buf = io.StringIO()
+        header = ["run_id", "station", "stage", "strategy", "accepted", *PARAMS]
+        header += [f"sigma_{p}" for p in PARAMS] + ["cost", "iterations"]
+        header += ["encoder_latency_s", "sigma_encoder_latency_s"]
+        header += ["qx", "qy", "qz", "qw"]  # rotation of P in L, quaternion order x y z w
+        row: list[Any] = [run.id, run.station.name, cal.stage, cal.strategy, cal.accepted]
+        row += [repr(v) for v in cal.params().values()]
+        row += ["" if s is None else repr(s) for s in cal.sigmas().values()]
+        row += ["" if cal.cost is None else repr(cal.cost), cal.iterations]
+        row += ["" if v is None else repr(v)
+                for v in (cal.encoder_latency_s, cal.sigma_encoder_latency_s)]
+        row += [repr(float(q)) for q in H.as_quaternion()]
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerow(row)
+        return buf.getvalue()
+    sigma = {p: math.nan if s is None else s for p, s in cal.sigmas().items()}
+    result = CalibrationResult(
+        H=H,
+        sigma=sigma,
+        cost=math.nan if cal.cost is None else cal.cost,
+        iterations=cal.iterations or 0,
+        strategy=cal.strategy,
+        diagnostics=dict(cal.diagnostics or {}),
+        encoder_latency_s=cal.encoder_latency_s,
+        sigma_encoder_latency_s=cal.sigma_encoder_latency_s,
+    )
+    data = result.to_dict()
+    data["run"] = {
+        "id": run.id,
+        "station": run.station.name,
+        "stage": cal.stage,
+        "accepted": cal.accepted,
+        "recipe_name": run.recipe_name,
+        "recipe_sha256": run.recipe_sha256,
+        "status": run.status,
+    }
+    if fmt == "json":
+        return json.dumps(data, indent=2) + "\n"
+    import yaml
+
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def previous_accepted(session: Session, run: Run) -> Calibration | None:
+    """The station's accepted calibration from the newest passed run before ``run``."""
+    stmt = (
+        select(Calibration)
+        .join(Run, Calibration.run_id == Run.id)
+        .where(Run.station_id == run.station_id, Run.id < run.id, Calibration.accepted)
+        .order_by(Run.id.desc())
+        .limit(1)
+    )
+    return session.scalars(stmt).first()

@@ -1,0 +1,496 @@
+"""The run report: ``runs/N/report.html``, one self-contained file that opens offline.
+
+Fed only by what the station already stores: the run's database rows (:func:`report.run_summary`),
+the recipe text stored with the run (its QA limits and fixture geometry) and the recordings in the
+run folder (reconstructed with the run's final calibration for the 3D views). plotly.js comes from
+the installed ``plotly`` package and is inlined, so the file needs no network; the web station
+renders the same template with plotly served from its own ``/static``.
+
+What it holds: the verdict, H with its 1σ (mm, degrees), every measured value of the cube check
+beside its limit, interactive subsampled 3D views of the reconstructed spin target (coloured by
+half-turn; its residual is the distance to the nearest point of the other half-turn) and cube
+(coloured by residual: the distance to the plane through its nearest points), the residual
+histogram, the cost per iteration when the strategy reports it, the
+steps with their timings and the recordings with their sha256. A print stylesheet keeps it
+readable on paper (the 3D views print as the browser draws them; every number is in a table).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calstation.errors import CalstationError
+from calstation.storage.db import Database, Run
+
+MAX_CLOUD_POINTS = 12_000
+"""Points per 3D view (a subsample: the report stays a few MB)."""
+
+MAX_RESIDUAL_POINTS = 20_000
+"""Points of each half-turn used for the residual (nearest neighbour) statistics."""
+
+SEED = 0
+"""The subsample is drawn with this seed: the same run gives the same report."""
+
+PARAM_LABELS: dict[str, str] = {
+    "tx": "tx (mm)", "ty": "ty (mm)", "tz": "tz (mm)",
+    "rx": "rx (°)", "ry": "ry (°)", "rz": "rz (°)",
+}
+
+
+def display_value(param: str, value: float | None) -> float | None:
+    """A stored parameter (m or rad) in display units (mm or degrees)."""
+    if value is None:
+        return None
+    return value * 1000.0 if param.startswith("t") else math.degrees(value)
+
+
+def fmt(value: float | None, digits: int = 3) -> str:
+    """A number for a table; an em dash when absent."""
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "—"
+    return f"{value:.{digits}f}"
+
+
+@dataclass
+class Cloud:
+    """A subsampled reconstructed cloud for one 3D view: (N, 3) mm in frame D, one value each."""
+
+    title: str
+    points_mm: NDArray[np.float64]
+    values: NDArray[np.float64]
+    color_label: str
+    categorical: bool
+
+
+def _rng() -> np.random.Generator:
+    return np.random.default_rng(SEED)
+
+
+def _subsample(n: int, k: int, rng: np.random.Generator) -> NDArray[np.int64]:
+    if n <= k:
+        return np.arange(n)
+    return np.sort(rng.choice(n, size=k, replace=False))
+
+
+def reconstructed_object(
+    path: Path, H: Any, platter_radius: float
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The object on the platter from a spin recording: (N, 3) points in D (metres) above the
+    platter top and inside its radius, and (N,) True for the first half-turn (φ mod 2π < π)."""
+    from calstation.engine.reconstruct import lidar_points_to_dynamic
+    from calstation.recordings.recording import read_recording
+
+    recording = read_recording(path)
+    p_L, phi = recording.points_lidar()
+    p_D = lidar_points_to_dynamic(p_L, phi, H)
+    radial = np.hypot(p_D[:, 1], p_D[:, 2])
+    keep = (p_D[:, 0] > 0.002) & (p_D[:, 0] < 0.5) & (radial < platter_radius)
+    first = np.mod(phi[keep], 2.0 * np.pi) < np.pi
+    return p_D[keep], first
+
+
+def half_turn_residuals(
+    points: NDArray[np.float64], first: NDArray[np.bool_]
+) -> NDArray[np.float64]:
+    """Distance (m) from each point to the nearest point of the other half-turn.
+
+    Both half-turns see the same surfaces when H is right (DESIGN §5), so these distances are
+    what the periodicity cost drives down; with a wrong H they grow. ``inf`` when one half-turn is
+    empty.
+    """
+    from scipy.spatial import cKDTree
+
+    out = np.full(points.shape[0], np.inf)
+    a, b = points[first], points[~first]
+    if a.shape[0] == 0 or b.shape[0] == 0:
+        return out
+    out[first] = cKDTree(b).query(a, k=1)[0]
+    out[~first] = cKDTree(a).query(b, k=1)[0]
+    return out
+
+
+def local_plane_residuals(points: NDArray[np.float64], k: int = 20) -> NDArray[np.float64]:
+    """Distance (m) of each point to the plane fitted (PCA) to its ``k`` nearest neighbours.
+
+    Small on a flat, well reconstructed face (the range noise); large at mixed pixels and where
+    a wrong H smears a face. Used for the cube, whose vertical faces each half-turn sees from
+    a different side (so a half-turn distance would mean nothing there).
+    """
+    from scipy.spatial import cKDTree
+
+    n = points.shape[0]
+    if n <= k:
+        return np.full(n, np.inf)
+    _, idx = cKDTree(points).query(points, k=k)
+    nb = points[idx]  # (N, k, 3)
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    _, vecs = np.linalg.eigh(cov)
+    normal = vecs[:, :, 0]  # the smallest eigenvalue's vector
+    out: NDArray[np.float64] = np.abs(
+        np.einsum("ni,ni->n", points - nb.mean(axis=1), normal))
+    return out
+
+
+def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> dict[str, Any]:
+    """One 3D view and its residual statistics, as plain data for the template.
+
+    ``by``: ``"half-turn"`` (colour by half-turn; residual = distance to the other half-turn)
+    or ``"plane"`` (colour by the distance to the local plane, which is also the residual).
+    """
+    rng = _rng()
+    points, first = reconstructed_object(path, H, platter_radius)
+    if points.shape[0] < 30:
+        return {"title": title, "error": f"only {points.shape[0]} points above the platter"}
+    pick = _subsample(points.shape[0], MAX_RESIDUAL_POINTS * 2, rng)
+    pts, fst = points[pick], first[pick]
+    residual = half_turn_residuals(pts, fst) if by == "half-turn" else local_plane_residuals(pts)
+    show = _subsample(pts.shape[0], MAX_CLOUD_POINTS, rng)
+    finite = residual[np.isfinite(residual)] * 1000.0
+    cloud = Cloud(
+        title=title,
+        points_mm=pts[show] * 1000.0,
+        values=(fst[show].astype(np.float64) if by == "half-turn" else residual[show] * 1000.0),
+        color_label="half-turn" if by == "half-turn" else "residual (mm)",
+        categorical=by == "half-turn",
+    )
+    return {
+        "title": title,
+        "points": int(points.shape[0]),
+        "shown": int(show.shape[0]),
+        "figure": _cloud_figure(cloud),
+        "residual_kind": ("distance to the nearest point of the other half-turn"
+                          if by == "half-turn" else
+                          "distance to the plane through the 20 nearest points"),
+        "residual": {
+            "median_mm": float(np.median(finite)) if finite.size else None,
+            "p95_mm": float(np.percentile(finite, 95)) if finite.size else None,
+            "values_mm": np.round(np.clip(finite, 0, None), 3).tolist(),
+        },
+    }
+
+
+def _cloud_figure(c: Cloud) -> dict[str, Any]:
+    """A plotly ``scatter3d`` figure (plain JSON): x_D is up."""
+    p = np.round(c.points_mm, 2)
+    # plotly's z is up: show (y_D, z_D, x_D) so the platter lies flat
+    xyz = {"x": p[:, 1].tolist(), "y": p[:, 2].tolist(), "z": p[:, 0].tolist()}
+    marker: dict[str, Any] = {"size": 1.6}
+    traces: list[dict[str, Any]]
+    if c.categorical:
+        traces = []
+        for value, name, colour in ((1.0, "first half-turn", "#1f77b4"),
+                                    (0.0, "second half-turn", "#ff7f0e")):
+            m = c.values == value
+            traces.append({
+                "type": "scatter3d", "mode": "markers", "name": name,
+                "x": p[m, 1].tolist(), "y": p[m, 2].tolist(), "z": p[m, 0].tolist(),
+                "marker": {**marker, "color": colour},
+            })
+    else:
+        v = np.round(np.where(np.isfinite(c.values), c.values, np.nan), 3)
+        # the scale follows the bulk of the surface, not the stray mixed pixels
+        hi = 3.0 * float(np.nanmedian(v)) if np.isfinite(v).any() else 1.0
+        traces = [{
+            "type": "scatter3d", "mode": "markers", "name": c.color_label, **xyz,
+            "marker": {**marker, "color": [None if not math.isfinite(x) else x for x in v],
+                       "colorscale": "Viridis", "cmin": 0.0, "cmax": max(hi, 1e-3),
+                       "colorbar": {"title": {"text": c.color_label}}},
+        }]
+    layout = {
+        "margin": {"l": 0, "r": 0, "t": 30, "b": 0},
+        "title": {"text": c.title},
+        "scene": {
+            "aspectmode": "data",
+            "xaxis": {"title": {"text": "y_D (mm)"}},
+            "yaxis": {"title": {"text": "z_D (mm)"}},
+            "zaxis": {"title": {"text": "x_D (mm, up)"}},
+        },
+        "legend": {"orientation": "h"},
+        "height": 420,
+    }
+    return {"data": traces, "layout": layout}
+
+
+def _histogram_figure(clouds: list[dict[str, Any]]) -> dict[str, Any] | None:
+    traces = [
+        {"type": "histogram", "name": c["title"], "x": c["residual"]["values_mm"],
+         "opacity": 0.6, "xbins": {"start": 0.0, "size": 0.1}}
+        for c in clouds if c.get("residual") and c["residual"]["values_mm"]
+    ]
+    if not traces:
+        return None
+    return {
+        "data": traces,
+        "layout": {
+            "barmode": "overlay", "height": 300, "margin": {"l": 50, "r": 10, "t": 30, "b": 40},
+            "title": {"text": "residuals (see each view for what they measure)"},
+            "xaxis": {"title": {"text": "mm"}, "range": [0, max(
+                2.0, *(4.0 * (c["residual"]["median_mm"] or 0)
+                       for c in clouds if c.get("residual")))]},
+            "yaxis": {"title": {"text": "points"}},
+        },
+    }
+
+
+def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Cost per outer iteration (periodicity's ``diagnostics.iterations``), when reported."""
+    if calibration is None:
+        return None
+    history = (calibration.get("diagnostics") or {}).get("iterations")
+    if not isinstance(history, list) or not history:
+        return None
+    costs = [h.get("cost") for h in history if isinstance(h, dict)]
+    if not costs or any(c is None for c in costs):
+        return None
+    rms = [math.sqrt(float(c)) * 1000.0 for c in costs if c is not None]
+    labels = [
+        f"stage {h.get('stage', '?')}, {h.get('matches', '?')} matches" for h in history
+    ]
+    return {
+        "data": [
+            {"type": "scatter", "mode": "lines+markers", "name": "RMS residual (mm)",
+             "x": list(range(1, len(rms) + 1)), "y": rms, "text": labels},
+        ],
+        "layout": {
+            "height": 300, "margin": {"l": 50, "r": 20, "t": 30, "b": 40},
+            "title": {"text": "cost per iteration (RMS residual; stage and matches on hover)"},
+            "xaxis": {"title": {"text": "outer iteration"}, "dtick": 1},
+            "yaxis": {"title": {"text": "RMS residual (mm)"}, "type": "log"},
+        },
+    }
+
+
+# --- gathering -------------------------------------------------------------------------------
+def _limits(recipe_text: str) -> Any | None:
+    from calstation.recipes import parse_recipe
+
+    try:
+        return parse_recipe(recipe_text, "recipe stored with the run")
+    except CalstationError:
+        return None
+
+
+def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
+    """Each measured cube value beside its limit (display units) and whether it passes."""
+    if cube is None:
+        return []
+    rows = [
+        ("face-fit edge error", cube.get("edge_error"), getattr(qa, "edge_error", None), 1e3,
+         "mm"),
+        ("OBB edge error (paper metric)", cube.get("obb_error"),
+         getattr(qa, "obb_edge_error", None), 1e3, "mm"),
+        ("face flatness (RMS)", cube.get("flatness_rms"), getattr(qa, "flatness_rms", None), 1e3,
+         "mm"),
+        ("perpendicularity", cube.get("perpendicularity_deg"),
+         getattr(qa, "perpendicularity_deg", None), 1.0, "°"),
+    ]
+    twist = cube.get("twist_deg")
+    if twist is not None:  # checks stored before the twist measure have none
+        # the ry correction that makes the side faces flattest: its size against the limit
+        rows.append(("side-face twist |δ| (ry check)", abs(float(twist)),
+                     getattr(qa, "twist_deg", None), 1.0, "°"))
+    out = []
+    for name, value, limit, scale, unit in rows:
+        v = None if value is None else float(value) * scale
+        lim = None if limit is None else float(limit) * scale
+        ok = None if v is None or lim is None or not math.isfinite(v) else v <= lim
+        out.append({"name": name, "value": v, "limit": lim, "unit": unit, "ok": ok})
+    return out
+
+
+def calibration_rows(calibrations: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Every stored calibration with H and 1σ in display units, and the lidar–encoder time
+    offset (ms) where a second pass estimated it."""
+    rows = []
+    for c in calibrations:
+        rows.append({
+            "stage": c["stage"], "strategy": c["strategy"], "accepted": c["accepted"],
+            "cost": c.get("cost"), "iterations": c.get("iterations"),
+            "values": {p: display_value(p, v) for p, v in c["H"].items()},
+            "sigma": {p: display_value(p, v) for p, v in c["sigma"].items()},
+            "gauge": (c.get("diagnostics") or {}).get("gauge_note"),
+            "latency_ms": None if c.get("encoder_latency_s") is None
+            else 1e3 * float(c["encoder_latency_s"]),
+            "latency_sigma_ms": None if c.get("sigma_encoder_latency_s") is None
+            else 1e3 * float(c["sigma_encoder_latency_s"]),
+            "timings": (c.get("diagnostics") or {}).get("timings") or {},
+        })
+    return rows
+
+
+def _duration(start: str | None, end: str | None) -> float | None:
+    if not start or not end:
+        return None
+    return (dt.datetime.fromisoformat(end) - dt.datetime.fromisoformat(start)).total_seconds()
+
+
+def step_rows(steps: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each step attempt with its duration (s)."""
+    return [
+        {**s, "duration_s": _duration(s.get("started_at"), s.get("finished_at"))}
+        for s in steps
+    ]
+
+
+def final_calibration_dict(summary: dict[str, Any]) -> dict[str, Any] | None:
+    """The run's final calibration (accepted, else newest fine, else initial), as stored."""
+    cals = summary["calibrations"]
+    for pick in ([c for c in cals if c["accepted"]], [c for c in cals if c["stage"] == "fine"],
+                 list(cals)):
+        if pick:
+            final: dict[str, Any] = pick[-1]
+            return final
+    return None
+
+
+def unit_serial(summary: dict[str, Any]) -> str | None:
+    """The unit's serial: the run's own column when the database has one, else ``unit.json`` in
+    the run folder (written by the web station), else the serial the lidar reported in
+    preflight."""
+    for key in ("unit_serial", "serial"):
+        if summary.get(key):
+            return str(summary[key])
+    unit = Path(summary.get("data_dir") or ".") / "unit.json"
+    if summary.get("data_dir") and unit.is_file():
+        try:
+            serial = json.loads(unit.read_text(encoding="utf-8")).get("serial")
+        except (OSError, ValueError):
+            serial = None
+        if serial:
+            return str(serial)
+    for s in summary["steps"]:
+        if s["name"] == "preflight" and s["status"] == "passed":
+            lidar = (s.get("result") or {}).get("lidar") or {}
+            if lidar.get("serial"):
+                return str(lidar["serial"])
+    return None
+
+
+def report_data(db: Database, run_id: int, *, views: bool = True) -> dict[str, Any]:
+    """Everything the report shows, as plain data (also the web run page's JSON twin).
+
+    ``views=False`` leaves out the 3D views (no recordings read).
+    """
+    from calstation.engine.frames import Extrinsics
+    from calstation.storage.report import get_run, run_summary
+
+    with db.session("reading the run", read_only=True) as s:
+        run: Run = get_run(s, run_id)
+        summary = run_summary(run)
+        recipe_text = run.recipe_text
+    recipe = _limits(recipe_text)
+    qa = recipe.qa if recipe is not None else None
+    final = final_calibration_dict(summary)
+    data: dict[str, Any] = {
+        "run": {k: v for k, v in summary.items()
+                if k not in ("steps", "calibrations", "cube_check", "artifacts")},
+        "serial": unit_serial(summary),
+        "verdict": {"passed": "PASS", "failed": "FAIL"}.get(summary["status"],
+                                                             summary["status"].upper()),
+        "final": final,
+        "calibrations": calibration_rows(summary["calibrations"]),
+        "cube": summary["cube_check"],
+        "cube_rows": cube_rows(summary["cube_check"], qa),
+        "steps": step_rows(summary["steps"]),
+        "artifacts": summary["artifacts"],
+        "drift": _drift_of(summary),
+        "qa": qa.model_dump() if qa is not None else None,
+        "views": [],
+        "figures": {},
+        "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+    }
+    if final is not None:
+        cost = _cost_figure(final)
+        if cost is not None:
+            data["figures"]["cost"] = cost
+    if views and final is not None and recipe is not None:
+        H = Extrinsics.from_dict(final["H"])
+        radius = recipe.fixtures.platter.radius
+        data["views"] = _views(summary["artifacts"], H, radius)
+        hist = _histogram_figure([v for v in data["views"] if "figure" in v])
+        if hist is not None:
+            data["figures"]["residuals"] = hist
+    return data
+
+
+def _drift_of(summary: dict[str, Any]) -> dict[str, Any] | None:
+    for s in reversed(summary["steps"]):
+        if s["name"] == "report" and s["status"] == "passed":
+            drift = (s.get("result") or {}).get("drift")
+            return drift if isinstance(drift, dict) else None
+    return None
+
+
+def _views(artifacts: list[dict[str, Any]], H: Any, radius: float) -> list[dict[str, Any]]:
+    newest = {a["kind"]: a for a in artifacts}
+    views = []
+    for kind, title, by in (("spin", "spin target (coloured by half-turn)", "half-turn"),
+                            ("cube", "QA cube (coloured by residual to the local plane)",
+                             "plane")):
+        art = newest.get(kind)
+        if art is None:
+            continue
+        path = Path(art["path"])
+        if not path.is_file():
+            views.append({"title": title, "error": f"recording missing: {path}"})
+            continue
+        try:
+            views.append(_cloud(path, H, radius, title, by))
+        except CalstationError as exc:
+            views.append({"title": title, "error": str(exc)})
+    return views
+
+
+# --- rendering -------------------------------------------------------------------------------
+@cache
+def plotly_js() -> str:
+    """plotly.js, minified, from the installed ``plotly`` package (no network)."""
+    from plotly.offline import get_plotlyjs
+
+    return str(get_plotlyjs())
+
+
+def render_report(
+    data: dict[str, Any], *, plotly_src: str | None = None, nav: bool = False
+) -> str:
+    """The report as HTML. ``plotly_src`` is a URL of plotly.js; None inlines it (offline file).
+    ``nav`` adds the web station's navigation links."""
+    from calstation.storage.templating import environment
+
+    template = environment().get_template("report.html")
+    return template.render(
+        d=data,
+        params=list(PARAM_LABELS),
+        labels=PARAM_LABELS,
+        fmt=fmt,
+        # inside <script>: "</" must not close it
+        figures_json=json.dumps(
+            {"views": [v.get("figure") for v in data["views"]], **data["figures"]},
+            separators=(",", ":"),
+        ).replace("</", "<\\/"),
+        nav=nav,
+        plotly_inline=None if plotly_src else plotly_js(),
+        plotly_src=plotly_src,
+    )
+
+
+def write_run_report(db: Database, run_id: int) -> Path:
+    """Write ``report.html`` into the run's folder; returns its path."""
+    data = report_data(db, run_id)
+    folder = Path(data["run"]["data_dir"])
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "report.html"
+    tmp = path.with_suffix(".html.tmp")
+    tmp.write_text(render_report(data), encoding="utf-8")
+    tmp.replace(path)
+    return path

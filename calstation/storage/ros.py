@@ -1,0 +1,197 @@
+"""The calibration in ROS terms: frame names, REP-103 axes, tf, URDF and TransformStamped exports.
+
+calstation's frames (DESIGN §2) are right-handed and in metres and radians, so they are valid
+REP-103 frames as they are; only their axes differ from the REP-103 body convention (x forward,
+y left, z up). ``docs/frames.md`` explains the mapping; here:
+
+- ``lidar`` = L, ``platform`` = P, ``platter`` = D (the frame ids of the recordings);
+- ``lidar_link``: L turned so that x is the boresight (+Y_L) and z the scan-plane normal (+Z_L),
+  as a ROS ``sensor_msgs/LaserScan`` frame expects (bearing = −α);
+- ``turntable_link`` / ``platter_link``: P / D turned so that z is the rotation axis (+X_P, up),
+  x = +Y_P and y = +Z_P.
+
+Every export states its quaternion order: (x, y, z, w), scalar last, as ROS and scipy use.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from calstation.engine.frames import Extrinsics, FloatArray
+from calstation.errors import CalstationError
+
+QUATERNION_ORDER = "x y z w (scalar last, as ROS and scipy)"
+
+R_L_LIDAR_LINK: FloatArray = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+"""Rotation of ``lidar_link`` in L: its x = +Y_L (boresight), y = −X_L, z = +Z_L."""
+R_P_TURNTABLE_LINK: FloatArray = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+"""Rotation of ``turntable_link`` in P (and of ``platter_link`` in D): x = +Y_P, y = +Z_P,
+z = +X_P (the rotation axis, up)."""
+
+
+_FRAME_ID = re.compile(r"[A-Za-z/][A-Za-z0-9_/\-]*")
+
+
+@dataclass(frozen=True)
+class Frames:
+    """The frame ids an export uses for L, P and D."""
+
+    lidar: str = "lidar"
+    platform: str = "platform"
+    platter: str = "platter"
+
+    def __post_init__(self) -> None:
+        names = (self.lidar, self.platform, self.platter)
+        for name in names:
+            if not _FRAME_ID.fullmatch(name):
+                raise CalstationError(
+                    f"{name!r} is not a valid frame id (letters, digits, _, / and -, "
+                    "starting with a letter or /)"
+                )
+        if len(set(names)) != 3:
+            raise CalstationError(f"the frame ids must differ, got {', '.join(names)}")
+
+
+@dataclass(frozen=True)
+class Transform:
+    """The pose of ``child`` in ``parent``: translation (m) and unit quaternion (x, y, z, w)."""
+
+    parent: str
+    child: str
+    translation: FloatArray
+    quaternion_xyzw: FloatArray
+    rpy: tuple[float, float, float]
+    """Fixed-axis roll, pitch, yaw (rad): R = Rz(yaw)·Ry(pitch)·Rx(roll), as URDF's ``rpy``."""
+
+    def matrix(self) -> FloatArray:
+        """The 4×4 homogeneous transform (child points → parent)."""
+        return Extrinsics.from_quaternion(self.translation, self.quaternion_xyzw).as_matrix()
+
+
+def _transform(parent: str, child: str, T: FloatArray) -> Transform:
+    e = Extrinsics.from_matrix(T)
+    return Transform(parent, child, e.t, e.as_quaternion(), (e.rx, e.ry, e.rz))
+
+
+def lidar_platform(H: Extrinsics, frames: Frames = Frames(), parent: str = "lidar") -> Transform:
+    """H as a transform: ``parent="lidar"`` gives the pose of P in L (T_L_P),
+    ``parent="platform"`` its inverse, the pose of L in P (T_P_L)."""
+    T = H.as_matrix()
+    if parent == "lidar":  # H itself, exactly as stored
+        return Transform(
+            frames.lidar, frames.platform, H.t, H.as_quaternion(), (H.rx, H.ry, H.rz)
+        )
+    if parent == "platform":
+        return _transform(frames.platform, frames.lidar, np.asarray(np.linalg.inv(T), np.float64))
+    raise CalstationError(f"parent must be 'lidar' or 'platform', got {parent!r}")
+
+
+def rep103_transforms(frames: Frames = Frames()) -> list[Transform]:
+    """The fixed transforms from calstation's frames to their REP-103 aligned twins."""
+    out = []
+    for parent, child, R in (
+        (frames.lidar, "lidar_link", R_L_LIDAR_LINK),
+        (frames.platform, "turntable_link", R_P_TURNTABLE_LINK),
+        (frames.platter, "platter_link", R_P_TURNTABLE_LINK),
+    ):
+        T = np.eye(4)
+        T[:3, :3] = R
+        out.append(_transform(parent, child, T))
+    return out
+
+
+def _num(x: float) -> str:
+    return f"{float(x):.9g}"
+
+
+def _publisher(tf: Transform) -> str:
+    x, y, z = (_num(v) for v in tf.translation)
+    qx, qy, qz, qw = (_num(v) for v in tf.quaternion_xyzw)
+    return (
+        f"ros2 run tf2_ros static_transform_publisher --x {x} --y {y} --z {z} "
+        f"--qx {qx} --qy {qy} --qz {qz} --qw {qw} "
+        f"--frame-id {tf.parent} --child-frame-id {tf.child}"
+    )
+
+
+def tf_export(H: Extrinsics, title: str, frames: Frames = Frames()) -> str:
+    """``static_transform_publisher`` command lines for both directions (and the fixed REP-103
+    frames), each with its meaning in a comment; ``title`` names the calibration."""
+    forward = lidar_platform(H, frames, "lidar")
+    backward = lidar_platform(H, frames, "platform")
+    lines = [
+        f"# {title}",
+        f"# quaternion order: {QUATERNION_ORDER}; translations in metres",
+        f"# T_L_P: pose of {forward.child} (P) in {forward.parent} (L); use this one when the "
+        "lidar is the parent in your tf tree",
+        _publisher(forward),
+        f"# T_P_L, the inverse: pose of {backward.child} (L) in {backward.parent} (P); use this "
+        "one when the turntable is the parent",
+        _publisher(backward),
+        "# ROS 1: rosrun tf2_ros static_transform_publisher x y z qx qy qz qw frame_id "
+        "child_frame_id (same numbers)",
+        "# optional REP-103 aligned frames (x forward, z up), fixed: see docs/frames.md",
+    ]
+    lines += [_publisher(t) for t in rep103_transforms(frames)]
+    return "\n".join(lines) + "\n"
+
+
+def urdf_export(
+    H: Extrinsics, title: str, frames: Frames = Frames(), parent: str = "lidar"
+) -> str:
+    """A URDF fragment: the links and the fixed ``<joint>`` between L and P (``parent`` is
+    ``lidar`` or ``platform``), and the platter's continuous joint about +X_P."""
+    tf = lidar_platform(H, frames, parent)
+    x, y, z = (_num(v) for v in tf.translation)
+    r, p, yw = (_num(v) for v in tf.rpy)
+    q = " ".join(_num(v) for v in tf.quaternion_xyzw)
+    return (
+        f"<!-- {title} -->\n"
+        f"<!-- joint origin: pose of {tf.child} in {tf.parent}; rpy = fixed-axis roll, pitch, "
+        "yaw (R = Rz(yaw)·Ry(pitch)·Rx(roll)); the same rotation as a quaternion, order "
+        f"{QUATERNION_ORDER}: {q} -->\n"
+        f'<link name="{frames.lidar}"/>\n'
+        f'<link name="{frames.platform}"/>\n'
+        f'<link name="{frames.platter}"/>\n'
+        f'<joint name="{tf.parent}_to_{tf.child}" type="fixed">\n'
+        f'  <parent link="{tf.parent}"/>\n'
+        f'  <child link="{tf.child}"/>\n'
+        f'  <origin xyz="{x} {y} {z}" rpy="{r} {p} {yw}"/>\n'
+        "</joint>\n"
+        "<!-- the platter turns about +X of the platform frame by the encoder angle -->\n"
+        f'<joint name="{frames.platform}_to_{frames.platter}" type="continuous">\n'
+        f'  <parent link="{frames.platform}"/>\n'
+        f'  <child link="{frames.platter}"/>\n'
+        '  <origin xyz="0 0 0" rpy="0 0 0"/>\n'
+        '  <axis xyz="1 0 0"/>\n'
+        "</joint>\n"
+    )
+
+
+def ros2_yaml_export(
+    H: Extrinsics,
+    title: str,
+    stamp_ns: int,
+    frames: Frames = Frames(),
+    parent: str = "lidar",
+) -> str:
+    """A ``geometry_msgs/msg/TransformStamped`` in YAML (as ``ros2 topic pub`` takes it)."""
+    tf = lidar_platform(H, frames, parent)
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    tx, ty, tz = (_num(v) for v in tf.translation)
+    qx, qy, qz, qw = (_num(v) for v in tf.quaternion_xyzw)
+    return (
+        f"# {title}\n"
+        "# geometry_msgs/msg/TransformStamped: pose of child_frame_id in header.frame_id;\n"
+        f"# quaternion order: {QUATERNION_ORDER}; translation in metres\n"
+        "header:\n"
+        f"  stamp: {{sec: {sec}, nanosec: {nanosec}}}\n"
+        f"  frame_id: {tf.parent}\n"
+        f"child_frame_id: {tf.child}\n"
+        "transform:\n"
+        f"  translation: {{x: {tx}, y: {ty}, z: {tz}}}\n"
+        f"  rotation: {{x: {qx}, y: {qy}, z: {qz}, w: {qw}}}\n"
+    )

@@ -1,0 +1,39 @@
+"""Old import paths (the flat layout before the packages) keep working for one release."""
+
+from __future__ import annotations
+
+import importlib
+import subprocess
+import sys
+
+import pytest
+
+from calstation._compat import MOVED
+
+
+@pytest.mark.parametrize("old", sorted(MOVED))
+def test_an_old_path_gives_the_same_module_with_a_deprecation_warning(old: str) -> None:
+    code = (
+        "import importlib, warnings\n"
+        "warnings.simplefilter('error', DeprecationWarning)\n"
+        f"new = importlib.import_module({MOVED[old]!r})\n"
+        "try:\n"
+        f"    importlib.import_module({old!r})\n"
+        "except DeprecationWarning as w:\n"
+        "    print('warned:', w)\n"
+        "warnings.simplefilter('ignore', DeprecationWarning)\n"
+        f"old = importlib.import_module({old!r})\n"
+        "print('same' if old is new else 'different', old.__spec__.name)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    # a moved package's submodule warns for the package, which is imported first
+    first = next(p for p in (old.rsplit(".", 1)[0], old) if p in MOVED)
+    assert f"warned: {first} moved to {MOVED[first]}" in out.stdout
+    assert f"same {MOVED[old]}" in out.stdout
+
+
+def test_from_an_old_path_imports_the_objects_of_the_new_one() -> None:
+    with pytest.warns(DeprecationWarning, match="calstation.recipe moved to calstation.recipes"):
+        sys.modules.pop("calstation.recipe", None)
+        from calstation.recipe import load_recipe
+    assert load_recipe is importlib.import_module("calstation.recipes").load_recipe
