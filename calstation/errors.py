@@ -72,6 +72,10 @@ class StationError(CalstationError):
     """The station state machine was asked to do something it cannot."""
 
 
+class AbortRun(CalstationError):
+    """The operator (or a signal) aborted the run."""
+
+
 class DatabaseError(CalstationError):
     """The run database is unreachable, out of date or inconsistent."""
 

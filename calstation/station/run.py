@@ -24,7 +24,6 @@ The turntable is always stopped when the run ends, however it ends: ``stop()``, 
 
 from __future__ import annotations
 
-import hashlib
 import importlib
 import json
 import math
@@ -53,6 +52,7 @@ from calstation.engine.result import CalibrationResult
 from calstation.engine.spinscan import SpinScanBuilder
 from calstation.engine.spinscan import remember as remember_spin_scan
 from calstation.errors import (
+    AbortRun,
     CalstationError,
     DatabaseError,
     DriverError,
@@ -60,7 +60,7 @@ from calstation.errors import (
     StationError,
 )
 from calstation.recipes import LoadedRecipe, check_plugins, parse_recipe
-from calstation.recordings.runfolder import RECORDING_OF, second_pass
+from calstation.recordings.runfolder import RECORDING_OF, file_sha256, second_pass
 from calstation.station.operator import Operator, publish
 from calstation.storage.db import (
     Artifact,
@@ -126,10 +126,6 @@ PREFLIGHT_SPIN_S = 0.5
 PREFLIGHT_RAMP_S = 1.5
 
 
-class AbortRun(CalstationError):
-    """The operator (or a signal) aborted the run."""
-
-
 @dataclass
 class Drivers:
     """The run's three drivers and their context."""
@@ -144,15 +140,6 @@ class Drivers:
         """The clock the station waits on: the lidar's own (the simulator's), else the host's."""
         clock = getattr(self.lidar, "clock", None)
         return clock if clock is not None else self.context.clock
-
-
-def file_sha256(path: Path) -> str:
-    """sha256 (hex) of a file's bytes."""
-    h = hashlib.sha256()
-    with path.open("rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def checked_recording(

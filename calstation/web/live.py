@@ -28,11 +28,10 @@ from typing import Any
 import numpy as np
 from rich.text import Text
 
-from calstation.errors import CalstationError, StationError
+from calstation.errors import AbortRun, CalstationError, StationError
 from calstation.station.operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
 from calstation.station.run import (
     STEPS,
-    AbortRun,
     Station,
     create_run,
     resumable_run,
