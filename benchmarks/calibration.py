@@ -140,7 +140,8 @@ def measure(recipe_path: Path, out: Path, with_shape: bool = True) -> dict[str, 
 
 def _preload() -> None:
     """Import the engine first: a station has it loaded before its scans end
-    (``calstation.station.run.preload_engine`` imports it, Open3D included, when a run starts)."""
+    (``calstation.station.preload.preload_engine`` imports it, Open3D included, when a run
+    starts)."""
     import open3d  # noqa: F401
 
     import calstation.engine.cube

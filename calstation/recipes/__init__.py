@@ -940,7 +940,8 @@ def _simulation_problems(recipe: Recipe) -> list[Problem]:
 
 PARAM_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 PREFLIGHT_RAMP_S = 1.5
-"""How long the station's preflight lets the platter spin up before it counts (station.py)."""
+"""How long the station's preflight lets the platter spin up before it counts
+(:mod:`calstation.station.steps.preflight`)."""
 
 
 class PeriodicityOptions(Model):

@@ -1,6 +1,6 @@
 """The operator's side of a run: the one interface between the station and its front ends.
 
-The station (:mod:`calstation.station.run`) talks to whoever runs it only through an
+The station (:mod:`calstation.station.machine`) talks to whoever runs it only through an
 :class:`Operator`: it asks (``confirm_fixture``, ``on_failure``), reports (``info``, ``warn``,
 ``progress``, ``summary``) and publishes :class:`StationEvent` s (step started and finished, a
 preview of the lidar line being recorded) through :func:`publish`. Two front ends implement it:

@@ -10,5 +10,5 @@ the
 - ``security``: the station token and CSRF protection of state-changing requests;
 - ``app``: the routes, grouped per area (operator, runs, trends, api).
 
-The station logic stays in :mod:`calstation.station.run`; nothing here decides a step.
+The station logic stays in :mod:`calstation.station.machine`; nothing here decides a step.
 """
