@@ -21,7 +21,8 @@ import numpy as np
 
 from calstation.drivers import EncoderSample, LidarInfo, LidarLine
 from calstation.engine.frames import Extrinsics
-from calstation.engine.reconstruct import reconstruct, write_ply
+from calstation.engine.reconstruct import reconstruct
+from calstation.recordings.files import write_ply
 from calstation.recordings.recording import RecordingWriter, read_recording
 
 

@@ -28,10 +28,9 @@ import numpy as np
 import yaml
 
 from calstation.engine.initial import initial_calibration
-from calstation.engine.joint import fine_tune_with_cube
 from calstation.engine.metrics import axis_errors
 from calstation.engine.observability import sigma_problems
-from calstation.plugins.cost_strategies import PeriodicityStrategy
+from calstation.plugins.cost_strategies import PeriodicityStrategy, fine_tune_with_cube
 from calstation.recipes import LoadedRecipe, parse_recipe
 from calstation.recordings.recording import read_recording
 

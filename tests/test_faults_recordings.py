@@ -30,8 +30,7 @@ from calstation.station.run import file_sha256, resume_run, start_run
 from calstation.storage.db import Artifact, Database, Run, Step, open_database
 
 pytest.importorskip("calstation_sim")
-from calstation_sim import drivers as sim_drivers
-from calstation_sim import plugin as sim_plugin
+from calstation_sim import drivers as sim_drivers, plugin as sim_plugin
 from test_station import ScriptedOperator, SpyTurntable, ToyStrategy, lean_recipe
 
 REPO = Path(__file__).resolve().parents[1]

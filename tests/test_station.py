@@ -25,8 +25,7 @@ from calstation.station.run import STEPS, Station, file_sha256, resume_run, star
 from calstation.storage.db import Artifact, Calibration, Database, Run, Step, open_database
 
 calstation_sim = pytest.importorskip("calstation_sim")
-from calstation_sim import drivers as sim_drivers  # noqa: E402
-from calstation_sim import plugin as sim_plugin  # noqa: E402
+from calstation_sim import drivers as sim_drivers, plugin as sim_plugin  # noqa: E402
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 

@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import given
-from hypothesis import strategies as st
+from hypothesis import given, strategies as st
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 from calstation.engine.observability import sigma_problems

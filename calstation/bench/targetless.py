@@ -60,8 +60,7 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
 
     from calstation import plugins
     from calstation.engine.initial import initial_calibration
-    from calstation.engine.targetless import fine_tune_targetless
-    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
     from calstation.recipes import load_recipe
     from calstation.recordings.recording import read_recording
 
@@ -120,8 +119,7 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
 
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
-    from calstation.engine.targetless import fine_tune_targetless
-    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
     from calstation.recipes import load_recipe
     from calstation.recordings.recording import read_recording
 

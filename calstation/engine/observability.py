@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 
 from calstation.engine.result import CalibrationResult
+from calstation.engine.settings import SigmaLimits
 from calstation.errors import ObservabilityError
-from calstation.recipes import SigmaLimits
 
 ADVICE = {
     "spin_target": (

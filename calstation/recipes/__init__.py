@@ -12,14 +12,30 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, model_validator
 
+from calstation.engine.settings import (  # nested in a recipe; importable from here too
+    DEFAULT_PLATTER_RADIUS as DEFAULT_PLATTER_RADIUS,
+    Coordinate as Coordinate,
+    CubeGeometry as CubeGeometry,
+    InitialSettings as InitialSettings,
+    LTargetGeometry as LTargetGeometry,
+    OptimizerSettings as OptimizerSettings,
+    PeriodicitySettings as PeriodicitySettings,
+    PlatterGeometry as PlatterGeometry,
+    QALimits as QALimits,
+    Settings,
+    ShapeOptions as ShapeOptions,
+    ShapeSettings as ShapeSettings,
+    SigmaLimits as SigmaLimits,
+    Yaw as Yaw,
+)
 from calstation.errors import PluginError, RecipeError
 from calstation.yamlsafe import YamlProblem, check_regular_file, load_yaml, read_text_file
 
-Coordinate = Annotated[float, Field(ge=-1.5, le=1.5)]
-"""A position on the platter (m); whether the fixture fits is checked against the platter."""
-Yaw = Annotated[float, Field(ge=-360, le=360)]
+Model = Settings
+"""Base of the recipe models: the engine settings' base, so that both nest alike."""
+
 
 MAX_RECIPE_BYTES = 1_000_000
 """Largest recipe file accepted (bytes)."""
@@ -33,12 +49,6 @@ MAX_SCAN_ENCODER_SAMPLES = 20_000_000
 """Most encoder samples one simulated scan may produce."""
 MAX_SCAN_SECONDS = 600.0
 """Longest scan a recipe may ask for (settle time plus the turns), seconds."""
-
-
-class Model(BaseModel):
-    """Base for recipe models: unknown keys are errors, values are immutable, numbers finite."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # --- station and drivers -------------------------------------------------------------------
@@ -76,55 +86,6 @@ class StationConfig(Model):
 
 
 # --- fixtures (DESIGN §3) ----------------------------------------------------------------------
-class PlatterGeometry(Model):
-    """The turntable's platter: a disk whose top surface is the P frame's origin plane."""
-
-    diameter: float = Field(0.585, ge=0.05, le=3.0)
-    thickness: float = Field(0.010, ge=0.001, le=0.2)
-
-    @property
-    def radius(self) -> float:
-        """Half the diameter, metres."""
-        return 0.5 * self.diameter
-
-
-DEFAULT_PLATTER_RADIUS = PlatterGeometry().radius
-"""The default platter's radius (m), for library functions called without a recipe; the
-station, the CLI and the bench always pass the recipe's ``platter.radius``."""
-
-
-class LTargetGeometry(Model):
-    """The static L-shaped target of the initial calibration (paper §III-A).
-
-    Base plate along Y_P from A (front, toward the lidar) to the back wall at B; the wall rises
-    along X_P; ``width`` runs along Z_P; wall height above the base top is ``h_tall`` at
-    z_P = −width/2 and ``h_short`` at +width/2 (linear, ``h_mid`` at the centre).
-    """
-
-    kind: Literal["l_target"] = "l_target"
-    base_length: float = Field(0.15, ge=0.01, le=1.5)
-    base_thickness: float = Field(0.010, ge=0.001, le=0.1)
-    wall_thickness: float = Field(0.010, ge=0.001, le=0.1)
-    width: float = Field(0.20, ge=0.01, le=1.5)
-    h_tall: float = Field(0.15, ge=0.002, le=1.0)
-    h_mid: float = Field(0.10, ge=0.002, le=1.0)
-    h_short: float = Field(0.05, ge=0.001, le=1.0)
-    offset: tuple[Coordinate, Coordinate] = Field(
-        (0.0, 0.0), description="(y_P, z_P) of B relative to the platter centre, metres"
-    )
-    mesh: str | None = Field(None, description="optional CAD mesh (STL/PLY/OBJ) in frame D")
-
-    @model_validator(mode="after")
-    def _heights(self) -> LTargetGeometry:
-        if not self.h_tall > self.h_short:
-            raise ValueError("h_tall must be greater than h_short")
-        if not self.h_short < self.h_mid < self.h_tall:
-            raise ValueError("h_mid must lie between h_short and h_tall")
-        if not math.isclose(self.h_mid, 0.5 * (self.h_tall + self.h_short), rel_tol=0.02):
-            raise ValueError("h_mid must be the mean of h_tall and h_short (linear wall top)")
-        return self
-
-
 class FrustumGeometry(Model):
     """The spin target of periodicity fine-tuning: a polygonal frustum with sloped facets.
 
@@ -145,16 +106,6 @@ class FrustumGeometry(Model):
     height: float = Field(0.055, ge=0.001, le=0.5)
     offset: tuple[Coordinate, Coordinate] = (0.0, 0.0)
     yaw_deg: Yaw = 0.0
-    mesh: str | None = None
-
-
-class CubeGeometry(Model):
-    """A cube of edge ``edge`` standing on the platter (the QA cube)."""
-
-    kind: Literal["cube"] = "cube"
-    edge: float = Field(0.100, ge=0.01, le=1.0)
-    offset: tuple[Coordinate, Coordinate] = (0.08, 0.05)
-    yaw_deg: Yaw = 20.0
     mesh: str | None = None
 
 
@@ -336,85 +287,6 @@ class Steps(Model):
     cube_scan: SpinScanStep = SpinScanStep()
 
 
-class InitialSettings(Model):
-    """Initial calibration (paper §IV-A)."""
-
-    bin_deg: float = Field(0.02, ge=0.001, le=1.0)
-    line_tolerance: float = Field(
-        0.002, ge=1e-5, le=0.1, description="max RMS of a line segment, metres"
-    )
-    min_segment_points: int = Field(8, ge=3, le=10_000)
-    angle_tolerance_deg: float = Field(10.0, ge=0.1, le=45)
-    length_tolerance: float = Field(
-        0.3, ge=0.01, le=1.0, description="relative tolerance on CAD lengths"
-    )
-
-
-class OptimizerSettings(Model):
-    """SciPy least_squares (TRF) settings shared by the fine-tuning strategies."""
-
-    translation_bound: float = Field(0.020, ge=1e-4, le=1.0)
-    rotation_bound_deg: float = Field(2.0, ge=0.01, le=30)
-    xtol: float = Field(1e-12, ge=1e-15, le=1.0)
-    ftol: float = Field(1e-10, ge=1e-15, le=1.0)
-
-
-class ShapeSettings(OptimizerSettings):
-    """Shape-constrained fine-tuning (paper §III-B-1, §IV-B)."""
-
-    max_nfev: int = Field(100, ge=1, le=1000)
-    segment_margin: float = Field(0.010, ge=0, le=0.1)
-    outlier_radius: float = Field(0.001, ge=1e-5, le=0.1)
-    outlier_neighbours: int = Field(8, ge=0, le=100)
-
-
-class PeriodicitySettings(OptimizerSettings):
-    """Periodicity-constrained fine-tuning (paper §III-B-2, §IV-C) and its robustness schedule."""
-
-    max_nfev: int = Field(10, ge=1, le=100, description="evaluations per inner solve")
-    max_outer: int = Field(15, ge=1, le=50)
-    match_distance: float = Field(0.20, ge=0.001, le=2.0)
-    normal_neighbours: int = Field(50, ge=3, le=200)
-    coarse_to_fine: bool = True
-    gauge: Literal["platter", "ty"] = "platter"
-    ry_bound_deg: float = Field(
-        2.5,
-        ge=0.01,
-        le=30,
-        description="ry bound around its start (never re-centred): set-B starts are 2° off",
-    )
-
-
-class ShapeOptions(Model):
-    """``calibration.options.shape``: the built-in shape strategy's choices (docs/algorithms.md)."""
-
-    box: Literal["upright", "minimal"] = Field(
-        "upright",
-        description="upright: calstation's box standing on the platter; minimal: the paper's",
-    )
-    estimate_ry: bool = Field(True, description="estimate ry (false: hold it at its start)")
-    coarse: bool = Field(True, description="coarse periodicity alignment on the cube scan first")
-
-
-class SigmaLimits(Model):
-    """``calibration.max_sigma``: the largest 1σ a fine-tuning may report per parameter.
-
-    A result with a larger σ is refused (the data do not determine that parameter well
-    enough), with a message that names the parameter and what to do. ty is the gauge along the
-    axis and has no limit. Lengths in metres, angles in degrees, the time offset (estimated when
-    the spin scan has a second pass) in milliseconds.
-    """
-
-    tx: float = Field(0.0005, gt=0, le=0.1)
-    tz: float = Field(0.0005, gt=0, le=0.1)
-    ry_deg: float = Field(0.05, gt=0, le=10)
-    rz_deg: float = Field(0.05, gt=0, le=10)
-    encoder_latency_ms: float = Field(
-        0.2, gt=0, le=100,
-        description="the lidar–encoder time offset, when a second pass estimates it",
-    )
-
-
 class CalibrationSettings(Model):
     """Which fine-tuning strategy to run, where it starts, and each stage's settings."""
 
@@ -430,24 +302,6 @@ class CalibrationSettings(Model):
     max_sigma: SigmaLimits = SigmaLimits()
     options: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="settings of plugin strategies, by strategy name"
-    )
-
-
-class QALimits(Model):
-    """Pass/fail limits of the cube check and drift alarms (metres and degrees)."""
-
-    edge_error: float = Field(0.0010, ge=1e-6, le=0.1)
-    obb_edge_error: float = Field(0.0060, ge=1e-6, le=0.1)
-    flatness_rms: float = Field(0.0015, ge=1e-6, le=0.1)
-    perpendicularity_deg: float = Field(0.5, ge=0.001, le=45)
-    twist_deg: float = Field(
-        0.1, ge=0.001, le=10,
-        description="largest ry correction the cube's side faces may ask for (degrees)",
-    )
-    drift_translation: float = Field(0.002, ge=1e-6, le=1.0)
-    drift_rotation_deg: float = Field(0.2, ge=0.001, le=45)
-    drift_fails: bool = Field(
-        False, description="drift beyond the limits fails the run (default: a warning only)"
     )
 
 

@@ -158,10 +158,12 @@ def reprocess_run(
     """
     from calstation import plugins
     from calstation.engine.initial import initial_calibration
-    from calstation.engine.joint import fine_tune_with_cube
     from calstation.engine.observability import problems_with_cube
-    from calstation.engine.targetless import fine_tune_targetless
-    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.plugins.cost_strategies import (
+        fine_tune_targetless,
+        fine_tune_with_cube,
+        run_strategy,
+    )
     from calstation.recordings.recording import read_recording
 
     say = status or (lambda message: None)

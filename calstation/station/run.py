@@ -50,8 +50,7 @@ from calstation.clock import Clock, HostClock
 from calstation.drivers import DriverContext
 from calstation.engine.observability import check_sigma
 from calstation.engine.result import CalibrationResult
-from calstation.engine.spinscan import SpinScanBuilder
-from calstation.engine.spinscan import remember as remember_spin_scan
+from calstation.engine.spinscan import SpinScanBuilder, remember as remember_spin_scan
 from calstation.errors import (
     CalstationError,
     DatabaseError,
@@ -582,7 +581,7 @@ class Station:
 
         with self.ui.progress(f"fine-tuning ({strategy.name})") as progress:
             if self.recipe.calibration.start == "platter":
-                from calstation.engine.targetless import fine_tune_targetless
+                from calstation.plugins.cost_strategies import fine_tune_targetless
 
                 result, warnings, first = fine_tune_targetless(
                     strategy, recording, self.recipe, progress)
@@ -706,7 +705,8 @@ class Station:
         """
         from calstation.engine.cube import check_cube
         from calstation.engine.frames import Extrinsics
-        from calstation.engine.joint import fine_tune_with_cube, joint_summary
+        from calstation.engine.joint import joint_summary
+        from calstation.plugins.cost_strategies import fine_tune_with_cube
 
         H = Extrinsics.from_dict(fine.params())
         if self._strategy().fixture != "spin_target":
