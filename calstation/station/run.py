@@ -58,7 +58,8 @@ from calstation.errors import (
     ObservabilityError,
     StationError,
 )
-from calstation.recipes import LoadedRecipe, check_plugins, parse_recipe
+from calstation.plugins.recipe_checks import check_plugins
+from calstation.recipes import LoadedRecipe, parse_recipe
 from calstation.recordings.runfolder import RECORDING_OF, second_pass
 from calstation.station.operator import Operator, publish
 from calstation.storage.db import (
