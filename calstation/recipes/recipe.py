@@ -32,13 +32,22 @@ class Recipe(Model):
 
 
 class LoadedRecipe:
-    """A validated recipe with where it came from: path, text and its sha256."""
+    """A validated recipe with where it came from: path, text and its sha256.
+
+    A recording stores the recipe it was taken with through ``name``, ``text`` and ``sha256``
+    (:class:`calstation.recordings.metadata.RecipeInfo`).
+    """
 
     def __init__(self, recipe: Recipe, path: Path | None, text: str) -> None:
         self.recipe = recipe
         self.path = path
         self.text = text
         self.sha256 = hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+    @property
+    def name(self) -> str:
+        """The recipe's name (``recipe.name``)."""
+        return self.recipe.name
 
     def resolve(self, relative: str) -> Path:
         """A path named in the recipe, relative to the recipe's folder."""

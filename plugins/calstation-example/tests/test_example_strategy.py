@@ -14,7 +14,7 @@ from calstation.errors import RecipeError
 from calstation.plugins.cost_strategies import run_strategy
 from calstation.plugins.recipe_checks import check_plugins
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 from calstation.testing import SimulatedScans
 
 
