@@ -12,8 +12,7 @@ Simulates one run (static, spin and cube scans) unless DIR already holds one, th
 - periodicity fine-tuning from the recording (preparation of the spin scan included), and the
   two parts of the station's path: the per-line work done while the spin scan runs
   (:class:`calstation.engine.spinscan.SpinScanBuilder`), then what is left when the scan ends
-  (finishing
-  the preparation and fine-tuning), which is the operator's wait;
+  (finishing the preparation and fine-tuning), which is the operator's wait;
 - shape fine-tuning and the cube check.
 
 It prints the peak memory (the process's peak resident set), the processing ÷ acquisition ratio

@@ -96,9 +96,8 @@ class Scan:
         return len(self.t_ns)
 
     def with_encoder_latency(self, latency_s: float) -> Self:
-        """The same recording read with another encoder latency (encoder time minus lidar time,
-        s): an estimated one (:mod:`calstation.engine.timeoffset`) in place of the configured
-        one."""
+        """The same scan read with another encoder latency (encoder time minus lidar time, s):
+        an estimated one (:mod:`calstation.engine.timeoffset`) in place of the configured one."""
         if not math.isfinite(latency_s):
             raise RecordingError(f"encoder latency must be finite, got {latency_s}")
         if latency_s == self.encoder_latency_s:

@@ -3,11 +3,9 @@
 A template for a strategy plugin: it declares its fixture (the QA cube) and an options model
 (``calibration.options.example-ry-held`` in a recipe, checked by ``calstation recipes validate``
 with file and line), reads its options with
-:func:`calstation.plugins.cost_strategies.strategy_options`,
-and
-re-uses calstation's engine (:func:`calstation.engine.shape.shape_fine_tune`). calstation checks
-what it
-returns (finite, near its start) and times it.
+:func:`calstation.plugins.cost_strategies.strategy_options`, and re-uses calstation's engine
+(:func:`calstation.engine.shape.shape_fine_tune`). calstation checks what it returns (finite, near
+its start) and times it.
 """
 
 from __future__ import annotations
