@@ -98,7 +98,7 @@ def measure(recipe_path: Path, out: Path, with_shape: bool = True) -> dict[str, 
     from calstation.engine.metrics import axis_errors
     from calstation.plugins.cost_strategies import PeriodicityStrategy, ShapeStrategy
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     rc = load_recipe(recipe_path).recipe
     t: dict[str, float] = {}
@@ -161,7 +161,7 @@ def measure_station(recipe_path: Path, out: Path) -> dict[str, Any]:
     from calstation.engine.initial import initial_calibration
     from calstation.engine.metrics import axis_errors
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     rc = load_recipe(recipe_path).recipe
     _preload()

@@ -2,7 +2,7 @@
 
 :class:`Scan` is arrays and the few numbers needed to turn a return into a point with its platter
 angle; it knows nothing of files. The recordings layer reads an MCAP file into a
-:class:`calstation.recordings.recording.Recording`, which *is* a :class:`Scan` with the file's
+:class:`calstation.recordings.recorded.Recording`, which *is* a :class:`Scan` with the file's
 metadata beside it, so every engine function takes a recording as it is. A notebook or a port
 builds a :class:`Scan` from its own arrays.
 """

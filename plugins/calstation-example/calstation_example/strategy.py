@@ -19,7 +19,7 @@ if TYPE_CHECKING:  # the engine loads when the strategy runs, not when it is reg
     from calstation.engine.result import CalibrationResult
     from calstation.plugins.cost_strategies import Progress
     from calstation.recipes import Recipe
-    from calstation.recordings.recording import Recording
+    from calstation.recordings.recorded import Recording
 
 
 class RyHeldOptions(BaseModel):
