@@ -36,9 +36,9 @@ from calstation.storage.db import (
     Station,
     Step,
     get_or_create_station,
+    journal as journal_mod,
     open_database,
 )
-from calstation.storage.db import journal as journal_mod
 
 pytest.importorskip("calstation_sim")
 from calstation_sim import plugin as sim_plugin

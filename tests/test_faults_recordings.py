@@ -25,14 +25,13 @@ from calstation.engine.frames import Extrinsics
 from calstation.errors import DriverError
 from calstation.quiet import quiet_open3d, stdout_to_stderr
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import RecordingWriter
 from calstation.recordings.runfolder import file_sha256
+from calstation.recordings.writer import RecordingWriter
 from calstation.station.runs import resume_run, start_run
 from calstation.storage.db import Artifact, Database, Run, Step, open_database
 
 pytest.importorskip("calstation_sim")
-from calstation_sim import drivers as sim_drivers
-from calstation_sim import plugin as sim_plugin
+from calstation_sim import drivers as sim_drivers, plugin as sim_plugin
 from test_station import ScriptedOperator, SpyTurntable, ToyStrategy, lean_recipe
 
 REPO = Path(__file__).resolve().parents[1]

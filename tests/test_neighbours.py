@@ -4,8 +4,7 @@ closed-form Jacobian."""
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 from scipy.optimize._numdiff import approx_derivative
 
 from calstation.engine.neighbours import local_planes, mutual_neighbours, smallest_eigenvectors

@@ -21,9 +21,11 @@ from calstation.engine.frames import (
     lidar_to_polar,
     polar_to_lidar,
 )
-from calstation.engine.reconstruct import load_extrinsics, read_ply, reconstruct, write_ply
+from calstation.engine.reconstruct import reconstruct
 from calstation.errors import RecordingError
-from calstation.recordings.recording import RecordingWriter, read_recording
+from calstation.recordings.files import load_extrinsics, read_ply, write_ply
+from calstation.recordings.reader import read_recording
+from calstation.recordings.writer import RecordingWriter
 
 T0 = 1_767_225_600_000_000_000
 CPR = 4096
@@ -149,7 +151,7 @@ def test_load_extrinsics(tmp_path: Path) -> None:
 
 
 def test_load_calibration_file_gives_the_encoder_latency_with_h(tmp_path: Path) -> None:
-    from calstation.engine.reconstruct import load_calibration_file
+    from calstation.recordings.files import load_calibration_file
 
     h = H.as_dict()
     cal = tmp_path / "cal.json"

@@ -28,8 +28,7 @@ from calstation.station.steps import REGISTRY, STEPS
 from calstation.storage.db import Artifact, Calibration, Database, Run, Step, open_database
 
 calstation_sim = pytest.importorskip("calstation_sim")
-from calstation_sim import drivers as sim_drivers  # noqa: E402
-from calstation_sim import plugin as sim_plugin  # noqa: E402
+from calstation_sim import drivers as sim_drivers, plugin as sim_plugin  # noqa: E402
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
@@ -264,7 +263,7 @@ def test_run_until_abort_commits_each_step_and_stops_the_motor(
     assert ("spin_scan", "passed") in station_plugin.events
     assert station_plugin.events[-1] == ("run", "aborted")
     # the simulator's ground truth went into the recordings
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     rec = read_recording(arts["static"].path)
     assert rec.truth is not None and rec.metadata["run"]["id"] == run_id

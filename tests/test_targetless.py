@@ -11,15 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import given
-from hypothesis import strategies as st
+from hypothesis import given, strategies as st
 
 from calstation.engine.frames import Extrinsics
 from calstation.engine.metrics import axis_errors
 from calstation.engine.targetless import PlatterChord, extrinsics_from_chord, targetless_start
 from calstation.errors import InitialCalibrationError
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 TARGETLESS = REPO / "recipes" / "sim-targetless.yaml"
@@ -51,7 +50,8 @@ def test_the_start_from_a_simulated_spin_scan_is_close(sim_run) -> None:  # type
     spin = read_recording(files["spin"])
     truth = spin.truth
     assert truth is not None
-    start = targetless_start(spin, load_recipe(TARGETLESS).recipe)
+    recipe = load_recipe(TARGETLESS).recipe
+    start = targetless_start(spin, recipe.fixtures.platter, recipe.calibration.initial)
     assert start.strategy == "platter"
     assert abs(start.H.rz - truth.rz) < math.radians(0.05)
     # tx and ty from the chord's ends; |tz| from its length (imprecise near 0: a candidate)
@@ -90,7 +90,7 @@ def test_a_scan_without_the_rim_fails_with_what_was_seen(tmp_path: Path) -> None
     loaded = load_recipe(path)
     files = simulate_run(loaded, tmp_path / "scans", progress=False)
     with pytest.raises(InitialCalibrationError) as err:
-        targetless_start(read_recording(files["spin"]), loaded.recipe)
+        targetless_start(read_recording(files["spin"]), loaded.recipe.fixtures.platter)
     message = str(err.value)
     assert "no platter chord" in message and "585 mm" in message
     assert "Seen in the returns that stay put" in message and "rim" in message
@@ -106,7 +106,7 @@ def test_an_axis_far_from_the_scan_plane_is_found_from_the_platter(
     from calstation_sim import simulate_run
 
     from calstation import plugins
-    from calstation.engine.targetless import fine_tune_targetless
+    from calstation.plugins.cost_strategies import fine_tune_targetless
 
     data = yaml.safe_load(TARGETLESS.read_text())
     data["simulation"]["truth"] = {"H": {"tx": 0.015, "ty": 1.25, "tz": tz, "ry": 0.003,

@@ -13,8 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from hypothesis import given
-from hypothesis import strategies as st
+from hypothesis import given, strategies as st
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 from calstation.engine.observability import sigma_problems
@@ -29,7 +28,7 @@ from calstation.engine.timeoffset import (
 )
 from calstation.errors import FineTuningError, RecipeError
 from calstation.recipes import SigmaLimits, load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 BOTH_WAYS = RECIPES / "sim-periodicity-both-ways.yaml"

@@ -17,13 +17,16 @@ import pytest
 import yaml
 
 from calstation.engine.initial import initial_calibration
-from calstation.engine.joint import fine_tune_with_cube
 from calstation.engine.metrics import axis_errors
 from calstation.engine.observability import sigma_problems
 from calstation.errors import CalstationError
-from calstation.plugins.cost_strategies import PeriodicityStrategy, ShapeStrategy
+from calstation.plugins.cost_strategies import (
+    PeriodicityStrategy,
+    ShapeStrategy,
+    fine_tune_with_cube,
+)
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 pytestmark = pytest.mark.slow
 

@@ -212,7 +212,7 @@ def _init_worker(recipe_path: str) -> None:
 def _recording(directory: str, which: str) -> Any:
     """The scenario's ``which`` recording ("static" | "spin" | "cube"), read once per worker and
     kept until a task of another scenario arrives."""
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     if _WORKER["cache_dir"] != directory:
         _WORKER["cache"] = {}
@@ -515,11 +515,11 @@ class Progress:
             from rich.progress import (
                 BarColumn,
                 MofNCompleteColumn,
+                Progress as RichProgress,
                 TextColumn,
                 TimeElapsedColumn,
                 TimeRemainingColumn,
             )
-            from rich.progress import Progress as RichProgress
 
             self._bar = RichProgress(
                 TextColumn("[bold]{task.description}"),

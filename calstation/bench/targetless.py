@@ -60,10 +60,9 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
 
     from calstation import plugins
     from calstation.engine.initial import initial_calibration
-    from calstation.engine.targetless import fine_tune_targetless
-    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     loaded = load_recipe(recipe)
     rc = loaded.recipe
@@ -120,10 +119,9 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
 
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
-    from calstation.engine.targetless import fine_tune_targetless
-    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     nominal = SimulatedStation(load_recipe(recipe), seed=seed, range_m=scenario.range_m,
                                pitch_deg=scenario.pitch_deg).truth

@@ -209,7 +209,7 @@ def _calibrate_files(
     from calstation.engine.observability import problems_with_cube
     from calstation.errors import CalibrationError
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
     from calstation.station.reprocess import recording_disagreements
 
     console = Console(stderr=True)
@@ -284,8 +284,7 @@ def _start_and_fine_tune(
     """(the start, the fine-tuned result, its warnings): the start from the L-target's
     ``static`` scan, or without one from the platter's chord in the ``spin`` scan."""
     from calstation.engine.initial import initial_calibration
-    from calstation.engine.targetless import fine_tune_targetless
-    from calstation.plugins.cost_strategies import run_strategy
+    from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
     from calstation.quiet import stdout_to_stderr
 
     initial = None
@@ -327,8 +326,9 @@ def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any,
     failure of that combination or None; prints the cube's figures."""
     from rich.markup import escape
 
-    from calstation.engine.joint import fine_tune_with_cube, joint_summary
+    from calstation.engine.joint import joint_summary
     from calstation.errors import CalibrationError
+    from calstation.plugins.cost_strategies import fine_tune_with_cube
     from calstation.quiet import stdout_to_stderr
     from calstation.station.reprocess import recording_disagreements
 
@@ -354,7 +354,7 @@ def _read_kind(
 ) -> Any:
     """The recording at ``path``, which must be of ``kind`` (else ``error`` saying ``need`` and
     which ``file`` of a run that is)."""
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     with console.status(f"reading {path}"):
         rec = read_recording(path)

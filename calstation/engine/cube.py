@@ -32,11 +32,11 @@ from calstation.engine.geometry import (
     minimal_obb,
     upright_box,
 )
+from calstation.engine.settings import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
 from calstation.errors import VerificationError
-from calstation.recipes import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
 
 if TYPE_CHECKING:
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
 
 SEGMENT_MARGIN = 0.005
 """Cube points are those more than 5 mm above the platter top (the OBB height adds it back)."""
@@ -498,7 +498,7 @@ def _height(
 
 
 def check_cube(
-    recording: Recording,
+    recording: Scan,
     H: Extrinsics,
     cube: CubeGeometry,
     limits: QALimits,
@@ -520,7 +520,7 @@ def check_cube(
 
 
 def check_cube_passes(
-    recordings: list[Recording],
+    recordings: list[Scan],
     H: Extrinsics,
     cube: CubeGeometry,
     limits: QALimits,

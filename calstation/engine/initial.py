@@ -26,11 +26,11 @@ from calstation.engine.binning import BinnedScan, azimuth_bin_median
 from calstation.engine.frames import Extrinsics, FloatArray
 from calstation.engine.lines import Segment, intersect_lines, segment_profile
 from calstation.engine.result import CalibrationResult
+from calstation.engine.settings import InitialSettings, LTargetGeometry
 from calstation.errors import CalibrationError, InitialCalibrationError
-from calstation.recipes import InitialSettings, LTargetGeometry
 
 if TYPE_CHECKING:
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
 
 MIN_BINS = 20
 """A static scan with fewer smoothed bins than this is treated as empty."""
@@ -249,12 +249,12 @@ def _sigma(fit: LTargetFit, binned: BinnedScan, target: LTargetGeometry) -> dict
 
 
 def initial_calibration(
-    recording: Recording,
+    recording: Scan,
     target: LTargetGeometry,
     settings: InitialSettings = InitialSettings(),
 ) -> CalibrationResult:
     """Initial calibration from a static-scan
-    :class:`~calstation.recordings.recording.Recording`."""
+    :class:`~calstation.engine.scan.Scan`."""
     if recording.azimuth_rad.size == 0:
         raise InitialCalibrationError(
             f"{recording.path}: the static scan has no returns; expected ~100 lines of the L-target"

@@ -2,11 +2,10 @@
 
 The periodicity cost sees ry weakly (docs/algorithms.md); the cube's side faces see it well: an
 ry error twists them (:func:`calstation.engine.cube.face_twist`). Every run scans both, so the
-station
-combines them: the twist measured on the cube scan under the fine-tuned H is a measurement of
-the ry correction, ``ry_cube = ry_fine + twist`` with its σ, and it updates the fine-tuning's
-estimate through its covariance (a Kalman update), which also moves the parameters correlated
-with ry (tz above all: the spin target fixes tz + ry·h at its own height h).
+station combines them: the twist measured on the cube scan under the fine-tuned H is a
+measurement of the ry correction, ``ry_cube = ry_fine + twist`` with its σ, and it updates the
+fine-tuning's estimate through its covariance (a Kalman update), which also moves the parameters
+correlated with ry (tz above all: the spin target fixes tz + ry·h at its own height h).
 
 When the two disagree by more than :data:`CONSISTENCY_SIGMA` combined σ they are not combined:
 one of them is wrong, and the cube check's twist limit reports it.
@@ -26,8 +25,8 @@ from calstation.engine.result import CalibrationResult
 
 if TYPE_CHECKING:
     from calstation.engine.cube import CubeCheck
-    from calstation.recipes import Recipe
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
+    from calstation.engine.settings import CubeGeometry, QALimits
 
 MORE_DATA = (
     "Scan more turns (steps.spin_scan.revolutions and steps.cube_scan.revolutions: the σ falls "
@@ -137,25 +136,28 @@ def ry_with_cube(
     return joint, None
 
 
-def fine_tune_with_cube(
+def combine_with_cube_scan(
     result: CalibrationResult,
-    cube: Recording,
-    recipe: Recipe,
+    cube: Scan,
+    geometry: CubeGeometry,
+    qa: QALimits,
+    *,
+    platter_radius: float,
+    max_sigma_ry: float,
     progress: Callable[[str, float], None] | None = None,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` with ry combined from the cube scan ``cube``, as
     the station does at its cube step: (the combined result, strategy ``<name>+cube``, with
     ``result``'s diagnostics and the ``joint`` details, or ``result`` itself when nothing could
-    be combined; the cube check under that H; the failure of :func:`ry_with_cube` or None)."""
+    be combined; the cube check under that H; the failure of :func:`ry_with_cube` or None).
+    ``geometry`` and ``qa`` are the cube's and the check's settings, ``max_sigma_ry`` the ry
+    gate (rad)."""
     from calstation.engine.cube import check_cube
 
-    args = (recipe.fixtures.qa_cube, recipe.qa)
-    radius = recipe.fixtures.platter.radius
-    check = check_cube(cube, result.H, *args, platter_radius=radius)
+    check = check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius)
     joint, failure = ry_with_cube(
         result.H, result.diagnostics.get("covariance"), result.sigma.get("ry", math.nan),
-        math.radians(check.twist_deg), math.radians(check.twist_sigma_deg),
-        math.radians(recipe.calibration.max_sigma.ry_deg),
+        math.radians(check.twist_deg), math.radians(check.twist_sigma_deg), max_sigma_ry,
     )
     if joint is None:
         return result, check, failure
@@ -166,16 +168,17 @@ def fine_tune_with_cube(
         strategy=f"{result.strategy}+cube", timings=dict(result.timings),
         diagnostics={**result.diagnostics, "joint": joint.details,
                      "covariance": joint.details["covariance"]},
-        # the time offset barely depends on ry (calstation.engine.timeoffset): it carries over (the
-        # station estimates it again under the combined H)
+        # the time offset barely depends on ry (calstation.engine.timeoffset): it carries over
+        # (the station estimates it again under the combined H)
         encoder_latency_s=result.encoder_latency_s,
         sigma_encoder_latency_s=result.sigma_encoder_latency_s,
     )
-    return combined, check_cube(cube, joint.H, *args, platter_radius=radius), failure
+    check = check_cube(cube, joint.H, geometry, qa, platter_radius=platter_radius)
+    return combined, check, failure
 
 
 def joint_summary(combined: CalibrationResult) -> str:
-    """One line of what :func:`fine_tune_with_cube` combined (degrees)."""
+    """One line of what :func:`combine_with_cube_scan` combined (degrees)."""
     d = combined.diagnostics["joint"]
     return (f"ry from the spin target {math.degrees(d['ry_spin_target']):.3f}° ± "
             f"{math.degrees(d['sigma_ry_spin_target']):.3f}°, from the cube "

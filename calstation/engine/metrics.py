@@ -16,11 +16,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
+from calstation.engine.settings import DEFAULT_PLATTER_RADIUS
 from calstation.errors import CalibrationError
-from calstation.recipes import DEFAULT_PLATTER_RADIUS
 
 if TYPE_CHECKING:
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
 
 
 def axis_errors(estimate: Extrinsics, truth: Extrinsics) -> dict[str, float]:
@@ -101,7 +101,7 @@ def distortion_points(
 
 
 def reconstruction_distortion(
-    recording: Recording, estimate: Extrinsics, truth: Extrinsics
+    recording: Scan, estimate: Extrinsics, truth: Extrinsics
 ) -> dict[str, float]:
     """Distortion of a recording's object (e.g. the QA cube) reconstructed with ``estimate``
     instead of ``truth``: ``rms_m``, ``max_m`` (metres) after the best rigid alignment. The

@@ -54,15 +54,17 @@ from calstation.engine.frames import (
 )
 from calstation.engine.neighbours import knn, local_planes, mutual_neighbours, pair, tree
 from calstation.engine.result import CalibrationResult
-from calstation.engine.spinscan import SpinScan, from_recording, prepare
+from calstation.engine.settings import DEFAULT_PLATTER_RADIUS, PeriodicitySettings
 from calstation.engine.spinscan import (
+    SpinScan,
+    from_recording,
+    prepare,
     static_mask as static_mask,  # re-exported: shape and the bench use it
 )
 from calstation.errors import FineTuningError
-from calstation.recipes import DEFAULT_PLATTER_RADIUS, PeriodicitySettings
 
 if TYPE_CHECKING:
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
 
 Progress = Callable[[str, float], None]
 
@@ -1055,7 +1057,7 @@ def sigma_from_covariance(cov: FloatArray | None, free: list[int]) -> dict[str, 
 
 
 def periodicity_fine_tune(
-    recording: Recording,
+    recording: Scan,
     start: Extrinsics,
     settings: PeriodicitySettings = PeriodicitySettings(),
     *,
@@ -1063,7 +1065,7 @@ def periodicity_fine_tune(
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Periodicity fine-tuning on a spin-scan
-    :class:`~calstation.recordings.recording.Recording`."""
+    :class:`~calstation.engine.scan.Scan`."""
     try:
         return periodicity_fine_tune_scan(
             from_recording(recording),

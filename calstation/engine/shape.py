@@ -50,18 +50,18 @@ from calstation.engine.geometry import (
 )
 from calstation.engine.periodicity import block_ids, parameter_sigma, periodicity_fine_tune_scan
 from calstation.engine.result import CalibrationResult
-from calstation.engine.spinscan import SpinScan, from_recording, prepare
-from calstation.errors import FineTuningError, VerificationError
-from calstation.recipes import (
+from calstation.engine.settings import (
     DEFAULT_PLATTER_RADIUS,
     CubeGeometry,
     PeriodicitySettings,
     QALimits,
     ShapeSettings,
 )
+from calstation.engine.spinscan import SpinScan, from_recording, prepare
+from calstation.errors import FineTuningError, VerificationError
 
 if TYPE_CHECKING:
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
 
 Progress = Callable[[str, float], None]
 
@@ -665,7 +665,7 @@ def shape_fine_tune_points(
 
 
 def shape_fine_tune(
-    recording: Recording,
+    recording: Scan,
     start: Extrinsics,
     cube: CubeGeometry,
     settings: ShapeSettings = ShapeSettings(),

@@ -14,7 +14,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,8 +22,26 @@ from numpy.typing import NDArray
 from calstation.engine.frames import FloatArray, lidar_to_polar
 
 if TYPE_CHECKING:
-    from calstation.drivers import EncoderSample, LidarLine
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
+
+
+class LineLike(Protocol):
+    """What :class:`SpinScanBuilder` reads of a lidar line (a driver's
+    :class:`calstation.drivers.LidarLine` is one): (n,) arrays and each return's time."""
+
+    azimuth_rad: Any
+    range_m: Any
+    valid: Any
+
+    def point_times_ns(self) -> NDArray[np.int64]: ...
+
+
+class EncoderReading(Protocol):
+    """An encoder reading (a driver's :class:`calstation.drivers.EncoderSample` is one)."""
+
+    timestamp_ns: int
+    count: int
+
 
 STATIC_BIN_DEG = 0.1
 """Azimuth bin of the static test (degrees)."""
@@ -257,7 +275,7 @@ def prepare(
     return SpinScan(p_L, phi, rng, az, {"polar": time.perf_counter() - t0})
 
 
-def from_recording(recording: Recording) -> SpinScan:
+def from_recording(recording: Scan) -> SpinScan:
     """:class:`SpinScan` of a recording's valid returns with a known platter angle.
 
     When the scan was prepared while it was recorded (:class:`SpinScanBuilder` handed to
@@ -354,7 +372,7 @@ class SpinScanBuilder:
         """seconds of per-line work done while the scan ran"""
         self._done: SpinScan | None = None
 
-    def write_line(self, line: LidarLine) -> None:
+    def write_line(self, line: LineLike) -> None:
         t0 = time.perf_counter()
         valid = np.asarray(line.valid, dtype=bool)
         rng = np.asarray(line.range_m, dtype=np.float64)[valid]
@@ -374,7 +392,7 @@ class SpinScanBuilder:
         self._angles_so_far()
         self.during_s += time.perf_counter() - t0
 
-    def write_encoder(self, samples: Iterable[EncoderSample]) -> None:
+    def write_encoder(self, samples: Iterable[EncoderReading]) -> None:
         t0 = time.perf_counter()
         for sample in samples:
             t = int(sample.timestamp_ns)
@@ -417,7 +435,7 @@ class SpinScanBuilder:
     def _angle(
         self, t: NDArray[np.int64], enc_t: NDArray[np.int64], enc_c: NDArray[np.int64]
     ) -> FloatArray:
-        from calstation.recordings.recording import encoder_angle
+        from calstation.engine.scan import encoder_angle
 
         return encoder_angle(
             t,

@@ -7,8 +7,9 @@ the rim). With ry ≈ 0 (the initial calibration's assumption, paper Assumption 
 direction gives rz, its midpoint tx and ty (the origin on the platter top, the periodicity
 gauge), and its length |tz|: ``length = 2·√(R² − tz²)``. tz itself (its sign, and whether a
 short chord means |tz| or only a blurred rim) and ry are left to the fine-tuning, which is run
-from each candidate start — tz = 0, +|tz|, −|tz| — (:func:`fine_tune_targetless`): the one with
-the lowest cost is kept.
+from each candidate start — tz = 0, +|tz|, −|tz|
+(:func:`calstation.plugins.cost_strategies.fine_tune_targetless`): the one with the lowest cost
+is kept.
 
 A scan where no such chord is seen — the rim out of the field of view or hidden, the platter
 out of range — fails with :class:`~calstation.errors.InitialCalibrationError`, saying what
@@ -19,20 +20,19 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from calstation.engine.frames import Extrinsics, FloatArray
 from calstation.engine.lines import Segment, fit_line, segment_profile
-from calstation.errors import CalstationError, FineTuningError, InitialCalibrationError
+from calstation.engine.settings import InitialSettings, PlatterGeometry
+from calstation.errors import InitialCalibrationError
 
 if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
-    from calstation.recipes import InitialSettings, PlatterGeometry, Recipe
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
 
 BIN_DEG = 0.05
 """Azimuth bins of the static profile (degrees)."""
@@ -201,8 +201,11 @@ def extrinsics_from_chord(chord: PlatterChord, radius: float) -> tuple[Extrinsic
     return Extrinsics(tx=float(m[0]), ty=float(m[1]), tz=tz, rx=0.0, ry=0.0, rz=rz), tz
 
 
-def targetless_start(recording: Recording, recipe: Recipe) -> CalibrationResult:
-    """The initial calibration from the platter's chord in a spin scan (strategy ``platter``).
+def targetless_start(
+    recording: Scan, platter: PlatterGeometry, settings: InitialSettings = InitialSettings()
+) -> CalibrationResult:
+    """The initial calibration from the platter's chord in a spin scan (strategy ``platter``),
+    with the line segmentation of the initial calibration (``settings``).
 
     tz is 0 here; the diagnostics give the chord, its |tz| and the candidates for the
     fine-tuning (``tz_candidates_m``). σ: rz from the chord's
@@ -217,10 +220,8 @@ def targetless_start(recording: Recording, recipe: Recipe) -> CalibrationResult:
     if all_az.size == 0:
         raise InitialCalibrationError(f"{recording.path}: the spin scan has no returns")
     fov = (float(all_az.min()), float(all_az.max()))
-    platter = recipe.fixtures.platter
     try:
-        chord = find_platter_chord(scan.az, scan.rng, scan.static, platter, fov,
-                                   recipe.calibration.initial)
+        chord = find_platter_chord(scan.az, scan.rng, scan.static, platter, fov, settings)
     except InitialCalibrationError as exc:
         raise InitialCalibrationError(f"{recording.path}: {exc}") from None
     H, tz = extrinsics_from_chord(chord, platter.radius)
@@ -242,41 +243,3 @@ def targetless_start(recording: Recording, recipe: Recipe) -> CalibrationResult:
                           "the fine-tuning",
         },
     )
-
-
-def fine_tune_targetless(
-    strategy: Any,
-    recording: Recording,
-    recipe: Recipe,
-    progress: Callable[[str, float], None] | None = None,
-) -> tuple[CalibrationResult, list[str], CalibrationResult]:
-    """The targetless start, then ``strategy`` from each of its tz candidates; the result with
-    the lowest cost. Returns (result, warnings, the start it came from)."""
-    from calstation.plugins.cost_strategies import run_strategy
-
-    start = targetless_start(recording, recipe)
-    candidates = start.diagnostics["tz_candidates_m"]
-    tried: list[tuple[float, CalibrationResult, list[str]]] = []
-    errors = []
-    for k, tz in enumerate(candidates):
-        def part(message: str, fraction: float, k: int = k) -> None:
-            if progress is not None:
-                progress(message, (k + fraction) / len(candidates))
-
-        try:
-            result, warnings = run_strategy(strategy, recording, start.H.with_(tz=tz), recipe,
-                                            part)
-        except CalstationError as exc:
-            errors.append(f"from tz {tz * 1e3:+.1f} mm: {exc}")
-        else:
-            tried.append((tz, result, warnings))
-    if not tried:
-        raise FineTuningError(f"the fine-tuning failed from every start the platter gave: "
-                              f"{'; '.join(errors)}")
-    tz, result, warnings = min(tried, key=lambda t: t[1].cost)
-    start = replace(start, H=start.H.with_(tz=tz))
-    diagnostics = {**result.diagnostics, "start": {
-        "strategy": "platter", "H": start.H.as_dict(), "chord": start.diagnostics["chord"],
-        "candidates": [{"tz_m": float(tz), "cost": float(r.cost)} for tz, r, _ in tried],
-        "failed": errors}}
-    return replace(result, diagnostics=diagnostics), warnings, start

@@ -35,7 +35,7 @@ from calstation.errors import FineTuningError
 
 if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
-    from calstation.recordings.recording import Recording
+    from calstation.engine.scan import Scan
 
 SEARCH_S = 0.1
 """The coarse search covers offsets of ± this many seconds."""
@@ -117,7 +117,7 @@ class TimeOffset:
         }
 
 
-def mean_speed(recording: Recording) -> float:
+def mean_speed(recording: Scan) -> float:
     """The platter's mean signed speed (rad/s) over the recording's lines."""
     t = recording.line_timestamp_ns
     if t.size < 2:
@@ -128,7 +128,7 @@ def mean_speed(recording: Recording) -> float:
     return float((phi[1] - phi[0]) / ((t[-1] - t[0]) * 1e-9))
 
 
-def fixture_cloud(recording: Recording, H: Extrinsics, platter_radius: float) -> FloatArray:
+def fixture_cloud(recording: Scan, H: Extrinsics, platter_radius: float) -> FloatArray:
     """The moving returns above the platter, in D under ``H``: (N, 3) points."""
     from calstation.engine.geometry import segment_above_platter
     from calstation.engine.reconstruct import lidar_points_to_dynamic
@@ -306,8 +306,8 @@ def _align(
 
 
 def estimate_time_offset(
-    first: Recording,
-    second: Recording,
+    first: Scan,
+    second: Scan,
     H: Extrinsics,
     platter_radius: float,
     progress: Callable[[str, float], None] | None = None,
@@ -369,8 +369,8 @@ def estimate_time_offset(
 
 def with_time_offset(
     result: CalibrationResult,
-    first: Recording,
-    second: Recording,
+    first: Scan,
+    second: Scan,
     platter_radius: float,
     progress: Callable[[str, float], None] | None = None,
 ) -> CalibrationResult:

@@ -2,8 +2,13 @@
 
 A strategy refines a starting H from the spin scan of one fixture. Plugins add strategies through
 the ``calstation_register_cost_strategies`` hook (see :mod:`calstation.plugins.hookspecs`); the
-built-ins
-register the same way (:mod:`calstation.plugins.builtin.strategies`).
+built-ins register the same way (:mod:`calstation.plugins.builtin.strategies`).
+
+Beside the interface, the recipe-level entry points the station, ``calstation calibrate`` and
+the bench share: :func:`run_strategy` (a strategy with its result checked),
+:func:`fine_tune_targetless` (the targetless start, then a strategy from each of its starts) and
+:func:`fine_tune_with_cube` (ry combined from the QA cube's faces). Each hands the recipe's
+sections to the engine (:mod:`calstation.engine`), which knows no recipe.
 """
 
 from __future__ import annotations
@@ -16,13 +21,14 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from calstation.errors import FineTuningError, PluginError
+from calstation.errors import CalstationError, FineTuningError, PluginError
 from calstation.recipes import Recipe, ShapeOptions
 
 if TYPE_CHECKING:  # NumPy loads when a strategy runs: `recipes validate` checks options only
+    from calstation.engine.cube import CubeCheck
     from calstation.engine.frames import Extrinsics
     from calstation.engine.result import CalibrationResult
-    from calstation.recordings.recording import Recording
+    from calstation.recordings.recorded import Recording
 
 Progress = Callable[[str, float], None]
 """``progress(message, fraction)`` with fraction in [0, 1]."""
@@ -292,3 +298,59 @@ def run_strategy(
     if total is None or not math.isfinite(float(total)):
         result = replace(result, timings={**result.timings, "total": elapsed})
     return result, warnings
+
+
+def fine_tune_targetless(
+    strategy: Any,
+    recording: Recording,
+    recipe: Recipe,
+    progress: Callable[[str, float], None] | None = None,
+) -> tuple[CalibrationResult, list[str], CalibrationResult]:
+    """The targetless start, then ``strategy`` from each of its tz candidates; the result with
+    the lowest cost. Returns (result, warnings, the start it came from)."""
+    from calstation.engine.targetless import targetless_start
+
+    start = targetless_start(recording, recipe.fixtures.platter, recipe.calibration.initial)
+    candidates = start.diagnostics["tz_candidates_m"]
+    tried: list[tuple[float, CalibrationResult, list[str]]] = []
+    errors = []
+    for k, tz in enumerate(candidates):
+        def part(message: str, fraction: float, k: int = k) -> None:
+            if progress is not None:
+                progress(message, (k + fraction) / len(candidates))
+
+        try:
+            result, warnings = run_strategy(strategy, recording, start.H.with_(tz=tz), recipe,
+                                            part)
+        except CalstationError as exc:
+            errors.append(f"from tz {tz * 1e3:+.1f} mm: {exc}")
+        else:
+            tried.append((tz, result, warnings))
+    if not tried:
+        raise FineTuningError(f"the fine-tuning failed from every start the platter gave: "
+                              f"{'; '.join(errors)}")
+    tz, result, warnings = min(tried, key=lambda t: t[1].cost)
+    start = replace(start, H=start.H.with_(tz=tz))
+    diagnostics = {**result.diagnostics, "start": {
+        "strategy": "platter", "H": start.H.as_dict(), "chord": start.diagnostics["chord"],
+        "candidates": [{"tz_m": float(tz), "cost": float(r.cost)} for tz, r, _ in tried],
+        "failed": errors}}
+    return replace(result, diagnostics=diagnostics), warnings, start
+
+
+def fine_tune_with_cube(
+    result: CalibrationResult,
+    cube: Recording,
+    recipe: Recipe,
+    progress: Callable[[str, float], None] | None = None,
+) -> tuple[CalibrationResult, CubeCheck, str | None]:
+    """:func:`calstation.engine.joint.combine_with_cube_scan` with the recipe's cube, QA limits,
+    platter and ry gate: the station's cube step."""
+    from calstation.engine.joint import combine_with_cube_scan
+
+    return combine_with_cube_scan(
+        result, cube, recipe.fixtures.qa_cube, recipe.qa,
+        platter_radius=recipe.fixtures.platter.radius,
+        max_sigma_ry=math.radians(recipe.calibration.max_sigma.ry_deg),
+        progress=progress,
+    )

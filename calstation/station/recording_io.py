@@ -20,8 +20,7 @@ from typing import Any
 from sqlalchemy import select
 
 from calstation.drivers import DriverContext
-from calstation.engine.spinscan import SpinScanBuilder
-from calstation.engine.spinscan import remember as remember_spin_scan
+from calstation.engine.spinscan import SpinScanBuilder, remember as remember_spin_scan
 from calstation.recordings.runfolder import RECORDING_OF
 from calstation.station.acquisition import acquire_spin, acquire_static
 from calstation.station.context import RunContext
@@ -61,7 +60,7 @@ def record_scan(
 ) -> Path:
     """Write the step's recording while acquiring; returns its path. ``stem`` names the file
     (and the artifact) when a step takes a second recording, default the recording's kind."""
-    from calstation.recordings.recording import RecordingWriter
+    from calstation.recordings.writer import RecordingWriter
 
     d = ctx.hardware()
     kind = RECORDING_OF[step]

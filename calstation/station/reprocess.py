@@ -29,7 +29,7 @@ from calstation.recordings.runfolder import second_pass
 from calstation.storage.db import PARAMS, Calibration, Database, Run
 
 if TYPE_CHECKING:
-    from calstation.recordings.recording import Recording
+    from calstation.recordings.recorded import Recording
 
 REPROCESS_STAGE = "reprocess"
 """The ``calibration.stage`` of a re-processing."""
@@ -158,11 +158,13 @@ def reprocess_run(
     """
     from calstation import plugins
     from calstation.engine.initial import initial_calibration
-    from calstation.engine.joint import fine_tune_with_cube
     from calstation.engine.observability import problems_with_cube
-    from calstation.engine.targetless import fine_tune_targetless
-    from calstation.plugins.cost_strategies import run_strategy
-    from calstation.recordings.recording import read_recording
+    from calstation.plugins.cost_strategies import (
+        fine_tune_targetless,
+        fine_tune_with_cube,
+        run_strategy,
+    )
+    from calstation.recordings.reader import read_recording
 
     say = status or (lambda message: None)
     with db.session() as s:

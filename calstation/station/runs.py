@@ -22,7 +22,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from calstation.errors import AbortRun, StationError
-from calstation.recipes import LoadedRecipe, check_plugins, parse_recipe
+from calstation.plugins.recipe_checks import check_plugins
+from calstation.recipes import LoadedRecipe, parse_recipe
 from calstation.station.machine import Station
 from calstation.station.operator import Operator
 from calstation.storage.db import (

@@ -20,8 +20,7 @@ from __future__ import annotations
 import pytest
 
 from calstation.engine.frames import Extrinsics
-from calstation.testing import SimulatedScans, simulate_scans
-from calstation.testing import strategy_start as _strategy_start
+from calstation.testing import SimulatedScans, simulate_scans, strategy_start as _strategy_start
 
 
 @pytest.fixture(scope="session")

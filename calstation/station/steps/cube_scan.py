@@ -35,7 +35,7 @@ class CubeScan:
     def run(self, ctx: RunContext, step_id: int) -> StepOutcome:
         """Scan and check; the recordings, the cube check (and a combined calibration), and a
         ``failure`` when the check failed."""
-        from calstation.recordings.recording import read_recording
+        from calstation.recordings.reader import read_recording
 
         d = ctx.hardware()
         cfg = ctx.recipe.steps.cube_scan
@@ -128,7 +128,8 @@ def _check_cube_joint(
     """
     from calstation.engine.cube import check_cube
     from calstation.engine.frames import Extrinsics
-    from calstation.engine.joint import fine_tune_with_cube, joint_summary
+    from calstation.engine.joint import joint_summary
+    from calstation.plugins.cost_strategies import fine_tune_with_cube
 
     H = Extrinsics.from_dict(fine.params())
     if ctx.strategy().fixture != "spin_target":
@@ -144,7 +145,7 @@ def _check_cube_joint(
     if result.encoder_latency_s is not None:
         # estimated again under the H whose ry the cube changed: the estimate moves a
         # little with ry (~0.08 ms per 0.1°, docs/algorithms.md)
-        from calstation.recordings.recording import read_recording
+        from calstation.recordings.reader import read_recording
 
         result = with_stored_time_offset(ctx, result, read_recording(ctx.artifact_path("spin")),
                                          progress, " under the combined H")

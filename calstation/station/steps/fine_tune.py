@@ -54,12 +54,12 @@ def _fit(ctx: RunContext, strategy: Any) -> CalibrationResult:
     second pass; its warnings go to the operator."""
     from calstation.engine.frames import Extrinsics
     from calstation.plugins.cost_strategies import run_strategy
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     recording = read_recording(ctx.artifact_path("spin"))
     with ctx.ui.progress(f"fine-tuning ({strategy.name})") as progress:
         if ctx.recipe.calibration.start == "platter":
-            from calstation.engine.targetless import fine_tune_targetless
+            from calstation.plugins.cost_strategies import fine_tune_targetless
 
             result, warnings, first = fine_tune_targetless(
                 strategy, recording, ctx.recipe, progress)
@@ -84,7 +84,7 @@ def with_stored_time_offset(
     """``result`` with the lidar–encoder time offset from the spin scan's ``first`` pass and
     its stored second pass; ``under`` says which H, for the operator."""
     from calstation.engine.timeoffset import with_time_offset
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     out = with_time_offset(
         result, first, read_recording(ctx.artifact_path(SECOND_PASS)),

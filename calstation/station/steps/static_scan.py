@@ -16,7 +16,7 @@ class StaticScan:
     def run(self, ctx: RunContext, step_id: int) -> StepOutcome:
         """Scan, then fit the L-target; the recording and the ``initial`` calibration."""
         from calstation.engine.initial import initial_calibration
-        from calstation.recordings.recording import read_recording
+        from calstation.recordings.reader import read_recording
 
         d = ctx.hardware()
         lines = ctx.recipe.steps.static_scan.lines

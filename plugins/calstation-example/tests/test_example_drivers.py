@@ -5,8 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import pytest
-from calstation_example import drivers
-from calstation_example import plugin as example
+from calstation_example import drivers, plugin as example
 
 from calstation import plugins
 from calstation.clock import HostClock

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from calstation_hokuyo import scip
-from hypothesis import given
-from hypothesis import strategies as st
+from hypothesis import given, strategies as st
 
 PP_REPLY = (
     b"PP\n00P\nMODL:UTM-30LX;@\nDMIN:20;4\nDMAX:5600;_\nARES:1024;\\\nAMIN:44;7\n"
