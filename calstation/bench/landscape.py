@@ -152,13 +152,12 @@ def _periodicity_cost(
     """The paper's periodicity cost, re-matched at every H (as the optimiser's outer loop sees
     it), built from the public helpers of :mod:`calstation.engine.periodicity`.
 
-    calstation/engine/periodicity.py exposes no public whole-cost function, so: static returns
-    dropped
-    (``static_mask``), both half-turns averaged over ``sensor_cells`` of 5 mm (independent of H),
-    mapped to D (``to_dynamic``), platter points (x_P ≤ 5 mm) dropped, ``mutual_neighbours``
-    within the recipe's ``match_distance`` (paper: 20 cm), planes from ``weighted_normals``;
-    cost = mean over matches of w·(n·(x − x′))², both ends' planes. The platter gauge residual
-    is not included (it is calstation's gauge, not the paper's cost).
+    calstation.engine.periodicity exposes no public whole-cost function, so: static returns
+    dropped (``static_mask``), both half-turns averaged over ``sensor_cells`` of 5 mm
+    (independent of H), mapped to D (``to_dynamic``), platter points (x_P ≤ 5 mm) dropped,
+    ``mutual_neighbours`` within the recipe's ``match_distance`` (paper: 20 cm), planes from
+    ``weighted_normals``; cost = mean over matches of w·(n·(x − x′))², both ends' planes. The
+    platter gauge residual is not included (it is calstation's gauge, not the paper's cost).
     """
     from calstation.engine.neighbours import mutual_neighbours, weighted_normals
     from calstation.engine.periodicity import sensor_cells, to_dynamic

@@ -433,9 +433,8 @@ def write_report(
         landscape_md += [
             "Cost functions: " + "; ".join(f"{m}: {src}" for m, src in sources.items()) + ".",
             "",
-            "calstation/engine/periodicity.py has no public function that evaluates the whole cost "
-            "at "
-            "a given H (only the optimiser's private residuals), so that landscape is assembled "
+            "calstation.engine.periodicity has no public function that evaluates the whole cost "
+            "at a given H (only the optimiser's private residuals), so that landscape is assembled "
             "from its public building blocks as listed; the shape landscape uses the engine's "
             "public `ShapeCost`. Each grid point re-segments (shape) or re-matches "
             "(periodicity) at its own H, as the optimiser's outer loop does.",
