@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from calstation.bench import BenchError
+from calstation.bench.tasks import Task, scenario_dir
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 
 PAIRS: dict[str, tuple[str, str]] = {"translation": ("tx", "tz"), "rotation": ("ry", "rz")}
@@ -24,8 +25,6 @@ PAIRS: dict[str, tuple[str, str]] = {"translation": ("tx", "tz"), "rotation": ("
 def landscape_tasks(config: Any, store: Any) -> list[Any]:
     """One task per (method, pair, grid row) for ``config.landscape_scenario``, centred on each
     method's result from the initial calibration (skipped if that run failed)."""
-    from calstation.bench.runner import Task, scenario_dir
-
     scen = next((s for s in config.scenarios if s.name == config.landscape_scenario), None)
     if scen is None:
         return []
