@@ -12,8 +12,7 @@ Simulates one run (static, spin and cube scans) unless DIR already holds one, th
 - periodicity fine-tuning from the recording (preparation of the spin scan included), and the
   two parts of the station's path: the per-line work done while the spin scan runs
   (:class:`calstation.engine.spinscan.SpinScanBuilder`), then what is left when the scan ends
-  (finishing
-  the preparation and fine-tuning), which is the operator's wait;
+  (finishing the preparation and fine-tuning), which is the operator's wait;
 - shape fine-tuning and the cube check.
 
 It prints the peak memory (the process's peak resident set), the processing ÷ acquisition ratio
@@ -99,7 +98,7 @@ def measure(recipe_path: Path, out: Path, with_shape: bool = True) -> dict[str, 
     from calstation.engine.metrics import axis_errors
     from calstation.plugins.cost_strategies import PeriodicityStrategy, ShapeStrategy
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     rc = load_recipe(recipe_path).recipe
     t: dict[str, float] = {}
@@ -162,7 +161,7 @@ def measure_station(recipe_path: Path, out: Path) -> dict[str, Any]:
     from calstation.engine.initial import initial_calibration
     from calstation.engine.metrics import axis_errors
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     rc = load_recipe(recipe_path).recipe
     _preload()

@@ -23,7 +23,8 @@ from calstation.drivers import EncoderSample, LidarInfo, LidarLine
 from calstation.engine.frames import Extrinsics
 from calstation.engine.reconstruct import reconstruct
 from calstation.recordings.files import write_ply
-from calstation.recordings.recording import RecordingWriter, read_recording
+from calstation.recordings.reader import read_recording
+from calstation.recordings.writer import RecordingWriter
 
 
 def main() -> None:

@@ -32,7 +32,7 @@ from calstation.engine.metrics import axis_errors
 from calstation.engine.observability import sigma_problems
 from calstation.plugins.cost_strategies import PeriodicityStrategy, fine_tune_with_cube
 from calstation.recipes import LoadedRecipe, parse_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = [(r, p) for r in (1.0, 1.25, 1.5) for p in (30.0, 45.0, 60.0)] + [(0.9, 40.0)]

@@ -25,7 +25,7 @@ from calstation.engine.metrics import axis_errors
 from calstation.engine.observability import sigma_problems
 from calstation.errors import CalstationError
 from calstation.plugins.cost_strategies import ShapeStrategy
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 RATES = (180.0, 360.0, 1000.0)
 

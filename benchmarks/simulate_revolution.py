@@ -37,7 +37,7 @@ def main() -> None:
     from calstation_sim import SimEncoder, SimLidar, SimTurntable, SimulatedStation
 
     from calstation.recipes import SimulationConfig, load_recipe
-    from calstation.recordings.recording import RecordingWriter
+    from calstation.recordings.writer import RecordingWriter
     from calstation.station.acquisition import acquire_spin
 
     recipe = load_recipe(args.recipe)

@@ -32,7 +32,7 @@ from calstation.engine.initial import initial_calibration
 from calstation.engine.timeoffset import with_time_offset
 from calstation.plugins.cost_strategies import run_strategy
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "sim-periodicity-both-ways.yaml"

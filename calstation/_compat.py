@@ -56,6 +56,7 @@ MOVED: dict[str, str] = {
     "calstation.report_html": "calstation.storage.report_html",
     "calstation.ros": "calstation.storage.ros",
     "calstation.web.templating": "calstation.storage.templating",
+    "calstation.web.qa": "calstation.storage.qa",
     "calstation.operator": "calstation.station.operator",
     "calstation.acquisition": "calstation.station.acquisition",
     "calstation.reprocess": "calstation.station.reprocess",

@@ -22,7 +22,7 @@ from calstation.engine.initial import initial_calibration
 from calstation.engine.metrics import axis_errors, reconstruction_distortion
 from calstation.plugins.cost_strategies import PeriodicityStrategy, ShapeStrategy
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 pytestmark = pytest.mark.slow
 

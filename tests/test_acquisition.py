@@ -18,7 +18,8 @@ from calstation.engine.frames import Extrinsics
 from calstation.engine.reconstruct import reconstruct
 from calstation.errors import DriverError
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import RecordingWriter, read_recording
+from calstation.recordings.reader import read_recording
+from calstation.recordings.writer import RecordingWriter
 from calstation.station.acquisition import acquire_spin, acquire_static
 
 REPO = Path(__file__).resolve().parents[1]

@@ -11,7 +11,7 @@ from clirun import run_cli as _run
 
 from calstation.engine.metrics import axis_errors
 from calstation.engine.result import CalibrationResult
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 RECIPE = str(Path(__file__).resolve().parents[1] / "recipes" / "sim-periodicity.yaml")
 

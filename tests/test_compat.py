@@ -37,3 +37,16 @@ def test_from_an_old_path_imports_the_objects_of_the_new_one() -> None:
         sys.modules.pop("calstation.recipe", None)
         from calstation.recipe import load_recipe
     assert load_recipe is importlib.import_module("calstation.recipes").load_recipe
+
+
+def test_the_recording_module_gives_the_writer_the_reader_and_the_recording() -> None:
+    """``calstation.recordings.recording`` was split (writer, reader, recorded, …); it and the old
+    ``calstation.recording`` still give the very same objects."""
+    from calstation.recordings import reader, recorded, recording, writer
+
+    homes = (reader.read_recording, writer.RecordingWriter, recorded.Recording)
+    assert (recording.read_recording, recording.RecordingWriter, recording.Recording) == homes
+    with pytest.warns(DeprecationWarning, match="calstation.recording moved"):
+        sys.modules.pop("calstation.recording", None)
+        from calstation.recording import Recording, RecordingWriter, read_recording
+    assert (read_recording, RecordingWriter, Recording) == homes

@@ -14,7 +14,8 @@ from calstation.engine.geometry import fit_plane
 from calstation.engine.spinscan import from_recording
 from calstation.errors import VerificationError
 from calstation.recipes import Recipe, load_recipe
-from calstation.recordings.recording import Recording, read_recording
+from calstation.recordings.reader import read_recording
+from calstation.recordings.recorded import Recording
 
 
 def _cube_scan(sim_run) -> tuple[Recipe, Recording, Extrinsics]:

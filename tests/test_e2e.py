@@ -45,7 +45,7 @@ def _cli(*args: str) -> list[str]:
 
 
 def _truth(db: Database, run_id: int) -> Extrinsics:
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     with db.session() as s:
         art = s.query(Artifact).filter_by(run_id=run_id, kind="static").one()

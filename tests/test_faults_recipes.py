@@ -22,7 +22,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from calstation import hookimpl, plugins
 from calstation.cli import main
 from calstation.errors import RecipeError
-from calstation.recipes import check_plugins, load_recipe, parse_recipe
+from calstation.plugins.recipe_checks import check_plugins
+from calstation.recipes import load_recipe, parse_recipe
 
 REPO = Path(__file__).resolve().parents[1]
 BASE = (REPO / "recipes" / "sim-periodicity.yaml").read_text(encoding="utf-8")

@@ -25,7 +25,7 @@ from calstation.engine.frames import Extrinsics
 from calstation.errors import DriverError
 from calstation.quiet import quiet_open3d, stdout_to_stderr
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import RecordingWriter
+from calstation.recordings.writer import RecordingWriter
 from calstation.station.run import file_sha256, resume_run, start_run
 from calstation.storage.db import Artifact, Database, Run, Step, open_database
 

@@ -11,7 +11,7 @@ from calstation.engine.frames import Extrinsics, lidar_to_polar, platform_to_lid
 from calstation.engine.initial import initial_calibration, initial_from_returns
 from calstation.errors import InitialCalibrationError
 from calstation.recipes import InitialSettings, LTargetGeometry, load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 TARGET = LTargetGeometry()
 
@@ -100,7 +100,7 @@ def test_simulated_static_scan_within_set_a_of_truth(sim_run) -> None:
 def test_empty_recording_is_a_clear_error(tmp_path) -> None:
     from calstation.drivers import LidarInfo, LidarLine
     from calstation.errors import CalstationError
-    from calstation.recordings.recording import RecordingWriter
+    from calstation.recordings.writer import RecordingWriter
 
     info = LidarInfo("sim", "line", "0", math.radians(72), 100, 1000.0, 0.2, 10.0)
     kw = {"kind": "static", "lidar_info": info, "counts_per_revolution": 4096}

@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 
 from calstation.recipes import load_recipe
-from calstation.recordings import recording
+from calstation.recordings import writer
+from calstation.recordings.channels import channel_schema
 from calstation.recordings.messages import decode_frame_transform, decode_laser_scan
 
 DATA = Path(__file__).parent / "data" / "v1"
@@ -98,7 +99,7 @@ def test_live_view_streams_a_simulated_scan(tmp_path: Path) -> None:
 
     view = start_live_view(port=0)
     try:
-        assert recording.live_sink() is view
+        assert writer.live_sink() is view
         # let the client connect and subscribe first: the sim is faster than real time
         started = threading.Event()
         done: list[BaseException | None] = []
@@ -127,7 +128,7 @@ def test_live_view_streams_a_simulated_scan(tmp_path: Path) -> None:
         assert done == [None]
     finally:
         view.close()
-    assert recording.live_sink() is None
+    assert writer.live_sink() is None
     _check_scans(result, 250)
     tfs = [decode_frame_transform(m) for m in result["messages"]["/tf"]]
     assert tfs and {(t.parent, t.child) for t in tfs} == {("platform", "platter")}
@@ -138,7 +139,7 @@ def test_live_view_streams_a_simulated_scan(tmp_path: Path) -> None:
     # the schema a client gets is the FileDescriptorSet of the recording
     scan_channel = next(c for c in result["channels"] if c["topic"] == "/lidar/scan")
     assert base64.b64decode(scan_channel["schema"]) == (
-        recording.channel_schema("/lidar/scan").data
+        channel_schema("/lidar/scan").data
     )
 
 
@@ -181,7 +182,7 @@ def test_port_in_use_is_a_clear_error() -> None:
         port = s.getsockname()[1]
         with pytest.raises(LiveViewError, match=f"cannot start the live view on 127.0.0.1:{port}"):
             start_live_view(port=port)
-    assert recording.live_sink() is None
+    assert writer.live_sink() is None
 
 
 def test_foxglove_port_is_optional_on_the_command_line() -> None:

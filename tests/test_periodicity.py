@@ -18,7 +18,7 @@ from calstation.engine.periodicity import (
 from calstation.engine.spinscan import static_mask
 from calstation.errors import FineTuningError
 from calstation.recipes import PeriodicitySettings, load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 
 def test_weighted_normals_plane_and_line() -> None:

@@ -193,7 +193,7 @@ def test_trace_variable_prints_hook_calls() -> None:
 
 def test_a_settings_model_named_by_path_loads_when_a_recipe_is_checked() -> None:
     from calstation.errors import PluginError
-    from calstation.recipes import settings_model_of
+    from calstation.plugins.recipe_checks import settings_model_of
 
     def factory(settings: object, context: object) -> None: ...
 

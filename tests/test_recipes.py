@@ -12,7 +12,8 @@ import pytest
 from calstation import hookimpl, plugins
 from calstation.cli import main
 from calstation.errors import RecipeError
-from calstation.recipes import check_plugins, load_recipe
+from calstation.plugins.recipe_checks import check_plugins
+from calstation.recipes import load_recipe
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 

@@ -24,7 +24,8 @@ from calstation.engine.frames import (
 from calstation.engine.reconstruct import reconstruct
 from calstation.errors import RecordingError
 from calstation.recordings.files import load_extrinsics, read_ply, write_ply
-from calstation.recordings.recording import RecordingWriter, read_recording
+from calstation.recordings.reader import read_recording
+from calstation.recordings.writer import RecordingWriter
 
 T0 = 1_767_225_600_000_000_000
 CPR = 4096

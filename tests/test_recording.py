@@ -11,6 +11,7 @@ import textwrap
 import time
 import warnings
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -25,12 +26,9 @@ from calstation.drivers import (
 from calstation.engine.frames import Extrinsics, polar_to_lidar
 from calstation.errors import RecordingError
 from calstation.recipes import LoadedRecipe, parse_recipe
-from calstation.recordings.recording import (
-    FORMAT_VERSION,
-    RecordingTruncatedWarning,
-    RecordingWriter,
-    read_recording,
-)
+from calstation.recordings.channels import FORMAT_VERSION
+from calstation.recordings.reader import RecordingTruncatedWarning, read_recording
+from calstation.recordings.writer import RecordingWriter
 
 T0 = 1_767_225_600_000_000_000
 INFO = LidarInfo("acme", "line-1", "SN42", np.deg2rad(72.0), 100, 1000.0, 0.2, 10.0, {"fw": "1.2"})
@@ -136,6 +134,25 @@ def test_round_trip(tmp_path: Path) -> None:
         assert (got.time_offset_ns is None) == (orig.time_offset_ns is None)
         np.testing.assert_array_equal(got.point_times_ns(), orig.point_times_ns())
         np.testing.assert_array_equal(got.valid, orig.valid)
+
+
+def test_the_writer_takes_any_recipe_with_a_name_a_text_and_a_sha256(tmp_path: Path) -> None:
+    """The writer knows no recipe model: it stores the ``name``, ``sha256`` and ``text`` of what
+    it is given (a LoadedRecipe, or this plain record)."""
+
+    class Plain(NamedTuple):
+        name: str
+        text: str
+        sha256: str
+
+    plain = Plain("plain", "name: plain\n", "ab" * 32)
+    path = tmp_path / "r.mcap"
+    with writer(path, recipe=plain) as w:
+        w.write_line(make_line(0))
+    rec = read_recording(path)
+    cal = rec.metadata["calstation"]
+    assert (cal["recipe_name"], cal["recipe_sha256"]) == ("plain", "ab" * 32)
+    assert rec.recipe_text == "name: plain\n"
 
 
 def test_file_is_plain_mcap_in_well_known_schemas(tmp_path: Path) -> None:

@@ -19,12 +19,10 @@ from calstation import plugins
 from calstation.engine.frames import Extrinsics
 from calstation.engine.initial import initial_calibration
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import (
-    FORMAT_VERSION,
-    Recording,
-    RecordingWriter,
-    read_recording,
-)
+from calstation.recordings.channels import FORMAT_VERSION
+from calstation.recordings.reader import read_recording
+from calstation.recordings.recorded import Recording
+from calstation.recordings.writer import RecordingWriter
 
 DATA = Path(__file__).parent / "data" / "v1"
 EXPECTED = json.loads((DATA / "expected.json").read_text(encoding="utf-8"))

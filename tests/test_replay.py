@@ -24,7 +24,9 @@ from calstation.drivers import (
 )
 from calstation.errors import DriverError
 from calstation.plugins.builtin import replay
-from calstation.recordings.recording import Recording, RecordingWriter, read_recording
+from calstation.recordings.reader import read_recording
+from calstation.recordings.recorded import Recording
+from calstation.recordings.writer import RecordingWriter
 from calstation.station.acquisition import acquire_spin, acquire_static
 
 T0 = 1_767_225_600_000_000_000

@@ -22,7 +22,8 @@ from calstation.engine.result import CalibrationResult
 from calstation.engine.shape import rz_sigma_floor, shape_fine_tune
 from calstation.errors import FineTuningError
 from calstation.recipes import Recipe, load_recipe
-from calstation.recordings.recording import Recording, read_recording
+from calstation.recordings.reader import read_recording
+from calstation.recordings.recorded import Recording
 
 
 def _cube_surface(s: float, yaw: float, n: int, noise: float, seed: int = 0) -> np.ndarray:

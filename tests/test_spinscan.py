@@ -10,7 +10,7 @@ import numpy as np
 
 from calstation.drivers import EncoderSample
 from calstation.engine.spinscan import SpinScanBuilder, from_recording, remember
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 
 def _builder_fed_from(path: Path) -> SpinScanBuilder:

@@ -260,7 +260,7 @@ def test_run_until_abort_commits_each_step_and_stops_the_motor(
     assert ("spin_scan", "passed") in station_plugin.events
     assert station_plugin.events[-1] == ("run", "aborted")
     # the simulator's ground truth went into the recordings
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     rec = read_recording(arts["static"].path)
     assert rec.truth is not None and rec.metadata["run"]["id"] == run_id

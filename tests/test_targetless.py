@@ -18,7 +18,7 @@ from calstation.engine.metrics import axis_errors
 from calstation.engine.targetless import PlatterChord, extrinsics_from_chord, targetless_start
 from calstation.errors import InitialCalibrationError
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 TARGETLESS = REPO / "recipes" / "sim-targetless.yaml"

@@ -28,7 +28,7 @@ from calstation.engine.timeoffset import (
 )
 from calstation.errors import FineTuningError, RecipeError
 from calstation.recipes import SigmaLimits, load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 BOTH_WAYS = RECIPES / "sim-periodicity-both-ways.yaml"

@@ -25,7 +25,7 @@ from calstation.engine.spinscan import range_noise
 from calstation.errors import ObservabilityError
 from calstation.plugins.cost_strategies import PeriodicityStrategy
 from calstation.recipes import SigmaLimits, load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -26,7 +26,7 @@ from calstation.plugins.cost_strategies import (
     fine_tune_with_cube,
 )
 from calstation.recipes import load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 pytestmark = pytest.mark.slow
 

@@ -55,7 +55,7 @@ def run_speed_case(recipe: Path, scenario: Any, rpm: float, out: Path,
     from calstation.engine.initial import initial_calibration
     from calstation.engine.metrics import axis_errors
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     path, ppl = speed_recipe(recipe, rpm, out / f"recipe-{rpm:g}rpm.yaml")
     t0 = time.perf_counter()

@@ -62,7 +62,7 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
     from calstation.engine.initial import initial_calibration
     from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     loaded = load_recipe(recipe)
     rc = loaded.recipe
@@ -121,7 +121,7 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
     from calstation.engine.metrics import axis_errors
     from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     nominal = SimulatedStation(load_recipe(recipe), seed=seed, range_m=scenario.range_m,
                                pitch_deg=scenario.pitch_deg).truth

@@ -51,7 +51,7 @@ def _init_worker(recipe_path: str) -> None:
 def _recording(directory: str, which: str) -> Any:
     """The scenario's ``which`` recording ("static" | "spin" | "cube"), read once per worker and
     kept until a task of another scenario arrives."""
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     if _WORKER["cache_dir"] != directory:
         _WORKER["cache"] = {}

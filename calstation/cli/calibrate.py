@@ -209,7 +209,7 @@ def _calibrate_files(
     from calstation.engine.observability import problems_with_cube
     from calstation.errors import CalibrationError
     from calstation.recipes import load_recipe
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
     from calstation.station.reprocess import recording_disagreements
 
     console = Console(stderr=True)
@@ -354,7 +354,7 @@ def _read_kind(
 ) -> Any:
     """The recording at ``path``, which must be of ``kind`` (else ``error`` saying ``need`` and
     which ``file`` of a run that is)."""
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     with console.status(f"reading {path}"):
         rec = read_recording(path)

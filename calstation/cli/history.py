@@ -280,10 +280,10 @@ def trend_points(
     station: str, param: str, db: str | None, serial: str | None = None
 ) -> list[dict[str, Any]]:
     """The accepted calibrations of ``station`` (of unit ``serial`` only, when given), oldest
-    first, with drift vs the previous one: :func:`calstation.web.qa.trend_points`, as the web
+    first, with drift vs the previous one: :func:`calstation.storage.qa.trend_points`, as the web
     station's trend page shows them."""
     from calstation.storage.db import open_database
-    from calstation.web.qa import trend_points as query
+    from calstation.storage.qa import trend_points as query
 
     database = open_database(db)
     try:

@@ -45,7 +45,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Validate recipe files: every problem with its field and YAML line."""
         from calstation.errors import RecipeError
-        from calstation.recipes import check_plugins, load_recipe
+        from calstation.plugins.recipe_checks import check_plugins
+        from calstation.recipes import load_recipe
 
         failures = []
         for f in files:

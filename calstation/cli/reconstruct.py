@@ -45,7 +45,7 @@ def register(app: typer.Typer) -> None:
         from calstation.errors import RecordingError
         from calstation.quiet import stdout_to_stderr
         from calstation.recordings.files import load_calibration_file, write_ply
-        from calstation.recordings.recording import read_recording
+        from calstation.recordings.reader import read_recording
 
         if (calibration is None) == (truth is None):
             raise typer.BadParameter("give exactly one of --calibration FILE or --truth FILE")

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import getpass
-import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -16,13 +14,6 @@ EXIT_ABORTED = 3
 
 def _exit_code(status: str) -> int:
     return {"passed": 0, "failed": EXIT_FAILED}.get(status, EXIT_ABORTED)
-
-
-def _default_operator() -> str:
-    try:
-        return os.environ.get("CALSTATION_OPERATOR") or getpass.getuser()
-    except Exception:
-        return "unknown"
 
 
 @contextmanager
@@ -80,7 +71,7 @@ def register(app: typer.Typer) -> None:
         Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted.
         """
         from calstation.recipes import load_recipe
-        from calstation.station.operator import ConsoleOperator
+        from calstation.station.operator import ConsoleOperator, default_operator
         from calstation.station.run import start_run
         from calstation.storage.db import open_database
 
@@ -90,7 +81,7 @@ def register(app: typer.Typer) -> None:
             with _live_view(foxglove):
                 _, status = start_run(
                     loaded, database, ConsoleOperator(unattended=yes),
-                    operator=operator or _default_operator(), data_dir=data_dir, serial=serial,
+                    operator=operator or default_operator(), data_dir=data_dir, serial=serial,
                 )
         finally:
             database.dispose()

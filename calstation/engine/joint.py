@@ -2,11 +2,10 @@
 
 The periodicity cost sees ry weakly (docs/algorithms.md); the cube's side faces see it well: an
 ry error twists them (:func:`calstation.engine.cube.face_twist`). Every run scans both, so the
-station
-combines them: the twist measured on the cube scan under the fine-tuned H is a measurement of
-the ry correction, ``ry_cube = ry_fine + twist`` with its σ, and it updates the fine-tuning's
-estimate through its covariance (a Kalman update), which also moves the parameters correlated
-with ry (tz above all: the spin target fixes tz + ry·h at its own height h).
+station combines them: the twist measured on the cube scan under the fine-tuned H is a
+measurement of the ry correction, ``ry_cube = ry_fine + twist`` with its σ, and it updates the
+fine-tuning's estimate through its covariance (a Kalman update), which also moves the parameters
+correlated with ry (tz above all: the spin target fixes tz + ry·h at its own height h).
 
 When the two disagree by more than :data:`CONSISTENCY_SIGMA` combined σ they are not combined:
 one of them is wrong, and the cube check's twist limit reports it.

@@ -95,9 +95,8 @@ def problems_with_cube(
     result: CalibrationResult, limits: SigmaLimits, ry_failure: str | None
 ) -> list[str]:
     """:func:`sigma_problems` of a result whose ry went through the cube step
-    (:func:`calstation.engine.joint.fine_tune_with_cube`): that step's ``ry_failure``, when it has
-    one,
-    stands for ry."""
+    (:func:`calstation.plugins.cost_strategies.fine_tune_with_cube`): that step's
+    ``ry_failure``, when it has one, stands for ry."""
     if ry_failure is None:
         return sigma_problems(result, limits)
     return [*sigma_problems(result, limits, ("ry",)), ry_failure]

@@ -2,7 +2,7 @@
 
 :class:`Scan` is arrays and the few numbers needed to turn a return into a point with its platter
 angle; it knows nothing of files. The recordings layer reads an MCAP file into a
-:class:`calstation.recordings.recording.Recording`, which *is* a :class:`Scan` with the file's
+:class:`calstation.recordings.recorded.Recording`, which *is* a :class:`Scan` with the file's
 metadata beside it, so every engine function takes a recording as it is. A notebook or a port
 builds a :class:`Scan` from its own arrays.
 """
@@ -96,9 +96,8 @@ class Scan:
         return len(self.t_ns)
 
     def with_encoder_latency(self, latency_s: float) -> Self:
-        """The same recording read with another encoder latency (encoder time minus lidar time,
-        s): an estimated one (:mod:`calstation.engine.timeoffset`) in place of the configured
-        one."""
+        """The same scan read with another encoder latency (encoder time minus lidar time, s):
+        an estimated one (:mod:`calstation.engine.timeoffset`) in place of the configured one."""
         if not math.isfinite(latency_s):
             raise RecordingError(f"encoder latency must be finite, got {latency_s}")
         if latency_s == self.encoder_latency_s:

@@ -28,7 +28,7 @@ if TYPE_CHECKING:  # NumPy loads when a strategy runs: `recipes validate` checks
     from calstation.engine.cube import CubeCheck
     from calstation.engine.frames import Extrinsics
     from calstation.engine.result import CalibrationResult
-    from calstation.recordings.recording import Recording
+    from calstation.recordings.recorded import Recording
 
 Progress = Callable[[str, float], None]
 """``progress(message, fraction)`` with fraction in [0, 1]."""

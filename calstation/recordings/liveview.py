@@ -2,9 +2,8 @@
 
 :func:`start_live_view` starts a WebSocket server (``foxglove-sdk``'s, protocol
 ``foxglove.websocket.v1``) bound to 127.0.0.1 and makes it the process's live sink: from then on
-every :class:`~calstation.recordings.recording.RecordingWriter` of the process also publishes each
-message
-it writes — the same channels, schemas and bytes as the recording (``/lidar/scan``, ``/tf``,
+every :class:`~calstation.recordings.writer.RecordingWriter` of the process also publishes each
+message it writes — the same channels, schemas and bytes as the recording (``/lidar/scan``, ``/tf``,
 ``/tf_static``, ``/platter/cloud``, …). Foxglove (*Open connection* → *Foxglove WebSocket* →
 ``ws://127.0.0.1:PORT``) then shows the scan in 3D as it arrives.
 
@@ -61,7 +60,7 @@ class LiveView:
         self._last_repeat = 0.0
         self._closed = False
         self._failed = False
-        from calstation.recordings.recording import CHANNELS, channel_schema
+        from calstation.recordings.channels import CHANNELS, channel_schema
 
         for topic in CHANNELS:  # advertised at once, so a client can subscribe before a scan
             self._channel(topic, channel_schema(topic))
@@ -97,14 +96,14 @@ class LiveView:
 
     def close(self) -> None:
         """Stop the server (idempotent); writers then no longer publish to it."""
-        from calstation.recordings import recording
+        from calstation.recordings import writer
 
         with self._lock:
             if self._closed:
                 return
             self._closed = True
-        if recording.live_sink() is self:
-            recording.set_live_sink(None)
+        if writer.live_sink() is self:
+            writer.set_live_sink(None)
         self._server.stop()
 
     def __enter__(self) -> LiveView:
@@ -133,8 +132,8 @@ class LiveView:
 def start_live_view(port: int = DEFAULT_PORT, host: str = "127.0.0.1") -> LiveView:
     """Start the live view on ``host:port`` (port 0: any free port) and make it the process's
     live sink, so every recording written from now on is streamed too."""
-    from calstation.recordings import recording
+    from calstation.recordings import writer
 
     view = LiveView(port, host)
-    recording.set_live_sink(view)
+    writer.set_live_sink(view)
     return view

@@ -45,7 +45,8 @@ from calstation.drivers import (
     TurntableStatus,
 )
 from calstation.errors import CalstationError, DriverError
-from calstation.recordings.recording import Recording, read_recording
+from calstation.recordings.reader import read_recording
+from calstation.recordings.recorded import Recording
 
 DRIVER_NAME = "replay"
 DEFAULT_RECORDINGS: dict[str, str] = {

@@ -2,7 +2,7 @@
 
 Generic over the driver protocols of :mod:`calstation.drivers`: the same loops drive the simulated
 station and real hardware. The ``writer`` is a
-:class:`calstation.recordings.recording.RecordingWriter` (or
+:class:`calstation.recordings.writer.RecordingWriter` (or
 anything with its ``write_line``/``write_encoder``/``write_turntable`` methods).
 
 Progress is reported through ``progress(phase, fraction)``: ``phase`` a short text ("waiting for

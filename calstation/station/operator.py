@@ -15,6 +15,8 @@ into its scene) and a failed step fails the run.
 
 from __future__ import annotations
 
+import getpass
+import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -294,3 +296,11 @@ def _twist(cube: dict[str, Any]) -> str:
     if twist is None or twist != twist:
         return "—"
     return f"{twist:+.3f}° (±{sigma if sigma is not None else float('nan'):.3f}°)"
+
+
+def default_operator() -> str:
+    """Who runs the station when nobody says: ``$CALSTATION_OPERATOR``, else the login name."""
+    try:
+        return os.environ.get("CALSTATION_OPERATOR") or getpass.getuser()
+    except Exception:  # no login name in a container, say
+        return "unknown"

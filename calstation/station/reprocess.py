@@ -29,7 +29,7 @@ from calstation.recordings.runfolder import second_pass
 from calstation.storage.db import PARAMS, Calibration, Database, Run
 
 if TYPE_CHECKING:
-    from calstation.recordings.recording import Recording
+    from calstation.recordings.recorded import Recording
 
 REPROCESS_STAGE = "reprocess"
 """The ``calibration.stage`` of a re-processing."""
@@ -164,7 +164,7 @@ def reprocess_run(
         fine_tune_with_cube,
         run_strategy,
     )
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     say = status or (lambda message: None)
     with db.session() as s:

@@ -58,7 +58,8 @@ from calstation.errors import (
     ObservabilityError,
     StationError,
 )
-from calstation.recipes import LoadedRecipe, check_plugins, parse_recipe
+from calstation.plugins.recipe_checks import check_plugins
+from calstation.recipes import LoadedRecipe, parse_recipe
 from calstation.recordings.runfolder import RECORDING_OF, second_pass
 from calstation.station.operator import Operator, publish
 from calstation.storage.db import (
@@ -527,7 +528,7 @@ class Station:
 
     def _step_static_scan(self, step_id: int) -> StepOutcome:
         from calstation.engine.initial import initial_calibration
-        from calstation.recordings.recording import read_recording
+        from calstation.recordings.reader import read_recording
 
         d = self._drivers()
         lines = self.recipe.steps.static_scan.lines
@@ -573,7 +574,7 @@ class Station:
 
     def _step_fine_tune(self, step_id: int) -> StepOutcome:
         from calstation.engine.frames import Extrinsics
-        from calstation.recordings.recording import read_recording
+        from calstation.recordings.reader import read_recording
 
         strategy = self._strategy()
         recording = read_recording(self._artifact_path("spin"))
@@ -619,7 +620,7 @@ class Station:
         )
 
     def _step_cube_scan(self, step_id: int) -> StepOutcome:
-        from calstation.recordings.recording import read_recording
+        from calstation.recordings.reader import read_recording
 
         d = self._drivers()
         cfg = self.recipe.steps.cube_scan
@@ -736,7 +737,7 @@ class Station:
         if result.encoder_latency_s is not None:
             # estimated again under the H whose ry the cube changed: the estimate moves a
             # little with ry (~0.08 ms per 0.1°, docs/algorithms.md)
-            from calstation.recordings.recording import read_recording
+            from calstation.recordings.reader import read_recording
 
             result = self._time_offset(result, read_recording(self._artifact_path("spin")),
                                        progress, " under the combined H")
@@ -748,7 +749,7 @@ class Station:
         """``result`` with the lidar–encoder time offset from the spin scan's ``first`` pass and
         its stored second pass; ``under`` says which H, for the operator."""
         from calstation.engine.timeoffset import with_time_offset
-        from calstation.recordings.recording import read_recording
+        from calstation.recordings.reader import read_recording
 
         out = with_time_offset(
             result, first, read_recording(self._artifact_path(SECOND_PASS)),
@@ -826,7 +827,7 @@ class Station:
     ) -> Path:
         """Write the step's recording while acquiring; returns its path. ``stem`` names the file
         (and the artifact) when a step takes a second recording, default the recording's kind."""
-        from calstation.recordings.recording import RecordingWriter
+        from calstation.recordings.writer import RecordingWriter
 
         d = self._drivers()
         kind = RECORDING_OF[step]

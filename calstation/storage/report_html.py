@@ -87,7 +87,7 @@ def reconstructed_object(
     """The object on the platter from a spin recording: (N, 3) points in D (metres) above the
     platter top and inside its radius, and (N,) True for the first half-turn (φ mod 2π < π)."""
     from calstation.engine.reconstruct import lidar_points_to_dynamic
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     recording = read_recording(path)
     p_L, phi = recording.points_lidar()

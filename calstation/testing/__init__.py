@@ -96,7 +96,7 @@ def simulate_scans(
     files: dict[str, Any] = simulate_run(
         loaded, Path(out_dir), seed=seed, range_m=range_m, pitch_deg=pitch_deg, progress=False
     )
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     truth = read_recording(files["static"]).truth
     if truth is None:
@@ -108,7 +108,7 @@ def simulate_scans(
 def strategy_start(scans: SimulatedScans) -> Extrinsics:
     """The start a station gives a strategy: the initial calibration of the static scan."""
     from calstation.engine.initial import initial_calibration
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
 
     rc = scans.recipe.recipe
     return initial_calibration(

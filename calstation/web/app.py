@@ -132,11 +132,11 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
     @app.get("/", response_class=HTMLResponse)
     def operator_page(request: Request) -> HTMLResponse:
         """The operator page: start a run, answer its prompts, follow it live."""
-        from calstation.cli.run import _default_operator
+        from calstation.station.operator import default_operator
 
         return ctx.page(request, "operator.html", {
             "state": runner.live.snapshot(), "recipes": runner.recipes(),
-            "default_operator": _default_operator(), "resumable": _resumable(ctx.db),
+            "default_operator": default_operator(), "resumable": _resumable(ctx.db),
         })
 
     @app.get("/state.json")
@@ -222,7 +222,7 @@ def _resumable(db: Database) -> list[dict[str, Any]]:
 
 # --- runs, trends, compare -------------------------------------------------------------------
 def _run_routes(app: FastAPI, ctx: _Pages) -> None:
-    from calstation.web import qa
+    from calstation.storage import qa
 
     def history_filter(request: Request) -> qa.HistoryFilter:
         q = request.query_params

@@ -1,7 +1,6 @@
 """The web front end of a run: an :class:`~calstation.station.operator.Operator` that keeps the
-run's live
-state for the pages and takes the operator's answers from them, and the runner that executes one
-run at a time in a background thread of the server process.
+run's live state for the pages and takes the operator's answers from them, and the runner that
+executes one run at a time in a background thread of the server process.
 
 The station (:mod:`calstation.station.run`) is the same one the console drives: :class:`WebOperator`
 only records what it is told (steps, progress, prompts, lidar lines, the verdict) into a

@@ -8,13 +8,11 @@ calstation[postgres]``). The schema is managed by the Alembic migrations in ``mi
 ``calstation db upgrade`` applies them, and a fresh, empty database is migrated automatically
 when first opened (by one process at a time: concurrent first runs do not race).
 
-Faults: a locked database is waited for (``CALSTATION_DB_LOCK_TIMEOUT`` seconds, default 120;
-a note on standard error says so after 2 s), then reported in one sentence; the SQL and its
-parameters go only to the log file :attr:`Database.log_path` (``database.log`` in the run folder
-during a run, else in ``$CALSTATION_HOME``). A result that cannot be written is kept in the run
-folder's journal (:mod:`calstation.storage.db.journal`) and written by the next command that opens
-the
-database.
+Faults: a locked database is waited for (``CALSTATION_DB_LOCK_TIMEOUT`` seconds, default 120; a note
+on standard error says so after 2 s), then reported in one sentence; the SQL and its parameters go
+only to the log file :attr:`Database.log_path` (``database.log`` in the run folder during a run,
+else in ``$CALSTATION_HOME``). A result that cannot be written is kept in the run folder's journal
+(:mod:`calstation.storage.db.journal`) and written by the next command that opens the database.
 """
 
 from __future__ import annotations

@@ -3,11 +3,9 @@
 A template for a strategy plugin: it declares its fixture (the QA cube) and an options model
 (``calibration.options.example-ry-held`` in a recipe, checked by ``calstation recipes validate``
 with file and line), reads its options with
-:func:`calstation.plugins.cost_strategies.strategy_options`,
-and
-re-uses calstation's engine (:func:`calstation.engine.shape.shape_fine_tune`). calstation checks
-what it
-returns (finite, near its start) and times it.
+:func:`calstation.plugins.cost_strategies.strategy_options`, and re-uses calstation's engine
+(:func:`calstation.engine.shape.shape_fine_tune`). calstation checks what it returns (finite, near
+its start) and times it.
 """
 
 from __future__ import annotations
@@ -21,7 +19,7 @@ if TYPE_CHECKING:  # the engine loads when the strategy runs, not when it is reg
     from calstation.engine.result import CalibrationResult
     from calstation.plugins.cost_strategies import Progress
     from calstation.recipes import Recipe
-    from calstation.recordings.recording import Recording
+    from calstation.recordings.recorded import Recording
 
 
 class RyHeldOptions(BaseModel):

@@ -12,8 +12,9 @@ from calstation import plugins
 from calstation.engine.metrics import axis_errors
 from calstation.errors import RecipeError
 from calstation.plugins.cost_strategies import run_strategy
-from calstation.recipes import check_plugins, load_recipe
-from calstation.recordings.recording import read_recording
+from calstation.plugins.recipe_checks import check_plugins
+from calstation.recipes import load_recipe
+from calstation.recordings.reader import read_recording
 from calstation.testing import SimulatedScans
 
 

@@ -31,7 +31,7 @@ RZ_RAD = math.radians(0.05)
 def test_calibration_through_the_real_drivers_and_emulators(tmp_path: Path) -> None:
     from calstation.engine.frames import Extrinsics
     from calstation.engine.metrics import axis_errors
-    from calstation.recordings.recording import read_recording
+    from calstation.recordings.reader import read_recording
     from calstation.storage.db import Artifact, Calibration, Database, Run
 
     url = f"sqlite:///{tmp_path / 'e2e.db'}"

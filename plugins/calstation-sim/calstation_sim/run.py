@@ -83,7 +83,7 @@ def simulate_run(
     paths. ``seed``, ``range_m`` (m) and ``pitch_deg`` override the
     recipe's simulation.
     """
-    from calstation.recordings.recording import RecordingWriter
+    from calstation.recordings.writer import RecordingWriter
 
     out = Path(out_dir)
     try:

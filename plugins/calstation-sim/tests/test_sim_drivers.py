@@ -19,7 +19,7 @@ from calstation.clock import HostClock, SimClock
 from calstation.drivers import DriverContext, Encoder, Lidar, Turntable, TurntableState
 from calstation.errors import DriverError
 from calstation.recipes import LoadedRecipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 
 def _drivers(

@@ -16,7 +16,7 @@ from calstation_sim.motion import PlatterMotion
 from calstation.engine.frames import counts_to_angle, lidar_to_dynamic, polar_to_lidar
 from calstation.errors import SimulationError
 from calstation.recipes import LoadedRecipe
-from calstation.recordings.recording import read_recording
+from calstation.recordings.reader import read_recording
 
 FAST = {
     "simulation.lidar.points_per_line": 200,

@@ -1,0 +1,66 @@
+"""The calibration section of a recipe: which fine-tuning strategy runs, where it starts, each
+stage's settings, and the options of the built-in strategies.
+
+The stage settings are the engine's (:mod:`calstation.engine.settings`). A plugin strategy's
+options are checked against the ``options_model`` it declares, in the plugin layer
+(:mod:`calstation.plugins.recipe_checks`); the built-ins' options are checked here, with the
+recipe itself.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field, ValidationError
+
+from calstation.engine.settings import (
+    InitialSettings,
+    PeriodicitySettings,
+    ShapeOptions,
+    ShapeSettings,
+    SigmaLimits,
+)
+from calstation.recipes.base import Model
+from calstation.recipes.problems import Problem, error_message
+
+
+class CalibrationSettings(Model):
+    """Which fine-tuning strategy to run, where it starts, and each stage's settings."""
+
+    strategy: str = "periodicity"
+    start: Literal["l_target", "platter"] = Field(
+        "l_target",
+        description="where the fine-tuning starts: the L-target's static scan (the paper), or "
+        "the platter's chord in the spin scan itself (no L-target, no static scan)",
+    )
+    initial: InitialSettings = InitialSettings()
+    shape: ShapeSettings = ShapeSettings()
+    periodicity: PeriodicitySettings = PeriodicitySettings()
+    max_sigma: SigmaLimits = SigmaLimits()
+    options: dict[str, dict[str, Any]] = Field(
+        default_factory=dict, description="settings of plugin strategies, by strategy name"
+    )
+
+
+class PeriodicityOptions(Model):
+    """``calibration.options.periodicity``: the built-in periodicity strategy takes its settings
+    from ``calibration.periodicity``; no options."""
+
+
+BUILTIN_OPTIONS: dict[str, type[BaseModel]] = {
+    "shape": ShapeOptions,
+    "periodicity": PeriodicityOptions,
+}
+"""The options models of the built-in strategies (plugins declare theirs as the strategy's
+``options_model``; see :func:`options_problems`)."""
+
+
+def options_problems(name: str, model: type[BaseModel], options: Any) -> list[Problem]:
+    """Problems of ``calibration.options.<name>`` against the strategy's options ``model``."""
+    try:
+        model.model_validate(options if options is not None else {})
+    except ValidationError as exc:
+        return [(("calibration", "options", name, *err["loc"]), error_message(err))
+                for err in exc.errors()]
+    return []
+
