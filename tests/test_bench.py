@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from calstation.bench import BenchError
-from calstation.bench.runner import apply_overrides
 from calstation.bench.scenarios import (
     PERTURBATION_SETS,
     paper_scenarios,
     sample_starts,
     select_scenarios,
 )
+from calstation.bench.worker import apply_overrides
 from calstation.engine.frames import Extrinsics
 from calstation.recipes import load_recipe
 

@@ -8,7 +8,7 @@ from hypothesis import given, settings, strategies as st
 from scipy.optimize._numdiff import approx_derivative
 
 from calstation.engine.neighbours import local_planes, mutual_neighbours, smallest_eigenvectors
-from calstation.engine.periodicity import _Matched, _Problem
+from calstation.engine.periodicity.problem import _Matched, _Problem
 
 
 @settings(max_examples=60, deadline=None)

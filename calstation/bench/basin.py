@@ -4,7 +4,7 @@ against the distance of the start from the true H.
 Per parameter (tx, tz, ry, rz: one of them off by the level's distance, the others true) and
 jointly (all four off, each by 80–100 % of the level's distance with a random sign), at seven
 levels out to ±500 mm and ±10°. ty is the gauge (kept true) and rx 0. "Converged" is the bench's
-:data:`~calstation.bench.runner.CONVERGENCE` for the method; a start the strategy refuses with an
+:data:`~calstation.bench.records.CONVERGENCE` for the method; a start the strategy refuses with an
 error counts as not converged. The starts are drawn from a fixed seed, so a run is repeatable.
 """
 
@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from calstation.bench.tasks import Task
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 
 PARAMS = ("tx", "tz", "ry", "rz")
@@ -55,10 +56,8 @@ def basin_starts(truth: Extrinsics, starts: int, seed: int = BASIN_SEED) -> list
 
 def basin_tasks(
     scenario: str, directory: Path, truth: Extrinsics, methods: Sequence[str], starts: int
-) -> list[Any]:
+) -> list[Task]:
     """One fine-tuning task per (method, start)."""
-    from calstation.bench.runner import Task
-
     tasks = []
     for method in methods:
         for s in basin_starts(truth, starts):
@@ -75,21 +74,6 @@ def basin_tasks(
                 )
             )
     return tasks
-
-
-def run_basin_task(task: Any, recording: Any, recipe: Any) -> dict[str, Any]:
-    """Fine-tune from the task's start; the estimate, its σ and its errors against the truth."""
-    from calstation import plugins
-    from calstation.bench.runner import against_truth, result_fields, scan_of
-
-    assert task.start is not None
-    strategy = plugins.strategy(task.method)
-    rec = recording(task.directory, scan_of(strategy))
-    t0 = time.perf_counter()
-    result = strategy.run(rec, Extrinsics(*task.start), recipe)
-    out = {"stage_s": time.perf_counter() - t0, **result_fields(result)}
-    out.update(against_truth(result.H, recording(task.directory, "truth")))
-    return out
 
 
 def _fractions(records: Sequence[dict[str, Any]], method: str, group: str) -> list[float]:
@@ -210,7 +194,7 @@ def run_basin(
 ) -> Path:
     """Simulate the scenario (or reuse it), run every start, write ``basin.md`` and
     ``results/basin.png`` to ``report_dir``; returns the path of ``basin.md``."""
-    from calstation.bench.runner import Executor, RecordStore, _run_phase, git_commit
+    from calstation.bench.execute import Executor, RecordStore, _run_phase, git_commit
     from calstation.bench.scenarios import load_truth, select_scenarios, simulate_scenario
     from calstation.recipes import load_recipe
 

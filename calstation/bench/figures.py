@@ -1,5 +1,5 @@
 """The bench's figures (matplotlib, Agg backend, PNG), after the paper's box plots and cost
-landscapes. Each function takes plain records (see :mod:`.runner`) and writes one PNG."""
+landscapes. Each function takes plain records (see :mod:`.records`) and writes one PNG."""
 
 from __future__ import annotations
 

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from calstation.bench import BenchError
+from calstation.bench.tasks import Task, scenario_dir
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 
 PAIRS: dict[str, tuple[str, str]] = {"translation": ("tx", "tz"), "rotation": ("ry", "rz")}
@@ -24,8 +25,6 @@ PAIRS: dict[str, tuple[str, str]] = {"translation": ("tx", "tz"), "rotation": ("
 def landscape_tasks(config: Any, store: Any) -> list[Any]:
     """One task per (method, pair, grid row) for ``config.landscape_scenario``, centred on each
     method's result from the initial calibration (skipped if that run failed)."""
-    from calstation.bench.runner import Task, scenario_dir
-
     scen = next((s for s in config.scenarios if s.name == config.landscape_scenario), None)
     if scen is None:
         return []
@@ -152,13 +151,12 @@ def _periodicity_cost(
     """The paper's periodicity cost, re-matched at every H (as the optimiser's outer loop sees
     it), built from the public helpers of :mod:`calstation.engine.periodicity`.
 
-    calstation/engine/periodicity.py exposes no public whole-cost function, so: static returns
-    dropped
-    (``static_mask``), both half-turns averaged over ``sensor_cells`` of 5 mm (independent of H),
-    mapped to D (``to_dynamic``), platter points (x_P ≤ 5 mm) dropped, ``mutual_neighbours``
-    within the recipe's ``match_distance`` (paper: 20 cm), planes from ``weighted_normals``;
-    cost = mean over matches of w·(n·(x − x′))², both ends' planes. The platter gauge residual
-    is not included (it is calstation's gauge, not the paper's cost).
+    calstation.engine.periodicity exposes no public whole-cost function, so: static returns
+    dropped (``static_mask``), both half-turns averaged over ``sensor_cells`` of 5 mm
+    (independent of H), mapped to D (``to_dynamic``), platter points (x_P ≤ 5 mm) dropped,
+    ``mutual_neighbours`` within the recipe's ``match_distance`` (paper: 20 cm), planes from
+    ``weighted_normals``; cost = mean over matches of w·(n·(x − x′))², both ends' planes. The
+    platter gauge residual is not included (it is calstation's gauge, not the paper's cost).
     """
     from calstation.engine.neighbours import mutual_neighbours, weighted_normals
     from calstation.engine.periodicity import sensor_cells, to_dynamic

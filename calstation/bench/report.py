@@ -1,12 +1,13 @@
 """Aggregate the bench's records into the paper's tables, our ground-truth tables and
-``results.md`` (with its PNG figures in ``results/``)."""
+``results.md`` (with its PNG figures in ``results/``); the tables themselves are
+:mod:`calstation.bench.tables`."""
 
 from __future__ import annotations
 
 import json
 import math
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -14,34 +15,29 @@ import numpy as np
 
 from calstation.bench import BenchError
 from calstation.bench.figures import (
-    METHOD_LABELS,
     ablation_figure,
     cube_boxplots,
-    cube_error_values,
-    deviations_from_mean,
     landscape_figure,
     param_boxplots,
 )
-from calstation.bench.runner import ABLATION_VARIANTS, ABLATIONS, CONVERGENCE, FINE_TUNING_METHODS
-from calstation.bench.scenarios import PERTURBATION_SEED, SCENARIO_SEED_BASE, paper_scenarios
-
-PAPER_TABLE_I = {"initial": 5.1, "shape": 3.2, "periodicity": 2.7}
-"""Paper Table II (first): median cube edge error (mm), fine-tuning from the initial calibration."""
-PAPER_TABLE_II = {
-    "initial": {"A": 5.1, "B": 5.1},
-    "shape": {"A": 3.0, "B": 4.0},
-    "periodicity": {"A": 2.7, "B": 2.8},
-}
-"""Paper Table III: median cube edge error (mm) over the perturbed starts of sets A and B."""
-PAPER_SPREAD = {
-    ("periodicity", "A", "tx"): "sub-mm",
-    ("periodicity", "B", "tx"): "≤ 1 mm for most",
-    ("shape", "A", "tx"): "up to 12 mm (excl. outliers)",
-}
-"""What the paper says about the tx spread in its box plots (no numbers are printed)."""
-
-SET_LABELS = {"init": "from initial", "A": "set A", "B": "set B"}
-MM, DEG = 1e3, 180.0 / math.pi
+from calstation.bench.records import CONVERGENCE
+from calstation.bench.scenarios import PERTURBATION_SEED, SCENARIO_SEED_BASE
+from calstation.bench.tables import (
+    DEG,
+    MM,
+    SET_LABELS,
+    _ablation_offsets,
+    _fmt,
+    summary_against_paper,
+    table_ablation,
+    table_from_initial,
+    table_ground_truth,
+    table_per_scenario,
+    table_sets,
+    table_spread,
+    table_timing,
+)
+from calstation.bench.tasks import ABLATION_VARIANTS, ABLATIONS, FINE_TUNING_METHODS
 
 
 def load_records(out: Path) -> list[dict[str, Any]]:
@@ -56,286 +52,6 @@ def load_records(out: Path) -> list[dict[str, Any]]:
         except ValueError:
             continue
     return recs
-
-
-# --- selection and statistics --------------------------------------------------------------
-def _select(
-    records: Sequence[dict[str, Any]],
-    method: str,
-    start_set: str,
-    variant: str = "default",
-    ok_only: bool = True,
-) -> list[dict[str, Any]]:
-    out = []
-    for r in records:
-        if r.get("variant", "default") != variant:
-            continue
-        if method == "initial":
-            if r["kind"] != "initial":
-                continue
-        elif not (r["kind"] == "finetune" and r["method"] == method and r["set"] == start_set):
-            continue
-        if ok_only and r.get("status") != "ok":
-            continue
-        out.append(r)
-    return out
-
-
-def _median(values: Sequence[float] | np.ndarray) -> float:
-    arr = np.asarray(values, dtype=float)
-    arr = arr[np.isfinite(arr)]
-    return float(np.median(arr)) if arr.size else float("nan")
-
-
-def _pct(values: Sequence[float] | np.ndarray, q: float) -> float:
-    arr = np.asarray(values, dtype=float)
-    arr = arr[np.isfinite(arr)]
-    return float(np.percentile(arr, q)) if arr.size else float("nan")
-
-
-def _fmt(x: float, digits: int = 2) -> str:
-    if x is None or not math.isfinite(x):
-        return "–"
-    return f"{x:.{digits}f}"
-
-
-def _values(recs: Sequence[dict[str, Any]], getter: Callable[[dict[str, Any]], Any]) -> np.ndarray:
-    vals = []
-    for r in recs:
-        try:
-            v = getter(r)
-        except (KeyError, TypeError):
-            continue
-        if isinstance(v, int | float) and v is not None:
-            vals.append(float(v))
-    return np.asarray(vals, dtype=float)
-
-
-def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
-
-
-# --- tables --------------------------------------------------------------------------------------
-def _e_cell(e: np.ndarray, digits: int = 1) -> str:
-    """Median (mm) with failures counted as +inf, and how many could not be measured."""
-    if e.size == 0:
-        return "–"
-    med = float(np.median(e))
-    lost = int(np.sum(~np.isfinite(e)))
-    text = _fmt(med, digits) if math.isfinite(med) else "not measurable"
-    return text + (f" ({lost}/{e.size} n/m)" if lost else "")
-
-
-def table_from_initial(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
-    """Paper Table II: median OBB cube edge error, fine-tuning from the initial calibration; the
-    true H's row is the metric's floor on this simulated sensor."""
-    rows = []
-    for m in ["initial", *methods, "truth"]:
-        e = cube_error_values(records, m, "init", "obb_error_m")
-        ff = cube_error_values(records, m, "init", "edge_error_m")
-        label = (
-            "true H (metric floor, not in the paper)" if m == "truth" else METHOD_LABELS.get(m, m)
-        )
-        rows.append(
-            [
-                label,
-                _e_cell(e),
-                _fmt(PAPER_TABLE_I.get(m, float("nan")), 1),
-                _e_cell(ff, 2),
-                str(len(e)),
-            ]
-        )
-    return _table(
-        ["method", "calstation: median e (mm)", "paper (mm)", "calstation: face-fit (mm)", "N"],
-        rows,
-    )
-
-
-def table_sets(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
-    """Paper Table III: median OBB cube edge error over the perturbed starts of sets A and B
-    (a run whose cube could not be measured counts as +inf: "n/m")."""
-    rows = []
-    for m in ["initial", *methods]:
-        row = [METHOD_LABELS.get(m, m)]
-        for s in ("A", "B"):
-            e = cube_error_values(records, m, s, "obb_error_m")
-            row += [_e_cell(e), _fmt(PAPER_TABLE_II.get(m, {}).get(s, float("nan")), 1)]
-        rows.append(row)
-    return _table(
-        ["method", "set A: calstation (mm)", "set A: paper", "set B: calstation (mm)",
-         "set B: paper"],
-        rows,
-    )
-
-
-def table_ground_truth(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
-    """Per method and start set: convergence, axis errors, per-parameter errors, distortion."""
-    rows = []
-    combos = [("initial", "init")] + [(m, s) for m in methods for s in ("init", "A", "B")]
-    for m, s in combos:
-        every = _select(records, m, s, ok_only=False)
-        ok = [r for r in every if r.get("status") == "ok"]
-        n_conv = sum(1 for r in every if r.get("converged"))
-        off = _values(ok, lambda r: r["axis"]["axis_offset_m"]) * MM
-        ang = _values(ok, lambda r: r["axis"]["axis_angle_rad"]) * DEG
-        row = [
-            METHOD_LABELS.get(m, m),
-            SET_LABELS[s],
-            f"{len(every)}",
-            f"{len(every) - len(ok)}",
-            f"{n_conv}/{len(every)} ({100.0 * n_conv / max(1, len(every)):.0f}%)",
-            f"{_fmt(_median(off))} / {_fmt(_pct(off, 95))}",
-            f"{_fmt(_median(ang), 3)} / {_fmt(_pct(ang, 95), 3)}",
-        ]
-        for p, scale, d in (("tx", MM, 2), ("ty", MM, 2), ("tz", MM, 2), ("ry", DEG, 3),
-                            ("rz", DEG, 3)):
-            err = _values(ok, lambda r, p=p: r["error"][p])  # type: ignore[misc]
-            row.append(_fmt(_median(np.abs(err)) * scale, d))
-        rms = _values(ok, lambda r: r["distortion"]["rms_m"]) * MM
-        mx = _values(ok, lambda r: r["distortion"]["max_m"]) * MM
-        row.append(f"{_fmt(_median(rms))} / {_fmt(_median(mx))}")
-        rows.append(row)
-    return _table(
-        ["method", "start", "N", "failed", "converged", "axis offset mm (median / p95)",
-         "axis direction ° (median / p95)", "tx err mm", "ty err mm", "tz err mm", "ry err °",
-         "rz err °",
-         "cube distortion mm (RMS / max, median)"],
-        rows,
-    )
-
-
-def table_spread(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
-    """The paper's box-plot statistics: deviation of tx, tz, ry, rz from their per-scenario mean
-    over the perturbed starts; IQR and the largest |deviation| per method and set."""
-    rows = []
-    for m in methods:
-        for s in ("A", "B"):
-            row = [METHOD_LABELS.get(m, m), f"set {s}"]
-            for p, scale, d in (("tx", MM, 3), ("tz", MM, 3), ("ry", DEG, 4), ("rz", DEG, 4)):
-                dev = deviations_from_mean(records, m, s, p) * scale
-                if dev.size:
-                    iqr = float(np.percentile(dev, 75) - np.percentile(dev, 25))
-                    row.append(f"{_fmt(iqr, d)} / {_fmt(float(np.max(np.abs(dev))), d)}")
-                else:
-                    row.append("–")
-            tx = deviations_from_mean(records, m, s, "tx") * MM
-            within = 100.0 * float(np.mean(np.abs(tx) <= 1.0)) if tx.size else float("nan")
-            row.append(_fmt(within, 0) + "%")
-            row.append(PAPER_SPREAD.get((m, s, "tx"), "–"))
-            rows.append(row)
-    return _table(
-        ["method", "set", "tx mm (IQR / max)", "tz mm (IQR / max)", "ry ° (IQR / max)",
-         "rz ° (IQR / max)", "tx within ±1 mm of mean", "paper on tx"],
-        rows,
-    )
-
-
-def table_per_scenario(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
-    """Per scenario: the OBB cube error of each method from the initial calibration, the
-    periodicity axis offset from it, and each method's convergence rate over every start."""
-    names = sorted({r["scenario"] for r in records if r["kind"] == "initial"},
-                   key=lambda n: int(n[1:]))
-    labels = {s.name: s.label for s in paper_scenarios()}
-    rows = []
-    for name in names:
-        sub = [r for r in records if r["scenario"] == name]
-        row = [labels.get(name, name)]
-        for m in ["initial", *methods]:
-            row.append(_e_cell(cube_error_values(sub, m, "init")))
-        for m in methods:
-            init = _select(sub, m, "init")
-            off = _values(init, lambda r: r["axis"]["axis_offset_m"]) * MM
-            row.append(_fmt(_median(off), 2))
-        for m in methods:
-            every = [r for s in ("init", "A", "B") for r in _select(sub, m, s, ok_only=False)]
-            conv = sum(1 for r in every if r.get("converged"))
-            row.append(f"{conv}/{len(every)}")
-        rows.append(row)
-    header = ["scenario"]
-    header += [f"e {METHOD_LABELS.get(m, m)} (mm)" for m in ["initial", *methods]]
-    header += [f"axis offset {METHOD_LABELS.get(m, m)} (mm)" for m in methods]
-    header += [f"converged {METHOD_LABELS.get(m, m)}" for m in methods]
-    return _table(header, rows)
-
-
-def table_timing(records: Sequence[dict[str, Any]], methods: Sequence[str],
-                 meta: dict[str, Any]) -> str:
-    """Seconds per stage (median / p90 / max) as measured inside the workers."""
-    rows = []
-    sims = [r for r in records if r["kind"] == "simulate" and r.get("status") == "ok"]
-    stages: list[tuple[str, np.ndarray]] = [
-        ("simulate one scenario (3 scans)", _values(sims, lambda r: r["wall_s"])),
-        ("initial calibration", _values(_select(records, "initial", "init"),
-                                        lambda r: r["stage_s"])),
-    ]
-    for m in methods:
-        recs = [r for s in ("init", "A", "B") for r in _select(records, m, s)]
-        stages.append((f"{METHOD_LABELS.get(m, m)} fine-tuning",
-                       _values(recs, lambda r: r["stage_s"])))
-    evals = [r for r in records if r["kind"] in ("initial", "finetune") and r.get("status") == "ok"]
-    stages.append(("cube check", _values(evals, lambda r: r["eval_timings"]["cube_check_s"])))
-    stages.append(("reconstruction distortion",
-                   _values(evals, lambda r: r["eval_timings"]["distortion_s"])))
-    rows_ls = [r for r in records if r["kind"] == "landscape" and r.get("status") == "ok"]
-    stages.append(("one cost evaluation (landscape)", _values(
-        rows_ls, lambda r: r["stage_s"] / max(1, len(r["landscape"]["costs"])))))
-    for name, v in stages:
-        rows.append([name, str(v.size), _fmt(_median(v)), _fmt(_pct(v, 90)),
-                     _fmt(float(np.max(v)) if v.size else float("nan"))])
-    return _table(["stage", "N", "median (s)", "p90 (s)", "max (s)"], rows)
-
-
-def _ablation_records(
-    records: Sequence[dict[str, Any]], variant: str, scenarios: Sequence[str], n_starts: int,
-    method: str = "periodicity",
-) -> list[dict[str, Any]]:
-    return [
-        r for s in ("init", "B") for r in _select(records, method, s, variant, False)
-        if r["scenario"] in scenarios and (s == "init" or r["index"] < n_starts)
-    ]
-
-
-def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
-                   n_starts: int, method: str = "periodicity") -> str:
-    """``method`` with each robustness feature off, on the ablation subset (init + the first
-    ``n_starts`` set-B starts)."""
-    rows = []
-    for variant in ABLATIONS[method]:
-        every = _ablation_records(records, variant, scenarios, n_starts, method)
-        if not every:
-            continue
-        ok = [r for r in every if r.get("status") == "ok"]
-        conv = sum(1 for r in every if r.get("converged"))
-        off = _values(ok, lambda r: r["axis"]["axis_offset_m"]) * MM
-        ang = _values(ok, lambda r: r["axis"]["axis_angle_rad"]) * DEG
-        ty = np.abs(_values(ok, lambda r: r["error"]["ty"])) * MM
-        t = _values(ok, lambda r: r["stage_s"])
-        rows.append([
-            variant, str(len(every)), str(len(every) - len(ok)),
-            f"{conv}/{len(every)} ({100.0 * conv / max(1, len(every)):.0f}%)",
-            f"{_fmt(_median(off))} / {_fmt(_pct(off, 95))}",
-            f"{_fmt(_median(ang), 3)} / {_fmt(_pct(ang, 95), 3)}",
-            _fmt(_median(ty)),
-            _fmt(_median(t), 1),
-        ])
-    return _table(
-        [f"{method} variant", "N", "failed", "converged", "axis offset mm (median / p95)",
-         "axis direction ° (median / p95)", "ty err mm (median)", "time s (median)"],
-        rows,
-    )
-
-
-def _ablation_offsets(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
-                      n_starts: int, method: str = "periodicity") -> dict[str, np.ndarray]:
-    out = {}
-    for variant in ABLATIONS[method]:
-        recs = [r for r in _ablation_records(records, variant, scenarios, n_starts, method)
-                if r.get("status") == "ok"]
-        if recs:
-            out[variant] = _values(recs, lambda r: r["axis"]["axis_offset_m"]) * MM
-    return out
 
 
 def _load_note(meta: dict[str, Any]) -> str:
@@ -404,15 +120,40 @@ def write_report(
         meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     cfg = meta.get("config", {})
     records = main_records(every, int(meta.get("starts_completed", cfg.get("starts_per_set", 0))))
-    n_abl = int(cfg.get("ablation_starts", 0))
     methods = [m for m in cfg.get("methods", FINE_TUNING_METHODS)]
     fig_dir = report_dir / "results"
     fig_dir.mkdir(parents=True, exist_ok=True)
 
+    _spread_figures(records, methods, fig_dir)
+    landscape_md = _landscape_figures(records, methods, fig_dir)
+    abl_sc = [s for s in cfg.get("ablation_scenarios", []) if
+              any(r["scenario"] == s for r in every)]
+    _ablation_figures(every, abl_sc, int(cfg.get("ablation_starts", 0)), fig_dir)
+
+    text = _compose(records, every, meta, methods, abl_sc, landscape_md, label)
+    text += variants_section(report_dir)
+    # sections of their own commands (calstation.bench.basin, .speed, .targetless)
+    for name in ("basin.md", "speed.md", "targetless.md"):
+        if (report_dir / name).is_file():
+            text += "\n" + (report_dir / name).read_text()
+    path = report_dir / "results.md"
+    path.write_text(text)
+    return path
+
+
+def _spread_figures(records: Sequence[dict[str, Any]], methods: Sequence[str],
+                    fig_dir: Path) -> None:
+    """The parameters' box plots (all methods, and periodicity alone) and the cube errors'."""
     param_boxplots(records, fig_dir / "param_spread.png", methods)
     if "periodicity" in methods:
         param_boxplots(records, fig_dir / "param_spread_periodicity.png", ["periodicity"], False)
     cube_boxplots(records, fig_dir / "cube_error.png", methods)
+
+
+def _landscape_figures(records: Sequence[dict[str, Any]], methods: Sequence[str],
+                       fig_dir: Path) -> list[str]:
+    """A figure per sampled landscape (translation, rotation); the lines of results.md that
+    show them and name the cost functions (none without a landscape)."""
     grids = _landscape_grids(records)
     landscape_md: list[str] = []
     sources: dict[str, str] = {}
@@ -433,15 +174,19 @@ def write_report(
         landscape_md += [
             "Cost functions: " + "; ".join(f"{m}: {src}" for m, src in sources.items()) + ".",
             "",
-            "calstation/engine/periodicity.py has no public function that evaluates the whole cost "
-            "at "
-            "a given H (only the optimiser's private residuals), so that landscape is assembled "
+            "calstation.engine.periodicity has no public function that evaluates the whole cost "
+            "at a given H (only the optimiser's private residuals), so that landscape is assembled "
             "from its public building blocks as listed; the shape landscape uses the engine's "
             "public `ShapeCost`. Each grid point re-segments (shape) or re-matches "
             "(periodicity) at its own H, as the optimiser's outer loop does.",
         ]
-    abl_sc = [s for s in cfg.get("ablation_scenarios", []) if
-              any(r["scenario"] == s for r in every)]
+    return landscape_md
+
+
+def _ablation_figures(every: Sequence[dict[str, Any]], abl_sc: Sequence[str], n_abl: int,
+                      fig_dir: Path) -> None:
+    """The axis offsets of each ablation variant: periodicity's, and shape's when it has
+    variants besides the default."""
     lim = CONVERGENCE["periodicity"]["axis_offset_m"] * MM
     ablation_figure(_ablation_offsets(every, abl_sc, n_abl), fig_dir / "ablation.png", lim,
                     f"Periodicity ablation, scenarios {', '.join(abl_sc)} (init + set B)")
@@ -450,16 +195,6 @@ def write_report(
         ablation_figure(shape_offsets, fig_dir / "ablation_shape.png",
                         CONVERGENCE["shape"]["axis_offset_m"] * MM,
                         f"Shape ablation, scenarios {', '.join(abl_sc)} (init + set B)")
-
-    text = _compose(records, every, meta, methods, abl_sc, landscape_md, label)
-    text += variants_section(report_dir)
-    # sections of their own commands (calstation.bench.basin, .speed, .targetless)
-    for name in ("basin.md", "speed.md", "targetless.md"):
-        if (report_dir / name).is_file():
-            text += "\n" + (report_dir / name).read_text()
-    path = report_dir / "results.md"
-    path.write_text(text)
-    return path
 
 
 def variants_section(report_dir: Path) -> str:
@@ -493,65 +228,6 @@ def variants_section(report_dir: Path) -> str:
     return "\n".join(head + parts)
 
 
-def summary_against_paper(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
-    """Bullet points: where calstation beats or trails each number the paper prints, computed
-    from the records (median cube error e, its sets A/B, the tx spread for set A), with the
-    ground truth the paper could not measure."""
-    out = []
-
-    def verdict(ours: float, paper: float) -> str:
-        if not math.isfinite(ours):
-            return "not measurable"
-        return "beats" if ours < paper else ("ties" if ours == paper else "trails")
-
-    for m in ["initial", *methods]:
-        e = cube_error_values(records, m, "init", "obb_error_m")
-        if e.size:
-            med = float(np.median(e))
-            out.append(
-                f"- {METHOD_LABELS.get(m, m)}, from the initial calibration: median e "
-                f"{_e_cell(e)} mm vs the paper's {PAPER_TABLE_I[m]:.1f} mm "
-                f"({verdict(med, PAPER_TABLE_I[m])})."
-            )
-    floor = cube_error_values(records, "truth", "init", "obb_error_m")
-    if floor.size:
-        out.append(
-            f"- The same metric with the *true* H gives a median e of "
-            f"{_fmt(float(np.median(floor)), 1)} mm on this simulated sensor (range noise, mixed "
-            "pixels at the cube's edges): the unsmoothed-OBB metric cannot go below that, so "
-            "compare the methods with each other and with the ground-truth table rather than "
-            "with the paper's absolute values."
-        )
-    for m in methods:
-        for s in ("A", "B"):
-            e = cube_error_values(records, m, s, "obb_error_m")
-            if e.size:
-                med = float(np.median(e))
-                paper = PAPER_TABLE_II[m][s]
-                every = _select(records, m, s, ok_only=False)
-                ok = [r for r in every if r.get("status") == "ok"]
-                conv = sum(1 for r in every if r.get("converged"))
-                out.append(
-                    f"- {METHOD_LABELS.get(m, m)}, set {s}: median e {_e_cell(e)} mm vs "
-                    f"{paper:.1f} mm ({verdict(med, paper)}); converged {conv}/{len(every)} "
-                    f"({len(every) - len(ok)} stopped with an error; {conv} of the {len(ok)} "
-                    "estimates returned are within the thresholds)."
-                )
-    for m in methods:
-        for s in ("A", "B"):
-            tx = deviations_from_mean(records, m, s, "tx") * MM
-            if tx.size:
-                iqr = float(np.percentile(tx, 75) - np.percentile(tx, 25))
-                within = 100.0 * float(np.mean(np.abs(tx) <= 1.0))
-                out.append(
-                    f"- tx spread, {METHOD_LABELS.get(m, m)}, set {s}: IQR {_fmt(iqr, 3)} mm, "
-                    f"{within:.0f}% within ±1 mm of the mean, largest "
-                    f"{_fmt(float(np.max(np.abs(tx))), 3)} mm (paper: "
-                    f"{PAPER_SPREAD.get((m, s, 'tx'), 'no statement')})."
-                )
-    return "\n".join(out) if out else "(no results)"
-
-
 def _compose(
     records: Sequence[dict[str, Any]],
     every: Sequence[dict[str, Any]],
@@ -561,15 +237,44 @@ def _compose(
     landscape_md: Sequence[str],
     label: str | None,
 ) -> str:
+    """The text of results.md, section by section: ``records`` the main protocol's,
+    ``every`` all of them (ablation variants and failures included)."""
+    parts = _title(every, meta, methods, label)
+    parts += _provenance(records, every, meta)
+    parts += _against_the_paper(records, methods)
+    parts += _against_the_truth(records, methods)
+    parts += ["## Cost landscapes", ""]
+    parts += list(landscape_md) or ["(no landscape was sampled in this run)"]
+    parts += [""]
+    parts += _ablation(every, meta, abl_sc)
+    parts += [
+        "## Time per stage",
+        "",
+        "Measured inside the worker processes (one thread each).",
+        "",
+        table_timing(records, methods, meta),
+        "",
+    ]
+    parts += _failures([r for r in every if r.get("status") != "ok"])
+    return "\n".join(parts)
+
+
+def _starts(meta: dict[str, Any]) -> Any:
+    """Perturbed starts per set the run completed (its configuration's, or "?")."""
+    return meta.get("starts_completed", meta.get("config", {}).get("starts_per_set", "?"))
+
+
+def _title(
+    every: Sequence[dict[str, Any]],
+    meta: dict[str, Any],
+    methods: Sequence[str],
+    label: str | None,
+) -> list[str]:
+    """The heading, the run's ``label`` and, for a run smaller than the paper's protocol, what
+    was left out and what the whole protocol would take."""
     cfg = meta.get("config", {})
     scen = cfg.get("scenarios", [])
-    n_starts = meta.get("starts_completed", cfg.get("starts_per_set", "?"))
-    wall = meta.get("wall_s_total", meta.get("wall_s"))
-    phases = meta.get("phases_s", {})
-    failed = [r for r in every if r.get("status") != "ok"]
-    n_fine = sum(
-        1 for r in records if r["kind"] == "finetune" and r.get("variant", "default") == "default"
-    )
+    n_starts = _starts(meta)
     parts = [
         "# Results: the paper's experiments on the simulated station",
         "",
@@ -602,7 +307,23 @@ def _compose(
             "starts. The seeds make any larger run extend this one (`--resume`).",
             "",
         ]
-    parts += [
+    return parts
+
+
+def _provenance(
+    records: Sequence[dict[str, Any]], every: Sequence[dict[str, Any]], meta: dict[str, Any]
+) -> list[str]:
+    """How the run was made: command, commit, times, machine, recipe, scenarios, seeds, starts."""
+    cfg = meta.get("config", {})
+    scen = cfg.get("scenarios", [])
+    n_starts = _starts(meta)
+    wall = meta.get("wall_s_total", meta.get("wall_s"))
+    phases = meta.get("phases_s", {})
+    failed = [r for r in every if r.get("status") != "ok"]
+    n_fine = sum(
+        1 for r in records if r["kind"] == "finetune" and r.get("variant", "default") == "default"
+    )
+    return [
         "## Provenance",
         "",
         f"- Command: `{meta.get('command', '?')}`",
@@ -623,6 +344,12 @@ def _compose(
         f"scenario and method ({n_fine} "
         f"fine-tunings); {len(failed)} task(s) raised an error (counted as not converged).",
         "",
+    ]
+
+
+def _against_the_paper(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> list[str]:
+    """The summary against the paper and its two cube-error tables (paper Tables II, III)."""
+    return [
         "## Against the paper, in short",
         "",
         summary_against_paper(records, methods),
@@ -645,6 +372,13 @@ def _compose(
         "",
         "![cube edge error](results/cube_error.png)",
         "",
+    ]
+
+
+def _against_the_truth(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> list[str]:
+    """The errors against the true H, the spread over the perturbed starts (the paper's box
+    plots) and the table per scenario."""
+    return [
         "## Against the true H",
         "",
         "Axis offset: distance between the estimated and the true rotation axis, perpendicular "
@@ -682,12 +416,16 @@ def _compose(
         "",
         table_per_scenario(records, methods),
         "",
-        "## Cost landscapes",
-        "",
     ]
-    parts += list(landscape_md) or ["(no landscape was sampled in this run)"]
-    parts += [
-        "",
+
+
+def _ablation(
+    every: Sequence[dict[str, Any]], meta: dict[str, Any], abl_sc: Sequence[str]
+) -> list[str]:
+    """The ablation of calstation's robustness features: periodicity's variants, and shape's
+    when the run had any besides the default."""
+    cfg = meta.get("config", {})
+    parts = [
         "## Ablation of calstation's robustness features",
         "",
         "### Periodicity",
@@ -723,33 +461,32 @@ def _compose(
             "![shape ablation](results/ablation_shape.png)",
             "",
         ]
-    parts += [
-        "## Time per stage",
+    return parts
+
+
+def _failures(failed: Sequence[dict[str, Any]]) -> list[str]:
+    """The runs that raised an error, grouped by message (digits and file paths removed);
+    nothing when there are none."""
+    if not failed:
+        return []
+    parts = [
+        "## Failures",
         "",
-        "Measured inside the worker processes (one thread each).",
-        "",
-        table_timing(records, methods, meta),
+        "Runs that raised an error instead of returning an estimate (the engine's own "
+        "message, file path removed), by method, start set and variant:",
         "",
     ]
-    if failed:
-        parts += [
-            "## Failures",
-            "",
-            "Runs that raised an error instead of returning an estimate (the engine's own "
-            "message, file path removed), by method, start set and variant:",
-            "",
-        ]
-        seen: dict[tuple[str, str], list[str]] = {}
-        for r in failed:
-            msg = str(r.get("error_message", "?")).splitlines()[0]
-            msg = re.sub(r"\S*/scenarios/D\d/\w+\.mcap: ", "", msg)
-            msg = re.sub(r"\d+", "#", msg)[:220]
-            where = f"{r['method']}, {SET_LABELS.get(r['set'], r['set'])}"
-            if r.get("variant", "default") != "default":
-                where += f", {r['variant']}"
-            seen.setdefault((where, msg), []).append(r["scenario"])
-        for (where, msg), scen in sorted(seen.items(), key=lambda kv: (kv[0][0], -len(kv[1]))):
-            names = ", ".join(sorted(set(scen), key=lambda n: int(n[1:])))
-            parts.append(f"- {len(scen)} × [{where}] {msg} ({names})")
-        parts.append("")
-    return "\n".join(parts)
+    seen: dict[tuple[str, str], list[str]] = {}
+    for r in failed:
+        msg = str(r.get("error_message", "?")).splitlines()[0]
+        msg = re.sub(r"\S*/scenarios/D\d/\w+\.mcap: ", "", msg)
+        msg = re.sub(r"\d+", "#", msg)[:220]
+        where = f"{r['method']}, {SET_LABELS.get(r['set'], r['set'])}"
+        if r.get("variant", "default") != "default":
+            where += f", {r['variant']}"
+        seen.setdefault((where, msg), []).append(r["scenario"])
+    for (where, msg), scen in sorted(seen.items(), key=lambda kv: (kv[0][0], -len(kv[1]))):
+        names = ", ".join(sorted(set(scen), key=lambda n: int(n[1:])))
+        parts.append(f"- {len(scen)} × [{where}] {msg} ({names})")
+    parts.append("")
+    return parts

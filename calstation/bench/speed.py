@@ -50,7 +50,7 @@ def run_speed_case(recipe: Path, scenario: Any, rpm: float, out: Path,
     """Simulate ``scenario`` at ``rpm``, calibrate, fine-tune with each method from the initial
     calibration; one record per method (a refused fine-tuning is a record with its message)."""
     from calstation import plugins
-    from calstation.bench.runner import scan_of
+    from calstation.bench.records import scan_of
     from calstation.bench.scenarios import load_truth, simulate_scenario
     from calstation.engine.initial import initial_calibration
     from calstation.engine.metrics import axis_errors
@@ -156,7 +156,7 @@ def run_speed(recipe: Path, out: Path, report_dir: Path, scenario_name: str,
     """Every speed in turn (one at a time: a slow turn holds up to 25 M returns); writes
     ``speed.md`` and ``results/speed.png`` to ``report_dir``; returns the path of speed.md."""
     from calstation import plugins
-    from calstation.bench.runner import git_commit
+    from calstation.bench.execute import git_commit
     from calstation.bench.scenarios import select_scenarios
     from calstation.recipes import load_recipe
 

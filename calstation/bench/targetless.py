@@ -46,8 +46,8 @@ def targetless_scenarios() -> list[Scenario]:
 
 def _errors(H: Any, truth: Any, method: str) -> dict[str, Any]:
     """An estimate against the truth, and whether it meets the bench's thresholds for
-    ``method`` (:func:`calstation.bench.runner.converged`)."""
-    from calstation.bench.runner import against_truth, converged
+    ``method`` (:func:`calstation.bench.records.converged`)."""
+    from calstation.bench.records import against_truth, converged
 
     e = {"status": "ok", **against_truth(H, truth)}
     return {"axis": e["axis"], "error": e["error"], "converged": converged(method, e)}
@@ -277,7 +277,7 @@ def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds
     import shutil
 
     from calstation import plugins
-    from calstation.bench.runner import git_commit
+    from calstation.bench.execute import git_commit
 
     plugins.load_plugins()
     chosen = targetless_scenarios()

@@ -104,8 +104,9 @@ def register(app: typer.Typer) -> None:
 
         from calstation.bench import BenchError
         from calstation.bench.report import write_report
-        from calstation.bench.runner import BenchConfig, run_bench
+        from calstation.bench.runner import run_bench
         from calstation.bench.scenarios import select_scenarios
+        from calstation.bench.tasks import BenchConfig
 
         if not recipe.is_file():
             raise BenchError(f"{recipe}: recipe not found (give --recipe)")

@@ -214,33 +214,107 @@ def check_cube_points(
     then the cube check of its result) does not segment again."""
     t0 = time.perf_counter()
     s = cube.edge
+    cloud = _cube_cloud_memo(p_L, phi, H, s, platter_radius, memo)
+    if cloud.pts.shape[0] < 500:
+        raise VerificationError(
+            f"the QA cube was not found: {cloud.pts.shape[0]} returns more than "
+            f"{SEGMENT_MARGIN * 1e3:.0f} mm above the platter (expected a {s * 1e3:.0f} mm cube)"
+        )
+    t1 = time.perf_counter()
+    obb_edges, obb_error = np.full(3, math.nan), math.nan
+    if not edges_only:
+        obb_edges, obb_error = _paper_obb(cloud.pts, s)
+    t2 = time.perf_counter()
+    dims = _face_dimensions(cloud, s, platter_radius)
+    twist, twist_sigma = math.nan, math.nan
+    if not edges_only:
+        twist, twist_sigma = _side_twist(cloud, dims, H)
+    t3 = time.perf_counter()
+    failures = _failures(dims, cloud, obb_error, twist, twist_sigma, limits, edges_only)
+    return CubeCheck(
+        edge=s,
+        obb_edges=obb_edges,
+        obb_error=obb_error,
+        face_edges=dims.face_edges,
+        edge_error=dims.edge_error,
+        flatness_rms=dims.flatness,
+        perpendicularity_deg=dims.perpendicularity_deg,
+        twist_deg=math.degrees(twist),
+        twist_sigma_deg=math.degrees(twist_sigma),
+        passed=not failures,
+        failures=failures,
+        points=int(cloud.pts.shape[0]),
+        platter_level=cloud.level,
+        timings={"segment": t1 - t0, "obb": t2 - t1, "faces": t3 - t2, "total": t3 - t0},
+    )
+
+
+def _cube_cloud_memo(
+    p_L: FloatArray,
+    phi: FloatArray,
+    H: Extrinsics,
+    s: float,
+    platter_radius: float,
+    memo: dict[str, Any] | None,
+) -> _CubeCloud:
+    """:func:`_cube_cloud`, taken from ``memo`` when it holds the one under the same H, cube
+    and platter, and kept there."""
     key = (H.as_vector().tobytes(), s, platter_radius)
     found = memo.get("cube_cloud") if memo is not None else None
     if found is not None and found[0] == key:
         cloud: _CubeCloud = found[1]
-    else:
-        cloud = _cube_cloud(p_L, phi, H, s, platter_radius)
-        if memo is not None:
-            memo["cube_cloud"] = (key, cloud)
-    level, p_ring, p_L, phi, idx, pts = (
-        cloud.level, cloud.p_ring, cloud.p_L, cloud.phi, cloud.idx, cloud.pts)
-    if pts.shape[0] < 500:
-        raise VerificationError(
-            f"the QA cube was not found: {pts.shape[0]} returns more than "
-            f"{SEGMENT_MARGIN * 1e3:.0f} mm above the platter (expected a {s * 1e3:.0f} mm cube)"
-        )
-    t1 = time.perf_counter()
-    # the paper's metric: minimum-volume OBB of the unsmoothed cloud
-    obb_edges, obb_error = np.full(3, math.nan), math.nan
-    if not edges_only:
-        _, obb_axes, obb_ext = minimal_obb(pts)
-        vertical = int(np.argmax(np.abs(obb_axes[0, :])))
-        obb_ext = obb_ext.copy()
-        obb_ext[vertical] += SEGMENT_MARGIN
-        obb_edges = np.sort(obb_ext)
-        obb_error = float(np.max(obb_edges - s))
-    t2 = time.perf_counter()
-    # robust dimensioning: planes on the faces
+        return cloud
+    cloud = _cube_cloud(p_L, phi, H, s, platter_radius)
+    if memo is not None:
+        memo["cube_cloud"] = (key, cloud)
+    return cloud
+
+
+def _paper_obb(pts: FloatArray, s: float) -> tuple[FloatArray, float]:
+    """The paper's metric: the sorted edges of the minimum-volume OBB of the unsmoothed cloud
+    (its height with the segmentation margin added back) and ``max_i(ŝ_i − s)``."""
+    _, obb_axes, obb_ext = minimal_obb(pts)
+    vertical = int(np.argmax(np.abs(obb_axes[0, :])))
+    obb_ext = obb_ext.copy()
+    obb_ext[vertical] += SEGMENT_MARGIN
+    obb_edges = np.sort(obb_ext)
+    return obb_edges, float(np.max(obb_edges - s))
+
+
+@dataclass(frozen=True)
+class _Dimensions:
+    """The cube dimensioned by planes on its faces (metres, degrees)."""
+
+    faces: dict[str, _Face]
+    """the faces with enough returns for a plane fit, by name (``1-``, ``1+``, ``2-``, ``2+``,
+    ``top``)"""
+    missing: list[str]
+    """the faces without"""
+    face_edges: FloatArray
+    """(3,) height, then the two horizontal edges"""
+    edge_error: float
+    flatness: float
+    perpendicularity_deg: float
+
+
+ADJACENT_FACES = (
+    ("1-", "2-"),
+    ("1-", "2+"),
+    ("1+", "2-"),
+    ("1+", "2+"),
+    ("top", "1-"),
+    ("top", "1+"),
+    ("top", "2-"),
+    ("top", "2+"),
+)
+"""The pairs of faces whose angle the perpendicularity measures."""
+
+
+def _face_dimensions(cloud: _CubeCloud, s: float, platter_radius: float) -> _Dimensions:
+    """Robust dimensioning: planes on the faces of the robust upright box of the cube's
+    returns; an edge is the distance between opposite faces, the height the top face's above
+    the platter beside the cube."""
+    pts = cloud.pts
     centre, axes, ext = upright_box(pts)
     lo = axes.T @ centre - 0.5 * ext
     hi = axes.T @ centre + 0.5 * ext
@@ -258,46 +332,56 @@ def check_cube_points(
         n = (a.normal + nb) / np.linalg.norm(a.normal + nb)
         edges.append(abs(float(np.dot(b.centroid - a.centroid, n))))
     if "top" in faces:
-        height = _height(p_ring, faces["top"], centre, ext, platter_radius)
+        height = _height(cloud.p_ring, faces["top"], centre, ext, platter_radius)
     else:
         height = float(hi[0])  # the box's top above x_D = 0
     face_edges = np.array([height, *edges])
-    edge_error = float(np.max(np.abs(face_edges - s)))
-    flatness = max((f.rms for f in faces.values()), default=math.nan)
-    pairs = (
-        ("1-", "2-"),
-        ("1-", "2+"),
-        ("1+", "2-"),
-        ("1+", "2+"),
-        ("top", "1-"),
-        ("top", "1+"),
-        ("top", "2-"),
-        ("top", "2+"),
-    )
     perp = max(
         (
             abs(90.0 - _angle_deg(faces[a].normal, faces[b].normal))
-            for a, b in pairs
+            for a, b in ADJACENT_FACES
             if a in faces and b in faces
         ),
         default=math.nan,
     )
-    sides = [faces[n].members for n in ("1-", "1+", "2-", "2+") if n in faces]
-    twist, twist_sigma = math.nan, math.nan
-    if not edges_only:
-        twist, twist_sigma = face_twist(
-            [p_L[idx[m]] for m in sides], [phi[idx[m]] for m in sides], H
-        )
-    t3 = time.perf_counter()
+    return _Dimensions(
+        faces=faces,
+        missing=missing,
+        face_edges=face_edges,
+        edge_error=float(np.max(np.abs(face_edges - s))),
+        flatness=max((f.rms for f in faces.values()), default=math.nan),
+        perpendicularity_deg=perp,
+    )
+
+
+def _side_twist(cloud: _CubeCloud, dims: _Dimensions, H: Extrinsics) -> tuple[float, float]:
+    """:func:`face_twist` of the side faces found by the dimensioning (rad)."""
+    sides = [dims.faces[n].members for n in ("1-", "1+", "2-", "2+") if n in dims.faces]
+    return face_twist(
+        [cloud.p_L[cloud.idx[m]] for m in sides], [cloud.phi[cloud.idx[m]] for m in sides], H
+    )
+
+
+def _failures(
+    dims: _Dimensions,
+    cloud: _CubeCloud,
+    obb_error: float,
+    twist: float,
+    twist_sigma: float,
+    limits: QALimits,
+    edges_only: bool,
+) -> list[str]:
+    """One message per limit of ``limits`` the check exceeds (empty: passed)."""
     failures = []
-    if missing:
+    if dims.missing:
         # a badly calibrated scan smears the cube until its faces are no longer planes: that
         # is a failed check with a large error, not a missing cube
         failures.append(
-            f"faces {', '.join(missing)} have too few returns for a plane fit "
-            f"({pts.shape[0]} cube returns): the cube is too distorted to dimension by its "
+            f"faces {', '.join(dims.missing)} have too few returns for a plane fit "
+            f"({cloud.pts.shape[0]} cube returns): the cube is too distorted to dimension by its "
             "faces (or not wholly in view); their edges are the robust box's extents"
         )
+    edge_error, flatness, perp = dims.edge_error, dims.flatness, dims.perpendicularity_deg
     if edge_error > limits.edge_error:
         failures.append(
             f"face-fit edge error {edge_error * 1e3:.2f} mm > {limits.edge_error * 1e3:.2f} mm"
@@ -325,22 +409,7 @@ def check_cube_points(
             f"(±{math.degrees(twist_sigma):.3f}°) > {limits.twist_deg:.3f}°; the calibration's "
             "tilt of the axis out of the scan plane is wrong"
         )
-    return CubeCheck(
-        edge=s,
-        obb_edges=obb_edges,
-        obb_error=obb_error,
-        face_edges=face_edges,
-        edge_error=edge_error,
-        flatness_rms=flatness,
-        perpendicularity_deg=perp,
-        twist_deg=math.degrees(twist),
-        twist_sigma_deg=math.degrees(twist_sigma),
-        passed=not failures,
-        failures=failures,
-        points=int(pts.shape[0]),
-        platter_level=level,
-        timings={"segment": t1 - t0, "obb": t2 - t1, "faces": t3 - t2, "total": t3 - t0},
-    )
+    return failures
 
 
 TWIST_BOUND_DEG = 3.0

@@ -72,6 +72,8 @@ COARSE_STAGES = 2
 """Periodicity stages (20 and 10 mm cells) run on the cube scan before the shape cost."""
 FREE = ("tx", "tz", "ry", "rz")
 """Parameters the shape strategy can estimate; ty is the gauge (held at its start)."""
+RY = PARAMETER_NAMES.index("ry")
+"""Index of ry in an H vector."""
 
 
 class ShapeCost:
@@ -416,13 +418,44 @@ def _shape_pass(
         density_scale=density_scale,
         box=box,
     )
-    names = FREE if estimate_ry else ("tx", "tz", "rz")
-    free = [PARAMETER_NAMES.index(n) for n in names]
-    x6 = start.as_vector()
-    tb, rb = settings.translation_bound, math.radians(settings.rotation_bound_deg)
-    start6 = x6.copy()
+    fit = _BoxFit(cost, p_L_near, phi_near, start, settings, box, progress)
+    solved = _solve(fit, estimate_ry)
+    return _pass_result(fit, solved, estimate_ry, coarse_report, n_all)
 
-    def solve(names: tuple[str, ...], nfev: int) -> Any:
+
+class _BoxFit:
+    """The estimate of one shape pass, ``x6`` (moved in place), and the two solves that move
+    it: the box cost over some of tx, tz, ry and rz, and ry from the cube faces' flatness.
+
+    ``p_L_near``, ``phi_near``: every moving return near the cube ((N, 3) in L, (N,) φ), which
+    the flatness step needs at full density; the box cost works on its own subset.
+    """
+
+    def __init__(
+        self,
+        cost: ShapeCost,
+        p_L_near: FloatArray,
+        phi_near: FloatArray,
+        start: Extrinsics,
+        settings: ShapeSettings,
+        box: str,
+        progress: Progress | None,
+    ) -> None:
+        self.cost = cost
+        self.p_L_near, self.phi_near = p_L_near, phi_near
+        self.settings = settings
+        self.box = box
+        self.progress = progress
+        self.x6 = start.as_vector()
+        self.start6 = self.x6.copy()
+        self.tb = settings.translation_bound
+        self.rb = math.radians(settings.rotation_bound_deg)
+
+    def solve(self, names: tuple[str, ...], nfev: int) -> Any:
+        """The box cost over the parameters ``names``, at most ``nfev`` evaluations, within the
+        bounds around the start; returns SciPy's last ``least_squares`` result."""
+        cost, settings, progress, box, x6 = (
+            self.cost, self.settings, self.progress, self.box, self.x6)
         idx = [PARAMETER_NAMES.index(n) for n in names]
         base = x6.copy()
 
@@ -433,8 +466,8 @@ def _shape_pass(
             v[idx] = x
             return cost.residuals_of(Extrinsics.from_vector(v))
 
-        half = np.array([tb if i < 3 else rb for i in idx])
-        centre = start6[idx]
+        half = np.array([self.tb if i < 3 else self.rb for i in idx])
+        centre = self.start6[idx]
         used = 0
         r: Any = None
         # upright: outer loop re-segmenting between inner solves on a fixed point set;
@@ -464,13 +497,10 @@ def _shape_pass(
         cost.freeze(None)
         return r
 
-    ry_i = PARAMETER_NAMES.index("ry")
-    ry_rounds: list[dict[str, float]] = []
-    ry_sigma = math.nan
-
-    def labelled_faces(H: Extrinsics) -> tuple[FloatArray, FloatArray, list[Any]]:
+    def labelled_faces(self, H: Extrinsics) -> tuple[FloatArray, FloatArray, list[Any]]:
         """The returns near the cube's faces under H (in L, their φ) and a mask per face."""
-        p_D, mask = cost.cloud(H)
+        p_L_near, phi_near = self.p_L_near, self.phi_near
+        p_D, mask = self.cost.cloud(H)
         if int(mask.sum()) < 50:
             raise FineTuningError("too few cube returns to estimate ry from the faces")
         labels = face_labels(lidar_to_dynamic(p_L_near, phi_near, H), *upright_box(p_D[mask]))
@@ -479,7 +509,7 @@ def _shape_pass(
         faces = [labels == f for f in np.unique(labels) if np.count_nonzero(labels == f) >= 30]
         return pts_L, ph, faces
 
-    def planar_ry() -> tuple[float, float]:
+    def planar_ry(self) -> tuple[float, float]:
         """ry from the cube faces' own flatness; (ry, 1σ) in rad.
 
         Fits tz, ry and rz to the returns near each face (labelled by the upright box under
@@ -487,8 +517,9 @@ def _shape_pass(
         mixed pixels) and keeps ry only: tz and rz also bend the faces, so they are freed here,
         but the box cost places them better.
         """
+        x6, tb, rb = self.x6, self.tb, self.rb
         H = Extrinsics.from_vector(x6)
-        pts_L, ph, faces = labelled_faces(H)
+        pts_L, ph, faces = self.labelled_faces(H)
         if not faces:
             raise FineTuningError("no cube face has enough returns to estimate ry")
         idx = [PARAMETER_NAMES.index(n) for n in ("tz", "ry", "rz")]
@@ -501,7 +532,7 @@ def _shape_pass(
             v[idx] = x
             return flat(Extrinsics.from_vector(v))
 
-        centre = start6[idx]
+        centre = self.start6[idx]
         # a set-B start is 2° off and the true ry up to 0.5° from the initial 0 (as periodicity)
         half = np.array([tb, max(rb, math.radians(2.5)), rb])
         r = least_squares(
@@ -513,21 +544,46 @@ def _shape_pass(
             f_scale=0.002,
             diff_step=DIFF_STEP,
             x_scale=np.full(3, 1e-3),
-            max_nfev=settings.max_nfev,
+            max_nfev=self.settings.max_nfev,
         )
         # σ as the cube check's twist's
-        Hr = Extrinsics.from_vector(np.where(np.arange(6) == ry_i, r.x[1], x6))
+        Hr = Extrinsics.from_vector(np.where(np.arange(6) == RY, r.x[1], x6))
         return float(r.x[1]), flatness_ry_sigma(r, idx, faces_L, faces_phi, Hr)
 
-    if estimate_ry and box == "upright":
+
+@dataclass(frozen=True)
+class _Solved:
+    """What the solves of a pass leave for its result."""
+
+    res: Any
+    """SciPy's last ``least_squares`` result of the box cost"""
+    free: list[int]
+    """the indices of the parameters that result solved for"""
+    ry_rounds: list[dict[str, float]]
+    """ry and its change per round of the face-flatness step (empty: ry from the box cost or
+    held)"""
+    ry_sigma: float
+    """1σ of ry from the last face-flatness step (rad; NaN without one)"""
+
+
+def _solve(fit: _BoxFit, estimate_ry: bool) -> _Solved:
+    """Run the pass's solves on ``fit``: with the upright box and ``estimate_ry``, tx, tz, rz
+    from the box alternating with ry from the faces; with the minimal box, the paper's joint
+    solve; without ``estimate_ry``, tx, tz, rz with ry held."""
+    settings = fit.settings
+    names = FREE if estimate_ry else ("tx", "tz", "rz")
+    free = [PARAMETER_NAMES.index(n) for n in names]
+    ry_rounds: list[dict[str, float]] = []
+    ry_sigma = math.nan
+    if estimate_ry and fit.box == "upright":
         # the box cost is nearly flat and jumpy in ry: settle tx, tz, rz with ry held, then
         # alternate ry from the faces' flatness with tx, tz, rz from the box
-        res = solve(("tx", "tz", "rz"), settings.max_nfev)
+        res = fit.solve(("tx", "tz", "rz"), settings.max_nfev)
         for _ in range(2):
-            ry, ry_sigma = planar_ry()
-            change = abs(ry - x6[ry_i])
-            x6[ry_i] = ry
-            res = solve(("tx", "tz", "rz"), max(4, settings.max_nfev // 2))
+            ry, ry_sigma = fit.planar_ry()
+            change = abs(ry - fit.x6[RY])
+            fit.x6[RY] = ry
+            res = fit.solve(("tx", "tz", "rz"), max(4, settings.max_nfev // 2))
             ry_rounds.append({"ry_rad": ry, "change_rad": change})
             if change < math.radians(0.005):
                 break
@@ -535,28 +591,39 @@ def _shape_pass(
     elif estimate_ry:
         # the paper's joint solve; tz and ry twist the cloud alike, so settle the sharp
         # parameters with ry held first
-        solve(("tx", "tz", "rz"), settings.max_nfev // 2)
-        res = solve(FREE, settings.max_nfev - settings.max_nfev // 2)
+        fit.solve(("tx", "tz", "rz"), settings.max_nfev // 2)
+        res = fit.solve(FREE, settings.max_nfev - settings.max_nfev // 2)
     else:
-        res = solve(names, settings.max_nfev)
-    H = Extrinsics.from_vector(x6)
+        res = fit.solve(names, settings.max_nfev)
+    return _Solved(res, free, ry_rounds, ry_sigma)
+
+
+def _pass_result(
+    fit: _BoxFit,
+    solved: _Solved,
+    estimate_ry: bool,
+    coarse_report: dict[str, Any],
+    n_all: int,
+) -> CalibrationResult:
+    """The pass's :class:`CalibrationResult` at ``fit``'s estimate: the cost's terms, σ
+    (cluster-robust over the box cost's residuals; ry's from the faces when they gave it), the
+    range noise on the faces and the box's extents."""
+    cost, box = fit.cost, fit.box
+    H = Extrinsics.from_vector(fit.x6)
     final = cost.residuals_of(H)
     c1 = float(np.sum(final[:-3] ** 2))
     c2 = float(np.sum(cost.last_edge_errors**2))
     total = float(np.sum(final**2))
-    # the box cost's residuals are neighbours on one shape: a cluster-robust σ over 2 cm blocks
-    # (the three edge residuals are blocks of their own)
-    blocks = block_ids(cost.to_dynamic(H), 0.02)
-    blocks = np.concatenate([blocks, blocks.max(initial=-1) + 1 + np.arange(3)])
-    sigma = parameter_sigma(res, free, blocks=blocks)
-    pts_L, ph, faces = labelled_faces(H)
+    sigma = _box_sigma(cost, H, solved)
+    pts_L, ph, faces = fit.labelled_faces(H)
     noise = face_range_noise([pts_L[f] for f in faces], [ph[f] for f in faces], H)
-    if ry_rounds:
-        sigma["ry"] = ry_sigma
+    if solved.ry_rounds:
+        sigma["ry"] = solved.ry_sigma
     p_D, mask = cost.cloud(H)
     _, _, extents = (upright_box if box == "upright" else minimal_obb)(p_D[mask])
-    if progress is not None:
-        progress("shape fine-tuning", 1.0)
+    if fit.progress is not None:
+        fit.progress("shape fine-tuning", 1.0)
+    res = solved.res
     return CalibrationResult(
         H=H,
         sigma=sigma,
@@ -573,19 +640,28 @@ def _shape_pass(
             "ry_source": (
                 ("face flatness" if box == "upright" else "box cost") if estimate_ry else "held"
             ),
-            "ry_rounds": ry_rounds,
+            "ry_rounds": solved.ry_rounds,
             "coarse": coarse_report,
             "C1": c1,
             "C2": c2,
             "cost_terms": "C1 + C2" if box == "minimal" else "C1",
             "obb_extents_m": np.sort(extents).tolist(),
-            "points_used": int(p_L.shape[0]),
+            "points_used": int(cost.p_L.shape[0]),
             "points_above_platter": int(n_all),
             "cube_points": int(mask.sum()),
             "outlier_radius_m": cost.outlier_radius,
             "status": str(res.message),
         },
     )
+
+
+def _box_sigma(cost: ShapeCost, H: Extrinsics, solved: _Solved) -> dict[str, float]:
+    """1σ per parameter of the last box solve at H."""
+    # the box cost's residuals are neighbours on one shape: a cluster-robust σ over 2 cm blocks
+    # (the three edge residuals are blocks of their own)
+    blocks = block_ids(cost.to_dynamic(H), 0.02)
+    blocks = np.concatenate([blocks, blocks.max(initial=-1) + 1 + np.arange(3)])
+    return parameter_sigma(solved.res, solved.free, blocks=blocks)
 
 
 def shape_fine_tune_points(

@@ -1,0 +1,126 @@
+"""Matching the two half-turns' cells under an H: mutual nearest neighbours in frame D and the
+local planes around each end, for one stage of the periodicity fine-tuning."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from calstation.engine.frames import FloatArray
+from calstation.engine.neighbours import knn, local_planes, mutual_neighbours, pair, tree
+from calstation.engine.periodicity.cells import _Half, to_dynamic
+from calstation.engine.periodicity.covariance import SIGMA_BLOCK, block_ids
+from calstation.engine.periodicity.problem import _Matched
+from calstation.engine.periodicity.schedule import Stage
+from calstation.errors import FineTuningError
+
+MIN_MATCHES = 50
+"""Fewest matched cells between the two half-turns an iteration accepts."""
+
+
+class _Matcher:
+    """Matches the two half-turns' cells of one stage under successive H.
+
+    The cells, their platter angles and each cell's neighbourhood within its own half are fixed
+    for the stage. A neighbourhood (the ``normal_neighbours`` nearest cells in D) is found under
+    the H of the stage's first iteration, and again only once H has moved by more than a cell:
+    a half-turn's reconstruction deforms smoothly with H, so its neighbourhoods stay while the
+    planes through them are refitted at every H. Only the matching between the halves, which
+    is what H changes, is searched again at every iteration. Cells well below the platter drop
+    (the platter top itself) are left out of the neighbourhoods until they are refreshed.
+    """
+
+    def __init__(self, halves: list[_Half], stage: Stage) -> None:
+        self.halves = halves
+        self.stage = stage
+        self.cs = [(np.cos(h.phi), np.sin(h.phi)) for h in halves]
+        self.candidates: list[NDArray[np.int64]] = []
+        self.frozen: list[FloatArray] = []
+        self.trees: list[Any] = []
+        self.neighbourhoods: list[NDArray[np.int64]] = []
+        self.x6: FloatArray | None = None
+
+    def _stale(self, x6: FloatArray) -> bool:
+        if self.x6 is None:
+            return True
+        moved = np.abs(x6 - self.x6)
+        return bool(moved[:3].max() > self.stage.voxel or moved[3:].max() * 0.3 > self.stage.voxel)
+
+    def _refresh(self, d_all: list[FloatArray], x6: FloatArray) -> None:
+        drop = self.stage.platter_drop
+        # half the drop height: clear of the platter top, with room for H to move
+        self.candidates = [
+            np.arange(d.shape[0]) if drop is None else np.flatnonzero(d[:, 0] > drop / 2)
+            for d in d_all
+        ]
+        self.frozen = [d[cand] for d, cand in zip(d_all, self.candidates, strict=True)]
+        self.trees = [tree(f) for f in self.frozen]
+        k = min(self.stage.normal_neighbours, *(f.shape[0] for f in self.frozen))
+        self.neighbourhoods = [np.full((f.shape[0], k), -1, dtype=np.int64) for f in self.frozen]
+        self.x6 = x6.copy()
+
+    def _neighbourhoods(self, half: int, pos: NDArray[np.int64]) -> NDArray[np.int64]:
+        """(Q, k) neighbourhoods (indices into the half's cells) of the candidates ``pos``,
+        searched on first use under the H of the last refresh."""
+        table = self.neighbourhoods[half]
+        missing = np.unique(pos[table[pos, 0] < 0])
+        if missing.size:
+            found = knn(self.trees[half], self.frozen[half][missing], table.shape[1])
+            table[missing] = self.candidates[half][found]
+        return table[pos]
+
+    def __call__(self, x6: FloatArray) -> tuple[_Matched, int]:
+        """Map both halves to D under H, drop the platter, match, fit the local planes."""
+        stage = self.stage
+        stale = self._stale(x6)
+        (ha, hb), (ca, sa), (cb, sb) = self.halves, self.cs[0], self.cs[1]
+        d_all = list(pair(to_dynamic, (ha.p_L, ca, sa, x6), (hb.p_L, cb, sb, x6)))
+        if stale:
+            self._refresh(d_all, x6)
+        kept = []  # positions in the candidates
+        for d, cand in zip(d_all, self.candidates, strict=True):
+            drop = stage.platter_drop
+            kept.append(np.arange(cand.size) if drop is None else np.flatnonzero(d[cand, 0] > drop))
+        if min(k.size for k in kept) < MIN_MATCHES:
+            raise FineTuningError(
+                f"periodicity ({stage.voxel * 1e3:.0f} mm cells): only {kept[0].size} and "
+                f"{kept[1].size} cells of the two half-turns lie above the platter under the "
+                "current estimate; the start is too far off (run the coarse stages, or start "
+                "from the initial calibration) or the spin target is not in view"
+            )
+        ka, kb = self.candidates[0][kept[0]], self.candidates[1][kept[1]]
+        da, db = d_all[0][ka], d_all[1][kb]
+        i, j = mutual_neighbours(da, db, stage.match_radius)
+        (na, wa, ma), (nb, wb, mb) = pair(
+            local_planes,
+            (d_all[0], self._neighbourhoods(0, kept[0][i])),
+            (d_all[1], self._neighbourhoods(1, kept[1][j])),
+        )
+        # each residual measures a point against the other half's local plane fit (through its
+        # neighbourhood centroid), not against one noisy point; the offset moves with the point
+        oa = np.einsum("ij,ij->i", na, ma - da[i])
+        ob = np.einsum("ij,ij->i", nb, mb - db[j])
+        gi, gj = ka[i], kb[j]
+        matched = _Matched(
+            ha.p_L[gi],
+            ca[gi],
+            sa[gi],
+            hb.p_L[gj],
+            cb[gj],
+            sb[gj],
+            na,
+            nb,
+            wa,
+            wb,
+            oa,
+            ob,
+            block_ids(da[i], SIGMA_BLOCK),
+        )
+        return matched, int(da.shape[0] + db.shape[0])
+
+
+def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched, int]:
+    """Match the two half-turns' cells once under H (:class:`_Matcher`)."""
+    return _Matcher(halves, stage)(x6)

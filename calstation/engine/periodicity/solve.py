@@ -1,0 +1,414 @@
+"""The periodicity fine-tuning itself: the stages of the coarse-to-fine schedule run one after
+the other, each an outer loop of matching and solving, and the result with its σ."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from calstation.engine.frames import Extrinsics, FloatArray
+from calstation.engine.periodicity.cells import (
+    _Half,
+    _split,
+    _subset,
+    _whole_revolutions,
+    to_dynamic,
+)
+from calstation.engine.periodicity.covariance import (
+    covariance_record,
+    noise_inflation,
+    parameter_covariance,
+    parameter_sigma,
+    sigma_from_covariance,
+)
+from calstation.engine.periodicity.matching import MIN_MATCHES, _match, _Matcher
+from calstation.engine.periodicity.problem import (
+    IDX,
+    _bounds,
+    _free,
+    _platter_samples,
+    _Problem,
+    _Reduced,
+)
+from calstation.engine.periodicity.schedule import Stage, final_cell_size, schedule
+from calstation.engine.result import CalibrationResult
+from calstation.engine.settings import DEFAULT_PLATTER_RADIUS, PeriodicitySettings
+from calstation.engine.spinscan import SpinScan, from_recording, prepare
+from calstation.errors import FineTuningError
+
+if TYPE_CHECKING:
+    from calstation.engine.scan import Scan
+
+Progress = Callable[[str, float], None]
+
+
+def periodicity_fine_tune(
+    recording: Scan,
+    start: Extrinsics,
+    settings: PeriodicitySettings = PeriodicitySettings(),
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    progress: Progress | None = None,
+) -> CalibrationResult:
+    """Periodicity fine-tuning on a spin-scan
+    :class:`~calstation.engine.scan.Scan`."""
+    try:
+        return periodicity_fine_tune_scan(
+            from_recording(recording),
+            start,
+            settings,
+            platter_radius=platter_radius,
+            progress=progress,
+        )
+    except FineTuningError as exc:
+        raise FineTuningError(f"{recording.path}: {exc}") from None
+
+
+def periodicity_fine_tune_points(
+    p_L: FloatArray,
+    phi: FloatArray,
+    start: Extrinsics,
+    settings: PeriodicitySettings = PeriodicitySettings(),
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    progress: Progress | None = None,
+    stages: int | None = None,
+) -> CalibrationResult:
+    """Periodicity fine-tuning on the returns of one spin scan.
+
+    ``p_L`` (N, 3) returns in frame L (metres), ``phi`` (N,) their platter angles (rad,
+    unwrapped or not). ``start`` is the starting H; rx is held at 0. ``stages``: run only the
+    first few stages of the schedule (a coarse alignment; None: all). Returns a
+    :class:`CalibrationResult` (strategy ``"periodicity"``, cost = mean weighted squared
+    point-to-plane distance in m² at the last stage).
+    """
+    p_L = np.asarray(p_L, dtype=np.float64)
+    phi = np.asarray(phi, dtype=np.float64).reshape(-1)
+    if p_L.ndim != 2 or p_L.shape[1] != 3 or p_L.shape[0] != phi.shape[0]:
+        raise FineTuningError(
+            f"periodicity needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
+        )
+    return periodicity_fine_tune_scan(
+        prepare(p_L, phi),
+        start,
+        settings,
+        platter_radius=platter_radius,
+        progress=progress,
+        stages=stages,
+    )
+
+
+def periodicity_fine_tune_scan(
+    scan: SpinScan,
+    start: Extrinsics,
+    settings: PeriodicitySettings = PeriodicitySettings(),
+    *,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    progress: Progress | None = None,
+    stages: int | None = None,
+) -> CalibrationResult:
+    """Periodicity fine-tuning on a prepared :class:`~calstation.engine.spinscan.SpinScan`: as
+    :func:`periodicity_fine_tune_points`, without the per-scan preparation (done as the lines
+    arrived, or once for several fine-tunings)."""
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {f"scan_{k}": v for k, v in scan.timings.items()}
+    keep = _whole_revolutions(scan)
+    start6 = start.with_(rx=0.0).as_vector()
+    halves, halves_all, p_static = _split(scan, keep, start6, platter_radius)
+    noise = scan.noise
+    timings["prepare"] = time.perf_counter() - t_start
+    final_voxel = _final_cell(halves, noise)
+    schedule_ = schedule(settings, final_voxel)[:stages]
+    x6 = _centred_start(halves, start6, settings, schedule_)
+    run = _Run(start6, p_static, settings, platter_radius, progress, len(schedule_))
+    x6, stage_timings = _run_stages(run, schedule_, halves, halves_all, x6)
+    timings.update(stage_timings)
+    timings.update(run.timings)
+    uncertainty = _uncertainty(run, noise)
+    timings["total"] = time.perf_counter() - t_start
+    if progress is not None:
+        progress("periodicity done", 1.0)
+    return _result(x6, start6, settings, scan, run, uncertainty, final_voxel, timings)
+
+
+def _final_cell(halves: list[_Half], noise: float) -> float:
+    """The last stage's cell size for the moving returns' two half-turns
+    (:func:`final_cell_size`)."""
+    return final_cell_size(
+        [h.p_L for h in halves],
+        [h.phi for h in halves],
+        noise,
+        [(h.rng, h.az) for h in halves if h.rng is not None and h.az is not None],
+    )
+
+
+def _centred_start(
+    halves: list[_Half], start6: FloatArray, settings: PeriodicitySettings, schedule_: list[Stage]
+) -> FloatArray:
+    """The start of the first stage: the stage-0 centroid alignment (:func:`_centre_halves`)
+    when the schedule is coarse-to-fine and it gives the first stage more matches, else
+    ``start6``."""
+    x6 = start6.copy()
+    if settings.coarse_to_fine:
+        # keep the centroid alignment only where it helps: the view asymmetry of the two
+        # half-turns biases the centroids, so a good start can be better than its result
+        centred = _centre_halves(halves, x6, settings, np.random.default_rng(1))
+        first = schedule_[0]
+        cells = [h.cells(first.voxel) for h in halves]
+        if _match(cells, centred, first)[0].pa.shape[0] > _match(cells, x6, first)[0].pa.shape[0]:
+            x6 = centred
+    return x6
+
+
+def _run_stages(
+    run: _Run,
+    schedule_: list[Stage],
+    halves: list[_Half],
+    halves_all: list[_Half],
+    x6: FloatArray,
+) -> tuple[FloatArray, dict[str, float]]:
+    """Every stage of ``schedule_`` from ``x6``, each on its own cells: of the moving returns
+    while ry is held, of all returns after. Returns the final H (as a vector) and the seconds
+    per stage."""
+    rng = np.random.default_rng(0)
+    timings: dict[str, float] = {}
+    for s_i, stage in enumerate(schedule_):
+        t_stage = time.perf_counter()
+        source = halves if stage.hold_ry else halves_all
+        stage_halves = [_subset(h, stage.max_points, rng).cells(stage.voxel) for h in source]
+        run.timings["cells"] += time.perf_counter() - t_stage
+        x6 = run.stage(s_i, stage, _Matcher(stage_halves, stage), x6)
+        timings[f"stage{s_i + 1}"] = time.perf_counter() - t_stage
+    return x6, timings
+
+
+@dataclass(frozen=True)
+class _Uncertainty:
+    """σ of the final estimate and how it was obtained (metres / radians, SI)."""
+
+    sigma: dict[str, float]
+    """reported: the cluster-robust σ times the noise inflation"""
+    independent: dict[str, float]
+    """σ²·(JᵀJ)⁻¹ with independent residuals"""
+    blocks: dict[str, float]
+    """cluster-robust over spatial blocks of :data:`SIGMA_BLOCK`"""
+    inflation: float
+    """:func:`noise_inflation` of the scan's range noise"""
+    covariance: dict[str, Any] | None
+    """the reported covariance as stored (:func:`covariance_record`)"""
+
+
+def _uncertainty(run: _Run, noise: float) -> _Uncertainty:
+    """The covariance at the last inner solution of ``run``, inflated for the range ``noise``."""
+    assert run.last is not None
+    x_last, problem = run.last
+    res = problem.solution(x_last)
+    sigma_independent = parameter_sigma(res, problem.free)
+    covariance = parameter_covariance(res, problem.free, blocks=problem.row_blocks())
+    sigma_blocks = sigma_from_covariance(covariance, problem.free)
+    inflation = noise_inflation(noise)
+    sigma = {k: v * inflation for k, v in sigma_blocks.items()}
+    reported_cov = None if covariance is None else covariance * inflation**2
+    return _Uncertainty(
+        sigma,
+        sigma_independent,
+        sigma_blocks,
+        inflation,
+        covariance_record(reported_cov, problem.free),
+    )
+
+
+def _result(
+    x6: FloatArray,
+    start6: FloatArray,
+    settings: PeriodicitySettings,
+    scan: SpinScan,
+    run: _Run,
+    uncertainty: _Uncertainty,
+    final_voxel: float,
+    timings: dict[str, float],
+) -> CalibrationResult:
+    """The :class:`CalibrationResult` of the run, with its diagnostics."""
+    ry_lo = start6[4] - math.radians(settings.ry_bound_deg)
+    ry_hi = start6[4] + math.radians(settings.ry_bound_deg)
+    at_bound = min(abs(x6[4] - ry_lo), abs(x6[4] - ry_hi)) < math.radians(0.01)
+    return CalibrationResult(
+        H=Extrinsics.from_vector(x6),
+        sigma=uncertainty.sigma,
+        cost=run.cost,
+        iterations=run.outer,
+        strategy="periodicity",
+        timings=timings,
+        diagnostics={
+            "gauge": settings.gauge,
+            "gauge_note": (
+                "origin along the axis fixed by the platter top plane x_P = 0"
+                if settings.gauge == "platter"
+                else "ty held at its start value (paper §IV-C)"
+            ),
+            "coarse_to_fine": settings.coarse_to_fine,
+            "matches_per_iteration": [h["matches"] for h in run.history],
+            "iterations": run.history,
+            "static_returns": int(scan.static.sum()),
+            "range_noise_m": scan.noise,
+            "sigma_independent": uncertainty.independent,
+            "sigma_blocks": uncertainty.blocks,
+            "sigma_noise_inflation": uncertainty.inflation,
+            "covariance": uncertainty.covariance,
+            "final_cell_m": final_voxel,
+            "moving_returns": int((~scan.static).sum()),
+            "ry_at_bound": bool(at_bound),
+            "ry_bound_rad": [ry_lo, ry_hi],
+            "rms_m": math.sqrt(run.cost),
+        },
+    )
+
+
+class _Run:
+    """The outer iterations of the stages: matching, solving, and what they leave behind."""
+
+    def __init__(
+        self,
+        start6: FloatArray,
+        p_static: FloatArray,
+        settings: PeriodicitySettings,
+        platter_radius: float,
+        progress: Progress | None,
+        n_stages: int,
+    ) -> None:
+        self.start6 = start6
+        self.p_static = p_static
+        self.settings = settings
+        self.platter_radius = platter_radius
+        self.progress = progress
+        self.n_stages = n_stages
+        self.history: list[dict[str, Any]] = []
+        self.last: tuple[FloatArray, _Problem] | None = None
+        """the last inner solution and its problem"""
+        self.outer = 0
+        self.cost = math.nan
+        self.timings = {"cells": 0.0, "match": 0.0, "solve": 0.0}
+
+    def stage(self, s_i: int, stage: Stage, match: _Matcher, x6: FloatArray) -> FloatArray:
+        """Iterate one stage from ``x6``; returns the H (as a vector) it ends on."""
+        settings = self.settings
+        gauge_ty = settings.gauge == "ty" or not stage.use_platter
+        free = [i for i in _free(gauge_ty) if not (stage.hold_ry and i == IDX["ry"])]
+        for outer in range(stage.max_outer):
+            if self.progress is not None:
+                self.progress(
+                    f"periodicity stage {s_i + 1}/{self.n_stages} ({stage.voxel * 1e3:.0f} mm)",
+                    (s_i + outer / stage.max_outer) / self.n_stages,
+                )
+            t0 = time.perf_counter()
+            matched, n_pts = match(x6)
+            platter = self._platter(stage, x6)
+            t1 = time.perf_counter()
+            n_matches = matched.pa.shape[0]
+            if n_matches < MIN_MATCHES:
+                raise FineTuningError(
+                    f"periodicity stage {s_i + 1}: only {n_matches} matches between the two "
+                    f"half-turns (voxel {stage.voxel * 1e3:.0f} mm, radius "
+                    f"{stage.match_radius * 1e3:.0f} mm); the start is too far off or the spin "
+                    "target is not seen in both half-turns"
+                )
+            problem = _Problem(matched, platter, 1.0, free, x6)
+            lo, hi = _bounds(x6, self.start6, free, settings)
+            reduced = _Reduced(problem, x6[free])
+            res = least_squares(
+                reduced.residuals,
+                x6[free],
+                jac=reduced.jacobian,
+                bounds=(lo, hi),
+                method="trf",
+                x_scale=np.full(len(free), 1e-3),
+                xtol=settings.xtol,
+                ftol=settings.ftol,
+                max_nfev=settings.max_nfev,
+            )
+            self.timings["match"] += t1 - t0
+            self.timings["solve"] += time.perf_counter() - t1
+            new6 = problem.full(res.x)
+            step = np.abs(new6 - x6)
+            x6 = new6
+            self.outer += 1
+            self.cost = float(np.mean(problem.residuals(res.x) ** 2))
+            self.last = (res.x, problem)
+            self.history.append(
+                {
+                    "stage": s_i + 1,
+                    "voxel_m": stage.voxel,
+                    "points": n_pts,
+                    "matches": int(n_matches),
+                    "platter_samples": 0 if platter is None else int(platter.shape[0]),
+                    "cost": self.cost,
+                    "nfev": int(res.nfev),
+                }
+            )
+            if _converged(self.history, outer, step, stage):
+                break
+        return x6
+
+    def _platter(self, stage: Stage, x6: FloatArray) -> FloatArray | None:
+        if not stage.use_platter:
+            return None
+        platter = _platter_samples(self.p_static, x6, max(0.003, stage.voxel), self.platter_radius)
+        if platter.shape[0] < 20:
+            raise FineTuningError(
+                "gauge 'platter': the platter top is not visible in the spin scan "
+                f"({platter.shape[0]} static returns near x_P = 0 under the current estimate); "
+                "the start may be too far off (run the coarse stages, or start from the initial "
+                "calibration), or the platter is hidden (use gauge: ty)"
+            )
+        return platter
+
+
+def _converged(history: list[dict[str, Any]], outer: int, step: FloatArray, stage: Stage) -> bool:
+    """Stop the outer loop of a stage?
+
+    While ry is held, a stalled cost or a step below the cell's resolution ends the stage. Once
+    ry is free the cost is nearly flat in it, so only the parameter step counts: a cost-based
+    stop ended the loop while ry was still walking back from a wrong start.
+    """
+    small_step = (
+        step[:3].max() < stage.voxel * 0.02
+        and step[5] < math.radians(0.001) * stage.voxel / 0.002
+        and step[4] < math.radians(0.002)
+    )
+    if not stage.hold_ry:
+        return bool(small_step)
+    prev_cost = history[-2]["cost"] if len(history) > 1 and outer > 0 else math.inf
+    cost = history[-1]["cost"]
+    return bool(small_step or (outer > 0 and abs(prev_cost - cost) <= 1e-3 * cost))
+
+
+def _centre_halves(
+    halves: list[_Half], x6: FloatArray, settings: PeriodicitySettings, rng: np.random.Generator
+) -> FloatArray:
+    """Stage 0 (calstation): move tx and tz so that the centroids of the two half-turn
+    reconstructions coincide. Smooth, with a basin as wide as the target, it brings starts
+    200 mm off within reach of the first matching stage. ty (gauge), ry and rz stay. The caller
+    keeps the result only if it gives more first-stage matches than the start."""
+    sub = [_subset(h, 20_000, rng) for h in halves]
+    cs = [(np.cos(h.phi), np.sin(h.phi)) for h in sub]
+    free = [IDX["tx"], IDX["tz"]]
+
+    def fun(x: FloatArray) -> FloatArray:
+        v = x6.copy()
+        v[free] = x
+        a = to_dynamic(sub[0].p_L, *cs[0], v)
+        b = to_dynamic(sub[1].p_L, *cs[1], v)
+        return np.asarray(a.mean(axis=0) - b.mean(axis=0), dtype=np.float64)
+
+    half = 2.0 * settings.translation_bound * 5
+    x0 = x6[free]
+    res = least_squares(fun, x0, bounds=(x0 - half, x0 + half), method="trf", max_nfev=30)
+    out = x6.copy()
+    out[free] = res.x
+    return out
