@@ -864,6 +864,7 @@ class Station:
                 metadata=metadata,
                 calibration=calibration,
                 calibration_source=source,
+                clock=d.clock,  # the drivers' time base: one clock in the file
             ) as writer,
             self.ui.progress(f"{stem} scan") as progress,
         ):
