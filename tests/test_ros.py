@@ -47,7 +47,9 @@ def _publishers(text: str) -> dict[tuple[str, str], np.ndarray]:
     return out
 
 
-def _urdf_joints(text: str, links: tuple[str, str] = ("lidar", "platform")) -> dict[str, ET.Element]:
+def _urdf_joints(
+    text: str, links: tuple[str, ...] = ("lidar", "platform")
+) -> dict[str, ET.Element]:
     """The joints of a complete URDF file (its root is ``<robot>``), which has ``links``."""
     root = ET.fromstring(text.encode("utf-8"))
     assert root.tag == "robot"
