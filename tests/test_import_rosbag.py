@@ -177,16 +177,22 @@ def stop_and_go(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
             "info": station.lidar_info}
 
 
-def _write_jointstate_bag(rec: Any, bag: Bag) -> None:
+def _write_jointstate_bag(rec: Any, bag: Bag, second: Bag | None = None,
+                          other_joints: bool = False) -> None:
     """LaserScans on /scan, the platter angle as a JointState on /joint_states (at the encoder's
-    readings, on the lines' clock), and the raw count as std_msgs/Int64 on /encoder."""
+    readings, on the lines' clock), and the raw count as std_msgs/Int64 on /encoder. With
+    ``second``, the recording's second half goes there (a split bag); with ``other_joints``,
+    another publisher's JointStates (an arm's) share /joint_states."""
     info = rec.lidar_info
+    first = bag
     latency = round(rec.encoder_latency_s * 1e9)
     phi = rec.encoder_direction * 2 * math.pi * rec.encoder_count / rec.counts_per_revolution
     lines = list(rec.lines())
     events = [(ln.timestamp_ns, 0, i) for i, ln in enumerate(lines)]
     events += [(int(t) - latency, 1, i) for i, t in enumerate(rec.encoder_t_ns)]
+    middle = int(np.median([t for t, _, _ in events]))
     for t, what, i in sorted(events):
+        bag = second if second is not None and t >= middle else first
         if what == 0:
             bag.write("/scan", "sensor_msgs/msg/LaserScan", t + 1_000_000,
                       bag.laser_scan(lines[i], info.range_min_m, info.range_max_m))
@@ -197,6 +203,11 @@ def _write_jointstate_bag(rec: Any, bag: Bag) -> None:
             bag.write("/joint_states", "sensor_msgs/msg/JointState", t + 200_000, js)
             count = bag.t("std_msgs/msg/Int64")(data=int(rec.encoder_count[i]))
             bag.write("/encoder", "std_msgs/msg/Int64", t, count)
+            if other_joints:
+                arm = bag.t("sensor_msgs/msg/JointState")(
+                    header=bag.header(t + 100_000, "base"), name=["shoulder", "elbow"],
+                    position=np.array([1.0, 2.0]), velocity=np.zeros(0), effort=np.zeros(0))
+                bag.write("/joint_states", "sensor_msgs/msg/JointState", t + 300_000, arm)
 
 
 @pytest.mark.parametrize("flavour", ["ros1", "db3", "mcap"])
@@ -258,6 +269,26 @@ def test_a_custom_message_with_the_angle_inside_reconstructs_as_the_simulator(
          "--angle-unit", "deg", "--out", tmp_path / "auto.mcap")
     auto = _cloud(cli, tmp_path / "auto.mcap", stop_and_go["truth"], tmp_path / "auto.ply")
     assert np.max(np.linalg.norm(auto - want, axis=1)) < 1e-6
+
+
+def test_a_split_bag_and_a_shared_joint_states_topic(
+    cli: CliRunner, spin: dict[str, Path], tmp_path: Path
+) -> None:
+    """The two files of a split recording import as one; JointStates of other joints on the
+    same topic are left out (with a note), the named joint's are used."""
+    rec = read_recording(spin["spin"])
+    a, b = tmp_path / "part_0.bag", tmp_path / "part_1.bag"
+    with Bag(a, "ros1") as first, Bag(b, "ros1") as second:
+        _write_jointstate_bag(rec, first, second, other_joints=True)
+    out = tmp_path / "imported.mcap"
+    res = cli.invoke(app, ["import", "rosbag", str(a), str(b), "--scan", "/scan",
+                           "--angle", "/joint_states:position[platter]", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "without 'position[platter]' (other joints) left out" in " ".join(res.output.split())
+    want = _cloud(cli, spin["spin"], spin["truth"], tmp_path / "sim.ply")
+    got = _cloud(cli, out, spin["truth"], tmp_path / "imported.ply")
+    assert got.shape == want.shape and np.max(np.linalg.norm(got - want, axis=1)) < 1e-6
+    assert len(read_recording(out).metadata["import"]["bag"]) == 2
 
 
 def test_an_imported_scan_is_a_recording_like_any_other(

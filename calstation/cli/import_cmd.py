@@ -31,8 +31,9 @@ def register(app: typer.Typer) -> None:
 
     @group.command("rosbag")
     def rosbag_cmd(
-        bag: Path = typer.Argument(..., help="A ROS 1 .bag, or a ROS 2 bag (folder, .db3 or "
-                                   ".mcap).", show_default=False),
+        bags: list[Path] = typer.Argument(..., help="A ROS 1 .bag, or a ROS 2 bag (folder, "
+                                          ".db3 or .mcap); several: the parts of one split "
+                                          "recording.", metavar="BAG...", show_default=False),
         scan: str = typer.Option(..., "--scan", help="TOPIC[:FIELD] of the sensor_msgs/"
                                  "LaserScan (FIELD: a dotted path into a custom message, e.g. "
                                  "/slice:laserScan).", show_default=False),
@@ -62,8 +63,8 @@ def register(app: typer.Typer) -> None:
 
         scan_spec = TopicSpec.parse(scan, "--scan")
         angle_spec = TopicSpec.parse(angle, "--angle")
-        with _progress(f"reading {bag}") as step:
-            imported = read_rosbag(bag, scan_spec, angle_spec, angle_unit=angle_unit,
+        with _progress(f"reading {', '.join(map(str, bags))}") as step:
+            imported = read_rosbag(bags, scan_spec, angle_spec, angle_unit=angle_unit,
                                    stamps=stamps, progress=step)
         _write(imported, out, kind, counts_per_rev, direction, station)
 

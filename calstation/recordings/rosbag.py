@@ -48,6 +48,10 @@ microcontroller's time since boot, say): ``stamps="auto"`` then uses the receive
 _SEGMENT = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*)((?:\[[^\]]+\])*)$")
 
 
+class _MissingName(RecordingImportError):
+    """A ``[NAME]`` not in a message's ``name`` list (a JointState of other joints)."""
+
+
 @dataclass(frozen=True)
 class TopicSpec:
     """``TOPIC[:FIELD]``: a topic and a dotted path into its messages (empty: the message)."""
@@ -103,7 +107,7 @@ def _index(value: Any, key: str, parent: Any, where: str, field: str) -> Any:
         return value[i]
     names = list(getattr(parent, "name", []) or [])
     if key not in names:
-        raise RecordingImportError(
+        raise _MissingName(
             f"{where}: {field}[{key}]: no {key!r} in the message's name list "
             f"({', '.join(map(str, names)) or 'empty'})"
         )
@@ -174,10 +178,12 @@ class _Collected:
     angles: list[tuple[int, int | None, float]]  # (bag time, header stamp, angle)
     scan_type: str = ""
     angle_type: str = ""
+    without_name: int = 0  # angle messages without the named joint (left out)
+    first_missing: str = ""
 
 
 def read_rosbag(
-    bag: Path,
+    bag: Path | Sequence[Path],
     scan: TopicSpec,
     angle: TopicSpec,
     *,
@@ -185,7 +191,8 @@ def read_rosbag(
     stamps: str = "auto",
     progress: Callable[[int, int], None] | None = None,
 ) -> ImportedScan:
-    """Read the lines of ``scan`` and the angle ``angle`` from ``bag`` (see the module).
+    """Read the lines of ``scan`` and the angle ``angle`` from ``bag`` (see the module): one
+    bag, or the files of one recording split in several (read as one, in time order).
 
     ``angle_unit`` is that of the angle values as stored (``deg``, ``rad``, ``counts``);
     ``stamps`` picks the time of each message (:data:`STAMPS`). ``progress(done, total)`` is
@@ -194,7 +201,10 @@ def read_rosbag(
     """
     if stamps not in STAMPS:
         raise RecordingImportError(f"stamps {stamps!r} is not one of {', '.join(STAMPS)}")
-    got = _collect(Path(bag), scan, angle, progress)
+    bags = [Path(bag)] if isinstance(bag, (str, Path)) else [Path(b) for b in bag]
+    if not bags:
+        raise RecordingImportError("no bag given")
+    got = _collect(bags, scan, angle, progress)
     same = angle.topic == scan.topic
     times, stamp_note = _times(got, same, stamps, scan, angle)
     line_t, angle_t = times
@@ -211,10 +221,13 @@ def read_rosbag(
                                      np.array([v for _, _, v in got.angles], np.float64))
     if stamp_note:
         notes.insert(0, stamp_note)
+    if got.without_name:
+        notes.append(f"{got.without_name} messages of {angle.topic} without {angle.field!r} "
+                     "(other joints) left out")
     first = got.scans[keep[0]][2]
     source = {
         "tool": "calstation import rosbag",
-        "bag": file_digest(Path(bag)),
+        "bag": file_digest(bags[0]) if len(bags) == 1 else [file_digest(b) for b in bags],
         "scan": str(scan),
         "scan_type": got.scan_type,
         "angle": str(angle),
@@ -247,17 +260,19 @@ def read_rosbag(
     return ImportedScan(lines, angle_t_ns, values, angle_unit, lidar, source, notes)
 
 
-def _collect(bag: Path, scan: TopicSpec, angle: TopicSpec,
+def _collect(bags: list[Path], scan: TopicSpec, angle: TopicSpec,
              progress: Callable[[int, int], None] | None) -> _Collected:
     from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.typesys import Stores, get_typestore
 
-    if not bag.exists():
-        raise RecordingImportError(f"bag {bag} does not exist")
+    for b in bags:
+        if not b.exists():
+            raise RecordingImportError(f"bag {b} does not exist")
+    bag = bags[0] if len(bags) == 1 else Path(", ".join(map(str, bags)))  # for messages
     try:
         # a ROS 2 bag before Iron carries no type definitions: the standard messages
         # (sensor_msgs, std_msgs, …) are known; a custom type then cannot be decoded
-        with AnyReader([bag], default_typestore=get_typestore(Stores.LATEST)) as reader:
+        with AnyReader(bags, default_typestore=get_typestore(Stores.LATEST)) as reader:
             return _collect_from(reader, bag, scan, angle, progress)
     except RecordingImportError:
         raise
@@ -311,7 +326,13 @@ def _collect_from(reader: Any, bag: Path, scan: TopicSpec, angle: TopicSpec,
                 angle_field = _angle_field(msg, angle, angle_where,
                                            exclude=scan_field if angle.topic == scan.topic
                                            else None)
-            value = _number(resolve(msg, angle_field, angle_where), angle_where, angle_field)
+            try:
+                value = _number(resolve(msg, angle_field, angle_where), angle_where,
+                                angle_field)
+            except _MissingName as exc:  # another publisher's joints on the same topic
+                got.without_name += 1
+                got.first_missing = got.first_missing or str(exc)
+                continue
             got.angle_type = connection.msgtype + f" field {angle_field}"
             if angle.topic == scan.topic:
                 got.held.append(value)
@@ -322,8 +343,15 @@ def _collect_from(reader: Any, bag: Path, scan: TopicSpec, angle: TopicSpec,
     if not got.scans:
         raise RecordingImportError(f"--scan {scan}: topic {scan.topic} has no messages in {bag}")
     if not got.held and not got.angles:
+        if got.first_missing:
+            raise RecordingImportError(got.first_missing)
         raise RecordingImportError(
             f"--angle {angle}: topic {angle.topic} has no messages in {bag}: the angle is missing"
+        )
+    if got.held and len(got.held) != len(got.scans):
+        raise RecordingImportError(
+            f"--angle {angle}: {got.without_name} of the {len(got.scans)} scans have no angle: "
+            f"{got.first_missing}"
         )
     return got
 
