@@ -23,6 +23,11 @@ class RecordingError(CalstationError):
     """A recording is missing, unreadable, truncated past use, or inconsistent."""
 
 
+class RecordingImportError(RecordingError):
+    """A ROS bag or a line log could not be imported: it names the file, the topic or column,
+    the field and what was found."""
+
+
 class SimulationError(CalstationError):
     """The simulated station was configured in a way it cannot simulate."""
 
