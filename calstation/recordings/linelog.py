@@ -59,13 +59,34 @@ def read_line_log(
     angle column. Raises :class:`RecordingImportError` naming the file, the row, the column and
     what was found."""
     path = Path(path)
-    first, step = _azimuths(columns.azimuths)
+    _azimuths(columns.azimuths)  # a malformed azimuth spec is the first thing said
     if columns.time_unit not in TIME_UNITS:
         raise RecordingImportError(f"--time-unit {columns.time_unit!r}: use one of "
                                    f"{', '.join(TIME_UNITS)}")
     if columns.range_unit not in RANGE_UNITS:
         raise RecordingImportError(f"--range-unit {columns.range_unit!r}: use one of "
                                    f"{', '.join(RANGE_UNITS)}")
+    lines, angles = _read_lines(path, columns, progress)
+    notes = []
+    order = sorted(range(len(lines)), key=lambda i: lines[i].timestamp_ns)
+    if order != list(range(len(lines))):
+        lines = [lines[i] for i in order]
+        angles = [angles[i] for i in order]
+        notes.append("rows out of time order: sorted by time")
+    invalid = sum(int(len(ln) - np.count_nonzero(ln.valid)) for ln in lines)
+    if invalid:
+        notes.append(f"{invalid} returns invalid (empty, not a number or outside the range "
+                     "limits): kept, marked invalid")
+    angle_t, values = _angle_samples(lines, angles, columns.hold)
+    lidar, source = _provenance(path, columns, lines, angle_unit)
+    return ImportedScan(lines, angle_t, values, angle_unit, lidar, source, notes)
+
+
+def _read_lines(
+    path: Path, columns: LineLogColumns, progress: Callable[[int, int], None] | None
+) -> tuple[list[LidarLine], list[float]]:
+    """Each row as a lidar line, with its angle; the first problem as an error."""
+    first, step = _azimuths(columns.azimuths)
     header, rows = _table(path)
     where = f"{path}"
     t_col = _column(header, columns.time, "--time", where)
@@ -107,17 +128,15 @@ def read_line_log(
             progress(k + 1, len(rows))
     if not lines:
         raise RecordingImportError(f"{where}: no lines (the file has a header and no rows)")
-    notes = []
-    order = sorted(range(len(lines)), key=lambda i: lines[i].timestamp_ns)
-    if order != list(range(len(lines))):
-        lines = [lines[i] for i in order]
-        angles = [angles[i] for i in order]
-        notes.append("rows out of time order: sorted by time")
-    invalid = sum(int(len(ln) - np.count_nonzero(ln.valid)) for ln in lines)
-    if invalid:
-        notes.append(f"{invalid} returns invalid (empty, not a number or outside the range "
-                     "limits): kept, marked invalid")
-    if columns.hold:
+    return lines, angles
+
+
+def _angle_samples(
+    lines: list[LidarLine], angles: list[float], hold: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """The angle readings in time: one per line at its time, or (``hold``) held over each
+    line, from its first return to its last; one value per time."""
+    if hold:
         t = [v for ln in lines for v in (int(ln.point_times_ns().min()),
                                          int(ln.point_times_ns().max()))]
         a = [v for v in angles for _ in range(2)]
@@ -127,7 +146,15 @@ def read_line_log(
     values = np.asarray(a, np.float64)
     keep = np.ones(len(angle_t), bool)
     keep[:-1] = angle_t[1:] != angle_t[:-1]  # one value per time
-    n = int(n_points or 0)
+    return angle_t[keep], values[keep]
+
+
+def _provenance(
+    path: Path, columns: LineLogColumns, lines: list[LidarLine], angle_unit: str
+) -> tuple[LidarInfo, dict[str, object]]:
+    """The lidar as the log describes it, and where the recording's data came from."""
+    _, step = _azimuths(columns.azimuths)
+    n = len(lines[0])
     lidar = LidarInfo(
         vendor="line log import",
         model=path.name,
@@ -150,7 +177,7 @@ def read_line_log(
         "azimuths_deg": columns.azimuths,
         "range_unit": columns.range_unit,
     }
-    return ImportedScan(lines, angle_t[keep], values[keep], angle_unit, lidar, source, notes)
+    return lidar, source
 
 
 def _table(path: Path) -> tuple[list[str], list[list[str]]]:

@@ -27,7 +27,7 @@ from sqlalchemy.orm import Session
 
 from calstation.errors import DatabaseError, ResultJournalled
 from calstation.recordings.runfolder import SCAN_RECORDINGS, file_sha256
-from calstation.storage.db import Database
+from calstation.storage.db.database import Database
 from calstation.storage.db.models import Artifact, Calibration, CubeCheckRecord, Run, Step, utcnow
 
 JOURNAL = "journal.jsonl"
