@@ -85,6 +85,7 @@ def record_scan(
             metadata=metadata,
             calibration=calibration,
             calibration_source=source,
+            clock=d.clock,  # the drivers' time base: one clock in the file
         ) as writer,
         ctx.ui.progress(f"{stem} scan") as progress,
     ):
