@@ -104,6 +104,17 @@ class Scan:
             return self
         return replace(self, encoder_latency_s=float(latency_s))
 
+    def whole_turns(self) -> int:
+        """Whole revolutions of the platter between the first and the last line (0 without
+        encoder readings covering them)."""
+        if self.n_lines < 2 or len(self.encoder_t_ns) == 0:
+            return 0
+        ends = np.array([self.line_timestamp_ns[0], self.line_timestamp_ns[-1]], dtype=np.int64)
+        phi = self.platter_angle(ends)
+        if not np.all(np.isfinite(phi)):
+            return 0
+        return max(0, math.floor(abs(float(phi[1] - phi[0])) / (2 * math.pi) + 0.02))
+
     # --- geometry ------------------------------------------------------------------------
     def platter_angle(self, t_ns: ArrayLike) -> NDArray[np.float64]:
         """Platter angle φ (rad) at host-clock times ``t_ns`` (lidar time base), shape of input.

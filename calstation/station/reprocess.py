@@ -158,13 +158,13 @@ def reprocess_run(
     """
     from calstation import plugins
     from calstation.engine.initial import initial_calibration
-    from calstation.engine.observability import problems_with_cube
     from calstation.plugins.cost_strategies import (
         fine_tune_targetless,
         fine_tune_with_cube,
         run_strategy,
     )
     from calstation.recordings.reader import read_recording
+    from calstation.station.accuracy import judge
 
     say = status or (lambda message: None)
     with db.session() as s:
@@ -221,7 +221,8 @@ def reprocess_run(
         second = read_recording(pass2)
         warnings += recording_disagreements(second, loaded)
         result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
-    refused = problems_with_cube(result, rc.calibration.max_sigma, joint_failure)
+    result, refused = judge(result, rc, ry_failure=joint_failure,
+                            turns=float(spin.whole_turns()))
     recordings = {k: str(v) for k, v in paths.items()}
     result = replace(result, diagnostics={
         **result.diagnostics,

@@ -92,6 +92,8 @@ class LiveState:
         self.progress: dict[str, Any] | None = None
         self.prompt: dict[str, Any] | None = None
         self.line: dict[str, Any] | None = None
+        self.accuracy: list[dict[str, Any]] = []
+        """the predicted error after each turn of the scan under way (the ``accuracy`` event)"""
         self.log: list[dict[str, str]] = []
         self.result: dict[str, Any] | None = None
         self.error: str | None = None
@@ -206,6 +208,7 @@ class LiveState:
                 "progress": None if self.progress is None else dict(self.progress),
                 "prompt": None if self.prompt is None else dict(self.prompt),
                 "line": self.line,
+                "accuracy": [dict(a) for a in self.accuracy],
                 "log": list(self.log),
                 "result": self.result,
                 "error": self.error,
@@ -317,6 +320,14 @@ class WebOperator:
             self.live.update(finished)
         elif event.kind == "lidar_line":
             self._preview(d["kind"], d["line"])
+        elif event.kind == "accuracy":
+            point = {"scan": d["scan"], "turns": d["turns"],
+                     "predicted_error_mm": 1e3 * float(d["predicted_error_m"]),
+                     "budget_mm": 1e3 * float(d["budget_m"])}
+
+            def predicted(st: LiveState) -> None:
+                st.accuracy = [a for a in st.accuracy if a["scan"] == point["scan"]] + [point]
+            self.live.update(predicted)
         self._check_abort()
 
     # --- helpers ---------------------------------------------------------------------------
@@ -471,6 +482,7 @@ class Runner:
         except Exception as exc:
             self.live.add_log("error", f"could not read run {run_id}: {exc}")
             return None
-        return {k: data[k] for k in ("verdict", "calibrations", "cube_rows", "drift", "serial")} | {
+        keys = ("verdict", "calibrations", "cube_rows", "drift", "serial", "accuracy")
+        return {k: data[k] for k in keys} | {
             "error": data["run"]["error"], "status": data["run"]["status"]}
 

@@ -55,10 +55,25 @@
       $("progress-bar").value = p.fraction;
     }
     renderLine(s.line, s.busy);
+    renderAccuracy(s.accuracy || [], s.busy);
     if (previous.busy && !s.busy) {
       // the run ended: the end screen (values beside their limits) is rendered by the server
       window.location.reload();
     }
+  }
+
+  // the predicted error after each turn of the scan under way, beside the budget
+  function renderAccuracy(points, busy) {
+    var box = $("accuracy-live");
+    if (!box) { return; }
+    box.hidden = !busy || points.length === 0;
+    if (box.hidden) { return; }
+    var last = points[points.length - 1];
+    var trail = points.map(function (a) { return a.turns + ": " + a.predicted_error_mm.toFixed(3); });
+    box.textContent = "predicted error after " + last.turns + " turn" + (last.turns > 1 ? "s" : "") +
+      " of the " + last.scan.replace("_", " ") + ": " + last.predicted_error_mm.toFixed(3) +
+      " mm (budget " + last.budget_mm.toFixed(3) + " mm; by turn " + trail.join(", ") + ")";
+    box.className = last.predicted_error_mm <= last.budget_mm ? "ok" : "pending";
   }
 
   function renderPrompt(p) {
