@@ -41,7 +41,7 @@ test: setup
 	$(BIN)/ruff check calstation plugins tests benchmarks
 	$(BIN)/mypy
 	$(BIN)/python -m pytest -n 2 -q
-	$(BIN)/python -m pytest -q -m browser tests/test_web_browser.py
+	$(BIN)/python -m pytest -q -m browser tests/test_web_browser.py tests/test_web_security_browser.py
 
 bench: setup
 	$(BIN)/python benchmarks/simulate_revolution.py
