@@ -48,6 +48,7 @@ bench: setup
 	$(BIN)/python benchmarks/recording_io.py
 	$(BIN)/python benchmarks/calibration.py
 	$(BIN)/python benchmarks/startup.py
+	$(BIN)/python benchmarks/web_load.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .mypy_cache .ruff_cache
