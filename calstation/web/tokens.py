@@ -1,10 +1,11 @@
 """The station token: where it comes from, when it changes, and how a candidate is compared.
 
 The token is ``$CALSTATION_TOKEN``, else the first line of a token file (``--token-file`` or
-``$CALSTATION_TOKEN_FILE``). A token file is watched: when it is rewritten (a new token), the
-next request sees the new token, and every session opened with the old one ends
-(:mod:`.sessions` keeps each session's token generation). A token file that can no longer be
-read locks the station (every state-changing request is refused) until it can.
+``$CALSTATION_TOKEN_FILE``). A token file is read again whenever the token is needed: when it
+is rewritten (a new token), the next request sees the new token, and every session opened with
+the old one ends (:mod:`.sessions` keeps each session's token generation). A token file that
+can no longer be read locks the station (every state-changing request is refused) until it
+can.
 
 Comparisons are on bytes, of SHA-256 digests, with :func:`hmac.compare_digest`: constant time,
 independent of the candidate's length, and a candidate that is not ASCII is simply wrong.
@@ -57,7 +58,9 @@ def check_token_text(token: str, source: str) -> str:
 
 def _read_token_file(path: Path) -> str:
     try:
-        lines = path.read_text(encoding="utf-8").strip().splitlines()
+        with path.open("rb") as f:  # the first line is all that counts: read no more
+            head = f.read(4 * TOKEN_MAX_LENGTH)
+        lines = head.decode("utf-8", "replace").strip().splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise TokenUnavailable(f"cannot read the station token from {path}: {exc}") from exc
     if not lines:
@@ -84,7 +87,6 @@ class TokenSource:
         self.source = str(path) if path is not None else source
         self.generation = 0
         self._lock = threading.Lock()
-        self._stat: tuple[int, int, int] | None = None
         self._token: str | None = None
         self._error: TokenUnavailable | None = None
         if token is not None:
@@ -92,7 +94,6 @@ class TokenSource:
         else:
             assert path is not None
             try:
-                self._stat = self._stat_of(path)
                 self._token = _read_token_file(path)
             except TokenUnavailable as exc:
                 raise CalstationError(str(exc)) from exc
@@ -108,37 +109,27 @@ class TokenSource:
                               if os.environ.get("CALSTATION_TOKEN_FILE") else None)
         return None if path is None else cls(path=path)
 
-    @staticmethod
-    def _stat_of(path: Path) -> tuple[int, int, int]:
-        try:
-            st = path.stat()
-        except OSError as exc:
-            raise TokenUnavailable(f"cannot read the station token from {path}: {exc}") from exc
-        return (st.st_ino, st.st_mtime_ns, st.st_size)
-
     def current(self) -> str:
-        """The token now in force (re-read if its file changed)."""
+        """The token now in force (its file read again)."""
         if self.path is None:
             assert self._token is not None
             return self._token
         with self._lock:
+            # read every time (a few hundred bytes): a rewrite within the file system's time
+            # resolution, to the same size, is still seen
             try:
-                stat = self._stat_of(self.path)
-                if stat != self._stat:
-                    token = _read_token_file(self.path)
-                    self._stat = stat
-                    if token != self._token:
-                        self._token = token
-                        self.generation += 1
-                self._error = None
+                token = _read_token_file(self.path)
             except TokenUnavailable as exc:
                 # fail closed: no token is accepted until the file is usable again
                 if self._error is None:
                     self.generation += 1
-                self._stat, self._token, self._error = None, None, exc
+                self._token, self._error = None, exc
                 raise
-            assert self._token is not None
-            return self._token
+            if token != self._token:
+                self._token = token
+                self.generation += 1
+            self._error = None
+            return token
 
     def matches(self, candidate: str) -> bool:
         """Is ``candidate`` the current token (constant time)."""
