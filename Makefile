@@ -2,7 +2,7 @@
 #   make demo   set everything up, then start the web station on the simulated station and print
 #               its URL (open it, start a run, click through the prompts)
 #   make demo-console   the same run in the terminal, unattended
-#   make test   set everything up, then run the test suite, ruff and mypy
+#   make test   set everything up, then run ruff, mypy, lint-imports and the test suite
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -40,6 +40,7 @@ demo-console: setup
 test: setup
 	$(BIN)/ruff check calstation plugins tests benchmarks
 	$(BIN)/mypy
+	$(BIN)/lint-imports --no-logo
 	$(BIN)/python -m pytest -n 2 -q
 	$(BIN)/python -m pytest -q -m browser tests/test_web_browser.py tests/test_web_security_browser.py
 

@@ -139,7 +139,8 @@ def measure(recipe_path: Path, out: Path, with_shape: bool = True) -> dict[str, 
 
 def _preload() -> None:
     """Import the engine first: a station has it loaded before its scans end
-    (``calstation.station.run.preload_engine`` imports it, Open3D included, when a run starts)."""
+    (``calstation.station.preload.preload_engine`` imports it, Open3D included, when a run
+    starts)."""
     import open3d  # noqa: F401
 
     import calstation.engine.cube
@@ -255,11 +256,15 @@ def _accuracy(m: dict[str, Any]) -> None:
 def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """One measurement in a fresh process, of this revision or of the one in ``rev_dir``."""
     env = dict(os.environ)
+    script = Path(__file__).resolve()
     if rev_dir is not None:
-        env["PYTHONPATH"] = os.pathsep.join([str(rev_dir), env.get("PYTHONPATH", "")])
+        # that revision's own benchmark, package and plugins (their import paths differ)
+        plugins = sorted(str(p.parent) for p in rev_dir.glob("plugins/*/pyproject.toml"))
+        env["PYTHONPATH"] = os.pathsep.join([str(rev_dir), *plugins, env.get("PYTHONPATH", "")])
+        script = rev_dir / "benchmarks" / "calibration.py"
     found: dict[str, Any] = {}
     for mode in ("--json", "--json-station"):
-        cmd = [sys.executable, str(Path(__file__).resolve()), mode, "--out", str(out),
+        cmd = [sys.executable, str(script), mode, "--out", str(out),
                "--recipe", str(args.recipe)] + ([] if args.shape else ["--no-shape"])
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=rev_dir or REPO)
         if proc.returncode != 0:

@@ -91,6 +91,7 @@ def main() -> None:
             encoder_direction=recipe.recipe.station.encoder.direction,
             recipe=recipe,
             metadata={"truth": station.truth_dict()},
+            clock=station.clock,
         ) as writer:
             acquire_spin(
                 lidar,

@@ -87,7 +87,9 @@ def _launcher(root: Path) -> list[str]:
     (what the installed script runs), started with this interpreter."""
     target = tomllib.loads((root / "pyproject.toml").read_text())["project"]["scripts"]
     module, func = target["calstation"].split(":")
-    code = (f"import sys; sys.path.insert(0, {str(root)!r}); from {module} import {func}; "
+    # that checkout's package and its own plugins (their import paths follow its layout)
+    paths = [str(root), *sorted(str(p.parent) for p in root.glob("plugins/*/pyproject.toml"))]
+    code = (f"import sys; sys.path[:0] = {paths!r}; from {module} import {func}; "
             f"sys.exit({func}())")
     return [sys.executable, "-c", code]
 

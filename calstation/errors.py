@@ -23,6 +23,11 @@ class RecordingError(CalstationError):
     """A recording is missing, unreadable, truncated past use, or inconsistent."""
 
 
+class RecordingImportError(RecordingError):
+    """A ROS bag or a line log could not be imported: it names the file, the topic or column,
+    the field and what was found."""
+
+
 class SimulationError(CalstationError):
     """The simulated station was configured in a way it cannot simulate."""
 
@@ -70,6 +75,10 @@ class PluginError(CalstationError):
 
 class StationError(CalstationError):
     """The station state machine was asked to do something it cannot."""
+
+
+class AbortRun(CalstationError):
+    """The operator (or a signal) aborted the run."""
 
 
 class DatabaseError(CalstationError):

@@ -113,6 +113,25 @@ def test_show_json_is_what_is_stored(cli: CliRunner, db_url: str) -> None:
     db.dispose()
 
 
+def test_show_marks_refused_reprocessing(cli: CliRunner, db_url: str) -> None:
+    """A re-processing result over calibration.max_sigma is stored, never accepted, and ``show``
+    says it was refused and why (table and JSON)."""
+    db = open_database(db_url)
+    run_id = _add_run(db, "st-1", "passed", H1, dt.datetime(2026, 3, 1, tzinfo=dt.UTC))
+    reason = "σ(ry) 0.31° exceeds calibration.max_sigma.ry_deg 0.2°"
+    with db.session() as s:
+        s.add(Calibration(run_id=run_id, stage="reprocess", strategy="shape", **H1,
+                          accepted=False, diagnostics={"reprocess": {"refused": [reason]}}))
+    res = cli.invoke(app, ["show", str(run_id), "--json", "--db", db_url])
+    cals = json.loads(res.output)["calibrations"]
+    assert [c["refused"] for c in cals] == [[], [], [reason]]
+    res = cli.invoke(app, ["show", str(run_id), "--db", db_url])
+    assert res.exit_code == 0, res.output
+    assert "reprocess ✘ refused" in res.output
+    assert "refused: " + reason in " ".join(res.output.split())
+    db.dispose()
+
+
 def test_history_filters_and_json(cli: CliRunner, db_url: str) -> None:
     db = open_database(db_url)
     t0 = dt.datetime(2026, 3, 1, tzinfo=dt.UTC)
@@ -159,6 +178,7 @@ def test_export_formats_round_trip(cli: CliRunner, db_url: str, tmp_path: Path) 
     assert yaml.safe_load(out["yaml"])["run"]["accepted"] is True
     (row,) = list(csv.DictReader(io.StringIO(out["csv"])))
     assert {k: float(row[k]) for k in H1} == H1
+    assert row["accepted"] == "true"  # as JSON, YAML and most CSV readers spell booleans
     assert row["sigma_ty"] == "" and float(row["sigma_tx"]) == 1.234567e-5
     assert row["strategy"] == "periodicity" and int(row["run_id"]) == run_id
     assert f'xyz="{H1["tx"]:.9g} {H1["ty"]:.9g} {H1["tz"]:.9g}"' in out["urdf"]

@@ -21,7 +21,9 @@ from typing import Any
 import pytest
 
 from calstation.engine.frames import Extrinsics
-from calstation.station.run import STEPS, file_sha256, wait_for_step
+from calstation.recordings.runfolder import file_sha256
+from calstation.station.runs import wait_for_step
+from calstation.station.steps import STEPS
 from calstation.storage.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
 from calstation.testing import lean_recipe
 

@@ -24,7 +24,9 @@ from sqlalchemy import event, func, select, text
 from calstation import hookimpl, plugins
 from calstation.errors import DatabaseError
 from calstation.recipes import load_recipe
-from calstation.station.run import STEPS, file_sha256, resume_run, start_run
+from calstation.recordings.runfolder import file_sha256
+from calstation.station.runs import resume_run, start_run
+from calstation.station.steps import STEPS
 from calstation.storage.db import (
     Artifact,
     Calibration,

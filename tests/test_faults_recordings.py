@@ -25,8 +25,9 @@ from calstation.engine.frames import Extrinsics
 from calstation.errors import DriverError
 from calstation.quiet import quiet_open3d, stdout_to_stderr
 from calstation.recipes import load_recipe
+from calstation.recordings.runfolder import file_sha256
 from calstation.recordings.writer import RecordingWriter
-from calstation.station.run import file_sha256, resume_run, start_run
+from calstation.station.runs import resume_run, start_run
 from calstation.storage.db import Artifact, Database, Run, Step, open_database
 
 pytest.importorskip("calstation_sim")

@@ -16,7 +16,9 @@ import yaml
 from test_e2e import _cli, _env, lean_recipe
 
 from calstation.recipes import load_recipe
-from calstation.station.run import STEPS, file_sha256, wait_for_step
+from calstation.recordings.runfolder import file_sha256
+from calstation.station.runs import wait_for_step
+from calstation.station.steps import STEPS
 from calstation.storage.db import Artifact, Database, Run, Step
 
 pytestmark = pytest.mark.slow

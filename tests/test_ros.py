@@ -47,9 +47,13 @@ def _publishers(text: str) -> dict[tuple[str, str], np.ndarray]:
     return out
 
 
-def _urdf_joints(text: str) -> dict[str, ET.Element]:
-    root = ET.fromstring(f"<robot name='test'>{text}</robot>")
-    assert {link.get("name") for link in root.iter("link")} == {"lidar", "platform", "platter"}
+def _urdf_joints(
+    text: str, links: tuple[str, ...] = ("lidar", "platform")
+) -> dict[str, ET.Element]:
+    """The joints of a complete URDF file (its root is ``<robot>``), which has ``links``."""
+    root = ET.fromstring(text.encode("utf-8"))
+    assert root.tag == "robot"
+    assert {link.get("name") for link in root.iter("link")} == set(links)
     return {j.get("name") or "": j for j in root.iter("joint")}
 
 
@@ -84,19 +88,76 @@ def test_urdf_export_both_directions(h: Extrinsics, parent: str) -> None:
     assert "order x y z w" in text
     joints = _urdf_joints(text)
     child = "platform" if parent == "lidar" else "lidar"
-    joint = joints[f"{parent}_to_{child}"]
+    (joint,) = joints.values()
+    assert joint.get("name") == f"{parent}_to_{child}"
     assert joint.get("type") == "fixed"
     assert joint.find("parent").get("link") == parent  # type: ignore[union-attr]
     assert joint.find("child").get("link") == child  # type: ignore[union-attr]
     want = h.as_matrix() if parent == "lidar" else np.linalg.inv(h.as_matrix())
     np.testing.assert_allclose(_origin(joint), want, atol=1e-7)
-    platter = joints["platform_to_platter"]
-    assert platter.get("type") == "continuous"
-    assert platter.find("axis").get("xyz") == "1 0 0"  # type: ignore[union-attr]
+    # the fragment is the same links and joint without the <robot> root
+    fragment = ros.urdf_export(h, "test", parent=parent, form="fragment")
+    assert "<robot" not in fragment
+    wrapped = _urdf_joints(f"<robot name='mine'>{fragment}</robot>")
+    np.testing.assert_allclose(_origin(wrapped[f"{parent}_to_{child}"]), want, atol=1e-7)
+    # the platter's continuous joint, in a comment, is valid URDF once uncommented
+    (platter,) = re.findall(r"to add it: (.*) -->", text)
+    with_platter = _urdf_joints(text.replace("</robot>", platter + "</robot>"),
+                                ("lidar", "platform", "platter"))
+    assert with_platter["platform_to_platter"].get("type") == "continuous"
+    assert with_platter["platform_to_platter"].find("axis").get("xyz") == "1 0 0"  # type: ignore[union-attr]
     # the quaternion in the comment is the same rotation
     (q,) = re.findall(r"order x y z w \(scalar last, as ROS and scipy\): ([^>]*) -->", text)
     R = Extrinsics.from_quaternion([0, 0, 0], [float(v) for v in q.split()]).R
     np.testing.assert_allclose(R, want[:3, :3], atol=1e-7)
+
+
+def _joint_matrix(origin_xyz: object, origin_rpy: object) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = euler_to_matrix(*[float(v) for v in origin_rpy])  # type: ignore[attr-defined]
+    T[:3, 3] = [float(v) for v in origin_xyz]  # type: ignore[attr-defined]
+    return T
+
+
+@pytest.mark.parametrize("parent", ["lidar", "platform"])
+def test_urdf_file_loads_in_urdf_parsers(tmp_path: Path, parent: str) -> None:
+    """urdf_parser_py and yourdfpy load the exported file: 2 links, 1 joint equal to H."""
+    from urdf_parser_py.urdf import URDF
+    from yourdfpy import URDF as YURDF
+
+    path = tmp_path / "station.urdf"
+    path.write_text(ros.urdf_export(H, "test", parent=parent))
+    want = H.as_matrix() if parent == "lidar" else np.linalg.inv(H.as_matrix())
+    robot = URDF.from_xml_file(str(path))
+    assert sorted(link.name for link in robot.links) == ["lidar", "platform"]
+    (joint,) = robot.joints
+    assert (joint.parent, joint.type) == (parent, "fixed")
+    np.testing.assert_allclose(_joint_matrix(joint.origin.xyz, joint.origin.rpy), want,
+                               atol=1e-8)
+    model = YURDF.load(str(path))
+    assert sorted(model.link_map) == ["lidar", "platform"]
+    assert list(model.joint_map) == [joint.name]
+    child = "platform" if parent == "lidar" else "lidar"
+    np.testing.assert_allclose(model.get_transform(child, parent), want, atol=1e-8)
+
+
+def test_xacro_macro_puts_h_between_your_links(tmp_path: Path) -> None:
+    """The xacro form: a macro that joins two links of the user's robot by H."""
+    import xacro
+    from urdf_parser_py.urdf import URDF
+
+    (tmp_path / "calstation.xacro").write_text(ros.urdf_export(H, "test", form="xacro"))
+    (tmp_path / "robot.xacro").write_text(
+        '<?xml version="1.0"?>\n<robot name="mine" xmlns:xacro="http://www.ros.org/wiki/xacro">'
+        '<xacro:include filename="calstation.xacro"/><link name="laser"/><link name="table"/>'
+        '<xacro:calstation_calibration parent="laser" child="table"/></robot>\n'
+    )
+    urdf = xacro.process_file(str(tmp_path / "robot.xacro")).toxml()
+    robot = URDF.from_xml_string(urdf)
+    (joint,) = robot.joints
+    assert (joint.name, joint.parent, joint.child) == ("laser_to_table", "laser", "table")
+    np.testing.assert_allclose(_joint_matrix(joint.origin.xyz, joint.origin.rpy),
+                               H.as_matrix(), atol=1e-8)
 
 
 @pytest.mark.parametrize("parent", ["lidar", "platform"])
@@ -171,6 +232,17 @@ def test_export_cli_formats(tmp_path: Path) -> None:
                                atol=1e-8)
     joint = _urdf_joints(export("--format", "urdf", "--parent", "platform"))["platform_to_lidar"]
     np.testing.assert_allclose(_origin(joint), np.linalg.inv(H.as_matrix()), atol=1e-8)
+    out = tmp_path / "station.urdf"
+    export("--format", "urdf", "-o", str(out))
+    from urdf_parser_py.urdf import URDF
+
+    assert len(URDF.from_xml_file(str(out)).links) == 2  # -o writes a file URDF tools load
+    fragment = export("--format", "urdf", "--fragment")
+    assert "<robot" not in fragment and '<joint name="lidar_to_platform"' in fragment
+    assert "xacro:macro" in export("--format", "xacro")
+    res = runner.invoke(app, ["export", str(run_id), "--db", url, "--format", "tf",
+                              "--fragment"])
+    assert res.exit_code == 2 and "a fragment is a URDF form" in res.output
     msg = yaml.safe_load(export("--format", "ros2-yaml"))
     assert msg["header"]["stamp"]["sec"] == int(
         dt.datetime(2026, 3, 1, 9, tzinfo=dt.UTC).timestamp()

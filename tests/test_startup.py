@@ -66,10 +66,11 @@ def test_a_run_preloads_the_engine_in_the_background() -> None:
     that the steps after the scans do not wait for the imports."""
     probe = (
         "import sys, json\n"
-        "from calstation.station.run import preload_engine, _ENGINE_MODULES\n"
-        "before = [m for m in _ENGINE_MODULES if m in sys.modules]\n"
+        "import calstation.station.runs\n"
+        "from calstation.station.preload import preload_engine, ENGINE_MODULES\n"
+        "before = [m for m in ENGINE_MODULES if m in sys.modules]\n"
         "preload_engine().join(timeout=100)\n"
-        "print(json.dumps([before, [m for m in _ENGINE_MODULES if m in sys.modules]]))\n"
+        "print(json.dumps([before, [m for m in ENGINE_MODULES if m in sys.modules]]))\n"
     )
     proc = subprocess.run(
         [sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, timeout=120

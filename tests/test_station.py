@@ -21,7 +21,10 @@ from calstation import hookimpl, plugins
 from calstation.engine.result import CalibrationResult
 from calstation.errors import FineTuningError, RecipeError, StationError
 from calstation.recipes import load_recipe
-from calstation.station.run import STEPS, Station, file_sha256, resume_run, start_run
+from calstation.recordings.runfolder import file_sha256
+from calstation.station.machine import next_in_order
+from calstation.station.runs import resume_run, start_run
+from calstation.station.steps import REGISTRY, STEPS
 from calstation.storage.db import Artifact, Calibration, Database, Run, Step, open_database
 
 calstation_sim = pytest.importorskip("calstation_sim")
@@ -264,6 +267,11 @@ def test_run_until_abort_commits_each_step_and_stops_the_motor(
 
     rec = read_recording(arts["static"].path)
     assert rec.truth is not None and rec.metadata["run"]["id"] == run_id
+    # a station's recordings are on its drivers' clock, the calibration's transform included
+    from test_one_clock import check_one_clock
+
+    for art in arts.values():
+        check_one_clock(Path(art.path))
     assert "static scan" in ui.progress_titles and "spin scan" in ui.progress_titles
 
 
@@ -350,8 +358,11 @@ def test_unknown_driver_is_refused_before_the_run(tmp_path: Path, db: Database) 
 def test_machine_states_follow_the_workflow() -> None:
     assert STEPS == ("preflight", "place_static_target", "static_scan", "place_spin_target",
                      "spin_scan", "fine_tune", "place_qa_cube", "cube_scan", "report")
-    assert Station._next_in_order("fine_tune") == "place_qa_cube"
-    assert Station._next_in_order("report") == "done"
+    assert next_in_order("fine_tune") == "place_qa_cube"
+    assert next_in_order("report") == "done"
+    # one step class per state, each under its own name
+    assert tuple(REGISTRY) == STEPS
+    assert all(step.name == name for name, step in REGISTRY.items())
 
 
 def test_console_operator_prompts_and_abort(
@@ -611,7 +622,7 @@ def test_drift_beyond_limits_fails_the_run_when_the_recipe_says_so(
 
 
 def test_a_targetless_recipe_drops_the_l_target_steps_everywhere() -> None:
-    from calstation.station.run import TARGETLESS_DROPS, run_steps
+    from calstation.station.steps import TARGETLESS_DROPS, run_steps
     from calstation.web.live import LiveState
 
     targetless = load_recipe(RECIPES / "sim-targetless.yaml").recipe

@@ -360,7 +360,7 @@ def test_a_run_left_running_by_a_stopped_server_is_resumed_from_the_page(
     tmp_path: Path, db: Database, station_plugin: StationTestPlugin
 ) -> None:
     from calstation.recipes import load_recipe
-    from calstation.station.run import create_run
+    from calstation.station.runs import create_run
 
     with make_client(tmp_path, db) as client:
         # a run the server created and then lost (killed before any step finished)

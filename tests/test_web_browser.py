@@ -181,7 +181,7 @@ def _qa_pages(page: Any, url: str, db: Database, recipe: Path, first: int) -> No
     """Pictures of history, trends and compare for the docs (a second, unattended run)."""
     from calstation.recipes import load_recipe
     from calstation.station.operator import ConsoleOperator
-    from calstation.station.run import start_run
+    from calstation.station.runs import start_run
 
     data = yaml.safe_load(recipe.read_text())
     data["simulation"]["seed"] = 7  # another day, other noise

@@ -188,9 +188,14 @@ def register(app: typer.Typer) -> None:
         run_id: int = typer.Argument(..., help="Run id."),
         fmt: str = typer.Option(
             "yaml", "--format", "-f",
-            help="yaml | json | csv | tf | urdf | ros2-yaml (values in m, rad; quaternions "
-            "x y z w). tf: static_transform_publisher arguments, both directions; urdf: links "
-            "and joints; ros2-yaml: a geometry_msgs/TransformStamped.",
+            help="yaml | json | csv | tf | urdf | xacro | ros2-yaml (values in m, rad; "
+            "quaternions x y z w). tf: static_transform_publisher arguments, both directions; "
+            "urdf: a <robot> file with the two links and the joint; xacro: a macro adding the "
+            "joint between links you name; ros2-yaml: a geometry_msgs/TransformStamped.",
+        ),
+        fragment: bool = typer.Option(
+            False, "--fragment",
+            help="urdf: only the links and the joint, to paste inside your own <robot>.",
         ),
         parent: str = typer.Option(
             "lidar", "--parent",
@@ -212,10 +217,16 @@ def register(app: typer.Typer) -> None:
             raise typer.BadParameter(
                 f"parent must be 'lidar' or 'platform', got {parent!r}", param_hint="--parent"
             )
+        if fragment and fmt != "urdf":
+            raise typer.BadParameter(
+                f"a fragment is a URDF form: give --format urdf, not {fmt}",
+                param_hint="--fragment",
+            )
         frames = Frames(lidar_frame, platform_frame, platter_frame)
         database = open_database(db)
         with database.session("reading the runs", read_only=True) as s:
-            text = export_calibration(get_run(s, run_id), fmt, parent=parent, frames=frames)
+            text = export_calibration(get_run(s, run_id), fmt, parent=parent, frames=frames,
+                                      fragment=fragment)
         database.dispose()
         if out is None:
             typer.echo(text, nl=False)

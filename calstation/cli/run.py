@@ -72,7 +72,7 @@ def register(app: typer.Typer) -> None:
         """
         from calstation.recipes import load_recipe
         from calstation.station.operator import ConsoleOperator, default_operator
-        from calstation.station.run import start_run
+        from calstation.station.runs import start_run
         from calstation.storage.db import open_database
 
         loaded = load_recipe(recipe)
@@ -108,7 +108,7 @@ def register(app: typer.Typer) -> None:
         Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted.
         """
         from calstation.station.operator import ConsoleOperator
-        from calstation.station.run import resume_run
+        from calstation.station.runs import resume_run
         from calstation.storage.db import open_database
 
         database = open_database(db)

@@ -142,14 +142,6 @@ BUILTIN_STRATEGIES: tuple[Strategy, ...] = (PeriodicityStrategy(), ShapeStrategy
 """The strategies calstation registers itself."""
 
 
-def get_strategy(name: str) -> Strategy:
-    """The registered strategy ``name`` (built-in or plugin); PluginError lists the known ones."""
-    from calstation import plugins
-
-    found: Strategy = plugins.strategy(name)
-    return found
-
-
 # --- options -----------------------------------------------------------------------------------
 M = TypeVar("M", bound=BaseModel)
 

@@ -28,8 +28,8 @@ MAX_SCAN_SECONDS = 600.0
 PARAM_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
 """The parameters ``simulation.truth.H`` may name."""
 PREFLIGHT_RAMP_S = 1.5
-"""How long the station's preflight lets the platter spin up before it counts (the same constant
-in :mod:`calstation.station.run`)."""
+"""How long the station's preflight lets the platter spin up before it counts
+(:mod:`calstation.station.steps.preflight` takes it from here)."""
 
 
 def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[Problem]:

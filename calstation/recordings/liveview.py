@@ -1,11 +1,21 @@
 """The live view: every scan streamed over the Foxglove WebSocket protocol while it is taken.
 
-:func:`start_live_view` starts a WebSocket server (``foxglove-sdk``'s, protocol
-``foxglove.websocket.v1``) bound to 127.0.0.1 and makes it the process's live sink: from then on
-every :class:`~calstation.recordings.writer.RecordingWriter` of the process also publishes each
-message it writes — the same channels, schemas and bytes as the recording (``/lidar/scan``, ``/tf``,
-``/tf_static``, ``/platter/cloud``, …). Foxglove (*Open connection* → *Foxglove WebSocket* →
-``ws://127.0.0.1:PORT``) then shows the scan in 3D as it arrives.
+:func:`start_live_view` starts a WebSocket server bound to 127.0.0.1 and makes it the process's
+live sink: from then on every :class:`~calstation.recordings.writer.RecordingWriter` of the
+process also publishes each message it writes — the same channels, schemas, bytes and times as
+the recording (``/lidar/scan``, ``/tf``, ``/tf_static``, ``/platter/cloud``, …). Foxglove
+(*Open connection* → *Foxglove WebSocket* → ``ws://127.0.0.1:PORT``) then shows the scan in 3D
+as it arrives.
+
+The server is ``foxglove-sdk``'s, which speaks the protocol under its current subprotocol name,
+``foxglove.sdk.v1``, and answers HTTP 400 to a client that offers only the older name,
+``foxglove.websocket.v1`` (Foxglove Studio before the SDK, Lichtblick before its sdk.v1
+support). The two are the same protocol (Foxglove's stated position; the SDK's own ROS bridge
+made the same rename). So the port a client connects to is a small bridge
+(:class:`_SubprotocolBridge`): it reads the WebSocket handshake, and when the client offers
+``foxglove.websocket.v1`` but not ``foxglove.sdk.v1``, asks the SDK's server for
+``foxglove.sdk.v1`` and answers the client with the name it asked for; after the handshake it
+passes the bytes through untouched. Clients offering either name, or both, are served.
 
 The server only sends what a client subscribed to, so an idle live view costs next to nothing.
 The calibration (``/tf_static``) is sent once per scan; so that a client that connects later
@@ -15,6 +25,8 @@ at most once a second.
 
 from __future__ import annotations
 
+import contextlib
+import socket
 import threading
 import time
 import warnings
@@ -28,6 +40,12 @@ DEFAULT_PORT = 8765
 
 LATCHED_TOPICS = ("/tf_static",)
 REPEAT_LATCHED_S = 1.0
+SUBPROTOCOL = "foxglove.sdk.v1"
+"""The WebSocket subprotocol of ``foxglove-sdk``'s server."""
+LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
+"""The same protocol's earlier name, which older clients offer alone."""
+_MAX_HANDSHAKE = 64 * 1024
+_HANDSHAKE_TIMEOUT_S = 10.0
 
 
 class LiveViewError(CalstationError):
@@ -46,13 +64,19 @@ class LiveView:
         self._foxglove = foxglove
         self._context = foxglove.Context()
         try:
+            self._bridge = _SubprotocolBridge(host, port)
+        except OSError as exc:
+            raise LiveViewError(f"cannot start the live view on {host}:{port}: {exc}") from exc
+        try:  # the SDK's server, reached only through the bridge
             self._server = foxglove.start_server(
-                name="calstation", host=host, port=port, context=self._context
+                name="calstation", host="127.0.0.1", port=0, context=self._context
             )
         except Exception as exc:  # the SDK raises its own error types
+            self._bridge.close()
             raise LiveViewError(
                 f"cannot start the live view on {host}:{port}: {exc}"
             ) from exc
+        self._bridge.start(int(self._server.port))
         self.host = host
         self._lock = threading.Lock()
         self._channels: dict[str, Any] = {}
@@ -68,7 +92,7 @@ class LiveView:
     @property
     def port(self) -> int:
         """The TCP port the server listens on."""
-        return int(self._server.port)
+        return self._bridge.port
 
     @property
     def url(self) -> str:
@@ -104,6 +128,7 @@ class LiveView:
             self._closed = True
         if writer.live_sink() is self:
             writer.set_live_sink(None)
+        self._bridge.close()
         self._server.stop()
 
     def __enter__(self) -> LiveView:
@@ -127,6 +152,126 @@ class LiveView:
 
     def _log(self, topic: str, schema: SchemaData, data: bytes, log_time_ns: int) -> None:
         self._channel(topic, schema).log(data, log_time=int(log_time_ns))
+
+
+class _SubprotocolBridge:
+    """A TCP port in front of the SDK's WebSocket server that also admits clients offering only
+    :data:`LEGACY_SUBPROTOCOL` (see the module's docstring). One thread accepts; each
+    connection gets two threads pumping bytes, one per direction."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self._listener = socket.create_server((host, port))
+        self._listener.settimeout(0.2)
+        self.port = int(self._listener.getsockname()[1])
+        self._upstream_port = 0
+        self._closed = threading.Event()
+        self._lock = threading.Lock()
+        self._sockets: set[socket.socket] = set()
+        self._accepting = threading.Thread(target=self._accept, name="live-view", daemon=True)
+
+    def start(self, upstream_port: int) -> None:
+        """Forward every connection to ``127.0.0.1:upstream_port`` from now on."""
+        self._upstream_port = upstream_port
+        self._accepting.start()
+
+    def close(self) -> None:
+        """Stop accepting and close every open connection (idempotent)."""
+        self._closed.set()
+        if self._accepting.is_alive():
+            self._accepting.join(2.0)
+        with self._lock:
+            sockets, self._sockets = set(self._sockets), set()
+        for sock in (self._listener, *sockets):
+            with contextlib.suppress(OSError):
+                sock.close()
+
+    def _accept(self) -> None:
+        while not self._closed.is_set():
+            try:
+                client, _ = self._listener.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            threading.Thread(target=self._serve, args=(client,), daemon=True).start()
+
+    def _serve(self, client: socket.socket) -> None:
+        upstream = None
+        try:
+            self._track(client)
+            client.settimeout(_HANDSHAKE_TIMEOUT_S)
+            head, rest = _read_head(client)
+            request, legacy = rename_subprotocol(head)
+            upstream = socket.create_connection(("127.0.0.1", self._upstream_port), timeout=5.0)
+            self._track(upstream)
+            upstream.sendall(request + rest)
+            reply, rest = _read_head(upstream)
+            if legacy:
+                reply = reply.replace(SUBPROTOCOL.encode(), LEGACY_SUBPROTOCOL.encode())
+            client.sendall(reply + rest)
+            client.settimeout(None)
+            upstream.settimeout(None)
+        except OSError:
+            for sock in (client, upstream):
+                if sock is not None:
+                    self._drop(sock)
+            return
+        threading.Thread(target=self._pump, args=(upstream, client), daemon=True).start()
+        self._pump(client, upstream)
+
+    def _pump(self, src: socket.socket, dst: socket.socket) -> None:
+        try:
+            while data := src.recv(65536):
+                dst.sendall(data)
+        except OSError:
+            pass
+        finally:
+            self._drop(src)
+            self._drop(dst)
+
+    def _track(self, sock: socket.socket) -> None:
+        with self._lock:
+            self._sockets.add(sock)
+        if self._closed.is_set():
+            self._drop(sock)
+            raise OSError("the live view is closed")
+
+    def _drop(self, sock: socket.socket) -> None:
+        with self._lock:
+            self._sockets.discard(sock)
+        with contextlib.suppress(OSError):
+            sock.shutdown(socket.SHUT_RDWR)
+        with contextlib.suppress(OSError):
+            sock.close()
+
+
+def _read_head(sock: socket.socket) -> tuple[bytes, bytes]:
+    """An HTTP message's head (up to and including the blank line) and whatever followed it."""
+    data = b""
+    while (end := data.find(b"\r\n\r\n")) < 0:
+        if len(data) > _MAX_HANDSHAKE:
+            raise OSError("handshake too long")
+        chunk = sock.recv(4096)
+        if not chunk:
+            raise OSError("connection closed during the handshake")
+        data += chunk
+    return data[: end + 4], data[end + 4 :]
+
+
+def rename_subprotocol(head: bytes) -> tuple[bytes, bool]:
+    """A client's WebSocket handshake as the SDK's server accepts it: if it offers
+    :data:`LEGACY_SUBPROTOCOL` and not :data:`SUBPROTOCOL`, the offer becomes
+    :data:`SUBPROTOCOL` (returns the new head and True); otherwise it is unchanged (False)."""
+    lines = head.split(b"\r\n")
+    for i, line in enumerate(lines):
+        name, sep, value = line.partition(b":")
+        if not sep or name.strip().lower() != b"sec-websocket-protocol":
+            continue
+        offered = [p.strip() for p in value.decode("latin-1").split(",")]
+        if SUBPROTOCOL not in offered and LEGACY_SUBPROTOCOL in offered:
+            lines[i] = b"Sec-WebSocket-Protocol: " + SUBPROTOCOL.encode()
+            return b"\r\n".join(lines), True
+    return head, False
 
 
 def start_live_view(port: int = DEFAULT_PORT, host: str = "127.0.0.1") -> LiveView:

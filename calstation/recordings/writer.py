@@ -24,6 +24,7 @@ from typing import IO, Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike
 
+from calstation.clock import Clock, HostClock
 from calstation.drivers import EncoderSample, LidarInfo, LidarLine, TurntableStatus
 from calstation.engine.frames import Extrinsics, counts_to_angle
 from calstation.engine.scan import Scan
@@ -106,6 +107,12 @@ class RecordingWriter:
     ``live`` receives every message as it is written (default: the process's live sink, see
     :func:`set_live_sink` and :mod:`calstation.recordings.liveview`).
 
+    ``clock`` is the station's clock, the one its drivers stamp the data with (a
+    :class:`~calstation.clock.HostClock` when not given; the simulator's or a replay's own clock
+    otherwise): the file's creation time (metadata ``created_ns``, the recipe attachment) and
+    the calibration's ``/tf_static`` are stamped on it, so that every time in the file is on
+    one clock and the calibration precedes the data.
+
     Data is buffered into chunks of about ``chunk_size`` uncompressed bytes; each finished chunk is
     compressed, written and flushed to the operating system at once, and a chunk is also closed
     after ``flush_interval_s`` of wall time, so a killed writer loses at most that much.
@@ -127,6 +134,7 @@ class RecordingWriter:
         calibration: Extrinsics | None = None,
         calibration_source: str = "",
         live: LiveSink | None = None,
+        clock: Clock | None = None,
         cloud_points: int = DEFAULT_CLOUD_POINTS,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
@@ -134,7 +142,7 @@ class RecordingWriter:
         from mcap.writer import CompressionType, Writer
 
         _check_station(kind, counts_per_revolution, encoder_direction, encoder_latency_s, metadata)
-        created_ns = time.time_ns()
+        created_ns = int((clock if clock is not None else HostClock()).now_ns())
         records: dict[str, Mapping[str, Any]] = {
             **station_records(
                 kind, station_id, recipe, created_ns, lidar_info,

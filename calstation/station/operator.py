@@ -1,6 +1,6 @@
 """The operator's side of a run: the one interface between the station and its front ends.
 
-The station (:mod:`calstation.station.run`) talks to whoever runs it only through an
+The station (:mod:`calstation.station.machine`) talks to whoever runs it only through an
 :class:`Operator`: it asks (``confirm_fixture``, ``on_failure``), reports (``info``, ``warn``,
 ``progress``, ``summary``) and publishes :class:`StationEvent` s (step started and finished, a
 preview of the lidar line being recorded) through :func:`publish`. Two front ends implement it:
@@ -233,7 +233,8 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
     verdict = {"passed": "PASS", "failed": "FAIL"}.get(status, status.upper())
     table = Table(
         title=f"run {s['id']} — station {s['station']} — recipe {s['recipe_name']}",
-        caption="tx, ty, tz in mm; rx, ry, rz in degrees; ✔ accepted",
+        caption="tx, ty, tz in mm; rx, ry, rz in degrees; ✔ accepted; ✘ refused (stored, "
+        "never accepted)",
     )
     table.add_column("")
     for p in ("tx", "ty", "tz", "rx", "ry", "rz"):
@@ -242,8 +243,12 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
     def shown(p: str, v: float) -> str:
         return f"{v * 1000:.3f}" if p.startswith("t") else f"{math.degrees(v):.4f}"
 
+    refused = []
     for c in s["calibrations"]:
-        row = [c["stage"] + (" ✔" if c["accepted"] else "")]
+        if c.get("refused"):
+            refused.append(c)
+        row = [c["stage"] + (" ✔" if c["accepted"] else "") + (" ✘ refused" if c.get("refused")
+                                                             else "")]
         for p, v in c["H"].items():
             row.append(shown(p, v))
         row.append(c["strategy"])
@@ -259,6 +264,9 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
             srow.append("")
             table.add_row(*srow, style="dim")
     console.print(table)
+    for c in refused:
+        console.print(f"[red]✘[/] calibration {c.get('id', '—')} ({c['stage']}, {c['strategy']}) "
+                      f"refused: {escape('; '.join(c['refused']))}", highlight=False)
     cube = s.get("cube_check")
     if cube:
         edges = ", ".join(f"{e * 1000:.2f}" for e in cube["face_edges"])

@@ -103,7 +103,7 @@ def run_recipe(run: Run) -> LoadedRecipe:
 def stored_recording(run: Run, kind: str) -> Path:
     """The newest ``kind`` recording of ``run`` (``static``, ``spin``, ``cube``), checked against
     its stored size and sha256; :class:`RecordingError` when missing or changed."""
-    from calstation.station.run import checked_recording
+    from calstation.station.stored import checked_recording
 
     # a partial recording (a scan cut short) is never re-processed
     found = [a for a in run.artifacts if a.kind == kind and a.status == "complete"]
@@ -243,7 +243,7 @@ def _store(
     accept: bool,
 ) -> Reprocessing:
     """Store the re-processing with the run (one transaction) and compare it to the accepted."""
-    from calstation.station.run import _calibration_row
+    from calstation.station.persist import calibration_row
 
     with db.session() as s:
         previous = s.scalars(
@@ -253,7 +253,7 @@ def _store(
         accepted = previous.params() if previous is not None else None
         accepted_id = previous.id if previous is not None else None
         accepted_gauge = (previous.diagnostics or {}).get("gauge") if previous is not None else None
-        row = _calibration_row(run_id, None, REPROCESS_STAGE, result)
+        row = calibration_row(run_id, None, REPROCESS_STAGE, result)
         if accepted_id is not None:
             row.diagnostics = {**(row.diagnostics or {}), "compared_to": accepted_id}
         if accept:

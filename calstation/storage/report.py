@@ -23,7 +23,7 @@ from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord, Run
 if TYPE_CHECKING:
     from calstation.storage.ros import Frames
 
-EXPORT_FORMATS = ("yaml", "json", "urdf", "csv", "tf", "ros2-yaml")
+EXPORT_FORMATS = ("yaml", "json", "urdf", "xacro", "csv", "tf", "ros2-yaml")
 
 
 def iso(t: dt.datetime | None) -> str | None:
@@ -57,14 +57,25 @@ def run_brief(run: Run) -> dict[str, Any]:
     }
 
 
+def refused_reasons(c: Calibration) -> list[str]:
+    """Why a re-processing result was refused (its σ over the recipe's
+    ``calibration.max_sigma``, …): stored, never accepted; empty when it was not refused."""
+    reprocess = (c.diagnostics or {}).get("reprocess")
+    if not isinstance(reprocess, dict):
+        return []
+    return [str(r) for r in reprocess.get("refused") or []]
+
+
 def calibration_dict(c: Calibration) -> dict[str, Any]:
     """A stored calibration: H and sigma (m, rad), the estimated encoder latency and its sigma
-    (s, None when not estimated), cost, strategy, accepted, diagnostics."""
+    (s, None when not estimated), cost, strategy, accepted, ``refused`` (the reasons a
+    re-processing result was refused, else empty), diagnostics."""
     return {
         "id": c.id,
         "stage": c.stage,
         "strategy": c.strategy,
         "accepted": c.accepted,
+        "refused": refused_reasons(c),
         "H": c.params(),
         "sigma": c.sigmas(),
         "encoder_latency_s": c.encoder_latency_s,
@@ -185,14 +196,22 @@ def final_calibration(run: Run) -> Calibration:
 
 
 def export_calibration(
-    run: Run, fmt: str, *, parent: str = "lidar", frames: Frames | None = None
+    run: Run,
+    fmt: str,
+    *,
+    parent: str = "lidar",
+    frames: Frames | None = None,
+    fragment: bool = False,
 ) -> str:
     """The run's final calibration as ``yaml``, ``json`` (both loadable by
     ``CalibrationResult.load``), ``csv`` (one header row and one value row, floats written
-    exactly), or for ROS (:mod:`calstation.storage.ros`): ``tf`` (``static_transform_publisher``
-    arguments, both directions), ``urdf`` (links and joints) or ``ros2-yaml`` (a
-    ``geometry_msgs/TransformStamped``). ``parent`` (``lidar`` or ``platform``) picks the
-    direction of the URDF joint and the TransformStamped; ``frames`` the frame ids."""
+    exactly, booleans ``true``/``false``), or for ROS (:mod:`calstation.storage.ros`): ``tf``
+    (``static_transform_publisher`` arguments, both directions), ``urdf`` (a complete
+    ``<robot>`` file with the two links and the joint; with ``fragment``, the elements to paste
+    into your own), ``xacro`` (a macro adding the joint between two links you name) or
+    ``ros2-yaml`` (a ``geometry_msgs/TransformStamped``). ``parent`` (``lidar`` or
+    ``platform``) picks the direction of the URDF joint and the TransformStamped; ``frames`` the
+    frame ids."""
     from calstation.engine.frames import Extrinsics
     from calstation.engine.result import CalibrationResult
     from calstation.storage import ros
@@ -201,6 +220,8 @@ def export_calibration(
         raise DatabaseError(
             f"unknown export format {fmt!r}; use one of {', '.join(EXPORT_FORMATS)}"
         )
+    if fragment and fmt != "urdf":
+        raise DatabaseError(f"a fragment is a URDF form: give --format urdf, not {fmt}")
     cal = final_calibration(run)
     H = Extrinsics.from_dict(cal.params())
     names = frames or ros.Frames()
@@ -215,8 +236,9 @@ def export_calibration(
                   "(encoder time minus lidar time)")
     if fmt == "tf":
         return ros.tf_export(H, title, names)
-    if fmt == "urdf":
-        return ros.urdf_export(H, title, names, parent)
+    if fmt in ("urdf", "xacro"):
+        form = "xacro" if fmt == "xacro" else "fragment" if fragment else "robot"
+        return ros.urdf_export(H, title, names, parent, form)
     if fmt == "ros2-yaml":
         created = cal.created_at
         stamp = round(
@@ -229,7 +251,8 @@ def export_calibration(
         header += [f"sigma_{p}" for p in PARAMS] + ["cost", "iterations"]
         header += ["encoder_latency_s", "sigma_encoder_latency_s"]
         header += ["qx", "qy", "qz", "qw"]  # rotation of P in L, quaternion order x y z w
-        row: list[Any] = [run.id, run.station.name, cal.stage, cal.strategy, cal.accepted]
+        row: list[Any] = [run.id, run.station.name, cal.stage, cal.strategy,
+                          "true" if cal.accepted else "false"]
         row += [repr(v) for v in cal.params().values()]
         row += ["" if s is None else repr(s) for s in cal.sigmas().values()]
         row += ["" if cal.cost is None else repr(cal.cost), cal.iterations]

@@ -139,36 +139,84 @@ def tf_export(H: Extrinsics, title: str, frames: Frames = Frames()) -> str:
     return "\n".join(lines) + "\n"
 
 
-def urdf_export(
-    H: Extrinsics, title: str, frames: Frames = Frames(), parent: str = "lidar"
-) -> str:
-    """A URDF fragment: the links and the fixed ``<joint>`` between L and P (``parent`` is
-    ``lidar`` or ``platform``), and the platter's continuous joint about +X_P."""
-    tf = lidar_platform(H, frames, parent)
+URDF_FORMS = ("robot", "fragment", "xacro")
+"""What :func:`urdf_export` writes: a whole ``<robot>`` file, the elements to paste inside one,
+or a xacro macro."""
+
+
+def _urdf_joint(tf: Transform, indent: str, names: tuple[str, str] | None = None) -> list[str]:
+    """The fixed ``<joint>`` of ``tf`` (``names`` replaces its parent and child link names,
+    e.g. by xacro parameters)."""
+    parent, child = names or (tf.parent, tf.child)
     x, y, z = (_num(v) for v in tf.translation)
     r, p, yw = (_num(v) for v in tf.rpy)
+    return [
+        f'{indent}<joint name="{parent}_to_{child}" type="fixed">',
+        f'{indent}  <parent link="{parent}"/>',
+        f'{indent}  <child link="{child}"/>',
+        f'{indent}  <origin xyz="{x} {y} {z}" rpy="{r} {p} {yw}"/>',
+        f"{indent}</joint>",
+    ]
+
+
+def _urdf_comments(tf: Transform, title: str, frames: Frames) -> list[str]:
     q = " ".join(_num(v) for v in tf.quaternion_xyzw)
-    return (
-        f"<!-- {title} -->\n"
+    return [
+        f"<!-- {title} -->",
         f"<!-- joint origin: pose of {tf.child} in {tf.parent}; rpy = fixed-axis roll, pitch, "
         "yaw (R = Rz(yaw)·Ry(pitch)·Rx(roll)); the same rotation as a quaternion, order "
-        f"{QUATERNION_ORDER}: {q} -->\n"
-        f'<link name="{frames.lidar}"/>\n'
-        f'<link name="{frames.platform}"/>\n'
-        f'<link name="{frames.platter}"/>\n'
-        f'<joint name="{tf.parent}_to_{tf.child}" type="fixed">\n'
-        f'  <parent link="{tf.parent}"/>\n'
-        f'  <child link="{tf.child}"/>\n'
-        f'  <origin xyz="{x} {y} {z}" rpy="{r} {p} {yw}"/>\n'
-        "</joint>\n"
-        "<!-- the platter turns about +X of the platform frame by the encoder angle -->\n"
-        f'<joint name="{frames.platform}_to_{frames.platter}" type="continuous">\n'
-        f'  <parent link="{frames.platform}"/>\n'
-        f'  <child link="{frames.platter}"/>\n'
-        '  <origin xyz="0 0 0" rpy="0 0 0"/>\n'
-        '  <axis xyz="1 0 0"/>\n'
-        "</joint>\n"
-    )
+        f"{QUATERNION_ORDER}: {q} -->",
+        f"<!-- the platter turns about +X of {frames.platform} by the encoder angle; to add it: "
+        f'<link name="{frames.platter}"/> <joint name="{frames.platform}_to_{frames.platter}" '
+        f'type="continuous"> <parent link="{frames.platform}"/> <child link="{frames.platter}"/> '
+        '<origin xyz="0 0 0" rpy="0 0 0"/> <axis xyz="1 0 0"/> </joint> -->',
+    ]
+
+
+def urdf_export(
+    H: Extrinsics,
+    title: str,
+    frames: Frames = Frames(),
+    parent: str = "lidar",
+    form: str = "robot",
+) -> str:
+    """The calibration in URDF: the two links (L and P) and the fixed ``<joint>`` between them,
+    ``parent`` (``lidar`` or ``platform``) its parent. ``form`` (:data:`URDF_FORMS`):
+    ``robot``, a complete file (``<robot>`` root) that URDF parsers load; ``fragment``, the
+    links and the joint to paste inside your own ``<robot>``; ``xacro``, a macro
+    ``calstation_calibration`` that adds the joint between two links you name
+    (``parent:=… child:=…``). A comment gives the platter's continuous joint."""
+    tf = lidar_platform(H, frames, parent)
+    head = _urdf_comments(tf, title, frames)
+    links = [f'<link name="{frames.lidar}"/>', f'<link name="{frames.platform}"/>']
+    if form == "fragment":
+        return "\n".join([*head, *links, *_urdf_joint(tf, "")]) + "\n"
+    if form == "robot":
+        body = [
+            '<?xml version="1.0"?>',
+            *head,
+            '<robot name="calstation">',
+            *(f"  {link}" for link in links),
+            *_urdf_joint(tf, "  "),
+            "</robot>",
+        ]
+        return "\n".join(body) + "\n"
+    if form == "xacro":
+        body = [
+            '<?xml version="1.0"?>',
+            *head,
+            "<!-- use: <xacro:include filename=\"THIS FILE\"/> then "
+            f'<xacro:calstation_calibration parent="{tf.parent}" child="{tf.child}"/>, '
+            "with your own link names; the links themselves are yours -->",
+            '<robot xmlns:xacro="http://www.ros.org/wiki/xacro">',
+            f'  <xacro:macro name="calstation_calibration" '
+            f'params="parent:={tf.parent} child:={tf.child}">',
+            *_urdf_joint(tf, "    ", ("${parent}", "${child}")),
+            "  </xacro:macro>",
+            "</robot>",
+        ]
+        return "\n".join(body) + "\n"
+    raise CalstationError(f"URDF form must be one of {', '.join(URDF_FORMS)}, got {form!r}")
 
 
 def ros2_yaml_export(

@@ -17,5 +17,5 @@ A FastAPI app with server-rendered Jinja2 pages and a JSON twin of every page:
 
 docs/security.md has the threat model and what each module defends against.
 
-The station logic stays in :mod:`calstation.station.run`; nothing here decides a step.
+The station logic stays in :mod:`calstation.station.machine`; nothing here decides a step.
 """

@@ -325,14 +325,14 @@ def _resumable(db: Database) -> list[dict[str, Any]]:
 
     from sqlalchemy import select
 
-    from calstation.station.run import _process_alive
+    from calstation.station.runs import process_alive
 
     out = []
     with db.session("reading the runs", read_only=True) as s:
         for run in s.scalars(select(Run).where(Run.status == "running").order_by(Run.id.desc())
                              .limit(20)):
             if run.host == socket.gethostname() and run.pid is not None and (
-                    run.pid == os.getpid() or _process_alive(run.pid)):
+                    run.pid == os.getpid() or process_alive(run.pid)):
                 continue
             out.append({"id": run.id, "recipe": run.recipe_name, "operator": run.operator,
                         "started_at": str(run.started_at)[:19]})

@@ -2,12 +2,13 @@
 run's live state for the pages and takes the operator's answers from them, and the runner that
 executes one run at a time in a background thread of the server process.
 
-The station (:mod:`calstation.station.run`) is the same one the console drives: :class:`WebOperator`
-only records what it is told (steps, progress, prompts, lidar lines, the verdict) into a
-:class:`LiveState`, and blocks the run's thread at a prompt until a page answers. Abort from a page
-raises :class:`~calstation.station.run.AbortRun` inside the run at its next progress report or lidar
-line (or answers the pending prompt with abort), which is what Ctrl-C does on the console: the
-station closes the step as aborted and stops the motor (``emergency_stop`` then ``stop``).
+The station (:mod:`calstation.station.machine`) is the same one the console drives:
+:class:`WebOperator` only records what it is told (steps, progress, prompts, lidar lines, the
+verdict) into a :class:`LiveState`, and blocks the run's thread at a prompt until a page answers.
+Abort from a page raises :class:`~calstation.errors.AbortRun` inside the run at its next progress
+report or lidar line (or answers the pending prompt with abort), which is what Ctrl-C does on the
+console: the station closes the step as aborted and stops the motor (``emergency_stop`` then
+``stop``).
 
 Because the state lives in the server, a page that is closed or reloaded mid-run finds the same
 step and the same pending prompt.
@@ -28,17 +29,11 @@ from typing import Any
 import numpy as np
 from rich.text import Text
 
-from calstation.errors import CalstationError, StationError
+from calstation.errors import AbortRun, CalstationError, StationError
+from calstation.station.machine import Station
 from calstation.station.operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
-from calstation.station.run import (
-    STEPS,
-    AbortRun,
-    Station,
-    create_run,
-    resumable_run,
-    resume_run,
-    run_steps,
-)
+from calstation.station.runs import create_run, resumable_run, resume_run
+from calstation.station.steps import STEPS, run_steps
 from calstation.storage.db import Database
 
 LINE_PREVIEW_PERIOD_S = 0.2

@@ -26,8 +26,8 @@ from sqlalchemy import inspect as sa_inspect, select
 from sqlalchemy.orm import Session
 
 from calstation.errors import DatabaseError, ResultJournalled
-from calstation.recordings.runfolder import SCAN_RECORDINGS
-from calstation.storage.db import Database
+from calstation.recordings.runfolder import SCAN_RECORDINGS, file_sha256
+from calstation.storage.db.database import Database
 from calstation.storage.db.models import Artifact, Calibration, CubeCheckRecord, Run, Step, utcnow
 
 JOURNAL = "journal.jsonl"
@@ -240,8 +240,6 @@ def _owner_alive(host: str | None, pid: int | None) -> bool | None:
 
 def _register_partial_recordings(s: Session, run_id: int, run_dir: Path) -> list[str]:
     """Store the recordings of scans a dead process left running as ``partial`` artifacts."""
-    from calstation.station.run import file_sha256
-
     kept = []
     for step in s.scalars(select(Step).where(Step.run_id == run_id, Step.status == "running")):
         stems = SCAN_RECORDINGS.get(step.name, ())

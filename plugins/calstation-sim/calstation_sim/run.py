@@ -116,6 +116,7 @@ def simulate_run(
                 # the true H gives the file its transform tree and cloud in a viewer
                 calibration=truth_H,
                 calibration_source="truth",
+                clock=station.clock,  # the simulated time the lines and readings carry
             ) as writer:
                 if step is None:
                     acquire_static(

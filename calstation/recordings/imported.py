@@ -1,0 +1,255 @@
+"""Recordings made from data calstation did not acquire: lines and angle samples in, a version-2
+recording out, written whole or not at all.
+
+The importers (:mod:`calstation.recordings.rosbag` for ROS bags,
+:mod:`calstation.recordings.linelog` for text line logs) turn their source into
+:class:`ImportedScan` — calstation lidar lines (frame L, DESIGN §2) and angle samples on the
+lines' clock — and :func:`write_imported` writes it with
+:class:`~calstation.recordings.writer.RecordingWriter`, so ``reconstruct``, ``calibrate`` and
+``verify`` read it like any station's recording. The angle becomes encoder readings:
+``count = round(angle / full turn · counts_per_revolution)``, unwrapped, with the encoder's
+latency 0 (the samples are already on the lines' clock).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calstation.clock import SimClock
+from calstation.drivers import EncoderSample, LidarInfo, LidarLine
+from calstation.errors import RecordingImportError
+
+ANGLE_UNITS = ("deg", "rad", "counts")
+"""Units of an imported angle: degrees, radians, or encoder counts (``counts_per_revolution``
+of them per turn)."""
+FINE_COUNTS_PER_REVOLUTION = 1 << 32
+"""The grid an angle in degrees or radians is stored on when no ``counts_per_revolution`` is
+given: 1.5·10⁻⁹ rad, 3 nm at 2 m, far below any lidar's noise."""
+KINDS = ("spin", "static", "cube")
+ENCODER_BATCH = 256
+"""Angle samples per ``/encoder/count`` message."""
+
+
+@dataclass(frozen=True)
+class ImportedScan:
+    """A scan read from another format, ready to write.
+
+    ``lines`` in time order, each stamped on one clock; ``angle_t_ns`` (K,) and ``angle`` (K,)
+    the mount's angle samples on the same clock, in ``angle_unit``. ``lidar`` describes the
+    sensor; ``source`` says where the data came from (the ``import`` metadata record); ``notes``
+    are what the import had to decide or leave out, said to the user.
+    """
+
+    lines: list[LidarLine]
+    angle_t_ns: NDArray[np.int64]
+    angle: NDArray[np.float64]
+    angle_unit: str
+    lidar: LidarInfo
+    source: dict[str, Any]
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class ImportResult:
+    """What :func:`write_imported` wrote: the file, its numbers and the import's notes."""
+
+    path: Path
+    lines: int
+    points: int
+    valid: int
+    angle_samples: int
+    counts_per_revolution: int
+    lines_outside_angle: int
+    notes: list[str]
+
+
+def angle_counts(
+    values: ArrayLike, unit: str, counts_per_revolution: int | None, what: str
+) -> tuple[NDArray[np.int64], int]:
+    """Angle samples as unwrapped integer encoder counts, and the counts per revolution.
+
+    ``unit`` is one of :data:`ANGLE_UNITS`; ``counts`` needs ``counts_per_revolution``; for
+    degrees and radians it is the grid (default :data:`FINE_COUNTS_PER_REVOLUTION`), so give
+    the encoder's own to keep its counts exactly. A jump of more than half a turn between two
+    samples is taken as a wrap (an angle reported modulo one turn) and unwrapped. ``what``
+    names the angle's source in errors.
+    """
+    if unit not in ANGLE_UNITS:
+        raise RecordingImportError(
+            f"{what}: angle unit {unit!r} is not one of {', '.join(ANGLE_UNITS)}"
+        )
+    v = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(v)):
+        bad = int(np.flatnonzero(~np.isfinite(v))[0])
+        raise RecordingImportError(f"{what}: angle sample {bad} is {v[bad]}, not a number")
+    if counts_per_revolution is not None and int(counts_per_revolution) <= 0:
+        raise RecordingImportError(
+            f"{what}: counts per revolution must be positive, got {counts_per_revolution}"
+        )
+    if unit == "counts":
+        if counts_per_revolution is None:
+            raise RecordingImportError(
+                f"{what}: an angle in encoder counts needs --counts-per-rev N (counts per turn)"
+            )
+        cpr = int(counts_per_revolution)
+        counts = np.round(v)
+    else:
+        cpr = int(counts_per_revolution or FINE_COUNTS_PER_REVOLUTION)
+        full = 360.0 if unit == "deg" else 2.0 * math.pi
+        counts = np.round(v / full * cpr)
+    if len(counts) > 1:  # unwrap: a step of more than half a turn is a wrap
+        steps = np.diff(counts)
+        wraps = np.round(steps / cpr)
+        counts = counts - np.concatenate([[0.0], np.cumsum(wraps)]) * cpr
+    return counts.astype(np.int64), cpr
+
+
+def file_digest(path: Path) -> dict[str, Any]:
+    """Name, size and sha256 of a source file (or of each file of a bag folder)."""
+    files = sorted(q for q in path.rglob("*") if q.is_file()) if path.is_dir() else [path]
+    out = []
+    for f in files:
+        h = hashlib.sha256()
+        with f.open("rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        out.append({"name": str(f), "bytes": f.stat().st_size, "sha256": h.hexdigest()})
+    return {"path": str(path), "files": out}
+
+
+def write_imported(
+    scan: ImportedScan,
+    out: Path,
+    *,
+    kind: str = "spin",
+    counts_per_revolution: int | None = None,
+    direction: int = 1,
+    station_id: str = "",
+    progress: Callable[[int, int], None] | None = None,
+) -> ImportResult:
+    """Write ``scan`` to the version-2 recording ``out``: all of it, or nothing.
+
+    The file is written beside ``out`` under a temporary name and renamed at the end, so a
+    failure (or Ctrl-C) leaves no half-written file and never touches an existing ``out``.
+    ``kind`` (:data:`KINDS`) is the recording's kind; ``counts_per_revolution`` and
+    ``direction`` (+1/−1: the sign of the platter angle φ relative to the imported angle)
+    go to the ``encoder`` record. ``progress(done, total)`` is told about the lines written.
+    """
+    from calstation.recordings.writer import RecordingWriter
+
+    what = scan.source.get("angle", "the angle")
+    if kind not in KINDS:
+        raise RecordingImportError(f"kind {kind!r} is not one of {', '.join(KINDS)}")
+    if direction not in (1, -1):
+        raise RecordingImportError(f"direction must be 1 or -1, got {direction}")
+    if not scan.lines:
+        raise RecordingImportError(f"{scan.source.get('scan', 'the scan')}: no lidar lines")
+    if len(scan.angle_t_ns) == 0:
+        raise RecordingImportError(f"{what}: no angle samples")
+    counts, cpr = angle_counts(scan.angle, scan.angle_unit, counts_per_revolution, str(what))
+    order = np.argsort(scan.angle_t_ns, kind="stable")
+    enc_t, enc_c = np.asarray(scan.angle_t_ns, np.int64)[order], counts[order]
+    outside = _lines_outside(scan.lines, enc_t, enc_c)
+    if outside == len(scan.lines):
+        line_t = np.array([ln.timestamp_ns for ln in scan.lines], dtype=np.int64)
+        raise RecordingImportError(
+            f"no line of {scan.source.get('scan', 'the scan')} lies within the time span of "
+            f"{what} ({_span(enc_t)}; lines {_span(line_t)}): are they stamped on one clock?"
+        )
+    notes = list(scan.notes)
+    if outside:
+        notes.append(
+            f"{outside} of {len(scan.lines)} lines reach outside the time span of {what}: "
+            "their points there have no angle and are left out of reconstructions"
+        )
+    source = {**scan.source, "counts_per_revolution": cpr, "direction": direction,
+              "notes": notes}
+    out = Path(out)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    points = valid = 0
+    try:
+        with RecordingWriter(
+            tmp,
+            kind=kind,
+            lidar_info=scan.lidar,
+            counts_per_revolution=cpr,
+            encoder_direction=direction,
+            encoder_latency_s=0.0,
+            station_id=station_id,
+            metadata={"import": source},
+            clock=SimClock(min(int(scan.lines[0].timestamp_ns), int(enc_t[0]))),
+            live=_NoLive(),
+        ) as writer:
+            k = 0
+            for i, line in enumerate(scan.lines):
+                end = int(line.point_times_ns().max())
+                while k < len(enc_t) and enc_t[k] <= end:
+                    j = min(k + ENCODER_BATCH, int(np.searchsorted(enc_t, end, "right")))
+                    writer.write_encoder(
+                        EncoderSample(int(t), int(c)) for t, c in zip(enc_t[k:j], enc_c[k:j],
+                                                                     strict=True)
+                    )
+                    k = j
+                writer.write_line(line)
+                points += len(line)
+                valid += int(np.count_nonzero(line.valid))
+                if progress is not None:
+                    progress(i + 1, len(scan.lines))
+            for j in range(k, len(enc_t), ENCODER_BATCH):
+                writer.write_encoder(
+                    EncoderSample(int(t), int(c))
+                    for t, c in zip(enc_t[j : j + ENCODER_BATCH], enc_c[j : j + ENCODER_BATCH],
+                                    strict=True)
+                )
+        os.replace(tmp, out)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    return ImportResult(out, len(scan.lines), points, valid, len(enc_t), cpr, outside, notes)
+
+
+class _NoLive:
+    """An import is not a live scan: nothing goes to the process's live view."""
+
+    def publish(self, topic: str, schema: Any, data: bytes, log_time_ns: int) -> None:
+        """Drop the message."""
+
+
+def _lines_outside(lines: Sequence[LidarLine], enc_t: NDArray[np.int64],
+                   enc_c: NDArray[np.int64]) -> int:
+    """How many lines have points outside the angle samples' time span (a constant angle holds
+    at all times, as :meth:`calstation.engine.scan.Scan.platter_angle` does)."""
+    if np.all(enc_c == enc_c[0]):
+        return 0
+    lo, hi = int(enc_t[0]), int(enc_t[-1])
+    n = 0
+    for line in lines:
+        t = line.point_times_ns()
+        if t.min() < lo or t.max() > hi:
+            n += 1
+    return n
+
+
+def _span(t: NDArray[np.int64]) -> str:
+    return f"{int(t.min()) * 1e-9:.3f} s … {int(t.max()) * 1e-9:.3f} s since the epoch"
+
+
+def line_rate(line_t_ns: Sequence[int]) -> float:
+    """Lines per second from the lines' times (median interval), 0 if unknown."""
+    t = np.asarray(line_t_ns, dtype=np.int64)
+    if len(t) < 2:
+        return 0.0
+    dt = np.diff(t)
+    dt = dt[dt > 0]
+    return float(1e9 / np.median(dt)) if len(dt) else 0.0

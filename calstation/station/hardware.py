@@ -1,0 +1,80 @@
+"""The run's drivers: opened from the recipe through the plugin registry, and stopped and closed
+however the run ends — the turntable first (``stop()``, and ``emergency_stop()`` after an abort or
+fault, or when ``stop()`` fails)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from contextlib import suppress
+from dataclasses import dataclass
+from typing import Any
+
+from calstation import plugins
+from calstation.clock import Clock, HostClock
+from calstation.drivers import DriverContext
+from calstation.recipes import LoadedRecipe
+from calstation.storage.db import utcnow
+
+
+@dataclass
+class Drivers:
+    """The run's three drivers and their context."""
+
+    lidar: Any
+    turntable: Any
+    encoder: Any
+    context: DriverContext
+
+    @property
+    def clock(self) -> Clock:
+        """The clock the station waits on: the lidar's own (the simulator's), else the host's."""
+        clock = getattr(self.lidar, "clock", None)
+        return clock if clock is not None else self.context.clock
+
+
+def open_drivers(loaded: LoadedRecipe) -> Drivers:
+    """Build the recipe's drivers through the plugin registry (``factory(settings, context)``)."""
+    context = DriverContext(clock=HostClock(), recipe=loaded)
+    st = loaded.recipe.station
+    made: dict[str, Any] = {}
+    try:
+        for kind in ("lidar", "turntable", "encoder"):
+            cfg = getattr(st, kind)
+            made[kind] = plugins.driver_factory(kind, cfg.driver)(dict(cfg.settings), context)
+    except BaseException:
+        for driver in made.values():
+            quietly(driver.close)
+        raise
+    return Drivers(made["lidar"], made["turntable"], made["encoder"], context)
+
+
+def quietly(fn: Callable[[], Any]) -> None:
+    """Call ``fn``, ignoring its exception: closing what is already failing must not hide why."""
+    with suppress(Exception):
+        fn()
+
+
+def stop_and_close(d: Drivers, emergency: bool, reason: str) -> dict[str, Any]:
+    """Stop the turntable (emergency stop first when ``emergency``; emergency stop if ``stop()``
+    fails), close the drivers; how it went (``how``, ``ok``, ``reason``, ``errors``, ``at``),
+    ``reason`` being the run's final status, for ``run.motor_stop``."""
+    done: list[str] = []
+    errors: list[str] = []
+
+    def attempt(name: str) -> bool:
+        try:
+            getattr(d.turntable, name)()
+        except Exception as exc:
+            errors.append(f"{name} failed: {type(exc).__name__}: {exc}")
+            return False
+        done.append(name)
+        return True
+
+    if emergency:
+        attempt("emergency_stop")
+    if not attempt("stop") and "emergency_stop" not in done:
+        attempt("emergency_stop")
+    for driver in (d.lidar, d.turntable, d.encoder):
+        quietly(driver.close)
+    return {"how": " then ".join(done) or "not stopped", "ok": bool(done),
+            "reason": reason, "errors": errors, "at": utcnow().isoformat()}

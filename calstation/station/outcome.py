@@ -1,0 +1,64 @@
+"""What a step hands back to the station: :class:`StepOutcome` (its result, files and the rows to
+store with it), made JSON-ready by :func:`plain`; and :func:`format_h`, how an H reads on the
+console."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class StepOutcome:
+    """What a step produced: its JSON result, files, and database results to store with it."""
+
+    result: dict[str, Any]
+    artifacts: list[tuple[str, Path]] = field(default_factory=list)
+    calibration: tuple[str, Any] | None = None
+    cube: tuple[int | None, dict[str, Any]] | None = None
+    """(calibration id, check); None as the id: the calibration this step stores"""
+    failure: str | None = None
+    """A failed QA verdict: the step fails (the operator may retry) but keeps what it stored."""
+    staged: list[tuple[str, Path, Path]] = field(default_factory=list)
+    """(kind, temporary file, final path): moved into place once the step is stored."""
+    run_status: str | None = None
+    """The run's verdict, stored with the step (the report step)."""
+    accept_calibration: int | None = None
+    """The calibration the verdict accepts (the report step of a passed run)."""
+    drift_failure: str | None = None
+    """Why the run fails although its cube check passed (the report step: the calibration
+    drifted and ``qa.drift_fails`` is set); the station ends the run with it as its reason."""
+
+
+def plain(value: Any) -> Any:
+    """JSON-ready copy: numpy → Python, NaN/inf → None, tuples → lists, keys → str."""
+    if isinstance(value, Mapping):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return plain(value.tolist())
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, float | np.floating):
+        f = float(value)
+        return f if math.isfinite(f) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def format_h(H: Mapping[str, float]) -> str:
+    """An H for the operator: translations in mm, rotations in degrees."""
+    parts = [
+        f"{k}={v * 1000:.2f} mm" if k.startswith("t") else f"{k}={math.degrees(v):.3f}°"
+        for k, v in H.items()
+    ]
+    return ", ".join(parts)

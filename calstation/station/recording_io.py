@@ -1,0 +1,178 @@
+"""Recording a scan into the run's folder while it is taken.
+
+:func:`record_scan` writes ``<run dir>/<stem>.mcap`` (``static``, ``spin``, ``cube``, a second
+pass ``spin-pass2`` …, :mod:`calstation.recordings.runfolder`) as the acquisition runs, with the
+run, the recipe, the newest calibration and (simulator) the scene's truth in its metadata. Every
+lidar line also goes to the operator (live preview) and, for a spin or cube scan, to the
+fine-tuning's preparation (:class:`~calstation.engine.spinscan.SpinScanBuilder`), so no step
+after the scan re-reads what it could prepare while scanning. The files of the step under way are
+tracked in the context's :class:`~calstation.station.context.ScanFiles`, for the step's end to
+store them whatever happens.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import select
+
+from calstation.drivers import DriverContext
+from calstation.engine.spinscan import SpinScanBuilder, remember as remember_spin_scan
+from calstation.recordings.runfolder import RECORDING_OF
+from calstation.station.acquisition import acquire_spin, acquire_static
+from calstation.station.context import RunContext
+from calstation.station.hardware import Drivers
+from calstation.station.operator import Operator, publish
+from calstation.station.outcome import plain
+from calstation.station.stored import latest_calibration
+from calstation.storage.db import Artifact
+
+Acquire = Callable[[Any, Callable[[str, float], None]], None]
+"""``acquire(writer, progress)``: takes a scan into ``writer``, reporting its progress."""
+
+
+def static_acquisition(d: Drivers, lines: int) -> Acquire:
+    """A static scan of ``lines`` lines on the drivers ``d``."""
+
+    def acquire(writer: Any, progress: Any) -> None:
+        acquire_static(d.lidar, d.encoder, writer, lines=lines, progress=progress)
+
+    return acquire
+
+
+def spin_acquisition(d: Drivers, cfg: Any) -> Acquire:
+    """A spin scan at ``cfg.rpm`` for ``cfg.revolutions`` turns on the drivers ``d``."""
+
+    def acquire(writer: Any, progress: Any) -> None:
+        acquire_spin(
+            d.lidar, d.turntable, d.encoder, writer, rpm=cfg.rpm, revolutions=cfg.revolutions,
+            settle_s=cfg.settle_s, clock=d.clock, progress=progress,
+        )
+
+    return acquire
+
+
+def record_scan(
+    ctx: RunContext, step: str, step_id: int, acquire: Acquire, stem: str | None = None
+) -> Path:
+    """Write the step's recording while acquiring; returns its path. ``stem`` names the file
+    (and the artifact) when a step takes a second recording, default the recording's kind."""
+    from calstation.recordings.writer import RecordingWriter
+
+    d = ctx.hardware()
+    kind = RECORDING_OF[step]
+    stem = stem or kind
+    path = ctx.run_dir / f"{stem}.mcap"
+    if path.exists():
+        _set_aside(ctx, path, stem)
+    enc = ctx.recipe.station.encoder
+    metadata = _metadata(ctx, step, step_id, d.context)
+    calibration, source = latest_calibration(ctx.db, ctx.run_id)
+    ctx.scans.partial = [(stem, path)]  # until the recording is complete
+    with (
+        RecordingWriter(
+            path,
+            kind=kind,
+            lidar_info=d.lidar.info(),
+            counts_per_revolution=d.encoder.counts_per_revolution,
+            encoder_direction=enc.direction,
+            encoder_latency_s=enc.latency_s,
+            station_id=ctx.recipe.station.id,
+            recipe=ctx.loaded,
+            metadata=metadata,
+            calibration=calibration,
+            calibration_source=source,
+            clock=d.clock,  # the drivers' time base: one clock in the file
+        ) as writer,
+        ctx.ui.progress(f"{stem} scan") as progress,
+    ):
+        # a spin scan's per-line work for the fine-tuning and the cube check is done as
+        # the lines arrive
+        builder = (
+            SpinScanBuilder(d.encoder.counts_per_revolution, enc.direction, enc.latency_s)
+            if kind in ("spin", "cube") and stem == kind
+            else None
+        )
+        acquire(PublishingWriter(writer, ctx.ui, kind, builder), progress)
+    ctx.scans.partial = []
+    if kind == "spin":
+        ctx.scans.scan_ended = time.monotonic()
+    if builder is not None:
+        remember_spin_scan(path, builder)
+    return path
+
+
+def record_second_pass(ctx: RunContext, step: str, step_id: int, first: Path,
+                       stem: str) -> Path | None:
+    """The scan step's second pass (``second_pass_rpm``) recorded as ``stem``; None when
+    the recipe asks for none. A fault in it keeps the ``first`` pass (``ScanFiles.finished``)."""
+    second = getattr(ctx.recipe.steps, step).second_pass()
+    if second is None:
+        return None
+    d = ctx.hardware()
+    ctx.scans.finished.append((RECORDING_OF[step], first))
+    return record_scan(ctx, step, step_id, spin_acquisition(d, second), stem)
+
+
+def _set_aside(ctx: RunContext, path: Path, stem: str) -> None:
+    """Keep a previous attempt's file (failed or killed) aside as ``<stem>.attempt<n>.mcap``,
+    and its artifact row pointing at it."""
+    n = 1
+    while (aside := path.with_name(f"{stem}.attempt{n}.mcap")).exists():
+        n += 1
+    path.rename(aside)
+    with ctx.db.session("moving a partial recording aside") as s:
+        for art in s.scalars(select(Artifact).where(
+                Artifact.run_id == ctx.run_id, Artifact.path == str(path))):
+            art.path = str(aside)
+
+
+def _metadata(
+    ctx: RunContext, step: str, step_id: int, context: DriverContext
+) -> dict[str, dict[str, Any]]:
+    """A recording's run metadata, and the simulated scene's truth when there is one."""
+    metadata: dict[str, dict[str, Any]] = {
+        "run": {"id": ctx.run_id, "step": step, "step_id": step_id}
+    }
+    truth = scene_truth(context)
+    if truth is not None:
+        metadata["truth"] = truth
+    return metadata
+
+
+def scene_truth(context: DriverContext) -> dict[str, Any] | None:
+    """Ground truth of a simulated scene (an object in ``context.shared`` with ``truth_dict``)."""
+    for obj in context.shared.values():
+        truth_dict = getattr(obj, "truth_dict", None)
+        if callable(truth_dict):
+            truth: dict[str, Any] = plain(truth_dict())
+            return truth
+    return None
+
+
+class PublishingWriter:
+    """A recording writer that also publishes each lidar line to the operator (live preview)
+    and, for a spin scan, hands it to the fine-tuning's preparation (``builder``)."""
+
+    def __init__(self, inner: Any, ui: Operator, kind: str, builder: Any = None) -> None:
+        self._inner, self._ui, self._kind, self._builder = inner, ui, kind, builder
+
+    def write_line(self, line: Any) -> None:
+        """Record ``line``, prepare it (spin scans) and publish it (``lidar_line``)."""
+        self._inner.write_line(line)
+        if self._builder is not None:
+            self._builder.write_line(line)
+        publish(self._ui, "lidar_line", kind=self._kind, line=line)
+
+    def write_encoder(self, samples: Any) -> None:
+        """Record encoder ``samples`` and hand them to the preparation (spin scans)."""
+        batch = list(samples)
+        self._inner.write_encoder(batch)
+        if self._builder is not None:
+            self._builder.write_encoder(batch)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)

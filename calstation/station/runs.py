@@ -1,0 +1,212 @@
+"""Creating, starting and resuming runs: the entry points the console and the web station call.
+
+:func:`create_run` stores a ``running`` run of a recipe and makes its folder; :func:`start_run`
+creates one and executes it; :func:`resume_run` continues a stored run at its first unfinished
+step, with the recipe stored with it, refusing one that another live process executes
+(:func:`resumable_run`). The execution itself is :class:`calstation.station.machine.Station`.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from rich.markup import escape
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from calstation.errors import AbortRun, StationError
+from calstation.plugins.recipe_checks import check_plugins
+from calstation.recipes import LoadedRecipe, parse_recipe
+from calstation.station.machine import Station
+from calstation.station.operator import Operator
+from calstation.storage.db import (
+    Database,
+    Run,
+    Step,
+    calstation_home,
+    get_or_create_station,
+    journal,
+)
+
+
+def data_dir_default() -> Path:
+    """Where run folders go: ``$CALSTATION_HOME`` (see
+    :func:`calstation.storage.db.calstation_home`)."""
+    return calstation_home()
+
+
+def start_run(
+    loaded: LoadedRecipe,
+    db: Database,
+    ui: Operator,
+    *,
+    operator: str,
+    data_dir: Path | None = None,
+    serial: str | None = None,
+) -> tuple[int, str]:
+    """Create a run of ``loaded`` and execute it; returns (run id, final status).
+
+    The recipe is validated against the installed plugins first. The run folder is
+    ``<data_dir>/runs/<run id>/``. ``serial`` is the unit's serial number when the operator
+    gives it (else the lidar's, read at preflight).
+    """
+    run_id = create_run(loaded, db, operator=operator, unattended=ui.unattended,
+                        data_dir=data_dir, serial=serial)
+    ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
+            f"{loaded.recipe.station.id}; recordings in {escape(str(_run_dir(db, run_id)))}")
+    with _signals_abort():
+        return run_id, Station(db, run_id, loaded, ui).run()
+
+
+def _run_dir(db: Database, run_id: int) -> Path:
+    with db.session("reading the run", read_only=True) as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        return Path(run.data_dir)
+
+
+def create_run(
+    loaded: LoadedRecipe,
+    db: Database,
+    *,
+    operator: str,
+    unattended: bool,
+    data_dir: Path | None = None,
+    serial: str | None = None,
+) -> int:
+    """Create (and commit) a ``running`` run of ``loaded`` and its folder; returns its id.
+
+    ``serial`` is the unit's serial number when the operator gives it.
+
+    The recipe is validated against the installed plugins first. Execute it with
+    ``Station(db, run_id, loaded, ui).run()``.
+    """
+    check_plugins(loaded)
+    base = (data_dir or data_dir_default()).expanduser().resolve()
+    station_id = get_or_create_station(db, loaded.recipe.station.id)
+    with db.session("creating the run") as s:
+        run = Run(
+            station_id=station_id,
+            recipe_name=loaded.recipe.name,
+            recipe_path=str(loaded.path.resolve()) if loaded.path else None,
+            recipe_text=loaded.text,
+            recipe_sha256=loaded.sha256,
+            operator=operator,
+            unit_serial=serial or None,
+            unattended=unattended,
+            data_dir="",
+            status="running",
+        )
+        s.add(run)
+        s.flush()
+        run_dir = base / "runs" / str(run.id)
+        run.data_dir = str(run_dir)
+        run_id = run.id
+    run_dir.mkdir(parents=True, exist_ok=True)
+    return run_id
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this host (one we may not signal counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def resumable_run(session: Session, run_id: int, force: bool) -> Run:
+    """Run ``run_id`` from ``session`` if it may be resumed: :class:`StationError` when there
+    is none, it already passed, or another live process executes it (unless ``force``)."""
+    run = session.get(Run, run_id)
+    if run is None:
+        raise StationError(f"no run {run_id} in the database")
+    if run.status == "passed":
+        raise StationError(f"run {run_id} already passed; nothing to resume")
+    _check_not_running_elsewhere(run, force)
+    return run
+
+
+def _check_not_running_elsewhere(run: Run, force: bool) -> None:
+    """Refuse to resume a run another live process is executing (two processes, one motor)."""
+    if run.status != "running" or force or run.pid is None:
+        return
+    if run.host == socket.gethostname():
+        if run.pid != os.getpid() and process_alive(run.pid):
+            raise StationError(
+                f"run {run.id} is being executed by process {run.pid} on this host; stop it "
+                "first (or pass --force if that process id now belongs to something else)"
+            )
+        return
+    raise StationError(
+        f"run {run.id} was last executed on host {run.host!r} (process {run.pid}); resume it "
+        "there, or pass --force if that process is gone"
+    )
+
+
+def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False) -> str:
+    """Continue run ``run_id`` at its first unfinished step; returns the final status.
+
+    The recipe is the one stored with the run (not the file, which may have changed since).
+    Recordings of finished steps are re-used after their sha256 is checked. A run still being
+    executed by a live process is refused unless ``force``.
+    """
+    for note in journal.recover(db):  # results journalled by an earlier process, first
+        ui.info(escape(note))
+    with db.session() as s:
+        run = resumable_run(s, run_id, force)
+        text, path = run.recipe_text, run.recipe_path
+        run_dir = Path(run.data_dir)
+    source = f"recipe of run {run_id}"
+    base_dir = Path(path).parent if path else None
+    loaded = LoadedRecipe(parse_recipe(text, source, base_dir), Path(path) if path else None, text)
+    check_plugins(loaded)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    ui.info(f"resuming run [bold]{run_id}[/]; recordings in {escape(str(run_dir))}")
+    with _signals_abort():
+        return Station(db, run_id, loaded, ui).run()
+
+
+@contextmanager
+def _signals_abort() -> Iterator[None]:
+    """SIGTERM aborts the run like Ctrl-C (so the motor is stopped and the run recorded)."""
+
+    def handler(signum: int, frame: Any) -> None:
+        raise AbortRun(f"aborted by signal {signal.Signals(signum).name}")
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def wait_for_step(
+    db: Database, run_id: int, step: str, timeout_s: float = 60.0, status: str = "running"
+) -> bool:
+    """Poll until ``step`` of ``run_id`` has an attempt with ``status`` (for tests and tools)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with db.session("reading the steps", read_only=True) as s:
+            found = s.scalars(
+                select(Step.id).where(
+                    Step.run_id == run_id, Step.name == step, Step.status == status
+                )
+            ).first()
+        if found is not None:
+            return True
+        time.sleep(0.05)
+    return False

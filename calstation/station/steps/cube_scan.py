@@ -1,0 +1,172 @@
+"""The cube scan: the QA cube turning → ``cube.mcap`` (and ``cube-pass2.mcap`` with
+``second_pass_rpm``), and the cube check against the recipe's ``qa`` limits under the fine
+calibration. When the fine-tuning came from the spin target, the cube's side faces also measure
+ry, which is combined with the spin target's (:mod:`calstation.engine.joint`) and stored as a
+new fine calibration.
+
+A failed check fails the step but keeps its recording and measurements (the outcome's
+``failure``); the operator may retry it, which re-seats the cube and scans again.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from calstation.engine.result import CalibrationResult
+from calstation.recordings.runfolder import second_pass
+from calstation.station.context import RunContext
+from calstation.station.outcome import StepOutcome, plain
+from calstation.station.recording_io import record_scan, record_second_pass, spin_acquisition
+from calstation.station.steps.fine_tune import with_stored_time_offset
+from calstation.station.steps.place import place
+from calstation.storage.db import Calibration
+
+CUBE_SECOND_PASS = second_pass("cube")
+"""File stem and artifact kind of the cube scan's second pass, measured together with the first
+(the time offset's check)."""
+
+
+class CubeScan:
+    """Scan the QA cube and check it."""
+
+    name = "cube_scan"
+
+    def run(self, ctx: RunContext, step_id: int) -> StepOutcome:
+        """Scan and check; the recordings, the cube check (and a combined calibration), and a
+        ``failure`` when the check failed."""
+        from calstation.recordings.reader import read_recording
+
+        d = ctx.hardware()
+        cfg = ctx.recipe.steps.cube_scan
+        if ctx.retrying:  # the operator's retry: re-seat the cube, rescan
+            place(ctx, "qa_cube")
+        path = record_scan(ctx, self.name, step_id, spin_acquisition(d, cfg))
+        artifacts = [("cube", path)]
+        path2 = record_second_pass(ctx, self.name, step_id, path, CUBE_SECOND_PASS)
+        if path2 is not None:
+            artifacts.append((CUBE_SECOND_PASS, path2))
+        fine = ctx.stored_calibration("fine")
+        recording = read_recording(path)
+        with ctx.ui.progress("cube check") as progress:
+            progress("measuring the cube", 0.1)
+            check, joint, ry_failure = _check_cube_joint(ctx, recording, fine, progress)
+            if path2 is not None:
+                progress("measuring the cube from both passes", 0.8)
+                check = _check_cube_passes(ctx, recording, read_recording(path2), joint, fine)
+        cube = _cube_measurements(check)
+        ctx.ui.info(
+            f"  cube: edge error {check.edge_error * 1000:.2f} mm, OBB error "
+            f"{check.obb_error * 1000:.2f} mm, side-face twist {check.twist_deg:+.3f}° "
+            f"(±{check.twist_sigma_deg:.3f}°) → {'pass' if check.passed else 'FAIL'}"
+        )
+        failures = list(check.failures) + ([ry_failure] if ry_failure else [])
+        if ry_failure:
+            cube["passed"] = False
+            cube["failures"] = failures
+        return StepOutcome(
+            {"recording": str(path), "passed": not failures,
+             "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
+             "points": int(getattr(check, "points", 0)),
+             "joint_ry": None if joint is None else plain(joint.diagnostics["joint"])},
+            artifacts=artifacts,
+            calibration=None if joint is None else ("fine", joint),
+            cube=(None if joint is not None else fine.id, cube),
+            failure=None if not failures else "cube check failed: " + "; ".join(failures),
+        )
+
+
+def _cube_measurements(check: Any) -> dict[str, Any]:
+    """A cube check as stored (``cube_check`` row, the step's result): JSON-ready."""
+    measurements: dict[str, Any] = plain(
+        {
+            "obb_edges": check.obb_edges,
+            "obb_error": check.obb_error,
+            "face_edges": check.face_edges,
+            "edge_error": check.edge_error,
+            "flatness_rms": check.flatness_rms,
+            "perpendicularity_deg": check.perpendicularity_deg,
+            "twist_deg": check.twist_deg,
+            "twist_sigma_deg": check.twist_sigma_deg,
+            "passed": check.passed,
+            "failures": check.failures,
+        }
+    )
+    return measurements
+
+
+def _check_cube_passes(
+    ctx: RunContext, first: Any, second: Any, joint: CalibrationResult | None, fine: Calibration
+) -> Any:
+    """The cube check on both cube passes together, under the final H and the estimated
+    lidar–encoder time offset (the configured latency when none was estimated)."""
+    from calstation.engine.cube import check_cube_passes
+    from calstation.engine.frames import Extrinsics
+
+    H = joint.H if joint is not None else Extrinsics.from_dict(fine.params())
+    latency = joint.encoder_latency_s if joint is not None else fine.encoder_latency_s
+    ctx.ui.info(
+        "  cube measured from both passes, "
+        + ("with the configured encoder latency" if latency is None
+           else f"with the estimated encoder latency {latency * 1e3:.3f} ms")
+    )
+    return check_cube_passes(
+        [first, second], H, ctx.recipe.fixtures.qa_cube, ctx.recipe.qa,
+        encoder_latency_s=latency, platter_radius=ctx.recipe.fixtures.platter.radius,
+    )
+
+
+def _check_cube_joint(
+    ctx: RunContext, recording: Any, fine: Calibration, progress: Any
+) -> tuple[Any, CalibrationResult | None, str | None]:
+    """The cube check, with ry combined from the spin target and the cube's side faces.
+
+    The twist of the side faces under the fine-tuned H measures ry; when the fine-tuning
+    came from the spin target the two are combined (:mod:`calstation.engine.joint`) and the
+    cube is measured again with the combined H. Returns (the check, the combined calibration or
+    None, a failure when ry stays undetermined or the two disagree).
+    """
+    from calstation.engine.cube import check_cube
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.joint import joint_summary
+    from calstation.plugins.cost_strategies import fine_tune_with_cube
+
+    H = Extrinsics.from_dict(fine.params())
+    if ctx.strategy().fixture != "spin_target":
+        check = check_cube(recording, H, ctx.recipe.fixtures.qa_cube, ctx.recipe.qa,
+                           platter_radius=ctx.recipe.fixtures.platter.radius)
+        return check, None, None
+    stored = _as_result(fine, H)
+    result, check, failure = fine_tune_with_cube(stored, recording, ctx.recipe, progress)
+    if result is stored:
+        return check, None, failure
+    result.diagnostics["from_calibration"] = fine.id
+    ctx.ui.info(f"  {joint_summary(result)}")
+    if result.encoder_latency_s is not None:
+        # estimated again under the H whose ry the cube changed: the estimate moves a
+        # little with ry (~0.08 ms per 0.1°, docs/algorithms.md)
+        from calstation.recordings.reader import read_recording
+
+        result = with_stored_time_offset(ctx, result, read_recording(ctx.artifact_path("spin")),
+                                         progress, " under the combined H")
+    return check, result, failure
+
+
+def _as_result(fine: Calibration, H: Any) -> CalibrationResult:
+    """The stored fine calibration as the engine's result (what the joint fine-tuning starts
+    from): its H, σ, cost, gauge, covariance and time offset."""
+    diagnostics = fine.diagnostics or {}
+    return CalibrationResult(
+        H=H,
+        sigma={p: math.nan if v is None else float(v) for p, v in fine.sigmas().items()},
+        cost=float(fine.cost) if fine.cost is not None else math.nan,
+        iterations=int(fine.iterations or 0),
+        strategy=fine.strategy,
+        timings={},
+        diagnostics={"gauge": diagnostics.get("gauge"),
+                     "covariance": diagnostics.get("covariance"),
+                     **({"time_offset": diagnostics["time_offset"]}
+                        if "time_offset" in diagnostics else {})},
+        encoder_latency_s=fine.encoder_latency_s,
+        sigma_encoder_latency_s=fine.sigma_encoder_latency_s,
+    )

@@ -1,0 +1,128 @@
+"""What a run has stored so far, read back: its steps and attempts, its calibrations, its
+recordings (checked against their stored sha256) and its cube verdict.
+
+The read side of a run's database rows, for the station and its steps; the write side is
+:mod:`calstation.station.persist`.
+"""
+
+from __future__ import annotations
+
+from contextlib import suppress
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from sqlalchemy import select
+
+from calstation.errors import CalstationError, StationError
+from calstation.recordings.runfolder import file_sha256
+from calstation.storage.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
+from calstation.storage.report import run_brief
+
+if TYPE_CHECKING:
+    from calstation.engine.frames import Extrinsics
+
+
+def checked_recording(
+    art: Artifact | None, run_id: int, kind: str, error: type[CalstationError]
+) -> Path:
+    """The path of a stored ``kind`` recording of run ``run_id`` after checking that the file
+    is there and unchanged (its stored sha256); ``error`` names what is wrong."""
+    if art is None:
+        raise error(f"run {run_id} has no {kind} recording stored")
+    path = Path(art.path)
+    if not path.is_file():
+        raise error(f"the {kind} recording of run {run_id} is missing: {path}")
+    digest = file_sha256(path)
+    if digest != art.sha256:
+        raise error(
+            f"the {kind} recording {path} of run {run_id} changed since it was stored "
+            f"(sha256 {digest[:12]}… now, {art.sha256[:12]}… stored)"
+        )
+    return path
+
+
+def artifact_path(db: Database, run_id: int, kind: str) -> Path:
+    """The newest complete ``kind`` recording of run ``run_id``, checked
+    (:func:`checked_recording`); :class:`StationError` when missing or changed."""
+    with db.session() as s:
+        art = s.scalars(
+            select(Artifact)
+            .where(Artifact.run_id == run_id, Artifact.kind == kind,
+                   Artifact.status == "complete")
+            .order_by(Artifact.id.desc())
+        ).first()
+    return checked_recording(art, run_id, kind, StationError)
+
+
+def stored_calibration(db: Database, run_id: int, stage: str) -> Calibration:
+    """The newest ``stage`` calibration of run ``run_id`` (``initial``, ``fine``);
+    :class:`StationError` when there is none."""
+    with db.session() as s:
+        cal = s.scalars(
+            select(Calibration)
+            .where(Calibration.run_id == run_id, Calibration.stage == stage)
+            .order_by(Calibration.id.desc())
+        ).first()
+    if cal is None:
+        raise StationError(f"run {run_id} has no {stage} calibration stored")
+    return cal
+
+
+def latest_calibration(db: Database, run_id: int) -> tuple[Extrinsics | None, str]:
+    """The run's newest calibration (fine before initial) and its stage, for a recording's
+    static transform and cloud; (None, "") before the first one."""
+    from calstation.engine.frames import Extrinsics
+
+    for stage in ("fine", "initial"):
+        with suppress(StationError):
+            cal = stored_calibration(db, run_id, stage)
+            return Extrinsics.from_dict(cal.params()), stage
+    return None, ""
+
+
+def attempts(db: Database, run_id: int, step: str) -> int:
+    """How many attempts of ``step`` run ``run_id`` has stored, whatever their status."""
+    with db.session() as s:
+        return len(
+            s.scalars(select(Step.id).where(Step.run_id == run_id, Step.name == step)).all()
+        )
+
+
+def passed_steps(db: Database, run_id: int) -> set[str]:
+    """The steps of run ``run_id`` with a passed attempt."""
+    with db.session() as s:
+        return set(
+            s.scalars(select(Step.name).where(Step.run_id == run_id, Step.status == "passed"))
+        )
+
+
+def cube_verdict(db: Database, run_id: int) -> str:
+    """``passed`` when the run's newest cube check passed, else ``failed`` (none is a fail)."""
+    with db.session() as s:
+        check = s.scalars(
+            select(CubeCheckRecord)
+            .where(CubeCheckRecord.run_id == run_id)
+            .order_by(CubeCheckRecord.id.desc())
+        ).first()
+    return "passed" if check is not None and check.passed else "failed"
+
+
+def cube_failure(db: Database, run_id: int) -> str | None:
+    """Why the run's newest cube check failed; None when it passed or there is none."""
+    with db.session() as s:
+        check = s.scalars(
+            select(CubeCheckRecord)
+            .where(CubeCheckRecord.run_id == run_id)
+            .order_by(CubeCheckRecord.id.desc())
+        ).first()
+        if check is None or check.passed:
+            return None
+        return "cube check failed: " + "; ".join(str(f) for f in check.failures)
+
+
+def brief(db: Database, run_id: int) -> dict[str, Any]:
+    """The run as the observer hooks see it (:func:`calstation.storage.report.run_brief`)."""
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        return run_brief(run)

@@ -1,0 +1,482 @@
+"""The run database: engine, sessions, lock waits, the schema check and one-sentence errors
+(:class:`Database`); the package docstring (:mod:`calstation.storage.db`) says more."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import sqlite3
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Engine, create_engine, event, inspect
+from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
+from sqlalchemy.orm import Session, sessionmaker
+
+from calstation.errors import DatabaseError
+from calstation.storage.db.models import (
+    PARAMS,
+    Artifact,
+    Base,
+    Calibration,
+    CubeCheckRecord,
+    Run,
+    Station,
+    Step,
+    utcnow,
+)
+
+__all__ = [
+    "PARAMS",
+    "Artifact",
+    "Base",
+    "Calibration",
+    "CubeCheckRecord",
+    "Database",
+    "Run",
+    "Station",
+    "Step",
+    "calstation_home",
+    "default_database_url",
+    "get_or_create_station",
+    "migrations_dir",
+    "utcnow",
+]
+
+
+def calstation_home() -> Path:
+    """The folder of calstation's data: ``$CALSTATION_HOME``, else ``~/.local/share/calstation``."""
+    env = os.environ.get("CALSTATION_HOME")
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_DATA_HOME")
+    base = Path(xdg).expanduser() if xdg else Path.home() / ".local" / "share"
+    return base / "calstation"
+
+
+def default_database_url() -> str:
+    """``$CALSTATION_DB_URL``, else SQLite at ``calstation_home()/calstation.db``."""
+    env = os.environ.get("CALSTATION_DB_URL")
+    if env:
+        return env
+    return f"sqlite:///{calstation_home() / 'calstation.db'}"
+
+
+def migrations_dir() -> Path:
+    """The Alembic script folder (``migrations/`` beside the package)."""
+    path = Path(__file__).resolve().parents[3] / "migrations"
+    if not (path / "env.py").is_file():
+        raise DatabaseError(f"the database migrations are missing: {path}/env.py not found")
+    return path
+
+
+DEFAULT_LOCK_TIMEOUT_S = 120.0
+"""How long a locked database is waited for, unless ``CALSTATION_DB_LOCK_TIMEOUT`` says."""
+
+WAIT_NOTICE_S = 2.0
+"""After this long inside one transaction, say that calstation is waiting for the database."""
+
+
+def lock_timeout_s() -> float:
+    """``$CALSTATION_DB_LOCK_TIMEOUT`` (seconds, ≥ 0), else :data:`DEFAULT_LOCK_TIMEOUT_S`."""
+    env = os.environ.get("CALSTATION_DB_LOCK_TIMEOUT")
+    if not env:
+        return DEFAULT_LOCK_TIMEOUT_S
+    try:
+        value = float(env)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value <= 86_400.0:
+        raise DatabaseError(
+            f"CALSTATION_DB_LOCK_TIMEOUT={env!r}: expected seconds between 0 and 86400"
+        )
+    return value
+
+
+READ_ONLY = "calstation_read_only"
+"""Execution option of the engine behind :meth:`Database.session` ``(read_only=True)``."""
+
+
+class ReadingSession(Session):
+    """The session of :meth:`Database.session` ``(read_only=True)``: it refuses to write, since
+    its transaction holds no lock to write with."""
+
+    def flush(self, objects: Any = None) -> None:
+        """Refuse pending changes (an error in calstation, not in the database)."""
+        if self.new or self.dirty or self.deleted:
+            raise DatabaseError(
+                "calstation tried to write in a read-only database session; nothing was written"
+            )
+        super().flush(objects)
+
+
+def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
+    """An engine for ``url``; SQLite gets WAL mode, foreign keys, its folder created, and
+    transactions that take the write lock when they begin (``BEGIN IMMEDIATE``: a transaction
+    that read first can then never fail to upgrade its lock), except on connections with the
+    execution option :data:`READ_ONLY`, whose transactions only read and so take no lock: in WAL
+    mode they read the last commit while another process writes. A lock is waited for
+    ``lock_timeout`` seconds (default :func:`lock_timeout_s`), on PostgreSQL too."""
+    timeout = lock_timeout_s() if lock_timeout is None else lock_timeout
+    try:
+        # pre-ping: a pooled connection that a restarted server dropped is replaced, not used
+        engine = create_engine(url, pool_pre_ping=not url.startswith("sqlite"))
+    except (SQLAlchemyError, ImportError, ValueError) as exc:
+        hint = ""
+        if url.startswith("postgresql"):
+            hint = " (PostgreSQL needs the driver: pip install 'calstation[postgres]')"
+        raise DatabaseError(f"cannot use database URL {url!r}: {exc}{hint}") from None
+    if engine.dialect.name == "sqlite":
+        database = engine.url.database
+        if database and database != ":memory:" and not database.startswith("file:"):
+            Path(database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+
+        def connect(dbapi_connection: Any, _record: Any) -> None:
+            dbapi_connection.isolation_level = None  # transactions are begun below
+            cursor = dbapi_connection.cursor()
+            cursor.execute(f"PRAGMA busy_timeout={int(timeout * 1000)}")
+            _retry_locked(lambda: cursor.execute("PRAGMA journal_mode=WAL"), timeout)
+            cursor.execute("PRAGMA foreign_keys=ON")
+            cursor.close()
+
+        def begin(conn: Any) -> None:
+            read_only = conn.get_execution_options().get(READ_ONLY, False)
+            conn.exec_driver_sql("BEGIN" if read_only else "BEGIN IMMEDIATE")
+
+        event.listen(engine, "connect", connect)
+        event.listen(engine, "begin", begin)
+    elif engine.dialect.name == "postgresql":
+
+        def pg_connect(dbapi_connection: Any, _record: Any) -> None:
+            cursor = dbapi_connection.cursor()
+            cursor.execute(f"SET lock_timeout = {int(timeout * 1000)}")
+            cursor.close()
+            dbapi_connection.commit()
+
+        event.listen(engine, "connect", pg_connect)
+    return engine
+
+
+def _retry_locked(statement: Callable[[], Any], timeout: float) -> None:
+    """Run ``statement`` until SQLite stops answering "database is locked", for up to
+    ``timeout`` seconds. Switching a fresh database to WAL needs an exclusive lock; when two
+    processes open it together each may hold a read lock the other's switch waits for, and
+    SQLite then answers busy at once instead of calling the busy handler (a deadlock it
+    refuses), so the wait happens here."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            statement()
+            return
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() >= deadline:
+                raise
+            time.sleep(0.05)
+
+
+@contextmanager
+def foreign_keys_off(connection: Any) -> Iterator[None]:
+    """SQLite: foreign keys off while migrating (before any transaction begins).
+
+    A batch migration rebuilds a table (copy, drop, rename); with foreign keys on, dropping the
+    old ``run`` table would cascade-delete every step, calibration and artifact row."""
+    if connection.dialect.name != "sqlite":
+        yield
+        return
+    raw = connection.connection.dbapi_connection
+    raw.execute("PRAGMA foreign_keys=OFF")
+    try:
+        yield
+    finally:
+        raw.execute("PRAGMA foreign_keys=ON")
+
+
+def _is_lock(exc: BaseException) -> bool:
+    """Whether a driver error means "locked" (SQLite busy, PostgreSQL lock timeout)."""
+    orig = getattr(exc, "orig", exc)
+    text = str(orig).lower()
+    code = getattr(orig, "sqlstate", None) or getattr(orig, "pgcode", None)
+    return (
+        "database is locked" in text
+        or "database is busy" in text
+        or "lock timeout" in text
+        or code == "55P03"
+    )
+
+
+def _driver_message(exc: BaseException) -> str:
+    """The driver's own first line, without SQL or parameters."""
+    orig = getattr(exc, "orig", None) or exc
+    text = str(orig).strip().splitlines()
+    first = text[0] if text else type(orig).__name__
+    return first if len(first) <= 200 else first[:200] + "…"
+
+
+def alembic_config(connection: Any = None, url: str | None = None) -> Any:
+    """An Alembic ``Config`` for ``migrations/``, optionally bound to an open ``connection``."""
+    from alembic.config import Config
+
+    cfg = Config()
+    cfg.set_main_option("script_location", str(migrations_dir()))
+    if url is not None:
+        cfg.set_main_option("sqlalchemy.url", url.replace("%", "%%"))
+    if connection is not None:
+        cfg.attributes["connection"] = connection
+    return cfg
+
+
+SCHEMA_HEAD = "0006_calibration_encoder_latency"
+"""The newest migration's revision id, as written in ``migrations/versions`` (a test checks
+that they agree). Opening a database that is at it needs no Alembic, which takes ~0.1 s to
+import; only a new, older or unknown database loads it."""
+
+
+def head_revision() -> str:
+    """The newest migration's revision id (read from the migrations by Alembic)."""
+    from alembic.script import ScriptDirectory
+
+    head = ScriptDirectory.from_config(alembic_config()).get_current_head()
+    if head is None:
+        raise DatabaseError("the migrations folder holds no revision")
+    return head
+
+
+def known_revisions() -> set[str]:
+    """Every revision id in ``migrations/``."""
+    from alembic.script import ScriptDirectory
+
+    return {rev.revision for rev in ScriptDirectory.from_config(alembic_config()).walk_revisions()}
+
+
+def _say_waiting(message: str) -> None:
+    print(f"calstation: {message}", file=sys.stderr, flush=True)
+
+
+_MIGRATION_LOCK_KEY = 0x63616C73  # "cals": PostgreSQL advisory lock held while migrating
+
+
+class Database:
+    """An opened run database: an engine plus sessions from a context manager.
+
+    ``lock_timeout`` (seconds, default :func:`lock_timeout_s`) bounds the wait for a lock;
+    ``on_wait(message)`` is told when a transaction has waited :data:`WAIT_NOTICE_S` (default:
+    a line on standard error); failures are logged in full to :attr:`log_path`.
+    """
+
+    def __init__(
+        self,
+        url: str | None = None,
+        *,
+        lock_timeout: float | None = None,
+        on_wait: Callable[[str], None] | None = None,
+    ) -> None:
+        self.url = url or default_database_url()
+        self.lock_timeout = lock_timeout_s() if lock_timeout is None else float(lock_timeout)
+        self.engine = make_engine(self.url, self.lock_timeout)
+        self._sessions = sessionmaker(self.engine, expire_on_commit=False)
+        self.reader: Engine = self.engine.execution_options(**{READ_ONLY: True})
+        """The engine for reading only: its connections take no lock (see :func:`make_engine`)."""
+        self._readers = sessionmaker(self.reader, class_=ReadingSession, expire_on_commit=False)
+        self.on_wait: Callable[[str], None] = on_wait or _say_waiting
+        self.log_path: Path = calstation_home() / "database.log"
+
+    def __repr__(self) -> str:
+        return f"Database({self.engine.url.render_as_string(hide_password=True)!r})"
+
+    @property
+    def display_url(self) -> str:
+        """The URL without its password."""
+        return str(self.engine.url.render_as_string(hide_password=True))
+
+    # --- faults ------------------------------------------------------------------------------
+    def log(self, text: str) -> Path | None:
+        """Append ``text`` (with the time) to :attr:`log_path`; the path, or None if unwritable."""
+        try:
+            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            with self.log_path.open("a", encoding="utf-8") as f:
+                f.write(f"{dt.datetime.now(dt.UTC).isoformat()} {self.display_url}\n{text}\n\n")
+        except OSError:
+            return None
+        return self.log_path
+
+    def error(self, exc: BaseException, doing: str) -> DatabaseError:
+        """One clear sentence for a failed database operation; the details go to the log."""
+        logged = self.log(f"{doing}: {type(exc).__name__}: {exc}")
+        where = f" (details in {logged})" if logged else ""
+        if _is_lock(exc):
+            return DatabaseError(
+                f"the database {self.display_url} stayed locked by another process for "
+                f"{self.lock_timeout:g} s while {doing}; calstation gave up{where}"
+            )
+        if isinstance(exc, IntegrityError):
+            return DatabaseError(
+                f"the database {self.display_url} refused a write while {doing}: "
+                f"{_driver_message(exc)}{where}"
+            )
+        if isinstance(exc, OperationalError):
+            return DatabaseError(
+                f"the database {self.display_url} is unavailable while {doing}: "
+                f"{_driver_message(exc)}{where}"
+            )
+        return DatabaseError(
+            f"database error on {self.display_url} while {doing}: {_driver_message(exc)}{where}"
+        )
+
+    @contextmanager
+    def _waiting_notice(self) -> Iterator[None]:
+        timer = threading.Timer(
+            WAIT_NOTICE_S,
+            lambda: self.on_wait(
+                f"waiting for the database {self.display_url} (locked by another process?); "
+                f"up to {self.lock_timeout:g} s (CALSTATION_DB_LOCK_TIMEOUT)"
+            ),
+        )
+        timer.daemon = True
+        timer.start()
+        try:
+            yield
+        finally:
+            timer.cancel()
+
+    # --- sessions ----------------------------------------------------------------------------
+    @contextmanager
+    def session(self, doing: str = "writing", *, read_only: bool = False) -> Iterator[Session]:
+        """A session that commits on success and rolls back on error.
+
+        A lock is waited for (bounded by :attr:`lock_timeout`, announced through
+        :attr:`on_wait`); a database failure is a :class:`DatabaseError` of one sentence. A
+        ``read_only`` session must not write: on SQLite it takes no lock, so it never waits for
+        a run that is writing (and never holds one up); it reads the last commit.
+        """
+        session = (self._readers if read_only else self._sessions)()
+        try:
+            with self._waiting_notice():
+                yield session
+                session.commit()
+        except SQLAlchemyError as exc:
+            session.rollback()
+            raise self.error(exc, doing) from exc
+        except BaseException:
+            session.rollback()
+            raise
+        finally:
+            session.close()
+
+    def current_revision(self) -> str | None:
+        """The revision the database is at (None when it was never migrated)."""
+        from alembic.runtime.migration import MigrationContext
+
+        try:
+            with self.reader.connect() as conn:
+                return MigrationContext.configure(conn).get_current_revision()
+        except SQLAlchemyError as exc:
+            raise self.error(exc, "opening it") from None
+
+    def _at_head(self) -> bool:
+        """Whether the database is at :data:`SCHEMA_HEAD`, read from Alembic's version table
+        without loading Alembic. False for a new database, one at another revision or one that
+        cannot be read: :meth:`ensure_schema`'s full check then says which."""
+        from sqlalchemy import text
+
+        try:
+            with self.reader.connect() as conn:
+                rows = conn.execute(text("SELECT version_num FROM alembic_version")).all()
+        except SQLAlchemyError:
+            return False
+        return [r[0] for r in rows] == [SCHEMA_HEAD]
+
+    def _migrate(self, action: str, revision: str) -> tuple[str | None, str]:
+        from alembic import command
+        from alembic.util import CommandError
+
+        before = self._check_known(self.current_revision())
+        try:
+            with self.engine.connect() as conn, foreign_keys_off(conn), conn.begin():
+                getattr(command, action)(alembic_config(conn), revision)
+        except SQLAlchemyError as exc:
+            raise self.error(exc, f"migrating it to {revision}") from None
+        except CommandError as exc:
+            raise DatabaseError(f"cannot migrate {self.display_url} to {revision}: {exc}") from None
+        return before, self.current_revision() or ""
+
+    def upgrade(self, revision: str = "head") -> tuple[str | None, str]:
+        """Apply migrations up to ``revision``; returns (revision before, revision after)."""
+        return self._migrate("upgrade", revision)
+
+    def downgrade(self, revision: str) -> tuple[str | None, str]:
+        """Undo migrations down to ``revision``, keeping every row; (before, after)."""
+        return self._migrate("downgrade", revision)
+
+    def _check_known(self, current: str | None) -> str | None:
+        if current is not None and current not in known_revisions():
+            raise DatabaseError(
+                f"the database {self.display_url} is at revision {current!r}, which this "
+                f"calstation does not know (its newest is {head_revision()}): it was migrated "
+                "by a newer calstation; use that version, or another database (--db)"
+            )
+        return current
+
+    def ensure_schema(self) -> None:
+        """Migrate a brand-new (empty) database; refuse one that is behind or ahead of the code.
+
+        The check and the migration run in one transaction holding the write lock (SQLite) or an
+        advisory lock (PostgreSQL), so two processes opening a fresh database together do not
+        both create the tables. Raises :class:`DatabaseError` telling to run ``calstation db
+        upgrade`` when the database holds tables but is behind, and naming an unknown revision.
+        """
+        if self._at_head():
+            return
+        head = head_revision()
+        if self._check_known(self.current_revision()) == head:
+            return
+        from alembic import command
+        from alembic.runtime.migration import MigrationContext
+
+        try:
+            with self.engine.connect() as conn, foreign_keys_off(conn), conn.begin():
+                if conn.dialect.name == "postgresql":
+                    conn.exec_driver_sql(f"SELECT pg_advisory_xact_lock({_MIGRATION_LOCK_KEY})")
+                current = MigrationContext.configure(conn).get_current_revision()
+                if current == head:
+                    return  # another process migrated it while this one waited
+                tables = set(inspect(conn).get_table_names())
+                if current is None and not tables & set(Base.metadata.tables):
+                    command.upgrade(alembic_config(conn), "head")
+                    return
+        except SQLAlchemyError as exc:
+            raise self.error(exc, "creating its tables") from None
+        self._check_known(current)
+        raise DatabaseError(
+            f"the database {self.display_url} is at revision {current or 'none'}, calstation "
+            f"needs {head}: run `calstation db upgrade`"
+        )
+
+    def dispose(self) -> None:
+        """Close every pooled connection."""
+        self.engine.dispose()
+
+
+def get_or_create_station(db: Database, name: str) -> int:
+    """The id of station ``name``, created if new. Safe when several processes start runs on a
+    new station at once: a process that loses the race to insert it reads the winner's row."""
+    from sqlalchemy import select
+
+    for attempt in range(3):
+        try:
+            with db.session("registering the station") as s:
+                found = s.scalars(select(Station.id).where(Station.name == name)).first()
+                if found is not None:
+                    return int(found)
+                row = Station(name=name)
+                s.add(row)
+                s.flush()
+                return int(row.id)
+        except DatabaseError as exc:
+            if not isinstance(exc.__cause__, IntegrityError) or attempt == 2:
+                raise
+    raise DatabaseError(f"could not register station {name!r}")  # not reached

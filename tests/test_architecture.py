@@ -1,0 +1,122 @@
+"""The package layout holds: no import cycles, and no module or function too long to read.
+
+The layers themselves (which package may import which) are import-linter's contracts in
+pyproject.toml, run by ``make test``; see docs/architecture.md.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import grimp
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "calstation"
+
+MAX_MODULE_LINES = 800
+"""A module longer than this holds more than one concept: split it."""
+
+MAX_FUNCTION_LINES = 100
+"""A function longer than this does more than one job: give its parts names. A function's own
+lines are counted, not those of functions or classes defined inside it (a typer command group's
+commands, a FastAPI app's route handlers), which are measured on their own."""
+
+ALLOWED: dict[str, str] = {}
+"""Modules (path below calstation/) or functions (``path::qualified.name``) allowed past the
+limits, each with the reason."""
+
+
+def _modules() -> list[Path]:
+    return sorted(p for p in PACKAGE.rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def _own_lines(node: ast.AST) -> int:
+    """Lines of ``node`` less those of the functions and classes defined inside it."""
+    total: int = node.end_lineno - node.lineno + 1  # type: ignore[attr-defined]
+    return total - sum(
+        inner.end_lineno - inner.lineno + 1  # type: ignore[attr-defined, misc]
+        for inner in _nested_defs(node)
+    )
+
+
+def _nested_defs(node: ast.AST) -> list[ast.AST]:
+    """The functions and classes defined directly inside ``node`` (not inside those)."""
+    out: list[ast.AST] = []
+    for child in ast.iter_child_nodes(node):
+        if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            out.append(child)
+        else:
+            out += _nested_defs(child)
+    return out
+
+
+def _functions(tree: ast.AST, prefix: str = "") -> list[tuple[str, ast.AST]]:
+    out = []
+    for node in ast.iter_child_nodes(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+            name = f"{prefix}{node.name}"
+            if not isinstance(node, ast.ClassDef):
+                out.append((name, node))
+            out += _functions(node, name + ".")
+        else:
+            out += _functions(node, prefix)
+    return out
+
+
+def test_no_module_is_too_long() -> None:
+    long = {}
+    for path in _modules():
+        rel = path.relative_to(PACKAGE).as_posix()
+        lines = path.read_text().count("\n")
+        if lines > MAX_MODULE_LINES and rel not in ALLOWED:
+            long[rel] = lines
+    assert not long, f"modules over {MAX_MODULE_LINES} lines: {long}"
+
+
+def test_no_function_is_too_long() -> None:
+    long = {}
+    for path in _modules():
+        rel = path.relative_to(PACKAGE).as_posix()
+        for name, node in _functions(ast.parse(path.read_text())):
+            lines = _own_lines(node)
+            if lines > MAX_FUNCTION_LINES and f"{rel}::{name}" not in ALLOWED:
+                long[f"{rel}::{name}"] = lines
+    assert not long, f"functions over {MAX_FUNCTION_LINES} lines: {long}"
+
+
+def test_the_measure_counts_a_functions_own_lines() -> None:
+    tree = ast.parse(
+        "def outer():\n"
+        "    a = 1\n"
+        "    def inner():\n"
+        "        b = 2\n"
+        "        return b\n"
+        "    return a\n"
+    )
+    (_, outer), (_, inner) = _functions(tree)
+    assert _own_lines(outer) == 3 and _own_lines(inner) == 3
+
+
+def test_every_allowed_entry_exists_and_is_still_long() -> None:
+    for entry in ALLOWED:
+        path, _, name = entry.partition("::")
+        source = (PACKAGE / path).read_text()
+        if not name:
+            assert source.count("\n") > MAX_MODULE_LINES, f"{entry} is short now: drop it"
+            continue
+        found = dict(_functions(ast.parse(source)))
+        assert name in found, f"{entry} no longer exists: drop it"
+        assert _own_lines(found[name]) > MAX_FUNCTION_LINES, f"{entry} is short now: drop it"
+
+
+def test_there_are_no_import_cycles() -> None:
+    graph = grimp.build_graph("calstation")
+    modules = sorted(graph.modules)
+    for module in modules:
+        for imported in graph.find_modules_directly_imported_by(module):
+            if imported == module or not imported.startswith("calstation"):
+                continue
+            if graph.chain_exists(importer=imported, imported=module):
+                chain = graph.find_shortest_chain(importer=imported, imported=module)
+                pytest.fail(f"import cycle: {module} → {' → '.join(chain or [])}")
