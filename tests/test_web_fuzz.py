@@ -41,7 +41,7 @@ FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None,
 @pytest.fixture(scope="module")
 def app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
     from calstation.recipes import load_recipe
-    from calstation.station.run import create_run
+    from calstation.station.runs import create_run
 
     folder = tmp_path_factory.mktemp("fuzz")
     (folder / "recipes").mkdir()
