@@ -524,10 +524,12 @@ def plotly_js() -> str:
 
 
 def render_report(
-    data: dict[str, Any], *, plotly_src: str | None = None, nav: bool = False
+    data: dict[str, Any], *, plotly_src: str | None = None, nav: bool = False,
+    nonce: str | None = None,
 ) -> str:
     """The report as HTML. ``plotly_src`` is a URL of plotly.js; None inlines it (offline file).
-    ``nav`` adds the web station's navigation links."""
+    ``nav`` adds the web station's navigation links; ``nonce`` is put on its scripts and styles
+    (the web station's Content-Security-Policy allows inline ones only with it)."""
     from calstation.storage.templating import environment
 
     template = environment().get_template("report.html")
@@ -544,6 +546,7 @@ def render_report(
         nav=nav,
         plotly_inline=None if plotly_src else plotly_js(),
         plotly_src=plotly_src,
+        nonce=nonce,
     )
 
 

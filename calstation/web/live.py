@@ -16,6 +16,7 @@ step and the same pending prompt.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import threading
@@ -75,6 +76,7 @@ class LiveState:
     def __init__(self) -> None:
         self._cond = threading.Condition()
         self._ids = itertools.count(1)
+        self._listeners: list[Callable[[], None]] = []
         self.version = 0
         self._reset()
 
@@ -104,6 +106,15 @@ class LiveState:
     def _changed(self) -> None:
         self.version += 1
         self._cond.notify_all()
+        for listener in self._listeners:
+            with contextlib.suppress(Exception):  # a page's stream must never stop the run
+                listener()
+
+    def add_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` after every change (from the changing thread, under the state's
+        lock: it must return at once and not read the state)."""
+        with self._cond:
+            self._listeners.append(listener)
 
     def begin(
         self, run_id: int, recipe: str, operator: str, serial: str | None,
@@ -214,13 +225,6 @@ class LiveState:
                 "error": self.error,
                 "abort_requested": self.abort_requested,
             }
-
-    def wait_change(self, version: int, timeout: float) -> int:
-        """Block until ``version`` is outdated or ``timeout`` passes; returns the version."""
-        with self._cond:
-            if self.version == version:
-                self._cond.wait(timeout=timeout)
-            return self.version
 
 
 class WebOperator:
