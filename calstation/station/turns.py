@@ -9,15 +9,17 @@ after ``max_duration_s`` seconds of scanning. Each prediction is published to th
 (the ``accuracy`` event, and a line on the console) as it arrives, so the operator sees the
 error falling.
 
-The recording holds every turn; the step that follows uses the last fit when it covered all of
-the scan's whole revolutions, and fine-tunes the recording again otherwise.
+The recording holds every turn. The step that follows takes the fit that met the budget, on the
+turns it saw — fits see each turn's data as the line completing it arrived, and are taken in
+order, so that a run's outcome does not depend on how fast they ran — and fine-tunes every whole
+turn of the recording when none met it.
 """
 
 from __future__ import annotations
 
 import math
-import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -46,8 +48,9 @@ class TurnFit:
 
 @dataclass(frozen=True)
 class ScanTurns:
-    """What a scan that went on turn by turn did: the fit that covers all of its whole
-    revolutions (None when the last one did not), and its :meth:`TurnByTurn.summary`."""
+    """What a scan that went on turn by turn did: the fit that met the budget (None when none
+    did: the step after the scan fine-tunes the whole recording), and its
+    :meth:`TurnByTurn.summary`."""
 
     fit: TurnFit | None
     summary: dict[str, Any]
@@ -77,28 +80,33 @@ class TurnByTurn:
         self.scan = scan
         self.fits: list[TurnFit] = []
         self.failures: list[str] = []
+        self.met: TurnFit | None = None
+        """the first fit within the budget: what the scan stopped on"""
         self.stopped: str = "turns"
         """why the scan ended: ``budget`` (a fit within it), ``turns``, ``time``"""
         self._pool = ThreadPoolExecutor(1, thread_name_prefix=f"calstation-{scan}-fit")
-        self._running: Future[TurnFit] | None = None
+        self._queued: deque[tuple[int, Future[TurnFit]]] = deque()
         self._asked = 0
-        self._lock = threading.Lock()
 
     def __call__(self, turns: float, seconds: float) -> bool:
-        """Keep turning? (Called by the acquisition after every line, past the first turns.)"""
+        """Keep turning? (Called by the acquisition after every line, past the first turns.)
+
+        Each whole turn's data is taken at the line that completes it, so what each fit sees
+        does not depend on how fast the fits run; they are fitted in order, and the scan stops
+        on the first within the budget, whatever turn the scan has reached by then."""
         self._collect()
-        if self.fits and self.fits[-1].predicted.max_m <= self.budget_m:
+        if self.met is not None:
             self.stopped = "budget"
             return False
         if self.max_duration_s is not None and seconds >= self.max_duration_s:
             self.stopped = "time"
             return False
         whole = math.floor(turns + 1e-9)
-        if self._running is None and whole > self._asked:
+        if whole > self._asked:
             scan = self.builder.so_far()
             if scan is not None:
                 self._asked = whole
-                self._running = self._pool.submit(self._fit, scan, whole)
+                self._queued.append((whole, self._pool.submit(self._fit, scan, whole)))
         return True
 
     def _fit(self, scan: SpinScan, turns: int) -> TurnFit:
@@ -106,20 +114,24 @@ class TurnByTurn:
         result, predicted = self.fit(scan)
         return TurnFit(turns, result, predicted, time.perf_counter() - t0)
 
-    def _collect(self) -> None:
-        """Take a finished fit, and tell the operator what it predicts."""
-        running = self._running
-        if running is None or not running.done():
-            return
-        self._running = None
-        exc = running.exception()
-        if exc is not None:
-            # the data so far may not support a fit (too little of the target yet): the scan
-            # goes on; the step after it fine-tunes the whole recording and reports
-            self.failures.append(f"after {self._asked} turns: {exc}")
-            return
-        fit = running.result()
-        self.fits.append(fit)
+    def _collect(self, wait: bool = False) -> None:
+        """Take the finished fits, in the order of their turns, and tell the operator what
+        each predicts; the first within the budget is :attr:`met`."""
+        while self._queued and self.met is None and (wait or self._queued[0][1].done()):
+            turns, future = self._queued.popleft()
+            exc = future.exception()
+            if exc is not None:
+                # the data so far may not support a fit (too little of the target yet): the
+                # scan goes on; the step after it fine-tunes the whole recording and reports
+                self.failures.append(f"after {turns} turns: {exc}")
+                continue
+            fit = future.result()
+            self.fits.append(fit)
+            self._announce(fit)
+            if fit.predicted.max_m <= self.budget_m:
+                self.met = fit
+
+    def _announce(self, fit: TurnFit) -> None:
         publish(self.ui, "accuracy", scan=self.scan, turns=fit.turns,
                 predicted_error_m=fit.predicted.max_m, budget_m=self.budget_m,
                 sigma=dict(fit.result.sigma), fit_s=fit.seconds)
@@ -129,16 +141,20 @@ class TurnByTurn:
                      f"{self.budget_m * 1e3:.3f} mm ({fit.seconds:.1f} s to fit)")
 
     def close(self, whole_turns: int) -> ScanTurns:
-        """The scan has ended with ``whole_turns`` whole revolutions: wait for a fit under way;
-        what the scan did, with the last fit when it covers them all (else the step after the
-        scan fine-tunes the recording)."""
-        running = self._running
-        if running is not None:
-            running.exception()  # waits; a failure is collected as one
-            self._collect()
+        """The scan has ended with ``whole_turns`` whole revolutions. A scan stopped by the
+        budget keeps the fit that met it (the turns it saw; those scanned while it was computed
+        are in the recording but not in the result, so a run's outcome does not depend on how
+        fast the fits ran). Otherwise the fits still queued are finished, in order; when one of
+        them meets the budget it is kept, else the step after the scan fine-tunes every whole
+        turn of the recording."""
+        if self.met is None:
+            self._collect(wait=True)
+            if self.met is not None:
+                self.stopped = "budget"
+        for _, future in self._queued:
+            future.cancel()
         self._pool.shutdown(wait=True)
-        last = self.fits[-1] if self.fits and self.fits[-1].turns >= whole_turns else None
-        return ScanTurns(last, {**self.summary(), "whole_turns": whole_turns})
+        return ScanTurns(self.met, {**self.summary(), "whole_turns": whole_turns})
 
     def summary(self) -> dict[str, Any]:
         """What the scan did, for the step's stored result."""

@@ -10,7 +10,6 @@ A failed check fails the step but keeps its recording and measurements (the outc
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 from calstation.engine.result import CalibrationResult
@@ -52,6 +51,11 @@ class CubeScan:
             artifacts.append((CUBE_SECOND_PASS, path2))
         fine = ctx.stored_calibration("fine")
         recording = read_recording(path)
+        turned = ctx.scans.fitted.get(path)
+        if turned is not None and turned.fit is not None:
+            # the turns that met the budget: the result does not depend on how many more the
+            # scan took while the fit was computed
+            recording = recording.first_turns(turned.fit.turns + 0.02)
         with ctx.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
             check, joint, ry_failure = _check_cube_joint(ctx, recording, fine, progress)
@@ -74,8 +78,7 @@ class CubeScan:
              "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
              "points": int(getattr(check, "points", 0)),
              "joint_ry": None if joint is None else plain(joint.diagnostics["joint"]),
-             **({"turn_by_turn": plain(turned.summary)}
-                if (turned := ctx.scans.fitted.get(path)) is not None else {})},
+             **({"turn_by_turn": plain(turned.summary)} if turned is not None else {})},
             artifacts=artifacts,
             calibration=None if joint is None else ("fine", joint),
             cube=(None if joint is not None else fine.id, cube),
@@ -92,9 +95,7 @@ def _budget(
     error recorded, or None; the refusal, with what would help, or None)."""
     if ctx.strategy().fixture != "spin_target":
         return joint, None
-    turned = ctx.scans.fitted.get(Path(recording.path))
-    turns = float(turned.summary["whole_turns"]) if turned is not None else float(
-        recording.whole_turns())
+    turns = float(recording.whole_turns())
     final = joint if joint is not None else as_result(fine)
     final, predicted = with_prediction(final, ctx.recipe, turns=turns)
     ctx.ui.info(f"  {describe(predicted, ctx.recipe)}")

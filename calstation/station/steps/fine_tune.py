@@ -84,12 +84,13 @@ def _gate(
 
 def _fitted(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, float]:
     """The fine-tuning and the whole turns it used: the fit made while the spin scan was taken
-    when it covers the whole recording (with the time offset added when there is a second
-    pass), else the strategy run on the stored recording."""
+    when it met the budget (with the time offset added when there is a second pass), else the
+    strategy run on the stored recording."""
     path = ctx.artifact_path("spin")
     turned = ctx.scans.fitted.get(path)
     if turned is not None and turned.fit is not None:
-        ctx.ui.info(f"  the fit made while scanning covers all {turned.fit.turns} turns")
+        ctx.ui.info(f"  the fit made while scanning, on the first {turned.fit.turns} "
+                    f"turn{'s' if turned.fit.turns > 1 else ''}, met the budget")
         result = turned.fit.result
         if ctx.recipe.steps.spin_scan.second_pass_rpm is not None:
             from calstation.recordings.reader import read_recording
