@@ -68,7 +68,16 @@ def plan(
     if turns < 1 or seeds < 1:
         raise BenchError("--turns and --seeds must be at least 1")
     say = progress or (lambda message, fraction: None)
-    work = Path(out_dir or tempfile.mkdtemp(prefix="calstation-plan-"))
+    with tempfile.TemporaryDirectory(prefix="calstation-plan-") as scratch:
+        work = Path(out_dir or scratch)
+        return _plan(loaded, seeds, turns, alternatives, say, work)
+
+
+def _plan(
+    loaded: Any, seeds: int, turns: int, alternatives: bool, say: Progress, work: Path
+) -> dict[str, Any]:
+    """:func:`plan` with its folder for the simulated recordings."""
+    recipe = loaded.recipe
     designs: list[tuple[str, str, dict[str, Any]]] = [("as designed", "the recipe", {})]
     if alternatives:
         designs += _alternatives(recipe)
