@@ -41,6 +41,7 @@ from calstation.web.payloads import (
     AnswerRequest,
     EmptyRequest,
     LoginRequest,
+    PlanRequest,
     StartRequest,
     form_to_typed,
     media_type,
@@ -48,12 +49,13 @@ from calstation.web.payloads import (
     read_fields,
     schema_of,
 )
+from calstation.web.plans import Planner
 from calstation.web.security import AccessError, Guard, client_of
 from calstation.web.settings import MAX_ID, WebLimits
 from calstation.web.tokens import TokenSource
 
 STATIC = Path(__file__).parent / "static"
-StaticFile = Literal["station.css", "station.js", "trends.js", "plotly.min.js"]
+StaticFile = Literal["station.css", "station.js", "trends.js", "plan.js", "plotly.min.js"]
 
 log = logging.getLogger("calstation.web")
 
@@ -122,6 +124,7 @@ def create_app(
     _operator_routes(app, ctx)
     _run_routes(app, ctx)
     _api_routes(app, ctx)
+    _plan_routes(app, ctx, Planner(runner))
     return app
 
 
@@ -527,6 +530,31 @@ def _done(request: Request, body: dict[str, Any], status: int = 200) -> Response
     if media_type(request)[0] == "application/x-www-form-urlencoded":
         return RedirectResponse("/", status_code=303)
     return JSONResponse(body, status_code=status)
+
+
+def _plan_routes(app: FastAPI, ctx: _Pages, planner: Planner) -> None:
+    """The station designer's page: ``calstation plan`` of a recipe (:mod:`.plans`)."""
+
+    @app.get("/plan", response_class=HTMLResponse)
+    def plan_page(request: Request) -> HTMLResponse:
+        """Plan a recipe: what the station it describes reaches, turns, placement."""
+        return ctx.page(request, "plan.html", {"recipes": ctx.runner.recipes(),
+                                               "state": planner.snapshot()})
+
+    @app.get("/plan.json")
+    def plan_json() -> dict[str, Any]:
+        """The plan page's JSON twin: the plan under way or the last one."""
+        return planner.snapshot()
+
+    @app.post("/api/plan", response_model=None, openapi_extra=schema_of(PlanRequest))
+    async def start_plan(request: Request) -> Response:
+        """Start a plan of a recipe of the recipes folder. 409 while one runs or a run is on."""
+        body = _validated(PlanRequest, await _authorized(request, ctx.guard), request,
+                          ints=("seeds", "turns"))
+        planner.start(body.recipe, body.seeds, body.turns)
+        if media_type(request)[0] == "application/x-www-form-urlencoded":
+            return RedirectResponse("/plan", status_code=303)
+        return JSONResponse(planner.snapshot(), status_code=202)
 
 
 def _api_routes(app: FastAPI, ctx: _Pages) -> None:

@@ -75,6 +75,15 @@ class StartRequest(_Strict):
     serial: Serial | None = None
 
 
+class PlanRequest(_Strict):
+    """``POST /api/plan``: a recipe file of the recipes folder, the simulated stations per
+    figure and the turns of the simulated spin scans."""
+
+    recipe: RecipeFile
+    seeds: Annotated[int, Field(ge=1, le=5)] = 2
+    turns: Annotated[int, Field(ge=1, le=4)] = 2
+
+
 class AnswerRequest(_Strict):
     """``POST /api/answer``: the pending prompt's id and one of the answers it offers."""
 
