@@ -42,13 +42,14 @@ test: setup
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-logo
 	$(BIN)/python -m pytest -n 2 -q
-	$(BIN)/python -m pytest -q -m browser tests/test_web_browser.py
+	$(BIN)/python -m pytest -q -m browser tests/test_web_browser.py tests/test_web_security_browser.py
 
 bench: setup
 	$(BIN)/python benchmarks/simulate_revolution.py
 	$(BIN)/python benchmarks/recording_io.py
 	$(BIN)/python benchmarks/calibration.py
 	$(BIN)/python benchmarks/startup.py
+	$(BIN)/python benchmarks/web_load.py
 
 # 1,000 stored runs on PostgreSQL re-processed with 1 and 2 local Dask workers (docs/fleet.md;
 # about 45 minutes on two cores)

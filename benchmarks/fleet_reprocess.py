@@ -10,7 +10,7 @@ above the 0.5 mm tolerance in the work volume, the others within. Then ``calstat
 campaign, prints their throughput, checks that each flags exactly the seeded runs, and that a
 sample of runs gives results identical to ``calstation calibrate --run N``.
 
-    python benchmarks/fleet_reprocess.py                 # the full benchmark (about 40 min on two cores)
+    python benchmarks/fleet_reprocess.py     # the full benchmark (about 45 min on two cores)
     python benchmarks/fleet_reprocess.py --runs 40 --limit 40 --sample 2   # a quick look
 """
 

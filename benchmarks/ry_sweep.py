@@ -1,16 +1,26 @@
-"""The ry sweep of docs/algorithms.md: the station's calibration under noise, background,
+"""The capability sweep of docs/algorithms.md: the station's calibration under noise, background,
 placement and line-rate conditions the default simulator does not produce, against the truth.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ry_sweep.py [--runs 120] [--jobs 2]
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ry_sweep.py station [--runs 72] [--jobs 2]
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ry_sweep.py turns [--scenes 24] [--jobs 2]
+    .venv/bin/python benchmarks/ry_sweep.py table --out DIR
 
-Each run simulates recipes/sim-periodicity.yaml with one combination of range noise (0.5, 1,
-2 mm), background (on, off), spin-target offset (centred, 60 mm) and line rate (1000, 180
-lines/s), the scenario cycling through the paper's nine and 0.9 m / 40°, and decides as the
-station does: periodicity fine-tuning from the initial calibration, its σ gate on tx, tz and rz,
-the cube check under that H, ry combined with the cube's side-face twist
-(:func:`calstation.engine.joint.ry_with_cube`) and the ry gate on the result. It prints, per run and
-then per noise level, the axis direction error of the periodicity alone and of the outcome,
-what was refused, and the σ coverage (|error| ≤ 3σ) of both. One run takes 30-90 s on one core.
+``station``: each run is a whole simulated ``calstation run`` of recipes/sim-periodicity.yaml
+(``--recipe`` another, e.g. sim-shape.yaml) with one combination of range noise (0.5, 1, 2 mm),
+line rate (180, 1000 lines/s), background (on, off) and spin-target placement (centred, 60 mm
+off), the scenario cycling through the paper's nine and 0.9 m / 40°, a new seed per run. The
+station decides it exactly as it decides a run on the shop floor: turn by turn until the
+accuracy budget holds (up to ``max_revolutions``), the cube's faces combined into ry, the budget
+on the final calibration. The sweep prints, per noise level, how many runs were accepted, the
+accepted runs' axis direction and offset errors, the turns taken, the scanning and computing
+time, the 3σ coverage of every parameter (accepted and refused estimates alike), and whether the
+predicted reconstruction error covered the true distortion over the work volume.
+
+``turns``: the σ coverage at fixed turns, for both strategies. Each scene is simulated once with
+long spin and cube scans (8 turns at 180 lines/s, 4 at 1000 lines/s: 25 million points is the
+simulator's limit); the periodicity strategy (alone, and with the cube's faces) and the shape
+strategy fine-tune on the first 1, 2, 4 and 8 turns, from the initial calibration, and each
+estimate's error is compared with its σ.
 """
 
 from __future__ import annotations
@@ -20,164 +30,343 @@ import copy
 import itertools
 import json
 import math
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
 
-from calstation.engine.initial import initial_calibration
-from calstation.engine.metrics import axis_errors
-from calstation.engine.observability import sigma_problems
-from calstation.plugins.cost_strategies import PeriodicityStrategy, fine_tune_with_cube
 from calstation.recipes import LoadedRecipe, parse_recipe
-from calstation.recordings.reader import read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = [(r, p) for r in (1.0, 1.25, 1.5) for p in (30.0, 45.0, 60.0)] + [(0.9, 40.0)]
-CONDITIONS = list(itertools.product((0.0005, 0.001, 0.002), (False, True), (0.0, 0.06),
-                                    (1000.0, 180.0)))
+CONDITIONS = list(itertools.product((0.0005, 0.001, 0.002), (1000.0, 180.0), (False, True),
+                                    (0.0, 0.06)))
+"""(range noise m, line rate lines/s, background, spin-target offset m)"""
+PARAMS = ("tx", "tz", "ry", "rz")
+TURNS = (1, 2, 4, 8)
 
 
 def sim_recipe(noise: float, background: bool, offset: float, rate: float,
-               scenario: tuple[float, float], seed: int) -> LoadedRecipe:
-    """recipes/sim-periodicity.yaml with these simulation conditions."""
-    data = copy.deepcopy(yaml.safe_load((REPO / "recipes/sim-periodicity.yaml").read_text()))
+               scenario: tuple[float, float], seed: int,
+               recipe: Path = REPO / "recipes/sim-periodicity.yaml",
+               steps: dict[str, Any] | None = None) -> LoadedRecipe:
+    """``recipe`` with these simulation conditions (and ``steps`` merged into its steps)."""
+    data = copy.deepcopy(yaml.safe_load(recipe.read_text()))
     sim = data["simulation"]
     sim.update(seed=seed, truth={"range": scenario[0], "pitch_deg": scenario[1]},
                background={"enabled": background})
     sim["lidar"].update(range_noise=noise, line_rate_hz=rate)
     data["fixtures"]["spin_target"]["offset"] = [offset, 0.0]
+    for name, values in (steps or {}).items():
+        data["steps"].setdefault(name, {}).update(values)
     text = yaml.safe_dump(data)
     return LoadedRecipe(parse_recipe(text, f"simulated run, seed {seed}"), None, text)
 
 
-def _recipe(k: int) -> LoadedRecipe:
-    return sim_recipe(*CONDITIONS[k % len(CONDITIONS)], SCENARIOS[k % len(SCENARIOS)], 100 + k)
+def _condition(k: int) -> dict[str, Any]:
+    noise, rate, background, offset = CONDITIONS[k % len(CONDITIONS)]
+    return {"noise": noise, "line_rate": rate, "background": background, "offset": offset,
+            "scenario": SCENARIOS[k % len(SCENARIOS)]}
 
 
-def one(k: int, out: Path) -> dict[str, object]:
-    """Simulate run ``k`` and decide it as the station does; its row (SI units)."""
+# --- the station, turn by turn -----------------------------------------------------------------
+class _Quiet:
+    """An unattended operator that keeps nothing on the console."""
+
+    unattended = True
+
+    def info(self, message: str) -> None:
+        pass
+
+    warn = info
+
+    def confirm_fixture(self, fixture: str, description: str) -> bool:
+        return True
+
+    def on_failure(self, step: str, error: str, attempt: int) -> str:
+        return "abort"
+
+    @contextmanager
+    def progress(self, title: str) -> Iterator[Callable[[str, float], None]]:
+        yield lambda phase, fraction: None
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        pass
+
+
+def station_run(k: int, out: Path, recipe: Path) -> dict[str, Any]:
+    """Run ``k`` as a whole simulated station run; its row (SI units)."""
+    from calstation.station.runs import start_run
+    from calstation.storage.db import open_database
+
+    cond = _condition(k)
+    loaded = sim_recipe(cond["noise"], cond["background"], cond["offset"], cond["line_rate"],
+                        cond["scenario"], 100 + k, recipe)
+    folder = out / f"run{k}"
+    folder.mkdir(parents=True, exist_ok=True)
+    db = open_database(f"sqlite:///{folder / 'run.db'}")
+    t0 = time.perf_counter()
+    try:
+        run_id, status = start_run(loaded, db, _Quiet(), operator="sweep", data_dir=folder)
+        row = _station_row(db, run_id, status, loaded)
+    finally:
+        db.dispose()
+    row.update(k=k, **cond, wall_s=time.perf_counter() - t0)
+    for path in folder.rglob("*.mcap"):
+        path.unlink()
+    return row
+
+
+def _station_row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dict[str, Any]:
+    """What the station decided, its final estimate (accepted, or the one it refused), the
+    truth, the turns and times."""
+    from calstation.engine.accuracy import true_distortion
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.metrics import axis_errors
+    from calstation.recordings.reader import read_recording
+    from calstation.storage.db import Artifact, Calibration, Step
+
+    recipe = loaded.recipe
+    with db.session() as s:
+        steps = {st.name: st for st in s.query(Step).filter_by(run_id=run_id).order_by(Step.id)}
+        cals = s.query(Calibration).filter_by(run_id=run_id).order_by(Calibration.id).all()
+        spin = s.query(Artifact).filter_by(run_id=run_id, kind="spin").first()
+        truth = read_recording(spin.path).truth if spin is not None else None
+        final = next((c for c in cals if c.accepted), None) or next(
+            (c for c in reversed(cals) if c.stage == "fine"), None)
+        estimate = None
+        if final is not None:
+            estimate = {"H": final.params(), "sigma": final.sigmas(),
+                        "predicted_error_m": final.predicted_error_m, "strategy": final.strategy}
+        elif "fine_tune" in steps and (steps["fine_tune"].result or {}).get("refused"):
+            refused = steps["fine_tune"].result["refused"]
+            estimate = {"H": refused["H"], "sigma": refused["sigma"],
+                        "predicted_error_m": refused.get("predicted_error_m"),
+                        "strategy": "refused"}
+        spin_result = (steps.get("spin_scan").result or {}) if "spin_scan" in steps else {}
+        fine_result = (steps.get("fine_tune").result or {}) if "fine_tune" in steps else {}
+        failed = [st.error for st in steps.values() if st.status == "failed" and st.error]
+    row: dict[str, Any] = {
+        "status": status, "accepted": status == "passed", "failure": failed[:1],
+        "turn_by_turn": spin_result.get("turn_by_turn"), "turns": fine_result.get("turns"),
+        "fit_s": fine_result.get("after_scan_s"),
+    }
+    if estimate is not None and truth is not None:
+        H = Extrinsics.from_dict(estimate["H"])
+        accuracy = recipe.calibration.accuracy
+        row["estimate"] = estimate
+        row["err"] = axis_errors(H, truth)
+        row["true_distortion_m"] = true_distortion(
+            H, truth, radius=accuracy.work_radius(recipe.fixtures.platter),
+            height=accuracy.height)["max_m"]
+    return row
+
+
+# --- fixed turns, both strategies --------------------------------------------------------------
+def turns_scene(k: int, out: Path) -> dict[str, Any]:
+    """Scene ``k`` simulated once with long scans; every strategy on the first 1, 2, 4, 8 turns."""
     from calstation_sim import simulate_run
 
-    loaded = _recipe(k)
+    from calstation.engine.initial import initial_calibration
+    from calstation.recordings.reader import read_recording
+
+    cond = _condition(k)
+    most = 8 if cond["line_rate"] < 500 else 4
+    long = {"revolutions": most + 0.05, "max_revolutions": most + 0.05}
+    loaded = sim_recipe(cond["noise"], cond["background"], cond["offset"], cond["line_rate"],
+                        cond["scenario"], 900 + k,
+                        steps={"spin_scan": long, "cube_scan": long})
     recipe = loaded.recipe
-    paths = simulate_run(loaded, out / f"run{k}", progress=False)
-    static = read_recording(paths["static"])
-    truth = static.truth
-    assert truth is not None
-    initial = initial_calibration(static, recipe.fixtures.static_target, recipe.calibration.initial)
-    fine = PeriodicityStrategy().run(read_recording(paths["spin"]), initial.H, recipe)
-    limits = recipe.calibration.max_sigma
-    refused = sigma_problems(fine, limits, skip=("ry",))
-    # the station's cube step: the side faces' twist combined into ry, the ry gate
-    outcome, final, failure = fine_tune_with_cube(fine, read_recording(paths["cube"]), recipe)
-    joint = outcome.diagnostics.get("joint") if outcome is not fine else None
-    if joint is not None:  # the twist measured under the fine-tuned H
-        twist = joint["ry_cube"] - joint["ry_spin_target"]
-        twist_sigma = joint["sigma_ry_cube"]
-    else:
-        twist, twist_sigma = math.radians(final.twist_deg), math.radians(final.twist_sigma_deg)
-    if failure:
-        refused.append(failure)
-    for name in paths.values():  # the recordings are large; the rows keep what matters
-        Path(name).unlink(missing_ok=True)
-    noise, background, offset, rate = CONDITIONS[k % len(CONDITIONS)]
-    return {"k": k, "noise": noise, "background": background, "offset": offset,
-            "line_rate": rate, "scenario": SCENARIOS[k % len(SCENARIOS)],
-            "periodicity": {"err": axis_errors(fine.H, truth), "sigma": fine.sigma},
-            "twist": [twist, twist_sigma], "joint": joint is not None,
-            "err": axis_errors(outcome.H, truth), "sigma": outcome.sigma, "refused": refused,
-            "cube_passed": final.passed, "edge_error": final.edge_error,
-            "noise_estimate": fine.diagnostics.get("range_noise_m"),
-            "cell": fine.diagnostics.get("final_cell_m")}
+    paths = simulate_run(loaded, out / f"scene{k}", progress=False)
+    try:
+        static = read_recording(paths["static"])
+        truth = static.truth
+        assert truth is not None
+        start = initial_calibration(static, recipe.fixtures.static_target,
+                                    recipe.calibration.initial).H
+        spin, cube = read_recording(paths["spin"]), read_recording(paths["cube"])
+        rows = [_at_turns(recipe, spin, cube, start, truth, n) for n in TURNS if n <= most]
+    finally:
+        for name in paths.values():
+            Path(name).unlink(missing_ok=True)
+    return {"k": k, **cond, "estimates": [e for r in rows for e in r]}
 
 
-def _direction(rows: list[dict], key: str | None = None) -> np.ndarray:
-    return np.array([math.degrees((r[key] if key else r)["err"]["axis_angle_rad"])
-                     for r in rows])
+def _at_turns(recipe: Any, spin: Any, cube: Any, start: Any, truth: Any,
+              n: int) -> list[dict[str, Any]]:
+    """The periodicity (alone, and with the cube's faces) and shape estimates on n turns."""
+    from calstation.engine.metrics import axis_errors
+    from calstation.errors import CalstationError
+    from calstation.plugins.cost_strategies import (
+        PeriodicityStrategy,
+        ShapeStrategy,
+        fine_tune_with_cube,
+        run_strategy,
+    )
 
-
-def _cover(rows: list[dict], key: str | None = None) -> str:
     out = []
-    for p in ("tx", "tz", "ry", "rz"):
-        n = sum(abs(r_["err"][f"{p}_error"]) <= 3 * r_["sigma"][p]
-                for r_ in ((r[key] if key else r) for r in rows))
-        out.append(f"{p} {n}/{len(rows)}")
-    return ", ".join(out)
+
+    def record(method: str, fit: Callable[[], Any]) -> Any:
+        t0 = time.perf_counter()
+        try:
+            result = fit()
+        except CalstationError as exc:
+            out.append({"method": method, "turns": n, "error": str(exc)})
+            return None
+        out.append({"method": method, "turns": n, "sigma": dict(result.sigma),
+                    "err": axis_errors(result.H, truth), "s": time.perf_counter() - t0})
+        return result
+
+    spin_n, cube_n = spin.first_turns(n), cube.first_turns(n)
+    fine = record("periodicity", lambda: run_strategy(PeriodicityStrategy(), spin_n, start,
+                                                      recipe)[0])
+    if fine is not None:
+        record("periodicity+cube", lambda: fine_tune_with_cube(fine, cube_n, recipe)[0])
+    record("shape", lambda: run_strategy(ShapeStrategy(), cube_n, start, recipe)[0])
+    return out
 
 
-def _stats(values: np.ndarray) -> str:
-    if not values.size:
+# --- the tables --------------------------------------------------------------------------------
+def _deg(x: float) -> float:
+    return math.degrees(x)
+
+
+def _stats(values: list[float], unit: str, scale: float) -> str:
+    if not values:
         return "—"
-    return (f"median {np.median(values):.3f}°, p95 {np.percentile(values, 95):.3f}°, "
-            f"max {values.max():.3f}°")
+    v = np.asarray(values) * scale
+    return (f"median {np.median(v):.3f}{unit}, p95 {np.percentile(v, 95):.3f}{unit}, "
+            f"max {v.max():.3f}{unit}")
 
 
-def table(rows: list[dict]) -> None:
-    """Per noise level: refusals, direction errors (accepted outcome, periodicity alone) and
-    the 3σ coverage of both."""
+def _covered(est: dict[str, Any], p: str) -> bool | None:
+    sigma = est["sigma"].get(p)
+    if sigma is None or not math.isfinite(sigma):
+        return None
+    return abs(est["err"][f"{p}_error"]) <= 3 * sigma
+
+
+def station_table(rows: list[dict[str, Any]]) -> None:
+    """Per noise level: acceptance, accuracy of the accepted, turns, times, coverage."""
     for noise in sorted({r["noise"] for r in rows}):
         sel = [r for r in rows if r["noise"] == noise]
-        refused = np.array([bool(r["refused"]) for r in sel])
-        accepted = _direction(sel)[~refused]
-        silent = sum(1 for r in sel if not r["refused"] and any(
-            abs(r["err"][f"{p}_error"]) > 3 * r["sigma"][p] for p in ("tx", "tz", "ry", "rz")))
-        print(f"{noise * 1e3:.1f} mm: {len(sel)} runs, {int(refused.sum())} refused, "
-              f"{sum(r['joint'] for r in sel)} combined with the cube, {silent} accepted beyond "
-              f"3σ\n  accepted direction error: {_stats(accepted)}\n  periodicity alone: "
-              f"{_stats(_direction(sel, 'periodicity'))}\n  |error| ≤ 3σ, outcome: "
-              f"{_cover(sel)}\n  |error| ≤ 3σ, periodicity: {_cover(sel, 'periodicity')}")
-    refused = sum(bool(r["refused"]) for r in rows)
-    print(f"all: {len(rows)} runs, {refused} refused; |error| ≤ 3σ, outcome: {_cover(rows)}; "
-          f"periodicity: {_cover(rows, 'periodicity')}")
+        acc = [r for r in sel if r["accepted"] and "err" in r]
+        with_est = [r for r in sel if "err" in r]
+        turns = [r["turns"] for r in sel if r.get("turns")]
+        print(f"{noise * 1e3:.1f} mm: {len(sel)} runs, {len(acc)} accepted "
+              f"({100 * len(acc) / max(len(sel), 1):.0f} %)")
+        directions = [r["err"]["axis_angle_rad"] for r in acc]
+        offsets = [r["err"]["axis_offset_m"] for r in acc]
+        print(f"  accepted axis direction: {_stats(directions, '°', math.degrees(1.0))}")
+        print(f"  accepted axis offset: {_stats(offsets, ' mm', 1e3)}")
+        print(f"  turns: mean {np.mean(turns) if turns else math.nan:.2f}, max "
+              f"{max(turns) if turns else '—'}; wall time per run (simulation included): "
+              f"mean {np.mean([r['wall_s'] for r in sel]):.0f} s")
+        cover = []
+        for p in PARAMS:
+            flags = [_covered(r["estimate"] | {"err": r["err"]}, p) for r in with_est]
+            flags = [f for f in flags if f is not None]
+            cover.append(f"{p} {sum(flags)}/{len(flags)}")
+        predicted = [(r["true_distortion_m"], r["estimate"]["predicted_error_m"])
+                     for r in with_est if r["estimate"].get("predicted_error_m") is not None]
+        print(f"  |error| ≤ 3σ (accepted and refused): {', '.join(cover)}; predicted error ≥ "
+              f"true distortion: {sum(t <= p for t, p in predicted)}/{len(predicted)}")
+        for r in sel:
+            if not r["accepted"]:
+                print(f"    refused run {r['k']}: {str(r['failure'][:1])[:300]}")
 
 
-def _line(row: dict) -> str:
-    e, p = row["err"], row["periodicity"]["err"]
-    return (f"run {row['k']}: {row['noise'] * 1e3:.1f} mm, background {row['background']}, "
-            f"offset {row['offset'] * 1e3:.0f} mm, {row['line_rate']:.0f} lines/s, "
-            f"{row['scenario']}: periodicity direction "
-            f"{math.degrees(p['axis_angle_rad']):.3f}°, ry {math.degrees(p['ry_error']):+.3f}° ± "
-            f"{math.degrees(row['periodicity']['sigma']['ry']):.3f}°; twist "
-            f"{math.degrees(row['twist'][0]):+.3f}° ± {math.degrees(row['twist'][1]):.3f}°; "
-            f"outcome direction {math.degrees(e['axis_angle_rad']):.3f}°, ry "
-            f"{math.degrees(e['ry_error']):+.3f}° ± {math.degrees(row['sigma']['ry']):.3f}°"
-            f"{' (combined)' if row['joint'] else ''}"
-            f"{'; refused: ' + row['refused'][0] if row['refused'] else ''}")
+def turns_table(rows: list[dict[str, Any]]) -> None:
+    """Per strategy and number of turns: σ and error of ry, and the 3σ coverage."""
+    estimates = [e | {"noise": r["noise"], "rate": r["line_rate"]} for r in rows
+                 for e in r["estimates"]]
+    for method in ("periodicity", "periodicity+cube", "shape"):
+        for n in TURNS:
+            sel = [e for e in estimates if e["method"] == method and e["turns"] == n]
+            ok = [e for e in sel if "err" in e]
+            if not sel:
+                continue
+            cover = []
+            for p in PARAMS:
+                flags = [f for f in (_covered(e, p) for e in ok) if f is not None]
+                cover.append(f"{p} {sum(flags)}/{len(flags)}")
+            ry = [abs(e["err"]["ry_error"]) for e in ok]
+            sry = [e["sigma"]["ry"] for e in ok if math.isfinite(e["sigma"].get("ry", math.nan))]
+            off = [e["err"]["axis_offset_m"] for e in ok]
+            print(f"{method:17} {n} turns: {len(ok)}/{len(sel)} fitted; |ry error| "
+                  f"{_stats(ry, '°', math.degrees(1.0))}; σ_ry median "
+                  f"{math.degrees(float(np.median(sry))) if sry else math.nan:.3f}°; axis "
+                  f"offset {_stats(off, ' mm', 1e3)}; ≤ 3σ: {', '.join(cover)}")
 
 
-def run_all(run: Callable[..., dict], jobs: list[tuple], log_path: Path, workers: int,
-            line: Callable[[dict], str]) -> list[dict]:
+def run_all(run: Callable[..., dict[str, Any]], jobs: list[tuple[Any, ...]], log: Path,
+            workers: int, line: Callable[[dict[str, Any]], str]) -> list[dict[str, Any]]:
     """``run(*job)`` for every job on ``workers`` processes; each row appended to the JSON-lines
-    log and printed as it arrives. Returns the rows."""
+    ``log`` and printed as it arrives."""
     rows = []
-    with log_path.open("a") as log, ProcessPoolExecutor(workers) as pool:
+    with log.open("a") as f, ProcessPoolExecutor(workers) as pool:
         for row in pool.map(run, *zip(*jobs, strict=True)):
             rows.append(row)
-            log.write(json.dumps(row) + "\n")
-            log.flush()
+            f.write(json.dumps(row, default=float) + "\n")
+            f.flush()
             print(line(row), flush=True)
     return rows
 
 
+def _station_line(r: dict[str, Any]) -> str:
+    e = r.get("err")
+    head = (f"run {r['k']}: {r['noise'] * 1e3:.1f} mm, {r['line_rate']:.0f} lines/s, background "
+            f"{r['background']}, offset {r['offset'] * 1e3:.0f} mm, {r['scenario']}: "
+            f"{'accepted' if r['accepted'] else 'refused'} after {r.get('turns')} turns")
+    if e:
+        head += (f"; direction {_deg(e['axis_angle_rad']):.3f}°, offset "
+                 f"{e['axis_offset_m'] * 1e3:.3f} mm, ry {_deg(e['ry_error']):+.3f}° ± "
+                 f"{_deg(r['estimate']['sigma']['ry'] or math.nan):.3f}°, predicted "
+                 f"{(r['estimate']['predicted_error_m'] or math.nan) * 1e3:.3f} mm, true "
+                 f"{r['true_distortion_m'] * 1e3:.3f} mm")
+    return head
+
+
+def _turns_line(r: dict[str, Any]) -> str:
+    return (f"scene {r['k']}: {r['noise'] * 1e3:.1f} mm, {r['line_rate']:.0f} lines/s: "
+            f"{len(r['estimates'])} estimates")
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=int, default=120)
-    parser.add_argument("--first", type=int, default=0, help="index of the first run")
-    parser.add_argument("--jobs", type=int, default=1, help="runs in parallel")
-    parser.add_argument("--out", type=Path, default=REPO / "out" / "ry-sweep")
-    parser.add_argument("--table", action="store_true",
-                        help="only print the table of the runs already in --out")
-    args = parser.parse_args()
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("mode", choices=("station", "turns", "table"))
+    ap.add_argument("--runs", type=int, default=72, help="station runs (from --first)")
+    ap.add_argument("--scenes", type=int, default=24, help="fixed-turn scenes (from --first)")
+    ap.add_argument("--first", type=int, default=0)
+    ap.add_argument("--jobs", type=int, default=1, help="runs in parallel")
+    ap.add_argument("--noise", type=float, default=None,
+                    help="only the runs (scenes) of this range noise (m)")
+    ap.add_argument("--recipe", type=Path, default=REPO / "recipes/sim-periodicity.yaml")
+    ap.add_argument("--out", type=Path, default=REPO / "out" / "capability")
+    args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    log_path = args.out / "runs.jsonl"
-    if args.table:
-        table([json.loads(line) for line in log_path.read_text().splitlines()])
-        return
-    ks = range(args.first, args.first + args.runs)
-    table(run_all(one, [(k, args.out) for k in ks], log_path, args.jobs, _line))
+    station_log, turns_log = args.out / "station.jsonl", args.out / "turns.jsonl"
+    def picked(count: int) -> list[int]:
+        ks = itertools.count(args.first)
+        chosen = (k for k in ks if args.noise is None
+                  or math.isclose(_condition(k)["noise"], args.noise))
+        return list(itertools.islice(chosen, count))
+
+    if args.mode == "station":
+        run_all(station_run, [(k, args.out, args.recipe) for k in picked(args.runs)],
+                station_log, args.jobs, _station_line)
+    elif args.mode == "turns":
+        run_all(turns_scene, [(k, args.out) for k in picked(args.scenes)], turns_log, args.jobs,
+                _turns_line)
+    for log, table in ((station_log, station_table), (turns_log, turns_table)):
+        if log.exists():
+            print(f"\n{log}:")
+            table([json.loads(line) for line in log.read_text().splitlines()])
 
 
 if __name__ == "__main__":

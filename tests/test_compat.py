@@ -50,3 +50,14 @@ def test_the_recording_module_gives_the_writer_the_reader_and_the_recording() ->
         sys.modules.pop("calstation.recording", None)
         from calstation.recording import Recording, RecordingWriter, read_recording
     assert (read_recording, RecordingWriter, Recording) == homes
+
+
+def test_names_of_the_flat_station_module_import_from_the_package_with_a_warning() -> None:
+    from calstation.station import runs
+
+    with pytest.warns(DeprecationWarning, match=r"calstation.station.start_run moved to "
+                                                r"calstation.station.runs.start_run"):
+        from calstation.station import start_run
+    assert start_run is runs.start_run
+    with pytest.raises(ImportError):
+        from calstation.station import no_such_name  # noqa: F401

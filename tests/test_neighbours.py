@@ -41,13 +41,18 @@ def test_local_planes_of_a_noisy_plane_far_from_the_origin() -> None:
     assert np.allclose(c, pts[idx].mean(axis=1), atol=1e-12)
 
 
-def test_mutual_neighbours_with_trees_match_without() -> None:
+def test_mutual_neighbours_are_exactly_the_brute_force_pairs() -> None:
     rng = np.random.default_rng(1)
     a, b = rng.uniform(0, 1, (500, 3)), rng.uniform(0, 1, (400, 3))
     i, j = mutual_neighbours(a, b, 0.05)
-    for k in range(i.size):
-        assert np.argmin(np.linalg.norm(b - a[i[k]], axis=1)) == j[k]
-        assert np.argmin(np.linalg.norm(a - b[j[k]], axis=1)) == i[k]
+    # every pair of points that are each other's nearest, within the radius, and no other
+    d = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=2)
+    nearest_b, nearest_a = d.argmin(axis=1), d.argmin(axis=0)
+    expected = {(k, int(nearest_b[k])) for k in range(a.shape[0])
+                if nearest_a[nearest_b[k]] == k and d[k, nearest_b[k]] <= 0.05}
+    assert len(expected) > 20  # the check has pairs to find
+    assert set(zip(i.tolist(), j.tolist(), strict=True)) == expected
+    assert i.size == len(expected)  # each pair once
 
 
 def test_periodicity_jacobian_matches_finite_differences() -> None:

@@ -69,12 +69,13 @@ def test_reprocessing_with_shape_stores_a_second_calibration(
     code, out, err = _run(
         ["calibrate", "--run", str(run_id), "--strategy", "shape", "--db", url, "--json"], capsys
     )
-    # at 1 mm of noise shape does not determine the axis to the recipe's limits: stored, refused
+    # at 1 mm of noise shape does not determine the axis to the recipe's budget: stored, refused
     assert code == 3, err
     data = json.loads(out)
     assert data["run_id"] == run_id and data["strategy"] == "shape"
     assert data["accepted"] is False and data["warnings"] == []
-    assert data["refused"] and all("calibration.max_sigma" in r for r in data["refused"])
+    assert data["refused"] and any("calibration.accuracy.max_error" in r and "What would help"
+                                   in r for r in data["refused"])
     assert "refused" in err and "not accepted" in err
     truth = read_recording(files["cube"]).truth
     assert truth is not None
@@ -175,8 +176,9 @@ def test_calibrate_files_warns_on_a_disagreeing_recipe(
     files = sim_run()
     data = yaml.safe_load(RECIPE.read_text(encoding="utf-8"))
     data["station"]["encoder"]["direction"] = -1
-    # this test is about the warnings: shape's σ at 1 mm of noise is over the default limits
-    data["calibration"]["max_sigma"] = {"tx": 0.003, "tz": 0.003, "ry_deg": 0.3}
+    # this test is about the warnings: shape's predicted error at 1 mm of noise and one turn is
+    # over the default budget
+    data["calibration"]["accuracy"] = {"max_error": 0.005}
     path = tmp_path / "reversed.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
     code, out, err = _run(["calibrate", str(path), "--static", str(files["static"]),

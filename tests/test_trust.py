@@ -45,7 +45,9 @@ def _result(**sigma: float) -> CalibrationResult:
 
 
 def test_gate_names_the_parameter_its_sigma_and_what_to_do() -> None:
-    limits = SigmaLimits()
+    # calibration.max_sigma is an optional stricter limit: none by default, these when set
+    assert sigma_problems(_result(ry=math.radians(5.0), tz=0.01), SigmaLimits()) == []
+    limits = SigmaLimits(tx=0.0005, tz=0.0005, ry_deg=0.05, rz_deg=0.05)
     assert sigma_problems(_result(), limits) == []
     bad = _result(ry=math.radians(0.31), tz=0.0008)
     problems = sigma_problems(bad, limits)

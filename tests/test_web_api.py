@@ -7,6 +7,7 @@ thread, exactly as ``calstation serve`` runs it.
 
 from __future__ import annotations
 
+import re
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -52,10 +53,17 @@ def make_client(tmp_path: Path, db: Database, **kwargs: Any) -> TestClient:
     return TestClient(app, base_url="http://127.0.0.1:8470")
 
 
+ORIGIN = "http://127.0.0.1:8470"
+
+
 def csrf_of(client: TestClient) -> dict[str, str]:
-    """Open the operator page like a browser; the CSRF header the page's script sends."""
-    assert client.get("/").status_code == 200
-    return {"X-CSRF-Token": client.cookies["calstation_csrf"]}
+    """Open the operator page like a browser; the headers the page's script sends with a
+    state change (its CSRF value, and the Origin the browser adds)."""
+    page = client.get("/")
+    assert page.status_code == 200
+    match = re.search(r'<meta name="csrf-token" content="([^"]+)">', page.text)
+    assert match is not None
+    return {"X-CSRF-Token": match.group(1), "Origin": ORIGIN}
 
 
 def wait_prompt(client: TestClient, kind: str | None = None) -> dict[str, Any]:
@@ -178,11 +186,15 @@ def test_a_non_local_station_needs_its_token(
             assert s.query(Run).count() == 0
         assert station_plugin.motor_calls == []
         # the login page gives a browser its session; wrong tokens are refused
-        assert client.post("/login", data={"token": "nope", "csrf": headers["X-CSRF-Token"]}
-                           ).status_code == 401
+        origin = {"Origin": ORIGIN}
+        assert client.post("/login", data={"token": "nope", "csrf": headers["X-CSRF-Token"]},
+                           headers=origin).status_code == 401
+        before = client.cookies["calstation_session"]
         r = client.post("/login", data={"token": TOKEN, "csrf": headers["X-CSRF-Token"]},
-                        follow_redirects=False)
-        assert r.status_code == 303 and "calstation_session" in client.cookies
+                        headers=origin, follow_redirects=False)
+        # a new session id at login (the one before could have been planted)
+        assert r.status_code == 303 and client.cookies["calstation_session"] != before
+        headers = csrf_of(client)  # the new session's CSRF value
         r = client.post("/api/start", json=body, headers=headers)
         assert r.status_code == 201, r.text
         run_id = r.json()["run_id"]
@@ -240,7 +252,7 @@ def test_prompts_answers_and_abort(
                         json={"recipe": "missing.yaml", "operator": "ann"})
         assert r.status_code == 400 and "lean.yaml" in r.json()["error"]
         r = client.post("/api/start", headers=headers, json={"recipe": "lean.yaml", "operator": ""})
-        assert r.status_code == 400
+        assert r.status_code == 422 and "operator" in r.json()["error"]
         run_id = client.post("/api/start", headers=headers,
                              json={"recipe": "lean.yaml", "operator": "ann"}).json()["run_id"]
         prompt = wait_prompt(client)
@@ -313,7 +325,7 @@ def test_trends_and_compare_pages(
         tx = next(r for r in both["rows"] if r["name"] == "tx")
         assert tx["diff"] == pytest.approx(tx["b"] - tx["a"])
         assert client.get("/compare", params={"a": ids[0], "b": ids[1]}).status_code == 200
-        assert client.get("/compare", params={"a": "x", "b": "1"}).status_code == 400
+        assert client.get("/compare", params={"a": "x", "b": "1"}).status_code == 422
         trend = client.get("/trends.json", params={"station": "sim-test", "param": "tx"}).json()
         accepted = [p["run_id"] for p in trend["points"]]
         with db.session() as s:

@@ -29,11 +29,14 @@ def free_port() -> int:
 
 
 @contextmanager
-def served(app: Any) -> Iterator[str]:
-    """Serve ``app`` on 127.0.0.1 with uvicorn in a thread; yields its base URL."""
-    port = free_port()
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning",
-                                           lifespan="on", timeout_graceful_shutdown=2))
+def served(app: Any, *, port: int | None = None, **config: Any) -> Iterator[str]:
+    """Serve ``app`` on 127.0.0.1 with uvicorn in a thread, as ``calstation serve`` does (no
+    ``Server`` banner); yields its base URL. ``config``: more ``uvicorn.Config`` arguments
+    (``ssl_certfile``..., then the URL is https)."""
+    port = port or free_port()
+    config = {"log_level": "warning", "lifespan": "on", "timeout_graceful_shutdown": 2,
+              "server_header": False, **config}
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, **config))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 20
@@ -42,7 +45,7 @@ def served(app: Any) -> Iterator[str]:
             raise RuntimeError("the test server did not start")
         time.sleep(0.05)
     try:
-        yield f"http://127.0.0.1:{port}"
+        yield f"{'https' if config.get('ssl_certfile') else 'http'}://127.0.0.1:{port}"
     finally:
         server.should_exit = True
         thread.join(30)

@@ -87,20 +87,21 @@ def _fractions(records: Sequence[dict[str, Any]], method: str, group: str) -> li
 
 def silently_wrong(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """The estimates that missed the thresholds yet whose σ a station with the default
-    ``calibration.max_sigma`` would accept: the ones a user could not tell from good ones."""
-    from calstation.engine.observability import sigma_problems
+    accuracy budget (``calibration.accuracy``, over the default platter) would accept: the ones
+    a user could not tell from good ones."""
+    from calstation.engine.observability import accuracy_problem, predict
     from calstation.engine.result import CalibrationResult
-    from calstation.recipes import SigmaLimits
+    from calstation.recipes import AccuracySettings, PlatterGeometry
 
-    limits = SigmaLimits()
+    budget, platter = AccuracySettings(), PlatterGeometry()
 
-    def result(r: dict[str, Any]) -> CalibrationResult:
-        return CalibrationResult(Extrinsics.from_dict(r["H"]), dict(r.get("sigma", {})), 0.0, 0,
-                                 r["method"])
+    def accepted(r: dict[str, Any]) -> bool:
+        result = CalibrationResult(Extrinsics.from_dict(r["H"]), dict(r.get("sigma", {})), 0.0,
+                                   0, r["method"])
+        return accuracy_problem(predict(result, budget, platter), budget) is None
 
     return [r for r in records
-            if r.get("status") == "ok" and not r.get("converged")
-            and not sigma_problems(result(r), limits)]
+            if r.get("status") == "ok" and not r.get("converged") and accepted(r)]
 
 
 def _level_label(group: str, level: int) -> str:
@@ -150,9 +151,9 @@ def basin_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
     lines += [
         f"Of the {len(missed)} estimates returned outside the thresholds, {len(silent)} "
         + ("has" if len(silent) == 1 else "have") + " a σ "
-        "that the default `calibration.max_sigma` accepts"
+        "that the default accuracy budget (`calibration.accuracy`) accepts"
         + (": " + ", ".join(r["id"] for r in silent[:8]) if silent else "")
-        + "; a station refuses the others by their σ.",
+        + "; a station refuses the others by their predicted error.",
         "",
         "![basin of convergence](results/basin.png)",
         "",

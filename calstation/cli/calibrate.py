@@ -206,10 +206,10 @@ def _calibrate_files(
     from rich.console import Console
 
     from calstation import plugins
-    from calstation.engine.observability import problems_with_cube
     from calstation.errors import CalibrationError
     from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
+    from calstation.station.accuracy import judge
     from calstation.station.reprocess import recording_disagreements
 
     console = Console(stderr=True)
@@ -262,10 +262,10 @@ def _calibrate_files(
     diagnostics["recipe"] = {"name": rc.name, "sha256": loaded.sha256}
     if warnings or strategy_warnings:
         diagnostics["warnings"] = warnings + strategy_warnings
-    result = replace(result, diagnostics=diagnostics)
+    result, refused = judge(replace(result, diagnostics=diagnostics), rc,
+                            ry_failure=joint_failure, turns=float(sp.whole_turns()))
     if out is not None:
         result.save(out)
-    refused = problems_with_cube(result, rc.calibration.max_sigma, joint_failure)
     if as_json:
         summary = result.summary()
         summary["initial"] = initial.H.as_dict()
@@ -275,7 +275,7 @@ def _calibrate_files(
         _print_result(initial.H, result)
         typer.echo(_timing_line(result) + (f"; written to {out}" if out is not None else ""))
     if refused:
-        _refuse(result, rc, strat.fixture, joint_failure)
+        _refuse(refused)
 
 
 def _start_and_fine_tune(
@@ -367,23 +367,15 @@ def _read_kind(
     return rec
 
 
-def _refuse(result: Any, rc: Any, fixture: str, joint_failure: str | None = None) -> None:
-    """Say on stderr why ``result`` is refused (its σ over ``calibration.max_sigma``, or ry
-    undetermined with the cube); exit 3."""
+def _refuse(refused: list[str]) -> None:
+    """Say on stderr why the result is refused (a ``calibration.max_sigma`` limit, ry
+    undetermined with the cube, the accuracy budget, each with what to do); exit 3."""
     from rich.console import Console
     from rich.markup import escape
 
-    from calstation.engine.observability import check_sigma
-    from calstation.errors import ObservabilityError
-
     console = Console(stderr=True)
-    try:
-        check_sigma(result, rc.calibration.max_sigma, fixture,
-                    ("ry",) if joint_failure is not None else ())
-    except ObservabilityError as exc:
-        console.print(f"[bold red]refused[/]: {escape(str(exc))}", highlight=False)
-    if joint_failure is not None:
-        console.print(f"[bold red]refused[/]: {escape(joint_failure)}", highlight=False)
+    for reason in refused:
+        console.print(f"[bold red]refused[/]: {escape(reason)}", highlight=False)
     raise typer.Exit(3)
 
 

@@ -30,31 +30,77 @@ def register(app: typer.Typer) -> None:
         ),
         token_file: Path = typer.Option(
             None, "--token-file",
-            help="File whose first line is the station token (or set $CALSTATION_TOKEN).",
+            help="File whose first line is the station token (or set $CALSTATION_TOKEN). "
+                 "Rewriting the file changes the token and ends every session.",
+        ),
+        allow_host: list[str] = typer.Option(
+            [], "--allow-host",
+            help="A host name browsers use to reach the station (its DNS name; *.domain for "
+                 "every name under it). Repeatable. Requests naming any other host are refused.",
+        ),
+        tls_cert: Path = typer.Option(
+            None, "--tls-cert", help="Serve HTTPS with this certificate (PEM; with --tls-key)."
+        ),
+        tls_key: Path = typer.Option(
+            None, "--tls-key", help="The certificate's private key (PEM)."
         ),
     ) -> None:
         """Serve the web station: run recipes from the browser, see reports, history and trends.
 
         One run at a time; a run goes on when the browser is closed. Ctrl-C stops the server
-        (a run in progress is aborted and the turntable stopped).
+        (a run in progress is aborted and the turntable stopped). See docs/security.md for
+        serving on a plant network.
         """
         import uvicorn
 
+        from calstation.errors import CalstationError
         from calstation.storage.db import calstation_home, open_database
         from calstation.web.app import create_app
-        from calstation.web.security import load_token
+        from calstation.web.hosts import check_allowed_host, is_local_host
+        from calstation.web.tokens import TokenSource
 
-        token = load_token(token_file)
+        if (tls_cert is None) != (tls_key is None):
+            raise CalstationError("--tls-cert and --tls-key go together")
+        for path in (tls_cert, tls_key):
+            if path is not None and not path.is_file():
+                raise CalstationError(f"{path}: no such file")
+        try:
+            allowed = [check_allowed_host(h) for h in allow_host]
+        except ValueError as exc:
+            raise CalstationError(str(exc)) from exc
+        token = TokenSource.from_environment(token_file)
         database = open_database(db)
         folder = (data_dir or calstation_home()).expanduser().resolve()
+        tls = tls_cert is not None
         application = create_app(database, data_dir=folder, recipes_dir=recipes.resolve(),
-                                 host=host, token=token)
+                                 host=host, token=token, allow_hosts=allowed, tls=tls)
+        _log_to_stderr()
         shown = f"[{host}]" if ":" in host else host
-        typer.echo(f"calstation station: http://{shown}:{port}/  (recipes from {recipes}, "
+        scheme = "https" if tls else "http"
+        typer.echo(f"calstation station: {scheme}://{shown}:{port}/  (recipes from {recipes}, "
                    f"runs in {folder}/runs; Ctrl-C to stop)", err=True)
+        if not tls and not is_local_host(host):
+            typer.echo("warning: served without TLS on a network address, the station token "
+                       "crosses the network in clear text (see --tls-cert, docs/security.md)",
+                       err=True)
         try:
             # live pages keep an event stream open: do not wait for browsers to hang up
             uvicorn.run(application, host=host, port=port, log_level="warning",
-                        timeout_graceful_shutdown=3)
+                        timeout_graceful_shutdown=3, server_header=False,
+                        ssl_certfile=str(tls_cert) if tls_cert else None,
+                        ssl_keyfile=str(tls_key) if tls_key else None)
         finally:
             database.dispose()
+
+
+def _log_to_stderr() -> None:
+    """The station's refusals and logins, with the time, on stderr."""
+    import logging
+
+    logger = logging.getLogger("calstation.web")
+    if not logger.handlers:
+        handler = logging.StreamHandler()
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+        logger.propagate = False

@@ -58,8 +58,10 @@ class PredictedError:
     parameters: tuple[str, ...]
 
     def as_dict(self) -> dict[str, Any]:
-        """The figures (metres), and where the largest point is (frame D, metres)."""
+        """The figures (metres), where the largest point is (frame D, metres), and the map of
+        the volume: ``[x, y, z, error]`` per point (metres, to the micrometre)."""
         worst = int(np.argmax(self.per_point_m)) if self.per_point_m.size else 0
+        volume = np.column_stack([self.points, self.per_point_m]) if self.points.size else None
         return {
             "max_m": self.max_m,
             "rms_m": self.rms_m,
@@ -67,6 +69,7 @@ class PredictedError:
             "level": self.level,
             "parameters": list(self.parameters),
             "worst_point_m": self.points[worst].tolist() if self.points.size else None,
+            "map": None if volume is None else np.round(volume, 6).tolist(),
         }
 
 
@@ -248,3 +251,37 @@ def true_distortion(
     R, t = kabsch(est, p_D)
     d = np.linalg.norm(est @ R.T + t - p_D, axis=1)
     return {"max_m": float(d.max()), "rms_m": float(np.sqrt(np.mean(d**2)))}
+
+
+def data_factor(predicted: PredictedError, budget_m: float) -> float:
+    """How many times more data (returns of the same kind) would bring ``predicted`` within
+    ``budget_m``: the random part of the error falls as 1/√data, a bias bound does not.
+    1 when it is within already; ``inf`` when the bias bound alone exceeds the budget."""
+    if predicted.max_m <= budget_m:
+        return 1.0
+    random = predicted.max_m - predicted.bias_m
+    room = budget_m - predicted.bias_m
+    if room <= 0 or random <= 0:
+        return math.inf
+    return (random / room) ** 2
+
+
+def contributions(
+    H: Extrinsics,
+    sigma: Mapping[str, float],
+    covariance: Mapping[str, Any] | None,
+    *,
+    radius: float,
+    height: float,
+    level: float = 0.95,
+) -> dict[str, float]:
+    """The predicted error (m) each parameter's uncertainty would cause alone: which one
+    limits the accuracy, and so what would help (a taller target for ry, …)."""
+    names, cov = _covariance_of(covariance, sigma)
+    out = {}
+    for k, name in enumerate(names):
+        alone = {n: (math.sqrt(max(cov[k, k], 0.0)) if n == name else math.nan) for n in names}
+        out[name] = predicted_error(
+            H, alone, radius=radius, height=height, level=level, samples=1000
+        ).max_m
+    return out

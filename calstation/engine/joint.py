@@ -100,11 +100,12 @@ def ry_with_cube(
     sigma_ry: float,
     twist: float,
     twist_sigma: float,
-    limit: float,
+    limit: float | None,
 ) -> tuple[JointRy | None, str | None]:
     """The station's ry decision after the cube scan of a spin-target fine-tuning: H with its
     ``covariance`` record and ry σ ``sigma_ry`` (rad; NaN when the strategy held ry), the cube's
-    twist and its σ under H (rad), the recipe's ry σ limit (rad).
+    twist and its σ under H (rad), the recipe's optional ry σ limit (rad; None: no limit, the
+    accuracy budget decides).
 
     Returns (the combined estimate or None, a failure or None). It fails when the two
     estimates disagree by more than :data:`CONSISTENCY_SIGMA`, or when ry's σ (combined, or
@@ -120,14 +121,14 @@ def ry_with_cube(
                     f"({z:.1f} σ): re-place the spin target off-centre and re-run the "
                     "calibration, or re-seat the cube"
                 )
-        if math.isfinite(sigma_ry) and sigma_ry > limit:  # NaN: the strategy held ry
+        if limit is not None and math.isfinite(sigma_ry) and sigma_ry > limit:  # NaN: held
             return None, (
                 f"ry is not determined: σ {math.degrees(sigma_ry):.3f}° > "
                 f"{math.degrees(limit):.3f}° and the cube's side faces could not add to it. "
                 f"{MORE_DATA}"
             )
         return None, None
-    if joint.sigma["ry"] > limit:
+    if limit is not None and joint.sigma["ry"] > limit:
         return joint, (
             f"ry is not determined well enough even with the cube: σ "
             f"{math.degrees(joint.sigma['ry']):.3f}° > {math.degrees(limit):.3f}° "
@@ -143,7 +144,7 @@ def combine_with_cube_scan(
     qa: QALimits,
     *,
     platter_radius: float,
-    max_sigma_ry: float,
+    max_sigma_ry: float | None,
     progress: Callable[[str, float], None] | None = None,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` with ry combined from the cube scan ``cube``, as
@@ -155,26 +156,39 @@ def combine_with_cube_scan(
     from calstation.engine.cube import check_cube
 
     check = check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius)
+    combined, failure = with_cube_ry(result, check, max_sigma_ry)
+    if combined is result:
+        return result, check, failure
+    if progress is not None:
+        progress("measuring the cube with ry from both scans", 0.6)
+    check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius)
+    return combined, check, failure
+
+
+def with_cube_ry(
+    result: CalibrationResult, check: CubeCheck, max_sigma_ry: float | None
+) -> tuple[CalibrationResult, str | None]:
+    """``result`` with ry combined from the twist that ``check`` (the cube check under
+    ``result.H``) measured: (the combined result, strategy ``<name>+cube``, or ``result`` itself
+    when nothing could be combined; the failure of :func:`ry_with_cube` or None)."""
     joint, failure = ry_with_cube(
         result.H, result.diagnostics.get("covariance"), result.sigma.get("ry", math.nan),
         math.radians(check.twist_deg), math.radians(check.twist_sigma_deg), max_sigma_ry,
     )
     if joint is None:
-        return result, check, failure
-    if progress is not None:
-        progress("measuring the cube with ry from both scans", 0.6)
+        return result, failure
+    diagnostics = {**result.diagnostics, "joint": joint.details,
+                   "covariance": joint.details["covariance"]}
     combined = CalibrationResult(
         H=joint.H, sigma=joint.sigma, cost=result.cost, iterations=result.iterations,
         strategy=f"{result.strategy}+cube", timings=dict(result.timings),
-        diagnostics={**result.diagnostics, "joint": joint.details,
-                     "covariance": joint.details["covariance"]},
+        diagnostics=diagnostics,
         # the time offset barely depends on ry (calstation.engine.timeoffset): it carries over
         # (the station estimates it again under the combined H)
         encoder_latency_s=result.encoder_latency_s,
         sigma_encoder_latency_s=result.sigma_encoder_latency_s,
     )
-    check = check_cube(cube, joint.H, geometry, qa, platter_radius=platter_radius)
-    return combined, check, failure
+    return combined, failure
 
 
 def joint_summary(combined: CalibrationResult) -> str:

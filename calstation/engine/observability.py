@@ -10,10 +10,16 @@ saying what to do, rather than hand the operator a silent guess.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from calstation.engine.result import CalibrationResult
-from calstation.engine.settings import SigmaLimits
+from calstation.engine.settings import AccuracySettings, PlatterGeometry, SigmaLimits
 from calstation.errors import ObservabilityError
+
+if TYPE_CHECKING:
+    from calstation.engine.accuracy import PredictedError
 
 ADVICE = {
     "spin_target": (
@@ -39,8 +45,10 @@ def sigma_problems(
     checks = (
         ("tx", limits.tx, 1e3, "mm"),
         ("tz", limits.tz, 1e3, "mm"),
-        ("ry", math.radians(limits.ry_deg), math.degrees(1.0), "°"),
-        ("rz", math.radians(limits.rz_deg), math.degrees(1.0), "°"),
+        ("ry", None if limits.ry_deg is None else math.radians(limits.ry_deg), math.degrees(1.0),
+         "°"),
+        ("rz", None if limits.rz_deg is None else math.radians(limits.rz_deg), math.degrees(1.0),
+         "°"),
     )
     problems = []
     sigmas = result.sigma
@@ -52,7 +60,7 @@ def sigma_problems(
         sigma = sigmas.get(name, math.nan)
         if not math.isfinite(sigma):
             continue  # held by the strategy (its start is kept)
-        if sigma > limit:
+        if limit is not None and sigma > limit:
             field = f"{name}_deg" if unit == "°" else name
             problems.append(
                 f"{name}: σ {sigma * scale:.3f} {unit} > {limit * scale:.3f} {unit} "
@@ -123,3 +131,76 @@ def check_sigma(
         f"the {result.strategy} fine-tuning cannot determine the calibration well enough"
         f"{seen}: {'; '.join(problems)}. {ADVICE.get(fixture, 'Re-place the fixture and retry.')}"
     )
+
+
+# --- the accuracy budget ----------------------------------------------------------------------
+def predict(
+    result: CalibrationResult,
+    accuracy: AccuracySettings,
+    platter: PlatterGeometry,
+    *,
+    known: tuple[str, ...] = (),
+) -> PredictedError:
+    """The reconstruction error ``result`` predicts over the budget's work volume
+    (:func:`calstation.engine.accuracy.predicted_error`), from its covariance and σ, with the
+    bound of any remaining bias it declares (``diagnostics["bias_bound"]``, per parameter).
+
+    ``known``: parameters taken as exactly known (their uncertainty, and what it implies for the
+    others through the covariance, removed): what the error would be if a later measurement
+    pinned them down, e.g. ry after the cube scan.
+    """
+    from calstation.engine.accuracy import predicted_error
+
+    sigma = dict(result.sigma)
+    covariance = result.diagnostics.get("covariance")
+    bias = dict(result.diagnostics.get("bias_bound") or {})
+    for name in known:
+        covariance, sigma = _conditioned(covariance, sigma, name)
+        bias.pop(name, None)
+    return predicted_error(
+        result.H, sigma, covariance,
+        radius=accuracy.work_radius(platter), height=accuracy.height, level=accuracy.level,
+        bias=bias or None,
+    )
+
+
+def _conditioned(
+    covariance: dict[str, Any] | None, sigma: dict[str, float], name: str
+) -> tuple[dict[str, Any] | None, dict[str, float]]:
+    """The covariance and σ once parameter ``name`` is known exactly (Schur complement)."""
+    sigma = {**sigma, name: math.nan}
+    if covariance is None or name not in covariance.get("parameters", []):
+        return covariance, sigma
+    names = list(covariance["parameters"])
+    C = np.asarray(covariance["matrix"], dtype=np.float64)
+    i = names.index(name)
+    if C[i, i] > 0:
+        C = C - np.outer(C[:, i], C[i, :]) / C[i, i]
+    keep = [k for k in range(len(names)) if k != i]
+    for k in keep:
+        sigma[names[k]] = math.sqrt(max(float(C[k, k]), 0.0))
+    reduced = {"parameters": [names[k] for k in keep], "matrix": C[np.ix_(keep, keep)].tolist()}
+    return reduced, sigma
+
+
+def accuracy_problem(predicted: PredictedError, accuracy: AccuracySettings) -> str | None:
+    """Why ``predicted`` is refused against the budget, or None when it is within it."""
+    if not math.isfinite(predicted.max_m):
+        return ("the predicted reconstruction error cannot be computed: the calibration has no "
+                "σ for any parameter that distorts the reconstruction")
+    if predicted.max_m <= accuracy.max_error:
+        return None
+    return (
+        f"predicted reconstruction error {predicted.max_m * 1e3:.3f} mm "
+        f"({accuracy.level:.0%}, over the work volume of {predicted_volume(predicted)}) > "
+        f"{accuracy.max_error * 1e3:.3f} mm (calibration.accuracy.max_error)"
+    )
+
+
+def predicted_volume(predicted: PredictedError) -> str:
+    """The work volume as the operator reads it: ``r 293 mm × h 150 mm``."""
+    if predicted.points.size == 0:
+        return "—"
+    radius = float(np.max(np.hypot(predicted.points[:, 1], predicted.points[:, 2])))
+    height = float(np.max(predicted.points[:, 0]))
+    return f"r {radius * 1e3:.0f} mm × h {height * 1e3:.0f} mm"

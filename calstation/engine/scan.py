@@ -104,6 +104,40 @@ class Scan:
             return self
         return replace(self, encoder_latency_s=float(latency_s))
 
+    def whole_turns(self) -> int:
+        """Whole revolutions of the platter between the first and the last line (0 without
+        encoder readings covering them)."""
+        if self.n_lines < 2 or len(self.encoder_t_ns) == 0:
+            return 0
+        ends = np.array([self.line_timestamp_ns[0], self.line_timestamp_ns[-1]], dtype=np.int64)
+        phi = self.platter_angle(ends)
+        if not np.all(np.isfinite(phi)):
+            return 0
+        return max(0, math.floor(abs(float(phi[1] - phi[0])) / (2 * math.pi) + 0.02))
+
+    def first_turns(self, turns: float) -> Self:
+        """The same scan cut after its first ``turns`` turns of the platter (whole lines, from
+        the first line on): what a shorter scan of the same scene would have recorded."""
+        if self.n_lines == 0 or len(self.encoder_t_ns) == 0:
+            return self
+        phi = self.platter_angle(self.line_timestamp_ns)
+        start = phi[0] if np.isfinite(phi[0]) else np.nanmin(phi)
+        keep_lines = np.flatnonzero(np.abs(phi - start) <= turns * 2 * math.pi)
+        if keep_lines.size == self.n_lines:
+            return self
+        last = int(keep_lines.max()) + 1 if keep_lines.size else 0
+        end = int(self.line_bounds()[last])
+        cut: dict[str, Any] = {"line_timestamp_ns": self.line_timestamp_ns[:last],
+               "line_index": self.line_index[:end], "t_ns": self.t_ns[:end],
+               "azimuth_rad": self.azimuth_rad[:end], "range_m": self.range_m[:end],
+               "valid": self.valid[:end],
+               "intensity": None if self.intensity is None else self.intensity[:end]}
+        if self.line_point_period_ns is not None:
+            cut["line_point_period_ns"] = self.line_point_period_ns[:last]
+        if self.line_has_offsets is not None:
+            cut["line_has_offsets"] = self.line_has_offsets[:last]
+        return replace(self, **cut)
+
     # --- geometry ------------------------------------------------------------------------
     def platter_angle(self, t_ns: ArrayLike) -> NDArray[np.float64]:
         """Platter angle φ (rad) at host-clock times ``t_ns`` (lidar time base), shape of input.

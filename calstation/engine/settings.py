@@ -146,22 +146,51 @@ class ShapeOptions(Settings):
 
 
 class SigmaLimits(Settings):
-    """``calibration.max_sigma``: the largest 1σ a fine-tuning may report per parameter.
+    """``calibration.max_sigma``: optional limits on the 1σ of single parameters, stricter than
+    the accuracy budget (:class:`AccuracySettings`), which is what decides.
 
-    A result with a larger σ is refused (the data do not determine that parameter well
-    enough), with a message that names the parameter and what to do. ty is the gauge along the
-    axis and has no limit. Lengths in metres, angles in degrees, the time offset (estimated when
-    the spin scan has a second pass) in milliseconds.
+    A result with a larger σ is refused, with a message that names the parameter and what to
+    do; a limit left out (the default) is not checked. ty is the gauge along the axis and has no
+    limit. Lengths in metres, angles in degrees, the time offset (estimated when the spin scan has
+    a second pass) in milliseconds.
     """
 
-    tx: float = Field(0.0005, gt=0, le=0.1)
-    tz: float = Field(0.0005, gt=0, le=0.1)
-    ry_deg: float = Field(0.05, gt=0, le=10)
-    rz_deg: float = Field(0.05, gt=0, le=10)
+    tx: float | None = Field(None, gt=0, le=0.1)
+    tz: float | None = Field(None, gt=0, le=0.1)
+    ry_deg: float | None = Field(None, gt=0, le=10)
+    rz_deg: float | None = Field(None, gt=0, le=10)
     encoder_latency_ms: float = Field(
         0.2, gt=0, le=100,
         description="the lidar–encoder time offset, when a second pass estimates it",
     )
+
+
+class AccuracySettings(Settings):
+    """``calibration.accuracy``: the accuracy budget, in the unit's own terms.
+
+    ``max_error`` is the largest reconstruction error the station accepts (metres, at ``level``)
+    over its *work volume*: a cylinder standing on the platter top, of ``radius`` (default the
+    platter's) and ``height``. The error is the distortion of an object filling that volume —
+    what is left of the reconstruction's displacement after the best rigid alignment — that the
+    calibration's covariance (and any bias bound) allows (:mod:`calstation.engine.accuracy`).
+    The default height, 0.15 m, is the tallest of the objects the paper scans (the 150 mm
+    pyramid and prism; the QA cube is 100 mm): an ry error grows with the height, so a taller
+    volume asks more of the calibration.
+    """
+
+    max_error: float = Field(
+        0.0003, gt=0, le=0.1,
+        description="largest reconstruction error accepted over the work volume, metres",
+    )
+    height: float = Field(0.15, gt=0, le=2.0, description="work volume above the platter, m")
+    radius: float | None = Field(
+        None, gt=0, le=1.5, description="work volume radius, m (default: the platter's)"
+    )
+    level: float = Field(0.95, ge=0.5, le=0.999, description="the error's confidence level")
+
+    def work_radius(self, platter: PlatterGeometry) -> float:
+        """The work volume's radius (m): this one's, else the platter's."""
+        return self.radius if self.radius is not None else platter.radius
 
 
 class QALimits(Settings):

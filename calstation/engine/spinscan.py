@@ -446,6 +446,24 @@ class SpinScanBuilder:
             self.encoder_latency_s,
         )
 
+    def so_far(self) -> SpinScan | None:
+        """The lines prepared so far whose platter angles are known, as a :class:`SpinScan`
+        (None before any, or while encoder readings arrive out of order): a view of the growing
+        arrays, which later lines do not change, so the scan goes on while it is fine-tuned."""
+        if self._done is not None:
+            return self._done
+        lines = self._lines_with_angles
+        if lines == 0 or not self._enc_ordered:
+            return None
+        end = self._line_ends[lines - 1]
+        phi = self._phi.view()[:end]
+        p_L, rng, az = self._p.view()[:end], self._rng.view()[:end], self._az.view()[:end]
+        b, c = self._bin.view()[:end], self._cell.view()[:end]
+        keep = np.isfinite(phi)
+        if not keep.all():
+            phi, p_L, rng, az, b, c = phi[keep], p_L[keep], rng[keep], az[keep], b[keep], c[keep]
+        return SpinScan(p_L, phi, rng, az, {"during_scan": self.during_s}, cells=(b, c))
+
     def finish(self) -> SpinScan:
         """The prepared scan (computed once; later calls return the same object)."""
         if self._done is not None:

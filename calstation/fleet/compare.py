@@ -1,13 +1,14 @@
 """A stored H against the one today's engine finds: each parameter, the work volume, the
 predicted reconstruction error, the verdict, and the cube re-measured under the new H.
 
-The work volume is where the station's users put objects: a cylinder on the platter
-(:func:`work_volume`). The change *in the work volume* is how far the volume's points, seen
-under the stored H and reconstructed with the new one, move after the best rigid alignment
+The work volume is where the station's users put objects: the cylinder on the platter of the
+recipe's accuracy budget (``calibration.accuracy``, :func:`work_volume`). The change *in the
+work volume* is how far the volume's points, seen under the stored H and reconstructed with the
+new one, move after the best rigid alignment
 (:func:`calstation.engine.accuracy.true_distortion`): what a unit calibrated with the stored H
-gets wrong by, if the new H is right. The *predicted error* is the accuracy budget
-(:func:`calstation.engine.accuracy.predicted_error`) of each calibration's own σ and covariance
-over the same volume.
+gets wrong by, if the new H is right. The *predicted error* is the accuracy budget's figure
+(:func:`calstation.engine.observability.predict`, at the budget's level) of each calibration's
+own σ, covariance and bias bound over the same volume.
 
 Values are JSON-ready, in stored units (metres, radians; the cube's angles in degrees), None
 where a figure does not exist (a σ that was not estimated, a run without a cube scan).
@@ -18,24 +19,21 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from calstation.engine.accuracy import predicted_error, true_distortion
+from calstation.engine.accuracy import true_distortion
 from calstation.engine.frames import Extrinsics
 from calstation.engine.result import CalibrationResult
 from calstation.recipes import Recipe
 from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord
-
-WORK_VOLUME_HEIGHT_M = 0.15
-"""Height of the work volume (m) until recipes say it (``calibration.accuracy``)."""
 
 CUBE_FIGURES = ("edge_error", "obb_error", "flatness_rms", "perpendicularity_deg", "twist_deg")
 """The cube check's figures compared (metres; the angles in degrees)."""
 
 
 def work_volume(recipe: Recipe) -> tuple[float, float]:
-    """(radius, height) of the work volume, metres: the platter's radius and
-    :data:`WORK_VOLUME_HEIGHT_M`. The one place to read the recipe's own work volume from once
-    recipes carry one (``calibration.accuracy``)."""
-    return recipe.fixtures.platter.radius, WORK_VOLUME_HEIGHT_M
+    """(radius, height) of the recipe's work volume, metres (``calibration.accuracy``: its
+    radius, by default the platter's, and its height, by default 0.15 m)."""
+    accuracy = recipe.calibration.accuracy
+    return accuracy.work_radius(recipe.fixtures.platter), accuracy.height
 
 
 def _finite(value: Any) -> float | None:
@@ -48,7 +46,8 @@ def stored_calibration(c: Calibration) -> dict[str, Any]:
     diagnostics = c.diagnostics or {}
     return {"calibration_id": c.id, "stage": c.stage, "strategy": c.strategy,
             "gauge": diagnostics.get("gauge"), "H": c.params(), "sigma": c.sigmas(),
-            "covariance": diagnostics.get("covariance")}
+            "covariance": diagnostics.get("covariance"),
+            "bias_bound": diagnostics.get("bias_bound")}
 
 
 def cube_figures(check: CubeCheckRecord | dict[str, Any] | Any | None) -> dict[str, Any] | None:
@@ -63,11 +62,20 @@ def cube_figures(check: CubeCheckRecord | dict[str, Any] | Any | None) -> dict[s
     return out
 
 
-def _predicted(H: dict[str, float], sigma: dict[str, Any], covariance: Any,
-               radius: float, height: float) -> float | None:
-    s = {p: math.nan if v is None else float(v) for p, v in sigma.items()}
-    return _finite(predicted_error(Extrinsics.from_dict(H), s, covariance, radius=radius,
-                                   height=height).max_m)
+def predicted(H: dict[str, float], sigma: dict[str, Any], diagnostics: dict[str, Any],
+               recipe: Recipe) -> float | None:
+    """The predicted reconstruction error (m) of a calibration over the recipe's work volume,
+    as the station predicts it (:func:`calstation.engine.observability.predict`: the covariance,
+    or the σ, and any bound on a remaining bias), None when it has no σ."""
+    from calstation.engine.observability import predict
+
+    result = CalibrationResult(
+        H=Extrinsics.from_dict(H), sigma={p: math.nan if v is None else float(v)
+                                          for p, v in sigma.items()},
+        cost=math.nan, iterations=0, strategy="", timings={},
+        diagnostics={k: diagnostics[k] for k in ("covariance", "bias_bound")
+                     if diagnostics.get(k) is not None})
+    return _finite(predict(result, recipe.calibration.accuracy, recipe.fixtures.platter).max_m)
 
 
 def compare(
@@ -86,8 +94,8 @@ def compare(
     difference = {p: new_H[p] - float(stored["H"][p]) for p in PARAMS}
     moved = true_distortion(new.H, Extrinsics.from_dict(stored["H"]), radius=radius,
                             height=height)["max_m"]
-    before = _predicted(stored["H"], stored["sigma"], stored.get("covariance"), radius, height)
-    after = _predicted(new_H, dict(new.sigma), new.diagnostics.get("covariance"), radius, height)
+    before = predicted(stored["H"], stored["sigma"], stored, recipe)
+    after = predicted(new_H, dict(new.sigma), new.diagnostics, recipe)
     gauge = new.diagnostics.get("gauge")
     cube = None
     if stored_cube is not None or new_cube is not None:

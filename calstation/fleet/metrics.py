@@ -242,27 +242,29 @@ class StationMetrics:
 
 
 def predicted_errors(cal: Calibration, run: Run) -> dict[str, float]:
-    """The predicted reconstruction error (m, 95 %) of a stored calibration over its run's work
-    volume (:func:`calstation.fleet.compare.work_volume`): ``all`` from its covariance (or σ),
-    and each parameter from its σ alone; none when its recipe no longer loads."""
-    from calstation.engine.accuracy import predicted_error
+    """The predicted reconstruction error (m) of a stored calibration over its recipe's work
+    volume, at the accuracy budget's level: ``all`` as the station predicts it (covariance, σ,
+    bias bound: :func:`calstation.fleet.compare.predicted`), and each parameter's uncertainty
+    alone (:func:`calstation.engine.accuracy.contributions`); none when its recipe no longer
+    loads."""
+    from calstation.engine.accuracy import contributions
     from calstation.engine.frames import Extrinsics
     from calstation.errors import CalstationError
-    from calstation.fleet.compare import work_volume
+    from calstation.fleet.compare import predicted, work_volume
     from calstation.station.reprocess import run_recipe
 
     try:
-        radius, height = work_volume(run_recipe(run).recipe)
+        recipe = run_recipe(run).recipe
     except CalstationError:
         return {}
-    H = Extrinsics.from_dict(cal.params())
+    diagnostics = cal.diagnostics or {}
+    radius, height = work_volume(recipe)
+    out = {"all": predicted(cal.params(), cal.sigmas(), diagnostics, recipe)}
     sigma = {p: math.nan if v is None else float(v) for p, v in cal.sigmas().items()}
-    out = {"all": predicted_error(H, sigma, (cal.diagnostics or {}).get("covariance"),
-                                  radius=radius, height=height).max_m}
-    for p, v in sigma.items():
-        if math.isfinite(v) and p not in ("rx", "ty"):
-            out[p] = predicted_error(H, {p: v}, None, radius=radius, height=height).max_m
-    return {k: float(v) for k, v in out.items() if math.isfinite(v)}
+    out.update(contributions(Extrinsics.from_dict(cal.params()), sigma,
+                             diagnostics.get("covariance"), radius=radius, height=height,
+                             level=recipe.calibration.accuracy.level))
+    return {k: float(v) for k, v in out.items() if v is not None and math.isfinite(v)}
 
 
 class _Collector:

@@ -28,6 +28,7 @@ if TYPE_CHECKING:  # NumPy loads when a strategy runs: `recipes validate` checks
     from calstation.engine.cube import CubeCheck
     from calstation.engine.frames import Extrinsics
     from calstation.engine.result import CalibrationResult
+    from calstation.engine.spinscan import SpinScan
     from calstation.recordings.recorded import Recording
 
 Progress = Callable[[str, float], None]
@@ -52,6 +53,10 @@ class Strategy(Protocol):
       the validated options inside ``run``. Without it, options are passed through unchecked.
     - ``result_bounds``: ``(metres, radians)``, how far from ``start`` a result may plausibly
       be (default :data:`DEFAULT_RESULT_BOUNDS`); :func:`run_strategy` rejects results beyond.
+    - ``run_prepared(scan, start, recipe, progress)``: the same on a
+      :class:`~calstation.engine.spinscan.SpinScan` prepared while it is taken. A strategy with
+      it lets the station scan revolution by revolution until the accuracy budget holds
+      (``steps.*.max_revolutions``); without it the scan takes its ``revolutions``.
     """
 
     name: str
@@ -100,6 +105,17 @@ class PeriodicityStrategy:
             progress=progress,
         )
 
+    def run_prepared(
+        self, scan: SpinScan, start: Extrinsics, recipe: Recipe, progress: Progress | None = None
+    ) -> CalibrationResult:
+        """:meth:`run` on a scan prepared while it is taken."""
+        from calstation.engine.periodicity import periodicity_fine_tune_scan
+
+        return periodicity_fine_tune_scan(
+            scan, start, recipe.calibration.periodicity,
+            platter_radius=recipe.fixtures.platter.radius, progress=progress,
+        )
+
 
 class ShapeStrategy:
     """Shape-constrained fine-tuning on the QA cube (paper §III-B-1).
@@ -135,6 +151,19 @@ class ShapeStrategy:
             estimate_ry=options.estimate_ry,
             coarse=options.coarse,
             progress=progress,
+        )
+
+    def run_prepared(
+        self, scan: SpinScan, start: Extrinsics, recipe: Recipe, progress: Progress | None = None
+    ) -> CalibrationResult:
+        """:meth:`run` on a scan prepared while it is taken."""
+        from calstation.engine.shape import shape_fine_tune_points
+
+        options = strategy_options(self, recipe)
+        return shape_fine_tune_points(
+            scan.p_L, scan.phi, start, recipe.fixtures.qa_cube, recipe.calibration.shape,
+            platter_radius=recipe.fixtures.platter.radius, box=options.box,
+            estimate_ry=options.estimate_ry, coarse=options.coarse, progress=progress, scan=scan,
         )
 
 
@@ -343,6 +372,7 @@ def fine_tune_with_cube(
     return combine_with_cube_scan(
         result, cube, recipe.fixtures.qa_cube, recipe.qa,
         platter_radius=recipe.fixtures.platter.radius,
-        max_sigma_ry=math.radians(recipe.calibration.max_sigma.ry_deg),
+        max_sigma_ry=None if (ry := recipe.calibration.max_sigma.ry_deg) is None
+        else math.radians(ry),
         progress=progress,
     )

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from calstation.engine.settings import (  # nested in a recipe; importable from here too
     DEFAULT_PLATTER_RADIUS as DEFAULT_PLATTER_RADIUS,
+    AccuracySettings as AccuracySettings,
     Coordinate as Coordinate,
     CubeGeometry as CubeGeometry,
     InitialSettings as InitialSettings,

@@ -14,6 +14,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, Field, ValidationError
 
 from calstation.engine.settings import (
+    AccuracySettings,
     InitialSettings,
     PeriodicitySettings,
     ShapeOptions,
@@ -36,6 +37,7 @@ class CalibrationSettings(Model):
     initial: InitialSettings = InitialSettings()
     shape: ShapeSettings = ShapeSettings()
     periodicity: PeriodicitySettings = PeriodicitySettings()
+    accuracy: AccuracySettings = AccuracySettings()
     max_sigma: SigmaLimits = SigmaLimits()
     options: dict[str, dict[str, Any]] = Field(
         default_factory=dict, description="settings of plugin strategies, by strategy name"

@@ -15,7 +15,7 @@ from calstation.recipes.calibration import BUILTIN_OPTIONS, options_problems
 from calstation.recipes.fixtures import FrustumGeometry, fixture_problems
 from calstation.recipes.problems import Problem
 from calstation.recipes.recipe import Recipe
-from calstation.recipes.steps import SpinScanStep, Steps
+from calstation.recipes.steps import DEFAULT_MAX_REVOLUTIONS, SpinScanStep, Steps
 
 MAX_SCAN_POINTS = 25_000_000
 """Most lidar points one simulated scan may produce (the default spin scan takes ~3.2 million)."""
@@ -106,40 +106,80 @@ def _second_pass_problems(steps: Steps, turntable: str) -> list[Problem]:
     return problems
 
 
+def _rates(recipe: Recipe) -> tuple[float, float, float, float]:
+    """(simulated points/s, lines/s, encoder samples/s, spin-up rpm/s): what bounds a scan.
+    The simulated scanner makes every point the model asks for; a real (or emulated) lidar
+    streams at its own rate, bounded by the time only (rates 0)."""
+    sim = recipe.simulation if recipe.station.lidar.driver == "sim" else None
+    if sim is None:
+        return 0.0, 0.0, 0.0, 60.0
+    return (sim.lidar.points_per_line * sim.lidar.line_rate_hz, sim.lidar.line_rate_hz,
+            sim.encoder.sample_rate_hz, sim.turntable.acceleration_rpm_s)
+
+
+def _scan_seconds(recipe: Recipe, cfg: SpinScanStep, turns: float) -> float:
+    """How long a scan of ``turns`` lasts, spin-up and settling included (s)."""
+    accel = _rates(recipe)[3]
+    scanning = turns * 60.0 / abs(cfg.rpm)
+    if cfg.max_duration_s is not None:
+        scanning = min(scanning, max(cfg.max_duration_s, cfg.revolutions * 60.0 / abs(cfg.rpm)))
+    return cfg.settle_s + abs(cfg.rpm) / accel + scanning
+
+
+def most_turns(recipe: Recipe, name: str) -> float:
+    """The most turns the scan ``steps.<name>`` may take while its accuracy budget does not
+    hold: its ``max_revolutions``, else :data:`DEFAULT_MAX_REVOLUTIONS` or fewer, as many
+    as the limits of a scan (time, and simulated points, lines and encoder samples) allow —
+    never fewer than its ``revolutions``."""
+    cfg: SpinScanStep = getattr(recipe.steps, name)
+    if cfg.max_revolutions is not None:
+        return max(cfg.max_revolutions, cfg.revolutions)
+    turns = DEFAULT_MAX_REVOLUTIONS
+    while turns > cfg.revolutions and _turn_problems(recipe, name, cfg, turns, ""):
+        turns -= 1.0
+    return max(turns, cfg.revolutions)
+
+
+def _turn_problems(
+    recipe: Recipe, name: str, cfg: SpinScanStep, turns: float, field: str
+) -> list[Problem]:
+    """Why a scan of ``turns`` is more than a scan may be (time, simulated points, lines,
+    encoder samples), reported at ``steps.<name>.<field>``."""
+    rate, line_rate, sample_rate, _ = _rates(recipe)
+    seconds = _scan_seconds(recipe, cfg, turns)
+    where = ("steps", name, field)
+    if seconds > MAX_SCAN_SECONDS:
+        return [(where, f"{turns:g} turns at {cfg.rpm:g} rpm take {seconds:.0f} s, more than "
+                        f"the {MAX_SCAN_SECONDS:g} s a scan may last")]
+    if rate and seconds * rate > MAX_SCAN_POINTS:
+        return [(where, f"{turns:g} turns at {cfg.rpm:g} rpm make about "
+                        f"{seconds * rate / 1e6:.0f} million simulated points, more than the "
+                        f"{MAX_SCAN_POINTS / 1e6:g} million a scan may hold: raise rpm or lower "
+                        "the lidar's points_per_line × line_rate_hz")]
+    if line_rate and seconds * line_rate > MAX_SCAN_LINES:
+        return [(where, f"{turns:g} turns at {cfg.rpm:g} rpm make about "
+                        f"{seconds * line_rate:,.0f} simulated lidar lines, more than the "
+                        f"{MAX_SCAN_LINES:,} a scan may hold")]
+    if sample_rate and seconds * sample_rate > MAX_SCAN_ENCODER_SAMPLES:
+        return [(where, f"{turns:g} turns at {cfg.rpm:g} rpm make about "
+                        f"{seconds * sample_rate / 1e6:.0f} million simulated encoder samples, "
+                        f"more than the {MAX_SCAN_ENCODER_SAMPLES / 1e6:g} million a scan may "
+                        "hold")]
+    return []
+
+
 def _scan_problems(recipe: Recipe) -> list[Problem]:
     """Scans must end: bounded in time, and (simulated) in the number of points."""
     problems: list[Problem] = []
-    # the simulated scanner makes every point the model asks for; a real (or emulated) lidar
-    # streams at its own rate, checked by the time bound only
     sim = recipe.simulation if recipe.station.lidar.driver == "sim" else None
-    rate = 0.0 if sim is None else sim.lidar.points_per_line * sim.lidar.line_rate_hz
-    line_rate = 0.0 if sim is None else sim.lidar.line_rate_hz
-    sample_rate = 0.0 if sim is None else sim.encoder.sample_rate_hz
-    accel = 60.0 if sim is None else sim.turntable.acceleration_rpm_s
     problems += _second_pass_problems(recipe.steps, recipe.station.turntable.driver)
     for name, cfg in _scans(recipe.steps):
-        seconds = cfg.settle_s + abs(cfg.rpm) / accel + cfg.revolutions * 60.0 / abs(cfg.rpm)
-        if seconds > MAX_SCAN_SECONDS:
-            problems.append((("steps", name, "revolutions"),
-                             f"{cfg.revolutions:g} turns at {cfg.rpm:g} rpm take {seconds:.0f} s, "
-                             f"more than the {MAX_SCAN_SECONDS:g} s a scan may last"))
-        elif rate and seconds * rate > MAX_SCAN_POINTS:
-            problems.append((("steps", name, "revolutions"),
-                             f"{cfg.revolutions:g} turns at {cfg.rpm:g} rpm make about "
-                             f"{seconds * rate / 1e6:.0f} million simulated points, more than "
-                             f"the {MAX_SCAN_POINTS / 1e6:g} million a scan may hold: raise rpm "
-                             "or lower the lidar's points_per_line × line_rate_hz"))
-        elif line_rate and seconds * line_rate > MAX_SCAN_LINES:
-            problems.append((("steps", name, "revolutions"),
-                             f"{cfg.revolutions:g} turns at {cfg.rpm:g} rpm make about "
-                             f"{seconds * line_rate:,.0f} simulated lidar lines, more than the "
-                             f"{MAX_SCAN_LINES:,} a scan may hold"))
-        elif sample_rate and seconds * sample_rate > MAX_SCAN_ENCODER_SAMPLES:
-            problems.append((("steps", name, "revolutions"),
-                             f"{cfg.revolutions:g} turns at {cfg.rpm:g} rpm make about "
-                             f"{seconds * sample_rate / 1e6:.0f} million simulated encoder "
-                             f"samples, more than the {MAX_SCAN_ENCODER_SAMPLES / 1e6:g} million "
-                             "a scan may hold"))
+        # the longest the scan may go on: its turns, or the turns asked for accuracy
+        asked = cfg.max_revolutions is not None and cfg.max_revolutions > cfg.revolutions
+        turns = cfg.max_revolutions if asked and cfg.max_revolutions is not None else (
+            cfg.revolutions)
+        field = "max_revolutions" if asked else "revolutions"
+        problems += _turn_problems(recipe, name, cfg, turns, field)
     if sim is not None:
         lines = recipe.steps.static_scan.lines
         if lines * sim.lidar.points_per_line > MAX_SCAN_POINTS:

@@ -108,6 +108,16 @@ def acquire_static(
         raise DriverError(f"the lidar stopped after {n} of {lines} lines")
 
 
+class MoreTurns(Protocol):
+    """Whether a spin scan should go on past its ``revolutions``: called after every line once
+    they are done, with the turns covered and the seconds scanned; False ends the scan. It must
+    answer at once (the lines keep arriving); ``max_revolutions`` bounds it whatever it says."""
+
+    max_revolutions: float
+
+    def __call__(self, turns: float, seconds: float) -> bool: ...
+
+
 def acquire_spin(
     lidar: Lidar,
     turntable: Turntable,
@@ -120,9 +130,11 @@ def acquire_spin(
     clock: Clock,
     progress: Progress | None = None,
     speed_timeout_s: float = 60.0,
+    more: MoreTurns | None = None,
 ) -> None:
     """Spin the platter at ``rpm`` and record lines, encoder and turntable status until the
-    encoder has covered ``revolutions`` turns since the first line.
+    encoder has covered ``revolutions`` turns since the first line — and on, while ``more``
+    asks for more turns (see :class:`MoreTurns`).
 
     Sequence: enable, spin, wait (polling ``turntable.status()``, sleeping on ``clock``) until
     the speed is within :data:`SPEED_TOLERANCE` of ``rpm``, wait ``settle_s`` more, then scan.
@@ -140,7 +152,7 @@ def acquire_spin(
         _wait_for_speed(turntable, writer, rpm, clock, speed_timeout_s, progress)
         if settle_s > 0:
             clock.sleep(settle_s)
-        _scan_turns(lidar, turntable, encoder, writer, rpm, revolutions, clock, progress)
+        _scan_turns(lidar, turntable, encoder, writer, rpm, revolutions, clock, progress, more)
     except BaseException as exc:
         _stop_after_fault(turntable, writer, exc)
         raise
@@ -208,11 +220,13 @@ def _scan_turns(
     revolutions: float,
     clock: Clock,
     progress: Progress | None,
+    more: MoreTurns | None = None,
 ) -> None:
     cpr = encoder.counts_per_revolution
     start = _start_encoder(encoder, writer)
+    most = revolutions if more is None else max(revolutions, more.max_revolutions)
     # generous limit: twice the nominal time plus slack, so a stalled encoder cannot hang the scan
-    limit_ns = start.timestamp_ns + round((2.0 * revolutions * 60.0 / abs(rpm) + 5.0) * 1e9)
+    limit_ns = start.timestamp_ns + round((2.0 * most * 60.0 / abs(rpm) + 5.0) * 1e9)
     next_status = clock.now_ns()
     turns = 0.0
     lidar.start()
@@ -229,11 +243,14 @@ def _scan_turns(
                 next_status = now + round(STATUS_PERIOD_S * 1e9)
             if progress is not None:
                 progress("scanning", min(1.0, turns / revolutions))
-            if turns >= revolutions:
+            if turns >= revolutions and (
+                more is None or turns >= most
+                or not more(turns, (now - start.timestamp_ns) * 1e-9)
+            ):
                 break
             if now > limit_ns:
                 raise DriverError(
-                    f"the encoder covered only {turns:.3f} of {revolutions:g} turns in "
+                    f"the encoder covered only {turns:.3f} of {most:g} turns in "
                     f"{(now - start.timestamp_ns) * 1e-9:.1f} s at {rpm:g} rpm: is the platter "
                     f"turning and the encoder connected?"
                 )

@@ -30,6 +30,10 @@ class ScanFiles:
     scan_ended: float | None = None
     """When this process's last spin scan ended (monotonic s): how long the operator waited
     for H after it is the fine-tuning's ``after_scan_s``."""
+    fitted: dict[Path, Any] = field(default_factory=dict)
+    """Fits made while a scan was taken (:class:`~calstation.station.turns.TurnFit`), by the
+    recording's path, when they cover all of its whole revolutions: the step after the scan
+    takes the fit instead of making it again."""
 
     def take(self) -> tuple[list[tuple[str, Path]], list[tuple[str, Path]]]:
         """(partial, finished) of the step under way, forgotten here: the step is ending."""

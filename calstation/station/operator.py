@@ -222,6 +222,30 @@ class ConsoleOperator:
         render_summary(self.console, summary)
 
 
+def _print_predicted_error(console: Console, calibrations: list[dict[str, Any]]) -> None:
+    """The predicted reconstruction error of the final calibration beside its budget."""
+    final = next((c for c in calibrations if c["accepted"]), None) or next(
+        (c for c in reversed(calibrations) if c.get("predicted_error_m") is not None), None)
+    if final is None or final.get("predicted_error_m") is None:
+        return
+    error, budget = final["predicted_error_m"], final.get("budget_m")
+    record = (final.get("diagnostics") or {}).get("predicted_error") or {}
+    volume = record.get("work_volume") or {}
+    where = (f" over the work volume r {volume['radius_m'] * 1e3:.0f} mm × h "
+             f"{volume['height_m'] * 1e3:.0f} mm" if volume else "")
+    level = record.get("level", 0.95)
+    if budget is None:
+        verdict = ""
+    elif error <= budget:
+        verdict = f" ≤ budget {budget * 1e3:.3f} mm [green]✔[/]"
+    else:
+        verdict = f" > budget {budget * 1e3:.3f} mm [red]✘[/]"
+    turns = record.get("turns")
+    after = f", after {turns:g} turns" if isinstance(turns, int | float) else ""
+    console.print(f"predicted reconstruction error ({final['stage']}, {level:.0%}{where}{after}): "
+                  f"{error * 1e3:.3f} mm{verdict}", highlight=False)
+
+
 def render_summary(console: Console, s: dict[str, Any]) -> None:
     """Print a run summary in display units (mm, deg) with a PASS/FAIL banner."""
     import math
@@ -264,6 +288,7 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
             srow.append("")
             table.add_row(*srow, style="dim")
     console.print(table)
+    _print_predicted_error(console, s["calibrations"])
     for c in refused:
         console.print(f"[red]✘[/] calibration {c.get('id', '—')} ({c['stage']}, {c['strategy']}) "
                       f"refused: {escape('; '.join(c['refused']))}", highlight=False)

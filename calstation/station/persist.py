@@ -140,6 +140,7 @@ def calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> C
         iterations=int(res.iterations),
         encoder_latency_s=plain(getattr(res, "encoder_latency_s", None)),
         sigma_encoder_latency_s=plain(getattr(res, "sigma_encoder_latency_s", None)),
+        predicted_error_m=plain((diagnostics.get("predicted_error") or {}).get("max_m")),
         accepted=False,
         diagnostics=diagnostics,
     )

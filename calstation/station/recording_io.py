@@ -12,54 +12,66 @@ store them whatever happens.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from sqlalchemy import select
 
 from calstation.drivers import DriverContext
 from calstation.engine.spinscan import SpinScanBuilder, remember as remember_spin_scan
 from calstation.recordings.runfolder import RECORDING_OF
-from calstation.station.acquisition import acquire_spin, acquire_static
+from calstation.station.acquisition import MoreTurns, acquire_spin, acquire_static
 from calstation.station.context import RunContext
 from calstation.station.hardware import Drivers
 from calstation.station.operator import Operator, publish
 from calstation.station.outcome import plain
 from calstation.station.stored import latest_calibration
+from calstation.station.turns import TurnByTurn
 from calstation.storage.db import Artifact
 
-Acquire = Callable[[Any, Callable[[str, float], None]], None]
-"""``acquire(writer, progress)``: takes a scan into ``writer``, reporting its progress."""
+Acquire = Callable[[Any, Callable[[str, float], None], "MoreTurns | None"], None]
+"""``acquire(writer, progress, more)``: takes a scan into ``writer``, reporting its progress,
+turning on while ``more`` asks (a spin scan)."""
+
+MoreTurnsOf = Callable[[SpinScanBuilder], "TurnByTurn | None"]
+"""What decides, from the scan prepared so far, whether a spin scan goes on (None: it does
+not)."""
 
 
 def static_acquisition(d: Drivers, lines: int) -> Acquire:
     """A static scan of ``lines`` lines on the drivers ``d``."""
 
-    def acquire(writer: Any, progress: Any) -> None:
+    def acquire(writer: Any, progress: Any, more: MoreTurns | None) -> None:
         acquire_static(d.lidar, d.encoder, writer, lines=lines, progress=progress)
 
     return acquire
 
 
 def spin_acquisition(d: Drivers, cfg: Any) -> Acquire:
-    """A spin scan at ``cfg.rpm`` for ``cfg.revolutions`` turns on the drivers ``d``."""
+    """A spin scan at ``cfg.rpm`` for ``cfg.revolutions`` turns on the drivers ``d``, and on
+    while ``more`` asks (:class:`~calstation.station.turns.TurnByTurn`)."""
 
-    def acquire(writer: Any, progress: Any) -> None:
+    def acquire(writer: Any, progress: Any, more: MoreTurns | None) -> None:
         acquire_spin(
             d.lidar, d.turntable, d.encoder, writer, rpm=cfg.rpm, revolutions=cfg.revolutions,
-            settle_s=cfg.settle_s, clock=d.clock, progress=progress,
+            settle_s=cfg.settle_s, clock=d.clock, progress=progress, more=more,
         )
 
     return acquire
 
 
 def record_scan(
-    ctx: RunContext, step: str, step_id: int, acquire: Acquire, stem: str | None = None
+    ctx: RunContext, step: str, step_id: int, acquire: Acquire, stem: str | None = None,
+    more_turns: MoreTurnsOf | None = None,
 ) -> Path:
     """Write the step's recording while acquiring; returns its path. ``stem`` names the file
-    (and the artifact) when a step takes a second recording, default the recording's kind."""
+    (and the artifact) when a step takes a second recording, default the recording's kind.
+    ``more_turns`` makes a spin scan go on until its accuracy budget holds; what it did (and a
+    fit covering the whole scan) is kept in ``ctx.scans.fitted``."""
     from calstation.recordings.writer import RecordingWriter
 
     d = ctx.hardware()
@@ -96,13 +108,28 @@ def record_scan(
             if kind in ("spin", "cube") and stem == kind
             else None
         )
-        acquire(PublishingWriter(writer, ctx.ui, kind, builder), progress)
+        more = None if more_turns is None or builder is None else more_turns(builder)
+        try:
+            acquire(PublishingWriter(writer, ctx.ui, kind, builder), progress, more)
+        finally:
+            turns = None if more is None else more.close(_whole_turns(builder))
     ctx.scans.partial = []
     if kind == "spin":
         ctx.scans.scan_ended = time.monotonic()
     if builder is not None:
         remember_spin_scan(path, builder)
+    if turns is not None:
+        ctx.scans.fitted[path] = turns
     return path
+
+
+def _whole_turns(builder: SpinScanBuilder | None) -> int:
+    """Whole revolutions in the scan prepared so far (as the fine-tuning counts them)."""
+    scan = None if builder is None else builder.so_far()
+    if scan is None or scan.n_points == 0:
+        return 0
+    span = float(np.nanmax(scan.phi) - np.nanmin(scan.phi))
+    return max(0, math.floor(span / (2 * math.pi) + 0.02))
 
 
 def record_second_pass(ctx: RunContext, step: str, step_id: int, first: Path,
@@ -112,6 +139,10 @@ def record_second_pass(ctx: RunContext, step: str, step_id: int, first: Path,
     second = getattr(ctx.recipe.steps, step).second_pass()
     if second is None:
         return None
+    turned = ctx.scans.fitted.get(first)
+    if turned is not None:  # the first pass went on for accuracy: the same turns again
+        whole = int(turned.summary.get("whole_turns", 0))
+        second = second.model_copy(update={"revolutions": max(second.revolutions, whole + 0.05)})
     d = ctx.hardware()
     ctx.scans.finished.append((RECORDING_OF[step], first))
     return record_scan(ctx, step, step_id, spin_acquisition(d, second), stem)

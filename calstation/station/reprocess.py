@@ -225,9 +225,10 @@ def compute_reprocessing(
     """Calibrate ``job``'s run again from its recordings (each checked against its sha256
     first) with its recipe, as the station did: the initial calibration (or the platter's
     chord), the strategy, ry combined with the cube scan for a spin-target strategy, the time
-    offset from a second pass, the recipe's ``calibration.max_sigma``. Touches no database.
+    offset from a second pass, judged as a run judges it (``calibration.max_sigma``, the
+    accuracy budget: :func:`calstation.station.accuracy.judge`). Touches no database.
     :class:`RecordingUnavailable` when a required recording is missing or changed."""
-    from calstation.engine.observability import problems_with_cube
+    from calstation.station.accuracy import judge
     from calstation.station.stored import checked_recording
 
     say = status or (lambda message: None)
@@ -240,9 +241,9 @@ def compute_reprocessing(
             paths[k] = checked_recording(job.recordings.get(k), job.run_id, k, RecordingError)
         except RecordingError as exc:
             warnings.append(f"ry from the spin target alone: {exc}")
-    result, initial, joint_failure, check = _recompute(job, loaded, paths, warnings,
-                                                       progress, say)
-    refused = problems_with_cube(result, loaded.recipe.calibration.max_sigma, joint_failure)
+    result, initial, joint_failure, check, turns = _recompute(job, loaded, paths, warnings,
+                                                              progress, say)
+    result, refused = judge(result, loaded.recipe, ry_failure=joint_failure, turns=turns)
     recordings = {k: str(v) for k, v in paths.items()}
     result = replace(result, diagnostics={
         **result.diagnostics,
@@ -260,9 +261,10 @@ def _recompute(
     warnings: list[str],
     progress: Progress | None,
     say: Callable[[str], Any],
-) -> tuple[CalibrationResult, CalibrationResult, str | None, Any]:
+) -> tuple[CalibrationResult, CalibrationResult, str | None, Any, float]:
     """The engine's part of :func:`compute_reprocessing`: (result, initial, the failure of the
-    ry combination or None, the cube check under the combined H or None); appends warnings."""
+    ry combination or None, the cube check under the combined H or None, the whole turns of the
+    scan the strategy ran on); appends warnings."""
     from calstation import plugins
     from calstation.engine.initial import initial_calibration
     from calstation.plugins.cost_strategies import (
@@ -302,7 +304,7 @@ def _recompute(
         second = read_recording(pass2)
         warnings += recording_disagreements(second, loaded)
         result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
-    return result, initial, joint_failure, check
+    return result, initial, joint_failure, check, float(spin.whole_turns())
 
 
 def reprocess_run(

@@ -50,12 +50,12 @@ def parse_date(text: str, field: str, end: bool = False) -> dt.datetime:
     """A date (``2026-11-23``, whole day) or ISO time, UTC."""
     try:
         value = dt.datetime.fromisoformat(text.strip())
-    except ValueError as exc:
+        if value.tzinfo is None:
+            value = value.replace(tzinfo=dt.UTC)
+        if end and len(text.strip()) == 10:
+            value += dt.timedelta(days=1)
+    except (ValueError, OverflowError) as exc:  # 9999-12-31 has no next day
         raise QueryError(f"{field}: {text!r} is not a date (YYYY-MM-DD) or ISO time") from exc
-    if value.tzinfo is None:
-        value = value.replace(tzinfo=dt.UTC)
-    if end and len(text.strip()) == 10:
-        value += dt.timedelta(days=1)
     return value
 
 

@@ -68,8 +68,9 @@ def refused_reasons(c: Calibration) -> list[str]:
 
 def calibration_dict(c: Calibration) -> dict[str, Any]:
     """A stored calibration: H and sigma (m, rad), the estimated encoder latency and its sigma
-    (s, None when not estimated), cost, strategy, accepted, ``refused`` (the reasons a
-    re-processing result was refused, else empty), diagnostics."""
+    (s, None when not estimated), the predicted reconstruction error and the budget it was
+    judged against (m, None when not predicted), cost, strategy, accepted, ``refused`` (the
+    reasons a re-processing result was refused, else empty), diagnostics."""
     return {
         "id": c.id,
         "stage": c.stage,
@@ -80,6 +81,8 @@ def calibration_dict(c: Calibration) -> dict[str, Any]:
         "sigma": c.sigmas(),
         "encoder_latency_s": c.encoder_latency_s,
         "sigma_encoder_latency_s": c.sigma_encoder_latency_s,
+        "predicted_error_m": c.predicted_error_m,
+        "budget_m": ((c.diagnostics or {}).get("predicted_error") or {}).get("budget_m"),
         "cost": c.cost,
         "iterations": c.iterations,
         "diagnostics": c.diagnostics,

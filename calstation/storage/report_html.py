@@ -270,6 +270,65 @@ def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
     }
 
 
+def accuracy_of(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The predicted reconstruction error of ``calibration`` beside its budget (mm), when it
+    was predicted: error, budget, level, work volume, turns, whether it holds."""
+    if calibration is None:
+        return None
+    record = (calibration.get("diagnostics") or {}).get("predicted_error")
+    if not isinstance(record, dict) or record.get("max_m") is None:
+        return None
+    volume = record.get("work_volume") or {}
+    budget = record.get("budget_m")
+    return {
+        "error_mm": 1e3 * float(record["max_m"]),
+        "budget_mm": None if budget is None else 1e3 * float(budget),
+        "holds": None if budget is None else float(record["max_m"]) <= float(budget),
+        "level": record.get("level", 0.95),
+        "radius_mm": None if "radius_m" not in volume else 1e3 * float(volume["radius_m"]),
+        "height_mm": None if "height_m" not in volume else 1e3 * float(volume["height_m"]),
+        "turns": record.get("turns"),
+        "bias_mm": 1e3 * float(record.get("bias_m") or 0.0),
+    }
+
+
+def _accuracy_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Where in the work volume the predicted error is largest: each point's error over the
+    volume, seen from above (y_D, z_D) and from the side (distance from the axis, height)."""
+    record = ((calibration or {}).get("diagnostics") or {}).get("predicted_error") or {}
+    points = record.get("map")
+    if not points:
+        return None
+    arr = np.asarray(points, dtype=np.float64)
+    err = arr[:, 3] * 1e3
+    radial = np.hypot(arr[:, 1], arr[:, 2]) * 1e3
+    marker = {"color": err.round(4).tolist(), "colorscale": "Viridis", "size": 7,
+              "cmin": 0.0, "cmax": float(err.max()) if err.size else 1.0,
+              "colorbar": {"title": {"text": "mm"}}}
+    top = arr[:, 0] >= arr[:, 0].max() - 1e-9
+    return {
+        "data": [
+            {"type": "scatter", "mode": "markers", "name": "top of the volume, from above",
+             "x": (arr[top, 1] * 1e3).round(1).tolist(), "y": (arr[top, 2] * 1e3).round(1).tolist(),
+             "marker": {**marker, "color": err[top].round(4).tolist()}, "xaxis": "x",
+             "yaxis": "y", "text": [f"{e:.3f} mm" for e in err[top]]},
+            {"type": "scatter", "mode": "markers", "name": "every height, from the side",
+             "x": radial.round(1).tolist(), "y": (arr[:, 0] * 1e3).round(1).tolist(),
+             "marker": {**marker, "showscale": False}, "xaxis": "x2", "yaxis": "y2",
+             "text": [f"{e:.3f} mm" for e in err]},
+        ],
+        "layout": {
+            "height": 340, "margin": {"l": 50, "r": 20, "t": 40, "b": 40}, "showlegend": False,
+            "title": {"text": "predicted error over the work volume (mm at the budget's level)"},
+            "grid": {"rows": 1, "columns": 2, "pattern": "independent"},
+            "xaxis": {"title": {"text": "y_D (mm), top of the volume"}},
+            "yaxis": {"title": {"text": "z_D (mm)"}, "scaleanchor": "x"},
+            "xaxis2": {"title": {"text": "distance from the axis (mm)"}},
+            "yaxis2": {"title": {"text": "height above the platter (mm)"}},
+        },
+    }
+
+
 # --- gathering -------------------------------------------------------------------------------
 def _limits(recipe_text: str) -> Any | None:
     from calstation.recipes import parse_recipe
@@ -407,12 +466,16 @@ def report_data(db: Database, run_id: int, *, views: bool = True) -> dict[str, A
         "qa": qa.model_dump() if qa is not None else None,
         "views": [],
         "figures": {},
+        "accuracy": accuracy_of(final),
         "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
     }
     if final is not None:
         cost = _cost_figure(final)
         if cost is not None:
             data["figures"]["cost"] = cost
+        where = _accuracy_figure(final)
+        if where is not None:
+            data["figures"]["accuracy"] = where
     if views and final is not None and recipe is not None:
         H = Extrinsics.from_dict(final["H"])
         radius = recipe.fixtures.platter.radius
@@ -461,10 +524,12 @@ def plotly_js() -> str:
 
 
 def render_report(
-    data: dict[str, Any], *, plotly_src: str | None = None, nav: bool = False
+    data: dict[str, Any], *, plotly_src: str | None = None, nav: bool = False,
+    nonce: str | None = None,
 ) -> str:
     """The report as HTML. ``plotly_src`` is a URL of plotly.js; None inlines it (offline file).
-    ``nav`` adds the web station's navigation links."""
+    ``nav`` adds the web station's navigation links; ``nonce`` is put on its scripts and styles
+    (the web station's Content-Security-Policy allows inline ones only with it)."""
     from calstation.storage.templating import environment
 
     template = environment().get_template("report.html")
@@ -481,6 +546,7 @@ def render_report(
         nav=nav,
         plotly_inline=None if plotly_src else plotly_js(),
         plotly_src=plotly_src,
+        nonce=nonce,
     )
 
 

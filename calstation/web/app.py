@@ -1,45 +1,77 @@
 """The web station's routes: operator, runs, trends, api. Thin: they render and answer.
 
 Every page has a JSON twin at the same path with ``.json`` (``/state.json`` for the operator
-page). State-changing requests are POSTs under ``/api/`` checked by :class:`security.Guard`.
+page). State-changing requests are POSTs checked by :class:`security.Guard`; everything passes
+the front door first (:mod:`.middleware`: host allow-list, body limit, security headers).
+Every refusal is logged (logger ``calstation.web``) with the client and the reason.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
-from collections.abc import AsyncIterator, Awaitable, Callable
+import base64
+import hashlib
+import logging
+import re
+from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal, TypeVar
 
-from fastapi import Depends, FastAPI, Request
+from fastapi import Depends, FastAPI, Path as PathParam, Query, Request
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import (
-    FileResponse,
     HTMLResponse,
     JSONResponse,
-    PlainTextResponse,
     RedirectResponse,
     Response,
-    StreamingResponse,
 )
+from pydantic import AfterValidator, BaseModel, ValidationError
+from starlette.exceptions import HTTPException
+from starlette.types import ASGIApp
 
 from calstation.errors import CalstationError
 from calstation.storage.db import Database, Run
 from calstation.storage.templating import environment
+from calstation.web.events import EventHub, EventStream, StreamSlots
+from calstation.web.hosts import HostPolicy, is_local_host
 from calstation.web.live import Busy, NoSuchPrompt, Runner
-from calstation.web.security import (
-    CSRF_COOKIE,
-    SESSION_COOKIE,
-    AccessError,
-    Guard,
-    is_local_host,
-    new_csrf_value,
+from calstation.web.middleware import NONCE_KEY, FrontDoor, refused
+from calstation.web.payloads import (
+    AnswerRequest,
+    EmptyRequest,
+    LoginRequest,
+    StartRequest,
+    form_to_typed,
+    media_type,
+    printable,
+    read_fields,
+    schema_of,
 )
+from calstation.web.security import AccessError, Guard, client_of
+from calstation.web.settings import MAX_ID, WebLimits
+from calstation.web.tokens import TokenSource
 
 STATIC = Path(__file__).parent / "static"
-EVENT_KEEPALIVE_S = 15.0
-EVENT_MIN_PERIOD_S = 0.2
+StaticFile = Literal["station.css", "station.js", "trends.js", "plotly.min.js"]
+
+log = logging.getLogger("calstation.web")
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class NotFound(CalstationError):
+    """No such run (HTTP 404)."""
+
+
+class _StationApp(FastAPI):
+    """FastAPI with the front door around its whole stack, error pages included."""
+
+    front_door: dict[str, Any] | None = None
+
+    def build_middleware_stack(self) -> ASGIApp:
+        app = super().build_middleware_stack()
+        return FrontDoor(app, **self.front_door) if self.front_door is not None else app
 
 
 def create_app(
@@ -48,12 +80,23 @@ def create_app(
     data_dir: Path,
     recipes_dir: Path,
     host: str = "127.0.0.1",
-    token: str | None = None,
+    token: str | TokenSource | None = None,
+    allow_hosts: Sequence[str] = (),
+    tls: bool = False,
+    limits: WebLimits | None = None,
 ) -> FastAPI:
     """The web station over ``db``; runs go to ``data_dir/runs/N``; recipes offered from
-    ``recipes_dir``. Bound to a non-local ``host`` it needs ``token`` (see :mod:`.security`)."""
-    guard = Guard(token, require_token=not is_local_host(host))
+    ``recipes_dir``. ``host`` is the address it is served on: bound to a non-local one it needs
+    ``token`` (see :mod:`.security`), and a token given on a local one is required as well.
+    Requests must name ``host`` (or, served on a loopback address, ``localhost``), the local
+    address they arrived at, or one of ``allow_hosts`` (:mod:`.hosts`). ``tls``: served over
+    HTTPS (secure cookies, HSTS)."""
+    limits = limits or WebLimits()
+    source = TokenSource(token=token) if isinstance(token, str) else token
+    guard = Guard(source, require_token=source is not None or not is_local_host(host), tls=tls,
+                  limits=limits)
     runner = Runner(db, data_dir, recipes_dir)
+    hub = EventHub(runner.live)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -63,31 +106,19 @@ def create_app(
             await asyncio.to_thread(runner.join, 30.0)
 
     # no Swagger UI: it loads its scripts from a CDN, and the station has no internet
-    app = FastAPI(title="calstation station", lifespan=lifespan, docs_url=None,
-                  redoc_url=None, openapi_url="/api/openapi.json")
+    app = _StationApp(title="calstation station", lifespan=lifespan, docs_url=None,
+                      redoc_url=None, openapi_url="/api/openapi.json")
+    app.front_door = {"hosts": HostPolicy(host, allow_hosts),
+                      "max_body_bytes": limits.max_body_bytes, "tls": tls}
     app.state.runner = runner
     app.state.guard = guard
     app.state.db = db
+    app.state.hub = hub
+    app.state.slots = StreamSlots(limits)
+    app.state.limits = limits
     ctx = _Pages(db, runner, guard)
-
-    @app.exception_handler(CalstationError)
-    async def _calstation_error(request: Request, exc: CalstationError) -> Response:
-        status = (exc.status if isinstance(exc, AccessError)
-                  else 409 if isinstance(exc, Busy | NoSuchPrompt) else 400)
-        if "/api/" in request.url.path or _wants_json(request):
-            return JSONResponse({"error": str(exc)}, status_code=status)
-        return ctx.page(request, "message.html", {"title": "refused", "message": str(exc)},
-                        status=status)
-
-    @app.middleware("http")
-    async def _csrf_cookie(request: Request,
-                           call_next: Callable[[Request], Awaitable[Response]]) -> Response:
-        response = await call_next(request)
-        value = getattr(request.state, "csrf", None)
-        if value and CSRF_COOKIE not in request.cookies:
-            response.set_cookie(CSRF_COOKIE, value, httponly=False, samesite="strict")
-        return response
-
+    app.state.pages = ctx
+    _error_handlers(app, ctx)
     _operator_routes(app, ctx)
     _run_routes(app, ctx)
     _fleet_routes(app, ctx, recipes_dir)
@@ -96,8 +127,63 @@ def create_app(
 
 
 def _wants_json(request: Request) -> bool:
-    return request.url.path.endswith(".json") or "application/json" in request.headers.get(
-        "accept", "").split(",")[0]
+    return (request.url.path.startswith("/api/") or request.url.path.endswith(".json")
+            or request.url.path == "/events"
+            or "application/json" in request.headers.get("accept", "").split(",")[0]
+            or media_type(request)[0] == "application/json")
+
+
+def _error_handlers(app: FastAPI, ctx: _Pages) -> None:
+    def answer(request: Request, status: int, message: str,
+               headers: dict[str, str] | None = None) -> Response:
+        refused(request.scope, status, message)
+        if _wants_json(request) or request.method != "GET":
+            return JSONResponse({"error": message}, status_code=status, headers=headers)
+        return ctx.page(request, "message.html", {"title": "refused", "message": message},
+                        status=status, headers=headers)
+
+    @app.exception_handler(CalstationError)
+    async def _calstation_error(request: Request, exc: CalstationError) -> Response:
+        status = (exc.status if isinstance(exc, AccessError)
+                  else 404 if isinstance(exc, NotFound)
+                  else 409 if isinstance(exc, Busy | NoSuchPrompt) else 400)
+        headers = exc.headers if isinstance(exc, AccessError) else None
+        return answer(request, status, str(exc), headers)
+
+    @app.exception_handler(HTTPException)
+    async def _http_error(request: Request, exc: HTTPException) -> Response:
+        headers = dict(exc.headers) if exc.headers else None
+        return answer(request, exc.status_code, str(exc.detail), headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError) -> Response:
+        return answer(request, 422, _describe_errors(exc.errors()))
+
+    @app.exception_handler(Exception)
+    async def _crash(request: Request, exc: Exception) -> Response:
+        log.exception("internal error in %s %s", request.method, request.url.path[:200])
+        return JSONResponse({"error": "internal error (logged by the station)"},
+                            status_code=500)
+
+
+def _describe_errors(errors: Sequence[Any]) -> str:
+    parts = []
+    for e in list(errors)[:5]:
+        loc = ".".join(str(p) for p in e.get("loc", ()) if p not in ("body", "query", "path"))
+        parts.append(f"{loc}: {e.get('msg', 'invalid')}" if loc else str(e.get("msg")))
+    return "; ".join(parts)[:500] or "invalid request"
+
+
+def _validated(model: type[M], fields: dict[str, Any], request: Request,
+               ints: tuple[str, ...] = ()) -> M:
+    """``fields`` as ``model`` (strict; a form's digit fields become numbers first); 422."""
+    if media_type(request)[0] == "application/x-www-form-urlencoded":
+        fields = form_to_typed(fields, ints)
+    try:
+        return model.model_validate(fields)
+    except ValidationError as exc:
+        raise HTTPException(422, _describe_errors(
+            exc.errors(include_url=False, include_input=False, include_context=False))) from exc
 
 
 class _Pages:
@@ -106,29 +192,47 @@ class _Pages:
     def __init__(self, db: Database, runner: Runner, guard: Guard) -> None:
         self.db, self.runner, self.guard = db, runner, guard
 
-    def csrf(self, request: Request) -> str:
-        value = request.cookies.get(CSRF_COOKIE)
-        if not value:
-            value = getattr(request.state, "csrf", None) or new_csrf_value()
-            request.state.csrf = value
-        return value
-
     def page(self, request: Request, template: str, context: dict[str, Any],
-             status: int = 200) -> HTMLResponse:
+             status: int = 200, headers: dict[str, str] | None = None) -> HTMLResponse:
+        """``template`` rendered for ``request``'s session (a new one set when it has none)."""
+        session = self.guard.page_session(request)
+        site = request.headers.get("sec-fetch-site")
+        cross_site = site in ("cross-site", "same-site")
+        if session.new and cross_site and request.headers.get("sec-fetch-mode") == "navigate":
+            # a link from another site: SameSite=Strict kept the cookie home. Reload from the
+            # page itself, which sends it, rather than hand out a session over the real one
+            return HTMLResponse('<!doctype html><meta http-equiv="refresh" content="0">',
+                                headers={"Cache-Control": "no-store"})
+        logged_in = self.guard.logged_in(request)
         html = environment().get_template(template).render(
-            request=request, csrf=self.csrf(request), needs_login=self.needs_login(request),
+            request=request, csrf=session.csrf, nonce=request.scope.get(NONCE_KEY, ""),
+            needs_login=not logged_in, logged_in=logged_in and self.guard.require_token,
             busy=self.runner.busy, **context)
-        return HTMLResponse(html, status_code=status)
+        response = HTMLResponse(html, status_code=status, headers=headers)
+        if session.new and not cross_site:
+            response.set_cookie(self.guard.cookie_name, session.session_id,
+                                **self.guard.cookie_args(logged_in=False))  # type: ignore[arg-type]
+        return response
 
-    def needs_login(self, request: Request) -> bool:
-        if not self.guard.require_token:
-            return False
-        return request.cookies.get(SESSION_COOKIE) != self.guard.session_value()
+    def require_run(self, run_id: int) -> None:
+        """NotFound unless run ``run_id`` exists."""
+        with self.db.session("reading the runs", read_only=True) as s:
+            if s.get(Run, run_id) is None:
+                raise NotFound(f"no run {run_id}")
+
+
+def _optional_text(value: str | None) -> str | None:
+    return None if value is None else printable(value)
+
+
+OptionalText = Annotated[str | None, AfterValidator(_optional_text)]
+RunId = Annotated[int, PathParam(ge=1, le=MAX_ID, description="a run id")]
+CampaignId = Annotated[int, PathParam(ge=1, le=MAX_ID, description="a campaign id")]
 
 
 # --- operator --------------------------------------------------------------------------------
 def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
-    runner = ctx.runner
+    runner, guard = ctx.runner, ctx.guard
 
     @app.get("/", response_class=HTMLResponse)
     def operator_page(request: Request) -> HTMLResponse:
@@ -137,7 +241,7 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
 
         return ctx.page(request, "operator.html", {
             "state": runner.live.snapshot(), "recipes": runner.recipes(),
-            "default_operator": default_operator(), "resumable": _resumable(ctx.db),
+            "default_operator": default_operator()[:100], "resumable": _resumable(ctx.db),
         })
 
     @app.get("/state.json")
@@ -145,59 +249,75 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
         """The operator page's JSON twin: the live state of the current (or last) run."""
         return {**runner.live.snapshot(), "recipes": runner.recipes()}
 
-    @app.get("/events")
-    async def events(request: Request) -> StreamingResponse:
-        """Server-sent events: a ``state`` event with the snapshot whenever it changes."""
-        async def stream() -> AsyncIterator[str]:
-            version = -1
-            waited = 0.0
-            while not await request.is_disconnected():
-                current = await asyncio.to_thread(runner.live.wait_change, version, 1.0)
-                if current != version:
-                    version = current
-                    waited = 0.0
-                    yield f"event: state\ndata: {json.dumps(runner.live.snapshot())}\n\n"
-                    # coalesce bursts (progress, lidar lines): a page needs a few frames a second
-                    await asyncio.sleep(EVENT_MIN_PERIOD_S)
-                else:
-                    waited += 1.0
-                    if waited >= EVENT_KEEPALIVE_S:
-                        waited = 0.0
-                        yield ": keep-alive\n\n"
+    @app.get("/events", response_class=Response, responses={
+        200: {"content": {"text/event-stream": {}},
+              "description": "a `state` event with the snapshot whenever it changes"}})
+    async def events(request: Request) -> Response:
+        """Server-sent events: a ``state`` event with the snapshot whenever it changes. On a
+        station with a token it needs the logged-in session; streams are capped in total and
+        per client."""
+        guard.check_stream(request)
+        client = client_of(request)
+        slots: StreamSlots = request.app.state.slots
+        slots.take(client)
 
-        return StreamingResponse(stream(), media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-store"})
+        def still_allowed() -> bool:
+            try:
+                guard.check_stream(request)
+            except AccessError as exc:
+                refused(request.scope, exc.status, f"event stream ended: {exc}")
+                return False
+            return True
+
+        return EventStream(request.app.state.hub, slots, client, request.app.state.limits,
+                           still_allowed)
 
     @app.get("/login", response_class=HTMLResponse)
     def login_page(request: Request) -> HTMLResponse:
-        """Enter the station token (only needed on a non-local address)."""
+        """Enter the station token (only needed on a station with a token)."""
         return ctx.page(request, "login.html", {"error": None})
 
-    @app.post("/login", response_model=None, dependencies=WRITE)
+    @app.post("/login", response_model=None, openapi_extra=schema_of(LoginRequest))
     async def login(request: Request) -> Response:
-        form = await request.form()
-        token = str(form.get("token") or "")
-        if not ctx.guard.require_token:
-            return RedirectResponse("/", status_code=303)
-        if not ctx.guard.check_token(token):
-            return ctx.page(request, "login.html", {"error": "wrong station token"}, status=401)
-        response = RedirectResponse("/", status_code=303)
-        response.set_cookie(SESSION_COOKIE, ctx.guard.session_value(), httponly=True,
-                            samesite="strict")
+        """Log in with the station token (a form); wrong tokens are throttled per client."""
+        fields = await _authorized(request, guard, login=True)
+        body = _validated(LoginRequest, fields, request)
+        try:
+            sid = guard.login(request, body.token)
+        except AccessError as exc:
+            if media_type(request)[0] != "application/x-www-form-urlencoded":
+                raise
+            refused(request.scope, exc.status, str(exc))
+            return ctx.page(request, "login.html", {"error": str(exc)}, status=exc.status,
+                            headers=exc.headers or None)
+        response = _done(request, {"ok": True})
+        if sid is not None:
+            response.set_cookie(guard.cookie_name, sid,
+                                **guard.cookie_args(logged_in=True))  # type: ignore[arg-type]
+        return response
+
+    @app.post("/logout", response_model=None, openapi_extra=schema_of(EmptyRequest))
+    async def logout(request: Request) -> Response:
+        """End the browser's logged-in session."""
+        fields = await _authorized(request, guard, login=True)
+        _validated(EmptyRequest, fields, request)
+        guard.logout(request)
+        response = _done(request, {"ok": True})
+        response.delete_cookie(guard.cookie_name, path="/", secure=guard.tls, httponly=True,
+                               samesite="strict")
         return response
 
     @app.get("/static/{name}")
-    def static(name: str) -> Response:
-        """The pages' script and style, and plotly.js from the installed plotly package."""
+    def static(name: StaticFile) -> Response:
+        """The pages' scripts and style, and plotly.js from the installed plotly package."""
         if name == "plotly.min.js":
             from calstation.storage.report_html import plotly_js
 
             return Response(plotly_js(), media_type="text/javascript",
                             headers={"Cache-Control": "max-age=86400"})
-        path = STATIC / name
-        if "/" in name or not path.is_file():
-            return PlainTextResponse("not found", status_code=404)
-        return FileResponse(path)
+        media = {"css": "text/css", "js": "text/javascript"}[name.rsplit(".", 1)[1]]
+        return Response((STATIC / name).read_bytes(), media_type=media,
+                        headers={"Cache-Control": "no-cache"})
 
 
 def _resumable(db: Database) -> list[dict[str, Any]]:
@@ -222,119 +342,177 @@ def _resumable(db: Database) -> list[dict[str, Any]]:
 
 
 # --- runs, trends, compare -------------------------------------------------------------------
+def _history_filter(
+    station: Annotated[OptionalText, Query(max_length=100)] = None,
+    status: Annotated[OptionalText, Query(max_length=16)] = None,
+    operator: Annotated[OptionalText, Query(max_length=100)] = None,
+    serial: Annotated[OptionalText, Query(max_length=100)] = None,
+    since: Annotated[OptionalText, Query(max_length=32)] = None,
+    until: Annotated[OptionalText, Query(max_length=32)] = None,
+    limit: Annotated[int, Query(ge=1, le=5000)] = 200,
+) -> Any:
+    from calstation.storage import qa
+
+    # an empty field of the filter form is no filter
+    return qa.HistoryFilter(station=station or None, status=status or None,
+                            operator=operator or None, serial=serial or None,
+                            since=since or None, until=until or None, limit=limit)
+
+
+Filter = Annotated[Any, Depends(_history_filter)]
+
+
+def _trend_data(
+    request: Request,
+    station: Annotated[OptionalText, Query(max_length=100)] = None,
+    param: Annotated[OptionalText, Query(max_length=32)] = None,
+) -> dict[str, Any]:
+    from calstation.storage import qa
+
+    db: Database = request.app.state.db
+    with db.session("reading the runs", read_only=True) as s:
+        stations = qa.choices(s)["stations"]
+        station = station or (stations[0] if stations else "")
+        param = param or "tx"
+        if param not in qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS:
+            raise qa.QueryError(f"param: {param!r} is not one of "
+                                f"{', '.join(qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS)}")
+        t = qa.trend(s, station, param) if station else {
+            "station": "", "param": param, "limit_kind": "drift", "points": []}
+    return {**t, "stations": stations, "params": list(qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS)}
+
+
+Trend = Annotated[dict[str, Any], Depends(_trend_data)]
+RunQuery = Annotated[int | None, Query(ge=1, le=MAX_ID)]
+
+
+def _compare_data(request: Request, a: RunQuery = None, b: RunQuery = None
+                  ) -> dict[str, Any] | None:
+    from calstation.storage import qa
+    from calstation.storage.report_html import report_data
+
+    if a is None and b is None:
+        return None
+    if a is None or b is None:
+        raise qa.QueryError("compare needs two run ids: ?a=RUN&b=RUN")
+    ctx: _Pages = request.app.state.pages
+    ctx.require_run(a)
+    ctx.require_run(b)
+    da, db_ = report_data(ctx.db, a, views=False), report_data(ctx.db, b, views=False)
+    return {"a": da, "b": db_, "rows": qa.compare(da, db_)}
+
+
+Compared = Annotated[dict[str, Any] | None, Depends(_compare_data)]
+
+
 def _run_routes(app: FastAPI, ctx: _Pages) -> None:
     from calstation.storage import qa
 
-    def history_filter(request: Request) -> qa.HistoryFilter:
-        q = request.query_params
-        try:
-            limit = int(q.get("limit") or 200)
-        except ValueError as exc:
-            raise qa.QueryError(f"limit: {q.get('limit')!r} is not a number") from exc
-        return qa.HistoryFilter(
-            station=q.get("station") or None, status=q.get("status") or None,
-            operator=q.get("operator") or None, serial=q.get("serial") or None,
-            since=q.get("since") or None, until=q.get("until") or None, limit=limit)
-
     @app.get("/runs.json")
-    def runs_json(request: Request) -> dict[str, Any]:
+    def runs_json(f: Filter) -> dict[str, Any]:
         """History as JSON (stored units)."""
-        f = history_filter(request)
         with ctx.db.session("reading the runs", read_only=True) as s:
             return {"filters": f.as_dict(), "runs": qa.history(s, f)}
 
     @app.get("/runs", response_class=HTMLResponse)
-    def runs_page(request: Request) -> HTMLResponse:
+    def runs_page(request: Request, f: Filter) -> HTMLResponse:
         """History, filtered by station, status, operator, serial and date."""
-        f = history_filter(request)
         with ctx.db.session("reading the runs", read_only=True) as s:
             rows, options = qa.history(s, f), qa.choices(s)
         return ctx.page(request, "history.html", {"rows": rows, "f": f, "options": options,
                                                   "query": str(request.url.query)})
 
     @app.get("/runs/{run_id}.json")
-    def run_json(run_id: int) -> dict[str, Any]:
+    def run_json(run_id: RunId) -> dict[str, Any]:
         """One run as JSON: what its page shows, without the 3D point clouds."""
         from calstation.storage.report_html import report_data
 
+        ctx.require_run(run_id)
         return report_data(ctx.db, run_id, views=False)
 
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
-    def run_page(run_id: int) -> HTMLResponse:
+    def run_page(request: Request, run_id: RunId) -> HTMLResponse:
         """A run's page: its report, rendered from the database and recordings."""
         from calstation.storage.report_html import render_report, report_data
 
+        ctx.require_run(run_id)
         data = report_data(ctx.db, run_id)
-        return HTMLResponse(render_report(data, plotly_src="/static/plotly.min.js", nav=True))
+        return HTMLResponse(render_report(data, plotly_src="/static/plotly.min.js", nav=True,
+                                          nonce=request.scope.get(NONCE_KEY)))
 
     @app.get("/runs/{run_id}/report.html", response_model=None)
-    def run_report_file(run_id: int) -> Response:
-        """The self-contained ``report.html`` of the run folder (opens offline)."""
+    def run_report_file(run_id: RunId) -> Response:
+        """The self-contained ``report.html`` of the run folder (opens offline). Served
+        sandboxed: its inline scripts run (those of the file, by their hashes), but as a page
+        of no origin, which can neither read nor change the station."""
+        ctx.require_run(run_id)
         with ctx.db.session("reading the runs", read_only=True) as s:
             run = s.get(Run, run_id)
             folder = Path(run.data_dir) if run is not None else None
         if folder is None or not (folder / "report.html").is_file():
-            return PlainTextResponse(f"run {run_id} has no report.html", status_code=404)
-        return FileResponse(folder / "report.html", media_type="text/html")
+            raise NotFound(f"run {run_id} has no report.html")
+        html = (folder / "report.html").read_text(encoding="utf-8", errors="replace")
+        return HTMLResponse(html, headers={"Content-Security-Policy": _file_policy(html)})
 
     @app.get("/runs/{run_id}/export.{fmt}")
-    def export(run_id: int, fmt: str) -> Response:
+    def export(run_id: RunId, fmt: Literal["yaml", "json", "urdf", "csv"]) -> Response:
         """The run's final calibration as yaml, json, urdf or csv (a download)."""
         from calstation.storage.report import export_calibration, get_run
 
+        ctx.require_run(run_id)
         with ctx.db.session("reading the runs", read_only=True) as s:
             text = export_calibration(get_run(s, run_id), fmt)
         media = {"json": "application/json", "csv": "text/csv", "urdf": "application/xml"}
         return Response(text, media_type=media.get(fmt, "text/yaml"), headers={
             "Content-Disposition": f'attachment; filename="run-{run_id}-calibration.{fmt}"'})
 
-    def trend_data(request: Request) -> dict[str, Any]:
-        q = request.query_params
-        with ctx.db.session("reading the runs", read_only=True) as s:
-            stations = qa.choices(s)["stations"]
-            station = q.get("station") or (stations[0] if stations else "")
-            param = q.get("param") or "tx"
-            t = qa.trend(s, station, param) if station else {
-                "station": "", "param": param, "limit_kind": "drift", "points": []}
-        return {**t, "stations": stations,
-                "params": list(qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS)}
-
     @app.get("/trends.json")
-    def trends_json(request: Request) -> dict[str, Any]:
+    def trends_json(t: Trend) -> dict[str, Any]:
         """A parameter's trend as JSON (stored units)."""
-        return trend_data(request)
+        return t
 
     @app.get("/trends", response_class=HTMLResponse)
-    def trends_page(request: Request) -> HTMLResponse:
+    def trends_page(request: Request, t: Trend) -> HTMLResponse:
         """Trend plot of one parameter by date, with 1σ bars and the drift limit."""
-        t = trend_data(request)
         k, unit = qa.display_scale(t["param"])
         return ctx.page(request, "trends.html", {"t": t, "scale": k, "unit": unit,
                                                  "figure": qa.trend_figure(t)})
 
-    def compare_data(request: Request) -> dict[str, Any]:
-        from calstation.storage.report_html import report_data
-
-        q = request.query_params
-        try:
-            a, b = int(q.get("a", "")), int(q.get("b", ""))
-        except ValueError as exc:
-            raise qa.QueryError("compare needs two run ids: ?a=RUN&b=RUN") from exc
-        da, db_ = report_data(ctx.db, a, views=False), report_data(ctx.db, b, views=False)
-        return {"a": da, "b": db_, "rows": qa.compare(da, db_)}
-
     @app.get("/compare.json")
-    def compare_json(request: Request) -> dict[str, Any]:
+    def compare_json(c: Compared) -> dict[str, Any]:
         """Two runs side by side as JSON."""
-        return compare_data(request)
+        if c is None:
+            raise qa.QueryError("compare needs two run ids: ?a=RUN&b=RUN")
+        return c
 
     @app.get("/compare", response_class=HTMLResponse)
-    def compare_page(request: Request) -> HTMLResponse:
+    def compare_page(request: Request, c: Compared) -> HTMLResponse:
         """Two runs side by side: calibrations, cube checks, verdicts."""
-        if not request.query_params.get("a"):
+        if c is None:
             return ctx.page(request, "message.html", {
                 "title": "compare", "message": "Pick two runs on the history page."})
-        return ctx.page(request, "compare.html", compare_data(request))
+        return ctx.page(request, "compare.html", c)
+
+
+_INLINE = re.compile(r"<(script|style)\b([^>]*)>(.*?)</\1\s*>", re.S | re.I)
+
+
+def _file_policy(html: str) -> str:
+    """The Content-Security-Policy of a report file: sandboxed (no origin, so no access to
+    the station), its own inline scripts and styles allowed by their hashes, nothing else."""
+    hashes: dict[str, set[str]] = {"script": set(), "style": set()}
+    for kind, attrs, body in _INLINE.findall(html):
+        if kind.lower() == "script" and re.search(r"\bsrc\s*=", attrs, re.I):
+            continue
+        # the browser hashes the text after its newline normalisation
+        text = body.replace("\r\n", "\n").replace("\r", "\n")
+        digest = base64.b64encode(hashlib.sha256(text.encode("utf-8")).digest()).decode()
+        hashes[kind.lower()].add(f"'sha256-{digest}'")
+    scripts = " ".join(sorted(hashes["script"])) or "'none'"
+    styles = " ".join(sorted(hashes["style"])) or "'none'"
+    return (f"sandbox allow-scripts; default-src 'none'; script-src {scripts} 'report-sample'; "
+            f"style-src {styles} 'report-sample'; img-src data: blob:; base-uri 'none'; "
+            "form-action 'none'; frame-ancestors 'none'")
 
 
 # --- campaigns, metrics ----------------------------------------------------------------------
@@ -383,84 +561,73 @@ def _fleet_routes(app: FastAPI, ctx: _Pages, recipes_dir: Path) -> None:
 
     def campaign(campaign_id: int) -> dict[str, Any]:
         from calstation.fleet.view import campaign_data
+        from calstation.storage.db import Campaign
 
         with ctx.db.session("reading the campaign", read_only=True) as s:
+            if s.get(Campaign, campaign_id) is None:
+                raise NotFound(f"no campaign {campaign_id}")
             return campaign_data(s, campaign_id)
 
     @app.get("/campaigns/{campaign_id}.json")
-    def campaign_json(campaign_id: int) -> dict[str, Any]:
+    def campaign_json(campaign_id: CampaignId) -> dict[str, Any]:
         """One campaign as JSON: what ``calstation reprocess --json`` prints."""
         return campaign(campaign_id)
 
     @app.get("/campaigns/{campaign_id}", response_class=HTMLResponse)
-    def campaign_page(request: Request, campaign_id: int) -> HTMLResponse:
+    def campaign_page(request: Request, campaign_id: CampaignId) -> HTMLResponse:
         """One campaign: counts, the histogram of changes, the flagged units, each run linked."""
         return ctx.page(request, "campaign.html", {"data": campaign(campaign_id),
                                                    "link_base": ""})
 
 
 # --- api (state-changing) --------------------------------------------------------------------
-async def _writer(request: Request) -> None:
-    """Dependency of every state-changing route: the token and CSRF checks (see ``security``)."""
-    form_csrf = None
-    if request.headers.get("content-type", "").startswith("application/x-www-form-urlencoded"):
-        value = (await request.form()).get("csrf")  # the form is cached for the route
-        form_csrf = value if isinstance(value, str) else None
-    guard: Guard = request.app.state.guard
-    guard.check(method=request.method, headers=dict(request.headers),
-                cookies=dict(request.cookies), form_csrf=form_csrf,
-                host_url=str(request.base_url), login=request.url.path == "/login")
-
-
-WRITE = [Depends(_writer)]
-
-
-async def _payload(request: Request) -> dict[str, Any]:
-    if request.headers.get("content-type", "").startswith("application/json"):
-        data = await request.json()
-        return data if isinstance(data, dict) else {}
-    form = await request.form()
-    return {k: v for k, v in form.items() if isinstance(v, str)}
+async def _authorized(request: Request, guard: Guard, *, login: bool = False) -> dict[str, Any]:
+    """The request's fields, once its body is well-formed (400, 415) and the guard lets it
+    through (401, 403, 429; ``login``: no logged-in session needed)."""
+    fields = await read_fields(request)
+    guard.check_write(request, getattr(request.state, "form_csrf", None), login=login)
+    return fields
 
 
 def _done(request: Request, body: dict[str, Any], status: int = 200) -> Response:
     """JSON for scripts, a redirect back to the operator page for a plain form post."""
-    if request.headers.get("content-type", "").startswith("application/x-www-form-urlencoded"):
+    if media_type(request)[0] == "application/x-www-form-urlencoded":
         return RedirectResponse("/", status_code=303)
     return JSONResponse(body, status_code=status)
 
 
 def _api_routes(app: FastAPI, ctx: _Pages) -> None:
-    runner = ctx.runner
+    runner, guard = ctx.runner, ctx.guard
 
-    @app.post("/api/start", response_model=None, dependencies=WRITE)
+    @app.post("/api/start", response_model=None, openapi_extra=schema_of(StartRequest))
     async def start(request: Request) -> Response:
         """Start a run: recipe (a file of the recipes folder), operator, serial. 409 if busy."""
-        p = await _payload(request)
-        run_id = runner.start(str(p.get("recipe") or ""), str(p.get("operator") or ""),
-                              str(p.get("serial") or "") or None)
+        body = _validated(StartRequest, await _authorized(request, guard), request)
+        run_id = await asyncio.to_thread(runner.start, body.recipe, body.operator,
+                                         body.serial or None)
         return _done(request, {"run_id": run_id, "state": runner.live.snapshot()}, 201)
 
-    @app.post("/api/answer", response_model=None, dependencies=WRITE)
+    @app.post("/api/answer", response_model=None, openapi_extra=schema_of(AnswerRequest))
     async def answer(request: Request) -> Response:
         """Answer the pending prompt: continue / abort (placement), retry / abort (failure)."""
-        p = await _payload(request)
-        try:
-            prompt_id = int(p.get("prompt_id") or 0)
-        except ValueError as exc:
-            raise NoSuchPrompt("prompt_id must be a number") from exc
-        runner.live.answer(prompt_id, str(p.get("answer") or ""))
+        body = _validated(AnswerRequest, await _authorized(request, guard), request,
+                          ints=("prompt_id",))
+        runner.live.answer(body.prompt_id, body.answer)
         return _done(request, {"ok": True})
 
-    @app.post("/api/abort", response_model=None, dependencies=WRITE)
+    @app.post("/api/abort", response_model=None, openapi_extra=schema_of(EmptyRequest))
     async def abort(request: Request) -> Response:
         """Abort the running run; the station stops the motor. 409 when nothing runs."""
+        _validated(EmptyRequest, await _authorized(request, guard), request)
         if not runner.abort("aborted from the web station"):
             raise NoSuchPrompt("no run is in progress")
         return _done(request, {"ok": True})
 
-    @app.post("/api/resume/{run_id}", response_model=None, dependencies=WRITE)
-    async def resume(request: Request, run_id: int) -> Response:
+    @app.post("/api/resume/{run_id}", response_model=None,
+              openapi_extra=schema_of(EmptyRequest))
+    async def resume(request: Request, run_id: RunId) -> Response:
         """Continue a run left unfinished (as ``calstation resume``). 409 if busy."""
-        runner.resume(run_id)
+        _validated(EmptyRequest, await _authorized(request, guard), request)
+        ctx.require_run(run_id)
+        await asyncio.to_thread(runner.resume, run_id)
         return _done(request, {"run_id": run_id}, 201)

@@ -16,6 +16,7 @@ step and the same pending prompt.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
 import threading
@@ -75,6 +76,7 @@ class LiveState:
     def __init__(self) -> None:
         self._cond = threading.Condition()
         self._ids = itertools.count(1)
+        self._listeners: list[Callable[[], None]] = []
         self.version = 0
         self._reset()
 
@@ -92,6 +94,8 @@ class LiveState:
         self.progress: dict[str, Any] | None = None
         self.prompt: dict[str, Any] | None = None
         self.line: dict[str, Any] | None = None
+        self.accuracy: list[dict[str, Any]] = []
+        """the predicted error after each turn of the scan under way (the ``accuracy`` event)"""
         self.log: list[dict[str, str]] = []
         self.result: dict[str, Any] | None = None
         self.error: str | None = None
@@ -102,6 +106,15 @@ class LiveState:
     def _changed(self) -> None:
         self.version += 1
         self._cond.notify_all()
+        for listener in self._listeners:
+            with contextlib.suppress(Exception):  # a page's stream must never stop the run
+                listener()
+
+    def add_listener(self, listener: Callable[[], None]) -> None:
+        """Call ``listener()`` after every change (from the changing thread, under the state's
+        lock: it must return at once and not read the state)."""
+        with self._cond:
+            self._listeners.append(listener)
 
     def begin(
         self, run_id: int, recipe: str, operator: str, serial: str | None,
@@ -206,18 +219,12 @@ class LiveState:
                 "progress": None if self.progress is None else dict(self.progress),
                 "prompt": None if self.prompt is None else dict(self.prompt),
                 "line": self.line,
+                "accuracy": [dict(a) for a in self.accuracy],
                 "log": list(self.log),
                 "result": self.result,
                 "error": self.error,
                 "abort_requested": self.abort_requested,
             }
-
-    def wait_change(self, version: int, timeout: float) -> int:
-        """Block until ``version`` is outdated or ``timeout`` passes; returns the version."""
-        with self._cond:
-            if self.version == version:
-                self._cond.wait(timeout=timeout)
-            return self.version
 
 
 class WebOperator:
@@ -317,6 +324,14 @@ class WebOperator:
             self.live.update(finished)
         elif event.kind == "lidar_line":
             self._preview(d["kind"], d["line"])
+        elif event.kind == "accuracy":
+            point = {"scan": d["scan"], "turns": d["turns"],
+                     "predicted_error_mm": 1e3 * float(d["predicted_error_m"]),
+                     "budget_mm": 1e3 * float(d["budget_m"])}
+
+            def predicted(st: LiveState) -> None:
+                st.accuracy = [a for a in st.accuracy if a["scan"] == point["scan"]] + [point]
+            self.live.update(predicted)
         self._check_abort()
 
     # --- helpers ---------------------------------------------------------------------------
@@ -471,6 +486,7 @@ class Runner:
         except Exception as exc:
             self.live.add_log("error", f"could not read run {run_id}: {exc}")
             return None
-        return {k: data[k] for k in ("verdict", "calibrations", "cube_rows", "drift", "serial")} | {
+        keys = ("verdict", "calibrations", "cube_rows", "drift", "serial", "accuracy")
+        return {k: data[k] for k in keys} | {
             "error": data["run"]["error"], "status": data["run"]["status"]}
 

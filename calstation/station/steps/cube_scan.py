@@ -10,16 +10,18 @@ A failed check fails the step but keeps its recording and measurements (the outc
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 from calstation.engine.result import CalibrationResult
 from calstation.recordings.runfolder import second_pass
+from calstation.station.accuracy import budget_failure, describe, with_prediction
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome, plain
 from calstation.station.recording_io import record_scan, record_second_pass, spin_acquisition
 from calstation.station.steps.fine_tune import with_stored_time_offset
 from calstation.station.steps.place import place
+from calstation.station.stored import as_result
+from calstation.station.turns import more_cube_turns
 from calstation.storage.db import Calibration
 
 CUBE_SECOND_PASS = second_pass("cube")
@@ -41,13 +43,19 @@ class CubeScan:
         cfg = ctx.recipe.steps.cube_scan
         if ctx.retrying:  # the operator's retry: re-seat the cube, rescan
             place(ctx, "qa_cube")
-        path = record_scan(ctx, self.name, step_id, spin_acquisition(d, cfg))
+        path = record_scan(ctx, self.name, step_id, spin_acquisition(d, cfg),
+                           more_turns=more_cube_turns(ctx))
         artifacts = [("cube", path)]
         path2 = record_second_pass(ctx, self.name, step_id, path, CUBE_SECOND_PASS)
         if path2 is not None:
             artifacts.append((CUBE_SECOND_PASS, path2))
         fine = ctx.stored_calibration("fine")
         recording = read_recording(path)
+        turned = ctx.scans.fitted.get(path)
+        if turned is not None and turned.fit is not None:
+            # the turns that met the budget: the result does not depend on how many more the
+            # scan took while the fit was computed
+            recording = recording.first_turns(turned.fit.turns + 0.02)
         with ctx.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
             check, joint, ry_failure = _check_cube_joint(ctx, recording, fine, progress)
@@ -55,25 +63,44 @@ class CubeScan:
                 progress("measuring the cube from both passes", 0.8)
                 check = _check_cube_passes(ctx, recording, read_recording(path2), joint, fine)
         cube = _cube_measurements(check)
+        joint, budget = _budget(ctx, fine, joint, recording)
         ctx.ui.info(
             f"  cube: edge error {check.edge_error * 1000:.2f} mm, OBB error "
             f"{check.obb_error * 1000:.2f} mm, side-face twist {check.twist_deg:+.3f}° "
             f"(±{check.twist_sigma_deg:.3f}°) → {'pass' if check.passed else 'FAIL'}"
         )
-        failures = list(check.failures) + ([ry_failure] if ry_failure else [])
-        if ry_failure:
+        failures = list(check.failures) + [f for f in (ry_failure, budget) if f]
+        if ry_failure or budget:
             cube["passed"] = False
             cube["failures"] = failures
         return StepOutcome(
             {"recording": str(path), "passed": not failures,
              "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
              "points": int(getattr(check, "points", 0)),
-             "joint_ry": None if joint is None else plain(joint.diagnostics["joint"])},
+             "joint_ry": None if joint is None else plain(joint.diagnostics["joint"]),
+             **({"turn_by_turn": plain(turned.summary)} if turned is not None else {})},
             artifacts=artifacts,
             calibration=None if joint is None else ("fine", joint),
             cube=(None if joint is not None else fine.id, cube),
             failure=None if not failures else "cube check failed: " + "; ".join(failures),
         )
+
+
+def _budget(
+    ctx: RunContext, fine: Calibration, joint: CalibrationResult | None, recording: Any
+) -> tuple[CalibrationResult | None, str | None]:
+    """The accuracy budget on the run's final calibration — the combination with the cube's
+    faces, or the fine calibration when nothing was combined — for a spin-target strategy (a
+    cube-scan strategy was judged at its fine-tuning): (the combination with its predicted
+    error recorded, or None; the refusal, with what would help, or None)."""
+    if ctx.strategy().fixture != "spin_target":
+        return joint, None
+    turns = float(recording.whole_turns())
+    final = joint if joint is not None else as_result(fine)
+    final, predicted = with_prediction(final, ctx.recipe, turns=turns)
+    ctx.ui.info(f"  {describe(predicted, ctx.recipe)}")
+    failure = budget_failure(final, predicted, ctx.recipe, scan="cube_scan", turns=turns)
+    return (final if joint is not None else None), failure
 
 
 def _cube_measurements(check: Any) -> dict[str, Any]:
@@ -136,7 +163,7 @@ def _check_cube_joint(
         check = check_cube(recording, H, ctx.recipe.fixtures.qa_cube, ctx.recipe.qa,
                            platter_radius=ctx.recipe.fixtures.platter.radius)
         return check, None, None
-    stored = _as_result(fine, H)
+    stored = as_result(fine)
     result, check, failure = fine_tune_with_cube(stored, recording, ctx.recipe, progress)
     if result is stored:
         return check, None, failure
@@ -150,23 +177,3 @@ def _check_cube_joint(
         result = with_stored_time_offset(ctx, result, read_recording(ctx.artifact_path("spin")),
                                          progress, " under the combined H")
     return check, result, failure
-
-
-def _as_result(fine: Calibration, H: Any) -> CalibrationResult:
-    """The stored fine calibration as the engine's result (what the joint fine-tuning starts
-    from): its H, σ, cost, gauge, covariance and time offset."""
-    diagnostics = fine.diagnostics or {}
-    return CalibrationResult(
-        H=H,
-        sigma={p: math.nan if v is None else float(v) for p, v in fine.sigmas().items()},
-        cost=float(fine.cost) if fine.cost is not None else math.nan,
-        iterations=int(fine.iterations or 0),
-        strategy=fine.strategy,
-        timings={},
-        diagnostics={"gauge": diagnostics.get("gauge"),
-                     "covariance": diagnostics.get("covariance"),
-                     **({"time_offset": diagnostics["time_offset"]}
-                        if "time_offset" in diagnostics else {})},
-        encoder_latency_s=fine.encoder_latency_s,
-        sigma_encoder_latency_s=fine.sigma_encoder_latency_s,
-    )

@@ -1,7 +1,9 @@
 """The fine-tuning: the recipe's strategy on the stored spin scan, from the initial calibration
-(or, with ``calibration.start: platter``, from the platter's chord in the scan); with a second
-pass, the lidar–encoder time offset; then the observability gate (``calibration.max_sigma``),
-whose refusal the station retries from the spin target's placement."""
+(or, with ``calibration.start: platter``, from the platter's chord in the scan) — or the fit made
+while the scan was taken, when it covers the whole scan; with a second pass, the lidar–encoder
+time offset; then the gate: the predicted reconstruction error against the accuracy budget
+(``calibration.accuracy``), and any ``calibration.max_sigma`` limit. A refusal says what would
+help, and the station retries from the spin target's placement."""
 
 from __future__ import annotations
 
@@ -9,49 +11,100 @@ import math
 import time
 from typing import Any
 
+from calstation.engine.accuracy import PredictedError
 from calstation.engine.observability import check_sigma
 from calstation.engine.result import CalibrationResult
 from calstation.errors import ObservabilityError
+from calstation.station.accuracy import budget_failure, describe, with_prediction
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome, format_h, plain
 from calstation.station.steps.spin_scan import SECOND_PASS
 
 
 class FineTune:
-    """Fine-tune H on the stored spin scan and gate it on its σ."""
+    """Fine-tune H on the stored spin scan and gate it on the accuracy budget (and on any
+    ``calibration.max_sigma`` limit)."""
 
     name = "fine_tune"
 
     def run(self, ctx: RunContext, step_id: int) -> StepOutcome:
         """Fit, report, gate; the ``fine`` calibration (:class:`ObservabilityError`, with the
-        refused estimate in its details, when σ exceeds the recipe's limits)."""
+        refused estimate in its details, when it is refused)."""
         strategy = ctx.strategy()
-        result = _fit(ctx, strategy)
+        result, turns = _fitted(ctx, strategy)
+        result, predicted = with_prediction(result, ctx.recipe, turns=turns)
         ctx.ui.info(f"  {strategy.name}: {format_h(result.H.as_dict())}")
+        ctx.ui.info(f"  {describe(predicted, ctx.recipe)}")
         after_scan = None
         if ctx.scans.scan_ended is not None:
             # the spin scan was taken by this process: how long the operator waited for H
             after_scan = time.monotonic() - ctx.scans.scan_ended
             ctx.ui.info(f"  result ready {after_scan:.1f} s after the scan ended")
-        # a spin-target strategy's ry is gated after the cube scan has added its faces to it
-        later = ("ry",) if strategy.fixture == "spin_target" else ()
         try:
-            check_sigma(result, ctx.recipe.calibration.max_sigma, strategy.fixture, later)
+            _gate(ctx, strategy, result, predicted, turns)
         except ObservabilityError as exc:
             # the refused estimate is kept with the failed step: nothing computed is lost
-            exc.details = {"refused": {"H": result.H.as_dict(), "sigma": result.sigma}}
+            exc.details = {"refused": {"H": result.H.as_dict(), "sigma": result.sigma,
+                                       "predicted_error_m": predicted.max_m}}
             raise
         return StepOutcome(
             {"strategy": strategy.name, "H": result.H.as_dict(), "cost": plain(result.cost),
              "iterations": result.iterations, "after_scan_s": after_scan,
-             "prepared_while_scanning": "scan_during_scan" in result.timings},
+             "prepared_while_scanning": "scan_during_scan" in result.timings,
+             "turns": turns, "predicted_error_m": plain(predicted.max_m),
+             "budget_m": ctx.recipe.calibration.accuracy.max_error},
             calibration=("fine", result),
         )
 
 
-def _fit(ctx: RunContext, strategy: Any) -> CalibrationResult:
+def _gate(
+    ctx: RunContext, strategy: Any, result: CalibrationResult, predicted: PredictedError,
+    turns: float,
+) -> None:
+    """Refuse ``result`` when a ``calibration.max_sigma`` limit or the accuracy budget does not
+    hold. A spin-target strategy's ry is combined with the cube's faces at the cube step, which
+    gates the result again: here only what the cube cannot help with must hold."""
+    spin_target = strategy.fixture == "spin_target"
+    later = ("ry",) if spin_target else ()
+    check_sigma(result, ctx.recipe.calibration.max_sigma, strategy.fixture, later)
+    if predicted.max_m <= ctx.recipe.calibration.accuracy.max_error:
+        return
+    judged, judged_on = result, predicted
+    if spin_target:
+        _, judged_on = with_prediction(result, ctx.recipe, known=("ry",))
+        if judged_on.max_m <= ctx.recipe.calibration.accuracy.max_error:
+            ctx.ui.info("  above the budget with the spin target's ry alone: the cube step "
+                        "adds the cube's side faces to ry and decides")
+            return
+    failure = budget_failure(judged, judged_on, ctx.recipe, scan="spin_scan", turns=turns)
+    if failure is not None:
+        raise ObservabilityError(f"the {strategy.name} fine-tuning does not reach the accuracy "
+                                 f"budget: {failure}")
+
+
+def _fitted(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, float]:
+    """The fine-tuning and the whole turns it used: the fit made while the spin scan was taken
+    when it met the budget (with the time offset added when there is a second pass), else the
+    strategy run on the stored recording."""
+    path = ctx.artifact_path("spin")
+    turned = ctx.scans.fitted.get(path)
+    if turned is not None and turned.fit is not None:
+        ctx.ui.info(f"  the fit made while scanning, on the first {turned.fit.turns} "
+                    f"turn{'s' if turned.fit.turns > 1 else ''}, met the budget")
+        result = turned.fit.result
+        if ctx.recipe.steps.spin_scan.second_pass_rpm is not None:
+            from calstation.recordings.reader import read_recording
+
+            with ctx.ui.progress("lidar–encoder time offset") as progress:
+                result = with_stored_time_offset(ctx, result, read_recording(path), progress, "")
+        return result, float(turned.fit.turns)
+    result, recording = _fit(ctx, strategy)
+    return result, float(recording.whole_turns())
+
+
+def _fit(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, Any]:
     """The strategy's result on the stored spin scan, with the time offset when there is a
-    second pass; its warnings go to the operator."""
+    second pass, and the recording; its warnings go to the operator."""
     from calstation.engine.frames import Extrinsics
     from calstation.plugins.cost_strategies import run_strategy
     from calstation.recordings.reader import read_recording
@@ -75,7 +128,7 @@ def _fit(ctx: RunContext, strategy: Any) -> CalibrationResult:
             result = with_stored_time_offset(ctx, result, recording, progress, "")
     for warning in warnings:
         ctx.ui.warn(warning)
-    return result
+    return result, recording
 
 
 def with_stored_time_offset(

@@ -9,8 +9,9 @@ from typing import Any
 
 from calstation.recordings.runfolder import second_pass
 from calstation.station.context import RunContext
-from calstation.station.outcome import StepOutcome
+from calstation.station.outcome import StepOutcome, plain
 from calstation.station.recording_io import record_scan, record_second_pass, spin_acquisition
+from calstation.station.turns import more_turns
 
 SECOND_PASS = second_pass("spin")
 """File stem and artifact kind of the spin scan's second pass (``second_pass_rpm``)."""
@@ -25,10 +26,14 @@ class SpinScan:
         """Scan; the recordings (a fault in the second pass keeps the first as complete)."""
         d = ctx.hardware()
         cfg = ctx.recipe.steps.spin_scan
-        path = record_scan(ctx, self.name, step_id, spin_acquisition(d, cfg))
+        path = record_scan(ctx, self.name, step_id, spin_acquisition(d, cfg),
+                           more_turns=more_turns(ctx, "spin_scan"))
         result: dict[str, Any] = {"recording": str(path), "rpm": cfg.rpm,
                                   "revolutions": cfg.revolutions,
                                   "fixture": ctx.strategy().fixture}
+        turned = ctx.scans.fitted.get(path)
+        if turned is not None:
+            result["turn_by_turn"] = plain(turned.summary)
         artifacts = [("spin", path)]
         # the same turns again at another speed: the fine-tune estimates the lidar–encoder time
         # offset from the two

@@ -140,8 +140,11 @@ class Calibration(Base):
 
     tx, ty, tz in metres and rx, ry, rz in radians (DESIGN §2); ``sigma_*`` their 1σ (None when
     not estimated). ``encoder_latency_s``: the estimated lidar–encoder time offset (encoder time
-    minus lidar time, s) when the spin scan had a second pass, else None. ``accepted`` marks the
-    run's final calibration when the run passed.
+    minus lidar time, s) when the spin scan had a second pass, else None.
+    ``predicted_error_m``: the reconstruction error the calibration predicts over the recipe's
+    work volume (m, at the budget's level; ``diagnostics["predicted_error"]`` has the details),
+    None when it was not predicted. ``accepted`` marks the run's final calibration when the run
+    passed.
     """
 
     __tablename__ = "calibration"
@@ -165,6 +168,7 @@ class Calibration(Base):
     sigma_rz: Mapped[float | None] = mapped_column(Float)
     encoder_latency_s: Mapped[float | None] = mapped_column(Float)
     sigma_encoder_latency_s: Mapped[float | None] = mapped_column(Float)
+    predicted_error_m: Mapped[float | None] = mapped_column(Float)
     cost: Mapped[float | None] = mapped_column(Float)
     iterations: Mapped[int | None] = mapped_column(Integer)
     accepted: Mapped[bool] = mapped_column(Boolean, default=False, index=True)

@@ -55,10 +55,25 @@
       $("progress-bar").value = p.fraction;
     }
     renderLine(s.line, s.busy);
+    renderAccuracy(s.accuracy || [], s.busy);
     if (previous.busy && !s.busy) {
       // the run ended: the end screen (values beside their limits) is rendered by the server
       window.location.reload();
     }
+  }
+
+  // the predicted error after each turn of the scan under way, beside the budget
+  function renderAccuracy(points, busy) {
+    var box = $("accuracy-live");
+    if (!box) { return; }
+    box.hidden = !busy || points.length === 0;
+    if (box.hidden) { return; }
+    var last = points[points.length - 1];
+    var trail = points.map(function (a) { return a.turns + ": " + a.predicted_error_mm.toFixed(3); });
+    box.textContent = "predicted error after " + last.turns + " turn" + (last.turns > 1 ? "s" : "") +
+      " of the " + last.scan.replace("_", " ") + ": " + last.predicted_error_mm.toFixed(3) +
+      " mm (budget " + last.budget_mm.toFixed(3) + " mm; by turn " + trail.join(", ") + ")";
+    box.className = last.predicted_error_mm <= last.budget_mm ? "ok" : "pending";
   }
 
   function renderPrompt(p) {
@@ -87,7 +102,9 @@
     el.hidden = false;
     if (el.getAttribute("data-seq") === String(line.seq)) { return; }
     el.setAttribute("data-seq", String(line.seq));
-    var data = [{x: line.x_mm, y: line.y_mm, mode: "markers", type: "scattergl",
+    // SVG, not WebGL: plotly's WebGL traces compile code at run time, which the page's
+    // Content-Security-Policy does not allow (no eval)
+    var data = [{x: line.x_mm, y: line.y_mm, mode: "markers", type: "scatter",
                  marker: {size: 3, color: "#0969da"}, name: "returns"}];
     var layout = {title: {text: "live lidar line (" + line.kind + " scan, " + line.points + " returns)"},
                   height: 320, margin: {l: 50, r: 10, t: 40, b: 40},
@@ -125,7 +142,14 @@
   if (state.prompt) { $("prompt").removeAttribute("data-prompt"); }
   render(state);
 
-  var source = new EventSource("/events");
-  source.addEventListener("state", function (ev) { render(JSON.parse(ev.data)); });
+  // on a station with a token the stream needs the logged-in session (the page says so)
+  if (app.getAttribute("data-live") === "yes") {
+    var source = new EventSource("/events");
+    source.addEventListener("state", function (ev) { render(JSON.parse(ev.data)); });
+    source.addEventListener("end", function () {
+      source.close();  // the session ended (logged out, expired, new token)
+      showError("Your session ended: log in again to follow the run.");
+    });
+  }
   window.addEventListener("load", function () { if (state.line) { renderLine(state.line, state.busy); } });
 })();

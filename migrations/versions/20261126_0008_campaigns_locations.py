@@ -1,7 +1,7 @@
 """campaign and campaign_run (calstation reprocess), artifact.location (the shared copy's URL)
 
-Revision ID: 0007_campaigns_locations
-Revises: 0006_calibration_encoder_latency
+Revision ID: 0008_campaigns_locations
+Revises: 0007_calibration_predicted_error
 Create Date: 2026-11-26 20:45:00
 """
 
@@ -12,8 +12,8 @@ from collections.abc import Sequence
 import sqlalchemy as sa
 from alembic import op
 
-revision: str = '0007_campaigns_locations'
-down_revision: str | None = '0006_calibration_encoder_latency'
+revision: str = '0008_campaigns_locations'
+down_revision: str | None = '0007_calibration_predicted_error'
 branch_labels: str | Sequence[str] | None = None
 depends_on: str | Sequence[str] | None = None
 

@@ -1,0 +1,260 @@
+"""``calstation plan``: what a station design can reach, before any hardware exists.
+
+The recipe's simulation section describes the station to be built (the lidar's pose, range
+noise, line rate and points per line; the turntable; the fixtures). :func:`plan` simulates it
+— a static scan, a spin scan of a few turns and a cube scan, for a few seeds — and fine-tunes
+exactly as the station would, on the first turn and on all of them. It reports per parameter
+the σ the strategy states, the predicted reconstruction error over the recipe's work volume
+(with the cube's faces added to ry, for a spin-target strategy), how it falls with the turns,
+and the turns the budget needs: the random part of the error falls as 1/√turns, which the
+measured 1 → N turns checks. It also tries the spin target's placement and height where they
+matter (centred against 60 mm off-centre, and 1.5 times taller), and recommends.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from calstation.bench import BenchError
+from calstation.errors import CalstationError
+
+PARAMS = ("tx", "tz", "ry", "rz")
+OFF_CENTRE_M = 0.06
+"""Where the spin target stands off the axis in the placement the plan tries."""
+TALLER = 1.5
+"""How much taller the spin target the plan tries is."""
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class Trial:
+    """One simulated design: what the fine-tuning gave after each number of turns."""
+
+    name: str
+    change: str
+    turns: list[dict[str, Any]] = field(default_factory=list)
+    """per number of turns: ``turns``, ``sigma`` (m, rad), ``predicted_error_m``,
+    ``with_cube_m`` (the predicted error with the cube's faces added to ry), ``seconds``"""
+    error: str | None = None
+    """why the design could not be simulated (an alternative the geometry does not allow)"""
+
+
+def plan(
+    loaded: Any,
+    *,
+    seeds: int = 2,
+    turns: int = 2,
+    alternatives: bool = True,
+    progress: Progress | None = None,
+    out_dir: Path | None = None,
+) -> dict[str, Any]:
+    """Simulate the recipe ``loaded`` (:class:`~calstation.recipes.LoadedRecipe`, with a
+    ``simulation`` section) and return the plan as plain data (see the module docstring)."""
+    recipe = loaded.recipe
+    if recipe.simulation is None:
+        raise BenchError(
+            f"recipe {recipe.name!r} has no simulation section: calstation plan simulates the "
+            "station it describes (the lidar's pose, range noise, line rate, the fixtures); add "
+            "one (recipes/sim-periodicity.yaml is an example) or use --set simulation.…"
+        )
+    if turns < 1 or seeds < 1:
+        raise BenchError("--turns and --seeds must be at least 1")
+    say = progress or (lambda message, fraction: None)
+    with tempfile.TemporaryDirectory(prefix="calstation-plan-") as scratch:
+        work = Path(out_dir or scratch)
+        return _plan(loaded, seeds, turns, alternatives, say, work)
+
+
+def _plan(
+    loaded: Any, seeds: int, turns: int, alternatives: bool, say: Progress, work: Path
+) -> dict[str, Any]:
+    """:func:`plan` with its folder for the simulated recordings."""
+    recipe = loaded.recipe
+    designs: list[tuple[str, str, dict[str, Any]]] = [("as designed", "the recipe", {})]
+    if alternatives:
+        designs += _alternatives(recipe)
+    t0 = time.perf_counter()
+    runs = [(name, change, patch, seed) for name, change, patch in designs
+            for seed in range(1, (seeds if not patch else 1) + 1)]
+    trials: dict[str, Trial] = {}
+    for k, (name, change, patch, seed) in enumerate(runs):
+        say(f"simulating {name}, seed {seed}", k / len(runs))
+        trial = trials.setdefault(name, Trial(name, change))
+        try:
+            trial.turns += _simulate_and_fit(loaded, patch, seed, turns if not patch else 1,
+                                             work / f"{len(trials)}-{seed}")
+        except CalstationError as exc:
+            if not patch:
+                raise
+            trial.error = str(exc)  # an alternative the recipe's geometry does not allow
+    say("done", 1.0)
+    return _summary(recipe, trials, turns, seeds, time.perf_counter() - t0)
+
+
+def _alternatives(recipe: Any) -> list[tuple[str, str, dict[str, Any]]]:
+    """The spin target's placement and height, tried where the strategy scans it."""
+    from calstation import plugins
+
+    if plugins.strategy(recipe.calibration.strategy).fixture != "spin_target":
+        return []
+    target = recipe.fixtures.spin_target
+    offset = tuple(getattr(target, "offset", (0.0, 0.0)))
+    out = []
+    if math.hypot(*offset) < 0.03:
+        out.append(("off-centre", f"spin target {OFF_CENTRE_M * 1e3:.0f} mm off the axis",
+                    {"fixtures": {"spin_target": {"offset": [OFF_CENTRE_M, 0.0]}}}))
+    else:
+        out.append(("centred", "spin target on the axis",
+                    {"fixtures": {"spin_target": {"offset": [0.0, 0.0]}}}))
+    height = getattr(target, "height", None)
+    if height is not None:
+        out.append(("taller", f"spin target {TALLER:g} × taller ({height * TALLER * 1e3:.0f} mm)",
+                    {"fixtures": {"spin_target": {"height": height * TALLER}}}))
+    return out
+
+
+def _simulate_and_fit(
+    loaded: Any, patch: dict[str, Any], seed: int, turns: int, out: Path
+) -> list[dict[str, Any]]:
+    """Simulate ``turns`` turns of the (patched) recipe with ``seed`` and fine-tune on the
+    first 1 … ``turns`` of them as the station would."""
+    from calstation.bench.worker import apply_overrides
+    from calstation.recipes import LoadedRecipe
+
+    try:
+        from calstation_sim import simulate_run
+    except ImportError:
+        raise BenchError("calstation plan needs the calstation-sim plugin") from None
+    scan = {"revolutions": turns + 0.05, "max_revolutions": turns + 0.05,
+            "second_pass_rpm": None}
+    recipe = apply_overrides(loaded.recipe, {
+        **patch, "steps": {"spin_scan": scan, "cube_scan": {**scan, "revolutions": 1.05,
+                                                             "max_revolutions": 1.05}},
+        "simulation": {"seed": seed},
+    })
+    import yaml
+
+    text = yaml.safe_dump(recipe.model_dump(mode="json"), sort_keys=False)
+    files = simulate_run(LoadedRecipe(recipe, None, text), out, progress=False)
+    try:
+        return [_fit(recipe, files, k) for k in range(1, turns + 1)]
+    finally:
+        for path in files.values():
+            Path(path).unlink(missing_ok=True)
+
+
+def _fit(recipe: Any, files: dict[str, Any], turns: int) -> dict[str, Any]:
+    """The station's fine-tuning on the first ``turns`` turns: σ, predicted error, and (for
+    a spin-target strategy) the predicted error once the cube's faces join ry."""
+    from calstation import plugins
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.initial import initial_calibration
+    from calstation.plugins.cost_strategies import fine_tune_with_cube, run_strategy
+    from calstation.recordings.reader import read_recording
+    from calstation.station.accuracy import with_prediction
+
+    t0 = time.perf_counter()
+    strategy = plugins.strategy(recipe.calibration.strategy)
+    start: Extrinsics
+    if recipe.calibration.start == "platter" or "static" not in files:
+        from calstation.engine.targetless import targetless_start
+
+        spin_all = read_recording(files["spin"])
+        start = targetless_start(spin_all, recipe.fixtures.platter, recipe.calibration.initial).H
+    else:
+        static = read_recording(files["static"])
+        start = initial_calibration(static, recipe.fixtures.static_target,
+                                    recipe.calibration.initial).H
+    scan = read_recording(files[("spin")]).first_turns(turns)
+    result, _ = run_strategy(strategy, scan, start, recipe)
+    result, predicted = with_prediction(result, recipe, turns=turns)
+    with_cube = predicted.max_m
+    if strategy.fixture == "spin_target":
+        combined, _, _ = fine_tune_with_cube(result, read_recording(files["cube"]), recipe)
+        with_cube = with_prediction(combined, recipe)[1].max_m
+    return {"turns": turns, "sigma": {p: result.sigma.get(p, math.nan) for p in PARAMS},
+            "predicted_error_m": predicted.max_m, "with_cube_m": with_cube,
+            "seconds": time.perf_counter() - t0}
+
+
+def _summary(
+    recipe: Any, trials: dict[str, Trial], turns: int, seeds: int, seconds: float
+) -> dict[str, Any]:
+    """The plan as plain data, with the turns the budget needs and what to change."""
+    budget = recipe.calibration.accuracy.max_error
+    designs = []
+    for trial in trials.values():
+        rows = []
+        for k in sorted({r["turns"] for r in trial.turns}):
+            at = [r for r in trial.turns if r["turns"] == k]
+            rows.append({
+                "turns": k,
+                "sigma": {p: _median([r["sigma"][p] for r in at]) for p in PARAMS},
+                "predicted_error_m": _median([r["predicted_error_m"] for r in at]),
+                "with_cube_m": _median([r["with_cube_m"] for r in at]),
+            })
+        designs.append({"name": trial.name, "change": trial.change, "by_turns": rows,
+                        "turns_needed": _turns_needed(rows, budget) if rows else None,
+                        "error": trial.error})
+    return {
+        "recipe": recipe.name,
+        "budget_m": budget,
+        "work_volume": {"radius_m": recipe.calibration.accuracy.work_radius(
+            recipe.fixtures.platter), "height_m": recipe.calibration.accuracy.height},
+        "level": recipe.calibration.accuracy.level,
+        "strategy": recipe.calibration.strategy,
+        "seeds": seeds,
+        "turns_simulated": turns,
+        "designs": designs,
+        "recommendations": _recommend(designs, budget),
+        "seconds": seconds,
+    }
+
+
+def _median(values: list[float]) -> float:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return statistics.median(finite) if finite else math.nan
+
+
+def _turns_needed(rows: list[dict[str, Any]], budget: float) -> int | None:
+    """The turns that bring the predicted error (with the cube) within ``budget``: the first
+    simulated number of turns that does, else the last one's error extrapolated as 1/√turns."""
+    for row in rows:
+        if row["with_cube_m"] <= budget:
+            return int(row["turns"])
+    last = rows[-1]
+    if not math.isfinite(last["with_cube_m"]):
+        return None
+    needed: int = math.ceil(float(last["turns"]) * (float(last["with_cube_m"]) / budget) ** 2)
+    return needed
+
+
+def _recommend(designs: list[dict[str, Any]], budget: float) -> list[str]:
+    """What the designer should do, from the trials: the recipe as it is, or a change that
+    brings the budget within fewer turns."""
+    base = designs[0]
+    out = []
+    need = base["turns_needed"]
+    first = base["by_turns"][0]
+    if need is not None and need <= 1:
+        out.append(f"as designed, one turn meets the budget of {budget * 1e3:.3f} mm "
+                   f"(predicted {first['with_cube_m'] * 1e3:.3f} mm)")
+    elif need is not None:
+        out.append(f"as designed, about {need} turns meet the budget of {budget * 1e3:.3f} mm: "
+                   f"set steps.spin_scan.max_revolutions to at least {need}")
+    for alt in designs[1:]:
+        if not alt["by_turns"]:
+            continue
+        e = alt["by_turns"][0]["with_cube_m"]
+        if math.isfinite(e) and e < 0.8 * first["with_cube_m"]:
+            out.append(f"{alt['change']}: predicted {e * 1e3:.3f} mm after one turn instead of "
+                       f"{first['with_cube_m'] * 1e3:.3f} mm")
+    return out

@@ -1,0 +1,126 @@
+"""``calstation plan RECIPE``: what a station design can reach, before the hardware exists."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``plan`` command."""
+
+    @app.command("plan")
+    def plan_cmd(
+        recipe: Path = typer.Argument(..., help="The station's recipe, with a simulation "
+                                      "section describing it.", show_default=False),
+        seeds: int = typer.Option(2, "--seeds", min=1, max=20,
+                                  help="Simulated stations (noise draws) per figure."),
+        turns: int = typer.Option(2, "--turns", min=1, max=8,
+                                  help="Turns of the simulated spin scans (1 … N are fitted)."),
+        alternatives: bool = typer.Option(True, "--alternatives/--no-alternatives",
+                                          help="Also try the spin target's placement and "
+                                          "height."),
+        overrides: list[str] = typer.Option(
+            [], "--set", metavar="KEY=VALUE",
+            help="Change a recipe field for the plan: --set simulation.lidar.range_noise=0.002 "
+            "(repeatable; values are YAML).",
+        ),
+        as_json: bool = typer.Option(False, "--json", help="Print the plan as JSON."),
+    ) -> None:
+        """Simulate RECIPE's station and print, per parameter, the σ the fine-tuning states,
+        the predicted reconstruction error over the work volume against the recipe's budget
+        (calibration.accuracy), how it falls with the turns, the turns the budget needs, and
+        which placement or height of the spin target helps."""
+        from rich.console import Console
+
+        from calstation.bench.plan import plan
+        from calstation.quiet import stdout_to_stderr
+
+        loaded = _loaded(recipe, overrides)
+        console = Console(stderr=True)
+        with console.status("planning") as status, stdout_to_stderr():
+            result = plan(loaded, seeds=seeds, turns=turns, alternatives=alternatives,
+                          progress=lambda message, fraction: status.update(
+                              f"planning: {message} ({fraction:.0%})"))
+        if as_json:
+            typer.echo(json.dumps(_plain(result), indent=2))
+        else:
+            _print(result)
+
+
+def _loaded(path: Path, overrides: list[str]) -> Any:
+    """The recipe with ``--set`` overrides applied (validated as a recipe)."""
+    import yaml
+
+    from calstation.recipes import LoadedRecipe, load_recipe, parse_recipe
+
+    loaded = load_recipe(path)
+    if not overrides:
+        return loaded
+    data = yaml.safe_load(loaded.text)
+    for item in overrides:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise typer.BadParameter(f"--set {item!r}: expected KEY=VALUE")
+        node = data
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise typer.BadParameter(f"--set {item!r}: {part} is not a section")
+        node[leaf] = yaml.safe_load(value)
+    text = yaml.safe_dump(data, sort_keys=False)
+    return LoadedRecipe(parse_recipe(text, f"{path} with --set", path.parent), path, text)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_plain(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _print(result: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    volume = result["work_volume"]
+    console.print(
+        f"[bold]plan[/] of {result['recipe']} ({result['strategy']}): budget "
+        f"{result['budget_m'] * 1e3:.3f} mm at {result['level']:.0%} over r "
+        f"{volume['radius_m'] * 1e3:.0f} mm × h {volume['height_m'] * 1e3:.0f} mm; "
+        f"{result['seeds']} simulated stations, {result['seconds']:.0f} s", highlight=False)
+    for design in result["designs"]:
+        if design.get("error"):
+            console.print(f"{design['name']} ({design['change']}): not possible with this "
+                          f"fixture: {design['error']}", highlight=False)
+            continue
+        table = Table(title=f"{design['name']}: {design['change']}")
+        for col in ("turns", "σ tx (mm)", "σ tz (mm)", "σ ry (°)", "σ rz (°)",
+                    "predicted (mm)", "with the cube (mm)"):
+            table.add_column(col, justify="right")
+        for row in design["by_turns"]:
+            s = row["sigma"]
+            table.add_row(str(row["turns"]), _mm(s["tx"]), _mm(s["tz"]), _deg(s["ry"]),
+                          _deg(s["rz"]), _mm(row["predicted_error_m"]), _mm(row["with_cube_m"]))
+        console.print(table)
+        need = design["turns_needed"]
+        console.print(f"  turns the budget needs: {'—' if need is None else need}")
+    for line in result["recommendations"]:
+        console.print(f"[green]→[/] {line}", highlight=False)
+
+
+def _mm(v: float | None) -> str:
+    return "—" if v is None or not math.isfinite(v) else f"{v * 1e3:.3f}"
+
+
+def _deg(v: float | None) -> str:
+    return "—" if v is None or not math.isfinite(v) else f"{math.degrees(v):.4f}"

@@ -1,0 +1,148 @@
+"""The accuracy budget at the station: the predicted error of a calibration, the gate, and what
+would help when it is refused.
+
+The engine predicts the distortion a calibration's uncertainty allows over the recipe's work
+volume (:func:`calstation.engine.observability.predict`); here that figure is kept with the
+result (``diagnostics["predicted_error"]``), compared with ``calibration.accuracy.max_error``,
+and, when the budget does not hold, turned into advice whose every number is computed: how many
+turns, how slow a platter, how fast a line rate would make the data enough (the random part of
+the error falls as 1/√data), and whether a taller spin target or another placement addresses
+the parameter that limits the accuracy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+from calstation.engine.accuracy import PredictedError, contributions, data_factor
+from calstation.engine.observability import accuracy_problem, predict, predicted_volume
+from calstation.engine.result import CalibrationResult
+from calstation.recipes import Recipe
+
+MOST_TURNS = 20.0
+"""The most turns a recipe may ask of a scan (``steps.*.max_revolutions``)."""
+
+
+def with_prediction(
+    result: CalibrationResult, recipe: Recipe, *, turns: float | None = None,
+    known: tuple[str, ...] = (),
+) -> tuple[CalibrationResult, PredictedError]:
+    """``result`` with its predicted error in ``diagnostics["predicted_error"]`` (metres; the
+    budget, the work volume and the turns it came from beside it), and the prediction."""
+    accuracy = recipe.calibration.accuracy
+    predicted = predict(result, accuracy, recipe.fixtures.platter, known=known)
+    record: dict[str, Any] = {
+        **predicted.as_dict(),
+        "budget_m": accuracy.max_error,
+        "work_volume": {"radius_m": accuracy.work_radius(recipe.fixtures.platter),
+                        "height_m": accuracy.height},
+    }
+    if turns is not None:
+        record["turns"] = turns
+    if known:
+        record["known"] = list(known)
+    diagnostics = {**result.diagnostics, "predicted_error": record}
+    return replace(result, diagnostics=diagnostics), predicted
+
+
+def describe(predicted: PredictedError, recipe: Recipe) -> str:
+    """One line for the operator: the predicted error beside its budget."""
+    budget = recipe.calibration.accuracy.max_error
+    verdict = "within" if predicted.max_m <= budget else "above"
+    return (f"predicted reconstruction error {predicted.max_m * 1e3:.3f} mm "
+            f"({recipe.calibration.accuracy.level:.0%}, {predicted_volume(predicted)}), "
+            f"{verdict} the budget of {budget * 1e3:.3f} mm")
+
+
+def budget_failure(
+    result: CalibrationResult, predicted: PredictedError, recipe: Recipe, *, scan: str,
+    turns: float,
+) -> str | None:
+    """The refusal of ``result`` against the budget, with what would help, or None."""
+    problem = accuracy_problem(predicted, recipe.calibration.accuracy)
+    if problem is None:
+        return None
+    return f"{problem}. {advice(result, predicted, recipe, scan=scan, turns=turns)}"
+
+
+def advice(
+    result: CalibrationResult, predicted: PredictedError, recipe: Recipe, *, scan: str,
+    turns: float,
+) -> str:
+    """What would bring ``predicted`` within the budget, computed from the scan that gave it
+    (``scan``: ``spin_scan`` or ``cube_scan``, taken over ``turns`` turns)."""
+    accuracy = recipe.calibration.accuracy
+    factor = data_factor(predicted, accuracy.max_error)
+    if not math.isfinite(factor):
+        return (f"The bound on the remaining bias, {predicted.bias_m * 1e3:.3f} mm, is itself over "
+                "the budget: more data cannot help. Use a spin target that shows the axis tilt "
+                "better (taller, off-centre) or raise calibration.accuracy.max_error.")
+    cfg = getattr(recipe.steps, scan)
+    say = []
+    needed = math.ceil(turns * factor)
+    if needed <= MOST_TURNS:
+        say.append(f"scan {needed:g} turns (steps.{scan}.max_revolutions: {needed:g}; this scan "
+                   f"took {turns:g})")
+    else:
+        say.append(f"{needed:.0f} turns would be needed, more than the {MOST_TURNS:g} a scan "
+                   "may take")
+    slower = abs(cfg.rpm) / factor
+    if slower >= 0.5:
+        say.append(f"turn the platter at {slower:.2g} rpm instead of {abs(cfg.rpm):g} "
+                   f"(steps.{scan}.rpm)")
+    sim = recipe.simulation
+    if sim is not None and recipe.station.lidar.driver == "sim":
+        rate = sim.lidar.line_rate_hz
+        say.append(f"a lidar line rate of {rate * factor:.0f} lines/s instead of {rate:g}")
+    else:
+        say.append(f"a lidar line rate {factor:.1f} times higher")
+    say += _geometry_advice(result, recipe, scan, factor)
+    return "What would help (each alone): " + "; ".join(say) + "."
+
+
+def _geometry_advice(
+    result: CalibrationResult, recipe: Recipe, scan: str, factor: float
+) -> list[str]:
+    """Advice on the fixture, when the parameter that limits the accuracy is one a fixture's
+    height or placement sets."""
+    accuracy = recipe.calibration.accuracy
+    parts = contributions(
+        result.H, result.sigma, result.diagnostics.get("covariance"),
+        radius=accuracy.work_radius(recipe.fixtures.platter), height=accuracy.height,
+        level=accuracy.level,
+    )
+    if not parts:
+        return []
+    worst = max(parts, key=lambda n: parts[n] if math.isfinite(parts[n]) else -1.0)
+    if worst != "ry":
+        return []
+    if scan == "cube_scan":
+        return ["re-seat the QA cube so that two side faces face the lidar"]
+    target = recipe.fixtures.spin_target
+    say = [f"a spin target {math.sqrt(factor):.1f} times taller (ry, the axis tilt out of the "
+           "scan plane, limits the accuracy; a taller target's facets show it more)"]
+    offset = getattr(target, "offset", (0.0, 0.0))
+    if math.hypot(*offset) < 0.03:
+        say.append("place the spin target about 60 mm off-centre (fixtures.spin_target.offset): "
+                   "centred, its facets barely show ry")
+    return say
+
+
+def judge(
+    result: CalibrationResult, recipe: Recipe, *, ry_failure: str | None = None,
+    turns: float | None = None,
+) -> tuple[CalibrationResult, list[str]]:
+    """A final calibration judged as the station judges it: (``result`` with its predicted
+    error recorded, every reason it is refused). The reasons: any ``calibration.max_sigma``
+    limit exceeded, the cube step's ry failure (``ry_failure``), and the accuracy budget, with
+    what would help. Used where a calibration is made outside a run (``calstation calibrate``,
+    re-processing) so that it is accepted or refused exactly as a run would."""
+    from calstation.engine.observability import problems_with_cube
+
+    refused = problems_with_cube(result, recipe.calibration.max_sigma, ry_failure)
+    result, predicted = with_prediction(result, recipe, turns=turns)
+    budget = budget_failure(result, predicted, recipe, scan="spin_scan",
+                            turns=1.0 if turns is None else turns)
+    return result, [*refused, *([budget] if budget else [])]

@@ -1,0 +1,240 @@
+"""Scanning until the accuracy budget holds: one more revolution at a time.
+
+A spin scan turns its ``revolutions`` first. From then on, each time another whole revolution
+has been recorded, :class:`TurnByTurn` fine-tunes on the data so far — the lines already prepared
+as they arrived (:meth:`calstation.engine.spinscan.SpinScanBuilder.so_far`), in a background
+thread while the scan goes on — and predicts the reconstruction error. The scan stops as soon
+as a prediction is within ``calibration.accuracy.max_error``, or at ``max_revolutions`` turns, or
+after ``max_duration_s`` seconds of scanning. Each prediction is published to the operator
+(the ``accuracy`` event, and a line on the console) as it arrives, so the operator sees the
+error falling.
+
+The recording holds every turn. The step that follows takes the fit that met the budget, on the
+turns it saw — fits see each turn's data as the line completing it arrived, and are taken in
+order, so that a run's outcome does not depend on how fast they ran — and fine-tunes every whole
+turn of the recording when none met it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+from calstation.engine.accuracy import PredictedError
+from calstation.engine.result import CalibrationResult
+from calstation.engine.spinscan import SpinScan, SpinScanBuilder
+from calstation.station.context import RunContext
+from calstation.station.operator import Operator, publish
+
+Fit = Callable[[SpinScan], tuple[CalibrationResult, PredictedError]]
+"""``fit(scan so far)``: the calibration from it and its predicted error."""
+
+
+@dataclass(frozen=True)
+class TurnFit:
+    """A fine-tuning on the first ``turns`` whole revolutions of a scan under way."""
+
+    turns: int
+    result: CalibrationResult
+    predicted: PredictedError
+    seconds: float
+    """how long the fit took"""
+
+
+@dataclass(frozen=True)
+class ScanTurns:
+    """What a scan that went on turn by turn did: the fit that met the budget (None when none
+    did: the step after the scan fine-tunes the whole recording), and its
+    :meth:`TurnByTurn.summary`."""
+
+    fit: TurnFit | None
+    summary: dict[str, Any]
+
+
+class TurnByTurn:
+    """The :class:`~calstation.station.acquisition.MoreTurns` of a scan that goes on while its
+    predicted error is above ``budget_m`` (see the module docstring)."""
+
+    def __init__(
+        self,
+        builder: SpinScanBuilder,
+        fit: Fit,
+        *,
+        budget_m: float,
+        max_revolutions: float,
+        max_duration_s: float | None,
+        ui: Operator,
+        scan: str,
+    ) -> None:
+        self.builder = builder
+        self.fit = fit
+        self.budget_m = budget_m
+        self.max_revolutions = max_revolutions
+        self.max_duration_s = max_duration_s
+        self.ui = ui
+        self.scan = scan
+        self.fits: list[TurnFit] = []
+        self.failures: list[str] = []
+        self.met: TurnFit | None = None
+        """the first fit within the budget: what the scan stopped on"""
+        self.stopped: str = "turns"
+        """why the scan ended: ``budget`` (a fit within it), ``turns``, ``time``"""
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix=f"calstation-{scan}-fit")
+        self._queued: deque[tuple[int, Future[TurnFit]]] = deque()
+        self._asked = 0
+
+    def __call__(self, turns: float, seconds: float) -> bool:
+        """Keep turning? (Called by the acquisition after every line, past the first turns.)
+
+        Each whole turn's data is taken at the line that completes it, so what each fit sees
+        does not depend on how fast the fits run; they are fitted in order, and the scan stops
+        on the first within the budget, whatever turn the scan has reached by then."""
+        self._collect()
+        if self.met is not None:
+            self.stopped = "budget"
+            return False
+        if self.max_duration_s is not None and seconds >= self.max_duration_s:
+            self.stopped = "time"
+            return False
+        whole = math.floor(turns + 1e-9)
+        if whole > self._asked:
+            scan = self.builder.so_far()
+            if scan is not None:
+                self._asked = whole
+                self._queued.append((whole, self._pool.submit(self._fit, scan, whole)))
+        return True
+
+    def _fit(self, scan: SpinScan, turns: int) -> TurnFit:
+        t0 = time.perf_counter()
+        result, predicted = self.fit(scan)
+        return TurnFit(turns, result, predicted, time.perf_counter() - t0)
+
+    def _collect(self, wait: bool = False) -> None:
+        """Take the finished fits, in the order of their turns, and tell the operator what
+        each predicts; the first within the budget is :attr:`met`."""
+        while self._queued and self.met is None and (wait or self._queued[0][1].done()):
+            turns, future = self._queued.popleft()
+            exc = future.exception()
+            if exc is not None:
+                # the data so far may not support a fit (too little of the target yet): the
+                # scan goes on; the step after it fine-tunes the whole recording and reports
+                self.failures.append(f"after {turns} turns: {exc}")
+                continue
+            fit = future.result()
+            self.fits.append(fit)
+            self._announce(fit)
+            if fit.predicted.max_m <= self.budget_m:
+                self.met = fit
+
+    def _announce(self, fit: TurnFit) -> None:
+        publish(self.ui, "accuracy", scan=self.scan, turns=fit.turns,
+                predicted_error_m=fit.predicted.max_m, budget_m=self.budget_m,
+                sigma=dict(fit.result.sigma), fit_s=fit.seconds)
+        verdict = "within" if fit.predicted.max_m <= self.budget_m else "above"
+        self.ui.info(f"  after {fit.turns} turn{'s' if fit.turns > 1 else ''}: predicted error "
+                     f"{fit.predicted.max_m * 1e3:.3f} mm, {verdict} the budget of "
+                     f"{self.budget_m * 1e3:.3f} mm ({fit.seconds:.1f} s to fit)")
+
+    def close(self, whole_turns: int) -> ScanTurns:
+        """The scan has ended with ``whole_turns`` whole revolutions. A scan stopped by the
+        budget keeps the fit that met it (the turns it saw; those scanned while it was computed
+        are in the recording but not in the result, so a run's outcome does not depend on how
+        fast the fits ran). Otherwise the fits still queued are finished, in order; when one of
+        them meets the budget it is kept, else the step after the scan fine-tunes every whole
+        turn of the recording."""
+        if self.met is None:
+            self._collect(wait=True)
+            if self.met is not None:
+                self.stopped = "budget"
+        for _, future in self._queued:
+            future.cancel()
+        self._pool.shutdown(wait=True)
+        return ScanTurns(self.met, {**self.summary(), "whole_turns": whole_turns})
+
+    def summary(self) -> dict[str, Any]:
+        """What the scan did, for the step's stored result."""
+        return {
+            "stopped": self.stopped,
+            "budget_m": self.budget_m,
+            "max_revolutions": self.max_revolutions,
+            "fits": [{"turns": f.turns, "predicted_error_m": f.predicted.max_m,
+                      "seconds": f.seconds} for f in self.fits],
+            "failed_fits": list(self.failures),
+        }
+
+
+def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnByTurn] | None:
+    """How the spin scan ``scan`` (``spin_scan``) goes on until the budget holds, or None when
+    it takes exactly its ``revolutions``: a recipe whose ``max_revolutions`` adds none, a
+    strategy that cannot fine-tune a scan under way (no ``run_prepared``), or a start that is
+    not known before the scan (the platter's chord is found in the scan itself)."""
+    from calstation.recipes.validation import most_turns
+
+    cfg = getattr(ctx.recipe.steps, scan)
+    strategy = ctx.strategy()
+    most = most_turns(ctx.recipe, scan)
+    if (most <= cfg.revolutions or not hasattr(strategy, "run_prepared")
+            or ctx.recipe.calibration.start != "l_target"):
+        return None
+    from calstation.engine.frames import Extrinsics
+    from calstation.plugins.cost_strategies import check_result
+    from calstation.station.accuracy import with_prediction
+
+    start = Extrinsics.from_dict(ctx.stored_calibration("initial").params())
+    recipe = ctx.recipe
+
+    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError]:
+        result = strategy.run_prepared(so_far, start, recipe)
+        result, _ = check_result(strategy, result, start)
+        return with_prediction(result, recipe)
+
+    def controller(builder: SpinScanBuilder) -> TurnByTurn:
+        return TurnByTurn(builder, fit, budget_m=recipe.calibration.accuracy.max_error,
+                          max_revolutions=most, max_duration_s=cfg.max_duration_s, ui=ctx.ui,
+                          scan=scan)
+
+    return controller
+
+
+def more_cube_turns(ctx: RunContext) -> Callable[[SpinScanBuilder], TurnByTurn] | None:
+    """How the cube scan goes on while it is what brings the budget within reach: for a
+    spin-target strategy whose fine calibration is above the budget on its own, the cube's side
+    faces measure ry; each whole revolution, their twist is combined with the spin target's
+    estimate (:func:`calstation.engine.joint.with_cube_ry`) and the combination's error is
+    predicted. None when the cube scan takes exactly its ``revolutions``."""
+    from calstation.recipes.validation import most_turns
+
+    cfg = ctx.recipe.steps.cube_scan
+    most = most_turns(ctx.recipe, "cube_scan")
+    if most <= cfg.revolutions or ctx.strategy().fixture != "spin_target":
+        return None
+    from calstation.engine.cube import check_cube_points
+    from calstation.engine.joint import with_cube_ry
+    from calstation.station.accuracy import with_prediction
+    from calstation.station.stored import as_result
+
+    recipe = ctx.recipe
+    fine = as_result(ctx.stored_calibration("fine"))
+    if with_prediction(fine, recipe)[1].max_m <= recipe.calibration.accuracy.max_error:
+        return None
+    limit = recipe.calibration.max_sigma.ry_deg
+
+    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError]:
+        check = check_cube_points(
+            so_far.p_L, so_far.phi, fine.H, recipe.fixtures.qa_cube, recipe.qa,
+            platter_radius=recipe.fixtures.platter.radius, memo=so_far.memo,
+        )
+        combined, _ = with_cube_ry(fine, check, None if limit is None else math.radians(limit))
+        return with_prediction(combined, recipe)
+
+    def controller(builder: SpinScanBuilder) -> TurnByTurn:
+        return TurnByTurn(builder, fit, budget_m=recipe.calibration.accuracy.max_error,
+                          max_revolutions=most, max_duration_s=cfg.max_duration_s, ui=ctx.ui,
+                          scan="cube_scan")
+
+    return controller

@@ -1,0 +1,181 @@
+"""What the state-changing requests may carry, and how their bodies are read.
+
+Bodies are JSON (scripts, the page's script) or a plain HTML form
+(``application/x-www-form-urlencoded``); any other content type is refused (415). A body that
+is not what it claims to be (not UTF-8, not JSON, a JSON constant such as ``Infinity``, a key
+given twice, nested past reason) is refused with 400; then the fields are validated by strict
+pydantic models (422): no unknown field, no type coercion (a ``prompt_id`` of ``1.5``,
+``true`` or ``"1"`` is not a prompt id), lengths and characters within what the database
+stores (``calstation/storage/db/models.py``: operator and serial are ``String(100)``).
+"""
+
+from __future__ import annotations
+
+import json
+import unicodedata
+from typing import Annotated, Any, Literal
+from urllib.parse import parse_qsl
+
+from fastapi import Request
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
+from starlette.exceptions import HTTPException
+
+from calstation.web.sessions import CSRF_FIELD
+from calstation.web.tokens import TOKEN_MAX_LENGTH
+
+NAME_LENGTH = 100
+"""Operator names and unit serials (``runs.operator``, ``runs.unit_serial``: String(100))."""
+
+MAX_PROMPT_ID = 2**53 - 1
+"""Prompt ids are counted from 1; this is the largest a browser's script holds exactly."""
+
+_FORBIDDEN = {"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"}
+
+
+def printable(value: str) -> str:
+    """``value`` (NFC) if it has no control, format, private-use, unassigned or surrogate
+    character and no line break; spaces other than U+0020 are refused too."""
+    value = unicodedata.normalize("NFC", value)
+    for ch in value:
+        category = unicodedata.category(ch)
+        if category in _FORBIDDEN or (category == "Zs" and ch != " "):
+            raise ValueError(f"character U+{ord(ch):04X} is not allowed here")
+    return value
+
+
+def operator_name(value: str) -> str:
+    """An operator's name: letters of any script, digits, spaces and ``.'’-_,()@``."""
+    value = printable(value)
+    for ch in value:
+        if not (ch.isalnum() or ch in " .'’-_,()@" or unicodedata.category(ch)[0] == "M"):
+            raise ValueError(f"{ch!r} is not allowed in an operator's name")
+    return value
+
+
+Text = Annotated[str, AfterValidator(printable)]
+OperatorName = Annotated[
+    str, StringConstraints(strip_whitespace=True, min_length=1, max_length=NAME_LENGTH),
+    AfterValidator(operator_name)]
+Serial = Annotated[str, StringConstraints(strip_whitespace=True, max_length=NAME_LENGTH,
+                                          pattern=r"^([A-Za-z0-9][A-Za-z0-9 ._:/#+-]*)?$")]
+RecipeFile = Annotated[str, StringConstraints(min_length=1, max_length=200,
+                                              pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*\.yaml$")]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(strict=True, extra="forbid", frozen=True)
+
+
+class StartRequest(_Strict):
+    """``POST /api/start``: a recipe file of the recipes folder, the operator, the unit's
+    serial (empty: the lidar's own)."""
+
+    recipe: RecipeFile
+    operator: OperatorName
+    serial: Serial | None = None
+
+
+class AnswerRequest(_Strict):
+    """``POST /api/answer``: the pending prompt's id and one of the answers it offers."""
+
+    prompt_id: Annotated[int, Field(ge=1, le=MAX_PROMPT_ID)]
+    answer: Literal["continue", "retry", "abort"]
+
+
+class EmptyRequest(_Strict):
+    """A request that carries nothing (``/api/abort``, ``/api/resume/N``, ``/logout``)."""
+
+
+class LoginRequest(_Strict):
+    """``POST /login``: the station token."""
+
+    token: Annotated[str, StringConstraints(min_length=1, max_length=TOKEN_MAX_LENGTH)]
+
+
+class BadBody(HTTPException):
+    """A body that is not what its content type says (400) or of a type not taken (415)."""
+
+
+def _no_constants(name: str) -> Any:
+    raise ValueError(f"{name} is not JSON")
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"key {key!r} given twice")
+        out[key] = value
+    return out
+
+
+def media_type(request: Request) -> tuple[str, dict[str, str]]:
+    """The request's content type (lower case) and its parameters."""
+    media, *params = request.headers.get("content-type", "").split(";")
+    out = {}
+    for p in params:
+        k, _, v = p.partition("=")
+        out[k.strip().lower()] = v.strip().strip('"').lower()
+    return media.strip().lower(), out
+
+
+async def read_fields(request: Request) -> dict[str, Any]:
+    """The body's fields (JSON object or form), without the form's ``csrf`` field, which is
+    kept in ``request.state.form_csrf``. Cached on the request."""
+    cached = getattr(request.state, "fields", None)
+    if cached is not None:
+        return dict(cached)
+    media, params = media_type(request)
+    body = await request.body()  # bounded by the front door's limit
+    form_csrf: str | None = None
+    fields: dict[str, Any]
+    if not body and media in ("", "application/json", "application/x-www-form-urlencoded"):
+        fields = {}
+    elif media == "application/json":
+        if params.get("charset", "utf-8") not in ("utf-8", "utf8"):
+            raise BadBody(415, "JSON must be UTF-8")
+        try:
+            data = json.loads(body.decode("utf-8"), parse_constant=_no_constants,
+                              object_pairs_hook=_no_duplicates)
+        except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+            raise BadBody(400, f"the body is not valid JSON: {str(exc)[:200]}") from exc
+        if not isinstance(data, dict):
+            raise BadBody(400, "the body must be a JSON object")
+        fields = data
+    elif media == "application/x-www-form-urlencoded":
+        try:
+            pairs = parse_qsl(body.decode("ascii"), keep_blank_values=True, strict_parsing=True,
+                              max_num_fields=16, encoding="utf-8", errors="strict")
+            fields = _no_duplicates(pairs)
+        except (UnicodeDecodeError, ValueError) as exc:
+            raise BadBody(400, f"the body is not a valid form: {str(exc)[:200]}") from exc
+        value = fields.pop(CSRF_FIELD, None)
+        form_csrf = value if isinstance(value, str) else None
+    else:
+        raise BadBody(415, f"content type {media[:60]!r} is not taken: send JSON "
+                           "(application/json) or a form (application/x-www-form-urlencoded)")
+    request.state.fields = fields
+    request.state.form_csrf = form_csrf
+    return dict(fields)
+
+
+def form_to_typed(fields: dict[str, Any], ints: tuple[str, ...]) -> dict[str, Any]:
+    """A form's fields with the named ones as integers (a form has only text; digits only,
+    so ``1.5`` or ``true`` stay text and are refused by the strict model)."""
+    out = dict(fields)
+    for name in ints:
+        value = out.get(name)
+        if isinstance(value, str) and value.isascii() and value.isdigit() and len(value) <= 18:
+            out[name] = int(value)
+    return out
+
+
+def schema_of(model: type[BaseModel]) -> dict[str, Any]:
+    """The OpenAPI ``requestBody`` of a route that takes ``model`` as JSON or as a form."""
+    schema = model.model_json_schema()
+    form = {**schema, "properties": {**schema.get("properties", {}),
+                                     CSRF_FIELD: {"type": "string", "maxLength": 100}}}
+    return {"requestBody": {"required": False, "content": {
+        "application/json": {"schema": schema},
+        "application/x-www-form-urlencoded": {"schema": form},
+    }}}

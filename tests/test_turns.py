@@ -1,0 +1,152 @@
+"""Scanning until the accuracy budget holds (calstation.station.turns), on the simulated
+station: the spin scan goes on turn by turn while the predicted error is above the budget, the
+fine-tuning takes or redoes the fit, and a refusal says what would help."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from calstation.engine.scan import Scan
+from calstation.recipes import load_recipe
+from calstation.recordings.reader import read_recording
+from calstation.station.runs import start_run
+from calstation.storage.db import Calibration, Database, Step, open_database
+
+pytest.importorskip("calstation_sim")
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+
+
+class Operator:
+    """Unattended, remembering what it was told and every station event."""
+
+    unattended = True
+
+    def __init__(self) -> None:
+        self.messages: list[str] = []
+        self.events: list[Any] = []
+        self.failures: list[tuple[str, str]] = []
+
+    def info(self, message: str) -> None:
+        self.messages.append(message)
+
+    warn = info
+
+    def confirm_fixture(self, fixture: str, description: str) -> bool:
+        return True
+
+    def on_failure(self, step: str, error: str, attempt: int) -> str:
+        self.failures.append((step, error))
+        return "abort"
+
+    @contextmanager
+    def progress(self, title: str) -> Iterator[Callable[[str, float], None]]:
+        yield lambda phase, fraction: None
+
+    def summary(self, summary: dict[str, Any]) -> None:
+        pass
+
+    def event(self, event: Any) -> None:
+        self.events.append(event)
+
+
+def _recipe(tmp_path: Path, budget: float, **spin: Any) -> Path:
+    """The simulated station made quick: 500 points per line at 60 rpm."""
+    data = yaml.safe_load((RECIPES / "sim-periodicity.yaml").read_text())
+    data["simulation"]["lidar"]["points_per_line"] = 500
+    data["simulation"]["seed"] = 3
+    data["steps"] = {"static_scan": {"lines": 40},
+                     "spin_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1, **spin},
+                     "cube_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1,
+                                   "max_revolutions": 1.02}}
+    data["calibration"] = {"accuracy": {"max_error": budget}}
+    path = tmp_path / "turns.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+@pytest.fixture
+def db(tmp_path: Path) -> Iterator[Database]:
+    database = open_database(f"sqlite:///{tmp_path / 'turns.db'}")
+    yield database
+    database.dispose()
+
+
+def _step(db: Database, run_id: int, name: str) -> Step:
+    with db.session() as s:
+        step = s.query(Step).filter_by(run_id=run_id, name=name).order_by(Step.id).all()[-1]
+        s.expunge(step)
+        return step
+
+
+def _turns(path: str) -> int:
+    scan: Scan = read_recording(path)
+    return scan.whole_turns()
+
+
+def test_a_generous_budget_ends_the_spin_scan_after_its_first_fit(
+    tmp_path: Path, db: Database
+) -> None:
+    ui = Operator()
+    run_id, status = start_run(load_recipe(_recipe(tmp_path, 0.005)), db, ui,
+                               operator="t", data_dir=tmp_path)
+    assert status == "passed", ui.failures
+    spin = _step(db, run_id, "spin_scan").result
+    summary = spin["turn_by_turn"]
+    # the first fit (one turn) met the budget and ended the scan, well before its 8 turns
+    assert summary["stopped"] == "budget"
+    assert summary["fits"][0]["turns"] == 1
+    assert summary["fits"][-1]["predicted_error_m"] <= 0.005
+    assert _turns(spin["recording"]) < 8
+    accuracy = [e for e in ui.events if e.kind == "accuracy"]
+    assert accuracy and accuracy[0].data["turns"] == 1 and accuracy[0].data["budget_m"] == 0.005
+    fine = _step(db, run_id, "fine_tune").result
+    assert fine["predicted_error_m"] <= fine["budget_m"] == 0.005
+    with db.session() as s:
+        accepted = s.query(Calibration).filter_by(run_id=run_id, accepted=True).one()
+        assert accepted.predicted_error_m is not None and accepted.predicted_error_m <= 0.005
+        assert accepted.diagnostics["predicted_error"]["budget_m"] == 0.005
+
+
+def test_an_unreachable_budget_turns_to_the_maximum_and_is_refused_with_what_would_help(
+    tmp_path: Path, db: Database
+) -> None:
+    ui = Operator()
+    run_id, status = start_run(
+        load_recipe(_recipe(tmp_path, 0.00005, max_revolutions=3)), db, ui, operator="t",
+        data_dir=tmp_path,
+    )
+    assert status == "failed"
+    spin = _step(db, run_id, "spin_scan").result
+    summary = spin["turn_by_turn"]
+    assert summary["stopped"] == "turns" and summary["max_revolutions"] == 3
+    assert _turns(spin["recording"]) == 3  # the recording holds every turn
+    assert [f["turns"] for f in summary["fits"]] == sorted({f["turns"] for f in summary["fits"]})
+    (step, error), = ui.failures
+    assert step == "fine_tune"
+    assert "calibration.accuracy.max_error" in error and "What would help" in error
+    # every suggestion is computed from this scan: more turns (how many), a slower platter, a
+    # faster line rate, each with its number
+    assert "turns (steps.spin_scan.max_revolutions:" in error and "this scan took 3" in error
+    assert "rpm instead of 60" in error and "lines/s instead of 1000" in error
+    refused = json.loads(json.dumps(_step(db, run_id, "fine_tune").result))
+    assert refused["refused"]["predicted_error_m"] > 0.00005
+
+
+def test_exactly_the_asked_turns_without_turn_by_turn(tmp_path: Path, db: Database) -> None:
+    ui = Operator()
+    run_id, status = start_run(
+        load_recipe(_recipe(tmp_path, 1e-6, max_revolutions=1.02)), db, ui, operator="t",
+        data_dir=tmp_path,
+    )
+    spin = _step(db, run_id, "spin_scan").result
+    assert "turn_by_turn" not in spin and _turns(spin["recording"]) == 1
+    assert not [e for e in ui.events if e.kind == "accuracy"]
+    assert status == "failed"
