@@ -104,7 +104,8 @@ def test_campaign_flags_exactly_the_seeded_runs_and_matches_calibrate(
 
     from calstation.web.app import create_app
 
-    web = TestClient(create_app(db, data_dir=tmp_path, recipes_dir=tmp_path))
+    web = TestClient(create_app(db, data_dir=tmp_path, recipes_dir=tmp_path),
+                     base_url="http://127.0.0.1:8470")
     campaign_id = data["campaign"]["id"]
     page = web.get(f"/campaigns/{campaign_id}")
     assert page.status_code == 200 and _flagged_in_report(page.text) == FLAGGED
