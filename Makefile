@@ -10,7 +10,7 @@ PLUGIN_DIRS := $(sort $(dir $(wildcard plugins/*/pyproject.toml)))
 STAMP  := $(VENV)/.calstation-installed
 OUT    ?= out
 
-.PHONY: setup system-deps demo demo-console test lint bench clean
+.PHONY: setup system-deps demo demo-console test lint bench bench-fleet clean
 
 setup: $(STAMP)
 
@@ -50,6 +50,11 @@ bench: setup
 	$(BIN)/python benchmarks/calibration.py
 	$(BIN)/python benchmarks/startup.py
 	$(BIN)/python benchmarks/web_load.py
+
+# 1,000 stored runs on PostgreSQL re-processed with 1 and 2 local Dask workers (docs/fleet.md;
+# about 45 minutes on two cores)
+bench-fleet: setup
+	$(BIN)/python benchmarks/fleet_reprocess.py
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache .mypy_cache .ruff_cache

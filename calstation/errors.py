@@ -23,6 +23,10 @@ class RecordingError(CalstationError):
     """A recording is missing, unreadable, truncated past use, or inconsistent."""
 
 
+class RecordingUnavailable(RecordingError):
+    """A stored recording that cannot be used as stored: missing, or changed (its sha256)."""
+
+
 class RecordingImportError(RecordingError):
     """A ROS bag or a line log could not be imported: it names the file, the topic or column,
     the field and what was found."""
@@ -87,3 +91,7 @@ class DatabaseError(CalstationError):
 
 class ResultJournalled(DatabaseError):
     """A result could not be written to the database and was kept in the run folder's journal."""
+
+
+class FleetError(CalstationError):
+    """A re-processing campaign cannot go on (its cluster, its selection, its options)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from hypothesis import settings
@@ -56,3 +57,13 @@ def sim_run(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., dict[str,
         return dict(cache[key])
 
     return run
+
+
+@pytest.fixture(scope="session")
+def fleet_sim(tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """Two simulated runs of the fleet recipe and what today's engine finds on each
+    (:func:`calstation.testing.fleet.simulate_fleet`): what the campaign tests seed runs on.
+    Treat the files as read-only: other tests share them."""
+    from calstation.testing.fleet import simulate_fleet
+
+    return simulate_fleet(tmp_path_factory.mktemp("fleet"))

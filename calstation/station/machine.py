@@ -300,6 +300,7 @@ class Station:
         self._write_report_html()
         self._notify("run_finished", run=run_brief_from(summary), status=status, summary=summary)
         self.ui.summary(summary)
+        self._upload_files()
         return status
 
     def _write_report_html(self) -> None:
@@ -310,6 +311,29 @@ class Station:
             write_run_report(self.db, self.run_id)
         except Exception as exc:
             self.ui.warn(f"could not write report.html: {type(exc).__name__}: {exc}")
+
+    def _upload_files(self) -> None:
+        """Copy the run's files to the fleet's shared store when one is configured
+        (``$CALSTATION_RECORDINGS_URL``, :mod:`calstation.storage.uploads`). A failure is a
+        warning: the run folder keeps every file, and ``calstation upload`` sends them later."""
+        from calstation.storage.uploads import recordings_store, upload_run
+
+        store = recordings_store()
+        if store is None:
+            return
+        try:
+            done = upload_run(self.db, self.run_id, store)
+        except CalstationError as exc:
+            problem = str(exc)
+        else:
+            if done.ok:
+                self.ui.info(f"files copied to {escape(store)}: {len(done.sent)} sent, "
+                             f"{len(done.present)} there already")
+                return
+            problem = "; ".join(done.failed)
+        self.ui.warn(f"the run's files were not all copied to {escape(store)}: "
+                     f"{escape(problem)}; the run folder keeps them, and `calstation upload "
+                     f"{self.run_id}` sends them later")
 
     def _notify(self, hook: str, **kwargs: Any) -> None:
         """Call an observer hook; an observer's exception is a warning, never a failed run."""

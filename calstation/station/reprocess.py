@@ -6,6 +6,11 @@ static scan and a fine-tuning strategy on the right spin scan, and stores the re
 as a calibration of stage ``"reprocess"`` — not accepted unless asked. The difference to the run's
 accepted calibration is part of the result.
 
+It is three steps, so that a campaign (:mod:`calstation.fleet`) does exactly the same on a Dask
+worker: :func:`plan_reprocessing` reads what the run needs from the database into a
+:class:`ReprocessJob` of plain values, :func:`compute_reprocessing` does the work from the job
+alone (no database), and :func:`add_reprocessing` stores the result.
+
 :func:`recording_disagreements` compares a recording's own metadata with the recipe it is
 calibrated with (also for ``calibrate RECIPE --static --spin``); the recording's values are the
 ones the reconstruction uses, so each disagreement is a warning naming both values.
@@ -20,12 +25,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from calstation.engine.frames import Extrinsics
 from calstation.engine.result import CalibrationResult
-from calstation.errors import DatabaseError, RecordingError
+from calstation.errors import DatabaseError, RecordingError, RecordingUnavailable
 from calstation.recipes import LoadedRecipe, parse_recipe
 from calstation.recordings.runfolder import second_pass
+from calstation.recordings.shared import StoredFile
 from calstation.storage.db import PARAMS, Calibration, Database, Run
 
 if TYPE_CHECKING:
@@ -94,20 +101,32 @@ class Reprocessing:
 
 def run_recipe(run: Run) -> LoadedRecipe:
     """The recipe stored with ``run`` (the text it ran with, not the file as it is now)."""
-    path = Path(run.recipe_path) if run.recipe_path else None
+    return job_recipe(run.id, run.recipe_text, run.recipe_path)
+
+
+def job_recipe(run_id: int, text: str, recipe_path: str | None) -> LoadedRecipe:
+    """Run ``run_id``'s recipe from its stored ``text`` and path (for its relative files)."""
+    path = Path(recipe_path) if recipe_path else None
     base_dir = path.parent if path is not None else None
-    recipe = parse_recipe(run.recipe_text, f"recipe of run {run.id}", base_dir)
-    return LoadedRecipe(recipe, path, run.recipe_text)
+    return LoadedRecipe(parse_recipe(text, f"recipe of run {run_id}", base_dir), path, text)
+
+
+def newest_recording(run: Run, kind: str) -> StoredFile | None:
+    """The run's newest complete ``kind`` recording as stored (a partial one, a scan cut
+    short, is never re-processed); None when there is none."""
+    from calstation.station.stored import stored_file
+
+    found = [a for a in run.artifacts if a.kind == kind and a.status == "complete"]
+    return stored_file(found[-1]) if found else None
 
 
 def stored_recording(run: Run, kind: str) -> Path:
     """The newest ``kind`` recording of ``run`` (``static``, ``spin``, ``cube``), checked against
-    its stored size and sha256; :class:`RecordingError` when missing or changed."""
+    its stored sha256 (its shared copy when the run folder's file is gone);
+    :class:`RecordingError` when missing or changed."""
     from calstation.station.stored import checked_recording
 
-    # a partial recording (a scan cut short) is never re-processed
-    found = [a for a in run.artifacts if a.kind == kind and a.status == "complete"]
-    return checked_recording(found[-1] if found else None, run.id, kind, RecordingError)
+    return checked_recording(newest_recording(run, kind), run.id, kind, RecordingError)
 
 
 def _spin_fixture(run: Run, loaded: LoadedRecipe) -> str:
@@ -138,6 +157,156 @@ def spin_recording_kind(run_strategy_fixture: str, fixture: str) -> str:
     )
 
 
+@dataclass(frozen=True)
+class ReprocessJob:
+    """A stored run's re-processing as plain values, without the database (what a campaign
+    sends to a Dask worker): the recipe text, the strategy, the recording the strategy runs on
+    (``kind``), and the stored recordings by kind (None: none stored), ``required`` in the order
+    they are checked, then ``optional`` ones (the cube scan of a spin-target strategy, whose
+    absence is a warning)."""
+
+    run_id: int
+    recipe_text: str
+    recipe_path: str | None
+    strategy: str
+    kind: str
+    recordings: dict[str, StoredFile | None]
+    required: tuple[str, ...]
+    optional: tuple[str, ...] = ()
+
+
+def plan_reprocessing(run: Run, strategy_name: str | None = None) -> ReprocessJob:
+    """What re-processing ``run`` needs (see :class:`ReprocessJob`); ``strategy_name`` defaults
+    to the run's recipe's ``calibration.strategy``. :class:`RecordingError` when the run holds
+    no scan of the strategy's fixture."""
+    from calstation import plugins
+
+    loaded = run_recipe(run)
+    rc = loaded.recipe
+    name = strategy_name or rc.calibration.strategy
+    strategy = plugins.strategy(name)
+    kind = spin_recording_kind(_spin_fixture(run, loaded), strategy.fixture)
+    required = [kind]
+    if rc.calibration.start != "platter":
+        required.append("static")
+    if rc.steps.spin_scan.second_pass_rpm is not None and kind == "spin":
+        required.append(second_pass("spin"))
+    optional = ("cube",) if strategy.fixture == "spin_target" and kind != "cube" else ()
+    return ReprocessJob(
+        run_id=run.id, recipe_text=run.recipe_text, recipe_path=run.recipe_path,
+        strategy=name, kind=kind,
+        recordings={k: newest_recording(run, k) for k in (*required, *optional)},
+        required=tuple(required), optional=optional,
+    )
+
+
+@dataclass(frozen=True)
+class Recomputed:
+    """What :func:`compute_reprocessing` found: the recomputed ``initial`` and ``result`` (its
+    diagnostics name the recordings, the recipe sha256, the warnings and the refusals), the
+    recordings read (kind → local path), ``warnings``, ``refused`` (the observability gate's
+    reasons, empty when the result meets it) and ``cube_check``: the cube measured under
+    ``result.H`` when ry was combined with the cube scan (else None)."""
+
+    run_id: int
+    initial: CalibrationResult
+    result: CalibrationResult
+    recordings: dict[str, str]
+    warnings: list[str]
+    refused: list[str]
+    cube_check: Any = None
+
+
+def compute_reprocessing(
+    job: ReprocessJob,
+    progress: Progress | None = None,
+    status: Callable[[str], Any] | None = None,
+) -> Recomputed:
+    """Calibrate ``job``'s run again from its recordings (each checked against its sha256
+    first) with its recipe, as the station did: the initial calibration (or the platter's
+    chord), the strategy, ry combined with the cube scan for a spin-target strategy, the time
+    offset from a second pass, judged as a run judges it (``calibration.max_sigma``, the
+    accuracy budget: :func:`calstation.station.accuracy.judge`). Touches no database.
+    :class:`RecordingUnavailable` when a required recording is missing or changed."""
+    from calstation.station.accuracy import judge
+    from calstation.station.stored import checked_recording
+
+    say = status or (lambda message: None)
+    loaded = job_recipe(job.run_id, job.recipe_text, job.recipe_path)
+    paths = {k: checked_recording(job.recordings.get(k), job.run_id, k, RecordingUnavailable)
+             for k in job.required}
+    warnings: list[str] = []
+    for k in job.optional:
+        try:  # the cube scan adds its side faces to ry, as at the station
+            paths[k] = checked_recording(job.recordings.get(k), job.run_id, k, RecordingError)
+        except RecordingError as exc:
+            warnings.append(f"ry from the spin target alone: {exc}")
+    result, initial, joint_failure, check, turns = _recompute(job, loaded, paths, warnings,
+                                                              progress, say)
+    result, refused = judge(result, loaded.recipe, ry_failure=joint_failure, turns=turns)
+    recordings = {k: str(v) for k, v in paths.items()}
+    result = replace(result, diagnostics={
+        **result.diagnostics,
+        "initial": {"H": initial.H.as_dict(), "timings": dict(initial.timings)},
+        "reprocess": {"recordings": recordings, "warnings": warnings,
+                      "recipe_sha256": loaded.sha256, "refused": refused},
+    })
+    return Recomputed(job.run_id, initial, result, recordings, warnings, refused, check)
+
+
+def _recompute(
+    job: ReprocessJob,
+    loaded: LoadedRecipe,
+    paths: dict[str, Path],
+    warnings: list[str],
+    progress: Progress | None,
+    say: Callable[[str], Any],
+) -> tuple[CalibrationResult, CalibrationResult, str | None, Any, float]:
+    """The engine's part of :func:`compute_reprocessing`: (result, initial, the failure of the
+    ry combination or None, the cube check under the combined H or None, the whole turns of the
+    scan the strategy ran on); appends warnings."""
+    from calstation import plugins
+    from calstation.engine.initial import initial_calibration
+    from calstation.plugins.cost_strategies import (
+        fine_tune_targetless,
+        fine_tune_with_cube,
+        run_strategy,
+    )
+    from calstation.recordings.reader import read_recording
+
+    rc = loaded.recipe
+    strategy = plugins.strategy(job.strategy)
+    say(f"reading {paths[job.kind]}")
+    spin = read_recording(paths[job.kind])
+    warnings += recording_disagreements(spin, loaded)
+    if "static" not in paths:
+        say("start from the platter's chord, then the fine-tuning")
+        result, strategy_warnings, initial = fine_tune_targetless(strategy, spin, rc, progress)
+    else:
+        say(f"reading {paths['static']}")
+        static = read_recording(paths["static"])
+        warnings += recording_disagreements(static, loaded)
+        say("initial calibration")
+        initial = initial_calibration(static, rc.fixtures.static_target, rc.calibration.initial)
+        result, strategy_warnings = run_strategy(strategy, spin, initial.H, rc, progress)
+    warnings += strategy_warnings
+    joint_failure = check = None
+    if "cube" in paths and job.kind != "cube":
+        say(f"combining ry with the cube scan {paths['cube']}")
+        cube = read_recording(paths["cube"])
+        warnings += recording_disagreements(cube, loaded)
+        result, check, joint_failure = fine_tune_with_cube(result, cube, rc)
+    pass2 = paths.get(second_pass("spin"))
+    if pass2 is not None:  # under the final H (it moves a little with ry)
+        from calstation.engine.timeoffset import with_time_offset
+
+        say(f"lidar–encoder time offset with {pass2}")
+        second = read_recording(pass2)
+        warnings += recording_disagreements(second, loaded)
+        result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
+    return result, initial, joint_failure, check, float(spin.whole_turns())
+
+
 def reprocess_run(
     db: Database,
     run_id: int,
@@ -156,17 +325,6 @@ def reprocess_run(
     over the recipe's ``calibration.max_sigma`` is stored but not accepted, with the reasons in
     ``refused``. ``status(message)`` is told what is being done (reading, initial calibration).
     """
-    from calstation import plugins
-    from calstation.engine.initial import initial_calibration
-    from calstation.plugins.cost_strategies import (
-        fine_tune_targetless,
-        fine_tune_with_cube,
-        run_strategy,
-    )
-    from calstation.recordings.reader import read_recording
-    from calstation.station.accuracy import judge
-
-    say = status or (lambda message: None)
     with db.session() as s:
         run = s.get(Run, run_id)
         if run is None:
@@ -176,103 +334,44 @@ def reprocess_run(
                 f"run {run_id} has status {run.status}: only a passed run has an accepted "
                 "calibration, so --accept is refused"
             )
-        loaded = run_recipe(run)
-        rc = loaded.recipe
-        name = strategy_name or rc.calibration.strategy
-        strategy = plugins.strategy(name)
-        kind = spin_recording_kind(_spin_fixture(run, loaded), strategy.fixture)
-        targetless = rc.calibration.start == "platter"
-        paths = {kind: stored_recording(run, kind)}
-        if not targetless:
-            paths["static"] = stored_recording(run, "static")
-        warnings: list[str] = []
-        if loaded.recipe.steps.spin_scan.second_pass_rpm is not None and kind == "spin":
-            paths[second_pass("spin")] = stored_recording(run, second_pass("spin"))
-        if strategy.fixture == "spin_target" and kind != "cube":
-            try:  # the cube scan adds its side faces to ry, as at the station
-                paths["cube"] = stored_recording(run, "cube")
-            except RecordingError as exc:
-                warnings.append(f"ry from the spin target alone: {exc}")
-    say(f"reading {paths[kind]}")
-    spin = read_recording(paths[kind])
-    warnings += recording_disagreements(spin, loaded)
-    if targetless:
-        say("start from the platter's chord, then the fine-tuning")
-        result, strategy_warnings, initial = fine_tune_targetless(strategy, spin, rc, progress)
-    else:
-        say(f"reading {paths['static']}")
-        static = read_recording(paths["static"])
-        warnings += recording_disagreements(static, loaded)
-        say("initial calibration")
-        initial = initial_calibration(static, rc.fixtures.static_target, rc.calibration.initial)
-        result, strategy_warnings = run_strategy(strategy, spin, initial.H, rc, progress)
-    warnings += strategy_warnings
-    joint_failure = None
-    if "cube" in paths and kind != "cube":
-        say(f"combining ry with the cube scan {paths['cube']}")
-        cube = read_recording(paths["cube"])
-        warnings += recording_disagreements(cube, loaded)
-        result, _, joint_failure = fine_tune_with_cube(result, cube, rc)
-    pass2 = paths.get(second_pass("spin"))
-    if pass2 is not None:  # under the final H (it moves a little with ry)
-        from calstation.engine.timeoffset import with_time_offset
-
-        say(f"lidar–encoder time offset with {pass2}")
-        second = read_recording(pass2)
-        warnings += recording_disagreements(second, loaded)
-        result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
-    result, refused = judge(result, rc, ry_failure=joint_failure,
-                            turns=float(spin.whole_turns()))
-    recordings = {k: str(v) for k, v in paths.items()}
-    result = replace(result, diagnostics={
-        **result.diagnostics,
-        "initial": {"H": initial.H.as_dict(), "timings": dict(initial.timings)},
-        "reprocess": {"recordings": recordings, "warnings": warnings,
-                      "recipe_sha256": loaded.sha256, "refused": refused},
-    })
-    done = _store(db, run_id, result, initial, recordings, warnings, accept and not refused)
-    return replace(done, refused=refused)
+        job = plan_reprocessing(run, strategy_name)
+    done = compute_reprocessing(job, progress, status)
+    with db.session() as s:
+        return add_reprocessing(s, done, accept and not done.refused)
 
 
-def _store(
-    db: Database,
-    run_id: int,
-    result: CalibrationResult,
-    initial: CalibrationResult,
-    recordings: dict[str, str],
-    warnings: list[str],
-    accept: bool,
-) -> Reprocessing:
-    """Store the re-processing with the run (one transaction) and compare it to the accepted."""
+def add_reprocessing(s: Session, done: Recomputed, accept: bool) -> Reprocessing:
+    """Add ``done`` to the session ``s`` as a calibration of stage ``reprocess`` of its run
+    (accepted with ``accept``: the run's other calibrations are then no longer accepted), and
+    compare it with the run's accepted calibration."""
     from calstation.station.persist import calibration_row
 
-    with db.session() as s:
-        previous = s.scalars(
-            select(Calibration).where(Calibration.run_id == run_id, Calibration.accepted)
-            .order_by(Calibration.id.desc())
-        ).first()
-        accepted = previous.params() if previous is not None else None
-        accepted_id = previous.id if previous is not None else None
-        accepted_gauge = (previous.diagnostics or {}).get("gauge") if previous is not None else None
-        row = calibration_row(run_id, None, REPROCESS_STAGE, result)
-        if accepted_id is not None:
-            row.diagnostics = {**(row.diagnostics or {}), "compared_to": accepted_id}
-        if accept:
-            for c in s.scalars(select(Calibration).where(Calibration.run_id == run_id)):
-                c.accepted = False
-            row.accepted = True
-        s.add(row)
-        s.flush()
-        new_id = row.id
+    run_id, result = done.run_id, done.result
+    previous = s.scalars(
+        select(Calibration).where(Calibration.run_id == run_id, Calibration.accepted)
+        .order_by(Calibration.id.desc())
+    ).first()
+    accepted = previous.params() if previous is not None else None
+    accepted_id = previous.id if previous is not None else None
+    accepted_gauge = (previous.diagnostics or {}).get("gauge") if previous is not None else None
+    row = calibration_row(run_id, None, REPROCESS_STAGE, result)
+    if accepted_id is not None:
+        row.diagnostics = {**(row.diagnostics or {}), "compared_to": accepted_id}
+    if accept:
+        for c in s.scalars(select(Calibration).where(Calibration.run_id == run_id)):
+            c.accepted = False
+        row.accepted = True
+    s.add(row)
+    s.flush()
     difference = None
     if accepted is not None:
         new = result.H.as_dict()
         difference = {p: new[p] - accepted[p] for p in PARAMS}
     return Reprocessing(
-        run_id=run_id, calibration_id=new_id, accepted_now=accept, initial=initial,
-        result=result, recordings=recordings, accepted=accepted, accepted_id=accepted_id,
+        run_id=run_id, calibration_id=row.id, accepted_now=accept, initial=done.initial,
+        result=result, recordings=done.recordings, accepted=accepted, accepted_id=accepted_id,
         accepted_gauge=None if accepted_gauge is None else str(accepted_gauge),
-        difference=difference, warnings=warnings,
+        difference=difference, warnings=done.warnings, refused=done.refused,
     )
 
 

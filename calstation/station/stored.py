@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 from sqlalchemy import select
 
 from calstation.errors import CalstationError, StationError
-from calstation.recordings.runfolder import file_sha256
+from calstation.recordings.shared import SharedStorageError, StoredFile, local_copy
 from calstation.storage.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
 from calstation.storage.report import run_brief
 
@@ -24,23 +24,24 @@ if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
 
 
+def stored_file(art: Artifact) -> StoredFile:
+    """An artifact as :func:`calstation.recordings.shared.local_copy` takes it."""
+    return StoredFile(art.path, art.sha256, art.size_bytes, art.location)
+
+
 def checked_recording(
-    art: Artifact | None, run_id: int, kind: str, error: type[CalstationError]
+    art: Artifact | StoredFile | None, run_id: int, kind: str, error: type[CalstationError]
 ) -> Path:
-    """The path of a stored ``kind`` recording of run ``run_id`` after checking that the file
-    is there and unchanged (its stored sha256); ``error`` names what is wrong."""
+    """The local path of a stored ``kind`` recording of run ``run_id`` after checking that its
+    bytes are the stored ones (sha256): the run folder's file, else its shared copy
+    (``artifact.location``) fetched and checked; ``error`` names what is wrong."""
     if art is None:
         raise error(f"run {run_id} has no {kind} recording stored")
-    path = Path(art.path)
-    if not path.is_file():
-        raise error(f"the {kind} recording of run {run_id} is missing: {path}")
-    digest = file_sha256(path)
-    if digest != art.sha256:
-        raise error(
-            f"the {kind} recording {path} of run {run_id} changed since it was stored "
-            f"(sha256 {digest[:12]}… now, {art.sha256[:12]}… stored)"
-        )
-    return path
+    stored = art if isinstance(art, StoredFile) else stored_file(art)
+    try:
+        return local_copy(stored)
+    except SharedStorageError as exc:
+        raise error(f"the {kind} recording of run {run_id}: {exc}") from None
 
 
 def artifact_path(db: Database, run_id: int, kind: str) -> Path:

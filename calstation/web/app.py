@@ -123,6 +123,7 @@ def create_app(
     _error_handlers(app, ctx)
     _operator_routes(app, ctx)
     _run_routes(app, ctx)
+    _fleet_routes(app, ctx, recipes_dir)
     _api_routes(app, ctx)
     _plan_routes(app, ctx, Planner(runner))
     return app
@@ -229,6 +230,7 @@ def _optional_text(value: str | None) -> str | None:
 
 OptionalText = Annotated[str | None, AfterValidator(_optional_text)]
 RunId = Annotated[int, PathParam(ge=1, le=MAX_ID, description="a run id")]
+CampaignId = Annotated[int, PathParam(ge=1, le=MAX_ID, description="a campaign id")]
 
 
 # --- operator --------------------------------------------------------------------------------
@@ -514,6 +516,71 @@ def _file_policy(html: str) -> str:
     return (f"sandbox allow-scripts; default-src 'none'; script-src {scripts} 'report-sample'; "
             f"style-src {styles} 'report-sample'; img-src data: blob:; base-uri 'none'; "
             "form-action 'none'; frame-ancestors 'none'")
+
+
+# --- campaigns, metrics ----------------------------------------------------------------------
+def recipe_stations(recipes_dir: Path) -> list[str]:
+    """The ``station.id`` of each recipe of the recipes folder (the stations this server runs)."""
+    import yaml
+
+    out: set[str] = set()
+    for path in sorted(recipes_dir.glob("*.yaml")) if recipes_dir.is_dir() else []:
+        try:
+            data = yaml.safe_load(path.read_text(encoding="utf-8"))
+            out.add(str(data["station"]["id"]))
+        except (OSError, yaml.YAMLError, KeyError, TypeError):
+            continue
+    return sorted(out)
+
+
+def _fleet_routes(app: FastAPI, ctx: _Pages, recipes_dir: Path) -> None:
+    from calstation.fleet.metrics import StationMetrics
+
+    metrics = StationMetrics(ctx.db, lambda: recipe_stations(recipes_dir),
+                             lambda: ctx.runner.busy)
+
+    @app.get("/metrics")
+    def metrics_page() -> Response:
+        """Prometheus metrics of this server's stations (docs/fleet.md)."""
+        from prometheus_client import CONTENT_TYPE_LATEST
+
+        return Response(metrics.render(), media_type=CONTENT_TYPE_LATEST)
+
+    def campaigns() -> list[dict[str, Any]]:
+        from calstation.fleet.view import campaign_list
+
+        with ctx.db.session("reading the campaigns", read_only=True) as s:
+            return campaign_list(s)
+
+    @app.get("/campaigns.json")
+    def campaigns_json() -> dict[str, Any]:
+        """The re-processing campaigns, newest first."""
+        return {"campaigns": campaigns()}
+
+    @app.get("/campaigns", response_class=HTMLResponse)
+    def campaigns_page(request: Request) -> HTMLResponse:
+        """The re-processing campaigns (``calstation reprocess``), newest first."""
+        return ctx.page(request, "campaigns.html", {"campaigns": campaigns()})
+
+    def campaign(campaign_id: int) -> dict[str, Any]:
+        from calstation.fleet.view import campaign_data
+        from calstation.storage.db import Campaign
+
+        with ctx.db.session("reading the campaign", read_only=True) as s:
+            if s.get(Campaign, campaign_id) is None:
+                raise NotFound(f"no campaign {campaign_id}")
+            return campaign_data(s, campaign_id)
+
+    @app.get("/campaigns/{campaign_id}.json")
+    def campaign_json(campaign_id: CampaignId) -> dict[str, Any]:
+        """One campaign as JSON: what ``calstation reprocess --json`` prints."""
+        return campaign(campaign_id)
+
+    @app.get("/campaigns/{campaign_id}", response_class=HTMLResponse)
+    def campaign_page(request: Request, campaign_id: CampaignId) -> HTMLResponse:
+        """One campaign: counts, the histogram of changes, the flagged units, each run linked."""
+        return ctx.page(request, "campaign.html", {"data": campaign(campaign_id),
+                                                   "link_base": ""})
 
 
 # --- api (state-changing) --------------------------------------------------------------------

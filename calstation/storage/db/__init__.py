@@ -40,6 +40,8 @@ from calstation.storage.db.models import (
     Artifact as Artifact,
     Base as Base,
     Calibration as Calibration,
+    Campaign as Campaign,
+    CampaignRun as CampaignRun,
     CubeCheckRecord as CubeCheckRecord,
     Run as Run,
     Station as Station,

@@ -1,4 +1,5 @@
-"""The run database's tables: station, run, step, calibration, cube check, artifact.
+"""The run database's tables: station, run, step, calibration, cube check, artifact, and the
+re-processing campaigns (campaign, campaign run).
 
 SQLAlchemy 2 typed models. Only portable column types are used (the same schema runs on SQLite and
 PostgreSQL). Lengths are metres and angles radians, as everywhere in storage; times are UTC.
@@ -229,7 +230,74 @@ class Artifact(Base):
     size_bytes: Mapped[int] = mapped_column(BigInteger)
     sha256: Mapped[str] = mapped_column(String(64))
     status: Mapped[str] = mapped_column(String(16), default="complete", server_default="complete")
+    location: Mapped[str | None] = mapped_column(String(1000))
+    """Where the file's shared copy is (an fsspec URL: ``s3://…``, ``file://…``), once uploaded
+    and verified against ``sha256``; None while only the local ``path`` holds it."""
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
     run: Mapped[Run] = relationship(back_populates="artifacts")
     step: Mapped[Step | None] = relationship(back_populates="artifacts")
+
+
+class Campaign(Base):
+    """A re-processing campaign: stored runs calibrated again with today's engine
+    (``calstation reprocess``).
+
+    ``key`` identifies what is computed (the selection of runs and the strategy): the same
+    command finds the campaign again and continues it. ``selection`` holds the filters as given,
+    ``tolerance`` what a change is flagged above (:mod:`calstation.fleet.tolerance`),
+    ``selected`` how many runs the last invocation selected, ``engine`` the calstation version.
+    ``finished_at`` is set when every selected run has a row.
+    """
+
+    __tablename__ = "campaign"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    key: Mapped[str] = mapped_column(String(64), index=True)
+    selection: Mapped[dict[str, Any]] = mapped_column(JSON)
+    strategy: Mapped[str | None] = mapped_column(String(50))
+    tolerance: Mapped[dict[str, Any]] = mapped_column(JSON)
+    engine: Mapped[str] = mapped_column(String(100))
+    host: Mapped[str | None] = mapped_column(String(255))
+    selected: Mapped[int] = mapped_column(Integer, default=0)
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
+
+    runs: Mapped[list[CampaignRun]] = relationship(
+        back_populates="campaign", order_by="CampaignRun.run_id", cascade="all, delete-orphan"
+    )
+
+
+class CampaignRun(Base):
+    """One run of a campaign: its re-processing and how it compares with the stored H.
+
+    ``outcome`` is ``"reprocessed"`` (``calibration_id`` is the stored re-processing, stage
+    ``reprocess``, never accepted), ``"skipped"`` (its recordings are missing or changed:
+    ``error`` says which) or ``"failed"`` (the engine failed: ``error``). ``comparison`` holds
+    the stored H against the new one (:func:`calstation.fleet.compare.compare`); ``flagged``
+    marks a change above the campaign's tolerance, ``refused`` a result today's engine refuses.
+    ``seconds`` is the re-processing's own time, ``worker`` where it ran. One row per run and
+    campaign: a resumed campaign never computes a run twice.
+    """
+
+    __tablename__ = "campaign_run"
+    __table_args__ = (UniqueConstraint("campaign_id", "run_id"),)
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    campaign_id: Mapped[int] = mapped_column(
+        ForeignKey("campaign.id", ondelete="CASCADE"), index=True
+    )
+    run_id: Mapped[int] = mapped_column(ForeignKey("run.id", ondelete="CASCADE"), index=True)
+    calibration_id: Mapped[int | None] = mapped_column(
+        ForeignKey("calibration.id", ondelete="SET NULL")
+    )
+    outcome: Mapped[str] = mapped_column(String(16))
+    flagged: Mapped[bool] = mapped_column(Boolean, default=False, index=True)
+    refused: Mapped[bool] = mapped_column(Boolean, default=False)
+    comparison: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    error: Mapped[str | None] = mapped_column(Text)
+    seconds: Mapped[float | None] = mapped_column(Float)
+    worker: Mapped[str | None] = mapped_column(String(255))
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+
+    campaign: Mapped[Campaign] = relationship(back_populates="runs")

@@ -1,0 +1,96 @@
+"""A finished run's files copied to the fleet's shared store, and where they went recorded.
+
+The store is ``$CALSTATION_RECORDINGS_URL`` (an fsspec URL or a folder: ``s3://bucket/stations``,
+``file:///srv/calstation``). A run's files go to ``<store>/<station>/runs/<run id>/<file name>``;
+each is copied and checked (:func:`calstation.recordings.shared.upload`), then its artifact's
+``location`` is stored. The local copy is never touched: a failed upload leaves the run as it was
+(the locations it had stay), and the next upload of the run sends only what is not there yet.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from sqlalchemy import select
+
+from calstation.errors import DatabaseError
+from calstation.recordings.shared import SharedStorageError, join, upload
+from calstation.storage.db import Artifact, Database, Run
+
+STORE_ENV = "CALSTATION_RECORDINGS_URL"
+"""The environment variable naming the shared store."""
+
+
+def recordings_store() -> str | None:
+    """``$CALSTATION_RECORDINGS_URL``, or None when runs stay in their run folders only."""
+    return os.environ.get(STORE_ENV) or None
+
+
+@dataclass
+class RunUpload:
+    """What :func:`upload_run` did: files sent, already there (checked), and the errors of
+    those that could not be sent (their local copies are kept)."""
+
+    run_id: int
+    sent: list[str] = field(default_factory=list)
+    present: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """Whether every file of the run has its shared copy now."""
+        return not self.failed
+
+
+def run_location(store: str, station: str, run_id: int) -> str:
+    """Where run ``run_id`` of ``station`` goes in ``store``."""
+    return join(store, station, "runs", str(run_id))
+
+
+def upload_run(
+    db: Database, run_id: int, store: str, say: Callable[[str], None] | None = None
+) -> RunUpload:
+    """Copy every file of run ``run_id`` that has no shared copy in ``store`` yet (see the
+    module docstring); ``say`` is told of each file."""
+    tell = say or (lambda message: None)
+    with db.session("reading the run's files", read_only=True) as s:
+        run = s.get(Run, run_id)
+        if run is None:
+            raise DatabaseError(f"no run with id {run_id} in the database")
+        base = run_location(store, run.station.name, run_id)
+        files = [(a.id, Path(a.path), a.sha256) for a in run.artifacts
+                 if not (a.location or "").startswith(base)]
+    done = RunUpload(run_id)
+    for art_id, path, sha256 in files:
+        location = join(base, path.name)
+        try:
+            if not path.is_file():
+                raise SharedStorageError(f"{path} is missing here: it cannot be uploaded")
+            copied = upload(path, location, sha256)
+        except SharedStorageError as exc:
+            done.failed.append(str(exc))
+            tell(f"not uploaded: {exc}")
+            continue
+        with db.session("storing where a file was uploaded") as s:
+            art = s.get(Artifact, art_id)
+            assert art is not None
+            art.location = location
+        (done.sent if copied.sent or copied.resumed_from else done.present).append(location)
+        tell(f"{path.name} → {location}" + (" (there already)" if not copied.sent else ""))
+    return done
+
+
+def runs_to_upload(db: Database, station: str | None = None, limit: int = 1000) -> list[int]:
+    """Finished runs (of ``station``) with a file that has no shared copy yet, oldest first."""
+    from calstation.storage.db import Station
+
+    stmt = (select(Run.id).join(Artifact, Artifact.run_id == Run.id)
+            .where(Artifact.location.is_(None), Run.status != "running")
+            .distinct().order_by(Run.id).limit(limit))
+    if station is not None:
+        stmt = stmt.join(Station, Run.station_id == Station.id).where(Station.name == station)
+    with db.session("finding runs to upload", read_only=True) as s:
+        return [int(i) for i in s.scalars(stmt)]
