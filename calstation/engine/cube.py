@@ -21,7 +21,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from calstation.engine.frames import Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import (
@@ -33,6 +32,13 @@ from calstation.engine.geometry import (
     upright_box,
 )
 from calstation.engine.settings import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
+from calstation.engine.twist import (  # the twist lived here; its names are still importable
+    FaceFlatness as FaceFlatness,
+    face_range_noise as face_range_noise,
+    face_twist,
+    flatness_ry_sigma as flatness_ry_sigma,
+    twist_noise_bias as twist_noise_bias,
+)
 from calstation.errors import VerificationError
 
 if TYPE_CHECKING:
@@ -410,137 +416,6 @@ def _failures(
             "tilt of the axis out of the scan plane is wrong"
         )
     return failures
-
-
-TWIST_BOUND_DEG = 3.0
-"""The ry correction the twist fit searches (±, degrees)."""
-TWIST_POINTS = 20000
-"""Returns per side face the twist fit uses at most (a fixed random subset)."""
-TWIST_NOISE_BIAS_DEG = 0.04
-"""Empirical bias bound of the twist at 1 mm range noise (degrees; it grows with the noise²)."""
-
-
-class FaceFlatness:
-    """Residuals of returns on plane faces about each face's own best-fit plane, as a function
-    of H: the faces' returns ((N_f, 3) in L) with their platter angles' cosines and sines
-    computed once. A face's normal is the smallest-eigenvalue direction of its scatter, its
-    sign fixed (largest component positive) so that the residuals are continuous in H."""
-
-    def __init__(self, faces_L: list[FloatArray], faces_phi: list[FloatArray]) -> None:
-        self.p_L = np.concatenate(faces_L)
-        phi = np.concatenate(faces_phi)
-        self._cos, self._sin = np.cos(phi), np.sin(phi)
-        self._bounds = np.cumsum([0, *(p.shape[0] for p in faces_L)])
-
-    def __call__(self, H: Extrinsics) -> FloatArray:
-        p_P = self.p_L @ H.R
-        p_P -= H.t @ H.R
-        q = np.column_stack([
-            p_P[:, 0],
-            self._cos * p_P[:, 1] + self._sin * p_P[:, 2],
-            -self._sin * p_P[:, 1] + self._cos * p_P[:, 2],
-        ])
-        out = np.empty(q.shape[0])
-        for a, b in zip(self._bounds[:-1], self._bounds[1:], strict=True):
-            d = q[a:b] - q[a:b].mean(axis=0)
-            n = np.linalg.eigh(d.T @ d)[1][:, 0]
-            out[a:b] = d @ (n if n[np.argmax(np.abs(n))] > 0 else -n)
-        return out
-
-
-def face_twist(
-    faces_L: list[FloatArray], faces_phi: list[FloatArray], H: Extrinsics
-) -> tuple[float, float]:
-    """The ry correction (rad) that makes the cube's side faces flattest, and its 1σ (rad).
-
-    ``faces_L`` holds each side face's returns ((N_f, 3) in L) and ``faces_phi`` their platter
-    angles. An ry error moves a return seen at height h by about ry·h perpendicular to the scan
-    plane, in opposite senses on the near and far side of the axis, so a side face seen over a
-    turn becomes a twisted surface; tx, tz and rz do not twist it (their displacements do not
-    grow with height). Each face's plane is re-fitted at every evaluation (soft-L1 against
-    mixed pixels); σ is the cluster-robust sandwich over 2 cm blocks of the faces, with the
-    bias that range noise leaves added in quadrature (:func:`twist_noise_bias`). (NaN, NaN)
-    with fewer than two faces of 30 returns.
-    """
-    rng = np.random.default_rng(0)
-    faces = []
-    for p, f in zip(faces_L, faces_phi, strict=True):
-        if p.shape[0] > TWIST_POINTS:
-            pick = np.sort(rng.choice(p.shape[0], TWIST_POINTS, replace=False))
-            p, f = p[pick], f[pick]
-        if p.shape[0] >= 30:
-            faces.append((p, f))
-    if len(faces) < 2:
-        return math.nan, math.nan
-
-    flat = FaceFlatness([p for p, _ in faces], [f for _, f in faces])
-
-    def flatness(x: FloatArray) -> FloatArray:
-        return flat(H.with_(ry=H.ry + float(x[0])))
-
-    bound = math.radians(TWIST_BOUND_DEG)
-    res = least_squares(
-        flatness,
-        np.zeros(1),
-        bounds=(-bound, bound),
-        method="trf",
-        loss="soft_l1",
-        f_scale=0.002,
-        diff_step=1e-3,
-        x_scale=np.array([1e-3]),
-        max_nfev=50,
-    )
-    Hs = H.with_(ry=H.ry + float(res.x[0]))
-    return float(res.x[0]), flatness_ry_sigma(res, [4], [p for p, _ in faces],
-                                              [f for _, f in faces], Hs)
-
-
-def flatness_ry_sigma(
-    res: Any, free: list[int], faces_L: list[FloatArray], faces_phi: list[FloatArray],
-    H: Extrinsics,
-) -> float:
-    """1σ (rad) of ry from a face-flatness fit (``scipy.optimize.least_squares`` result
-    ``res`` over the parameters ``free``, its residuals the faces' returns in order) solved at
-    H: the cluster-robust sandwich over 2 cm blocks of the faces, with the bias range noise
-    leaves (:func:`twist_noise_bias`, the noise measured on the faces) in quadrature."""
-    from calstation.engine.periodicity import block_ids, parameter_sigma
-
-    q = np.concatenate([lidar_to_dynamic(p, f, H) for p, f in zip(faces_L, faces_phi,
-                                                                   strict=True)])
-    sigma = parameter_sigma(res, free, blocks=block_ids(q, 0.02))["ry"]
-    bias = twist_noise_bias(face_range_noise(faces_L, faces_phi, H))
-    return float(math.hypot(sigma, bias))
-
-
-def face_range_noise(
-    faces_L: list[FloatArray], faces_phi: list[FloatArray], H: Extrinsics
-) -> float:
-    """Range noise (m, 1σ along the ray) seen on plane faces: each face's residual RMS about
-    its plane over the RMS of the normal component of a unit step along the ray, the median
-    over the faces (a face seen at grazing incidence shows little of the noise)."""
-    estimates = []
-    for p, f in zip(faces_L, faces_phi, strict=True):
-        q = lidar_to_dynamic(p, f, H)
-        _, n, rms = fit_plane(q)
-        unit = p / np.linalg.norm(p, axis=1, keepdims=True)
-        a = (lidar_to_dynamic(p + unit, f, H) - q) @ n
-        gain = float(np.sqrt(np.mean(a**2)))
-        if gain > 0.1:
-            estimates.append(rms / gain)
-    return float(np.median(estimates)) if estimates else math.nan
-
-
-def twist_noise_bias(noise: float) -> float:
-    """Bound (rad) on the twist's bias from range noise ``noise`` (m): the side faces' residuals
-    and the heights that carry ry share each return's noise, as in the periodicity cost. The
-    measured bias: −0.09° to +0.01° at 1 mm over the nine scenarios with the true H, −0.20° at
-    2 mm on a centred 0.9 m / 40° scene. With :data:`TWIST_NOISE_BIAS_DEG`·(σ_noise / 1 mm)²
-    added in quadrature to the sandwich σ every twist in those scenes and in the 120-run sweep
-    of docs/algorithms.md stayed within 2.3σ of the truth.
-    0 for an unknown noise."""
-    if not math.isfinite(noise) or noise <= 0:
-        return 0.0
-    return math.radians(TWIST_NOISE_BIAS_DEG) * (noise / 0.001) ** 2
 
 
 def _height(
