@@ -111,7 +111,7 @@ def _run(argv: list[str]) -> None:
         from rich.markup import escape
 
         err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
-        sys.exit(2)
+        sys.exit(getattr(exc, "exit_code", 2))
     except KeyboardInterrupt:
         err.print("[bold yellow]interrupted[/]")
         sys.exit(130)

@@ -68,7 +68,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run a recipe on the station: guided (prompts) or unattended (--yes).
 
-        Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted.
+        Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted, 4 when another
+        run holds the station.
         """
         from calstation.recipes import load_recipe
         from calstation.station.operator import ConsoleOperator, default_operator
@@ -105,7 +106,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Continue a crashed or failed run at its first unfinished step, re-using its recordings.
 
-        Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted.
+        Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted, 4 when another
+        run holds the station.
         """
         from calstation.station.operator import ConsoleOperator
         from calstation.station.runs import resume_run

@@ -4,6 +4,10 @@
 creates one and executes it; :func:`resume_run` continues a stored run at its first unfinished
 step, with the recipe stored with it, refusing one that another live process executes
 (:func:`resumable_run`). The execution itself is :class:`calstation.station.machine.Station`.
+
+Both hold the station's lock (:mod:`calstation.station.lock`) from before the run is created
+until its drivers are closed: a second start on the same station, from any front end, is
+refused naming who holds it.
 """
 
 from __future__ import annotations
@@ -24,6 +28,14 @@ from sqlalchemy.orm import Session
 from calstation.errors import AbortRun, StationError
 from calstation.plugins.recipe_checks import check_plugins
 from calstation.recipes import LoadedRecipe, parse_recipe
+from calstation.station.lock import (
+    Holder,
+    StationHold,
+    process_alive,
+    take_station,
+    taken_over_note,
+    terminal_front_end,
+)
 from calstation.station.machine import Station
 from calstation.station.operator import Operator
 from calstation.storage.db import (
@@ -50,19 +62,36 @@ def start_run(
     operator: str,
     data_dir: Path | None = None,
     serial: str | None = None,
+    front_end: str | None = None,
 ) -> tuple[int, str]:
     """Create a run of ``loaded`` and execute it; returns (run id, final status).
 
-    The recipe is validated against the installed plugins first. The run folder is
+    The recipe is validated against the installed plugins first. The station's lock is taken
+    first (:class:`~calstation.station.lock.StationBusy` when another run holds it), for
+    ``front_end`` (default: ``calstation run`` in this terminal). The run folder is
     ``<data_dir>/runs/<run id>/``. ``serial`` is the unit's serial number when the operator
     gives it (else the lidar's, read at preflight).
     """
-    run_id = create_run(loaded, db, operator=operator, unattended=ui.unattended,
-                        data_dir=data_dir, serial=serial)
-    ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
-            f"{loaded.recipe.station.id}; recordings in {escape(str(_run_dir(db, run_id)))}")
-    with _signals_abort():
-        return run_id, Station(db, run_id, loaded, ui).run()
+    check_plugins(loaded)
+    holder = Holder.here(operator, front_end or terminal_front_end("calstation run"))
+    with hold_station(db, loaded.recipe.station.id, holder, ui) as hold:
+        run_id = create_run(loaded, db, operator=operator, unattended=ui.unattended,
+                            data_dir=data_dir, serial=serial)
+        hold.attach(run_id)
+        ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
+                f"{loaded.recipe.station.id}; recordings in {escape(str(_run_dir(db, run_id)))}")
+        with _signals_abort():
+            return run_id, Station(db, run_id, loaded, ui).run()
+
+
+def hold_station(db: Database, station: str, holder: Holder, ui: Operator,
+                 force: bool = False) -> StationHold:
+    """:func:`~calstation.station.lock.take_station`, telling ``ui`` when a lock left by a
+    process that ended was cleared."""
+    hold = take_station(db, station, holder, force=force)
+    if hold.taken_over is not None:
+        ui.warn(escape(taken_over_note(hold.taken_over)))
+    return hold
 
 
 def _run_dir(db: Database, run_id: int) -> Path:
@@ -113,17 +142,6 @@ def create_run(
     return run_id
 
 
-def process_alive(pid: int) -> bool:
-    """Whether process ``pid`` exists on this host (one we may not signal counts)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def resumable_run(session: Session, run_id: int, force: bool) -> Run:
     """Run ``run_id`` from ``session`` if it may be resumed: :class:`StationError` when there
     is none, it already passed, or another live process executes it (unless ``force``)."""
@@ -153,27 +171,35 @@ def _check_not_running_elsewhere(run: Run, force: bool) -> None:
     )
 
 
-def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False) -> str:
+def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False,
+               hold: StationHold | None = None, front_end: str | None = None) -> str:
     """Continue run ``run_id`` at its first unfinished step; returns the final status.
 
     The recipe is the one stored with the run (not the file, which may have changed since).
     Recordings of finished steps are re-used after their sha256 is checked. A run still being
-    executed by a live process is refused unless ``force``.
+    executed by a live process is refused unless ``force``. The station's lock is taken (for
+    ``front_end``, default ``calstation resume`` in this terminal) unless the caller holds it
+    already (``hold``, which is released at the end either way).
     """
     for note in journal.recover(db):  # results journalled by an earlier process, first
         ui.info(escape(note))
     with db.session() as s:
         run = resumable_run(s, run_id, force)
-        text, path = run.recipe_text, run.recipe_path
+        text, path, operator = run.recipe_text, run.recipe_path, run.operator
         run_dir = Path(run.data_dir)
     source = f"recipe of run {run_id}"
     base_dir = Path(path).parent if path else None
     loaded = LoadedRecipe(parse_recipe(text, source, base_dir), Path(path) if path else None, text)
     check_plugins(loaded)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    ui.info(f"resuming run [bold]{run_id}[/]; recordings in {escape(str(run_dir))}")
-    with _signals_abort():
-        return Station(db, run_id, loaded, ui).run()
+    if hold is None:
+        holder = Holder.here(operator, front_end or terminal_front_end("calstation resume"))
+        hold = hold_station(db, loaded.recipe.station.id, holder, ui, force=force)
+    with hold:
+        hold.attach(run_id)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        ui.info(f"resuming run [bold]{run_id}[/]; recordings in {escape(str(run_dir))}")
+        with _signals_abort():
+            return Station(db, run_id, loaded, ui).run()
 
 
 @contextmanager

@@ -31,6 +31,7 @@ from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp
 
 from calstation.errors import CalstationError
+from calstation.station.lock import StationBusy
 from calstation.storage.db import Database, Run
 from calstation.storage.templating import environment
 from calstation.web.events import EventHub, EventStream, StreamSlots
@@ -149,7 +150,7 @@ def _error_handlers(app: FastAPI, ctx: _Pages) -> None:
     async def _calstation_error(request: Request, exc: CalstationError) -> Response:
         status = (exc.status if isinstance(exc, AccessError)
                   else 404 if isinstance(exc, NotFound)
-                  else 409 if isinstance(exc, Busy | NoSuchPrompt) else 400)
+                  else 409 if isinstance(exc, Busy | NoSuchPrompt | StationBusy) else 400)
         headers = exc.headers if isinstance(exc, AccessError) else None
         return answer(request, status, str(exc), headers)
 
@@ -330,7 +331,7 @@ def _resumable(db: Database) -> list[dict[str, Any]]:
 
     from sqlalchemy import select
 
-    from calstation.station.runs import process_alive
+    from calstation.station.lock import process_alive
 
     out = []
     with db.session("reading the runs", read_only=True) as s:
@@ -592,6 +593,11 @@ async def _authorized(request: Request, guard: Guard, *, login: bool = False) ->
     return fields
 
 
+def _address(request: Request) -> str:
+    """The station's address as this request's browser used it (checked by the front door)."""
+    return f"{request.url.scheme}://{request.url.netloc}/"[:200]
+
+
 def _done(request: Request, body: dict[str, Any], status: int = 200) -> Response:
     """JSON for scripts, a redirect back to the operator page for a plain form post."""
     if media_type(request)[0] == "application/x-www-form-urlencoded":
@@ -632,7 +638,7 @@ def _api_routes(app: FastAPI, ctx: _Pages) -> None:
         """Start a run: recipe (a file of the recipes folder), operator, serial. 409 if busy."""
         body = _validated(StartRequest, await _authorized(request, guard), request)
         run_id = await asyncio.to_thread(runner.start, body.recipe, body.operator,
-                                         body.serial or None)
+                                         body.serial or None, _address(request))
         return _done(request, {"run_id": run_id, "state": runner.live.snapshot()}, 201)
 
     @app.post("/api/answer", response_model=None, openapi_extra=schema_of(AnswerRequest))
@@ -657,5 +663,5 @@ def _api_routes(app: FastAPI, ctx: _Pages) -> None:
         """Continue a run left unfinished (as ``calstation resume``). 409 if busy."""
         _validated(EmptyRequest, await _authorized(request, guard), request)
         ctx.require_run(run_id)
-        await asyncio.to_thread(runner.resume, run_id)
+        await asyncio.to_thread(runner.resume, run_id, False, _address(request))
         return _done(request, {"run_id": run_id}, 201)

@@ -30,9 +30,10 @@ import numpy as np
 from rich.text import Text
 
 from calstation.errors import AbortRun, CalstationError, StationError
+from calstation.station.lock import Holder, StationHold
 from calstation.station.machine import Station
 from calstation.station.operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
-from calstation.station.runs import create_run, resumable_run, resume_run
+from calstation.station.runs import create_run, hold_station, resumable_run, resume_run
 from calstation.station.steps import STEPS, run_steps
 from calstation.storage.db import Database
 
@@ -82,6 +83,7 @@ class LiveState:
 
     def _reset(self) -> None:
         self.run_id: int | None = None
+        self.station: str | None = None
         self.recipe: str | None = None
         self.operator: str | None = None
         self.serial: str | None = None
@@ -118,7 +120,7 @@ class LiveState:
 
     def begin(
         self, run_id: int, recipe: str, operator: str, serial: str | None,
-        steps: tuple[str, ...] = STEPS,
+        steps: tuple[str, ...] = STEPS, station: str | None = None,
     ) -> None:
         """A new (or resumed) run starts; ``steps`` are the ones it takes (a run without the
         L-target leaves two out)."""
@@ -126,6 +128,7 @@ class LiveState:
             self._reset()
             self.steps = {k: v for k, v in self.steps.items() if k in steps}
             self.run_id, self.recipe, self.operator, self.serial = run_id, recipe, operator, serial
+            self.station = station
             self.status = "running"
             self._changed()
 
@@ -209,6 +212,7 @@ class LiveState:
                 "version": self.version,
                 "busy": self.status == "running",
                 "run_id": self.run_id,
+                "station": self.station,
                 "recipe": self.recipe,
                 "operator": self.operator,
                 "serial": self.serial,
@@ -393,45 +397,69 @@ class Runner:
         return self.recipes_dir / name
 
     # --- runs ------------------------------------------------------------------------------
-    def start(self, recipe: str, operator: str, serial: str | None) -> int:
-        """Create a run of the recipe file ``recipe`` and execute it in the background."""
+    def start(self, recipe: str, operator: str, serial: str | None, where: str | None = None
+              ) -> int:
+        """Create a run of the recipe file ``recipe`` and execute it in the background.
+        ``where`` is the station's address as the browser used it (named to whoever is refused
+        the station meanwhile). :class:`~calstation.station.lock.StationBusy` when another
+        run, from any front end, holds the station."""
+        from calstation.plugins.recipe_checks import check_plugins
         from calstation.recipes import load_recipe
 
         if not operator.strip():
             raise StationError("enter the operator's name")
         self._take()
+        hold: StationHold | None = None
         try:
             loaded = load_recipe(self.recipe_path(recipe))
+            check_plugins(loaded)
             serial = (serial or "").strip() or None
+            ui = WebOperator(self.live, loaded.recipe)
+            hold = hold_station(self.db, loaded.recipe.station.id,
+                                Holder.here(operator.strip(), self._front_end(where)), ui)
             run_id = create_run(loaded, self.db, operator=operator.strip(), unattended=False,
                                 data_dir=self.data_dir, serial=serial)
+            hold.attach(run_id)
             self.live.begin(run_id, loaded.recipe.name, operator.strip(), serial,
-                            run_steps(loaded.recipe))
-            ui = WebOperator(self.live, loaded.recipe)
-            self._launch(run_id, lambda: Station(self.db, run_id, loaded, ui).run())
+                            run_steps(loaded.recipe), station=loaded.recipe.station.id)
+            self._launch(run_id, lambda: Station(self.db, run_id, loaded, ui).run(), hold)
         except BaseException:
+            if hold is not None:
+                hold.release()
             self._lock.release()
             raise
         return run_id
 
-    def resume(self, run_id: int, force: bool = False) -> int:
+    def resume(self, run_id: int, force: bool = False, where: str | None = None) -> int:
         """Continue run ``run_id`` at its first unfinished step (as ``calstation resume``)."""
         from calstation.recipes import parse_recipe
 
         self._take()
+        hold: StationHold | None = None
         try:
             with self.db.session() as s:
                 # refused here, with its reason, rather than in the run's thread
                 run = resumable_run(s, run_id, force)
                 recipe = parse_recipe(run.recipe_text, f"recipe of run {run_id}")
-                operator = run.operator
-            self.live.begin(run_id, recipe.name, operator, None, run_steps(recipe))
+                operator, serial = run.operator, run.unit_serial
             ui = WebOperator(self.live, recipe)
-            self._launch(run_id, lambda: resume_run(run_id, self.db, ui, force=force))
+            hold = hold_station(self.db, recipe.station.id,
+                                Holder.here(operator, self._front_end(where)), ui, force=force)
+            self.live.begin(run_id, recipe.name, operator, serial, run_steps(recipe),
+                            station=recipe.station.id)
+            taken = hold
+            self._launch(run_id, lambda: resume_run(run_id, self.db, ui, force=force,
+                                                    hold=taken), taken)
         except BaseException:
+            if hold is not None:
+                hold.release()
             self._lock.release()
             raise
         return run_id
+
+    @staticmethod
+    def _front_end(where: str | None) -> str:
+        return f"the web station at {where}" if where else "a web station"
 
     def abort(self, reason: str) -> bool:
         """Abort the running run (the motor is stopped by the station); False if none runs."""
@@ -459,7 +487,7 @@ class Runner:
                 "abort it first"
             )
 
-    def _launch(self, run_id: int, execute: Callable[[], str]) -> None:
+    def _launch(self, run_id: int, execute: Callable[[], str], hold: StationHold) -> None:
         def main() -> None:
             status, error = "failed", None
             try:
@@ -471,6 +499,7 @@ class Runner:
                 error = f"{type(exc).__name__}: {exc}"
                 self.live.add_log("error", error)
             finally:
+                hold.release()
                 self.live.finish(status, self._end_screen(run_id), error)
                 self._lock.release()
 

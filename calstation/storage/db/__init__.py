@@ -45,6 +45,7 @@ from calstation.storage.db.models import (
     CubeCheckRecord as CubeCheckRecord,
     Run as Run,
     Station as Station,
+    StationLock as StationLock,
     Step as Step,
     utcnow as utcnow,
 )

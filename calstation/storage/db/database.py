@@ -27,6 +27,7 @@ from calstation.storage.db.models import (
     CubeCheckRecord,
     Run,
     Station,
+    StationLock,
     Step,
     utcnow,
 )
@@ -40,6 +41,7 @@ __all__ = [
     "Database",
     "Run",
     "Station",
+    "StationLock",
     "Step",
     "calstation_home",
     "default_database_url",
@@ -230,7 +232,7 @@ def alembic_config(connection: Any = None, url: str | None = None) -> Any:
     return cfg
 
 
-SCHEMA_HEAD = "0009_cube_flatness_excess"
+SCHEMA_HEAD = "0010_station_lock"
 """The newest migration's revision id, as written in ``migrations/versions`` (a test checks
 that they agree). Opening a database that is at it needs no Alembic, which takes ~0.1 s to
 import; only a new, older or unknown database loads it."""

@@ -306,3 +306,32 @@ class CampaignRun(Base):
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
     campaign: Mapped[Campaign] = relationship(back_populates="runs")
+
+
+class StationLock(Base):
+    """Who holds a station: at most one row per station, while a run drives its turntable.
+
+    Taken by whatever starts or resumes a run (``calstation run``, ``resume``, any web station)
+    before it creates the run, released when the run's drivers are closed
+    (:mod:`calstation.station.lock`). ``token`` identifies one taking of the lock; ``front_end``
+    says from where it was taken (``calstation run`` in a terminal, the web station at its
+    address); ``host``, ``pid`` and ``process_started`` (the process's start time as the kernel
+    counts it, so that a re-used process id is not taken for the holder) tell a lock left by a
+    process that died; ``heartbeat_at`` is renewed while the holder lives, which tells it for a
+    holder on another host.
+    """
+
+    __tablename__ = "station_lock"
+
+    station_id: Mapped[int] = mapped_column(
+        ForeignKey("station.id", ondelete="CASCADE"), primary_key=True
+    )
+    token: Mapped[str] = mapped_column(String(64))
+    run_id: Mapped[int | None] = mapped_column(ForeignKey("run.id", ondelete="SET NULL"))
+    operator: Mapped[str] = mapped_column(String(100))
+    front_end: Mapped[str] = mapped_column(String(300))
+    host: Mapped[str] = mapped_column(String(255))
+    pid: Mapped[int] = mapped_column(Integer)
+    process_started: Mapped[str | None] = mapped_column(String(64))
+    acquired_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    heartbeat_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
