@@ -277,3 +277,69 @@ def test_show_prints_the_limits_on_pass(cli: CliRunner, db_url: str) -> None:
     assert res.exit_code == 0 and "PASS" in text
     assert "limits: edge error ≤ 1.00 mm, OBB error ≤ 15.00 mm" in text  # the recipe's
     assert "drift ≤ 2.00 mm / 0.200° (warns)" in text
+
+
+@pytest.mark.parametrize("columns", [80, 100, 200])
+def test_history_fits_the_terminal_wrapping_rather_than_cutting(
+    cli: CliRunner, db_url: str, columns: int
+) -> None:
+    from rich.console import Console
+
+    from calstation.cli.history import H_PARAMS, _display, print_history
+
+    db = open_database(db_url)
+    t0 = dt.datetime(2026, 3, 1, 8, 30, tzinfo=dt.UTC)
+    _add_run(db, "station-with-a-long-name", "passed", H1, t0, serial="LIDAR-SERIAL-000123456",
+             operator="annabelle", edge_error=0.00123)
+    _add_run(db, "st-2", "interrupted", {**H1, "ty": -1.25}, t0 + dt.timedelta(hours=1))
+    db.dispose()
+    res = cli.invoke(app, ["history", "--json", "--db", db_url])
+    assert res.exit_code == 0, res.output
+    # what `history` prints on a terminal `columns` wide
+    console = Console(file=io.StringIO(), width=columns, emoji=False)
+    print_history(json.loads(res.output), console)
+    text = console.file.getvalue()  # type: ignore[attr-defined]
+    lines = text.splitlines()
+    assert max(len(line) for line in lines) <= columns, text
+    assert "…" not in text  # nothing is cut
+    words = text.split()
+    for h in (H1, {**H1, "ty": -1.25}):  # every value whole: wrapped between values only
+        for p in H_PARAMS:
+            if p != "rx":
+                assert _display(p, h[p]) in words, (p, text)
+    assert "1.23" in words and "interrupted" in words
+    if columns >= 200:  # room for everything on one line per run
+        row = next(line for line in lines if "LIDAR-SERIAL-000123456" in line)
+        assert "station-with-a-long-name" in row and "annabelle" in row
+        assert "2026-03-01 08:30" in row
+    else:  # the names wrap within their columns, whole
+        assert _cell(lines, "LIDA") == "LIDAR-SERIAL-000123456"
+        assert _cell(lines, "sta") == "station-with-a-long-name"
+
+
+def _cell(lines: list[str], start: str) -> str:
+    """The text of the table cell of run 1 whose first line begins with ``start``, its wrapped
+    lines joined."""
+    first = next(i for i, line in enumerate(lines) if line.startswith(" 1 "))
+    x0 = lines[first].index(start)
+    width = len(lines[first][x0:].split(" ")[0])
+    pieces = []
+    for line in lines[first:]:
+        piece = line[x0:x0 + width].strip()
+        if not piece:
+            break
+        pieces.append(piece)
+    return "".join(pieces)
+
+
+def test_show_names_the_unit_serial_and_the_station(cli: CliRunner, db_url: str) -> None:
+    db = open_database(db_url)
+    t0 = dt.datetime(2026, 3, 1, 8, 30, 5, 123456, tzinfo=dt.UTC)
+    known = _add_run(db, "st-7", "passed", H1, t0, serial="LX-4711")
+    unknown = _add_run(db, "st-7", "passed", H1, t0)
+    db.dispose()
+    text = " ".join(cli.invoke(app, ["show", str(known), "--db", db_url]).output.split())
+    assert f"run {known}: station st-7, unit serial LX-4711," in text
+    assert "started 2026-03-01 08:30:05 UTC" in text and "05.123456" not in text
+    text = " ".join(cli.invoke(app, ["show", str(unknown), "--db", db_url]).output.split())
+    assert "unit serial — (not known)" in text

@@ -11,12 +11,15 @@ import itertools
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.markup import escape
 
 from calstation.cli._console import wide_console
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 H_PARAMS = ("tx", "ty", "tz", "rx", "ry", "rz")
 CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms")
@@ -60,6 +63,57 @@ def failure_reason(run: dict[str, Any]) -> str:
     return ""
 
 
+def _when(iso: str | None) -> str:
+    """A stored time as the operator reads it: ``2026-03-01 08:30:05 UTC`` (— when unset)."""
+    return f"{iso[:19].replace('T', ' ')} UTC" if iso else "—"
+
+
+def print_history(rows: list[dict[str, Any]], console: Console) -> None:
+    """The runs (``history --json``'s rows) as a table that fits ``console``, wrapped rather than cut: the names (station,
+    serial, operator, recipe) wrap within their columns, and the calibration's values share one
+    column, aligned when it is wide enough and wrapped between values when not."""
+    from rich import box
+    from rich.table import Table
+
+    shown = [p for p in H_PARAMS if p != "rx"]  # rx is the gauge, held at 0
+    values = [[_display(p, r["calibration"]["H"][p]) if r["calibration"] else "—"
+               for p in shown] for r in rows]
+    widths = [max([len(p), *(len(v[i]) for v in values)]) for i, p in enumerate(shown)]
+    numbers = " ".join(f"{p:>{w}}" for p, w in zip(shown, widths, strict=True))
+    edge_w = max([7, *(len(f"{r['cube_check']['edge_error'] * 1000:.2f}") for r in rows
+                       if r["cube_check"])])
+    fixed = 3 + max([6, *(len(r["status"]) for r in rows)]) + edge_w + 16  # run, status, pads
+    # the values on one line when there is room beside ~7 characters per name column, else
+    # wrapped between values (never within one)
+    room = console.width - fixed - 6 * 7
+    table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error",
+                  box=box.SIMPLE_HEAD, pad_edge=False)
+    for col in ("run", "station", "serial", "started (UTC)", "operator", "recipe", "status"):
+        table.add_column(col, overflow="fold", no_wrap=col in ("run", "status"),
+                         # the date above the time, rather than cut within the date
+                         width=10 if col == "started (UTC)" and 76 <= console.width < 130
+                         else None)
+    table.add_column(numbers, justify="right",
+                     width=max(max(widths), min(len(numbers), room)))
+    table.add_column("edge mm", justify="right", width=edge_w)
+    reasons = []
+    for r, vals in zip(rows, values, strict=True):
+        cube = r["cube_check"]
+        colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
+        table.add_row(
+            str(r["id"]), escape(r["station"]), escape(r["unit_serial"] or "—"),
+            (r["started_at"] or "")[:16].replace("T", " "), escape(r["operator"]),
+            escape(r["recipe_name"]), f"[{colour}]{r['status']}[/]",
+            " ".join(f"{v:>{w}}" for v, w in zip(vals, widths, strict=True)),
+            f"{cube['edge_error'] * 1000:.2f}" if cube else "—",
+        )
+        if r["failure_reason"]:
+            reasons.append(f"run {r['id']} ({r['status']}): {r['failure_reason']}")
+    console.print(table)
+    for line in reasons:
+        console.print(escape(line), highlight=False)
+
+
 def register(app: typer.Typer) -> None:
     """Add ``history``, ``show``, ``export`` and ``trend``."""
 
@@ -78,7 +132,6 @@ def register(app: typer.Typer) -> None:
         db: str = typer.Option(None, "--db", help=DB_HELP),
     ) -> None:
         """List runs, newest first, with their final calibration and cube check."""
-        from rich.table import Table
         from sqlalchemy import select
 
         from calstation.storage.db import Run, Station, open_database
@@ -104,33 +157,7 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(rows, indent=2))
             return
-        shown_params = [p for p in H_PARAMS if p != "rx"]  # rx is the gauge, held at 0
-        from rich import box
-
-        table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error",
-                      box=box.SIMPLE_HEAD, pad_edge=False)
-        columns = ("run", "station", "serial", "started (UTC)", "operator", "recipe", "status",
-                   *shown_params, "edge mm")
-        for col in columns:
-            table.add_column(col, justify="right" if col in H_PARAMS else "left",
-                             no_wrap=col in ("started (UTC)", "recipe", "serial"))
-        reasons = []
-        for r in rows:
-            cal = r["calibration"]
-            values = [_display(p, cal["H"][p]) if cal else "—" for p in shown_params]
-            cube = r["cube_check"]
-            edge = f"{cube['edge_error'] * 1000:.2f}" if cube else "—"
-            colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
-            started = (r["started_at"] or "")[:16].replace("T", " ")
-            table.add_row(str(r["id"]), r["station"], r["unit_serial"] or "—", started,
-                          r["operator"], r["recipe_name"], f"[{colour}]{r['status']}[/]",
-                          *values, edge)
-            if r["failure_reason"]:
-                reasons.append(f"run {r['id']} ({r['status']}): {r['failure_reason']}")
-        console = wide_console()
-        console.print(table)
-        for line in reasons:
-            console.print(escape(line), highlight=False)
+        print_history(rows, wide_console())
 
     @app.command("show")
     def show(
@@ -153,11 +180,12 @@ def register(app: typer.Typer) -> None:
             typer.echo(json.dumps(summary, indent=2))
             return
         console = wide_console()
-        console.print(
-            f"run {summary['id']}: recipe {summary['recipe_name']} "
+        console.print(escape(
+            f"run {summary['id']}: station {summary['station']}, unit serial "
+            f"{summary['unit_serial'] or '— (not known)'}, recipe {summary['recipe_name']} "
             f"(sha256 {summary['recipe_sha256'][:12]}…), operator {summary['operator']}"
             f"{' (unattended)' if summary['unattended'] else ''}, started "
-            f"{summary['started_at']}, finished {summary['finished_at'] or '—'}",
+            f"{_when(summary['started_at'])}, finished {_when(summary['finished_at'])}"),
             highlight=False,
         )
         steps = Table(title="Steps")
