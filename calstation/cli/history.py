@@ -69,9 +69,10 @@ def _when(iso: str | None) -> str:
 
 
 def print_history(rows: list[dict[str, Any]], console: Console) -> None:
-    """The runs (``history --json``'s rows) as a table that fits ``console``, wrapped rather than cut: the names (station,
-    serial, operator, recipe) wrap within their columns, and the calibration's values share one
-    column, aligned when it is wide enough and wrapped between values when not."""
+    """The runs (``history --json``'s rows) as a table that fits ``console``, wrapped rather
+    than cut: the names (station, serial, operator, recipe) wrap within their columns, and the
+    calibration's values share one column, aligned when it is wide enough and wrapped between
+    values when not."""
     from rich import box
     from rich.table import Table
 
