@@ -89,6 +89,10 @@ class DatabaseError(CalstationError):
     """The run database is unreachable, out of date or inconsistent."""
 
 
+class DamagedDatabase(DatabaseError):
+    """The database file is not a database, or its content is damaged."""
+
+
 class ResultJournalled(DatabaseError):
     """A result could not be written to the database and was kept in the run folder's journal."""
 

@@ -18,7 +18,7 @@ from sqlalchemy import Engine, create_engine, event, inspect
 from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
-from calstation.errors import DatabaseError
+from calstation.errors import DamagedDatabase, DatabaseError
 from calstation.storage.db.models import (
     PARAMS,
     Artifact,
@@ -142,7 +142,11 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
             dbapi_connection.isolation_level = None  # transactions are begun below
             cursor = dbapi_connection.cursor()
             cursor.execute(f"PRAGMA busy_timeout={int(timeout * 1000)}")
-            _retry_locked(lambda: cursor.execute("PRAGMA journal_mode=WAL"), timeout)
+            try:
+                _retry_locked(lambda: cursor.execute("PRAGMA journal_mode=WAL"), timeout)
+            except UnicodeDecodeError:
+                # SQLite's own message about a damaged schema, holding the damaged bytes
+                raise sqlite3.DatabaseError("malformed database schema") from None
             cursor.execute("PRAGMA foreign_keys=ON")
             cursor.close()
 
@@ -209,6 +213,17 @@ def _is_lock(exc: BaseException) -> bool:
         or "lock timeout" in text
         or code == "55P03"
     )
+
+
+_DAMAGED = ("file is not a database", "malformed", "unsupported file format",
+            "could not decode to utf-8", "file is encrypted", "disk image")
+"""What SQLite says of a file that is not a database, or one whose content is damaged."""
+
+
+def _is_damaged(exc: BaseException) -> bool:
+    """Whether a driver error means the database file is not one, or is damaged."""
+    text = str(getattr(exc, "orig", None) or exc).lower()
+    return isinstance(exc, UnicodeDecodeError) or any(d in text for d in _DAMAGED)
 
 
 def _driver_message(exc: BaseException) -> str:
@@ -306,10 +321,25 @@ class Database:
             return None
         return self.log_path
 
+    def _damaged_sentence(self, exc: BaseException, where: str) -> str:
+        """What to say of a file that is not a database or is damaged, and what to do."""
+        text = str(getattr(exc, "orig", None) or exc).lower()
+        said = next((d for d in _DAMAGED if d in text), "malformed")
+        what = ("is not a database" if said in ("file is not a database", "file is encrypted")
+                else f"is damaged (SQLite: {said})")
+        name = self.engine.url.database or self.display_url
+        return (
+            f"the database file {name} {what}: give calstation the right file (--db or "
+            "$CALSTATION_DB_URL), or move this one aside, and restore it from a backup if it "
+            f"held runs (calstation creates a new, empty database where none is){where}"
+        )
+
     def error(self, exc: BaseException, doing: str) -> DatabaseError:
         """One clear sentence for a failed database operation; the details go to the log."""
         logged = self.log(f"{doing}: {type(exc).__name__}: {exc}")
         where = f" (details in {logged})" if logged else ""
+        if _is_damaged(exc):
+            return DamagedDatabase(self._damaged_sentence(exc, where))
         if _is_lock(exc):
             return DatabaseError(
                 f"the database {self.display_url} stayed locked by another process for "
