@@ -90,6 +90,8 @@ CASES: list[tuple[str, Callable[[str], str], str, str]] = [
      "    lines: 100000000"),
     ("lines zero", replace("    lines: 100", "    lines: 0"), "steps.static_scan.lines",
      "    lines: 0"),
+    ("lines too few for the initial calibration", replace("    lines: 100", "    lines: 5"),
+     "steps.static_scan.lines", "    lines: 5"),
     ("rpm zero", replace("    rpm: 20", "    rpm: 0"), "steps.spin_scan.rpm", "    rpm: 0"),
     ("rpm 10000", replace("    rpm: 20", "    rpm: 10000"), "steps.spin_scan.rpm",
      "    rpm: 10000"),
@@ -358,6 +360,30 @@ def test_cli_validate_reports_without_traceback(
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err + captured.out
     assert "nested more than" in captured.err
+
+
+def test_validate_refuses_a_static_scan_too_short_for_the_initial_calibration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The fault suite's recipe: it validated, then failed at its static scan."""
+    for lines, code in ((1, 2), (9, 2), (10, 0)):
+        path = tmp_path / f"lines{lines}.yaml"
+        path.write_text(replace("    lines: 100", f"    lines: {lines}")(BASE), encoding="utf-8")
+        with pytest.raises(SystemExit) as info:
+            main(["recipes", "validate", str(path)])
+        err = " ".join(capsys.readouterr().err.split())
+        assert info.value.code == code, err
+        if code:
+            assert "steps.static_scan.lines" in err and "too few for the initial calibration" in err
+            assert "at least 10" in err and "Traceback" not in err
+    # a targetless recipe has no static scan: its lines are not judged
+    targetless = BASE.replace("calibration:\n", "calibration:\n  start: platter\n", 1)
+    assert "start: platter" in targetless
+    path = tmp_path / "targetless.yaml"
+    path.write_text(replace("    lines: 100", "    lines: 1")(targetless), encoding="utf-8")
+    with pytest.raises(SystemExit) as info:
+        main(["recipes", "validate", str(path)])
+    assert info.value.code == 0, capsys.readouterr().err
 
 
 # --- driver settings, checked against the settings model each driver declares -------------

@@ -141,7 +141,7 @@ EDGES = {
     "slowest spin the budget allows": {"steps": {"spin_scan": {"rpm": 7, "revolutions": 1.0},
                                                  "cube_scan": {"rpm": 7, "revolutions": 1.0}}},
     "fastest spin": {"steps": {"spin_scan": {"rpm": 120}, "cube_scan": {"rpm": 120}}},
-    "one static line": {"steps": {"static_scan": {"lines": 1}}},
+    "fewest static lines": {"steps": {"static_scan": {"lines": 10}}},
     "noisiest lidar": {"simulation": {"lidar": {"range_noise": 0.1}}},
     "largest placement error": {"simulation": {"placement": {"position_sigma": 0.05,
                                                              "yaw_sigma_deg": 10}}},

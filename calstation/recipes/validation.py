@@ -23,6 +23,11 @@ MAX_SCAN_LINES = 200_000
 """Most lidar lines one simulated scan may produce (the default spin scan takes ~3200)."""
 MAX_SCAN_ENCODER_SAMPLES = 20_000_000
 """Most encoder samples one simulated scan may produce."""
+MIN_STATIC_LINES = 10
+"""Fewest lines a static scan may take: the initial calibration takes the median range of each
+azimuth bin over them, and fewer lines let a bin of mixed pixels or drop-outs through, which
+splits the L-target's faces. On the simulated station (24 stations) 3 lines failed the initial
+calibration once, 5 lines twice, 8 and 10 lines never (docs/recipes.md)."""
 MAX_SCAN_SECONDS = 600.0
 """Longest scan a recipe may ask for (settle time plus the turns), seconds."""
 PARAM_NAMES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -180,12 +185,17 @@ def _scan_problems(recipe: Recipe) -> list[Problem]:
             cfg.revolutions)
         field = "max_revolutions" if asked else "revolutions"
         problems += _turn_problems(recipe, name, cfg, turns, field)
-    if sim is not None:
-        lines = recipe.steps.static_scan.lines
-        if lines * sim.lidar.points_per_line > MAX_SCAN_POINTS:
-            problems.append((("steps", "static_scan", "lines"),
-                             f"{lines} lines of {sim.lidar.points_per_line} points are more than "
-                             f"the {MAX_SCAN_POINTS / 1e6:g} million points a scan may hold"))
+    lines = recipe.steps.static_scan.lines
+    if recipe.calibration.start == "l_target" and lines < MIN_STATIC_LINES:
+        problems.append((("steps", "static_scan", "lines"),
+                         f"{lines} line{'s' if lines != 1 else ''} are too few for the initial "
+                         f"calibration, which needs at least {MIN_STATIC_LINES}: it takes the "
+                         "median range of each azimuth bin over the lines, and fewer let mixed "
+                         "pixels and drop-outs split the L-target's faces"))
+    if sim is not None and lines * sim.lidar.points_per_line > MAX_SCAN_POINTS:
+        problems.append((("steps", "static_scan", "lines"),
+                         f"{lines} lines of {sim.lidar.points_per_line} points are more than "
+                         f"the {MAX_SCAN_POINTS / 1e6:g} million points a scan may hold"))
     return problems
 
 
