@@ -593,6 +593,9 @@ def test_failed_cube_check_offers_reseat_and_rescan(
         assert run.unit_serial == "UNIT-42"  # the operator's serial wins over the lidar's
         report = json.loads((Path(run.data_dir) / "report.json").read_text())
     assert report["status"] == "failed" and report["unit_serial"] == "UNIT-42"
+    # said, since this lidar's driver is not the simulator (whose serial names no unit)
+    assert any("the lidar reports serial 'sim-" in m and "'UNIT-42'; the operator's is kept"
+               in m for m in ui.messages), ui.messages
 
 
 def test_drift_beyond_limits_fails_the_run_when_the_recipe_says_so(

@@ -123,6 +123,19 @@ def test_a_run_from_the_api_to_its_report(
             row["limit"] is not None for row in result["cube_rows"]
             if row["name"] != "face flatness (RMS, range noise included)")
         assert result["serial"] == "SN-0042"
+        # every step's time and the run's, in the operator's words
+        assert [r["title"] for r in result["steps"]][:3] == [
+            "preflight check", "place the L-shaped static target",
+            "static scan and initial calibration"]
+        assert all(r["seconds"] is not None and r["seconds"] >= 0 for r in result["steps"])
+        assert result["elapsed_s"] >= sum(r["seconds"] for r in result["steps"]) * 0.99
+        # rx, the gauge, is said to be not estimated rather than shown as 0.000
+        assert all("rx" in c["not_estimated"] for c in result["calibrations"])
+        initial = next(c for c in result["calibrations"] if c["stage"] == "initial")
+        assert "ry" in initial["not_estimated"] and initial["label"] == (
+            "initial, from the L-target")
+        page = client.get("/").text
+        assert "not estimated" in page and 'id="step-times"' in page and "SN-0042" in page
         # every step went through the page's live state
         assert [s["status"] for s in final["steps"]] == ["passed"] * 9
         # report.html in the run folder, also served
@@ -426,3 +439,29 @@ def _get(httpx: Any, url: str) -> Any:
         return httpx.get(url, timeout=2).json()
     except httpx.HTTPError:
         return None
+
+
+def test_a_template_recipe_is_listed_but_cannot_be_started(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    import shutil
+
+    recipes = tmp_path / "recipes"
+    recipes.mkdir()
+    shutil.copy(Path(__file__).resolve().parents[1] / "recipes" / "real-station-template.yaml",
+                recipes)
+    (recipes / "broken.yaml").write_text("name: broken\nstation: 3\n")
+    with make_client(tmp_path, db) as client:
+        page = client.get("/").text
+        assert '<option value="lean.yaml" selected>' in page
+        assert re.search(r'<option value="real-station-template.yaml" disabled[^>]*>'
+                         r"real-station-template.yaml — cannot run: it is a template", page)
+        assert re.search(r'<option value="broken.yaml" disabled[^>]*>broken.yaml — cannot run: '
+                         r"it does not validate", page)
+        r = client.post("/api/start", headers=csrf_of(client),
+                        json={"recipe": "real-station-template.yaml", "operator": "ann"})
+        assert r.status_code == 400, r.text
+        assert "recipe real-station-template.yaml cannot run: it is a template" in r.json()[
+            "error"]
+        with db.session() as s:
+            assert s.query(Run).count() == 0

@@ -55,6 +55,38 @@ FIXTURE_PROMPTS: dict[str, str] = {
 }
 
 
+FIXTURE_NAMES: dict[str, str] = {
+    "static_target": "L-shaped static target",
+    "spin_target": "spin target",
+    "qa_cube": "QA cube",
+    "demo": "demonstration fixture",
+}
+"""What the operator calls each fixture of a recipe (messages never show the recipe's keys)."""
+
+STEP_TITLES: dict[str, str] = {
+    "preflight": "preflight check",
+    "place_static_target": "place the L-shaped static target",
+    "static_scan": "static scan and initial calibration",
+    "place_spin_target": "place the spin target",
+    "spin_scan": "spin scan",
+    "fine_tune": "fine-tuning",
+    "place_qa_cube": "place the QA cube",
+    "cube_scan": "QA cube scan and check",
+    "report": "report",
+}
+"""What the operator calls each step of a run."""
+
+
+def fixture_name(fixture: str) -> str:
+    """The operator's name of ``fixture`` (a ``fixtures`` key)."""
+    return FIXTURE_NAMES.get(fixture, fixture.replace("_", " "))
+
+
+def step_title(step: str) -> str:
+    """The operator's name of ``step``."""
+    return STEP_TITLES.get(step, step.replace("_", " "))
+
+
 STEP_HINTS: dict[str, str] = {
     "preflight": "Check that the lidar is powered and connected, that the platter turns freely "
     "and that the encoder is connected, then retry.",

@@ -22,6 +22,21 @@ def _mm(value: Any, digits: int = 3) -> str:
     return "—" if value is None else _num(float(value) * 1000.0, digits)
 
 
+def duration(seconds: Any) -> str:
+    """A duration as a person reads it: ``0.4 s``, ``12 s``, ``2 min 05 s``, ``1 h 02 min``."""
+    if seconds is None or not math.isfinite(float(seconds)):
+        return "—"
+    s = float(seconds)
+    if s < 10:
+        return f"{s:.1f} s"
+    whole = round(s)
+    if whole < 60:
+        return f"{whole} s"
+    if whole < 3600:
+        return f"{whole // 60} min {whole % 60:02d} s"
+    return f"{whole // 3600} h {whole % 3600 // 60:02d} min"
+
+
 @cache
 def environment() -> Environment:
     """Templates from ``calstation/web/templates``, HTML auto-escaped."""
@@ -33,5 +48,6 @@ def environment() -> Environment:
     )
     env.filters["num"] = _num
     env.filters["mm"] = _mm
+    env.filters["duration"] = duration
     env.filters["tojson_compact"] = lambda v: json.dumps(v, separators=(",", ":"))
     return env

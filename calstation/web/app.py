@@ -241,11 +241,14 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
     @app.get("/", response_class=HTMLResponse)
     def operator_page(request: Request) -> HTMLResponse:
         """The operator page: start a run, answer its prompts, follow it live."""
-        from calstation.station.operator import default_operator
+        from calstation.web.offer import judge, start_defaults
 
+        choices = [judge(runner.recipes_dir / name) for name in runner.recipes()]
+        runnable = [c.name for c in choices if c.runnable]
         return ctx.page(request, "operator.html", {
-            "state": runner.live.snapshot(), "recipes": runner.recipes(),
-            "default_operator": default_operator()[:100], "resumable": _resumable(ctx.db),
+            "state": runner.live.snapshot(), "choices": choices,
+            "defaults": start_defaults(ctx.db, runner.recipes_dir, runnable),
+            "resumable": _resumable(ctx.db),
         })
 
     @app.get("/state.json")

@@ -32,7 +32,14 @@ from rich.text import Text
 from calstation.errors import AbortRun, CalstationError, StationError
 from calstation.station.lock import Holder, StationHold
 from calstation.station.machine import Station
-from calstation.station.operator import FIXTURE_PROMPTS, STEP_HINTS, Decision, StationEvent
+from calstation.station.operator import (
+    FIXTURE_PROMPTS,
+    STEP_HINTS,
+    Decision,
+    StationEvent,
+    fixture_name,
+    step_title,
+)
 from calstation.station.runs import create_run, hold_station, resumable_run, resume_run
 from calstation.station.steps import STEPS, run_steps
 from calstation.storage.db import Database
@@ -87,11 +94,17 @@ class LiveState:
         self.recipe: str | None = None
         self.operator: str | None = None
         self.serial: str | None = None
+        self.started_at: float | None = None
+        """when the run (or its resumption) started, seconds since the epoch"""
+        self.finished_at: float | None = None
+        self.outline: dict[str, Any] | None = None
+        """the fixture being scanned as the live line plot draws it (:func:`scan_outline`)"""
         self.status = "idle"
         self.step: str | None = None
         self.attempt = 0
         self.steps: dict[str, dict[str, Any]] = {
-            s: {"name": s, "status": "pending", "attempt": 0, "error": None} for s in STEPS
+            s: {"name": s, "title": step_title(s), "status": "pending", "attempt": 0,
+                "error": None, "started_at": None, "seconds": None} for s in STEPS
         }
         self.progress: dict[str, Any] | None = None
         self.prompt: dict[str, Any] | None = None
@@ -129,6 +142,7 @@ class LiveState:
             self.steps = {k: v for k, v in self.steps.items() if k in steps}
             self.run_id, self.recipe, self.operator, self.serial = run_id, recipe, operator, serial
             self.station = station
+            self.started_at = time.time()
             self.status = "running"
             self._changed()
 
@@ -149,9 +163,12 @@ class LiveState:
         def end(st: LiveState) -> None:
             st.status, st.result, st.error = status, result, error
             st.prompt = st.progress = None
+            st.finished_at = time.time()
             for step in st.steps.values():
                 if step["status"] == "running":  # the step the run was aborted (or died) in
                     step["status"] = "aborted" if status == "aborted" else "failed"
+                    if step["started_at"] is not None:
+                        step["seconds"] = st.finished_at - step["started_at"]
         self.update(end)
 
     # --- prompts ---------------------------------------------------------------------------
@@ -216,6 +233,9 @@ class LiveState:
                 "recipe": self.recipe,
                 "operator": self.operator,
                 "serial": self.serial,
+                "started_at": self.started_at,
+                "finished_at": self.finished_at,
+                "now": time.time(),
                 "status": self.status,
                 "step": self.step,
                 "attempt": self.attempt,
@@ -223,6 +243,7 @@ class LiveState:
                 "progress": None if self.progress is None else dict(self.progress),
                 "prompt": None if self.prompt is None else dict(self.prompt),
                 "line": self.line,
+                "outline": self.outline,
                 "accuracy": [dict(a) for a in self.accuracy],
                 "log": list(self.log),
                 "result": self.result,
@@ -260,8 +281,8 @@ class WebOperator:
         svg = None
         if geometry is not None:
             svg = placement_svg(self.recipe.fixtures.platter.radius, geometry,
-                                f"place the {fixture.replace('_', ' ')}")
-        text = FIXTURE_PROMPTS.get(fixture, f"Place the {fixture} on the platter.")
+                                f"place the {fixture_name(fixture)}")
+        text = FIXTURE_PROMPTS.get(fixture, f"Place the {fixture_name(fixture)} on the platter.")
         answer = self.live.ask(
             {"kind": "fixture", "fixture": fixture, "step": self.live.step, "text": text,
              "detail": description, "svg": svg},
@@ -274,7 +295,8 @@ class WebOperator:
         allowed: tuple[str, ...] = ("retry", "abort") if attempt <= MAX_RETRIES else ("abort",)
         answer = self.live.ask(
             {"kind": "failure", "step": step, "error": error, "attempt": attempt,
-             "text": f"Step {step} failed (attempt {attempt}). "
+             "title": f"{step_title(step).capitalize()} failed",
+             "text": f"The step {step_title(step)} failed (attempt {attempt}). "
                      + STEP_HINTS.get(step, "Fix the cause shown below, then retry the step.")
                      + (" Or abort the run." if "retry" in allowed
                         else f" {MAX_RETRIES} retries are used up: abort the run.")},
@@ -314,7 +336,8 @@ class WebOperator:
         if event.kind == "step_started":
             def started(st: LiveState) -> None:
                 st.step, st.attempt = d["step"], d["attempt"]
-                st.steps[d["step"]].update(status="running", attempt=d["attempt"], error=None)
+                st.steps[d["step"]].update(status="running", attempt=d["attempt"], error=None,
+                                           started_at=time.time(), seconds=None)
                 st.progress = None
                 if d["step"] not in ("static_scan", "spin_scan", "cube_scan"):
                     st.line = None
@@ -322,8 +345,10 @@ class WebOperator:
             self.live.add_log("info", f"▶ {d['step']} (attempt {d['attempt']})")
         elif event.kind == "step_finished":
             def finished(st: LiveState) -> None:
-                st.steps[d["step"]].update(status=d["status"], attempt=d["attempt"],
-                                           error=d.get("error"))
+                step = st.steps[d["step"]]
+                step.update(status=d["status"], attempt=d["attempt"], error=d.get("error"),
+                            seconds=None if step["started_at"] is None
+                            else time.time() - step["started_at"])
                 st.progress = None
             self.live.update(finished)
         elif event.kind == "lidar_line":
@@ -405,12 +430,14 @@ class Runner:
         run, from any front end, holds the station."""
         from calstation.plugins.recipe_checks import check_plugins
         from calstation.recipes import load_recipe
+        from calstation.web.offer import refuse_unrunnable
 
         if not operator.strip():
             raise StationError("enter the operator's name")
         self._take()
         hold: StationHold | None = None
         try:
+            refuse_unrunnable(self.recipe_path(recipe))
             loaded = load_recipe(self.recipe_path(recipe))
             check_plugins(loaded)
             serial = (serial or "").strip() or None
@@ -515,7 +542,7 @@ class Runner:
         except Exception as exc:
             self.live.add_log("error", f"could not read run {run_id}: {exc}")
             return None
-        keys = ("verdict", "calibrations", "cube_rows", "drift", "serial", "accuracy")
-        return {k: data[k] for k in keys} | {
-            "error": data["run"]["error"], "status": data["run"]["status"]}
+        from calstation.web.endscreen import end_screen
+
+        return end_screen(data)
 

@@ -9,6 +9,7 @@ import math
 from calstation import plugins
 from calstation.errors import AbortRun
 from calstation.station.context import RunContext
+from calstation.station.operator import fixture_name
 from calstation.station.outcome import StepOutcome
 
 
@@ -24,7 +25,7 @@ def place(ctx: RunContext, fixture: str) -> StepOutcome:
             f"(offset y {offset[0] * 1e3:+.0f} mm, z {offset[1] * 1e3:+.0f} mm)"
         )
     if not ctx.ui.confirm_fixture(fixture, description):
-        raise AbortRun(f"aborted by the operator while placing the {fixture}")
+        raise AbortRun(f"aborted by the operator while placing the {fixture_name(fixture)}")
     plugins.fixture_placed(ctx.hardware().context, fixture, geometry)
     return StepOutcome({"fixture": fixture, "kind": geometry.kind,
                         "unattended": ctx.ui.unattended})

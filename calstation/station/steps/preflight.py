@@ -125,7 +125,8 @@ def _record_serial(ctx: RunContext, reported: str) -> str | None:
     with ctx.db.session() as s:
         run = s.get(Run, ctx.run_id)
         assert run is not None
-        if run.unit_serial and reported and reported != run.unit_serial:
+        simulated = ctx.recipe.station.lidar.driver == "sim"  # its serial names no unit
+        if run.unit_serial and reported and reported != run.unit_serial and not simulated:
             ctx.ui.warn(f"the lidar reports serial {reported!r}, the operator gave "
                         f"{run.unit_serial!r}; the operator's is kept")
         elif not run.unit_serial and reported:

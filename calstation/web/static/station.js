@@ -28,9 +28,71 @@
     el.hidden = false;
   }
 
+  // "12 s", "2 min 05 s", as the server's duration filter writes them
+  function duration(seconds) {
+    if (seconds === null || seconds === undefined || !isFinite(seconds)) { return "—"; }
+    if (seconds < 10) { return seconds.toFixed(1) + " s"; }
+    var whole = Math.round(seconds);
+    if (whole < 60) { return whole + " s"; }
+    var pad = function (n) { return (n < 10 ? "0" : "") + n; };
+    if (whole < 3600) { return Math.floor(whole / 60) + " min " + pad(whole % 60) + " s"; }
+    return Math.floor(whole / 3600) + " h " + pad(Math.floor(whole % 3600 / 60)) + " min";
+  }
+
+  // a new run: nothing of the previous one stays on the page (its end screen, log, plot, steps)
+  function resetRun(s) {
+    $("result").hidden = true;
+    $("result").innerHTML = "";
+    $("log").innerHTML = "";
+    $("accuracy-live").hidden = true;
+    var plot = $("line-plot");
+    if (window.Plotly) { Plotly.purge(plot); }
+    plot.innerHTML = "";
+    plot.hidden = true;
+    plot.removeAttribute("data-seq");
+    plot.removeAttribute("data-drawn");
+    var list = $("steps");
+    list.innerHTML = "";
+    s.steps.forEach(function (st) {
+      var li = document.createElement("li");
+      li.setAttribute("data-step", st.name);
+      ["title", "attempt", "seconds"].forEach(function (cls) {
+        var span = document.createElement("span");
+        span.className = cls;
+        li.appendChild(span);
+      });
+      li.querySelector(".title").textContent = st.title;
+      list.appendChild(li);
+    });
+    $("prompt").removeAttribute("data-prompt");
+  }
+
+  // the server's clock minus this browser's, so that the elapsed time is the server's
+  var skew = 0;
+  function tickElapsed() {
+    var el = $("run-elapsed");
+    if (!state.started_at) { el.textContent = "—"; return; }
+    var end = state.finished_at || (Date.now() / 1000 + skew);
+    el.textContent = duration(end - state.started_at);
+  }
+
+  function renderLog(lines) {
+    var list = $("log");
+    if (list.children.length === lines.length) { return; }
+    list.innerHTML = "";
+    lines.forEach(function (l) {
+      var li = document.createElement("li");
+      li.className = l.level;
+      li.textContent = l.text;
+      list.appendChild(li);
+    });
+  }
+
   function render(s) {
     var previous = state;
     state = s;
+    if (s.now) { skew = s.now - Date.now() / 1000; }
+    if (s.run_id !== previous.run_id || (s.busy && !previous.busy)) { resetRun(s); }
     app.setAttribute("data-status", s.status);
     app.setAttribute("data-version", String(s.version));
     $("start").hidden = s.busy;
@@ -40,11 +102,17 @@
     $("run-status").className = "status " + s.status;
     $("run-recipe").textContent = s.recipe || "";
     $("run-operator").textContent = s.operator || "";
+    $("run-serial").textContent = s.serial || "from the lidar";
+    tickElapsed();
+    renderLog(s.log || []);
     s.steps.forEach(function (st) {
       var li = document.querySelector('#steps li[data-step="' + st.name + '"]');
       if (!li) { return; }
       li.className = st.status + (st.name === s.step && s.busy ? " current" : "");
       li.querySelector(".attempt").textContent = st.attempt > 1 ? " (attempt " + st.attempt + ")" : "";
+      var secs = st.seconds;
+      if (st.status === "running" && st.started_at) { secs = Date.now() / 1000 + skew - st.started_at; }
+      li.querySelector(".seconds").textContent = secs === null || secs === undefined ? "" : " " + duration(secs);
     });
     $("abort-button").hidden = !s.busy;
     renderPrompt(s.prompt);
@@ -85,7 +153,7 @@
     box.setAttribute("data-kind", p.kind);
     box.setAttribute("data-fixture", p.fixture || "");
     box.setAttribute("data-step", p.step || "");
-    $("prompt-title").textContent = p.kind === "failure" ? "Step " + p.step + " failed" : "Place the fixture";
+    $("prompt-title").textContent = p.title || (p.kind === "failure" ? "The step failed" : "Place the fixture");
     $("prompt-text").textContent = p.text;
     $("prompt-error").hidden = !p.error;
     $("prompt-error").textContent = p.error || "";
@@ -118,6 +186,7 @@
     ev.preventDefault();
     $("start-error").hidden = true;
     $("start-button").disabled = true;
+    try { window.localStorage.setItem("calstation-operator", $("operator").value); } catch (e) { /* private mode */ }
     post("/api/start", {recipe: $("recipe").value, operator: $("operator").value, serial: $("serial").value})
       .then(function (data) { render(data.state); })
       .catch(function (e) { showError(e.message); })
@@ -127,6 +196,9 @@
   document.querySelectorAll("#prompt button[data-answer]").forEach(function (b) {
     b.addEventListener("click", function () {
       var id = Number($("prompt").getAttribute("data-prompt"));
+      // the prompt's Abort ends the run as the Abort run button does: it asks first
+      if (b.getAttribute("data-answer") === "abort" &&
+          !window.confirm("Abort the run? The turntable is stopped.")) { return; }
       document.querySelectorAll("#prompt button[data-answer]").forEach(function (x) { x.disabled = true; });
       post("/api/answer", {prompt_id: id, answer: b.getAttribute("data-answer")})
         .catch(function (e) { alert(e.message); });
@@ -137,6 +209,20 @@
     if (!window.confirm("Abort the run? The turntable is stopped.")) { return; }
     post("/api/abort").catch(function (e) { alert(e.message); });
   });
+
+  // this browser's operator, when the server knows none (the last run's is the default)
+  try {
+    var remembered = window.localStorage.getItem("calstation-operator");
+    if (remembered && !$("operator").value) { $("operator").value = remembered; }
+  } catch (e) { /* private mode */ }
+  window.setInterval(function () {
+    if (state.busy) {
+      tickElapsed();
+      var running = document.querySelector("#steps li.running .seconds");
+      var st = state.steps.filter(function (x) { return x.status === "running"; })[0];
+      if (running && st && st.started_at) { running.textContent = " " + duration(Date.now() / 1000 + skew - st.started_at); }
+    }
+  }, 1000);
 
   // the server renders the first state; prompts shown on reload need their id
   if (state.prompt) { $("prompt").removeAttribute("data-prompt"); }
