@@ -14,9 +14,8 @@ from typing import Any
 
 import pytest
 from test_station import StationTestPlugin, lean_recipe
-from test_web_browser import browser, db, place, station  # noqa: F401  (fixtures, helpers)
-from test_web_browser import click_answer, wait_end
-from webstation import CHROMIUM, CHROMIUM_ARGS
+from test_web_browser import browser, click_answer, db, place, station, wait_end  # noqa: F401  (fixtures, helpers)
+from webstation import CHROMIUM
 
 from calstation import plugins
 from calstation.storage.db import Database
