@@ -358,10 +358,21 @@ def test_placement_picture_follows_the_recipe_geometry(tmp_path: Path) -> None:
     # is drawn right of the centre
     import re
 
-    marks = re.findall(r'<circle cx="([\d.]+)" cy="([\d.]+)" r="4"[^>]*/><text[^>]*>([^<]+)<',
-                       svg)
+    marks = re.findall(r'<circle cx="([\d.]+)" cy="([\d.]+)" r="4"[^>]*/><text[^>]*'
+                       r'data-label="([^"]+)"', svg)
     x = {label.split()[0]: float(cx) for cx, _, label in marks}
     assert x["tall"] > SIZE / 2 > x["short"]
+    # the labels sit in the legend under the platter, none over the drawing
+    legend = re.findall(r'<text x="6" y="([\d.]+)"[^>]*class="legend">([^<]+)<', svg)
+    assert all(float(y) > SIZE for y, _ in legend)
+    assert any(re.search(r"\d  tall end \d+ mm", text) for _, text in legend)
+    assert len({y for y, _ in legend}) == len(legend)  # one line each: no two overlap
+    # an off-centre spin target: its offset from the axis is dimensioned
+    from calstation.recipes import FrustumGeometry
+
+    spin = placement_svg(0.2925, FrustumGeometry(offset=(0.0, 0.06)), "spin")
+    assert re.search(r'class="offset-label">60 mm<', spin)
+    assert 'class="offset-dimension"' in spin and "60 mm from the axis" in spin
     cube = placement_svg(0.2925, CubeGeometry(edge=0.1, offset=(0.0, 0.0), yaw_deg=45.0), "cube")
     pts = re.search(r'<polygon points="([^"]+)" fill="#fff8c5"', cube)
     assert pts is not None

@@ -74,49 +74,107 @@ def fixture_outlines(geom: Any) -> list[dict[str, Any]]:
              "label": f"mesh {getattr(geom, 'mesh', '')}"}]
 
 
+LEGEND_LINE = 17
+"""Height of one line of the legend under the platter (px)."""
+
+
+def _offset_dimension(geom: Any, xy: Any) -> tuple[list[str], str | None]:
+    """The fixture's offset from the axis drawn as a dimension line (centre to the fixture's
+    centre, arrowheads, its length), and the legend's sentence for it; nothing when centred."""
+    offset = getattr(geom, "offset", None)
+    if offset is None:
+        return [], None
+    oy, oz = float(offset[0]), float(offset[1])
+    distance = math.hypot(oy, oz)
+    if distance < 1e-4:
+        return [], "centred on the axis"
+    (x0, y0), (x1, y1) = xy(0.0, 0.0), xy(oy, oz)
+    mid_x, mid_y = (x0 + x1) / 2, (y0 + y1) / 2
+    # the length written beside the line's middle, on the side away from the scan line
+    nx, ny = (y1 - y0), -(x1 - x0)
+    norm = math.hypot(nx, ny) or 1.0
+    side = 1.0 if nx >= 0 else -1.0  # to the right of the line, or left when it leans so
+    tx, ty = mid_x + side * nx / norm * 8, mid_y + side * ny / norm * 8
+    anchor = "start" if side * nx / norm > 0.3 else "end" if side * nx / norm < -0.3 else (
+        "middle")
+    text = f"{distance * 1000:.0f} mm"
+    parts = [
+        f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="#1b1f24" '
+        'stroke-width="1.2" marker-start="url(#arrow)" marker-end="url(#arrow)" '
+        'class="offset-dimension"/>',
+        f'<path d="M{x1 - 5:.1f},{y1:.1f}h10M{x1:.1f},{y1 - 5:.1f}v10" stroke="#1b1f24" '
+        'stroke-width="1.5"/>',
+        f'<text x="{tx:.1f}" y="{ty + 4:.1f}" font-size="12" font-weight="700" '
+        f'text-anchor="{anchor}" fill="#1b1f24" paint-order="stroke" stroke="#fff" '
+        f'stroke-width="3" class="offset-label">{text}</text>',
+    ]
+    return parts, (f"centre (+) {text} from the axis (recipe offset y {oy * 1000:+.0f}, "
+                   f"z {oz * 1000:+.0f} mm)")
+
+
 def placement_svg(platter_radius: float, geom: Any, title: str) -> str:
-    """The top view (SVG text) of ``geom`` on a platter of ``platter_radius`` metres."""
+    """The top view (SVG text) of ``geom`` on a platter of ``platter_radius`` metres, its offset
+    from the axis dimensioned; every label sits in a numbered legend under the platter, so that
+    none covers the drawing or another label."""
     scale = (SIZE / 2 - MARGIN) / platter_radius
     cx = cy = SIZE / 2
 
     def xy(y: float, z: float) -> tuple[float, float]:
         return cx - z * scale, cy - y * scale
 
+    outlines = fixture_outlines(geom)
+    dimension, offset_note = _offset_dimension(geom, xy)
+    legend = [escape(title), f"top view, platter ⌀ {platter_radius * 2000:.0f} mm; "
+              "dashed red: the scan line"]
+    colours = {"base": "#b6e3ff", "wall": "#0969da", "body": "#fff8c5"}
+    drawing: list[str] = []
+    for number, outline in enumerate(outlines, start=1):
+        pts = [xy(y, z) for y, z in outline["points"]]
+        label = escape(outline["label"])
+        legend.append(f"{number}  {label}")
+        if outline["role"] == "mark" or len(pts) == 1:
+            x, y = pts[0]
+            dx = 7 if x >= cx else -7  # the number away from the centre
+            drawing.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="4" fill="#8250df"/>'
+                           f'<text x="{x + dx:.1f}" y="{y - 6:.1f}" font-size="12" '
+                           f'font-weight="700" text-anchor="{"start" if dx > 0 else "end"}" '
+                           f'fill="#8250df" data-label="{label}">{number}</text>')
+            continue
+        poly = " ".join(f"{x:.1f},{y:.1f}" for x, y in pts)
+        drawing.append(f'<polygon points="{poly}" fill="{colours[outline["role"]]}" '
+                       f'stroke="#1b1f24" stroke-width="1.5" fill-opacity="0.85">'
+                       f"<title>{label}</title></polygon>")
+        # the number between the outline's centre and its corner farthest from the axis, clear
+        # of the offset's dimension
+        far = max(pts, key=lambda p: math.hypot(p[0] - cx, p[1] - cy))
+        x = (sum(p[0] for p in pts) / len(pts) + far[0]) / 2
+        y = (sum(p[1] for p in pts) / len(pts) + far[1]) / 2
+        drawing.append(f'<text x="{x:.1f}" y="{y + 4:.1f}" font-size="11" text-anchor="middle" '
+                       f'fill="#1b1f24" data-label="{label}">{number}</text>')
+    if offset_note:
+        legend.append(escape(offset_note))
+    height = SIZE + LEGEND_LINE * len(legend) + 6
     parts = [
-        f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {SIZE} {SIZE}" '
+        f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {SIZE} {height}" '
         f'class="placement" role="img" aria-label="{escape(title)}">',
         f"<title>{escape(title)}</title>",
+        '<defs><marker id="arrow" viewBox="0 0 10 10" refX="9" refY="5" markerWidth="7" '
+        'markerHeight="7" orient="auto-start-reverse"><path d="M0,0L10,5L0,10z" '
+        'fill="#1b1f24"/></marker></defs>',
         f'<circle cx="{cx}" cy="{cy}" r="{platter_radius * scale:.1f}" fill="#eef1f4" '
         'stroke="#57606a" stroke-width="2"/>',
         # the scan plane crosses the platter along Y_P
-        f'<line x1="{cx}" y1="{MARGIN - 12}" x2="{cx}" y2="{SIZE - MARGIN + 12}" '
+        f'<line x1="{cx}" y1="{MARGIN - 20}" x2="{cx}" y2="{SIZE - MARGIN + 12}" '
         'stroke="#cf222e" stroke-width="1.5" stroke-dasharray="6 4"/>',
         f'<circle cx="{cx}" cy="{cy}" r="3" fill="#57606a"/>',
         f'<polygon points="{cx - 10},{SIZE - 4} {cx + 10},{SIZE - 4} {cx},{SIZE - 20}" '
         'fill="#cf222e"/>',
         f'<text x="{cx + 14}" y="{SIZE - 6}" font-size="12" fill="#cf222e">lidar</text>',
-        f'<text x="{SIZE - 6}" y="16" font-size="11" fill="#cf222e" text-anchor="end">'
-        "dashed: the scan line</text>",
+        *drawing, *dimension,
     ]
-    colours = {"base": "#b6e3ff", "wall": "#0969da", "body": "#fff8c5"}
-    for outline in fixture_outlines(geom):
-        pts = [xy(y, z) for y, z in outline["points"]]
-        label = escape(outline["label"])
-        if outline["role"] == "mark" or len(pts) == 1:
-            x, y = pts[0]
-            parts.append(f'<circle cx="{x:.1f}" cy="{y:.1f}" r="4" fill="#8250df"/>')
-            # labels point away from the centre, so the two ends of a target do not collide
-            anchor = "start" if x >= cx else "end"
-            dx = 7 if x >= cx else -7
-            parts.append(f'<text x="{x + dx:.1f}" y="{y - 6:.1f}" font-size="11" '
-                         f'text-anchor="{anchor}" fill="#8250df">{label}</text>')
-            continue
-        poly = " ".join(f"{x:.1f},{y:.1f}" for x, y in pts)
-        parts.append(f'<polygon points="{poly}" fill="{colours[outline["role"]]}" '
-                     f'stroke="#1b1f24" stroke-width="1.5" fill-opacity="0.85">'
-                     f"<title>{label}</title></polygon>")
-    parts.append(f'<text x="6" y="16" font-size="12" fill="#1b1f24">{escape(title)}</text>')
-    parts.append(f'<text x="6" y="32" font-size="11" fill="#57606a">top view, platter '
-                 f'⌀ {platter_radius * 2000:.0f} mm</text>')
+    for i, line in enumerate(legend):
+        weight = ' font-weight="700"' if i == 0 else ""
+        parts.append(f'<text x="6" y="{SIZE + 14 + i * LEGEND_LINE}" font-size="12"{weight} '
+                     f'fill="#1b1f24" class="legend">{line}</text>')
     parts.append("</svg>")
     return "".join(parts)
