@@ -476,3 +476,20 @@ def test_a_template_recipe_is_listed_but_cannot_be_started(
             "error"]
         with db.session() as s:
             assert s.query(Run).count() == 0
+
+
+def test_the_live_line_is_zoomed_on_the_platter_not_the_room() -> None:
+    import numpy as np
+
+    from calstation.web.live import zoom_window
+
+    # a line of the static scan: the target on the platter 1.1–1.4 m away, the floor and a wall
+    # 3–4 m behind it
+    alpha = np.radians(np.linspace(-30, 30, 400))
+    rho = np.where(np.abs(alpha) < np.radians(8), 1250.0 + 150 * np.sin(5 * alpha), 3800.0)
+    x, y = rho * np.sin(alpha), rho * np.cos(alpha)
+    window = zoom_window(x, y, platter_m=0.585)
+    assert window is not None
+    assert window["y"][0] < 1150 and 1340 < window["y"][1] < 2000  # the wall is left out
+    assert window["x"][1] - window["x"][0] < 800  # not the ±2 m the whole line spans
+    assert zoom_window([], [], 0.585) is None

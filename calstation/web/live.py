@@ -74,6 +74,21 @@ def _plain_text(markup: str) -> str:
         return markup
 
 
+def zoom_window(x_mm: Any, y_mm: Any, platter_m: float) -> dict[str, list[float]] | None:
+    """The part of a lidar line that matters: the nearest returns (the platter and what stands
+    on it, in front of the floor and walls), within one platter diameter plus 10 cm in range of
+    the nearest, with a margin; ``{"x": [lo, hi], "y": [lo, hi]}`` in mm, None without returns."""
+    x, y = np.asarray(x_mm, dtype=float), np.asarray(y_mm, dtype=float)
+    if x.size == 0:
+        return None
+    rng = np.hypot(x, y)
+    near = rng <= np.percentile(rng, 2) + 1000.0 * (platter_m + 0.1)
+    xs, ys = x[near], y[near]
+    pad = max(50.0, 0.1 * max(float(np.ptp(xs)), float(np.ptp(ys))))
+    return {"x": [float(xs.min() - pad), float(xs.max() + pad)],
+            "y": [float(ys.min() - pad), float(ys.max() + pad)]}
+
+
 class LiveState:
     """What the operator page shows, kept by the server; thread-safe.
 
@@ -385,9 +400,11 @@ class WebOperator:
         # frame L (DESIGN §2): x = ρ·sin α, y = ρ·cos α; in millimetres for the plot
         x = np.round(rho * np.sin(alpha) * 1000.0, 1).tolist()
         y = np.round(rho * np.cos(alpha) * 1000.0, 1).tolist()
+        window = zoom_window(np.asarray(x), np.asarray(y),
+                             2.0 * float(self.recipe.fixtures.platter.radius))
         self.live.update(lambda st: setattr(
             st, "line", {"seq": seq, "kind": kind, "x_mm": x, "y_mm": y,
-                         "points": int(valid.sum())}))
+                         "points": int(valid.sum()), "window": window}))
 
 
 class Runner:

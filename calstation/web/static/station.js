@@ -176,7 +176,10 @@
                  marker: {size: 3, color: "#0969da"}, name: "returns"}];
     var layout = {title: {text: "live lidar line (" + line.kind + " scan, " + line.points + " returns)"},
                   height: 320, margin: {l: 50, r: 10, t: 40, b: 40},
-                  xaxis: {title: {text: "x_L (mm)"}}, yaxis: {title: {text: "y_L (mm, boresight)"}, scaleanchor: "x"},
+                  // zoomed on the returns that matter (the platter and its fixture, not the room)
+                  xaxis: {title: {text: "x_L (mm)"}, range: line.window ? line.window.x : undefined},
+                  yaxis: {title: {text: "y_L (mm, boresight)"}, scaleanchor: "x",
+                          range: line.window ? line.window.y : undefined},
                   showlegend: false};
     Plotly.react(el, data, layout, {displaylogo: false, responsive: true, staticPlot: false});
     el.setAttribute("data-drawn", "1");
