@@ -41,9 +41,9 @@ MUTATIONS = (
         "sigma",
         "periodicity σ of tx, tz and rz × 1e-3",
         "calstation/engine/periodicity/solve.py",
-        "sigma = {k: v * inflation for k, v in sigma_blocks.items()}",
-        "sigma = {k: v * inflation * (1e-3 if k in ('tx', 'tz', 'rz') else 1.0)"
-        " for k, v in sigma_blocks.items()}",
+        "sigma = sigma_from_covariance(reported_cov, problem.free)",
+        "sigma = {k: v * (1e-3 if k in ('tx', 'tz', 'rz') else 1.0)"
+        " for k, v in sigma_from_covariance(reported_cov, problem.free).items()}",
         ("tests/test_trust.py", "tests/test_periodicity.py"),
     ),
     Mutation(

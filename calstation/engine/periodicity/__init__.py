@@ -47,6 +47,7 @@ from calstation.engine.periodicity.cells import (
     to_dynamic as to_dynamic,
 )
 from calstation.engine.periodicity.covariance import (
+    MODEL_FLOOR_DEG as MODEL_FLOOR_DEG,
     SIGMA_BLOCK as SIGMA_BLOCK,
     SIGMA_SCALE as SIGMA_SCALE,
     block_ids as block_ids,

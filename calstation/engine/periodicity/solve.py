@@ -22,6 +22,7 @@ from calstation.engine.periodicity.cells import (
 )
 from calstation.engine.periodicity.covariance import (
     covariance_record,
+    model_floor,
     noise_inflation,
     parameter_covariance,
     parameter_sigma,
@@ -241,7 +242,10 @@ def _uncertainty(run: _Run, noise: float) -> _Uncertainty:
     sigma_blocks = sigma_from_covariance(covariance, problem.free)
     inflation = noise_inflation(noise)
     sigma = {k: v * inflation for k, v in sigma_blocks.items()}
-    reported_cov = None if covariance is None else covariance * inflation**2
+    reported_cov = None
+    if covariance is not None:
+        reported_cov = covariance * inflation**2 + model_floor(problem.free)
+        sigma = sigma_from_covariance(reported_cov, problem.free)
     return _Uncertainty(
         sigma,
         sigma_independent,
