@@ -42,7 +42,7 @@ test: setup
 	$(BIN)/mypy
 	$(BIN)/lint-imports --no-logo
 	$(BIN)/python -m pytest -n 2 -q
-	$(BIN)/python -m pytest -q -m browser tests/test_web_browser.py tests/test_web_security_browser.py
+	$(BIN)/python -m pytest -q -m browser tests/
 
 bench: setup
 	$(BIN)/python benchmarks/simulate_revolution.py
