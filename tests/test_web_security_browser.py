@@ -280,6 +280,7 @@ def test_a_rebound_name_cannot_read_start_answer_or_abort(
         # the operator's run waits at its first placement, as the review found it
         page.goto(url + "/")
         page.select_option("#recipe", "lean.yaml")
+        page.fill("#operator", "ann")  # no default operator before a first run
         page.click("#start-button")
         page.wait_for_selector('#prompt:not([hidden])[data-kind="fixture"]')
         evil_page.evaluate("window.go()")
@@ -305,6 +306,7 @@ def test_the_stations_pages_draw_under_their_policy(
     with station(tmp_path, db) as url:
         page.goto(url + "/")
         page.select_option("#recipe", "lean.yaml")
+        page.fill("#operator", "ann")  # no default operator before a first run
         page.click("#start-button")
         for fixture in ("static_target", "spin_target"):
             page.wait_for_selector(f'#prompt:not([hidden])[data-fixture="{fixture}"]')
@@ -353,6 +355,7 @@ def test_a_link_from_another_site_keeps_the_operator_logged_in(
             page.wait_for_selector("#start-button")
         assert page.locator("#logout-button").count() == 1
         page.select_option("#recipe", "lean.yaml")
+        page.fill("#operator", "ann")  # no default operator before a first run
         page.click("#start-button")
         page.wait_for_selector('#prompt:not([hidden])[data-kind="fixture"]')
         page.click("#abort-button")
