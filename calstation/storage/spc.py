@@ -19,10 +19,14 @@ Conventions (Montgomery, *Introduction to Statistical Quality Control*, §6.4 an
 
 from __future__ import annotations
 
+import itertools
 import math
 import statistics
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
 
 D2 = 1.128
 """Moving range of two points: E[|x_i − x_{i−1}|] = d2·σ for normal data."""
@@ -73,37 +77,58 @@ def control_limits(values: Sequence[float], baseline: int | None = None) -> Cont
     k = baseline_size(len(finite)) if baseline is None else max(1, min(baseline, len(finite)))
     base = finite[:k]
     centre = statistics.fmean(base)
-    ranges = [abs(b - a) for a, b in zip(base, base[1:], strict=False)]
+    ranges = [abs(b - a) for a, b in itertools.pairwise(base)]
     sigma = statistics.fmean(ranges) / D2 if ranges else 0.0
     return ControlLimits(centre=centre, sigma=sigma, baseline=k)
 
 
-def western_electric(values: Sequence[float], limits: ControlLimits) -> list[list[int]]:
-    """For each value, the Western Electric rules (1–4) it is flagged by (empty: in control).
+def rule_hits(values: Sequence[float], limits: ControlLimits) -> dict[int, NDArray[np.bool_]]:
+    """For each Western Electric rule (1–4), which values break it.
 
-    A rule over a window flags the point that completes it. With σ = 0 (a constant
-    baseline) only a value off the centre line breaks rule 1."""
-    c, s = limits.centre, limits.sigma
-    flags: list[list[int]] = [[] for _ in values]
-    z = [((v - c) / s if s > 0 else (0.0 if v == c else math.copysign(math.inf, v - c)))
-         if math.isfinite(v) else 0.0 for v in values]
-    for i, zi in enumerate(z):
-        if abs(zi) > 3.0:
-            flags[i].append(1)
-        if s <= 0:
-            continue
-        for rule, window, need, level in ((2, 3, 2, 2.0), (3, 5, 4, 1.0)):
-            if i + 1 < window or abs(zi) <= level:
-                continue
-            side = math.copysign(1.0, zi)
-            recent = z[i + 1 - window:i + 1]
-            if sum(1 for x in recent if x * side > level) >= need:
-                flags[i].append(rule)
-        if i >= 7 and zi != 0:
-            side = math.copysign(1.0, zi)
-            if all(x * side > 0 for x in z[i - 7:i + 1]):
-                flags[i].append(4)
+    A rule over a window flags the point that completes it (and is itself on the rule's side).
+    With σ = 0 (a constant baseline) only a value off the centre line breaks rule 1; a value
+    that is not finite breaks none."""
+    v = np.asarray(values, dtype=np.float64)
+    ok = np.isfinite(v)
+    dev = np.where(ok, v - limits.centre, 0.0)
+    none = np.zeros(v.size, dtype=bool)
+    if limits.sigma <= 0:
+        return {1: dev != 0, 2: none, 3: none.copy(), 4: none.copy()}
+    z = dev / limits.sigma
+    hits = {1: np.abs(z) > 3.0, 2: none, 3: none.copy(), 4: none.copy()}
+    for side in (1.0, -1.0):
+        zs = z * side
+        for rule, window, need, level in ((2, 3, 2, 2.0), (3, 5, 4, 1.0), (4, 8, 8, 0.0)):
+            beyond = (zs > level) & ok
+            hits[rule] = hits[rule] | (beyond & (_window_sums(beyond, window) >= need))
+    return {rule: h & ok for rule, h in hits.items()}
+
+
+def western_electric(values: Sequence[float], limits: ControlLimits) -> list[list[int]]:
+    """For each value, the Western Electric rules (1–4) it breaks (empty: in control); see
+    :func:`rule_hits`."""
+    hits = rule_hits(values, limits)
+    flags: list[list[int]] = [[] for _ in range(len(values))]
+    for rule in (1, 2, 3, 4):
+        for i in np.flatnonzero(hits[rule]):
+            flags[i].append(rule)
     return flags
+
+
+def out_of_control(values: Sequence[float], limits: ControlLimits) -> int:
+    """How many values break at least one Western Electric rule."""
+    hits = rule_hits(values, limits)
+    return int(np.count_nonzero(hits[1] | hits[2] | hits[3] | hits[4]))
+
+
+def _window_sums(mask: NDArray[np.bool_], window: int) -> NDArray[np.int64]:
+    """For each index, how many of the ``window`` values ending there are True (0 where the
+    window is not complete)."""
+    c = np.concatenate(([0], np.cumsum(mask.astype(np.int64))))
+    out = np.zeros(mask.size, dtype=np.int64)
+    if mask.size >= window:
+        out[window - 1:] = c[window:] - c[:-window]
+    return out
 
 
 @dataclass

@@ -50,12 +50,14 @@ from calstation.web.payloads import (
     schema_of,
 )
 from calstation.web.plans import Planner
+from calstation.web.qa_routes import dashboard_routes
 from calstation.web.security import AccessError, Guard, client_of
 from calstation.web.settings import MAX_ID, WebLimits
 from calstation.web.tokens import TokenSource
 
 STATIC = Path(__file__).parent / "static"
-StaticFile = Literal["station.css", "station.js", "trends.js", "plan.js", "plotly.min.js"]
+StaticFile = Literal["station.css", "station.js", "trends.js", "plan.js", "figures.js",
+                     "plotly.min.js"]
 
 log = logging.getLogger("calstation.web")
 
@@ -126,6 +128,7 @@ def create_app(
     _fleet_routes(app, ctx, recipes_dir)
     _api_routes(app, ctx)
     _plan_routes(app, ctx, Planner(runner))
+    dashboard_routes(app, ctx)
     return app
 
 
