@@ -139,6 +139,12 @@ def failure_reason(step: str | None, error: str | None) -> tuple[str, str]:
     return step or "run", (first[:60] or "no message")
 
 
+def reason_text(reason: str) -> str:
+    """The words of a step's error behind a limit as :func:`failure_reason` names it (the
+    history's ``reason`` filter); other text is taken as it is."""
+    return next((needle for needle, limit in REASONS if limit == reason), reason)
+
+
 def dashboard(session: Session, q: DashboardQuery) -> dict[str, Any]:
     """Everything the dashboard page draws (see the module's docstring)."""
     start, end = q.window()
