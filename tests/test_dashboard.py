@@ -17,8 +17,8 @@ from calstation.storage.db import Database, open_database
 from calstation.testing.qa_history import History
 
 pytest.importorskip("calstation_sim")
-from calstation.testing.qa_history import Drift, seed_history  # noqa: E402
-from calstation.web.app import create_app  # noqa: E402
+from calstation.testing.qa_history import Drift, seed_history
+from calstation.web.app import create_app
 
 END = dt.datetime(2026, 11, 20, 23, 0, tzinfo=dt.UTC)
 

@@ -206,10 +206,10 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
     """A plotly figure of a trend: values with 1σ bars by date, the limits drawn."""
     from calstation.storage.dashboard import LABELS
 
-    k, unit = display_scale(t["param"])
+    k, _ = display_scale(t["param"])
     label = LABELS.get(t["param"], t["param"])
     pts = t["points"]
-    dates = [p["date"] for p in pts]
+    dates = [(p["date"] or "")[:19].replace("T", " ") for p in pts]  # UTC, to the second
     values = [p["value"] * k for p in pts]
     data: list[dict[str, Any]] = [{
         "type": "scatter", "mode": "lines+markers", "name": label, "x": dates, "y": values,
@@ -224,9 +224,10 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
         for sign, name in ((1.0, "drift limit"), (-1.0, None)):
             xs: list[Any] = []
             ys: list[Any] = []
-            for a, b in itertools.pairwise(pts):
+            for (a, b), (da, db) in zip(itertools.pairwise(pts), itertools.pairwise(dates),
+                                        strict=True):
                 level = (a["value"] + sign * b["limit"]) * k
-                xs += [a["date"], b["date"], None]
+                xs += [da, db, None]
                 ys += [level, level, None]
             data.append({"type": "scatter", "mode": "lines", "name": name or "", "x": xs,
                          "y": ys, "showlegend": name is not None, "hoverinfo": "skip",

@@ -257,7 +257,8 @@ def _iterated(calibrations: list[dict[str, Any]], final: dict[str, Any] | None
     that did (the fine-tuning under a combined ``periodicity+cube`` calibration)."""
     for c in ([final] if final else []) + list(reversed(calibrations)):
         if isinstance((c.get("diagnostics") or {}).get("iterations"), list):
-            return c
+            found: dict[str, Any] = c
+            return found
     return None
 
 
