@@ -121,6 +121,23 @@ def test_the_dashboard_shows_weeks_of_stations_and_flags_the_drift(
         rows = page.locator("#history tr[data-run]")
         assert rows.count() > 0
         assert all(s == "failed" for s in rows.locator("td.status-cell").all_inner_texts())
+        if DOCS_SHOTS:
+            _other_pages(page, url, seeded)
+
+
+def _other_pages(page: Any, url: str, seeded: Any) -> None:
+    """Pictures of the other QA pages for docs/station.md, over the seeded history."""
+    page.goto(url + "/runs?station=line-2&limit=25")
+    shot(page, "history")
+    page.goto(url + "/trends?station=line-2&param=tz&param=ry&param=twist_deg")
+    page.wait_for_selector("body[data-figures-drawn]")
+    shot(page, "trends", full=True)
+    a, b = seeded.runs["line-2"][3], seeded.drifting[-1]
+    page.goto(url + f"/compare?a={a}&b={b}")
+    shot(page, "compare", full=True)
+    for name in ("campaigns", "plan", "login"):
+        page.goto(url + f"/{name}")
+        shot(page, name)
 
 
 @pytest.fixture(scope="module")
@@ -156,6 +173,9 @@ def test_the_default_runs_report_is_small_and_prints_every_figure(
     rp = context.new_page()
     rp.goto(report.as_uri())
     rp.wait_for_selector("body[data-report-ready]", timeout=90_000)
+    t0 = time.perf_counter()
+    rp.wait_for_selector("body[data-print-ready]", timeout=120_000)
+    print(f"pictures for print ready {time.perf_counter() - t0:.1f} s after the figures")
     figures = rp.locator("[data-figure]").count()
     assert figures >= 4  # two 3D views, residuals, cost
     assert rp.locator("img.print-image").count() == figures

@@ -80,19 +80,19 @@ def pareto_figure(data: dict[str, Any]) -> dict[str, Any]:
     links = [history_link(status=r["status"], failed_step=r["step"],
                           reason="" if r["limit"] == "aborted" else r["limit"],
                           since=period["since"], until=period["until"]) for r in rows]
-    labels = [r["reason"] for r in rows]
+    labels = [f"{r['step']}<br>{r['limit']}" for r in rows]
     return {"data": [
         {"type": "bar", "name": "runs", "x": labels, "y": [r["count"] for r in rows],
          "customdata": links, "marker": {"color": FLAG},
-         "hovertemplate": "%{x}: %{y} runs<extra></extra>"},
+         "hovertemplate": "%{x}<br>%{y} runs<extra></extra>"},
         {"type": "scatter", "mode": "lines+markers", "name": "cumulative %", "x": labels,
          "y": [round(100 * r["cumulative"], 1) for r in rows], "yaxis": "y2",
          "customdata": links, "line": {"color": "#57606a"},
          "hovertemplate": "cumulative %{y:.0f} %<extra></extra>"},
     ], "layout": _layout(
         "failures by failed step and limit (all stations)", "runs", height=380,
-        margin={"l": 70, "r": 60, "t": 44, "b": 150},
-        xaxis={"type": "category", "tickangle": -30, "automargin": True},
+        margin={"l": 70, "r": 60, "t": 44, "b": 90},
+        xaxis={"type": "category", "tickangle": 0, "automargin": True},
         yaxis2={"overlaying": "y", "side": "right", "range": [0, 101],
                 "title": {"text": "cumulative %"}})}
 

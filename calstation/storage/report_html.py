@@ -536,12 +536,31 @@ def views_data(db: Database, run_id: int) -> dict[str, Any]:
     painted): ``views`` (each with its figure, points and residual statistics), ``residuals``
     (the histogram figure or None), ``key`` (the final calibration and the run's status:
     the views change only with them)."""
-    data = report_data(db, run_id)
+    return _views_of(report_data(db, run_id))
+
+
+def _views_of(data: dict[str, Any]) -> dict[str, Any]:
     views = [{k: ({kk: vv for kk, vv in v.items() if kk != "values_mm"}
                   if k == "residual" else v) for k, v in view.items()} for view in data["views"]]
     final = data["final"] or {}
     return {"views": views, "residuals": data["figures"].get("residuals"),
             "key": [final.get("id"), data["run"]["status"]]}
+
+
+VIEWS_FILE = "views.json"
+"""The 3D views as the web run page fetches them, kept in the run folder with report.html."""
+
+
+def stored_views(folder: Path, key: list[Any]) -> str | None:
+    """The run folder's :data:`VIEWS_FILE` as JSON text when it was written for ``key`` (the
+    final calibration's id and the run's status), else None."""
+    path = folder / VIEWS_FILE
+    try:
+        text = path.read_text(encoding="utf-8")
+        head = json.loads(text[text.rindex(',"key":') + 7:-1])
+    except (OSError, ValueError):
+        return None
+    return text if head == key else None
 
 
 def _drift_of(summary: dict[str, Any]) -> dict[str, Any] | None:
@@ -654,4 +673,8 @@ def write_run_report(db: Database, run_id: int) -> Path:
     tmp = path.with_suffix(".html.tmp")
     tmp.write_text(render_report(data, plotly_src=f"../{plotly_file_name()}"), encoding="utf-8")
     tmp.replace(path)
+    views = folder / VIEWS_FILE
+    tmp = views.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(_views_of(data), separators=(",", ":")), encoding="utf-8")
+    tmp.replace(views)
     return path

@@ -462,17 +462,25 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
 
     views_cache: dict[int, dict[str, Any]] = {}
 
-    @app.get("/runs/{run_id}/views.json")
-    def run_views(run_id: RunId) -> dict[str, Any]:
-        """The run's 3D views (plotly figures, points in binary) and residual histogram."""
-        from calstation.storage.report_html import views_data
+    @app.get("/runs/{run_id}/views.json", response_model=None)
+    def run_views(run_id: RunId) -> dict[str, Any] | Response:
+        """The run's 3D views (plotly figures, points in binary) and residual histogram: those
+        the report step kept in the run folder, else reconstructed from the recordings."""
+        from calstation.storage.report import final_calibration
+        from calstation.storage.report_html import stored_views, views_data
 
         ctx.require_run(run_id)
         with ctx.db.session("reading the runs", read_only=True) as s:
             run = s.get(Run, run_id)
             status = run.status if run is not None else None
+            final = (final_calibration(run).id if run is not None and run.calibrations
+                     else None)
+            folder = Path(run.data_dir) if run is not None else None
+        stored = stored_views(folder, [final, status]) if folder is not None else None
+        if stored is not None:
+            return Response(stored, media_type="application/json")
         cached = views_cache.get(run_id)
-        if cached is not None and cached["key"][1] == status and status != "running":
+        if cached is not None and cached["key"] == [final, status] and status != "running":
             return cached
         got = views_data(ctx.db, run_id)
         if len(views_cache) >= 8:
