@@ -97,7 +97,7 @@ def test_the_page_draws_every_chart_with_links_to_runs(client: TestClient) -> No
     r = client.get("/dashboard?until=2026-11-20&days=28&station=bench-b&param=tz&param=twist_deg")
     assert r.status_code == 200
     html = r.text
-    for fig in ("yield", "cycle", "pareto", "chart-tz", "chart-twist_deg", "compare-tz"):
+    for fig in ("yield", "cycle", "pareto", "chart-tz", "chart-twist_deg", "compare"):
         assert f'data-figure="{fig}"' in html
     assert "cube side-face twist (°)" in html and "tz — translation along z (mm)" in html
     assert re.search(r'"customdata": \["/runs/\d+"', html)  # a chart's points

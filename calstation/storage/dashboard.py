@@ -50,6 +50,14 @@ LABELS: dict[str, str] = {
 }
 """What each parameter is called on the QA pages, with its display unit."""
 
+SHORT: dict[str, str] = {
+    "tx": "tx (mm)", "ty": "ty (mm)", "tz": "tz (mm)", "rx": "rx (°)", "ry": "ry (°)",
+    "rz": "rz (°)", "edge_error": "edge error (mm)", "obb_error": "OBB edge error (mm)",
+    "flatness_rms": "flatness RMS (mm)", "perpendicularity_deg": "perpendicularity (°)",
+    "twist_deg": "twist (°)",
+}
+"""The same, short enough for a chart's axis."""
+
 SCALE: dict[str, float] = {
     "tx": 1e3, "ty": 1e3, "tz": 1e3, "rx": math.degrees(1.0), "ry": math.degrees(1.0),
     "rz": math.degrees(1.0), "edge_error": 1e3, "obb_error": 1e3, "flatness_rms": 1e3,
@@ -310,6 +318,7 @@ def chart(series: Series | None, station: str, param: str) -> dict[str, Any]:
     """A control chart of ``param`` on ``station``: centre line, ±3σ, the recipe's limit, and
     each point with the Western Electric rules it breaks."""
     base: dict[str, Any] = {"station": station, "param": param, "label": LABELS[param],
+                            "short": SHORT[param],
                             "kind": "calibration" if param in CALIBRATION_PARAMS else "cube",
                             "points": [], "limits": None, "flagged": 0}
     if not series or not series["value"]:
@@ -347,5 +356,5 @@ def _comparison(series: dict[tuple[str, str], Series], stations: list[str]
                          "centre": lim.centre, "sigma": lim.sigma,
                          "flagged": out_of_control(one["value"], lim)})
         if rows:
-            out.append({"param": p, "label": LABELS[p], "stations": rows})
+            out.append({"param": p, "label": LABELS[p], "short": SHORT[p], "stations": rows})
     return out

@@ -102,7 +102,7 @@ def control_figure(c: dict[str, Any]) -> dict[str, Any]:
     centre line, ±3σ, and the recipe's limit (click a point: its run)."""
     pts, lim = c["points"], c["limits"]
     if not pts or lim is None:
-        return {"data": [], "layout": _layout(f"{c['label']} — no value", c["label"])}
+        return {"data": [], "layout": _layout(f"{c['label']} — no value", c["short"])}
     xs = [p["t"] for p in pts]
     bad = [p for p in pts if p["rules"]]
     data: list[dict[str, Any]] = [
@@ -138,23 +138,30 @@ def control_figure(c: dict[str, Any]) -> dict[str, Any]:
                      "hoverinfo": "skip",
                      "line": {"color": colour, "dash": dash, "width": 1.5}})
     title = (f"{c['label']} on {c['station']}: {c['flagged']} of {len(pts)} out of control")
-    return {"data": data, "layout": _layout(title, c["label"], height=300,
+    return {"data": data, "layout": _layout(title, c["short"], height=300,
                                             xaxis={"type": "date", "automargin": True})}
 
 
-def comparison_figure(row: dict[str, Any]) -> dict[str, Any]:
-    """One parameter on every station side by side: quartiles, whiskers and centre line
-    (click a station's box: its runs)."""
-    st = row["stations"]
-    return {"data": [{
-        "type": "box", "name": row["label"], "x": [s["station"] for s in st],
-        "q1": [s["q1"] for s in st], "median": [s["median"] for s in st],
-        "q3": [s["q3"] for s in st], "lowerfence": [s["low"] for s in st],
-        "upperfence": [s["high"] for s in st], "customdata": [
-            history_link(station=s["station"]) for s in st],
-        "marker": {"color": "#0969da"}, "showlegend": False,
-    }], "layout": _layout(f"{row['label']}: station against station", row["label"],
-                          height=280, xaxis={"type": "category"})}
+def comparison_figure(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Parameters on every station side by side, one panel each: quartiles, whiskers (click a
+    station's box: its runs). One figure, so the page draws it at once."""
+    data: list[dict[str, Any]] = []
+    layout = _layout("station against station", "", height=300,
+                     grid={"rows": 1, "columns": max(1, len(rows)), "pattern": "independent",
+                           "xgap": 0.25}, showlegend=False, annotations=[])
+    for i, row in enumerate(rows, start=1):
+        st = row["stations"]
+        suffix = "" if i == 1 else str(i)
+        data.append({
+            "type": "box", "name": row["label"], "x": [s["station"] for s in st],
+            "q1": [s["q1"] for s in st], "median": [s["median"] for s in st],
+            "q3": [s["q3"] for s in st], "lowerfence": [s["low"] for s in st],
+            "upperfence": [s["high"] for s in st],
+            "customdata": [history_link(station=s["station"]) for s in st],
+            "xaxis": f"x{suffix}", "yaxis": f"y{suffix}", "marker": {"color": "#0969da"}})
+        layout[f"xaxis{suffix}"] = {"type": "category", "automargin": True}
+        layout[f"yaxis{suffix}"] = {"automargin": True, "title": {"text": row["short"]}}
+    return {"data": data, "layout": layout}
 
 
 def figures(data: dict[str, Any]) -> dict[str, Any]:
@@ -163,7 +170,7 @@ def figures(data: dict[str, Any]) -> dict[str, Any]:
            "pareto": pareto_figure(data)}
     for c in data["charts"]:
         out[f"chart-{c['param']}"] = control_figure(c)
-    for row in data["comparison"]:
-        if row["param"] in data["params"]:
-            out[f"compare-{row['param']}"] = comparison_figure(row)
+    shown = [row for row in data["comparison"] if row["param"] in data["params"]]
+    if shown:
+        out["compare"] = comparison_figure(shown)
     return out

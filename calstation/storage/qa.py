@@ -204,7 +204,7 @@ def display_scale(param: str) -> tuple[float, str]:
 
 def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
     """A plotly figure of a trend: values with 1σ bars by date, the limits drawn."""
-    from calstation.storage.dashboard import LABELS
+    from calstation.storage.dashboard import LABELS, SHORT
 
     k, _ = display_scale(t["param"])
     label = LABELS.get(t["param"], t["param"])
@@ -242,7 +242,7 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
         "height": 340, "margin": {"l": 80, "r": 20, "t": 40, "b": 60},
         "title": {"text": f"{label} on station {t['station']}", "x": 0.01},
         "xaxis": {"title": {"text": "date (UTC)"}, "automargin": True, "type": "date"},
-        "yaxis": {"title": {"text": label}, "automargin": True},
+        "yaxis": {"title": {"text": SHORT.get(t["param"], label)}, "automargin": True},
         "legend": {"orientation": "h", "y": -0.3}, "hovermode": "closest",
     }}
 
