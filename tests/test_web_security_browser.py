@@ -301,7 +301,8 @@ def test_the_stations_pages_draw_under_their_policy(
     tmp_path: Path, db: Database, page: Any, station_plugin: StationTestPlugin,
 ) -> None:
     """The Content-Security-Policy blocks nothing the station needs: the operator page's live
-    plot, the trend plot, the report's 3D views (served and as the sandboxed file)."""
+    plot, the trend plot, the report's 3D views (served and as the sandboxed file), the QA
+    dashboard."""
     with station(tmp_path, db) as url:
         page.goto(url + "/")
         page.select_option("#recipe", "lean.yaml")
@@ -318,7 +319,8 @@ def test_the_stations_pages_draw_under_their_policy(
         checks = {f"/runs/{run_id}": ".view3d[data-drawn]",
                   f"/runs/{run_id}/report.html": ".view3d[data-drawn]",
                   "/trends?station=sim-test&param=tx": "#trend-plot[data-drawn]",
-                  "/runs": "#history", "/login": "form"}
+                  "/runs": "#history", "/login": "form",
+                  "/dashboard": "body[data-figures-drawn]"}
         for path, selector in checks.items():
             page.goto(url + path)
             page.wait_for_selector(selector)

@@ -41,6 +41,7 @@ from calstation.web.payloads import (
     AnswerRequest,
     EmptyRequest,
     LoginRequest,
+    ParamName,
     PlanRequest,
     StartRequest,
     form_to_typed,
@@ -374,7 +375,7 @@ Filter = Annotated[Any, Depends(_history_filter)]
 def _trend_data(
     request: Request,
     station: Annotated[OptionalText, Query(max_length=100)] = None,
-    param: Annotated[list[str] | None, Query(max_length=12)] = None,
+    param: Annotated[list[ParamName] | None, Query()] = None,
 ) -> dict[str, Any]:
     """The trends of one or more parameters (``param`` repeated); the first one's fields at
     the top (as before several could be asked for), all of them under ``trends``."""
@@ -382,7 +383,7 @@ def _trend_data(
     from calstation.storage.dashboard import LABELS
 
     offered = qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS
-    params = list(dict.fromkeys(printable(p) for p in param or [] if p))[:12] or ["tx"]
+    params = list(dict.fromkeys(p for p in param or [] if p))[:12] or ["tx"]
     for p in params:
         if p not in offered:
             raise qa.QueryError(f"param: {p!r} is not one of {', '.join(offered)}")

@@ -6,6 +6,9 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from fastapi import Depends, FastAPI, Query, Request
 from fastapi.responses import HTMLResponse, Response
+from pydantic import AfterValidator
+
+from calstation.web.payloads import ParamName, printable
 
 if TYPE_CHECKING:
     from calstation.storage.dashboard import DashboardQuery
@@ -18,13 +21,15 @@ FAVICON = (
     '<circle cx="16" cy="6" r="3" fill="#1a7f37"/></svg>')
 """The station's icon: a lidar above its turntable."""
 
+Text = Annotated[str, AfterValidator(printable)]
+
 
 def _query(
-    station: Annotated[str | None, Query(max_length=100)] = None,
+    station: Annotated[Text | None, Query(max_length=100)] = None,
     days: Annotated[int, Query(ge=1, le=366)] = 56,
     group: Literal["day", "week"] = "week",
-    param: Annotated[list[str] | None, Query(max_length=12)] = None,
-    until: Annotated[str | None, Query(max_length=10)] = None,
+    param: Annotated[list[ParamName] | None, Query()] = None,
+    until: Annotated[Text | None, Query(max_length=10)] = None,
 ) -> DashboardQuery:
     from calstation.storage.dashboard import DashboardQuery
 
