@@ -51,7 +51,7 @@ from calstation.web.payloads import (
     schema_of,
 )
 from calstation.web.plans import Planner
-from calstation.web.qa_routes import dashboard_routes
+from calstation.web.qa_routes import dashboard_routes, run_page_routes
 from calstation.web.security import AccessError, Guard, client_of
 from calstation.web.settings import MAX_ID, WebLimits
 from calstation.web.tokens import TokenSource
@@ -128,6 +128,7 @@ def create_app(
     _fleet_routes(app, ctx, recipes_dir)
     _api_routes(app, ctx)
     _plan_routes(app, ctx, Planner(runner))
+    run_page_routes(app, ctx)
     dashboard_routes(app, ctx)
     return app
 
@@ -444,50 +445,6 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
 
         ctx.require_run(run_id)
         return report_data(ctx.db, run_id, views=False)
-
-    @app.get("/runs/{run_id}", response_class=HTMLResponse)
-    def run_page(request: Request, run_id: RunId) -> HTMLResponse:
-        """A run's page: its report from the database; the 3D views, reconstructed from the
-        recordings, follow from ``/runs/N/views.json`` once the page is shown."""
-        from calstation.storage.report_html import render_report, report_data
-
-        ctx.require_run(run_id)
-        data = report_data(ctx.db, run_id, views=False)
-        logged_in = ctx.guard.logged_in(request)
-        return HTMLResponse(render_report(
-            data, plotly_src="/static/plotly.min.js", nav=True,
-            nonce=request.scope.get(NONCE_KEY), views_src=f"/runs/{run_id}/views.json",
-            csrf=ctx.guard.page_session(request).csrf if logged_in else "",
-            needs_login=not logged_in,
-            logged_in=logged_in and ctx.guard.require_token))
-
-    views_cache: dict[int, dict[str, Any]] = {}
-
-    @app.get("/runs/{run_id}/views.json", response_model=None)
-    def run_views(run_id: RunId) -> dict[str, Any] | Response:
-        """The run's 3D views (plotly figures, points in binary) and residual histogram: those
-        the report step kept in the run folder, else reconstructed from the recordings."""
-        from calstation.storage.report import final_calibration
-        from calstation.storage.report_html import stored_views, views_data
-
-        ctx.require_run(run_id)
-        with ctx.db.session("reading the runs", read_only=True) as s:
-            run = s.get(Run, run_id)
-            status = run.status if run is not None else None
-            final = (final_calibration(run).id if run is not None and run.calibrations
-                     else None)
-            folder = Path(run.data_dir) if run is not None else None
-        stored = stored_views(folder, [final, status]) if folder is not None else None
-        if stored is not None:
-            return Response(stored, media_type="application/json")
-        cached = views_cache.get(run_id)
-        if cached is not None and cached["key"] == [final, status] and status != "running":
-            return cached
-        got = views_data(ctx.db, run_id)
-        if len(views_cache) >= 8:
-            views_cache.pop(next(iter(views_cache)))
-        views_cache[run_id] = got
-        return got
 
     @app.get("/runs/{run_id}/report.html", response_model=None)
     def run_report_file(run_id: RunId) -> Response:

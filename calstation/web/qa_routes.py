@@ -1,14 +1,19 @@
-"""The QA dashboard's routes (``/dashboard`` and its JSON twin) and the favicon."""
+"""The QA pages' routes: the dashboard (``/dashboard`` and its JSON twin), the run page
+(``/runs/N``, its 3D views fetched after it painted) and the favicon."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
-from fastapi import Depends, FastAPI, Query, Request
+from fastapi import Depends, FastAPI, Path as PathParam, Query, Request
 from fastapi.responses import HTMLResponse, Response
 from pydantic import AfterValidator
 
+from calstation.storage.db import Run
+from calstation.web.middleware import NONCE_KEY
 from calstation.web.payloads import ParamName, printable
+from calstation.web.settings import MAX_ID
 
 if TYPE_CHECKING:
     from calstation.storage.dashboard import DashboardQuery
@@ -22,6 +27,7 @@ FAVICON = (
 """The station's icon: a lidar above its turntable."""
 
 Text = Annotated[str, AfterValidator(printable)]
+RunId = Annotated[int, PathParam(ge=1, le=MAX_ID, description="a run id")]
 
 
 def _query(
@@ -40,6 +46,55 @@ def _query(
 
 
 Q = Annotated[Any, Depends(_query)]
+
+
+def run_page_routes(app: FastAPI, ctx: Any) -> None:
+    """``/runs/N`` (the run's report under the station's bar) and ``/runs/N/views.json`` (its
+    3D views, fetched once the page is shown)."""
+    @app.get("/runs/{run_id}", response_class=HTMLResponse)
+    def run_page(request: Request, run_id: RunId) -> HTMLResponse:
+        """A run's page: its report from the database; the 3D views, reconstructed from the
+        recordings, follow from ``/runs/N/views.json`` once the page is shown."""
+        from calstation.storage.report_html import render_report, report_data
+
+        ctx.require_run(run_id)
+        data = report_data(ctx.db, run_id, views=False)
+        logged_in = ctx.guard.logged_in(request)
+        return HTMLResponse(render_report(
+            data, plotly_src="/static/plotly.min.js", nav=True,
+            nonce=request.scope.get(NONCE_KEY), views_src=f"/runs/{run_id}/views.json",
+            csrf=ctx.guard.page_session(request).csrf if logged_in else "",
+            needs_login=not logged_in,
+            logged_in=logged_in and ctx.guard.require_token))
+
+    views_cache: dict[int, dict[str, Any]] = {}
+
+    @app.get("/runs/{run_id}/views.json", response_model=None)
+    def run_views(run_id: RunId) -> dict[str, Any] | Response:
+        """The run's 3D views (plotly figures, points in binary) and residual histogram: those
+        the report step kept in the run folder, else reconstructed from the recordings."""
+        from calstation.storage.report import final_calibration
+        from calstation.storage.report_html import stored_views, views_data
+
+        ctx.require_run(run_id)
+        with ctx.db.session("reading the runs", read_only=True) as s:
+            run = s.get(Run, run_id)
+            status = run.status if run is not None else None
+            final = (final_calibration(run).id if run is not None and run.calibrations
+                     else None)
+            folder = Path(run.data_dir) if run is not None else None
+        stored = stored_views(folder, [final, status]) if folder is not None else None
+        if stored is not None:
+            return Response(stored, media_type="application/json")
+        cached = views_cache.get(run_id)
+        if cached is not None and cached["key"] == [final, status] and status != "running":
+            return cached
+        got = views_data(ctx.db, run_id)
+        if len(views_cache) >= 8:
+            views_cache.pop(next(iter(views_cache)))
+        views_cache[run_id] = got
+        return got
+
 
 
 def dashboard_routes(app: FastAPI, ctx: Any) -> None:
