@@ -19,7 +19,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from calstation.errors import CalstationError
-from calstation.storage.db import Calibration, CubeCheckRecord, Run, Station, Step
+from calstation.storage.db import Calibration, CubeCheckRecord, Database, Run, Station, Step
 from calstation.storage.spc import (
     RULES,
     Yield,
@@ -153,15 +153,19 @@ def reason_text(reason: str) -> str:
     return next((needle for needle, limit in REASONS if limit == reason), reason)
 
 
-def dashboard(session: Session, q: DashboardQuery) -> dict[str, Any]:
-    """Everything the dashboard page draws (see the module's docstring)."""
+def dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
+    """Everything the dashboard page draws (see the module's docstring). The database is read
+    in one short read-only session; the statistics are computed after it."""
     start, end = q.window()
-    stations = list(session.scalars(select(Station.name).order_by(Station.name)))
-    station = q.station or (stations[0] if stations else None)
-    if station is not None and station not in stations:
-        raise DashboardError(f"station: {station!r} has no run (stations: "
-                             f"{', '.join(stations) or 'none'})")
-    runs = _runs(session, start, end)
+    with db.session("reading the runs for the dashboard", read_only=True) as session:
+        stations = list(session.scalars(select(Station.name).order_by(Station.name)))
+        station = q.station or (stations[0] if stations else None)
+        if station is not None and station not in stations:
+            raise DashboardError(f"station: {station!r} has no run (stations: "
+                                 f"{', '.join(stations) or 'none'})")
+        runs = _runs(session, start, end)
+        pareto_rows = _pareto(session, runs, start, end)
+        series = _series(session, start, end)
     out: dict[str, Any] = {
         "period": {"since": start.date().isoformat(),
                    "until": (end - dt.timedelta(days=1)).date().isoformat(),
@@ -169,9 +173,8 @@ def dashboard(session: Session, q: DashboardQuery) -> dict[str, Any]:
         "stations": stations, "station": station, "params": list(q.params),
         "labels": LABELS, "rules": RULES,
         "yields": _yields(runs, q.group),
-        "pareto": _pareto(session, runs, start, end),
+        "pareto": pareto_rows,
     }
-    series = _series(session, start, end)
     out["charts"] = [chart(series.get((station, p)), station, p)
                      for p in q.params] if station else []
     out["comparison"] = _comparison(series, stations)

@@ -104,8 +104,8 @@ def dashboard_routes(app: FastAPI, ctx: Any) -> None:
     def data(q: DashboardQuery) -> dict[str, Any]:
         from calstation.storage.dashboard import dashboard
 
-        with ctx.db.session("reading the runs", read_only=True) as s:
-            return dashboard(s, q)
+        result: dict[str, Any] = dashboard(ctx.db, q)
+        return result
 
     @app.get("/dashboard.json")
     def dashboard_json(q: Q) -> dict[str, Any]:
