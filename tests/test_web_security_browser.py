@@ -334,7 +334,9 @@ def test_the_stations_pages_draw_under_their_policy(
                 v["directive"] == "style-src-elem"
                 or (v["directive"] == "style-src-attr" and v["sample"] == "")))]
         assert unexpected == [], json.dumps(unexpected)
-        assert len(violations) <= 12
+        # one stylesheet per page with plotly; the report's colour bars (drawn, then again in
+        # the pictures it makes for print) 8 times on each of its two pages
+        assert len(violations) <= 22
 
 
 def test_a_link_from_another_site_keeps_the_operator_logged_in(
