@@ -9,9 +9,12 @@ columns, not ORM objects, so a fleet's eight weeks (9,000 runs) load in a fracti
 from __future__ import annotations
 
 import datetime as dt
+import gc
 import math
 import re
 from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -153,9 +156,28 @@ def reason_text(reason: str) -> str:
     return next((needle for needle, limit in REASONS if limit == reason), reason)
 
 
+@contextmanager
+def _without_gc_pauses() -> Iterator[None]:
+    """The cyclic garbage collector off while the dashboard builds its ~100,000 small objects
+    (none in a cycle): its passes over them took a third of the time. Reference counting still
+    frees everything; the collector is back on after."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
     """Everything the dashboard page draws (see the module's docstring). The database is read
     in one short read-only session; the statistics are computed after it."""
+    with _without_gc_pauses():
+        return _dashboard(db, q)
+
+
+def _dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
     start, end = q.window()
     with db.session("reading the runs for the dashboard", read_only=True) as session:
         stations = list(session.scalars(select(Station.name).order_by(Station.name)))
