@@ -78,7 +78,7 @@ def test_a_200_mb_body_is_refused_without_the_server_growing(station: object) ->
         after = load.memory_mib(pid)
         print(f"200 MB ({'chunked' if chunked else 'Content-Length'}): {outcome} in "
               f"{seconds:.2f} s, peak memory {before['VmHWM']:.0f} → {after['VmHWM']:.0f} MiB")
-        assert " 413 " in outcome
+        assert " 413 " in outcome and seconds < 5.0  # refused, not read to its end
         assert after["VmHWM"] - before["VmHWM"] < 30
         status, took = asyncio.run(load.get_s(port, "/state.json"))
         assert status == 200 and took < 1.0
@@ -116,6 +116,40 @@ def test_the_real_server_sends_the_headers_and_no_banner(station: object) -> Non
                       b"Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
                       b"Sec-WebSocket-Version: 13\r\n\r\n")
     assert not head.startswith(b"HTTP/1.1 101")
+
+
+def test_forwarded_headers_neither_change_the_client_nor_escape_the_back_off(
+    tmp_path: Path,
+) -> None:
+    """uvicorn takes ``X-Forwarded-For`` / ``-Proto`` from 127.0.0.1 by default: a process of
+    this computer could have guessed tokens without end, one made-up address per try, and had
+    the log name an address of its choosing. The station is served without a proxy."""
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    with load.serve(tmp_path, "--token-file", str(token_file)) as s:
+        codes = []
+        for k in range(8):
+            r = httpx.post(s.url + "/api/abort", timeout=10, headers={
+                "Authorization": "Bearer wrong-token-0123456789",
+                "X-Forwarded-For": f"10.9.9.{k}", "X-Real-IP": f"10.9.8.{k}",
+                "Forwarded": f"for=10.9.7.{k}"})
+            codes.append(r.status_code)
+        # 5 wrong tokens free, the 6th locks 127.0.0.1 out, whatever address each claims
+        assert codes[:6] == [401] * 6 and 429 in codes[6:], codes
+        log = s.log.read_text()  # type: ignore[union-attr]
+        assert "refused POST /api/abort from 127.0.0.1: 429 too many wrong tokens" in log
+        assert "10.9." not in log
+    # X-Forwarded-Proto does not make the station's origin https
+    with load.serve(tmp_path / "plain") as s:
+        with httpx.Client(base_url=s.url, timeout=10) as client:
+            csrf = client.get("/").text.split('name="csrf-token" content="')[1].split('"')[0]
+            https = s.url.replace("http://", "https://")
+            r = client.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": https,
+                                                   "X-Forwarded-Proto": "https"})
+            assert r.status_code == 403 and "cross-site request" in r.text
+            r = client.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": s.url,
+                                                   "X-Forwarded-Proto": "https"})
+            assert r.status_code == 409  # the station's own origin; nothing runs
 
 
 @pytest.fixture(scope="module")
