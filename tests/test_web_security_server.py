@@ -140,16 +140,15 @@ def test_forwarded_headers_neither_change_the_client_nor_escape_the_back_off(
         assert "refused POST /api/abort from 127.0.0.1: 429 too many wrong tokens" in log
         assert "10.9." not in log
     # X-Forwarded-Proto does not make the station's origin https
-    with load.serve(tmp_path / "plain") as s:
-        with httpx.Client(base_url=s.url, timeout=10) as client:
-            csrf = client.get("/").text.split('name="csrf-token" content="')[1].split('"')[0]
-            https = s.url.replace("http://", "https://")
-            r = client.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": https,
-                                                   "X-Forwarded-Proto": "https"})
-            assert r.status_code == 403 and "cross-site request" in r.text
-            r = client.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": s.url,
-                                                   "X-Forwarded-Proto": "https"})
-            assert r.status_code == 409  # the station's own origin; nothing runs
+    with load.serve(tmp_path / "plain") as s, httpx.Client(base_url=s.url, timeout=10) as web:
+        csrf = web.get("/").text.split('name="csrf-token" content="')[1].split('"')[0]
+        https = s.url.replace("http://", "https://")
+        r = web.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": https,
+                                            "X-Forwarded-Proto": "https"})
+        assert r.status_code == 403 and "cross-site request" in r.text
+        r = web.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": s.url,
+                                            "X-Forwarded-Proto": "https"})
+        assert r.status_code == 409  # the station's own origin; nothing runs
 
 
 @pytest.fixture(scope="module")
