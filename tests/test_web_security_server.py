@@ -2,7 +2,8 @@
 streams, a 200 MB body, the headers uvicorn itself would add, TLS, and the command's checks of
 its options.
 
-Every server here listens on 127.0.0.1 only; every request loop is bounded in count and time.
+Every server here listens on 127.0.0.1, but one on this computer's own network address (for a
+station off localhost); every request loop is bounded in count and time.
 The figures are also printed by ``benchmarks/web_load.py``.
 """
 
@@ -149,6 +150,58 @@ def test_forwarded_headers_neither_change_the_client_nor_escape_the_back_off(
         r = web.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": s.url,
                                             "X-Forwarded-Proto": "https"})
         assert r.status_code == 409  # the station's own origin; nothing runs
+
+
+def _network_address() -> str | None:
+    """This computer's address on its network (None without one): a UDP socket's source
+    address towards a documentation address; no packet is sent."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.connect(("192.0.2.1", 9))
+            address = str(probe.getsockname()[0])
+    except OSError:
+        return None
+    return None if address.startswith("127.") or address == "0.0.0.0" else address
+
+
+def test_off_localhost_a_stream_needs_the_session_and_a_client_opens_at_most_eight(
+    tmp_path: Path,
+) -> None:
+    """Served on a network address (with its token), the event stream needs the logged-in
+    session or the token, and one client address opens at most 8 streams."""
+    address = _network_address()
+    if address is None:
+        pytest.skip("this computer has no network address to serve on")
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    with load.serve(tmp_path, "--token-file", str(token_file), host=address) as s:
+        origin = f"http://{address}:{s.port}"
+
+        def stream(extra: str = "") -> tuple[socket.socket, bytes]:
+            conn = socket.create_connection((address, s.port), timeout=10)
+            conn.sendall(f"GET /events HTTP/1.1\r\nHost: {address}:{s.port}\r\n{extra}\r\n"
+                         .encode())
+            return conn, conn.recv(200).split(b"\r\n")[0]
+
+        conn, status = stream()
+        conn.close()
+        assert status == b"HTTP/1.1 401 Unauthorized"
+        with httpx.Client(base_url=origin, timeout=10) as web:
+            csrf = web.get("/").text.split('name="csrf-token" content="')[1].split('"')[0]
+            r = web.post("/login", data={"token": TOKEN, "csrf": csrf},
+                         headers={"Origin": origin})
+            assert r.status_code == 303
+            cookie = f"Cookie: {'; '.join(f'{k}={v}' for k, v in web.cookies.items())}\r\n"
+        opened = [stream(cookie) for _ in range(10)]
+        try:
+            assert [st for _, st in opened] == [b"HTTP/1.1 200 OK"] * 8 + [
+                b"HTTP/1.1 429 Too Many Requests"] * 2
+        finally:
+            for conn, _ in opened:
+                conn.close()
+        log = s.log.read_text()  # type: ignore[union-attr]
+        assert f"refused GET /events from {address}: 401 this station needs its token" in log
+        assert f"refused GET /events from {address}: 429 {address} has 8 event streams" in log
 
 
 @pytest.fixture(scope="module")
