@@ -4,6 +4,7 @@ placement and line-rate conditions the default simulator does not produce, again
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ry_sweep.py station [--runs 72] [--jobs 2]
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ry_sweep.py turns [--scenes 24] [--jobs 2]
     .venv/bin/python benchmarks/ry_sweep.py table --out DIR
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ry_sweep.py plan --out DIR
 
 ``station``: each run is a whole simulated ``calstation run`` of recipes/sim-periodicity.yaml
 (``--recipe`` another, e.g. sim-shape.yaml) with one combination of range noise (0.5, 1, 2 mm),
@@ -21,6 +22,11 @@ long spin and cube scans (8 turns at 180 lines/s, 4 at 1000 lines/s: 25 million 
 simulator's limit); the periodicity strategy (alone, and with the cube's faces) and the shape
 strategy fine-tune on the first 1, 2, 4 and 8 turns, from the initial calibration, and each
 estimate's error is compared with its σ.
+
+``plan``: ``calstation plan`` of the recipe at each range noise and line rate (2 seeds, 1 and 2
+turns, the recipe's own placement), against the median σ_ry the ``turns`` sweep measured at the
+same noise, line rate and turns (run ``turns`` first): the station designer's prediction checked
+against the sweep.
 """
 
 from __future__ import annotations
@@ -304,6 +310,40 @@ def turns_table(rows: list[dict[str, Any]]) -> None:
                   f"offset {_stats(off, ' mm', 1e3)}; ≤ 3σ: {', '.join(cover)}")
 
 
+def plan_check(out: Path, recipe: Path) -> None:
+    """``calstation plan`` at each noise and line rate against the ``turns`` sweep's σ_ry."""
+    from calstation.bench.plan import plan
+
+    log = out / "turns.jsonl"
+    if not log.exists():
+        raise SystemExit(f"{log} does not exist: run the turns sweep first")
+    rows = [json.loads(line) for line in log.read_text().splitlines()]
+    with (out / "plan.jsonl").open("a") as f:
+        for noise, rate in itertools.product((0.0005, 0.001, 0.002), (180.0, 1000.0)):
+            base = yaml.safe_load(recipe.read_text())["simulation"]
+            loaded = sim_recipe(noise, base.get("background", {}).get("enabled", True),
+                                yaml.safe_load(recipe.read_text())["fixtures"]["spin_target"]
+                                .get("offset", [0.0, 0.0])[0], rate,
+                                (base["truth"]["range"], base["truth"]["pitch_deg"]),
+                                base.get("seed", 0), recipe)
+            designed = plan(loaded, seeds=2, turns=2, alternatives=False)["designs"][0]
+            for at in designed["by_turns"]:
+                n = at["turns"]
+                measured = [e["sigma"]["ry"] for r in rows for e in r["estimates"]
+                            if math.isclose(r["noise"], noise) and r["line_rate"] == rate
+                            and e["method"] == "periodicity" and e["turns"] == n and "err" in e]
+                sweep = float(np.median(measured)) if measured else math.nan
+                ratio = at["sigma"]["ry"] / sweep
+                row = {"noise": noise, "line_rate": rate, "turns": n,
+                       "plan_sigma_ry": at["sigma"]["ry"], "sweep_sigma_ry": sweep,
+                       "sweep_estimates": len(measured), "ratio": ratio}
+                f.write(json.dumps(row) + "\n")
+                print(f"{noise * 1e3:.1f} mm, {rate:.0f} lines/s, {n} turn(s): plan σ_ry "
+                      f"{_deg(at['sigma']['ry']):.3f}°, sweep median {_deg(sweep):.3f}° over "
+                      f"{len(measured)} scenes: ratio {ratio:.2f}"
+                      f"{'' if 1 / 1.5 <= ratio <= 1.5 else '  (beyond 1.5×)'}", flush=True)
+
+
 def run_all(run: Callable[..., dict[str, Any]], jobs: list[tuple[Any, ...]], log: Path,
             workers: int, line: Callable[[dict[str, Any]], str]) -> list[dict[str, Any]]:
     """``run(*job)`` for every job on ``workers`` processes; each row appended to the JSON-lines
@@ -339,7 +379,7 @@ def _turns_line(r: dict[str, Any]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("mode", choices=("station", "turns", "table"))
+    ap.add_argument("mode", choices=("station", "turns", "table", "plan"))
     ap.add_argument("--runs", type=int, default=72, help="station runs (from --first)")
     ap.add_argument("--scenes", type=int, default=24, help="fixed-turn scenes (from --first)")
     ap.add_argument("--first", type=int, default=0)
@@ -360,6 +400,9 @@ def main() -> None:
     if args.mode == "station":
         run_all(station_run, [(k, args.out, args.recipe) for k in picked(args.runs)],
                 station_log, args.jobs, _station_line)
+    elif args.mode == "plan":
+        plan_check(args.out, args.recipe)
+        return
     elif args.mode == "turns":
         run_all(turns_scene, [(k, args.out) for k in picked(args.scenes)], turns_log, args.jobs,
                 _turns_line)

@@ -71,7 +71,9 @@ def test_too_little_data_is_a_clear_error() -> None:
 
 
 def test_simulated_spin_scan_from_the_initial_calibration(sim_run) -> None:
-    """Acceptance thresholds on the default scenario (1.25 m, 45°) from a perturbed start."""
+    """The default scenario (1.25 m, 45°) from a perturbed start: within 2× the documented p95
+    of the default station (docs/algorithms.md, *Measured*: axis offset 0.07 mm, direction
+    0.021°) and within 3σ in every parameter."""
     run = sim_run()
     recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
     rec = read_recording(run["spin"])
@@ -82,9 +84,11 @@ def test_simulated_spin_scan_from_the_initial_calibration(sim_run) -> None:
     )
     res = periodicity_fine_tune(rec, start, recipe.calibration.periodicity)
     e = axis_errors(res.H, truth)
-    assert e["axis_offset_m"] <= 0.5e-3
-    assert math.degrees(e["axis_angle_rad"]) <= 0.1
-    assert abs(math.degrees(e["rz_error"])) <= 0.05
+    assert e["axis_offset_m"] <= 0.15e-3, e
+    assert math.degrees(e["axis_angle_rad"]) <= 0.05, e
+    assert abs(math.degrees(e["rz_error"])) <= 0.01, e
+    for name in ("tx", "ty", "tz", "ry", "rz"):
+        assert abs(e[f"{name}_error"]) <= 3 * res.sigma[name], (name, e, res.sigma)
     # the platter gauge fixes the origin along the axis to the platter top
     assert abs(e["along_axis_m"]) < 1e-3
     d = res.diagnostics

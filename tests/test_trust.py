@@ -87,7 +87,8 @@ def test_final_cells_grow_with_the_noise() -> None:
     sizes = [final_cell_size(p, [phi], noise) for noise in (0.0, 0.0005, 0.001, 0.002, 0.004)]
     assert sizes[0] == 0.001
     assert sizes == sorted(sizes) and sizes[-1] > sizes[1]
-    assert noise_inflation(math.nan) == 1.0 and noise_inflation(0.002) > noise_inflation(0.001)
+    # the σ factor no longer grows with the noise: the bias it covered is removed
+    assert noise_inflation(math.nan) == 1.0 and noise_inflation(0.002) == noise_inflation(0.001)
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +110,10 @@ def hard_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return run
 
 
-def test_centred_target_is_within_3_sigma_or_refused(hard_run: dict[str, Path]) -> None:
+def test_centred_target_at_2_mm_is_within_3_sigma(hard_run: dict[str, Path]) -> None:
+    """The weakest ry (centred target, 2 mm, no background, one turn): the σ covers the error,
+    and the error is within 2× the documented RMS (docs/algorithms.md, the grid: 0.112° at
+    2 mm, one turn)."""
     from calstation.engine.initial import initial_calibration
 
     recipe = load_recipe(hard_run["recipe"]).recipe
@@ -121,13 +125,13 @@ def test_centred_target_is_within_3_sigma_or_refused(hard_run: dict[str, Path]) 
     noise = result.diagnostics["range_noise_m"]
     assert noise == pytest.approx(0.002, rel=0.15)
     err = axis_errors(result.H, truth)
-    try:
-        check_sigma(result, recipe.calibration.max_sigma, "spin_target")
-    except ObservabilityError as exc:
-        assert "ry" in str(exc)
-        return
     for name in ("tx", "tz", "ry", "rz"):
         assert abs(err[f"{name}_error"]) <= 3 * result.sigma[name], (name, err, result.sigma)
+    assert math.degrees(err["axis_angle_rad"]) <= 2 * 0.112, err
+    # a stricter limit than this σ refuses, and says which parameter
+    with pytest.raises(ObservabilityError, match="ry"):
+        check_sigma(result, SigmaLimits(ry_deg=0.5 * math.degrees(result.sigma["ry"])),
+                    "spin_target")
 
 
 def test_cube_check_sees_an_ry_error(sim_run) -> None:
@@ -173,3 +177,36 @@ def test_ry_with_cube_combines_agreeing_estimates_and_refuses_the_rest() -> None
     joint, failure = ry_with_cube(H, cov, s[2], math.radians(0.05), wide, limit)
     assert joint is not None and failure is not None
     assert "calibration.max_sigma.ry_deg" in failure and "revolutions" in failure
+
+
+def test_twist_sigma_matches_its_spread_over_noise_draws(tmp_path: Path) -> None:
+    """The cube's twist σ against what it claims to be: one noise-free cube scan, range noise
+    of 0.5 mm added along the rays with ten seeds; the reported σ (median) is within a factor
+    of two of the twists' spread about the truth, and every twist lies within 3 of its σ."""
+    from calstation_sim import simulate_run
+
+    from calstation.engine.cube import check_cube_points
+    from calstation.engine.spinscan import from_recording
+
+    data = yaml.safe_load((REPO / "recipes/sim-periodicity.yaml").read_text())
+    data["simulation"]["lidar"]["range_noise"] = 0.0
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(data))
+    recipe = load_recipe(tmp_path / "r.yaml").recipe
+    rec = read_recording(simulate_run(load_recipe(tmp_path / "r.yaml"), tmp_path,
+                                      progress=False)["cube"])
+    truth = rec.truth
+    assert truth is not None
+    scan = from_recording(rec)
+    r = np.linalg.norm(scan.p_L, axis=1, keepdims=True)
+    twists, sigmas = [], []
+    for seed in range(10):
+        eps = np.random.default_rng(seed).normal(0.0, 0.0005, r.shape)
+        check = check_cube_points(scan.p_L * (1.0 + eps / r), scan.phi, truth,
+                                  recipe.fixtures.qa_cube, recipe.qa,
+                                  platter_radius=recipe.fixtures.platter.radius)
+        twists.append(check.twist_deg)
+        sigmas.append(check.twist_sigma_deg)
+    spread = float(np.sqrt(np.mean(np.square(twists))))
+    sigma = float(np.median(sigmas))
+    assert 0.5 * spread <= sigma <= 2.0 * spread, (twists, sigmas)
+    assert all(abs(t) <= 3 * s for t, s in zip(twists, sigmas, strict=True)), (twists, sigmas)

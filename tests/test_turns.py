@@ -16,8 +16,9 @@ import yaml
 from calstation.engine.scan import Scan
 from calstation.recipes import load_recipe
 from calstation.recordings.reader import read_recording
+from calstation.station.reprocess import compute_reprocessing, plan_reprocessing
 from calstation.station.runs import start_run
-from calstation.storage.db import Calibration, Database, Step, open_database
+from calstation.storage.db import Calibration, Database, Run, Step, open_database
 
 pytest.importorskip("calstation_sim")
 
@@ -113,6 +114,16 @@ def test_a_generous_budget_ends_the_spin_scan_after_its_first_fit(
         accepted = s.query(Calibration).filter_by(run_id=run_id, accepted=True).one()
         assert accepted.predicted_error_m is not None and accepted.predicted_error_m <= 0.005
         assert accepted.diagnostics["predicted_error"]["budget_m"] == 0.005
+        stored = accepted.params()
+        run = s.get(Run, run_id)
+        assert run is not None
+        job = plan_reprocessing(run)
+    # re-processed, the run gives what the station stored: the fit on the turns that met the
+    # budget, not on the turns scanned while it was computed
+    assert job.turns == {"spin": 1.0}
+    again = compute_reprocessing(job).result.H.as_dict()
+    for name, value in stored.items():
+        assert again[name] == pytest.approx(value, abs=1e-9), (name, again, stored)
 
 
 def test_an_unreachable_budget_turns_to_the_maximum_and_is_refused_with_what_would_help(

@@ -120,7 +120,8 @@ def test_a_run_from_the_api_to_its_report(
         names = [row["name"] for row in result["cube_rows"]]
         assert "side-face twist |δ| (ry check)" in names  # beside the other cube figures
         assert "face-fit edge error" in names and all(
-            row["limit"] is not None for row in result["cube_rows"])
+            row["limit"] is not None for row in result["cube_rows"]
+            if row["name"] != "face flatness (RMS, range noise included)")
         assert result["serial"] == "SN-0042"
         # every step went through the page's live state
         assert [s["status"] for s in final["steps"]] == ["passed"] * 9

@@ -178,7 +178,9 @@ def register(app: typer.Typer) -> None:
                 f"(paper metric e = {check.obb_error * 1e3:.2f} mm for s = {s * 1e3:.0f} mm)"
             )
             typer.echo(
-                f"flatness {check.flatness_rms * 1e3:.2f} mm RMS, perpendicularity "
+                f"flatness {check.flatness_rms * 1e3:.2f} mm RMS "
+                f"({check.flatness_excess * 1e3:.2f} mm beyond the range noise of "
+                f"{check.range_noise * 1e3:.2f} mm), perpendicularity "
                 f"{check.perpendicularity_deg:.3f}°, side-face twist {check.twist_deg:+.3f}° "
                 f"(±{check.twist_sigma_deg:.3f}°, limit ±{rc.qa.twist_deg:.3f}°)"
             )

@@ -102,6 +102,43 @@ def local_planes(
     return normal, w, mean
 
 
+def inside_neighbourhoods(
+    points: FloatArray,
+    idx: NDArray[np.int64],
+    centroid: FloatArray,
+    normal: FloatArray,
+    query: FloatArray,
+    limit: float = 1.0,
+) -> NDArray[np.bool_]:
+    """(Q,) whether each (Q, 3) ``query`` point lies within the neighbourhood ``points[idx]``
+    ((Q, k) indices into the (N, 3) ``points``, with its (Q, 3) ``centroid`` and unit
+    ``normal``) along the surface: its offset from the centroid, the normal part removed, at
+    most ``limit`` of the neighbourhood's spread in that direction (a Mahalanobis distance in
+    the tangent plane).
+
+    A point outside its matched neighbourhood has no counterpart there (the other half-turn did
+    not see that part of the surface, or the plane ends at an edge): its distance to the plane
+    measures the extrapolation, not H.
+    """
+    k = idx.shape[1]
+    off = query - centroid
+    off -= np.einsum("ij,ij->i", off, normal)[:, None] * normal
+    c = [points[:, a][idx] - centroid[:, a : a + 1] for a in range(3)]
+    cov = np.empty((idx.shape[0], 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            v = np.einsum("ij,ij->i", c[a], c[b]) / k
+            cov[:, a, b] = v
+            cov[:, b, a] = v
+    # the normal direction made as wide as the whole patch: only the tangential spread counts
+    spread = np.trace(cov, axis1=1, axis2=2)
+    cov += spread[:, None, None] * np.einsum("qi,qj->qij", normal, normal)
+    cov += 1e-18 * np.eye(3)  # a degenerate patch (all on a line) stays solvable
+    d2 = np.einsum("qi,qi->q", off, np.linalg.solve(cov, off[:, :, None])[:, :, 0])
+    out: NDArray[np.bool_] = d2 <= limit**2
+    return out
+
+
 def smallest_eigenvectors(cov: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Unit eigenvectors of the smallest eigenvalue of (Q, 3, 3) symmetric matrices, and the
     (Q, 3) eigenvalues in ascending order, in closed form.

@@ -198,11 +198,16 @@ class QALimits(Settings):
 
     edge_error: float = Field(0.0010, ge=1e-6, le=0.1)
     obb_edge_error: float = Field(0.0060, ge=1e-6, le=0.1)
-    flatness_rms: float = Field(0.0015, ge=1e-6, le=0.1)
+    flatness_rms: float = Field(
+        0.0015, ge=1e-6, le=0.1,
+        description="largest RMS of a face about its plane beyond what the range noise "
+        "explains, m",
+    )
     perpendicularity_deg: float = Field(0.5, ge=0.001, le=45)
     twist_deg: float = Field(
         0.1, ge=0.001, le=10,
-        description="largest ry correction the cube's side faces may ask for (degrees)",
+        description="largest ry correction the cube's side faces may ask for beyond 3 of its "
+        "σ (degrees)",
     )
     drift_translation: float = Field(0.002, ge=1e-6, le=1.0)
     drift_rotation_deg: float = Field(0.2, ge=0.001, le=45)

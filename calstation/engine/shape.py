@@ -9,8 +9,10 @@ minimises it within ±20 mm / ±2° of the start (xtol 1e-12, ftol 1e-10, 100 ev
 
 calstation additions (docs/algorithms.md): a fixed random subset of the raw returns (the outlier
 radius scaled with the density, so the neighbour count keeps its meaning) for speed; a finite
-difference step relative to each parameter (:data:`DIFF_STEP`); ty held at its start
-(the cube, like the periodicity cost, cannot see a shift along the axis); the expected height
+difference step relative to each parameter (:data:`DIFF_STEP`); ty held at its start while
+fitting (the cube, like the periodicity cost, cannot see a shift along the axis), and the
+result's origin then moved along the axis onto the platter top seen in the cube scan (the
+DESIGN §2 gauge, :func:`_platter_gauge`); the expected height
 of the box is ``s − margin`` (the segmentation cuts the bottom off); by default an *upright* box
 (one axis along X_D: the cube stands on the platter) whose faces are the medians of the points
 near them instead of the extremes, which removes the ~3σ noise inflation of the extremes from
@@ -24,30 +26,15 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.optimize import least_squares
-from scipy.spatial import cKDTree
 
-from calstation.engine.cube import (
-    FaceFlatness,
-    check_cube_points,
-    face_range_noise,
-    flatness_ry_sigma,
-)
+from calstation.engine.cube import check_cube_points
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
-from calstation.engine.geometry import (
-    face_labels,
-    largest_cluster,
-    minimal_obb,
-    radius_outlier_mask,
-    segment_above_platter,
-    signed_face_distances,
-    upright_box,
-)
+from calstation.engine.geometry import face_labels, minimal_obb, upright_box
 from calstation.engine.periodicity import block_ids, parameter_sigma, periodicity_fine_tune_scan
 from calstation.engine.result import CalibrationResult
 from calstation.engine.settings import (
@@ -57,7 +44,13 @@ from calstation.engine.settings import (
     QALimits,
     ShapeSettings,
 )
+from calstation.engine.shapecost import (  # ShapeCost lived here; still importable from it
+    ShapeCost as ShapeCost,
+    near_cube,
+    subsample,
+)
 from calstation.engine.spinscan import SpinScan, from_recording, prepare
+from calstation.engine.twist import FaceFlatness, face_range_noise, flatness_ry_sigma
 from calstation.errors import FineTuningError, VerificationError
 
 if TYPE_CHECKING:
@@ -74,151 +67,6 @@ FREE = ("tx", "tz", "ry", "rz")
 """Parameters the shape strategy can estimate; ty is the gauge (held at its start)."""
 RY = PARAMETER_NAMES.index("ry")
 """Index of ry in an H vector."""
-
-
-class ShapeCost:
-    """The paper's cost on a fixed subset of cube-scan returns, as least-squares residuals.
-
-    Residuals: ``d_k/√N`` for the N segmented, cleaned points (0 for the others, so the vector
-    keeps its length) followed by ``s_i − s``; their sum of squares is ``C1 + C2``.
-    """
-
-    def __init__(
-        self,
-        p_L: FloatArray,
-        phi: FloatArray,
-        cube: CubeGeometry,
-        settings: ShapeSettings,
-        *,
-        platter_radius: float,
-        density_scale: float,
-        box: str = "upright",
-    ) -> None:
-        self.p_L, self.phi = p_L, phi
-        self._cos, self._sin = np.cos(phi), np.sin(phi)
-        self.edge = cube.edge
-        self.settings = settings
-        self.platter_radius = platter_radius
-        self.outlier_radius = settings.outlier_radius * density_scale
-        self._radius_from_data = False
-        self.box = box
-        self.evaluations = 0
-        self.frozen: NDArray[np.bool_] | None = None
-        self._frozen_idx: NDArray[np.intp] | None = None
-        self.last_edge_errors = np.zeros(3)
-
-    def freeze(self, H: Extrinsics | None) -> None:
-        """Hold the cube's point set fixed at its segmentation under H (None: re-segment at
-        every evaluation, as the paper does). A fixed set keeps the residuals continuous."""
-        self.frozen = None if H is None else self.cloud(H)[1]
-        self._frozen_idx = None if self.frozen is None else np.flatnonzero(self.frozen)
-
-    def to_dynamic(self, H: Extrinsics, idx: NDArray[np.intp] | None = None) -> FloatArray:
-        """The returns (all, or those at ``idx``) in D under H: :func:`lidar_to_dynamic` with
-        the platter angles' cosines and sines computed once."""
-        p, c, s = (self.p_L, self._cos, self._sin) if idx is None else (
-            self.p_L[idx], self._cos[idx], self._sin[idx])
-        p_P = (p - H.t) @ H.R
-        y = c * p_P[:, 1] + s * p_P[:, 2]
-        z = -s * p_P[:, 1] + c * p_P[:, 2]
-        return np.column_stack([p_P[:, 0], y, z])
-
-    def cloud(self, H: Extrinsics) -> tuple[FloatArray, NDArray[np.bool_]]:
-        """(N, 3) all returns in D and the mask of the segmented, cleaned cube points."""
-        p_D = self.to_dynamic(H)
-        seg = segment_above_platter(
-            p_D,
-            margin=self.settings.segment_margin,
-            radius=self.platter_radius,
-            height=3.0 * self.edge,
-        )
-        idx = np.flatnonzero(seg)
-        if not self._radius_from_data:
-            self._scale_radius_to_density(p_D[idx])
-        keep = radius_outlier_mask(p_D[idx], self.outlier_radius, self.settings.outlier_neighbours)
-        if self.box == "upright":
-            keep[keep] = largest_cluster(p_D[idx[keep]])
-        mask = np.zeros(p_D.shape[0], dtype=bool)
-        mask[idx[keep]] = True
-        return p_D, mask
-
-    def _scale_radius_to_density(self, points: FloatArray) -> None:
-        """Widen the outlier radius to the scan's real density, once (the first segmentation).
-
-        The paper's 1 mm for 8 neighbours assumes its sensor's density; at a lower line rate the
-        cube's own returns are farther apart than that and the filter removed the cube (180
-        lines/s: too few returns left). When the configured radius would drop most returns, it
-        becomes 2.5× the median distance to the ``outlier_neighbours``-th neighbour, so isolated
-        returns still go.
-        """
-        k = self.settings.outlier_neighbours
-        self._radius_from_data = True
-        if k <= 0 or points.shape[0] <= k + 1:
-            return
-        dist, _ = cKDTree(points).query(points, k=k + 1, workers=-1)
-        if np.mean(dist[:, -1] <= self.outlier_radius) >= 0.5:
-            return  # the configured radius keeps most returns: the scan is dense enough
-        self.outlier_radius = max(self.outlier_radius, 2.5 * float(np.median(dist[:, -1])))
-
-    def residuals_of(self, H: Extrinsics) -> FloatArray:
-        """C1 and C2 terms as a fixed-length residual vector."""
-        self.evaluations += 1
-        if self.frozen is not None:
-            mask = self.frozen
-            pts = self.to_dynamic(H, self._frozen_idx)
-        else:
-            p_D, mask = self.cloud(H)
-            pts = p_D[mask]
-        out = np.zeros(self.p_L.shape[0] + 3)
-        n = pts.shape[0]
-        if n < 50:
-            out[-3:] = self.edge  # no cube: as bad as a missing cube
-            return out
-        fit = upright_box if self.box == "upright" else minimal_obb
-        centre, axes, extents = fit(pts)
-        d = signed_face_distances(pts, centre, axes, extents)
-        out[: self.p_L.shape[0]][mask] = d / math.sqrt(n)
-        self.last_edge_errors = extents - self.expected_extents(axes)
-        if self.box == "minimal":
-            out[-3:] = self.last_edge_errors
-        # upright: C1 only. Its faces are medians, and while the two half-turns disagree each
-        # face is doubled; the median then sits between the copies and the edge lengths no
-        # longer grow with the calibration error (C2 pulled the optimiser the wrong way).
-        return out
-
-    def expected_extents(self, axes: FloatArray) -> FloatArray:
-        """(3,) true extents along the box axes: the segmentation cuts ``segment_margin`` off
-        the bottom, so the axis closest to X_D expects ``s − margin``."""
-        out = np.full(3, self.edge)
-        vertical = int(np.argmax(np.abs(axes[0, :])))
-        out[vertical] = self.edge - self.settings.segment_margin
-        return out
-
-
-def _near_cube(
-    p_L: FloatArray, phi: FloatArray, H: Extrinsics, cube: CubeGeometry, platter_radius: float
-) -> tuple[FloatArray, FloatArray]:
-    """The returns ((N, 3) in L, (N,) φ) in a generous region above the platter under H (the
-    start may be a few cm off). Height along the axis and distance from it do not depend on
-    the platter angle: the test needs no turn into D."""
-    q = p_L @ H.R
-    q -= H.t @ H.R
-    r2 = np.einsum("ij,ij->i", q[:, 1:], q[:, 1:])
-    height = 3.0 * cube.edge + 0.05
-    near = (q[:, 0] > 0.0) & (q[:, 0] < height) & (r2 < (platter_radius + 0.05) ** 2)
-    return p_L[near], phi[near]
-
-
-def _subsample(
-    p_L: FloatArray, phi: FloatArray, max_points: int
-) -> tuple[FloatArray, FloatArray, float]:
-    """A fixed random subset of at most ``max_points`` returns, and the density scale
-    √(all / subset) for the outlier radius."""
-    n_all = p_L.shape[0]
-    if n_all > max_points:
-        pick = np.sort(np.random.default_rng(0).choice(n_all, max_points, replace=False))
-        p_L, phi = p_L[pick], phi[pick]
-    return p_L, phi, math.sqrt(n_all / p_L.shape[0])
 
 
 @dataclass(frozen=True)
@@ -242,10 +90,10 @@ def _box_look(
     max_points: int,
 ) -> _BoxLook:
     """:class:`_BoxLook` of the cube scan's moving returns ((N, 3) in L, (N,) φ) under H."""
-    p_L, phi = _near_cube(p_L, phi, H, cube, platter_radius)
+    p_L, phi = near_cube(p_L, phi, H, cube, platter_radius)
     if p_L.shape[0] < 200:
         return _BoxLook(math.inf, math.inf)
-    p_L, phi, density_scale = _subsample(p_L, phi, max_points)
+    p_L, phi, density_scale = subsample(p_L, phi, max_points)
     cost = ShapeCost(
         p_L, phi, cube, settings, platter_radius=platter_radius, density_scale=density_scale
     )
@@ -401,14 +249,14 @@ def _shape_pass(
             max_points=max_points,
         )
     # all of them near the cube: the face-flatness ry step needs the density
-    p_L_near, phi_near = _near_cube(p_mov, phi_mov, start, cube, platter_radius)
+    p_L_near, phi_near = near_cube(p_mov, phi_mov, start, cube, platter_radius)
     n_all = p_L_near.shape[0]
     if n_all < 200:
         raise FineTuningError(
             f"only {n_all} returns above the platter in the cube scan; is the QA cube "
             "on the platter?"
         )
-    p_L, phi, density_scale = _subsample(p_L_near, phi_near, max_points)
+    p_L, phi, density_scale = subsample(p_L_near, phi_near, max_points)
     cost = ShapeCost(
         p_L,
         phi,
@@ -722,12 +570,15 @@ def shape_fine_tune_points(
         result = run(result.H)
         passes = 2
     result.diagnostics["passes"] = passes
-    # what the residuals cannot see: the cube's own dimensions under the result
+    # what the residuals cannot see: the cube's own dimensions under the result, and where
+    # the platter top lies along the axis
+    level = math.nan
     try:
-        edge_error = check_cube_points(
+        check = check_cube_points(
             prepared.p_L, prepared.phi, result.H, cube, QALimits(),
             platter_radius=platter_radius, edges_only=True, memo=prepared.memo,
-        ).edge_error
+        )
+        edge_error, level = check.edge_error, check.platter_level
     except VerificationError:
         edge_error = math.nan
     noise = float(result.diagnostics.get("range_noise_m", math.nan))
@@ -736,7 +587,43 @@ def shape_fine_tune_points(
         result.sigma[name] = math.hypot(result.sigma[name], floor)
     result.sigma["rz"] = math.hypot(result.sigma["rz"], rz_sigma_floor(noise))
     result.diagnostics["edge_error_m"] = edge_error
+    if math.isfinite(level):
+        result = _platter_gauge(result, level)
     result.timings["total"] = time.perf_counter() - t0
+    return result
+
+
+PLATTER_LEVEL_SIGMA = 0.00005
+"""1σ (m) of the platter top's level seen in the cube scan (the median of thousands of its
+returns; what remains is the platter's own flatness)."""
+
+
+def _platter_gauge(result: CalibrationResult, level: float) -> CalibrationResult:
+    """``result`` with its origin moved along the axis onto the platter top seen in the cube
+    scan (``level``, m along X_P under its H): the DESIGN §2 gauge.
+
+    The box cost cannot see a shift along the axis, and ty is held at its start, so the origin
+    along the axis stayed where the initial calibration put it: at 1.4 m / 35° the cube scan's
+    platter lay 3–6 mm from x_P = 0 under the shape H, and tx carried that (tx errors of
+    −5.6 to +3.1 mm for axis offsets of 0.1–1 mm). The shift changes tx and ty (and tz a
+    little); their σ become the axis offset's σ (the held-ty σ_tx across the axis) and the
+    level's (:data:`PLATTER_LEVEL_SIGMA`) along it.
+    """
+    H = result.H
+    a = H.axis_direction()
+    t = H.t + level * a
+    result = replace(result, H=H.with_(tx=float(t[0]), ty=float(t[1]), tz=float(t[2])))
+    # σ_tx (ty held) moved the axis across itself by σ_tx·|e_x·u|, u ⟂ a in the scan plane
+    u = np.array([-a[1], a[0], 0.0])
+    u /= max(float(np.linalg.norm(u)), 1e-12)
+    across = result.sigma["tx"] * abs(u[0])
+    for i, name in enumerate(("tx", "ty")):
+        result.sigma[name] = math.hypot(across * u[i], PLATTER_LEVEL_SIGMA * a[i])
+    result.diagnostics["platter_level_m"] = level
+    result.diagnostics["gauge"] = "platter"
+    result.diagnostics["gauge_note"] = (
+        "origin along the axis moved onto the platter top seen in the cube scan"
+    )
     return result
 
 

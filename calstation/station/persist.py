@@ -168,6 +168,8 @@ def cube_row(
         perpendicularity_deg=number("perpendicularity_deg"),
         twist_deg=number("twist_deg"),
         twist_sigma_deg=number("twist_sigma_deg"),
+        flatness_excess=number("flatness_excess"),
+        range_noise=number("range_noise"),
         passed=bool(c.get("passed")),
         failures=[str(f) for f in c.get("failures") or []],
     )

@@ -173,6 +173,10 @@ class ReprocessJob:
     recordings: dict[str, StoredFile | None]
     required: tuple[str, ...]
     optional: tuple[str, ...] = ()
+    turns: dict[str, float] = field(default_factory=dict)
+    """kind → the whole turns the station fitted on, for a scan that went turn by turn and
+    stopped on a fit within its budget (the recording holds the turns scanned while that fit
+    was computed, which the station's result did not use); absent: every whole turn"""
 
 
 def plan_reprocessing(run: Run, strategy_name: str | None = None) -> ReprocessJob:
@@ -197,7 +201,29 @@ def plan_reprocessing(run: Run, strategy_name: str | None = None) -> ReprocessJo
         strategy=name, kind=kind,
         recordings={k: newest_recording(run, k) for k in (*required, *optional)},
         required=tuple(required), optional=optional,
+        turns=_turns_fitted(run) if name == rc.calibration.strategy else {},
     )
+
+
+def _turns_fitted(run: Run) -> dict[str, float]:
+    """kind → the turns of each scan that stopped on a fit within its budget (the step's
+    ``turn_by_turn`` summary: its fits end with the one that met it)."""
+    out = {}
+    for step in run.steps:
+        summary = (step.result or {}).get("turn_by_turn") or {}
+        fits = summary.get("fits") or []
+        if summary.get("stopped") == "budget" and fits:
+            kind = {"spin_scan": "spin", "cube_scan": "cube"}.get(step.name)
+            if kind is not None:
+                out[kind] = float(fits[-1]["turns"])
+    return out
+
+
+def _as_fitted(recording: Any, turns: float | None) -> Any:
+    """``recording`` cut to the ``turns`` the station fitted on (all of it when None)."""
+    if turns is None or turns >= recording.whole_turns():
+        return recording
+    return recording.first_turns(turns + 0.02)
 
 
 @dataclass(frozen=True)
@@ -277,8 +303,9 @@ def _recompute(
     rc = loaded.recipe
     strategy = plugins.strategy(job.strategy)
     say(f"reading {paths[job.kind]}")
-    spin = read_recording(paths[job.kind])
-    warnings += recording_disagreements(spin, loaded)
+    spin_all = read_recording(paths[job.kind])
+    warnings += recording_disagreements(spin_all, loaded)
+    spin = _as_fitted(spin_all, job.turns.get(job.kind))
     if "static" not in paths:
         say("start from the platter's chord, then the fine-tuning")
         result, strategy_warnings, initial = fine_tune_targetless(strategy, spin, rc, progress)
@@ -295,6 +322,7 @@ def _recompute(
         say(f"combining ry with the cube scan {paths['cube']}")
         cube = read_recording(paths["cube"])
         warnings += recording_disagreements(cube, loaded)
+        cube = _as_fitted(cube, job.turns.get("cube"))
         result, check, joint_failure = fine_tune_with_cube(result, cube, rc)
     pass2 = paths.get(second_pass("spin"))
     if pass2 is not None:  # under the final H (it moves a little with ry)
@@ -303,7 +331,7 @@ def _recompute(
         say(f"lidar–encoder time offset with {pass2}")
         second = read_recording(pass2)
         warnings += recording_disagreements(second, loaded)
-        result = with_time_offset(result, spin, second, rc.fixtures.platter.radius)
+        result = with_time_offset(result, spin_all, second, rc.fixtures.platter.radius)
     return result, initial, joint_failure, check, float(spin.whole_turns())
 
 

@@ -118,6 +118,8 @@ def cube_dict(c: CubeCheckRecord) -> dict[str, Any]:
         "face_edges": c.face_edges,
         "edge_error": c.edge_error,
         "flatness_rms": c.flatness_rms,
+        "flatness_excess": c.flatness_excess,
+        "range_noise": c.range_noise,
         "perpendicularity_deg": c.perpendicularity_deg,
         "twist_deg": c.twist_deg,
         "twist_sigma_deg": c.twist_sigma_deg,

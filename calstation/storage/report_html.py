@@ -339,6 +339,18 @@ def _limits(recipe_text: str) -> Any | None:
         return None
 
 
+def _flatness_rows(cube: dict[str, Any], qa: Any) -> list[tuple[Any, ...]]:
+    """The faces' flatness: the RMS beyond the range noise against the limit, with the raw RMS
+    beside it (a check stored before the excess was measured judged the raw RMS)."""
+    limit = getattr(qa, "flatness_rms", None)
+    if cube.get("flatness_excess") is None:
+        return [("face flatness (RMS)", cube.get("flatness_rms"), limit, 1e3, "mm")]
+    return [("face flatness beyond the range noise (RMS)", cube.get("flatness_excess"), limit,
+             1e3, "mm"),
+            ("face flatness (RMS, range noise included)", cube.get("flatness_rms"), None, 1e3,
+             "mm")]
+
+
 def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
     """Each measured cube value beside its limit (display units) and whether it passes."""
     if cube is None:
@@ -348,16 +360,19 @@ def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
          "mm"),
         ("OBB edge error (paper metric)", cube.get("obb_error"),
          getattr(qa, "obb_edge_error", None), 1e3, "mm"),
-        ("face flatness (RMS)", cube.get("flatness_rms"), getattr(qa, "flatness_rms", None), 1e3,
-         "mm"),
+        *_flatness_rows(cube, qa),
         ("perpendicularity", cube.get("perpendicularity_deg"),
          getattr(qa, "perpendicularity_deg", None), 1.0, "°"),
     ]
     twist = cube.get("twist_deg")
     if twist is not None:  # checks stored before the twist measure have none
         # the ry correction that makes the side faces flattest: its size against the limit
-        rows.append(("side-face twist |δ| (ry check)", abs(float(twist)),
-                     getattr(qa, "twist_deg", None), 1.0, "°"))
+        # it fails beyond the limit and beyond 3σ: the larger of the two is its limit
+        limit = getattr(qa, "twist_deg", None)
+        sigma = cube.get("twist_sigma_deg")
+        if limit is not None and sigma is not None and math.isfinite(float(sigma)):
+            limit = max(float(limit), 3.0 * float(sigma))
+        rows.append(("side-face twist |δ| (ry check)", abs(float(twist)), limit, 1.0, "°"))
     out = []
     for name, value, limit, scale, unit in rows:
         v = None if value is None else float(value) * scale

@@ -47,8 +47,9 @@ from calstation.engine.periodicity.cells import (
     to_dynamic as to_dynamic,
 )
 from calstation.engine.periodicity.covariance import (
-    NOISE_BIAS_GAIN as NOISE_BIAS_GAIN,
+    MODEL_FLOOR_DEG as MODEL_FLOOR_DEG,
     SIGMA_BLOCK as SIGMA_BLOCK,
+    SIGMA_SCALE as SIGMA_SCALE,
     block_ids as block_ids,
     covariance_record as covariance_record,
     noise_inflation as noise_inflation,

@@ -1,7 +1,9 @@
 """The least-squares problem of one outer iteration of the periodicity fine-tuning: the matches
-of the two half-turns held fixed, H free. Point-to-local-plane residuals (symmetric) with the
-platter residual of the ``platter`` gauge, their closed-form Jacobian, the problem reduced to
-n + 1 rows for the inner solve, and the bounds of the parameters."""
+of the two half-turns held fixed, H free. Point-to-local-plane residuals (symmetric in the coarse
+stages; one-sided and measured along the point's ray in the last) with the platter residual of
+the ``platter`` gauge (each static return's range error against the plane x_P = 0), their
+closed-form Jacobian, the problem reduced to n + 1 rows for the inner solve, and the bounds of
+the parameters."""
 
 from __future__ import annotations
 
@@ -18,6 +20,15 @@ from calstation.engine.periodicity.covariance import SIGMA_BLOCK, block_ids
 from calstation.engine.settings import PeriodicitySettings
 
 IDX = {name: i for i, name in enumerate(PARAMETER_NAMES)}
+
+PLATTER_NOISE_FLOOR = 1e-4
+"""Least range noise (m) the platter's weight assumes (:meth:`_Problem._platter_scale`): a
+noise-free (simulated) scan would give its platter unbounded weight and an unbounded σ."""
+
+GRAZING_PLATTER = 0.05
+"""Least |cosine| of a platter return's ray with the axis its range error is divided by."""
+GRAZING_TARGET = 0.2
+"""Least |cosine| of a target cell's ray with its matched plane its range error is divided by."""
 
 
 @dataclass
@@ -36,10 +47,16 @@ class _Matched:
     ob: FloatArray
     block: NDArray[np.int64]
     """(M,) the spatial block (in D) of each match, for the clustered covariance"""
+    one_sided: bool = False
+    """only the point of B against A's plane counts (``nb``, ``wb``, ``ob`` unused): the
+    one-sided matching puts each plane's cell in A and the point matched to it in B"""
 
 
 class _Problem:
-    """Residuals of one outer iteration: fixed matches and normals, H free."""
+    """Residuals of one outer iteration: fixed matches and normals, H free.
+
+    ``noise``: the scan's range noise σ (m; NaN when unknown), which weights the platter's
+    residuals against the target's (:meth:`_platter_scale`)."""
 
     def __init__(
         self,
@@ -48,20 +65,61 @@ class _Problem:
         platter_weight: float,
         free: list[int],
         x6: FloatArray,
+        noise: float = math.nan,
     ) -> None:
         self.m = matched
         self.platter = platter
-        self.platter_weight = platter_weight
         self.free = free
         self.base = x6.copy()
         self.swa = np.sqrt(matched.wa)
         self.swb = np.sqrt(matched.wb)
         self._nq: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+        self.platter_dir = np.zeros((0, 3))
+        self.point_dir = np.zeros((0, 3))
+        if matched.one_sided:
+            # each point's ray: its residual is measured along it (see _target_residuals)
+            self.point_dir = matched.pb / np.maximum(
+                np.linalg.norm(matched.pb, axis=1, keepdims=True), 1e-9
+            )
+        self.platter_weight = platter_weight
+        if platter is not None and platter.shape[0]:
+            # each platter return's ray (the lidar sits at the origin of L)
+            self.platter_dir = platter / np.maximum(
+                np.linalg.norm(platter, axis=1, keepdims=True), 1e-9
+            )
+            self.platter_weight = platter_weight * self._platter_scale(x6, noise)
+
+    def _platter_scale(self, x6: FloatArray, noise: float) -> float:
+        """Weight of the platter residuals (range errors, m) relative to the target's: the
+        ratio of their noise, so that both groups count by their information. The target's
+        noise is the RMS of its residuals under the start H of this inner solve; the
+        platter's is the range noise (the RMS of its own residuals when it is unknown), at
+        least :data:`PLATTER_NOISE_FLOOR`."""
+        if self.m.pa.shape[0] == 0:
+            return 1.0
+        target = self._target_residuals(x6)
+        rms_target = float(np.sqrt(np.mean(target**2)))
+        if not (math.isfinite(noise) and noise > 0):
+            along = self._platter_along_rays(x6)
+            noise = float(np.sqrt(np.mean(along**2)))
+        noise = max(noise, PLATTER_NOISE_FLOOR)
+        if not rms_target > 0:
+            return 1.0
+        return rms_target / noise
+
+    def _platter_along_rays(self, x6: FloatArray) -> FloatArray:
+        """(P,) each platter return's range error against the plane x_P = 0 under H (m): its
+        height above the plane over the axis component of its ray."""
+        assert self.platter is not None
+        a = _rotation(x6)[:, 0]
+        cos_incidence = _clip_away_from_zero(self.platter_dir @ a, GRAZING_PLATTER)
+        out: FloatArray = ((self.platter - x6[:3]) @ a) / cos_incidence
+        return out
 
     def row_blocks(self) -> NDArray[np.int64]:
         """(rows,) the spatial block of each residual, in the order of :meth:`residuals`."""
         b = self.m.block
-        parts = [b, b]
+        parts = [b] if self.m.one_sided else [b, b]
         if self.platter is not None and self.platter.shape[0]:
             parts.append(block_ids(self.platter, SIGMA_BLOCK) + (int(b.max(initial=-1)) + 1))
         return np.concatenate(parts)
@@ -98,48 +156,101 @@ class _Problem:
             )
         return self._nq
 
-    def residuals(self, x: FloatArray) -> FloatArray:
-        x6 = self.full(x)
+    def _target_residuals(self, x6: FloatArray) -> FloatArray:
+        """The target's residuals (m): each match's point against the other half's local
+        plane (both ends, or only B's point when one-sided)."""
         m = self.m
         R = _rotation(x6)
         aa, ab, ba, bb = self._normals_in_q()
         ua, ub = m.pa - x6[:3], m.pb - x6[:3]
         # point of B against A's local plane, and point of A against B's local plane
         ra = self.swa * (_rowdot(ua, aa @ R.T) - _rowdot(ub, ab @ R.T) + m.oa)
+        if m.one_sided:
+            # the range error of B's point against A's plane: its distance over the cosine of
+            # its ray with the plane, which H turns (the noise's share of the distance)
+            c = _clip_away_from_zero(_rowdot(self.point_dir, ab @ R.T), GRAZING_TARGET)
+            out: FloatArray = ra / np.abs(c)
+            return out
         rb = self.swb * (_rowdot(ua, ba @ R.T) - _rowdot(ub, bb @ R.T) - m.ob)
-        parts = [ra, rb]
+        return np.concatenate([ra, rb])
+
+    def residuals(self, x: FloatArray) -> FloatArray:
+        """The target's residuals (m), then the platter's: each platter return's range error
+        against the plane x_P = 0, measured along its ray and weighted (see
+        :meth:`_platter_scale`). Along the ray, the range noise adds the same variance whatever
+        H; the height x_P would let H trade fit for noise (the noise's share of x_P is its
+        ray's axis component, which ry and rz turn), which biased ry by tens of per cent of
+        its value."""
+        x6 = self.full(x)
+        parts = [self._target_residuals(x6)]
         if self.platter is not None and self.platter.shape[0]:
-            parts.append(self.platter_weight * ((self.platter - x6[:3]) @ R[:, 0]))
+            parts.append(self.platter_weight * self._platter_along_rays(x6))
         return np.concatenate(parts)
 
     def jacobian(self, x: FloatArray) -> FloatArray:
         """(rows, free) derivatives of :meth:`residuals`, in closed form (the rotation's
         derivatives by central differences of the 3×3 matrix, exact to ~1e-12)."""
         x6 = self.full(x)
-        m = self.m
         R = _rotation(x6)
+        n = self.m.pa.shape[0]
+        end = n if self.m.one_sided else 2 * n  # the platter's rows follow the target's
+        platter = 0 if self.platter is None else self.platter.shape[0]
+        J = np.empty((end + platter, len(self.free)))
+        self._target_jacobian(x6, R, J[:end])
+        self._platter_jacobian(x6, R, J[end:])
+        return J
+
+    def _target_jacobian(self, x6: FloatArray, R: FloatArray, out: FloatArray) -> None:
+        """The target's rows of :meth:`jacobian`, written into ``out``."""
+        m = self.m
         aa, ab, ba, bb = self._normals_in_q()
         ua, ub = m.pa - x6[:3], m.pb - x6[:3]
-        platter = self.platter if self.platter is not None else np.zeros((0, 3))
-        w = self.platter_weight
-        rows = 2 * aa.shape[0] + platter.shape[0]
-        J = np.empty((rows, len(self.free)))
         n = aa.shape[0]
         # ∂/∂t: the same three columns for every translation
         ta = -self.swa[:, None] * ((aa - ab) @ R.T)
         tb = -self.swb[:, None] * ((ba - bb) @ R.T)
+        if m.one_sided:
+            # the residual r/|c| of _target_residuals: (J_r·|c| − r·∂|c|)/c², where a clipped
+            # cosine does not move with H
+            r_plane = self.swa * (_rowdot(ua, aa @ R.T) - _rowdot(ub, ab @ R.T) + m.oa)
+            c_free = _rowdot(self.point_dir, ab @ R.T)
+            c_pt = _clip_away_from_zero(c_free, GRAZING_TARGET)
+            c_turns = c_free == c_pt
+            s_pt = np.abs(c_pt)
+            ta = ta / s_pt[:, None]
         for col, i in enumerate(self.free):
             if i < 3:
-                J[:n, col] = ta[:, i]
-                J[n : 2 * n, col] = tb[:, i]
-                J[2 * n :, col] = -w * R[i, 0]
+                out[:n, col] = ta[:, i]
+                if not m.one_sided:
+                    out[n:, col] = tb[:, i]
                 continue
             dR = _rotation_derivative(x6, i)
             va, vb = ua @ dR, ub @ dR
-            J[:n, col] = self.swa * (_rowdot(va, aa) - _rowdot(vb, ab))
-            J[n : 2 * n, col] = self.swb * (_rowdot(va, ba) - _rowdot(vb, bb))
-            J[2 * n :, col] = w * ((platter - x6[:3]) @ dR[:, 0])
-        return J
+            out[:n, col] = self.swa * (_rowdot(va, aa) - _rowdot(vb, ab))
+            if m.one_sided:
+                ds = _rowdot(self.point_dir, ab @ dR.T) * c_turns * c_pt / s_pt
+                out[:n, col] = (out[:n, col] * s_pt - r_plane * ds) / s_pt**2
+            else:
+                out[n:, col] = self.swb * (_rowdot(va, ba) - _rowdot(vb, bb))
+
+    def _platter_jacobian(self, x6: FloatArray, R: FloatArray, out: FloatArray) -> None:
+        """The platter's rows of :meth:`jacobian`, written into ``out``: of its range error
+        h/c, h = a·(p − t) the return's height and c = a·d its ray's cosine with the axis a
+        (a clipped cosine does not move with H)."""
+        platter = self.platter if self.platter is not None else np.zeros((0, 3))
+        w = self.platter_weight
+        a = R[:, 0]
+        up = platter - x6[:3]
+        h = up @ a
+        c_free = self.platter_dir @ a
+        c = _clip_away_from_zero(c_free, GRAZING_PLATTER)
+        turns = c == c_free
+        for col, i in enumerate(self.free):
+            if i < 3:
+                out[:, col] = -w * a[i] / c
+                continue
+            da = _rotation_derivative(x6, i)[:, 0]
+            out[:, col] = w * ((up @ da) * c - h * (self.platter_dir @ da) * turns) / c**2
 
 
 class _Reduced:
@@ -166,6 +277,13 @@ class _Reduced:
     def jacobian(self, x: FloatArray) -> FloatArray:
         J = self.Q.T @ self.problem.jacobian(x)
         return np.vstack([J, np.zeros((1, J.shape[1]))])
+
+
+def _clip_away_from_zero(c: FloatArray, least: float) -> FloatArray:
+    """``c`` with its magnitude at least ``least`` (its sign kept; 0 counts as positive): a
+    ray's cosine with a plane, which only a grazing ray brings near 0."""
+    out: FloatArray = np.where(c < 0, np.minimum(c, -least), np.maximum(c, least))
+    return out
 
 
 def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:

@@ -30,6 +30,9 @@ class Stage:
     """outer iterations (re-matching) at most"""
     hold_ry: bool = False
     """keep ry at its current value (coarse cells cannot resolve it and let it wander)"""
+    one_sided: bool = False
+    """match every cell to the plane around its nearest cell in the other half-turn, without
+    the mutual test (:meth:`calstation.engine.periodicity.matching._Matcher._one_sided`)"""
 
 
 def schedule(settings: PeriodicitySettings, final_voxel: float = 0.001) -> list[Stage]:
@@ -38,6 +41,8 @@ def schedule(settings: PeriodicitySettings, final_voxel: float = 0.001) -> list[
     ``final_voxel`` (m) is the cell size of the last stage, chosen from the scan's noise and
     density by :func:`final_cell_size`. ry is held in every stage but the last: coarse cells
     and the few hundred matches of the 5 mm stage cannot resolve it and throw it to its bound.
+    The last stage matches one-sided: the mutual test selects pairs on their noise, which the
+    covariance does not see (docs/algorithms.md).
     """
     k = settings.normal_neighbours
     platter = settings.gauge == "platter"
@@ -87,6 +92,7 @@ def schedule(settings: PeriodicitySettings, final_voxel: float = 0.001) -> list[
             platter,
             None,
             max(n, FINAL_MAX_OUTER),
+            one_sided=True,
         ),
     ]
 

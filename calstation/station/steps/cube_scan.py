@@ -112,6 +112,8 @@ def _cube_measurements(check: Any) -> dict[str, Any]:
             "face_edges": check.face_edges,
             "edge_error": check.edge_error,
             "flatness_rms": check.flatness_rms,
+            "flatness_excess": check.flatness_excess,
+            "range_noise": check.range_noise,
             "perpendicularity_deg": check.perpendicularity_deg,
             "twist_deg": check.twist_deg,
             "twist_sigma_deg": check.twist_sigma_deg,

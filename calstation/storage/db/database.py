@@ -230,7 +230,7 @@ def alembic_config(connection: Any = None, url: str | None = None) -> Any:
     return cfg
 
 
-SCHEMA_HEAD = "0008_campaigns_locations"
+SCHEMA_HEAD = "0009_cube_flatness_excess"
 """The newest migration's revision id, as written in ``migrations/versions`` (a test checks
 that they agree). Opening a database that is at it needs no Alembic, which takes ~0.1 s to
 import; only a new, older or unknown database loads it."""

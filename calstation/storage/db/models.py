@@ -206,6 +206,11 @@ class CubeCheckRecord(Base):
     twist_deg: Mapped[float | None] = mapped_column(Float)
     """the ry correction the side faces ask for (degrees; NULL before it was measured)"""
     twist_sigma_deg: Mapped[float | None] = mapped_column(Float)
+    flatness_excess: Mapped[float | None] = mapped_column(Float)
+    """the worst face's RMS beyond the range noise (m; what ``qa.flatness_rms`` limits; NULL
+    before it was measured, when the limit judged ``flatness_rms``)"""
+    range_noise: Mapped[float | None] = mapped_column(Float)
+    """the range noise measured on the faces (m, 1σ along the rays)"""
     passed: Mapped[bool] = mapped_column(Boolean)
     failures: Mapped[list[Any]] = mapped_column(JSON)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
