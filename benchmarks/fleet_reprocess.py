@@ -7,8 +7,9 @@ as a plant's runs never would: each run is still re-processed on its own), each 
 station stores it with its accepted H = today's + a seeded change: every ``--every``-th run
 above the 0.5 mm tolerance in the work volume, the others within. Then ``calstation reprocess``
 (the command itself, in a process of its own) with 1 and with 2 local workers, each a new
-campaign, prints their throughput, checks that each flags exactly the seeded runs, and that a
-sample of runs gives results identical to ``calstation calibrate --run N``.
+campaign, prints their throughput, checks that each flags exactly the seeded runs (in its
+``--json`` and in the flagged-units table of its ``--report``), and that a sample of runs gives
+results identical to ``calstation calibrate --run N``. Exits 1 when a check fails.
 
     python benchmarks/fleet_reprocess.py     # the full benchmark (about 45 min on two cores)
     python benchmarks/fleet_reprocess.py --runs 40 --limit 40 --sample 2   # a quick look
@@ -20,6 +21,7 @@ import argparse
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -58,9 +60,9 @@ def _cli(*args: str) -> subprocess.CompletedProcess[str]:
                            *args], env=env, capture_output=True, text=True, timeout=6 * 3600)
 
 
-def _campaign(url: str, workers: int, limit: int | None) -> dict:
+def _campaign(url: str, workers: int, limit: int | None, report: Path) -> dict:
     args = ["reprocess", "--db", url, "--workers", str(workers), "--new", "--json",
-            "--tolerance", str(TOLERANCE_MM)]
+            "--tolerance", str(TOLERANCE_MM), "--report", str(report)]
     if limit is not None:
         args += ["--limit", str(limit)]
     t0 = time.perf_counter()
@@ -71,6 +73,12 @@ def _campaign(url: str, workers: int, limit: int | None) -> dict:
     data = json.loads(done.stdout)
     data["wall_s"] = wall
     return data
+
+
+def _flagged_in_report(html: str) -> set[str]:
+    """The serials of the report's flagged-units table."""
+    table = html.split('id="campaign-flagged"', 1)[1].split("</table>", 1)[0]
+    return set(re.findall(r'<tr class="flagged"[^>]*><td class="text">([^<]+)</td>', table))
 
 
 def _identical(url: str, run_ids: list[int], campaigns: list[int]) -> list[str]:
@@ -125,18 +133,22 @@ def main() -> None:
               f"{len(above)} seeded above {TOLERANCE_MM} mm")
         n = min(args.limit or len(ids), len(ids))
         expected = {p.serial for p in plan[:n]} & above
-        results = {}
+        results, failed = {}, False
         for workers in (1, 2):
-            data = _campaign(url, workers, args.limit)
+            report = folder / f"campaign-{workers}.html"
+            data = _campaign(url, workers, args.limit, report)
             results[workers] = data
             t = data["throughput"]
             flagged = {r["serial"] for r in data["runs"] if r["flagged"]}
+            in_report = _flagged_in_report(report.read_text(encoding="utf-8"))
+            failed |= flagged != expected or in_report != expected
             print(f"{workers} worker{'s' if workers > 1 else ''}: {t['runs']} runs in "
                   f"{t['seconds']:.1f} s ({data['wall_s']:.1f} s with start-up): "
                   f"{t['runs_per_minute']:.1f} runs/min; "
                   f"{data['totals']['reprocessed']} re-processed, {data['totals']['failed']} "
                   f"failed, {data['totals']['skipped']} skipped; flagged {len(flagged)} = the "
-                  f"seeded ones: {flagged == expected}")
+                  f"seeded ones: {flagged == expected}; the report's flagged units "
+                  f"({len(in_report)}) = the seeded ones: {in_report == expected}")
         r1, r2 = (results[w]["throughput"]["runs_per_minute"] for w in (1, 2))
         print(f"speed-up with 2 workers: {r2 / r1:.2f}× (on {os.cpu_count()} cores)")
         step = max(1, n // max(1, args.sample))
@@ -146,7 +158,7 @@ def main() -> None:
               f"{not problems}")
         for p in problems:
             print("  " + p)
-        if problems:
+        if problems or failed:
             sys.exit(1)
 
 

@@ -48,10 +48,11 @@ class Station:
     port: int
     scheme: str = "http"
     log: Path | None = None
+    host: str = HOST
 
     @property
     def url(self) -> str:
-        return f"{self.scheme}://{HOST}:{self.port}"
+        return f"{self.scheme}://{self.host}:{self.port}"
 
 
 def free_port() -> int:
@@ -61,9 +62,11 @@ def free_port() -> int:
 
 
 @contextmanager
-def serve(folder: Path, *args: str, env: dict[str, str] | None = None) -> Iterator[Station]:
-    """``calstation serve ARGS`` on 127.0.0.1 with a database and home in ``folder`` (and
-    ``env`` added to the environment); stopped (SIGINT, then killed after 30 s) at the end."""
+def serve(folder: Path, *args: str, env: dict[str, str] | None = None,
+          host: str = HOST) -> Iterator[Station]:
+    """``calstation serve ARGS`` on ``host`` (127.0.0.1) with a database and home in ``folder``
+    (and ``env`` added to the environment); stopped (SIGINT, then killed after 30 s) at the
+    end."""
     port = free_port()
     tls = "--tls-cert" in args
     (folder / "recipes").mkdir(parents=True, exist_ok=True)
@@ -73,10 +76,10 @@ def serve(folder: Path, *args: str, env: dict[str, str] | None = None) -> Iterat
     log = (folder / "serve.log").open("wb")  # the station's refusals, read by the tests
     process = subprocess.Popen(
         [sys.executable, "-c", "from calstation.cli import main; main()", "serve",
-         "--host", HOST, "--port", str(port), "--recipes", str(folder / "recipes"),
+         "--host", host, "--port", str(port), "--recipes", str(folder / "recipes"),
          "--db", f"sqlite:///{folder / 'load.db'}", *args],
         env=environment, stdout=subprocess.DEVNULL, stderr=log)
-    station = Station(process, port, "https" if tls else "http", folder / "serve.log")
+    station = Station(process, port, "https" if tls else "http", folder / "serve.log", host)
     # only to see that it is up: the certificate is checked by whoever uses the station
     context = ssl.create_default_context()
     context.check_hostname, context.verify_mode = False, ssl.CERT_NONE

@@ -163,8 +163,9 @@ def test_missing_or_changed_recordings_are_reported_and_skipped(
         static = s.scalars(select(Artifact).where(Artifact.run_id == ids[2],
                                                   Artifact.kind == "static")).one()
         static.path = str(tmp_path / "gone" / "static.mcap")
+    report = tmp_path / "campaign.html"
     code, out, err = run_cli(["reprocess", "--db", url, "--workers", "1", "--station", "line-1",
-                              "--limit", "3"], capsys)
+                              "--limit", "3", "--report", str(report)], capsys)
     assert code == 0, err
     out = " ".join(out.split())
     assert "3 runs selected; 1 re-processed, 2 skipped" in out
@@ -174,6 +175,19 @@ def test_missing_or_changed_recordings_are_reported_and_skipped(
         rows = s.scalars(select(CampaignRun).order_by(CampaignRun.run_id)).all()
         assert [r.outcome for r in rows] == ["reprocessed", "skipped", "skipped"]
         assert rows[1].calibration_id is None and "000000000000" in (rows[1].error or "")
+        campaign_id = rows[0].campaign_id
+    # the report and the campaign's page list the skipped runs with why (no comparison)
+    from fastapi.testclient import TestClient
+
+    from calstation.web.app import create_app
+
+    web = TestClient(create_app(db, data_dir=tmp_path, recipes_dir=tmp_path),
+                     base_url="http://127.0.0.1:8470")
+    page = web.get(f"/campaigns/{campaign_id}")
+    for html in (report.read_text(), page.text):
+        others = html.split('id="campaign-others"')[1].split("</table>")[0]
+        assert others.count("<tr data-run=") == 2 and "static.mcap is missing" in others
+    assert page.status_code == 200
     db.dispose()
 
 

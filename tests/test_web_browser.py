@@ -173,30 +173,7 @@ def test_a_full_simulated_run_by_clicking_with_a_reload(
         rp.wait_for_timeout(500)
         shot(rp, "report", full=True)
         offline.close()
-        if DOCS_SHOTS:
-            _qa_pages(page, url, db, recipe, run_id)
 
-
-def _qa_pages(page: Any, url: str, db: Database, recipe: Path, first: int) -> None:
-    """Pictures of history, trends and compare for the docs (a second, unattended run)."""
-    from calstation.recipes import load_recipe
-    from calstation.station.operator import ConsoleOperator
-    from calstation.station.runs import start_run
-
-    data = yaml.safe_load(recipe.read_text())
-    data["simulation"]["seed"] = 7  # another day, other noise
-    other = recipe.with_name("sim-periodicity-seed7.yaml")
-    other.write_text(yaml.safe_dump(data, sort_keys=False))
-    second, _ = start_run(load_recipe(other), db, ConsoleOperator(unattended=True),
-                          operator="bob", data_dir=recipe.parent.parent / "data")
-    page.goto(url + "/runs")
-    page.wait_for_selector("#history")
-    shot(page, "history")
-    page.goto(url + "/trends?station=sim-01&param=tx")
-    page.wait_for_selector("#trend-plot[data-drawn]")
-    shot(page, "trends", full=True)
-    page.goto(url + f"/compare?a={first}&b={second}")
-    shot(page, "compare", full=True)
 
 
 @pytest.fixture

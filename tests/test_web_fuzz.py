@@ -21,7 +21,7 @@ from hypothesis.errors import Unsatisfiable
 from starlette.testclient import TestClient
 
 from calstation import plugins
-from calstation.storage.db import Run, open_database
+from calstation.storage.db import Campaign, CampaignRun, Run, open_database
 from calstation.web.app import create_app
 
 schemathesis = pytest.importorskip("schemathesis")
@@ -55,8 +55,18 @@ def app(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
             run = s.get(Run, run_id)
             assert run is not None
             run.status = "passed"  # a passed run is never resumed: the fuzz moves no motor
-        yield create_app(db, data_dir=folder / "data", recipes_dir=folder / "recipes",
+            # a campaign over it, so that the campaign pages have one to show
+            campaign = Campaign(key="0" * 64, selection={}, strategy=None, tolerance={},
+                                engine="fuzz", selected=1)
+            s.add(campaign)
+            s.flush()
+            s.add(CampaignRun(campaign_id=campaign.id, run_id=run_id, outcome="skipped",
+                              error="static.mcap is missing"))
+            campaign_id = campaign.id
+        app = create_app(db, data_dir=folder / "data", recipes_dir=folder / "recipes",
                          token=TOKEN, allow_hosts=["testserver"])
+        app.state.fuzz_ids = {"run_id": run_id, "campaign_id": campaign_id}
+        yield app
     db.dispose()
 
 
@@ -66,7 +76,13 @@ def test_every_route_is_described_and_fuzzed(app: Any) -> None:
     routes = {r.path for r in app.routes if getattr(r, "include_in_schema", False)}
     assert routes <= described
     assert {"/api/start", "/api/answer", "/api/abort", "/api/resume/{run_id}", "/login",
-            "/logout", "/runs/{run_id}", "/runs.json", "/compare", "/trends"} <= described
+            "/logout", "/runs/{run_id}", "/runs.json", "/compare", "/trends", "/metrics",
+            "/plan", "/plan.json", "/api/plan", "/campaigns", "/campaigns.json",
+            "/campaigns/{campaign_id}", "/campaigns/{campaign_id}.json"} <= described
+    methods = {(m.upper(), path) for path, item in app.openapi()["paths"].items() for m in item}
+    served = {(m, r.path) for r in app.routes if getattr(r, "include_in_schema", False)
+              for m in getattr(r, "methods", ()) if m != "HEAD"}
+    assert served == methods  # every method of every route, POST ones included
 
 
 @pytest.mark.parametrize("mode", [GenerationMode.POSITIVE, GenerationMode.NEGATIVE])
@@ -76,17 +92,24 @@ def test_schemathesis_finds_no_server_error(app: Any, mode: GenerationMode, auth
     schema = schemathesis.openapi.from_asgi("/api/openapi.json", app)
     headers = {"Authorization": f"Bearer {TOKEN}"} if auth == "token" else {"Origin": ORIGIN}
     statuses: Counter[int] = Counter()
+    per_route: dict[str, Counter[int]] = {}
     whole: list[str] = []
     operations = [r.ok() for r in schema.get_all_operations()]
+    ids = app.state.fuzz_ids
     for operation in operations:
         if operation.path in NOT_FUZZED:
             continue
 
         @FUZZ
-        @given(case=operation.as_strategy(generation_mode=mode))
-        def fuzz(case: Any) -> None:
+        @given(case=operation.as_strategy(generation_mode=mode), pin=st.booleans())
+        def fuzz(case: Any, pin: bool) -> None:
+            if pin:  # half the requests name the run and the campaign that exist
+                for key in set(case.path_parameters or {}) & set(ids):
+                    case.path_parameters[key] = ids[key]
             response = case.call(headers=headers)
             statuses[response.status_code] += 1
+            per_route.setdefault(f"{case.method} {case.path}", Counter())[
+                response.status_code] += 1
             assert response.status_code < 500, (case.method, case.formatted_path,
                                                 response.status_code, response.text[:300])
 
@@ -99,7 +122,17 @@ def test_schemathesis_finds_no_server_error(app: Any, mode: GenerationMode, auth
         print(f"\nfuzz ({mode}, {auth}): {sum(statuses.values())} requests over "
               f"{len(operations) - len(NOT_FUZZED)} routes: {dict(sorted(statuses.items()))}"
               + (f"; no invalid request to make of {', '.join(whole)}" if whole else ""))
+        for route, counts in sorted(per_route.items()):
+            print(f"  {route}: {dict(sorted(counts.items()))}")
     assert sum(statuses.values()) >= EXAMPLES  # it ran
+    fuzzed = {f"{o.method.upper()} {o.path}" for o in operations if o.path not in NOT_FUZZED}
+    assert set(per_route) == fuzzed - set(whole)  # every route and method got requests
+    if mode == GenerationMode.POSITIVE and auth == "token":
+        # valid requests reach the pages themselves, the plan and campaign pages included
+        for route in ("GET /plan", "GET /plan.json", "GET /campaigns", "GET /campaigns.json",
+                      "GET /campaigns/{campaign_id}", "GET /campaigns/{campaign_id}.json",
+                      "GET /runs/{run_id}", "GET /runs/{run_id}.json", "GET /metrics"):
+            assert per_route[route][200] > 0, (route, per_route[route])
 
 
 PATHS = ["/api/start", "/api/answer", "/api/abort", "/api/resume/1", "/login", "/logout"]

@@ -2,7 +2,8 @@
 streams, a 200 MB body, the headers uvicorn itself would add, TLS, and the command's checks of
 its options.
 
-Every server here listens on 127.0.0.1 only; every request loop is bounded in count and time.
+Every server here listens on 127.0.0.1, but one on this computer's own network address (for a
+station off localhost); every request loop is bounded in count and time.
 The figures are also printed by ``benchmarks/web_load.py``.
 """
 
@@ -78,7 +79,7 @@ def test_a_200_mb_body_is_refused_without_the_server_growing(station: object) ->
         after = load.memory_mib(pid)
         print(f"200 MB ({'chunked' if chunked else 'Content-Length'}): {outcome} in "
               f"{seconds:.2f} s, peak memory {before['VmHWM']:.0f} → {after['VmHWM']:.0f} MiB")
-        assert " 413 " in outcome
+        assert " 413 " in outcome and seconds < 5.0  # refused, not read to its end
         assert after["VmHWM"] - before["VmHWM"] < 30
         status, took = asyncio.run(load.get_s(port, "/state.json"))
         assert status == 200 and took < 1.0
@@ -116,6 +117,91 @@ def test_the_real_server_sends_the_headers_and_no_banner(station: object) -> Non
                       b"Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
                       b"Sec-WebSocket-Version: 13\r\n\r\n")
     assert not head.startswith(b"HTTP/1.1 101")
+
+
+def test_forwarded_headers_neither_change_the_client_nor_escape_the_back_off(
+    tmp_path: Path,
+) -> None:
+    """uvicorn takes ``X-Forwarded-For`` / ``-Proto`` from 127.0.0.1 by default: a process of
+    this computer could have guessed tokens without end, one made-up address per try, and had
+    the log name an address of its choosing. The station is served without a proxy."""
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    with load.serve(tmp_path, "--token-file", str(token_file)) as s:
+        codes = []
+        for k in range(8):
+            r = httpx.post(s.url + "/api/abort", timeout=10, headers={
+                "Authorization": "Bearer wrong-token-0123456789",
+                "X-Forwarded-For": f"10.9.9.{k}", "X-Real-IP": f"10.9.8.{k}",
+                "Forwarded": f"for=10.9.7.{k}"})
+            codes.append(r.status_code)
+        # 5 wrong tokens free, the 6th locks 127.0.0.1 out, whatever address each claims
+        assert codes[:6] == [401] * 6 and 429 in codes[6:], codes
+        log = s.log.read_text()  # type: ignore[union-attr]
+        assert "refused POST /api/abort from 127.0.0.1: 429 too many wrong tokens" in log
+        assert "10.9." not in log
+    # X-Forwarded-Proto does not make the station's origin https
+    with load.serve(tmp_path / "plain") as s, httpx.Client(base_url=s.url, timeout=10) as web:
+        csrf = web.get("/").text.split('name="csrf-token" content="')[1].split('"')[0]
+        https = s.url.replace("http://", "https://")
+        r = web.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": https,
+                                            "X-Forwarded-Proto": "https"})
+        assert r.status_code == 403 and "cross-site request" in r.text
+        r = web.post("/api/abort", headers={"X-CSRF-Token": csrf, "Origin": s.url,
+                                            "X-Forwarded-Proto": "https"})
+        assert r.status_code == 409  # the station's own origin; nothing runs
+
+
+def _network_address() -> str | None:
+    """This computer's address on its network (None without one): a UDP socket's source
+    address towards a documentation address; no packet is sent."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.connect(("192.0.2.1", 9))
+            address = str(probe.getsockname()[0])
+    except OSError:
+        return None
+    return None if address.startswith("127.") or address == "0.0.0.0" else address
+
+
+def test_off_localhost_a_stream_needs_the_session_and_a_client_opens_at_most_eight(
+    tmp_path: Path,
+) -> None:
+    """Served on a network address (with its token), the event stream needs the logged-in
+    session or the token, and one client address opens at most 8 streams."""
+    address = _network_address()
+    if address is None:
+        pytest.skip("this computer has no network address to serve on")
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    with load.serve(tmp_path, "--token-file", str(token_file), host=address) as s:
+        origin = f"http://{address}:{s.port}"
+
+        def stream(extra: str = "") -> tuple[socket.socket, bytes]:
+            conn = socket.create_connection((address, s.port), timeout=10)
+            conn.sendall(f"GET /events HTTP/1.1\r\nHost: {address}:{s.port}\r\n{extra}\r\n"
+                         .encode())
+            return conn, conn.recv(200).split(b"\r\n")[0]
+
+        conn, status = stream()
+        conn.close()
+        assert status == b"HTTP/1.1 401 Unauthorized"
+        with httpx.Client(base_url=origin, timeout=10) as web:
+            csrf = web.get("/").text.split('name="csrf-token" content="')[1].split('"')[0]
+            r = web.post("/login", data={"token": TOKEN, "csrf": csrf},
+                         headers={"Origin": origin})
+            assert r.status_code == 303
+            cookie = f"Cookie: {'; '.join(f'{k}={v}' for k, v in web.cookies.items())}\r\n"
+        opened = [stream(cookie) for _ in range(10)]
+        try:
+            assert [st for _, st in opened] == [b"HTTP/1.1 200 OK"] * 8 + [
+                b"HTTP/1.1 429 Too Many Requests"] * 2
+        finally:
+            for conn, _ in opened:
+                conn.close()
+        log = s.log.read_text()  # type: ignore[union-attr]
+        assert f"refused GET /events from {address}: 401 this station needs its token" in log
+        assert f"refused GET /events from {address}: 429 {address} has 8 event streams" in log
 
 
 @pytest.fixture(scope="module")

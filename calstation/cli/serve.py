@@ -84,9 +84,12 @@ def register(app: typer.Typer) -> None:
                        "crosses the network in clear text (see --tls-cert, docs/security.md)",
                        err=True)
         try:
-            # live pages keep an event stream open: do not wait for browsers to hang up
+            # live pages keep an event stream open: do not wait for browsers to hang up.
+            # No proxy headers: uvicorn would otherwise take X-Forwarded-For/-Proto from any
+            # local process as the client's address and scheme (escaping the per-client
+            # limits, forging the logged address); the station is served without a proxy.
             uvicorn.run(application, host=host, port=port, log_level="warning",
-                        timeout_graceful_shutdown=3, server_header=False,
+                        timeout_graceful_shutdown=3, server_header=False, proxy_headers=False,
                         ssl_certfile=str(tls_cert) if tls_cert else None,
                         ssl_keyfile=str(tls_key) if tls_key else None)
         finally:

@@ -32,14 +32,17 @@ def _serial(run: Run) -> str | None:
 
 def run_item(row: CampaignRun, run: Run) -> dict[str, Any]:
     """One run of a campaign: its run (serial, station, status), outcome, flags and every field
-    of its comparison (:func:`calstation.fleet.compare.compare`)."""
+    of its comparison (:func:`calstation.fleet.compare.compare`); a run skipped or failed has
+    no comparison: its fields are then None (``refused`` empty)."""
     comparison = dict(row.comparison or {})
     return {
         "run_id": row.run_id, "serial": _serial(run), "station": run.station.name,
         "status": run.status, "started_at": iso(run.started_at), "outcome": row.outcome,
         "flagged": row.flagged, "flags": comparison.pop("flags", []),
         "calibration_id": row.calibration_id, "error": row.error, "seconds": row.seconds,
-        "worker": row.worker, **comparison,
+        "worker": row.worker, "difference": None, "change_in_work_volume_m": None,
+        "predicted_error": None, "accepted": None, "refused": [], "cube": None,
+        "work_volume": None, **comparison,
     }
 
 

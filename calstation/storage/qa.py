@@ -12,17 +12,21 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import and_, func, select
 from sqlalchemy.orm import Session
 
 from calstation.errors import CalstationError
 from calstation.recipes import parse_recipe
-from calstation.storage.db import PARAMS, Calibration, Run, Station
+from calstation.storage.db import PARAMS, Calibration, Run, Station, Step
 from calstation.storage.report import history_item, iso, with_results
 
 STATUSES = ("running", "passed", "failed", "aborted")
+STEP_NAMES = ("preflight", "place", "static_scan", "spin_scan", "fine_tune", "cube_scan",
+              "report")
+"""The steps a run may fail in (the history's ``failed_step`` filter offers them)."""
 TREND_PARAMS = tuple(p for p in PARAMS if p != "rx")  # rx is the gauge, held at 0
-CUBE_TREND_PARAMS = ("edge_error", "obb_error", "flatness_rms")
+CUBE_TREND_PARAMS = ("edge_error", "obb_error", "flatness_rms", "perpendicularity_deg",
+                     "twist_deg")
 
 
 class QueryError(CalstationError):
@@ -37,8 +41,11 @@ class HistoryFilter:
     status: str | None = None
     operator: str | None = None
     serial: str | None = None
+    """Part of the unit's serial (any case)."""
     since: str | None = None
     until: str | None = None
+    failed_step: str | None = None
+    reason: str | None = None
     limit: int = 200
 
     def as_dict(self) -> dict[str, Any]:
@@ -77,18 +84,36 @@ def history(session: Session, f: HistoryFilter) -> list[dict[str, Any]]:
     if f.until:
         stmt = stmt.where(Run.started_at < parse_date(f.until, "until", end=True))
     if f.serial:
-        stmt = stmt.where(Run.unit_serial == f.serial)
+        stmt = stmt.where(func.lower(Run.unit_serial).contains(f.serial.lower(),
+                                                               autoescape=True))
+    stmt = _failure_filters(stmt, f)
     rows: list[dict[str, Any]] = []
     for run in session.scalars(stmt.limit(max(1, min(f.limit, 5000)) * (4 if f.serial else 1))):
         item = history_item(run)
         item["serial"] = unit_serial({**item, "steps": [
             {"name": s.name, "status": s.status, "result": s.result} for s in run.steps]})
-        if f.serial and item["serial"] != f.serial:
+        if f.serial and f.serial.lower() not in (item["serial"] or "").lower():
             continue
         rows.append(item)
         if len(rows) >= f.limit:
             break
     return rows
+
+
+def _failure_filters(stmt: Any, f: HistoryFilter) -> Any:
+    """Runs with a step that failed (or was aborted) as ``f.failed_step``, and whose error
+    names ``f.reason`` (a limit as the dashboard's Pareto names it, or words of the error)."""
+    from calstation.storage.dashboard import reason_text
+
+    conditions = []
+    if f.failed_step:
+        conditions.append(Step.name == f.failed_step)
+    if f.reason:
+        conditions.append(Step.error.contains(reason_text(f.reason), autoescape=True))
+    if conditions:
+        stmt = stmt.where(Run.steps.any(and_(Step.status.in_(("failed", "aborted")),
+                                             *conditions)))
+    return stmt
 
 
 def choices(session: Session) -> dict[str, list[str]]:
@@ -97,6 +122,7 @@ def choices(session: Session) -> dict[str, list[str]]:
         "stations": list(session.scalars(select(Station.name).order_by(Station.name))),
         "operators": list(session.scalars(select(Run.operator).distinct().order_by(Run.operator))),
         "statuses": list(STATUSES),
+        "steps": list(STEP_NAMES),
     }
 
 
@@ -136,16 +162,21 @@ def trend_points(
         stmt = stmt.where(Run.unit_serial == serial)
     points: list[dict[str, Any]] = []
     previous: float | None = None
+    recipes: dict[str, Any] = {}
     for run, cal in session.execute(stmt).all():
-        qa = parse_recipe(run.recipe_text, f"recipe of run {run.id}").qa
+        qa = recipes.get(run.recipe_sha256)
+        if qa is None:
+            qa = recipes[run.recipe_sha256] = parse_recipe(
+                run.recipe_text, f"recipe of run {run.id}").qa
         sigma: float | None = None
         if param in CUBE_TREND_PARAMS:
-            if not run.cube_checks:
+            if not run.cube_checks or getattr(run.cube_checks[-1], param) is None:
                 continue
             value = float(getattr(run.cube_checks[-1], param))
             limit = {"edge_error": qa.edge_error, "obb_error": qa.obb_edge_error,
-                     "flatness_rms": qa.flatness_rms}[param]
-            flagged = value > limit
+                     "flatness_rms": qa.flatness_rms, "perpendicularity_deg":
+                     qa.perpendicularity_deg, "twist_deg": qa.twist_deg}[param]
+            flagged = abs(value) > limit
             delta = None if previous is None else value - previous
         else:
             value = float(getattr(cal, param))
@@ -162,7 +193,10 @@ def trend_points(
 
 
 def display_scale(param: str) -> tuple[float, str]:
-    """Factor and unit to show a stored value: metres → mm, radians → degrees."""
+    """Factor and unit to show a stored value: metres → mm, radians → degrees (the cube's
+    angles are stored in degrees)."""
+    if param.endswith("_deg"):
+        return 1.0, "°"
     if param.startswith("r"):
         return math.degrees(1.0), "°"
     return 1000.0, "mm"
@@ -170,13 +204,17 @@ def display_scale(param: str) -> tuple[float, str]:
 
 def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
     """A plotly figure of a trend: values with 1σ bars by date, the limits drawn."""
-    k, unit = display_scale(t["param"])
+    from calstation.storage.dashboard import LABELS, SHORT
+
+    k, _ = display_scale(t["param"])
+    label = LABELS.get(t["param"], t["param"])
     pts = t["points"]
-    dates = [p["date"] for p in pts]
+    dates = [(p["date"] or "")[:19].replace("T", " ") for p in pts]  # UTC, to the second
     values = [p["value"] * k for p in pts]
     data: list[dict[str, Any]] = [{
-        "type": "scatter", "mode": "lines+markers", "name": t["param"], "x": dates, "y": values,
+        "type": "scatter", "mode": "lines+markers", "name": label, "x": dates, "y": values,
         "text": [f"run {p['run_id']}" for p in pts],
+        "customdata": [f"/runs/{p['run_id']}" for p in pts],
         "error_y": {"type": "data", "visible": True,
                     "array": [0.0 if p["sigma"] is None else p["sigma"] * k for p in pts]},
         "marker": {"size": 8, "color": ["#cf222e" if p["flagged"] else "#0969da" for p in pts]},
@@ -186,23 +224,26 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
         for sign, name in ((1.0, "drift limit"), (-1.0, None)):
             xs: list[Any] = []
             ys: list[Any] = []
-            for a, b in itertools.pairwise(pts):
+            for (a, b), (da, db) in zip(itertools.pairwise(pts), itertools.pairwise(dates),
+                                        strict=True):
                 level = (a["value"] + sign * b["limit"]) * k
-                xs += [a["date"], b["date"], None]
+                xs += [da, db, None]
                 ys += [level, level, None]
             data.append({"type": "scatter", "mode": "lines", "name": name or "", "x": xs,
                          "y": ys, "showlegend": name is not None, "hoverinfo": "skip",
                          "line": {"dash": "dot", "color": "#1a7f37"}})
     elif t["limit_kind"] == "cube" and pts:
-        data.append({"type": "scatter", "mode": "lines", "name": "limit", "x": dates,
-                     "y": [p["limit"] * k for p in pts], "line": {"dash": "dash",
-                                                                   "color": "#cf222e"}})
+        signs = (1.0, -1.0) if t["param"] == "twist_deg" else (1.0,)
+        for sign in signs:
+            data.append({"type": "scatter", "mode": "lines", "name": "limit", "x": dates,
+                         "y": [sign * p["limit"] * k for p in pts], "showlegend": sign > 0,
+                         "line": {"dash": "dash", "color": "#cf222e"}, "hoverinfo": "skip"})
     return {"data": data, "layout": {
-        "height": 380, "margin": {"l": 60, "r": 20, "t": 40, "b": 50},
-        "title": {"text": f"{t['param']} of station {t['station']} (accepted calibrations)"},
-        "xaxis": {"title": {"text": "date (UTC)"}},
-        "yaxis": {"title": {"text": f"{t['param']} ({unit})"}},
-        "legend": {"orientation": "h"},
+        "height": 340, "margin": {"l": 80, "r": 20, "t": 40, "b": 60},
+        "title": {"text": f"{label} on station {t['station']}", "x": 0.01},
+        "xaxis": {"title": {"text": "date (UTC)"}, "automargin": True, "type": "date"},
+        "yaxis": {"title": {"text": SHORT.get(t["param"], label)}, "automargin": True},
+        "legend": {"orientation": "h", "y": -0.3}, "hovermode": "closest",
     }}
 
 

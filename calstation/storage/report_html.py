@@ -17,6 +17,7 @@ readable on paper (the 3D views print as the browser draws them; every number is
 
 from __future__ import annotations
 
+import base64
 import datetime as dt
 import json
 import math
@@ -174,16 +175,23 @@ def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> di
         "residual": {
             "median_mm": float(np.median(finite)) if finite.size else None,
             "p95_mm": float(np.percentile(finite, 95)) if finite.size else None,
-            "values_mm": np.round(np.clip(finite, 0, None), 3).tolist(),
+            "values_mm": np.clip(finite, 0, None),
         },
     }
 
 
+def typed(values: Any) -> dict[str, str]:
+    """An array as plotly.js reads it in binary: float32, base64 (a quarter of the text of
+    JSON numbers; plotly's own ``{dtype, bdata}`` typed-array form)."""
+    data = np.ascontiguousarray(np.asarray(values, dtype="<f4"))
+    return {"dtype": "f4", "bdata": base64.b64encode(data.tobytes()).decode("ascii")}
+
+
 def _cloud_figure(c: Cloud) -> dict[str, Any]:
-    """A plotly ``scatter3d`` figure (plain JSON): x_D is up."""
-    p = np.round(c.points_mm, 2)
+    """A plotly ``scatter3d`` figure (plain JSON, the points in binary): x_D is up."""
+    p = c.points_mm
     # plotly's z is up: show (y_D, z_D, x_D) so the platter lies flat
-    xyz = {"x": p[:, 1].tolist(), "y": p[:, 2].tolist(), "z": p[:, 0].tolist()}
+    xyz = {"x": typed(p[:, 1]), "y": typed(p[:, 2]), "z": typed(p[:, 0])}
     marker: dict[str, Any] = {"size": 1.6}
     traces: list[dict[str, Any]]
     if c.categorical:
@@ -193,16 +201,17 @@ def _cloud_figure(c: Cloud) -> dict[str, Any]:
             m = c.values == value
             traces.append({
                 "type": "scatter3d", "mode": "markers", "name": name,
-                "x": p[m, 1].tolist(), "y": p[m, 2].tolist(), "z": p[m, 0].tolist(),
+                "x": typed(p[m, 1]), "y": typed(p[m, 2]), "z": typed(p[m, 0]),
                 "marker": {**marker, "color": colour},
             })
     else:
-        v = np.round(np.where(np.isfinite(c.values), c.values, np.nan), 3)
+        v = np.where(np.isfinite(c.values), c.values, np.nan)
         # the scale follows the bulk of the surface, not the stray mixed pixels
         hi = 3.0 * float(np.nanmedian(v)) if np.isfinite(v).any() else 1.0
+        # a point with no residual (nan) takes the top of the scale
         traces = [{
             "type": "scatter3d", "mode": "markers", "name": c.color_label, **xyz,
-            "marker": {**marker, "color": [None if not math.isfinite(x) else x for x in v],
+            "marker": {**marker, "color": typed(np.where(np.isfinite(v), v, hi)),
                        "colorscale": "Viridis", "cmin": 0.0, "cmax": max(hi, 1e-3),
                        "colorbar": {"title": {"text": c.color_label}}},
         }]
@@ -223,9 +232,9 @@ def _cloud_figure(c: Cloud) -> dict[str, Any]:
 
 def _histogram_figure(clouds: list[dict[str, Any]]) -> dict[str, Any] | None:
     traces = [
-        {"type": "histogram", "name": c["title"], "x": c["residual"]["values_mm"],
+        {"type": "histogram", "name": c["title"], "x": typed(c["residual"]["values_mm"]),
          "opacity": 0.6, "xbins": {"start": 0.0, "size": 0.1}}
-        for c in clouds if c.get("residual") and c["residual"]["values_mm"]
+        for c in clouds if c.get("residual") and len(c["residual"]["values_mm"])
     ]
     if not traces:
         return None
@@ -240,6 +249,17 @@ def _histogram_figure(clouds: list[dict[str, Any]]) -> dict[str, Any] | None:
             "yaxis": {"title": {"text": "points"}},
         },
     }
+
+
+def _iterated(calibrations: list[dict[str, Any]], final: dict[str, Any] | None
+              ) -> dict[str, Any] | None:
+    """The calibration whose solver reported its iterations: the final one, else the newest
+    that did (the fine-tuning under a combined ``periodicity+cube`` calibration)."""
+    for c in ([final] if final else []) + list(reversed(calibrations)):
+        if isinstance((c.get("diagnostics") or {}).get("iterations"), list):
+            found: dict[str, Any] = c
+            return found
+    return None
 
 
 def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -263,7 +283,9 @@ def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
         ],
         "layout": {
             "height": 300, "margin": {"l": 50, "r": 20, "t": 30, "b": 40},
-            "title": {"text": "cost per iteration (RMS residual; stage and matches on hover)"},
+            "title": {"text": f"cost per iteration of the {calibration.get('stage', '')} "
+                              f"calibration ({calibration.get('strategy', '')}): RMS residual; "
+                              "stage and matches on hover"},
             "xaxis": {"title": {"text": "outer iteration"}, "dtick": 1},
             "yaxis": {"title": {"text": "RMS residual (mm)"}, "type": "log"},
         },
@@ -484,8 +506,9 @@ def report_data(db: Database, run_id: int, *, views: bool = True) -> dict[str, A
         "accuracy": accuracy_of(final),
         "generated_at": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
     }
+    data["partial"] = partial_note(summary, final)
     if final is not None:
-        cost = _cost_figure(final)
+        cost = _cost_figure(_iterated(summary["calibrations"], final))
         if cost is not None:
             data["figures"]["cost"] = cost
         where = _accuracy_figure(final)
@@ -499,6 +522,60 @@ def report_data(db: Database, run_id: int, *, views: bool = True) -> dict[str, A
         if hist is not None:
             data["figures"]["residuals"] = hist
     return data
+
+
+def partial_note(summary: dict[str, Any], final: dict[str, Any] | None) -> str | None:
+    """What the figures of a run that did not pass show (None for a passed run): which
+    calibration they are drawn with, that it is not accepted, and which recordings are
+    incomplete."""
+    if summary["status"] == "passed" or final is None:
+        return None
+    verdict = {"failed": "failed", "aborted": "was aborted"}.get(summary["status"],
+                                                                "has not finished")
+    partial = [a["kind"] for a in summary["artifacts"] if a.get("status") != "complete"]
+    scans = {a["kind"] for a in summary["artifacts"]}
+    missing = [k for k in ("spin", "cube") if k not in scans]
+    text = (f"This run {verdict}: no calibration was accepted. Its figures are drawn with its "
+            f"{final['stage']} calibration ({final['strategy']}), which is NOT accepted"
+            + (" — the initial H from the static scan, before any fine-tuning"
+               if final["stage"] == "initial" else "") + ".")
+    if partial:
+        text += f" Partial recordings (the scan stopped early): {', '.join(partial)}."
+    if missing:
+        text += f" Not recorded: {', '.join(missing)}."
+    return text
+
+
+def views_data(db: Database, run_id: int) -> dict[str, Any]:
+    """The run's 3D views and residual histogram (what the web run page fetches after it
+    painted): ``views`` (each with its figure, points and residual statistics), ``residuals``
+    (the histogram figure or None), ``key`` (the final calibration and the run's status:
+    the views change only with them)."""
+    return _views_of(report_data(db, run_id))
+
+
+def _views_of(data: dict[str, Any]) -> dict[str, Any]:
+    views = [{k: ({kk: vv for kk, vv in v.items() if kk != "values_mm"}
+                  if k == "residual" else v) for k, v in view.items()} for view in data["views"]]
+    final = data["final"] or {}
+    return {"views": views, "residuals": data["figures"].get("residuals"),
+            "key": [final.get("id"), data["run"]["status"]]}
+
+
+VIEWS_FILE = "views.json"
+"""The 3D views as the web run page fetches them, kept in the run folder with report.html."""
+
+
+def stored_views(folder: Path, key: list[Any]) -> str | None:
+    """The run folder's :data:`VIEWS_FILE` as JSON text when it was written for ``key`` (the
+    final calibration's id and the run's status), else None."""
+    path = folder / VIEWS_FILE
+    try:
+        text = path.read_text(encoding="utf-8")
+        head = json.loads(text[text.rindex(',"key":') + 7:-1])
+    except (OSError, ValueError):
+        return None
+    return text if head == key else None
 
 
 def _drift_of(summary: dict[str, Any]) -> dict[str, Any] | None:
@@ -522,6 +599,8 @@ def _views(artifacts: list[dict[str, Any]], H: Any, radius: float) -> list[dict[
         if not path.is_file():
             views.append({"title": title, "error": f"recording missing: {path}"})
             continue
+        if art.get("status") not in (None, "complete"):
+            title += " — PARTIAL recording: the scan stopped early"
         try:
             views.append(_cloud(path, H, radius, title, by))
         except CalstationError as exc:
@@ -538,13 +617,35 @@ def plotly_js() -> str:
     return str(get_plotlyjs())
 
 
+PLOTLY_FILE = "plotly-{version}.min.js"
+"""plotly.js beside the run folders (``DATA_DIR/runs/``), written once and shared by every
+run's ``report.html`` (``../plotly-….min.js``): a report stays small and opens offline."""
+
+
+def plotly_file_name() -> str:
+    from plotly import __version__
+
+    return PLOTLY_FILE.format(version=__version__)
+
+
+def figures_json(data: dict[str, Any]) -> str:
+    """The report's figures as JSON for a ``<script type="application/json">`` block."""
+    return json.dumps(
+        {"views": [v.get("figure") for v in data["views"]], **data["figures"]},
+        separators=(",", ":"),
+    ).replace("</", "<\\/")  # inside <script>: "</" must not close it
+
+
 def render_report(
     data: dict[str, Any], *, plotly_src: str | None = None, nav: bool = False,
-    nonce: str | None = None,
+    nonce: str | None = None, views_src: str | None = None, **page: Any,
 ) -> str:
-    """The report as HTML. ``plotly_src`` is a URL of plotly.js; None inlines it (offline file).
-    ``nav`` adds the web station's navigation links; ``nonce`` is put on its scripts and styles
-    (the web station's Content-Security-Policy allows inline ones only with it)."""
+    """The report as HTML. ``plotly_src`` is a URL of plotly.js; None inlines it. ``nav`` adds
+    the web station's navigation bar and export links; ``nonce`` is put on its scripts and
+    styles (the web station's Content-Security-Policy allows inline ones only with it);
+    ``views_src``: a URL the page fetches its 3D views from (so it paints before they are
+    computed); ``page``: the navigation bar's session fields (``csrf``, ``needs_login``,
+    ``logged_in``)."""
     from calstation.storage.templating import environment
 
     template = environment().get_template("report.html")
@@ -553,25 +654,42 @@ def render_report(
         params=list(PARAM_LABELS),
         labels=PARAM_LABELS,
         fmt=fmt,
-        # inside <script>: "</" must not close it
-        figures_json=json.dumps(
-            {"views": [v.get("figure") for v in data["views"]], **data["figures"]},
-            separators=(",", ":"),
-        ).replace("</", "<\\/"),
+        figures_json=figures_json(data),
         nav=nav,
         plotly_inline=None if plotly_src else plotly_js(),
         plotly_src=plotly_src,
+        plotly_name=plotly_file_name(),
         nonce=nonce,
+        views_src=views_src,
+        **page,
     )
 
 
+def write_plotly_beside(runs_dir: Path) -> Path:
+    """``runs_dir/plotly-<version>.min.js``, written when missing (atomically)."""
+    path = runs_dir / plotly_file_name()
+    text = plotly_js()
+    if not path.is_file() or path.stat().st_size != len(text.encode("utf-8")):
+        runs_dir.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{dt.datetime.now().timestamp():.0f}.tmp")
+        tmp.write_text(text, encoding="utf-8")
+        tmp.replace(path)
+    return path
+
+
 def write_run_report(db: Database, run_id: int) -> Path:
-    """Write ``report.html`` into the run's folder; returns its path."""
+    """Write ``report.html`` into the run's folder, plotly.js once beside the run folders;
+    returns the report's path."""
     data = report_data(db, run_id)
     folder = Path(data["run"]["data_dir"])
     folder.mkdir(parents=True, exist_ok=True)
+    write_plotly_beside(folder.parent)
     path = folder / "report.html"
     tmp = path.with_suffix(".html.tmp")
-    tmp.write_text(render_report(data), encoding="utf-8")
+    tmp.write_text(render_report(data, plotly_src=f"../{plotly_file_name()}"), encoding="utf-8")
     tmp.replace(path)
+    views = folder / VIEWS_FILE
+    tmp = views.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(_views_of(data), separators=(",", ":")), encoding="utf-8")
+    tmp.replace(views)
     return path

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import math
 from functools import cache
@@ -37,6 +38,20 @@ def duration(seconds: Any) -> str:
     return f"{whole // 3600} h {whole % 3600 // 60:02d} min"
 
 
+def when(value: Any, seconds: bool = False) -> str:
+    """A stored time (ISO-8601 text or datetime, UTC) for people: ``2026-11-23 14:05 UTC``
+    (``seconds``: ``14:05:09``); an em dash when absent, the text itself when not a time."""
+    if value is None or value == "":
+        return "—"
+    try:
+        t = value if isinstance(value, dt.datetime) else dt.datetime.fromisoformat(str(value))
+    except ValueError:
+        return str(value)
+    if t.tzinfo is not None:
+        t = t.astimezone(dt.UTC)
+    return t.strftime("%Y-%m-%d %H:%M:%S" if seconds else "%Y-%m-%d %H:%M") + " UTC"
+
+
 @cache
 def environment() -> Environment:
     """Templates from ``calstation/web/templates``, HTML auto-escaped."""
@@ -49,5 +64,6 @@ def environment() -> Environment:
     env.filters["num"] = _num
     env.filters["mm"] = _mm
     env.filters["duration"] = duration
+    env.filters["when"] = when
     env.filters["tojson_compact"] = lambda v: json.dumps(v, separators=(",", ":"))
     return env

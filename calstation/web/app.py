@@ -42,6 +42,7 @@ from calstation.web.payloads import (
     AnswerRequest,
     EmptyRequest,
     LoginRequest,
+    ParamName,
     PlanRequest,
     StartRequest,
     form_to_typed,
@@ -51,12 +52,13 @@ from calstation.web.payloads import (
     schema_of,
 )
 from calstation.web.plans import Planner
+from calstation.web.qa_routes import dashboard_routes, run_page_routes
 from calstation.web.security import AccessError, Guard, client_of
 from calstation.web.settings import MAX_ID, WebLimits
 from calstation.web.tokens import TokenSource
 
 STATIC = Path(__file__).parent / "static"
-StaticFile = Literal["station.css", "station.js", "trends.js", "plan.js", "plotly.min.js"]
+StaticFile = Literal["station.css", "station.js", "plan.js", "figures.js", "plotly.min.js"]
 
 log = logging.getLogger("calstation.web")
 
@@ -127,6 +129,8 @@ def create_app(
     _fleet_routes(app, ctx, recipes_dir)
     _api_routes(app, ctx)
     _plan_routes(app, ctx, Planner(runner))
+    run_page_routes(app, ctx)
+    dashboard_routes(app, ctx)
     return app
 
 
@@ -356,6 +360,8 @@ def _history_filter(
     serial: Annotated[OptionalText, Query(max_length=100)] = None,
     since: Annotated[OptionalText, Query(max_length=32)] = None,
     until: Annotated[OptionalText, Query(max_length=32)] = None,
+    failed_step: Annotated[OptionalText, Query(max_length=50)] = None,
+    reason: Annotated[OptionalText, Query(max_length=100)] = None,
     limit: Annotated[int, Query(ge=1, le=5000)] = 200,
 ) -> Any:
     from calstation.storage import qa
@@ -363,7 +369,9 @@ def _history_filter(
     # an empty field of the filter form is no filter
     return qa.HistoryFilter(station=station or None, status=status or None,
                             operator=operator or None, serial=serial or None,
-                            since=since or None, until=until or None, limit=limit)
+                            since=since or None, until=until or None,
+                            failed_step=failed_step or None, reason=reason or None,
+                            limit=limit)
 
 
 Filter = Annotated[Any, Depends(_history_filter)]
@@ -372,21 +380,26 @@ Filter = Annotated[Any, Depends(_history_filter)]
 def _trend_data(
     request: Request,
     station: Annotated[OptionalText, Query(max_length=100)] = None,
-    param: Annotated[OptionalText, Query(max_length=32)] = None,
+    param: Annotated[list[ParamName] | None, Query()] = None,
 ) -> dict[str, Any]:
+    """The trends of one or more parameters (``param`` repeated); the first one's fields at
+    the top (as before several could be asked for), all of them under ``trends``."""
     from calstation.storage import qa
+    from calstation.storage.dashboard import LABELS
 
+    offered = qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS
+    params = list(dict.fromkeys(p for p in param or [] if p))[:12] or ["tx"]
+    for p in params:
+        if p not in offered:
+            raise qa.QueryError(f"param: {p!r} is not one of {', '.join(offered)}")
     db: Database = request.app.state.db
     with db.session("reading the runs", read_only=True) as s:
         stations = qa.choices(s)["stations"]
         station = station or (stations[0] if stations else "")
-        param = param or "tx"
-        if param not in qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS:
-            raise qa.QueryError(f"param: {param!r} is not one of "
-                                f"{', '.join(qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS)}")
-        t = qa.trend(s, station, param) if station else {
-            "station": "", "param": param, "limit_kind": "drift", "points": []}
-    return {**t, "stations": stations, "params": list(qa.TREND_PARAMS + qa.CUBE_TREND_PARAMS)}
+        trends = [qa.trend(s, station, p) if station else {
+            "station": "", "param": p, "limit_kind": "drift", "points": []} for p in params]
+    return {**trends[0], "trends": trends, "stations": stations, "params": list(offered),
+            "labels": {p: LABELS.get(p, p) for p in offered}}
 
 
 Trend = Annotated[dict[str, Any], Depends(_trend_data)]
@@ -437,16 +450,6 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
         ctx.require_run(run_id)
         return report_data(ctx.db, run_id, views=False)
 
-    @app.get("/runs/{run_id}", response_class=HTMLResponse)
-    def run_page(request: Request, run_id: RunId) -> HTMLResponse:
-        """A run's page: its report, rendered from the database and recordings."""
-        from calstation.storage.report_html import render_report, report_data
-
-        ctx.require_run(run_id)
-        data = report_data(ctx.db, run_id)
-        return HTMLResponse(render_report(data, plotly_src="/static/plotly.min.js", nav=True,
-                                          nonce=request.scope.get(NONCE_KEY)))
-
     @app.get("/runs/{run_id}/report.html", response_model=None)
     def run_report_file(run_id: RunId) -> Response:
         """The self-contained ``report.html`` of the run folder (opens offline). Served
@@ -458,32 +461,38 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
             folder = Path(run.data_dir) if run is not None else None
         if folder is None or not (folder / "report.html").is_file():
             raise NotFound(f"run {run_id} has no report.html")
-        html = (folder / "report.html").read_text(encoding="utf-8", errors="replace")
+        html = _with_plotly((folder / "report.html").read_text(encoding="utf-8",
+                                                               errors="replace"))
         return HTMLResponse(html, headers={"Content-Security-Policy": _file_policy(html)})
 
     @app.get("/runs/{run_id}/export.{fmt}")
     def export(run_id: RunId, fmt: Literal["yaml", "json", "urdf", "csv"]) -> Response:
         """The run's final calibration as yaml, json, urdf or csv (a download)."""
-        from calstation.storage.report import export_calibration, get_run
+        from calstation.storage.report import export_calibration, final_calibration, get_run
 
         ctx.require_run(run_id)
         with ctx.db.session("reading the runs", read_only=True) as s:
-            text = export_calibration(get_run(s, run_id), fmt)
+            run = get_run(s, run_id)
+            text = export_calibration(run, fmt)
+            mark = "" if final_calibration(run).accepted else "-NOT-ACCEPTED"
         media = {"json": "application/json", "csv": "text/csv", "urdf": "application/xml"}
         return Response(text, media_type=media.get(fmt, "text/yaml"), headers={
-            "Content-Disposition": f'attachment; filename="run-{run_id}-calibration.{fmt}"'})
+            "Content-Disposition":
+                f'attachment; filename="run-{run_id}-calibration{mark}.{fmt}"'})
 
     @app.get("/trends.json")
     def trends_json(t: Trend) -> dict[str, Any]:
-        """A parameter's trend as JSON (stored units)."""
+        """Parameters' trends as JSON (stored units)."""
         return t
 
     @app.get("/trends", response_class=HTMLResponse)
     def trends_page(request: Request, t: Trend) -> HTMLResponse:
-        """Trend plot of one parameter by date, with 1σ bars and the drift limit."""
-        k, unit = qa.display_scale(t["param"])
-        return ctx.page(request, "trends.html", {"t": t, "scale": k, "unit": unit,
-                                                 "figure": qa.trend_figure(t)})
+        """Trend plots of parameters by date, with 1σ bars and the drift or QA limit."""
+        shown = [{**one, "scale": qa.display_scale(one["param"])[0],
+                  "unit": qa.display_scale(one["param"])[1]} for one in t["trends"]]
+        return ctx.page(request, "trends.html", {
+            "t": t, "shown": shown, "query": str(request.url.query),
+            "figures": {f"trend-{one['param']}": qa.trend_figure(one) for one in t["trends"]}})
 
     @app.get("/compare.json")
     def compare_json(c: Compared) -> dict[str, Any]:
@@ -498,7 +507,21 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
         if c is None:
             return ctx.page(request, "message.html", {
                 "title": "compare", "message": "Pick two runs on the history page."})
-        return ctx.page(request, "compare.html", c)
+        from calstation.storage.dashboard import LABELS
+
+        return ctx.page(request, "compare.html", {**c, "labels": LABELS})
+
+
+_PLOTLY_BESIDE = re.compile(r'<script src="\.\./plotly-[0-9A-Za-z.+-]+\.min\.js"></script>')
+
+
+def _with_plotly(html: str) -> str:
+    """A report file that loads plotly.js from beside the run folders, with plotly.js inlined
+    instead: served sandboxed, it can load nothing, and its inline scripts are allowed by
+    their hashes."""
+    from calstation.storage.report_html import plotly_js
+
+    return _PLOTLY_BESIDE.sub(lambda _: "<script>" + plotly_js() + "</script>", html, count=1)
 
 
 _INLINE = re.compile(r"<(script|style)\b([^>]*)>(.*?)</\1\s*>", re.S | re.I)

@@ -188,3 +188,7 @@ def schema_of(model: type[BaseModel]) -> dict[str, Any]:
         "application/json": {"schema": schema},
         "application/x-www-form-urlencoded": {"schema": form},
     }}}
+
+
+ParamName = Annotated[str, StringConstraints(max_length=32), AfterValidator(printable)]
+"""A parameter's name in a query (``param=tx&param=ry``): short, printable."""

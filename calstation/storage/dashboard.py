@@ -1,0 +1,385 @@
+"""The QA dashboard's data: yields, the failure Pareto, cycle times and control charts of every
+station over a period, from the stored runs (the statistics themselves: :mod:`.spc`).
+
+Plain data in display units (mm, degrees, seconds; times as UTC text for people), the JSON twin
+of ``/dashboard``; :mod:`.dashboard_figures` turns it into plotly figures. The queries read
+columns, not ORM objects, so a fleet's eight weeks (9,000 runs) load in a fraction of a second.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import gc
+import math
+import re
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from calstation.errors import CalstationError
+from calstation.storage.db import Calibration, CubeCheckRecord, Database, Run, Station, Step
+from calstation.storage.spc import (
+    RULES,
+    Yield,
+    control_limits,
+    out_of_control,
+    pareto,
+    western_electric,
+)
+
+CALIBRATION_PARAMS = ("tx", "ty", "tz", "ry", "rz")
+"""The calibration's parameters a chart is offered for (rx is the gauge, held at 0)."""
+CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms", "perpendicularity_deg", "twist_deg")
+"""The cube check's measures a chart is offered for."""
+CHART_PARAMS = CALIBRATION_PARAMS + CUBE_PARAMS
+
+LABELS: dict[str, str] = {
+    "tx": "tx — translation along x (mm)",
+    "ty": "ty — translation along y (mm)",
+    "tz": "tz — translation along z (mm)",
+    "rx": "rx — rotation about x (°)",
+    "ry": "ry — tilt of the axis, rotation about y (°)",
+    "rz": "rz — rotation about z (°)",
+    "edge_error": "cube edge error, face fit (mm)",
+    "obb_error": "cube edge error, oriented box (mm)",
+    "flatness_rms": "cube face flatness, RMS (mm)",
+    "perpendicularity_deg": "cube perpendicularity (°)",
+    "twist_deg": "cube side-face twist (°)",
+}
+"""What each parameter is called on the QA pages, with its display unit."""
+
+SHORT: dict[str, str] = {
+    "tx": "tx (mm)", "ty": "ty (mm)", "tz": "tz (mm)", "rx": "rx (°)", "ry": "ry (°)",
+    "rz": "rz (°)", "edge_error": "edge error (mm)", "obb_error": "OBB edge error (mm)",
+    "flatness_rms": "flatness RMS (mm)", "perpendicularity_deg": "perpendicularity (°)",
+    "twist_deg": "twist (°)",
+}
+"""The same, short enough for a chart's axis."""
+
+SCALE: dict[str, float] = {
+    "tx": 1e3, "ty": 1e3, "tz": 1e3, "rx": math.degrees(1.0), "ry": math.degrees(1.0),
+    "rz": math.degrees(1.0), "edge_error": 1e3, "obb_error": 1e3, "flatness_rms": 1e3,
+    "perpendicularity_deg": 1.0, "twist_deg": 1.0,
+}
+"""Stored unit → display unit (m → mm, rad → °; the cube's angles are stored in degrees)."""
+
+REASONS: tuple[tuple[str, str], ...] = (
+    ("face-fit edge error", "cube edge error (face fit)"),
+    ("OBB edge error", "cube edge error (oriented box)"),
+    ("face flatness", "cube face flatness"),
+    ("perpendicularity", "cube perpendicularity"),
+    ("side faces twisted", "cube twist (ry)"),
+    ("twist of the side faces", "cube twist not measurable"),
+    ("too few returns for a plane fit", "cube faces not seen"),
+    ("max_sigma.", "σ above calibration.max_sigma"),
+    ("drift", "drift between calibrations"),
+)
+"""(text in a step's error, the limit it names): how a failure is filed in the Pareto."""
+
+DEFAULT_DAYS = 56
+MAX_DAYS = 366
+
+
+class DashboardError(CalstationError):
+    """A dashboard filter that cannot be used (HTTP 400)."""
+
+
+@dataclass
+class DashboardQuery:
+    """What the dashboard shows: the period (``days`` up to ``until``, a date; default today),
+    grouped by ``day`` or ``week``, and the charts of ``params`` for ``station`` (default: the
+    first station)."""
+
+    station: str | None = None
+    days: int = DEFAULT_DAYS
+    group: Literal["day", "week"] = "week"
+    params: list[str] = field(default_factory=lambda: ["tx", "ty", "tz", "ry", "rz"])
+    until: str | None = None
+
+    def window(self) -> tuple[dt.datetime, dt.datetime]:
+        """The period as [start, end) in UTC."""
+        if not 1 <= self.days <= MAX_DAYS:
+            raise DashboardError(f"days: {self.days} is not between 1 and {MAX_DAYS}")
+        for p in self.params:
+            if p not in CHART_PARAMS:
+                raise DashboardError(f"param: {p!r} is not one of {', '.join(CHART_PARAMS)}")
+        try:
+            day = (dt.date.fromisoformat(self.until.strip()) if self.until
+                   else dt.datetime.now(dt.UTC).date())
+        except ValueError as exc:
+            raise DashboardError(f"until: {self.until!r} is not a date (YYYY-MM-DD)") from exc
+        end = dt.datetime.combine(day + dt.timedelta(days=1), dt.time(), tzinfo=dt.UTC)
+        return end - dt.timedelta(days=self.days), end
+
+
+def utc(t: dt.datetime | None) -> dt.datetime | None:
+    """A stored time as aware UTC (SQLite returns naive UTC)."""
+    if t is None:
+        return None
+    return t.replace(tzinfo=dt.UTC) if t.tzinfo is None else t.astimezone(dt.UTC)
+
+
+def when(t: dt.datetime | None) -> str:
+    """A time for people: ``2026-11-23 14:05`` (UTC, to the minute)."""
+    u = utc(t)
+    return "—" if u is None else u.isoformat(sep=" ", timespec="minutes")[:16]
+
+
+def period_of(t: dt.datetime, group: str) -> tuple[str, dt.date, dt.date]:
+    """The day or ISO week ``t`` falls in: its label and its first and last day."""
+    day = t.date()
+    if group == "day":
+        return day.isoformat(), day, day
+    year, week, _ = day.isocalendar()
+    monday = day - dt.timedelta(days=day.weekday())
+    return f"{year}-W{week:02d}", monday, monday + dt.timedelta(days=6)
+
+
+def failure_reason(step: str | None, error: str | None) -> tuple[str, str]:
+    """(failed step, limit) of a failure, from the step's error text."""
+    text = error or ""
+    for needle, limit in REASONS:
+        if needle in text:
+            return step or "run", limit
+    first = re.split(r"[:;(.]", text.strip(), maxsplit=1)[0].strip()
+    return step or "run", (first[:60] or "no message")
+
+
+def reason_text(reason: str) -> str:
+    """The words of a step's error behind a limit as :func:`failure_reason` names it (the
+    history's ``reason`` filter); other text is taken as it is."""
+    return next((needle for needle, limit in REASONS if limit == reason), reason)
+
+
+@contextmanager
+def _without_gc_pauses() -> Iterator[None]:
+    """The cyclic garbage collector off while the dashboard builds its ~100,000 small objects
+    (none in a cycle): its passes over them took a third of the time. Reference counting still
+    frees everything; the collector is back on after."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
+    """Everything the dashboard page draws (see the module's docstring). The database is read
+    in one short read-only session; the statistics are computed after it."""
+    with _without_gc_pauses():
+        return _dashboard(db, q)
+
+
+def _dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
+    start, end = q.window()
+    with db.session("reading the runs for the dashboard", read_only=True) as session:
+        stations = list(session.scalars(select(Station.name).order_by(Station.name)))
+        station = q.station or (stations[0] if stations else None)
+        if station is not None and station not in stations:
+            raise DashboardError(f"station: {station!r} has no run (stations: "
+                                 f"{', '.join(stations) or 'none'})")
+        runs = _runs(session, start, end)
+        pareto_rows = _pareto(session, runs, start, end)
+        series = _series(session, start, end)
+    out: dict[str, Any] = {
+        "period": {"since": start.date().isoformat(),
+                   "until": (end - dt.timedelta(days=1)).date().isoformat(),
+                   "days": q.days, "group": q.group},
+        "stations": stations, "station": station, "params": list(q.params),
+        "labels": LABELS, "rules": RULES,
+        "yields": _yields(runs, q.group),
+        "pareto": pareto_rows,
+    }
+    out["charts"] = [chart(series.get((station, p)), station, p)
+                     for p in q.params] if station else []
+    out["comparison"] = _comparison(series, stations)
+    return out
+
+
+def _runs(session: Session, start: dt.datetime, end: dt.datetime) -> list[dict[str, Any]]:
+    """The period's runs: station, times, status, serial, whether a step was repeated, and
+    whether an earlier run had the same serial."""
+    retried = set(session.scalars(select(Step.run_id).where(Step.attempt > 1)))
+    first_of_serial = dict(session.execute(
+        select(Run.unit_serial, func.min(Run.id)).where(Run.unit_serial.is_not(None))
+        .group_by(Run.unit_serial)).all())
+    rows = session.execute(
+        select(Run.id, Station.name, Run.started_at, Run.finished_at, Run.status,
+               Run.unit_serial).join(Station, Run.station_id == Station.id)
+        .where(Run.started_at >= start, Run.started_at < end).order_by(Run.started_at)).all()
+    out = []
+    for run_id, station, started, finished, status, serial in rows:
+        s, f = utc(started), utc(finished)
+        out.append({
+            "id": run_id, "station": station, "started": s, "status": status,
+            "cycle_s": (f - s).total_seconds() if s and f else None,
+            "first_pass": run_id not in retried
+            and (serial is None or first_of_serial.get(serial) == run_id),
+        })
+    return out
+
+
+def _yields(runs: list[dict[str, Any]], group: str) -> list[dict[str, Any]]:
+    """Per station and period: runs, yield, first-pass yield, median cycle time; and the
+    station's whole period (``period`` "all")."""
+    groups: dict[tuple[str, str], Yield] = defaultdict(Yield)
+    spans: dict[str, tuple[dt.date | None, dt.date | None]] = {}
+    for r in runs:
+        label, first, last = period_of(r["started"], group)
+        spans[label] = (first, last)
+        for key in ((r["station"], label), (r["station"], "all")):
+            groups[key].add(r["status"], r["first_pass"], r["cycle_s"])
+    out = []
+    for (station, label), y in sorted(groups.items()):
+        since, until = spans.get(label, (None, None))
+        out.append({"station": station, "period": label,
+                    "since": since.isoformat() if since else None,
+                    "until": until.isoformat() if until else None, **y.as_dict()})
+    return out
+
+
+def _pareto(session: Session, runs: list[dict[str, Any]], start: dt.datetime,
+            end: dt.datetime) -> list[dict[str, Any]]:
+    """Failed runs by (failed step, limit), most frequent first; aborted runs by the step
+    they stopped in."""
+    ended = {r["id"]: r for r in runs if r["status"] in ("failed", "aborted")}
+    last_failed: dict[int, tuple[str | None, str | None]] = {}
+    for run_id, failed_step, failed_error in session.execute(
+            select(Step.run_id, Step.name, Step.error).join(Run, Step.run_id == Run.id)
+            .where(Run.started_at >= start, Run.started_at < end,
+                   Run.status.in_(("failed", "aborted")),
+                   Step.status.in_(("failed", "aborted")))
+            .order_by(Step.run_id, Step.id)).all():
+        last_failed[run_id] = (failed_step, failed_error)
+    reasons: list[str] = []
+    keys: dict[str, tuple[str, str, str]] = {}
+    for run_id, r in ended.items():
+        step_name, error = last_failed.get(run_id, (None, None))
+        step, limit = (failure_reason(step_name, error) if r["status"] == "failed"
+                       else (step_name or "run", "aborted"))
+        key = f"{step}: {limit}"
+        reasons.append(key)
+        keys[key] = (step, limit, r["status"])
+    return [{"reason": key, "step": keys[key][0], "limit": keys[key][1],
+             "status": keys[key][2], "count": n, "cumulative": share}
+            for key, n, share in pareto(reasons)]
+
+
+Series = dict[str, Any]
+"""One parameter of one station: ``run``, ``t`` (text for people) and ``value`` (display units),
+oldest first, as parallel lists, and ``limit``: the newest run's recipe limit on it."""
+
+
+def _series(session: Session, start: dt.datetime, end: dt.datetime
+            ) -> dict[tuple[str, str], Series]:
+    """Every charted value of the period by (station, parameter)."""
+    limits = _recipe_limits(session, start, end)
+    out: dict[tuple[str, str], Series] = {}
+
+    def add(params: tuple[str, ...], rows: Any) -> None:
+        for run_id, station, started, sha, *values in rows:
+            t = when(started)
+            lim = limits.get(sha, {})
+            for p, v in zip(params, values, strict=True):
+                if v is None:
+                    continue
+                series = out.get((station, p))
+                if series is None:
+                    series = out[(station, p)] = {"run": [], "t": [], "value": [],
+                                                  "limit": None}
+                series["run"].append(run_id)
+                series["t"].append(t)
+                series["value"].append(float(v) * SCALE[p])
+                series["limit"] = lim.get(p, series["limit"])
+
+    head = (Run.id, Station.name, Run.started_at, Run.recipe_sha256)
+    window = (Run.started_at >= start, Run.started_at < end)
+    add(CALIBRATION_PARAMS, session.execute(
+        select(*head, *(getattr(Calibration, p) for p in CALIBRATION_PARAMS))
+        .join(Station, Run.station_id == Station.id)
+        .join(Calibration, Calibration.run_id == Run.id)
+        .where(Calibration.accepted, *window).order_by(Run.started_at, Run.id)))
+    newest = (select(func.max(CubeCheckRecord.id)).group_by(CubeCheckRecord.run_id)
+              .scalar_subquery())
+    add(CUBE_PARAMS, session.execute(
+        select(*head, *(getattr(CubeCheckRecord, p) for p in CUBE_PARAMS))
+        .join(Station, Run.station_id == Station.id)
+        .join(CubeCheckRecord, CubeCheckRecord.run_id == Run.id)
+        .where(CubeCheckRecord.id.in_(newest), *window).order_by(Run.started_at, Run.id)))
+    return out
+
+
+def _recipe_limits(session: Session, start: dt.datetime, end: dt.datetime
+                   ) -> dict[str, dict[str, float]]:
+    """Each recipe's limits by its sha256 (display units): the drift limit of a calibration
+    parameter, the QA limit of a cube measure. A recipe that no longer parses has none."""
+    from calstation.recipes import parse_recipe
+
+    out: dict[str, dict[str, float]] = {}
+    for sha, text in session.execute(
+            select(Run.recipe_sha256, func.min(Run.recipe_text))
+            .where(Run.started_at >= start, Run.started_at < end)
+            .group_by(Run.recipe_sha256)).all():
+        try:
+            qa = parse_recipe(text, "recipe stored with the run").qa
+        except CalstationError:
+            continue
+        t, r = qa.drift_translation * 1e3, qa.drift_rotation_deg
+        out[sha] = {"tx": t, "ty": t, "tz": t, "ry": r, "rz": r,
+                    "edge_error": qa.edge_error * 1e3, "obb_error": qa.obb_edge_error * 1e3,
+                    "flatness_rms": qa.flatness_rms * 1e3,
+                    "perpendicularity_deg": qa.perpendicularity_deg, "twist_deg": qa.twist_deg}
+    return out
+
+
+def chart(series: Series | None, station: str, param: str) -> dict[str, Any]:
+    """A control chart of ``param`` on ``station``: centre line, ±3σ, the recipe's limit, and
+    each point with the Western Electric rules it breaks."""
+    base: dict[str, Any] = {"station": station, "param": param, "label": LABELS[param],
+                            "short": SHORT[param],
+                            "kind": "calibration" if param in CALIBRATION_PARAMS else "cube",
+                            "points": [], "limits": None, "flagged": 0}
+    if not series or not series["value"]:
+        return base
+    lim = control_limits(series["value"])
+    flags = western_electric(series["value"], lim)
+    base["limits"] = {"centre": lim.centre, "sigma": lim.sigma, "upper": lim.upper,
+                      "lower": lim.lower, "baseline": lim.baseline, "limit": series["limit"]}
+    base["points"] = [{"run": r, "t": t, "value": round(v, 6), "rules": f} for r, t, v, f in
+                      zip(series["run"], series["t"], series["value"], flags, strict=True)]
+    base["flagged"] = sum(1 for f in flags if f)
+    return base
+
+
+def _comparison(series: dict[tuple[str, str], Series], stations: list[str]
+                ) -> list[dict[str, Any]]:
+    """Station against station: for every parameter, each station's spread (quartiles, the
+    whiskers at 1.5 IQR) and its points out of control."""
+    import numpy as np
+
+    out = []
+    for p in CHART_PARAMS:
+        rows = []
+        for s in stations:
+            one = series.get((s, p))
+            if not one or not one["value"]:
+                continue
+            v = np.array(one["value"])
+            q1, med, q3 = (float(x) for x in np.percentile(v, [25, 50, 75]))
+            iqr = q3 - q1
+            lim = control_limits(one["value"])
+            rows.append({"station": s, "n": int(v.size), "q1": q1, "median": med, "q3": q3,
+                         "low": float(v[v >= q1 - 1.5 * iqr].min()),
+                         "high": float(v[v <= q3 + 1.5 * iqr].max()),
+                         "centre": lim.centre, "sigma": lim.sigma,
+                         "flagged": out_of_control(one["value"], lim)})
+        if rows:
+            out.append({"param": p, "label": LABELS[p], "short": SHORT[p], "stations": rows})
+    return out

@@ -1,0 +1,176 @@
+"""The QA dashboard's plotly figures (plain JSON) from :func:`.dashboard.dashboard`'s data.
+
+Every point and bar carries the link to its runs in ``customdata`` (a run's page, or the
+history filtered to the runs behind it); the page's script follows it on a click.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+from urllib.parse import urlencode
+
+COLOURS = ("#0969da", "#bc4c00", "#1a7f37", "#8250df", "#bf3989", "#57606a")
+FLAG = "#cf222e"
+
+
+def history_link(**filters: Any) -> str:
+    """The history page filtered by ``filters`` (empty ones left out)."""
+    return "/runs?" + urlencode({k: v for k, v in filters.items() if v not in (None, "")})
+
+
+def _layout(title: str, y: str, height: int = 320, **extra: Any) -> dict[str, Any]:
+    return {"title": {"text": title, "x": 0.01, "font": {"size": 15}}, "height": height,
+            "margin": {"l": 70, "r": 20, "t": 44, "b": 70},
+            "yaxis": {"title": {"text": y}, "automargin": True},
+            "xaxis": {"automargin": True}, "legend": {"orientation": "h", "y": -0.25},
+            "hovermode": "closest", **extra}
+
+
+def yield_figure(data: dict[str, Any]) -> dict[str, Any]:
+    """Yield and first-pass yield per station and period (click: that period's runs)."""
+    traces = []
+    by_station: dict[str, list[dict[str, Any]]] = {}
+    for row in data["yields"]:
+        if row["period"] != "all":
+            by_station.setdefault(row["station"], []).append(row)
+    for i, (station, rows) in enumerate(sorted(by_station.items())):
+        colour = COLOURS[i % len(COLOURS)]
+        links = [history_link(station=station, since=r["since"], until=r["until"])
+                 for r in rows]
+        for key, name, dash in (("yield", "yield", "solid"),
+                                ("first_pass_yield", "first-pass yield", "dot")):
+            traces.append({
+                "type": "scatter", "mode": "lines+markers", "name": f"{station} {name}",
+                "x": [r["period"] for r in rows],
+                "y": [None if r[key] is None else round(100 * r[key], 2) for r in rows],
+                "customdata": links, "line": {"color": colour, "dash": dash},
+                "hovertemplate": f"{station} {name} %{{x}}: %{{y:.1f}} %<extra></extra>"})
+    return {"data": traces, "layout": _layout(
+        "yield and first-pass yield by station", "% of finished runs", yaxis={
+            "title": {"text": "% of finished runs"}, "range": [0, 101]},
+        xaxis={"type": "category", "title": {"text": data["period"]["group"]}})}
+
+
+def cycle_figure(data: dict[str, Any]) -> dict[str, Any]:
+    """Median cycle time per station and period (click: that period's runs)."""
+    traces = []
+    by_station: dict[str, list[dict[str, Any]]] = {}
+    for row in data["yields"]:
+        if row["period"] != "all":
+            by_station.setdefault(row["station"], []).append(row)
+    for i, (station, rows) in enumerate(sorted(by_station.items())):
+        traces.append({
+            "type": "bar", "name": station, "x": [r["period"] for r in rows],
+            "y": [None if r["median_cycle_s"] is None else round(r["median_cycle_s"] / 60, 2)
+                  for r in rows],
+            "customdata": [history_link(station=station, since=r["since"], until=r["until"])
+                           for r in rows],
+            "marker": {"color": COLOURS[i % len(COLOURS)]},
+            "hovertemplate": f"{station} %{{x}}: median %{{y:.1f}} min<extra></extra>"})
+    return {"data": traces, "layout": _layout(
+        "median cycle time", "minutes", barmode="group",
+        xaxis={"type": "category", "title": {"text": data["period"]["group"]}})}
+
+
+def pareto_figure(data: dict[str, Any]) -> dict[str, Any]:
+    """Failures by failed step and limit, most frequent first, with the cumulative share
+    (click: the runs that failed so)."""
+    rows = data["pareto"]
+    period = data["period"]
+    links = [history_link(status=r["status"], failed_step=r["step"],
+                          reason="" if r["limit"] == "aborted" else r["limit"],
+                          since=period["since"], until=period["until"]) for r in rows]
+    labels = [f"{r['step']}<br>{r['limit']}" for r in rows]
+    return {"data": [
+        {"type": "bar", "name": "runs", "x": labels, "y": [r["count"] for r in rows],
+         "customdata": links, "marker": {"color": FLAG},
+         "hovertemplate": "%{x}<br>%{y} runs<extra></extra>"},
+        {"type": "scatter", "mode": "lines+markers", "name": "cumulative %", "x": labels,
+         "y": [round(100 * r["cumulative"], 1) for r in rows], "yaxis": "y2",
+         "customdata": links, "line": {"color": "#57606a"},
+         "hovertemplate": "cumulative %{y:.0f} %<extra></extra>"},
+    ], "layout": _layout(
+        "failures by failed step and limit (all stations)", "runs", height=380,
+        margin={"l": 70, "r": 60, "t": 44, "b": 90},
+        xaxis={"type": "category", "tickangle": 0, "automargin": True},
+        yaxis2={"overlaying": "y", "side": "right", "range": [0, 101],
+                "title": {"text": "cumulative %"}})}
+
+
+def control_figure(c: dict[str, Any]) -> dict[str, Any]:
+    """A control chart: the points (out-of-control ones in red, with their rules), the
+    centre line, ±3σ, and the recipe's limit (click a point: its run)."""
+    pts, lim = c["points"], c["limits"]
+    if not pts or lim is None:
+        return {"data": [], "layout": _layout(f"{c['label']} — no value", c["short"])}
+    xs = [p["t"] for p in pts]
+    bad = [p for p in pts if p["rules"]]
+    data: list[dict[str, Any]] = [
+        # a line through the points (markers for thousands of points would slow the page)
+        {"type": "scatter", "mode": "lines", "name": "accepted run",
+         "x": xs, "y": [p["value"] for p in pts], "customdata": [f"/runs/{p['run']}" for p in pts],
+         "line": {"color": "#0969da", "width": 1},
+         "hovertemplate": "run %{customdata}<br>%{x}: %{y:.4f}<extra></extra>"},
+        {"type": "scatter", "mode": "markers", "name": "out of control",
+         "x": [p["t"] for p in bad], "y": [p["value"] for p in bad],
+         "customdata": [f"/runs/{p['run']}" for p in bad],
+         "text": [", ".join(f"rule {r}" for r in p["rules"]) for p in bad],
+         "marker": {"size": 8, "color": FLAG, "symbol": "x"},
+         "hovertemplate": "run %{customdata}<br>%{x}: %{y:.4f}<br>%{text}<extra></extra>"},
+    ]
+    ends = [xs[0], xs[-1]]
+    lines: list[tuple[float, str | None, str, str]] = [
+             (lim["centre"], "centre line", "#1a7f37", "solid"),
+             (lim["upper"], "±3σ control limits", FLAG, "dash"),
+             (lim["lower"], None, FLAG, "dash")]
+    if lim["limit"] is not None:
+        name = "drift limit (centre ± the recipe's drift)" if c["kind"] == "calibration" \
+            else "the recipe's QA limit"
+        if c["kind"] == "calibration" or c["param"] == "twist_deg":
+            centre = lim["centre"] if c["kind"] == "calibration" else 0.0
+            lines += [(centre + lim["limit"], name, "#9a6700", "dot"),
+                      (centre - lim["limit"], None, "#9a6700", "dot")]
+        else:
+            lines.append((lim["limit"], name, "#9a6700", "dot"))
+    for y, line_name, colour, dash in lines:
+        data.append({"type": "scatter", "mode": "lines", "x": ends, "y": [y, y],
+                     "name": line_name or "", "showlegend": line_name is not None,
+                     "hoverinfo": "skip",
+                     "line": {"color": colour, "dash": dash, "width": 1.5}})
+    title = (f"{c['label']} on {c['station']}: {c['flagged']} of {len(pts)} out of control")
+    return {"data": data, "layout": _layout(title, c["short"], height=300,
+                                            xaxis={"type": "date", "automargin": True})}
+
+
+def comparison_figure(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Parameters on every station side by side, one panel each: quartiles, whiskers (click a
+    station's box: its runs). One figure, so the page draws it at once."""
+    data: list[dict[str, Any]] = []
+    layout = _layout("station against station", "", height=300,
+                     grid={"rows": 1, "columns": max(1, len(rows)), "pattern": "independent",
+                           "xgap": 0.25}, showlegend=False, annotations=[])
+    for i, row in enumerate(rows, start=1):
+        st = row["stations"]
+        suffix = "" if i == 1 else str(i)
+        data.append({
+            "type": "box", "name": row["label"], "x": [s["station"] for s in st],
+            "q1": [s["q1"] for s in st], "median": [s["median"] for s in st],
+            "q3": [s["q3"] for s in st], "lowerfence": [s["low"] for s in st],
+            "upperfence": [s["high"] for s in st],
+            "customdata": [history_link(station=s["station"]) for s in st],
+            "xaxis": f"x{suffix}", "yaxis": f"y{suffix}", "marker": {"color": "#0969da"}})
+        layout[f"xaxis{suffix}"] = {"type": "category", "automargin": True}
+        layout[f"yaxis{suffix}"] = {"automargin": True, "title": {"text": row["short"]}}
+    return {"data": data, "layout": layout}
+
+
+def figures(data: dict[str, Any]) -> dict[str, Any]:
+    """Every figure of the dashboard by the id of its element."""
+    out = {"yield": yield_figure(data), "cycle": cycle_figure(data),
+           "pareto": pareto_figure(data)}
+    for c in data["charts"]:
+        out[f"chart-{c['param']}"] = control_figure(c)
+    shown = [row for row in data["comparison"] if row["param"] in data["params"]]
+    if shown:
+        out["compare"] = comparison_figure(shown)
+    return out
