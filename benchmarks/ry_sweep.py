@@ -54,6 +54,8 @@ CONDITIONS = list(itertools.product((0.0005, 0.001, 0.002), (1000.0, 180.0), (Fa
                                     (0.0, 0.06)))
 """(range noise m, line rate lines/s, background, spin-target offset m)"""
 PARAMS = ("tx", "tz", "ry", "rz")
+SPIN_RPM = 20.0
+"""The spin scan's platter speed in recipes/sim-periodicity.yaml (the time a scan takes)."""
 TURNS = (1, 2, 4, 8)
 
 
@@ -273,6 +275,14 @@ def station_table(rows: list[dict[str, Any]]) -> None:
         print(f"  turns: mean {np.mean(turns) if turns else math.nan:.2f}, max "
               f"{max(turns) if turns else '—'}; wall time per run (simulation included): "
               f"mean {np.mean([r['wall_s'] for r in sel]):.0f} s")
+        scanned = [(r.get("turn_by_turn") or {}).get("whole_turns", r.get("turns")) for r in sel]
+        scanned = [t for t in scanned if t]
+        ready = [r["fit_s"] for r in sel if r.get("fit_s") is not None]
+        print(f"  spin scan on the station (whole turns at {SPIN_RPM:g} rpm): mean "
+              f"{np.mean(scanned) * 60 / SPIN_RPM if scanned else math.nan:.1f} s; fine "
+              f"calibration ready after the scan ended: median "
+              f"{np.median(ready) if ready else math.nan:.2f} s, max "
+              f"{max(ready) if ready else math.nan:.2f} s")
         cover = []
         for p in PARAMS:
             flags = [_covered(r["estimate"] | {"err": r["err"]}, p) for r in with_est]

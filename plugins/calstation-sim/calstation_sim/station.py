@@ -456,10 +456,12 @@ class SimulatedStation:
         rb = np.minimum(self._cast_D(ph, self._dirs_P[2], cols), self._bg_ranges[2][cols])
         u = rng.random(len(rows))
         w = rng.random(len(rows))
+        with np.errstate(invalid="ignore"):  # two misses: inf − inf, not a mixed pixel
+            gap = np.abs(ra - rb)
         mixed = (
             np.isfinite(ra)
             & np.isfinite(rb)
-            & (np.abs(ra - rb) > MIXED_PIXEL_GAP_M)
+            & (gap > MIXED_PIXEL_GAP_M)
             & (u < self.config.lidar.mixed_pixel_prob)
         )
         r[rows[mixed], cols[mixed]] = ra[mixed] + w[mixed] * (rb[mixed] - ra[mixed])
