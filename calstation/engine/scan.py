@@ -123,9 +123,13 @@ class Scan:
         phi = self.platter_angle(self.line_timestamp_ns)
         start = phi[0] if np.isfinite(phi[0]) else np.nanmin(phi)
         keep_lines = np.flatnonzero(np.abs(phi - start) <= turns * 2 * math.pi)
-        if keep_lines.size == self.n_lines:
+        return self.first_lines(int(keep_lines.max()) + 1 if keep_lines.size else 0)
+
+    def first_lines(self, lines: int) -> Self:
+        """The same scan cut after its first ``lines`` lines (itself when it has no more)."""
+        if lines >= self.n_lines:
             return self
-        last = int(keep_lines.max()) + 1 if keep_lines.size else 0
+        last = max(0, lines)
         end = int(self.line_bounds()[last])
         cut: dict[str, Any] = {"line_timestamp_ns": self.line_timestamp_ns[:last],
                "line_index": self.line_index[:end], "t_ns": self.t_ns[:end],

@@ -446,6 +446,11 @@ class SpinScanBuilder:
             self.encoder_latency_s,
         )
 
+    @property
+    def lines_ready(self) -> int:
+        """How many lines, from the first, :meth:`so_far` holds."""
+        return self._lines_with_angles
+
     def so_far(self) -> SpinScan | None:
         """The lines prepared so far whose platter angles are known, as a :class:`SpinScan`
         (None before any, or while encoder readings arrive out of order): a view of the growing

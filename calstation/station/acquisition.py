@@ -12,6 +12,7 @@ speed", "scanning"), ``fraction`` in [0, 1] for that phase.
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Iterable
 from contextlib import suppress
 from typing import Any, Protocol
@@ -211,6 +212,27 @@ def _wait_for_speed(
         clock.sleep(SPEED_POLL_S)
 
 
+class _CountAt:
+    """The encoder count at a line's time, interpolated between the readings around it (the
+    newest reading when none is later yet). Lines and readings come in time order; readings
+    older than the line are dropped as they are passed."""
+
+    def __init__(self, start: EncoderSample) -> None:
+        self._before = start
+        self._pending: deque[EncoderSample] = deque()
+
+    def __call__(self, samples: Iterable[EncoderSample], t_ns: int) -> float:
+        self._pending.extend(samples)
+        while self._pending and self._pending[0].timestamp_ns <= t_ns:
+            self._before = self._pending.popleft()
+        before = self._before
+        if not self._pending or before.timestamp_ns >= t_ns:
+            return float(before.count)
+        after = self._pending[0]
+        f = (t_ns - before.timestamp_ns) / (after.timestamp_ns - before.timestamp_ns)
+        return before.count + f * (after.count - before.count)
+
+
 def _scan_turns(
     lidar: Lidar,
     turntable: Turntable,
@@ -229,14 +251,21 @@ def _scan_turns(
     limit_ns = start.timestamp_ns + round((2.0 * most * 60.0 / abs(rpm) + 5.0) * 1e9)
     next_status = clock.now_ns()
     turns = 0.0
+    count_at = _CountAt(start)
+    first: float | None = None
     lidar.start()
     try:
         for line in lidar.lines():
             writer.write_line(line)
             samples = encoder.samples()
             writer.write_encoder(samples)
-            if samples:
-                turns = abs(samples[-1].count - start.count) / cpr
+            # the turns between the first line and this one, as the recording counts them
+            # (not from the reading before the lidar started, nor to the newest reading: a
+            # lidar that takes a while to start, or hands a line over after it was scanned,
+            # would leave the recording short of the turns asked)
+            count = count_at(samples, line.timestamp_ns)
+            first = count if first is None else first
+            turns = abs(count - first) / cpr
             now = clock.now_ns()
             if now >= next_status:
                 writer.write_turntable(turntable.status())

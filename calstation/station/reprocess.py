@@ -33,6 +33,7 @@ from calstation.errors import DatabaseError, RecordingError, RecordingUnavailabl
 from calstation.recipes import LoadedRecipe, parse_recipe
 from calstation.recordings.runfolder import second_pass
 from calstation.recordings.shared import StoredFile
+from calstation.station.turns import as_fitted, turns_fitted
 from calstation.storage.db import PARAMS, Calibration, Database, Run
 
 if TYPE_CHECKING:
@@ -177,6 +178,9 @@ class ReprocessJob:
     """kind → the whole turns the station fitted on, for a scan that went turn by turn and
     stopped on a fit within its budget (the recording holds the turns scanned while that fit
     was computed, which the station's result did not use); absent: every whole turn"""
+    lines: dict[str, int] = field(default_factory=dict)
+    """kind → the recording's first lines that fit saw, when its step stored them (the cut is
+    then exact; else at ``turns``)"""
 
 
 def plan_reprocessing(run: Run, strategy_name: str | None = None) -> ReprocessJob:
@@ -201,29 +205,34 @@ def plan_reprocessing(run: Run, strategy_name: str | None = None) -> ReprocessJo
         strategy=name, kind=kind,
         recordings={k: newest_recording(run, k) for k in (*required, *optional)},
         required=tuple(required), optional=optional,
-        turns=_turns_fitted(run) if name == rc.calibration.strategy else {},
+        **_fitted_cuts(run, name == rc.calibration.strategy),
     )
 
 
-def _turns_fitted(run: Run) -> dict[str, float]:
-    """kind → the turns of each scan that stopped on a fit within its budget (the step's
-    ``turn_by_turn`` summary: its fits end with the one that met it)."""
+def _fitted_cuts(run: Run, own: bool) -> dict[str, Any]:
+    """The job's ``turns`` and ``lines``: the station's own strategy re-processed sees what its
+    fits made while scanning saw."""
+    fitted = _turns_fitted(run) if own else {}
+    return {"turns": {k: float(t) for k, (t, _) in fitted.items()},
+            "lines": {k: n for k, (_, n) in fitted.items() if n is not None}}
+
+
+def _turns_fitted(run: Run) -> dict[str, tuple[int, int | None]]:
+    """kind → (turns, lines) of each scan that stopped on a fit within its budget
+    (:func:`~calstation.station.turns.turns_fitted` of the step's ``turn_by_turn`` summary)."""
     out = {}
     for step in run.steps:
-        summary = (step.result or {}).get("turn_by_turn") or {}
-        fits = summary.get("fits") or []
-        if summary.get("stopped") == "budget" and fits:
-            kind = {"spin_scan": "spin", "cube_scan": "cube"}.get(step.name)
-            if kind is not None:
-                out[kind] = float(fits[-1]["turns"])
+        fitted = turns_fitted((step.result or {}).get("turn_by_turn"))
+        kind = {"spin_scan": "spin", "cube_scan": "cube"}.get(step.name)
+        if fitted is not None and kind is not None:
+            out[kind] = fitted
     return out
 
 
-def _as_fitted(recording: Any, turns: float | None) -> Any:
-    """``recording`` cut to the ``turns`` the station fitted on (all of it when None)."""
-    if turns is None or turns >= recording.whole_turns():
-        return recording
-    return recording.first_turns(turns + 0.02)
+def _cut(job: ReprocessJob, kind: str) -> tuple[int, int | None] | None:
+    """What :func:`~calstation.station.turns.as_fitted` cuts ``kind``'s recording to."""
+    turns = job.turns.get(kind)
+    return None if turns is None else (int(turns), job.lines.get(kind))
 
 
 @dataclass(frozen=True)
@@ -305,7 +314,7 @@ def _recompute(
     say(f"reading {paths[job.kind]}")
     spin_all = read_recording(paths[job.kind])
     warnings += recording_disagreements(spin_all, loaded)
-    spin = _as_fitted(spin_all, job.turns.get(job.kind))
+    spin = as_fitted(spin_all, _cut(job, job.kind))
     if "static" not in paths:
         say("start from the platter's chord, then the fine-tuning")
         result, strategy_warnings, initial = fine_tune_targetless(strategy, spin, rc, progress)
@@ -322,7 +331,7 @@ def _recompute(
         say(f"combining ry with the cube scan {paths['cube']}")
         cube = read_recording(paths["cube"])
         warnings += recording_disagreements(cube, loaded)
-        cube = _as_fitted(cube, job.turns.get("cube"))
+        cube = as_fitted(cube, _cut(job, "cube"))
         result, check, joint_failure = fine_tune_with_cube(result, cube, rc)
     pass2 = paths.get(second_pass("spin"))
     if pass2 is not None:  # under the final H (it moves a little with ry)

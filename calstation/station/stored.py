@@ -91,6 +91,17 @@ def attempts(db: Database, run_id: int, step: str) -> int:
         )
 
 
+def passed_result(db: Database, run_id: int, step: str) -> dict[str, Any]:
+    """The stored result of run ``run_id``'s newest passed ``step`` ({} when none passed)."""
+    with db.session() as s:
+        result = s.scalars(
+            select(Step.result)
+            .where(Step.run_id == run_id, Step.name == step, Step.status == "passed")
+            .order_by(Step.id.desc())
+        ).first()
+    return dict(result or {})
+
+
 def passed_steps(db: Database, run_id: int) -> set[str]:
     """The steps of run ``run_id`` with a passed attempt."""
     with db.session() as s:

@@ -44,6 +44,8 @@ class TurnFit:
     predicted: PredictedError
     seconds: float
     """how long the fit took"""
+    lines: int | None = None
+    """the recording's first lines the fit saw (those prepared when its turn was complete)"""
 
 
 @dataclass(frozen=True)
@@ -106,13 +108,14 @@ class TurnByTurn:
             scan = self.builder.so_far()
             if scan is not None:
                 self._asked = whole
-                self._queued.append((whole, self._pool.submit(self._fit, scan, whole)))
+                lines = self.builder.lines_ready
+                self._queued.append((whole, self._pool.submit(self._fit, scan, whole, lines)))
         return True
 
-    def _fit(self, scan: SpinScan, turns: int) -> TurnFit:
+    def _fit(self, scan: SpinScan, turns: int, lines: int) -> TurnFit:
         t0 = time.perf_counter()
         result, predicted = self.fit(scan)
-        return TurnFit(turns, result, predicted, time.perf_counter() - t0)
+        return TurnFit(turns, result, predicted, time.perf_counter() - t0, lines)
 
     def _collect(self, wait: bool = False) -> None:
         """Take the finished fits, in the order of their turns, and tell the operator what
@@ -163,9 +166,35 @@ class TurnByTurn:
             "budget_m": self.budget_m,
             "max_revolutions": self.max_revolutions,
             "fits": [{"turns": f.turns, "predicted_error_m": f.predicted.max_m,
-                      "seconds": f.seconds} for f in self.fits],
+                      "seconds": f.seconds, "lines": f.lines} for f in self.fits],
             "failed_fits": list(self.failures),
         }
+
+
+def turns_fitted(summary: dict[str, Any] | None) -> tuple[int, int | None] | None:
+    """(the whole turns, the recording's first lines) of the fit a scan stopped on, from its
+    stored ``turn_by_turn`` :meth:`TurnByTurn.summary` (its fits end with the one that met the
+    budget; the lines are None in a summary stored without them); None when the scan did not
+    stop on the budget (every whole turn of its recording counts)."""
+    fits = (summary or {}).get("fits") or []
+    if (summary or {}).get("stopped") != "budget" or not fits:
+        return None
+    lines = fits[-1].get("lines")
+    return int(fits[-1]["turns"]), None if lines is None else int(lines)
+
+
+def as_fitted(recording: Any, fitted: tuple[int, int | None] | None) -> Any:
+    """``recording`` cut to what a fit made while scanning saw (:func:`turns_fitted`; all of it
+    when None): its first lines — else its first turns — whoever computes the result again (a
+    resumed run, a re-processing), so that it is the station's to the last digit."""
+    if fitted is None:
+        return recording
+    turns, lines = fitted
+    if lines is not None:
+        return recording.first_lines(lines)
+    if turns >= recording.whole_turns():
+        return recording
+    return recording.first_turns(turns + 0.02)
 
 
 def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnByTurn] | None:

@@ -21,7 +21,7 @@ from calstation.station.recording_io import record_scan, record_second_pass, spi
 from calstation.station.steps.fine_tune import with_stored_time_offset
 from calstation.station.steps.place import place
 from calstation.station.stored import as_result
-from calstation.station.turns import more_cube_turns
+from calstation.station.turns import as_fitted, more_cube_turns
 from calstation.storage.db import Calibration
 
 CUBE_SECOND_PASS = second_pass("cube")
@@ -55,7 +55,7 @@ class CubeScan:
         if turned is not None and turned.fit is not None:
             # the turns that met the budget: the result does not depend on how many more the
             # scan took while the fit was computed
-            recording = recording.first_turns(turned.fit.turns + 0.02)
+            recording = as_fitted(recording, (turned.fit.turns, turned.fit.lines))
         with ctx.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
             check, joint, ry_failure = _check_cube_joint(ctx, recording, fine, progress)

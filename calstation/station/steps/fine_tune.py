@@ -19,6 +19,8 @@ from calstation.station.accuracy import budget_failure, describe, with_predictio
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome, format_h, plain
 from calstation.station.steps.spin_scan import SECOND_PASS
+from calstation.station.stored import passed_result
+from calstation.station.turns import as_fitted, turns_fitted
 
 
 class FineTune:
@@ -104,12 +106,20 @@ def _fitted(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, float]:
 
 def _fit(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, Any]:
     """The strategy's result on the stored spin scan, with the time offset when there is a
-    second pass, and the recording; its warnings go to the operator."""
+    second pass, and the recording; its warnings go to the operator. A scan that stopped on a
+    fit within the budget, made by another process (a resumed run), is fitted again on the
+    turns that fit saw, as the uninterrupted run and a re-processing do."""
     from calstation.engine.frames import Extrinsics
     from calstation.plugins.cost_strategies import run_strategy
     from calstation.recordings.reader import read_recording
 
-    recording = read_recording(ctx.artifact_path("spin"))
+    whole = read_recording(ctx.artifact_path("spin"))
+    met = turns_fitted(passed_result(ctx.db, ctx.run_id, "spin_scan").get("turn_by_turn"))
+    recording = as_fitted(whole, met)
+    if met is not None:
+        ctx.ui.info(f"  the spin scan stopped on a fit within the budget after {met[0]} "
+                    f"turn{'s' if met[0] != 1 else ''}: fine-tuning what that fit saw of its "
+                    f"recording")
     with ctx.ui.progress(f"fine-tuning ({strategy.name})") as progress:
         if ctx.recipe.calibration.start == "platter":
             from calstation.plugins.cost_strategies import fine_tune_targetless
@@ -125,7 +135,7 @@ def _fit(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, Any]:
                 progress
             )
         if ctx.recipe.steps.spin_scan.second_pass_rpm is not None:
-            result = with_stored_time_offset(ctx, result, recording, progress, "")
+            result = with_stored_time_offset(ctx, result, whole, progress, "")
     for warning in warnings:
         ctx.ui.warn(warning)
     return result, recording
