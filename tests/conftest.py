@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -67,3 +67,16 @@ def fleet_sim(tmp_path_factory: pytest.TempPathFactory) -> Any:
     from calstation.testing.fleet import simulate_fleet
 
     return simulate_fleet(tmp_path_factory.mktemp("fleet"))
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    """Debian's chromium under Playwright, one per test module (a module that needs other
+    launch options defines its own)."""
+    playwright_api = pytest.importorskip("playwright.sync_api")
+    from webstation import CHROMIUM, CHROMIUM_ARGS
+
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 import yaml
 from test_station import StationTestPlugin, lean_recipe
-from webstation import CHROMIUM, CHROMIUM_ARGS, copy_recipe, run_status, served, steps_of
+from webstation import CHROMIUM, copy_recipe, run_status, served, steps_of
 
 from calstation import plugins
 from calstation.storage.db import Database, Run, open_database
@@ -39,14 +39,6 @@ pytestmark = [
     pytest.mark.skipif(not Path(CHROMIUM).exists(),
                        reason=f"{CHROMIUM} missing: run scripts/system-deps.sh"),
 ]
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
-    with playwright_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
 
 
 @pytest.fixture
