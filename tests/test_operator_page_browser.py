@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 from test_station import StationTestPlugin, lean_recipe
-from test_web_browser import browser, click_answer, db, place, station, wait_end  # noqa: F401  (fixtures, helpers)
+from test_web_browser import click_answer, db, place, station, wait_end  # noqa: F401  (fixtures, helpers)
 from webstation import CHROMIUM
 
 from calstation import plugins
@@ -40,7 +40,7 @@ def station_plugin() -> Iterator[StationTestPlugin]:
 
 
 @pytest.fixture
-def dialogs(browser: Any) -> Iterator[tuple[Any, list[str]]]:  # noqa: F811
+def dialogs(browser: Any) -> Iterator[tuple[Any, list[str]]]:
     """A page whose confirmation dialogs are refused while ``answers[0] == "dismiss"``, else
     accepted; the dialogs' messages are collected."""
     context = browser.new_context(viewport={"width": 1200, "height": 860})

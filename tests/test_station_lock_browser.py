@@ -16,7 +16,7 @@ from typing import Any
 
 import pytest
 from sqlalchemy import func, select
-from test_web_browser import browser, click_answer, db, page, place, start, station  # noqa: F401  (the fixtures)
+from test_web_browser import click_answer, db, page, place, start, station  # noqa: F401  (the fixtures)
 from webstation import CHROMIUM, copy_recipe, wait_until
 
 from calstation import plugins
