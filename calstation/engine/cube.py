@@ -37,6 +37,7 @@ from calstation.engine.twist import (  # the twist lived here; its names are sti
     face_range_noise as face_range_noise,
     face_twist,
     flatness_ry_sigma as flatness_ry_sigma,
+    ray_gain,
     twist_noise_bias as twist_noise_bias,
 )
 from calstation.errors import VerificationError
@@ -395,13 +396,9 @@ def _flatness_beyond_noise(
     calibration or the cube."""
     rms, gains = [], []
     for face in dims.faces.values():
-        p = cloud.p_L[cloud.idx[face.members]]
-        f = cloud.phi[cloud.idx[face.members]]
-        q = lidar_to_dynamic(p, f, H)
-        unit = p / np.linalg.norm(p, axis=1, keepdims=True)
-        a = (lidar_to_dynamic(p + unit, f, H) - q) @ face.normal
+        members = cloud.idx[face.members]
         rms.append(face.rms)
-        gains.append(float(np.sqrt(np.mean(a**2))))
+        gains.append(ray_gain(cloud.p_L[members], cloud.phi[members], H, face.normal))
     estimates = [r / g for r, g in zip(rms, gains, strict=True) if g > 0.1]
     if not estimates:
         return max(rms, default=math.nan), math.nan

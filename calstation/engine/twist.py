@@ -246,14 +246,21 @@ def face_range_noise(
     over the faces (a face seen at grazing incidence shows little of the noise)."""
     estimates = []
     for p, f in zip(faces_L, faces_phi, strict=True):
-        q = lidar_to_dynamic(p, f, H)
-        _, n, rms = fit_plane(q)
-        unit = p / np.linalg.norm(p, axis=1, keepdims=True)
-        a = (lidar_to_dynamic(p + unit, f, H) - q) @ n
-        gain = float(np.sqrt(np.mean(a**2)))
+        _, n, rms = fit_plane(lidar_to_dynamic(p, f, H))
+        gain = ray_gain(p, f, H, n)
         if gain > 0.1:
             estimates.append(rms / gain)
     return float(np.median(estimates)) if estimates else math.nan
+
+
+def ray_gain(p_L: FloatArray, phi: FloatArray, H: Extrinsics, normal: FloatArray) -> float:
+    """RMS over the returns ((N, 3) in L, (N,) φ) of the component along ``normal`` (in D) of
+    a unit step along each return's ray: how much of the range noise a plane with that normal
+    shows (1 facing the lidar, 0 at grazing incidence)."""
+    q = lidar_to_dynamic(p_L, phi, H)
+    unit = p_L / np.linalg.norm(p_L, axis=1, keepdims=True)
+    a = (lidar_to_dynamic(p_L + unit, phi, H) - q) @ normal
+    return float(np.sqrt(np.mean(a**2)))
 
 
 def twist_noise_bias(noise: float) -> float:
