@@ -71,10 +71,6 @@ def _reprocessed_equals_stored(db: Database, run_id: int, turns: int) -> None:
         assert again[name] == pytest.approx(value, abs=1e-9), (name, again, stored)
 
 
-# Out of the default run until its cause is fixed: on the emulated station a one-turn fit at
-# 30 rpm sometimes ends with ry 1.5° off (the cube's faces then disagree by 5σ and the run
-# fails), seen on a quiet machine too; the emulated lidar skipping scans is the suspect.
-@pytest.mark.slow
 def test_emulated_drivers_stop_the_spin_scan_on_its_first_fit_within_the_budget(
     tmp_path: Path,
 ) -> None:
