@@ -43,9 +43,9 @@ FSCALE_NOISE = 3.0
 noise itself is not down-weighted, only mixed pixels."""
 JACKKNIFE_GROUPS = 8
 """Groups of returns the twist's σ is found from (delete-one-group jackknife)."""
-JACKKNIFE_SECTOR_DEG = 0.5
-"""Platter angle a jackknife group takes whole: more than a line spans at the fastest platter
-(0.36° at 30 rpm and 2 ms a line), a few lines at slow ones."""
+LINE_JUMP = 10.0
+"""A jump in azimuth between returns next in platter angle, in median steps, that starts
+another scan line (a line's own returns step by one, or a few over dropouts)."""
 GRAZING_FACE = 0.2
 """Least |cosine| of a return's ray with its face its range error is divided by (and in the
 1/c² weights of the face's plane)."""
@@ -204,7 +204,7 @@ def _jackknife_sigma(
     (5–8×: each face's plane, re-fitted with H, correlates the blocks) measured it. It costs
     about 8 refits (0.5–1 s per cube check of an 8-turn scan).
     """
-    labels = _line_groups([f for _, f in faces])
+    labels = _line_groups(faces)
     estimates = []
     for g in range(JACKKNIFE_GROUPS):
         keep = [lab != g for lab in labels]
@@ -219,18 +219,27 @@ def _jackknife_sigma(
     return float(math.sqrt((k - 1) / k * np.sum((e - e.mean()) ** 2)))
 
 
-def _line_groups(faces_phi: list[FloatArray]) -> list[NDArray[np.int64]]:
-    """Each return's jackknife group: returns of one line (within one
-    :data:`JACKKNIFE_SECTOR_DEG` sector of platter angle, unwrapped: a turn's own) share it, the
-    sectors dealt to the groups at random. The errors of one line's returns are not
-    independent (its platter angle, its time): groups of single returns, at 200 lines a turn,
-    gave a σ 1.6× too small against the spread of the twist over repeated scans."""
-    sector = math.radians(JACKKNIFE_SECTOR_DEG)
-    bins = [np.floor(f / sector).astype(np.int64) for f in faces_phi]
-    every = np.unique(np.concatenate(bins))
+def _line_groups(faces: list[tuple[FloatArray, FloatArray]]) -> list[NDArray[np.int64]]:
+    """Each return's jackknife group: the returns of one scan line share it, the lines dealt to
+    the groups at random. One line's errors are not independent (its platter angle, its time):
+    groups of single returns, at 200 lines a turn, gave a σ 1.6× too small against the spread
+    of the twist over repeated scans. A face's returns in platter-angle order run along one
+    line's azimuths, then jump back to the next line's: a jump of more than
+    :data:`LINE_JUMP` azimuth steps starts a line."""
     rng = np.random.default_rng(1)
-    dealt = rng.integers(0, JACKKNIFE_GROUPS, every.size)
-    return [dealt[np.searchsorted(every, b)] for b in bins]
+    labels = []
+    for p, f in faces:
+        order = np.argsort(f, kind="stable")
+        az = np.arctan2(p[order, 0], p[order, 1])
+        jumps = np.abs(np.diff(az))
+        step = float(np.median(jumps)) if jumps.size else 0.0
+        line = np.concatenate([[0], np.cumsum(jumps > LINE_JUMP * step)]) if step > 0 else (
+            np.arange(f.shape[0]))
+        dealt = rng.integers(0, JACKKNIFE_GROUPS, int(line[-1]) + 1 if line.size else 0)
+        label = np.empty(f.shape[0], dtype=np.int64)
+        label[order] = dealt[line]
+        labels.append(label)
+    return labels
 
 
 def flatness_ry_sigma(
