@@ -73,6 +73,17 @@ def test_upright_box_of_a_rotated_cube() -> None:
     assert abs(extents[0] - 0.1) < 1e-3
     assert abs(abs(axes[1, 1]) - c) < 1e-3 or abs(abs(axes[1, 1]) - s) < 1e-3
     assert np.allclose(centre[1:], [0.2, -0.1], atol=3e-4)
+    # a few stray returns 11 mm beyond a side and above the top (mixed pixels at the edges):
+    # the faces stay where the returns are
+    for strays in (1, 5, 9):
+        extra = np.column_stack([np.full(strays, 0.05), np.full(strays, 0.061),
+                                 np.linspace(-0.03, 0.03, strays)])
+        top = np.column_stack([np.full(strays, 0.111), np.linspace(-0.03, 0.03, strays),
+                               np.zeros(strays)])
+        more = np.vstack([local, extra, top]) @ np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+        _, _, ext2 = upright_box(more + np.array([0.0, 0.2, -0.1]), strays=True)
+        assert np.allclose(np.sort(ext2[1:]), [0.1, 0.1], atol=3e-4), (strays, ext2)
+        assert abs(ext2[0] - 0.1) < 1e-3, (strays, ext2)
 
 
 def test_platter_level_from_height_and_radius_alone() -> None:

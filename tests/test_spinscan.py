@@ -66,3 +66,72 @@ def test_several_fine_tunings_of_one_recording_prepare_it_once(sim_run) -> None:
     assert from_recording(rec) is first
     # another reading of the file is prepared on its own
     assert from_recording(read_recording(sim_run()["spin"])) is not first
+
+
+def _interleaved(builder: SpinScanBuilder, samples: list[EncoderSample], lines: list,
+                 batches: int = 50, hold_back_every: int = 0) -> list[int]:
+    """Feed ``batches`` encoder batches interleaved with the lines; with ``hold_back_every``,
+    every so many batches hand their first reading over with the next batch, after newer ones
+    (as a driver's queue can). Returns :meth:`SpinScanBuilder.lines_ready` after each batch."""
+    step = max(1, len(samples) // batches)
+    per_batch = max(1, len(lines) // batches)
+    held: list[EncoderSample] = []
+    ready = []
+    for k in range(max(batches, len(samples) // step + 1)):
+        batch = samples[k * step : (k + 1) * step]
+        if hold_back_every and k % hold_back_every == 1 and len(batch) > 2:
+            batch, late = batch[1:], batch[:1]
+        else:
+            late = []
+        builder.write_encoder(batch + held)
+        held = late
+        for line in lines[k * per_batch : (k + 1) * per_batch]:
+            builder.write_line(line)
+        ready.append(builder.lines_ready)
+    builder.write_encoder(held)
+    return ready
+
+
+def test_readings_handed_over_late_are_put_in_their_place(sim_run) -> None:
+    rec = read_recording(sim_run()["spin"])
+    samples = [EncoderSample(int(t), int(c))
+               for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)]
+    lines = list(rec.lines())
+    builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
+                              rec.encoder_latency_s)
+    ready = _interleaved(builder, samples[: len(samples) // 2], lines[: len(lines) // 2],
+                         hold_back_every=3)
+    # the scan so far goes on growing through the late readings (it once stopped for good)
+    assert ready[-1] > ready[len(ready) // 2] > 0
+    half = builder.so_far()
+    assert half is not None and half.n_points > 10_000 and np.isfinite(half.phi).all()
+    first_phi = half.phi.copy()
+    _interleaved(builder, samples[len(samples) // 2 :], lines[len(lines) // 2 :],
+                 hold_back_every=3)
+    live = builder.finish()
+    read = from_recording(rec)
+    assert live.n_points == read.n_points
+    assert np.allclose(live.phi, read.phi, atol=1e-12)
+    assert np.allclose(live.p_L, read.p_L, atol=1e-12)
+    # a fit handed the first half keeps its arrays: the angles found again went to new ones
+    assert np.array_equal(half.phi, first_phi)
+
+
+def test_lines_that_begin_before_the_first_reading_do_not_hold_the_scan_back(sim_run) -> None:
+    rec = read_recording(sim_run()["spin"])
+    lines = list(rec.lines())
+    # the encoder's first reading lands inside the third line: the returns before it have no
+    # angle, and the lines after it are prepared as their readings arrive
+    start = int(lines[2].timestamp_ns) + 1
+    samples = [EncoderSample(int(t), int(c))
+               for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)
+               if t - rec.encoder_latency_s * 1e9 >= start]
+    builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
+                              rec.encoder_latency_s)
+    ready = _interleaved(builder, samples[: len(samples) // 2], lines[: len(lines) // 2])
+    assert ready[-1] > len(lines) // 4
+    so_far = builder.so_far()
+    assert so_far is not None and np.isfinite(so_far.phi).all()
+    # the returns of the first two lines have no angle: none of them is in the scan
+    first_two = int(np.sum(lines[0].valid)) + int(np.sum(lines[1].valid))
+    assert so_far.n_points < int(sum(np.sum(ln.valid) for ln in lines[:ready[-1]])) - first_two + 1

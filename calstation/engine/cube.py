@@ -335,7 +335,7 @@ def _face_dimensions(cloud: _CubeCloud, s: float, platter_radius: float) -> _Dim
     returns; an edge is the distance between opposite faces, the height the top face's above
     the platter beside the cube."""
     pts = cloud.pts
-    centre, axes, ext = upright_box(pts)
+    centre, axes, ext = upright_box(pts, strays=True)
     lo = axes.T @ centre - 0.5 * ext
     hi = axes.T @ centre + 0.5 * ext
     band = min(0.008, 0.1 * s)

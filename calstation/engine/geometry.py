@@ -78,14 +78,17 @@ def minimal_obb(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]
 
 
 def upright_box(
-    points: FloatArray, robust: bool = True
+    points: FloatArray, robust: bool = True, strays: bool = False
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The minimum-area box standing on the platter: one axis is X_D, the footprint is the
     minimum-area rectangle of the points projected on the platter plane (rotating calipers on
     the convex hull). Returns (centre (3,), axes (3, 3) as columns, extents (3,)), metres.
 
     An object resting on the platter has an upright box; unlike a free box it cannot tilt to
-    absorb a calibration error, so the cost stays sensitive to ry and smoother.
+    absorb a calibration error, so the cost stays sensitive to ry and smoother. ``robust``: the
+    faces where their returns are (:func:`_robust_faces`); ``strays`` too: a few stray returns
+    beyond a face do not stand for it (the cube check's dimensioning; the shape cost keeps the
+    extremes, its landscape is tuned on them).
     """
     from scipy.spatial import ConvexHull, QhullError
 
@@ -109,7 +112,7 @@ def upright_box(
     local = axes.T @ points.T  # (3, N): the coordinates along the box axes, row by row
     lo, hi = local.min(axis=1), local.max(axis=1)
     if robust:
-        lo, hi = _robust_faces(local, lo, hi)
+        lo, hi = _robust_faces(local, lo, hi, strays=strays)
     centre = axes @ (0.5 * (lo + hi))
     return centre, axes, hi - lo
 
@@ -135,31 +138,74 @@ def _hull_candidates(yz: FloatArray) -> FloatArray:
 
 
 def _robust_faces(
-    local: FloatArray, lo: FloatArray, hi: FloatArray, band: float = 0.008, keep_out: float = 0.01
+    local: FloatArray,
+    lo: FloatArray,
+    hi: FloatArray,
+    band: float = 0.008,
+    keep_out: float = 0.01,
+    strays: bool = False,
 ) -> tuple[FloatArray, FloatArray]:
     """Face positions as medians of the points near each face rather than the extremes;
     ``local`` (3, N) the points' coordinates along the box axes.
 
     The extremes of a noisy cloud lie ~3σ outside the true faces (the paper's OBB metric is
     biased for this reason). For each face, the points within ``band`` of the extreme and at
-    least ``keep_out`` from the other side faces give the median position. The bottom (x) face
-    is the segmentation cut and stays as it is.
+    least ``keep_out`` from the other side faces give the median position. With ``strays``, an
+    extreme with fewer than :data:`FACE_POINTS` points (or :data:`FACE_SHARE` of them) within
+    ``band`` is a few stray returns beyond the face: the outermost dense layer inside it stands
+    for it (:func:`_dense_extreme`).
+    The bottom (x) face is the segmentation cut and stays as it is.
     """
     lo, hi = lo.copy(), hi.copy()
-    below_top = local[0] < hi[0] - keep_out
+
+    def _face_extreme(v: FloatArray, side: int, extreme: float) -> float:
+        if not strays:
+            return extreme
+        near = np.count_nonzero(np.abs(v - extreme) < band)
+        if near >= max(FACE_POINTS, FACE_SHARE * v.size):
+            return extreme
+        return _dense_extreme(v, side, band, extreme)
+
+    below_top = local[0] < _face_extreme(local[0], 1, hi[0]) - keep_out
     for j in (1, 2):
         other = local[3 - j]
         inner = below_top & (other > lo[3 - j] + keep_out) & (other < hi[3 - j] - keep_out)
-        for side, ref in ((-1, lo[j]), (1, hi[j])):
-            sel = inner & (np.abs(local[j] - ref) < band)
-            if np.count_nonzero(sel) >= 10:
-                (lo if side < 0 else hi)[j] = float(np.median(local[j][sel]))
-    inner = local[0] > hi[0] - band
+        v = local[j][inner]
+        for side in (-1, 1):
+            ref = _face_extreme(v, side, lo[j] if side < 0 else hi[j])
+            near = v[np.abs(v - ref) < band]
+            if near.size >= FACE_POINTS:
+                (lo if side < 0 else hi)[j] = float(np.median(near))
+    inner = np.ones(local.shape[1], dtype=bool)
     for j in (1, 2):
         inner &= (local[j] > lo[j] + keep_out) & (local[j] < hi[j] - keep_out)
-    if np.count_nonzero(inner) >= 10:
-        hi[0] = float(np.median(local[0][inner]))
+    x = local[0][inner]
+    top = x[x > _face_extreme(x, 1, hi[0]) - band]
+    if top.size >= FACE_POINTS:
+        hi[0] = float(np.median(top))
     return lo, hi
+
+
+FACE_POINTS = 10
+"""The fewest points within the band of a face for it to be taken from them."""
+FACE_SHARE = 0.01
+"""The smallest share of the points the band of a face found inside stray returns holds (a
+tight cluster of a dozen strays is not a face)."""
+
+
+def _dense_extreme(values: FloatArray, side: int, band: float, default: float) -> float:
+    """The outermost of ``values`` on ``side`` (−1 the smallest, +1 the largest) with at least
+    :data:`FACE_POINTS` values, and :data:`FACE_SHARE` of them, within ``band`` inward of it;
+    ``default`` when none has."""
+    v = np.sort(values if side < 0 else -values)
+    least = max(FACE_POINTS, FACE_SHARE * v.size)
+    if v.size < least:
+        return default
+    dense = np.flatnonzero(np.searchsorted(v, v + band, side="right") - np.arange(v.size)
+                           >= least)
+    if dense.size == 0:
+        return default
+    return float(v[dense[0]] if side < 0 else -v[dense[0]])
 
 
 def signed_face_distances(

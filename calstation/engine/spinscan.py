@@ -9,6 +9,7 @@ ends (docs/performance.md).
 
 from __future__ import annotations
 
+import bisect
 import math
 import time
 from collections.abc import Iterable
@@ -366,7 +367,8 @@ class SpinScanBuilder:
         self._lines_with_angles = 0
         self._enc_t: list[int] = []
         self._enc_c: list[int] = []
-        self._enc_ordered = True
+        self._late = False
+        """a reading arrived after a newer one: the angles so far are to be found again"""
         self._enc_arrays: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
         self.during_s = 0.0
         """seconds of per-line work done while the scan ran"""
@@ -395,11 +397,17 @@ class SpinScanBuilder:
     def write_encoder(self, samples: Iterable[EncoderReading]) -> None:
         t0 = time.perf_counter()
         for sample in samples:
-            t = int(sample.timestamp_ns)
+            t, count = int(sample.timestamp_ns), int(sample.count)
             if self._enc_t and t < self._enc_t[-1]:
-                self._enc_ordered = False  # out of order: the angles wait for the sort
-            self._enc_t.append(t)
-            self._enc_c.append(int(sample.count))
+                # a reading that arrives after a newer one (a driver's queue handing one over
+                # late) goes in its place; the angles found so far are found again with it
+                i = bisect.bisect_right(self._enc_t, t)
+                self._enc_t.insert(i, t)
+                self._enc_c.insert(i, count)
+                self._late = True
+            else:
+                self._enc_t.append(t)
+                self._enc_c.append(count)
         self._angles_so_far()
         self.during_s += time.perf_counter() - t0
 
@@ -409,28 +417,46 @@ class SpinScanBuilder:
     def _angles_so_far(self) -> None:
         """Angles of the waiting lines that lie between the first and the last reading."""
         n_lines = len(self._line_ends)
-        if not self._enc_ordered or len(self._enc_t) < 2 or self._lines_with_angles == n_lines:
+        if len(self._enc_t) < 2:
             return
-        lo = self._enc_t[0] - self._latency_ns
+        if self._late:
+            self._angles_again()
+        if self._lines_with_angles == n_lines:
+            return
+        # a line waits until a reading follows its last return; returns before the first
+        # reading have no angle (NaN: dropped), as when the whole recording is prepared
         hi = self._enc_t[-1] - self._latency_ns
         t = self._t.data
         ready = self._lines_with_angles
         while ready < n_lines:
             first = self._line_ends[ready - 1] if ready else 0
             last = self._line_ends[ready]
-            if last > first and (int(t[first]) < lo or int(t[last - 1]) > hi):
+            if last > first and int(t[last - 1]) > hi:
                 break
             ready += 1
         if ready == self._lines_with_angles:
             return
+        end = self._line_ends[ready - 1]
+        self._phi.append(self._angle(t[self._phi.n : end], *self._encoder_arrays()))
+        self._lines_with_angles = ready
+
+    def _encoder_arrays(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         if self._enc_arrays is None or self._enc_arrays[0].size != len(self._enc_t):
             self._enc_arrays = (
                 np.asarray(self._enc_t, dtype=np.int64),
                 np.asarray(self._enc_c, dtype=np.int64),
             )
-        end = self._line_ends[ready - 1]
-        self._phi.append(self._angle(t[self._phi.n : end], *self._enc_arrays))
-        self._lines_with_angles = ready
+        return self._enc_arrays
+
+    def _angles_again(self) -> None:
+        """After a late reading: the angles of the lines that have them, from every reading
+        (into new rows: a fit under way keeps the view it was handed)."""
+        self._late = False
+        self._enc_arrays = None
+        phi = _Rows(np.float64, capacity=max(self._phi.data.shape[0], 1))
+        if self._phi.n:
+            phi.append(self._angle(self._t.data[: self._phi.n], *self._encoder_arrays()))
+        self._phi = phi
 
     def _angle(
         self, t: NDArray[np.int64], enc_t: NDArray[np.int64], enc_c: NDArray[np.int64]
@@ -453,12 +479,13 @@ class SpinScanBuilder:
 
     def so_far(self) -> SpinScan | None:
         """The lines prepared so far whose platter angles are known, as a :class:`SpinScan`
-        (None before any, or while encoder readings arrive out of order): a view of the growing
-        arrays, which later lines do not change, so the scan goes on while it is fine-tuned."""
+        (None before any): a view of the growing arrays, which later lines do not change, so
+        the scan goes on while it is fine-tuned (a reading handed over after a newer one puts
+        the angles in new arrays)."""
         if self._done is not None:
             return self._done
         lines = self._lines_with_angles
-        if lines == 0 or not self._enc_ordered:
+        if lines == 0:
             return None
         end = self._line_ends[lines - 1]
         phi = self._phi.view()[:end]
@@ -480,14 +507,11 @@ class SpinScanBuilder:
             raise RecordingError(
                 "the spin scan has no encoder readings: the platter angle is unknown"
             )
-        enc_t = np.asarray(self._enc_t, dtype=np.int64)
-        order = np.argsort(enc_t, kind="stable")
-        enc_t, enc_c = enc_t[order], np.asarray(self._enc_c, dtype=np.int64)[order]
-        if not self._enc_ordered:
-            self._phi.n = 0
+        if self._late:
+            self._angles_again()
         t = self._t.view()
         if self._phi.n < t.shape[0]:
-            self._phi.append(self._angle(t[self._phi.n :], enc_t, enc_c))
+            self._phi.append(self._angle(t[self._phi.n :], *self._encoder_arrays()))
         phi, p_L, rng, az = self._phi.view(), self._p.view(), self._rng.view(), self._az.view()
         b, c = self._bin.view(), self._cell.view()
         keep = np.isfinite(phi)
