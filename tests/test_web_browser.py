@@ -128,6 +128,9 @@ def test_a_full_simulated_run_by_clicking_with_a_reload(
         # the live lidar line is drawn during the spin scan
         page.wait_for_selector("#line-plot[data-drawn]:not([hidden])")
         assert re.search(r"spin scan", page.inner_text("#line-plot"))
+        # with the spin target's expected outline under the initial calibration
+        page.wait_for_selector('#line-plot[data-outline="expected"]')
+        assert "initial calibration" in page.inner_text("#line-plot")
         shot(page, "scan")
         place(page, "qa_cube")
         click_answer(page, "continue")

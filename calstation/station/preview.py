@@ -8,7 +8,8 @@
   the last event, a subsample such that a scan of its planned turns sends at most
   :data:`CLOUD_POINTS`.
 
-Both are published every :data:`PREVIEW_PERIOD_S` at most, and only to an operator that asks
+They are published every :data:`OUTLINE_PERIOD_S` and :data:`CLOUD_PERIOD_S` at most, right
+after a line (an operator may show that line with the outline), and only to an operator that asks
 for them (``previews = True``, the web station): a terminal or unattended run pays nothing.
 """
 
@@ -39,8 +40,11 @@ from calstation.station.operator import Operator, publish
 from calstation.station.stored import latest_calibration
 from calstation.storage.db import Calibration, Run
 
-PREVIEW_PERIOD_S = 0.5
-"""At most this often the outline and the new cloud points are published."""
+OUTLINE_PERIOD_S = 0.2
+"""At most this often the outline is published (as often as the web station shows a line)."""
+
+CLOUD_PERIOD_S = 0.5
+"""At most this often the new cloud points are published."""
 
 CLOUD_POINTS = 20_000
 """Most cloud points one scan sends."""
@@ -132,7 +136,7 @@ class ScanPreview:
         self.pieces = platter_pieces(platter.radius, platter.thickness) + (
             fixture if kind == "static" or builder is not None else [])
         self.revolutions = max(float(revolutions), 0.1)
-        self._last = -math.inf
+        self._last = self._last_cloud = -math.inf
         self._phi0: float | None = None
         self._read = 0
         self._sent = 0
@@ -142,7 +146,7 @@ class ScanPreview:
         """After each lidar line: publish when the period has passed (``final``: the scan
         ended, publish what is left)."""
         now = time.monotonic()
-        if now - self._last < PREVIEW_PERIOD_S and not final:
+        if now - self._last < OUTLINE_PERIOD_S and not final:
             return
         self._last = now
         scan = None if self.builder is None else self.builder.so_far()
@@ -152,7 +156,9 @@ class ScanPreview:
                 self._phi0 = float(scan.phi[0])  # where the fixture was placed
             turned = float(scan.phi[-1]) - self._phi0
         self._outline(turned)
-        if scan is not None and self.H is not None and self._read < scan.n_points:
+        if (scan is not None and self.H is not None and self._read < scan.n_points
+                and (final or now - self._last_cloud >= CLOUD_PERIOD_S)):
+            self._last_cloud = now
             self._cloud(scan.p_L[self._read:], scan.phi[self._read:])
             self._read = scan.n_points
 

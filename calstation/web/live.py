@@ -321,6 +321,9 @@ class WebOperator:
         self.recipe = recipe
         self._last_line = 0.0
         self._lines = 0
+        self._with_outline = False
+        """outlines arrive: a line is shown with each (else every LINE_PREVIEW_PERIOD_S)"""
+        self._line_due = False
 
     # --- the Operator protocol -------------------------------------------------------------
     def info(self, message: str) -> None:
@@ -400,6 +403,7 @@ class WebOperator:
                 st.progress = None
                 if d["step"] not in ("static_scan", "spin_scan", "cube_scan"):
                     st.line = st.outline = None
+            self._with_outline = False
             self.live.update(started)
             self.live.add_log("info", f"▶ {d['step']} (attempt {d['attempt']})")
         elif event.kind == "step_finished":
@@ -414,6 +418,9 @@ class WebOperator:
                     st.serial = (d.get("result") or {}).get("unit_serial") or None
             self.live.update(finished)
         elif event.kind == "outline":
+            # the next line is shown with it: the line and the outline at one platter angle
+            self._with_outline = True
+            self._line_due = True
             self.live.update(lambda st: setattr(st, "outline", _outline_mm(d)))
         elif event.kind == "cloud":
             self.live.update(lambda st: _add_cloud(st, d))
@@ -437,9 +444,11 @@ class WebOperator:
 
     def _preview(self, kind: str, line: Any) -> None:
         now = time.monotonic()
-        if now - self._last_line < LINE_PREVIEW_PERIOD_S:
+        if self._with_outline and not self._line_due and now - self._last_line < 1.0:
             return
-        self._last_line = now
+        if not self._with_outline and now - self._last_line < LINE_PREVIEW_PERIOD_S:
+            return
+        self._last_line, self._line_due = now, False
         self._lines += 1
         seq = self._lines
         valid = np.asarray(line.valid, dtype=bool)
