@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from webstation import CHROMIUM, served
+from webstation import CHROMIUM, served, shot as docs_shot
 
 from calstation.storage.db import Database, Run, open_database
 from calstation.web.app import create_app
@@ -26,9 +26,8 @@ playwright_api = pytest.importorskip("playwright.sync_api")
 pytest.importorskip("calstation_sim")
 
 REPO = Path(__file__).resolve().parents[1]
-DOCS = REPO / "docs" / "station"
-DOCS_SHOTS = os.environ.get("CALSTATION_DOCS_SCREENSHOTS") == "1"
 REPORT_MAX_BYTES = 1_500_000
+DOCS_SHOTS = os.environ.get("CALSTATION_DOCS_SCREENSHOTS") == "1"
 
 pytestmark = [
     pytest.mark.browser,
@@ -47,20 +46,9 @@ def page(browser: Any) -> Iterator[Any]:
 
 
 def shot(page: Any, name: str, full: bool = False) -> None:
-    """A picture for docs/station.md (only with CALSTATION_DOCS_SCREENSHOTS=1), reduced to a
-    palette so the repository stays small."""
-    if not DOCS_SHOTS:
-        return
-    from PIL import Image
-
-    DOCS.mkdir(parents=True, exist_ok=True)
-    path = DOCS / f"{name}.png"
-    page.screenshot(path=str(path), full_page=full)
-    with Image.open(path) as image:
-        small = image.convert("RGB").quantize(colors=64)
-        if small.width > 1250:
-            small = small.resize((1250, round(small.height * 1250 / small.width)))
-    small.save(path, optimize=True)
+    """A picture for docs/station.md: 64 colours, at most 1250 pixels wide (the QA pages are
+    wide)."""
+    docs_shot(page, name, full, colours=64, max_width=1250)
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 import yaml
 from test_station import StationTestPlugin, lean_recipe
-from webstation import CHROMIUM, copy_recipe, run_status, served, steps_of
+from webstation import CHROMIUM, copy_recipe, run_status, served, shot, steps_of
 
 from calstation import plugins
 from calstation.storage.db import Database, Run, open_database
@@ -31,8 +31,6 @@ from calstation_sim import plugin as sim_plugin  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FAILURES = Path(os.environ.get("CALSTATION_TEST_SCREENSHOTS", REPO / "out" / "browser-failures"))
-DOCS = REPO / "docs" / "station"
-DOCS_SHOTS = os.environ.get("CALSTATION_DOCS_SCREENSHOTS") == "1"
 
 pytestmark = [
     pytest.mark.browser,
@@ -60,21 +58,6 @@ def db(tmp_path: Path) -> Iterator[Database]:
     database = open_database(f"sqlite:///{tmp_path / 'web.db'}")
     yield database
     database.dispose()
-
-
-def shot(page: Any, name: str, full: bool = False) -> None:
-    """A picture for docs/station.md (only with CALSTATION_DOCS_SCREENSHOTS=1), reduced to a
-    palette so the repository stays small."""
-    if not DOCS_SHOTS:
-        return
-    from PIL import Image
-
-    DOCS.mkdir(parents=True, exist_ok=True)
-    path = DOCS / f"{name}.png"
-    page.screenshot(path=str(path), full_page=full)
-    with Image.open(path) as image:
-        small = image.convert("RGB").quantize(colors=96)
-    small.save(path, optimize=True)
 
 
 @contextmanager
@@ -145,6 +128,9 @@ def test_a_full_simulated_run_by_clicking_with_a_reload(
         # the live lidar line is drawn during the spin scan
         page.wait_for_selector("#line-plot[data-drawn]:not([hidden])")
         assert re.search(r"spin scan", page.inner_text("#line-plot"))
+        # with the spin target's expected outline under the initial calibration
+        page.wait_for_selector('#line-plot[data-outline="expected"]')
+        assert "initial calibration" in page.inner_text("#line-plot")
         shot(page, "scan")
         place(page, "qa_cube")
         click_answer(page, "continue")

@@ -3,6 +3,7 @@ thread (for the browser tests), and the plugin set-up shared with the station te
 
 from __future__ import annotations
 
+import os
 import socket
 import threading
 import time
@@ -14,6 +15,10 @@ from typing import Any
 import uvicorn
 
 from calstation.storage.db import Database, Run, Step
+
+REPO = Path(__file__).resolve().parents[1]
+DOCS_SHOTS = REPO / "docs" / "station"
+"""Where the pictures of docs/station.md go (written with ``CALSTATION_DOCS_SCREENSHOTS=1``)."""
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = [
@@ -80,3 +85,22 @@ def copy_recipe(src: Path, folder: Path, name: str | None = None) -> Path:
     dst = folder / (name or src.name)
     dst.write_text(src.read_text(encoding="utf-8"), encoding="utf-8")
     return dst
+
+
+def shot(page: Any, name: str, full: bool = False, *, colours: int = 96,
+         max_width: int | None = None) -> None:
+    """A picture for docs/station.md, ``docs/station/<name>.png`` (only with
+    ``CALSTATION_DOCS_SCREENSHOTS=1``), reduced to a palette of ``colours`` and, when wider,
+    scaled to ``max_width`` pixels so the repository stays small."""
+    if os.environ.get("CALSTATION_DOCS_SCREENSHOTS") != "1":
+        return
+    from PIL import Image
+
+    DOCS_SHOTS.mkdir(parents=True, exist_ok=True)
+    path = DOCS_SHOTS / f"{name}.png"
+    page.screenshot(path=str(path), full_page=full)
+    with Image.open(path) as image:
+        small = image.convert("RGB").quantize(colors=colours)
+        if max_width is not None and small.width > max_width:
+            small = small.resize((max_width, round(small.height * max_width / small.width)))
+    small.save(path, optimize=True)

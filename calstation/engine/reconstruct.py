@@ -52,3 +52,19 @@ def lidar_points_to_dynamic(
     out[:, 1] = c * y + s * z
     out[:, 2] = c * z - s * y
     return out
+
+
+def platter_cloud(
+    p_L: NDArray[np.float64], phi: NDArray[np.float64], H: Extrinsics, platter_radius: float,
+    height: float = 0.6, margin: float = 0.01,
+) -> NDArray[np.float64]:
+    """The returns (N, 3) in L at platter angles φ (N,) reconstructed in D under H, keeping
+    what stands on the platter and its top: within ``platter_radius`` of the axis (plus
+    ``margin``), from ``margin`` below the platter top to ``height`` above it (metres)."""
+    from calstation.engine.geometry import segment_above_platter
+
+    p_D = lidar_points_to_dynamic(p_L, phi, H)
+    keep = segment_above_platter(p_D, margin=-margin, radius=platter_radius + margin,
+                                 height=height)
+    out: NDArray[np.float64] = p_D[keep]
+    return out

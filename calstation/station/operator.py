@@ -102,7 +102,8 @@ STEP_HINTS: dict[str, str] = {
 }
 """What the operator can do about a failed step (shown beside its error)."""
 
-EVENT_KINDS: tuple[str, ...] = ("step_started", "step_finished", "lidar_line")
+EVENT_KINDS: tuple[str, ...] = (
+    "step_started", "step_finished", "lidar_line", "accuracy", "outline", "cloud")
 """What :class:`StationEvent` s a station publishes (prompts, progress and the final summary
 are the :class:`Operator` methods of the same names)."""
 
@@ -117,6 +118,13 @@ class StationEvent:
     - ``lidar_line``: ``kind`` (recording kind: static, spin, cube) and ``line`` (the
       :class:`~calstation.drivers.LidarLine` just written); published for every line, so a
       front end keeps only what it can show.
+    - ``outline`` (to an operator with ``previews = True``, twice a second at most):
+      ``scan``, ``fixture``, ``source`` (the calibration used, in words), ``known`` (False
+      when no calibration is known yet), ``platter_angle_deg`` (turned since the fixture was
+      placed) and ``lines``, closed polylines of [x_L, y_L] metres where the platter and the
+      fixture should appear in the scan plane (:mod:`calstation.station.preview`).
+    - ``cloud`` (likewise, spin and cube scans): ``scan``, ``source``, ``start`` (how many
+      points this scan sent before) and ``points``, the new points [x, y, z] in D (m).
     """
 
     kind: str
@@ -165,7 +173,8 @@ class Operator(Protocol):
         ...
 
     # Optional: ``def event(self, event: StationEvent) -> None`` receives every
-    # :class:`StationEvent` (see :func:`publish`).
+    # :class:`StationEvent` (see :func:`publish`); ``previews = True`` asks for the
+    # ``outline`` and ``cloud`` events too.
 
 
 class ConsoleOperator:

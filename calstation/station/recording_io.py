@@ -29,6 +29,7 @@ from calstation.station.context import RunContext
 from calstation.station.hardware import Drivers
 from calstation.station.operator import Operator, publish
 from calstation.station.outcome import plain
+from calstation.station.preview import ScanPreview, wants_previews
 from calstation.station.stored import latest_calibration
 from calstation.station.turns import TurnByTurn
 from calstation.storage.db import Artifact
@@ -109,8 +110,13 @@ def record_scan(
             else None
         )
         more = None if more_turns is None or builder is None else more_turns(builder)
+        preview = (ScanPreview(ctx, kind, builder,
+                               getattr(getattr(ctx.recipe.steps, step), "revolutions", 1.0))
+                   if wants_previews(ctx.ui) else None)
         try:
-            acquire(PublishingWriter(writer, ctx.ui, kind, builder), progress, more)
+            acquire(PublishingWriter(writer, ctx.ui, kind, builder, preview), progress, more)
+            if preview is not None:
+                preview.line(final=True)
         finally:
             turns = None if more is None else more.close(_whole_turns(builder))
     ctx.scans.partial = []
@@ -186,10 +192,13 @@ def scene_truth(context: DriverContext) -> dict[str, Any] | None:
 
 class PublishingWriter:
     """A recording writer that also publishes each lidar line to the operator (live preview)
-    and, for a spin scan, hands it to the fine-tuning's preparation (``builder``)."""
+    and, for a spin scan, hands it to the fine-tuning's preparation (``builder``); ``preview``
+    publishes the fixture's expected outline and the cloud so far."""
 
-    def __init__(self, inner: Any, ui: Operator, kind: str, builder: Any = None) -> None:
+    def __init__(self, inner: Any, ui: Operator, kind: str, builder: Any = None,
+                 preview: ScanPreview | None = None) -> None:
         self._inner, self._ui, self._kind, self._builder = inner, ui, kind, builder
+        self._preview = preview
 
     def write_line(self, line: Any) -> None:
         """Record ``line``, prepare it (spin scans) and publish it (``lidar_line``)."""
@@ -197,6 +206,8 @@ class PublishingWriter:
         if self._builder is not None:
             self._builder.write_line(line)
         publish(self._ui, "lidar_line", kind=self._kind, line=line)
+        if self._preview is not None:
+            self._preview.line()
 
     def write_encoder(self, samples: Any) -> None:
         """Record encoder ``samples`` and hand them to the preparation (spin scans)."""

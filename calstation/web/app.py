@@ -260,6 +260,15 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
         """The operator page's JSON twin: the live state of the current (or last) run."""
         return {**runner.live.snapshot(), "recipes": runner.recipes()}
 
+    @app.get("/cloud.json")
+    def cloud_json(
+        cloud: Annotated[int, Query(ge=0, le=MAX_ID, description="the cloud the page has")] = 0,
+        since: Annotated[int, Query(ge=0, le=10_000_000, description="points it has")] = 0,
+    ) -> dict[str, Any]:
+        """The scan's cloud so far under the current calibration (mm, frame D): the points
+        from the ``since``-th of cloud ``cloud`` on (all of them after a new scan began)."""
+        return runner.live.cloud_since(cloud, since)
+
     @app.get("/events", response_class=Response, responses={
         200: {"content": {"text/event-stream": {}},
               "description": "a `state` event with the snapshot whenever it changes"}})

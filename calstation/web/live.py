@@ -89,6 +89,29 @@ def zoom_window(x_mm: Any, y_mm: Any, platter_m: float) -> dict[str, list[float]
             "y": [float(ys.min() - pad), float(ys.max() + pad)]}
 
 
+def _outline_mm(d: dict[str, Any]) -> dict[str, Any]:
+    """An ``outline`` event as the live line plot draws it: each polyline as x and y lists in
+    mm."""
+    lines = [{"x": [round(1000.0 * p[0], 1) for p in line],
+              "y": [round(1000.0 * p[1], 1) for p in line]} for line in d["lines"]]
+    return {"scan": d["scan"], "fixture": d["fixture"], "source": d["source"],
+            "known": bool(d["known"]), "platter_angle_deg": round(d["platter_angle_deg"], 1),
+            "lines": lines}
+
+
+_cloud_ids = itertools.count(1)
+
+
+def _add_cloud(st: LiveState, d: dict[str, Any]) -> None:
+    """Append a ``cloud`` event's new points (a new scan's first starts a new cloud)."""
+    c = st.cloud
+    if c is None or d["start"] == 0 or c["scan"] != d["scan"] or len(c["x"]) != d["start"]:
+        c = st.cloud = {"id": next(_cloud_ids), "scan": d["scan"], "source": d["source"],
+                        "x": [], "y": [], "z": []}
+    for axis, key in enumerate(("x", "y", "z")):
+        c[key].extend(round(1000.0 * p[axis], 1) for p in d["points"])
+
+
 class LiveState:
     """What the operator page shows, kept by the server; thread-safe.
 
@@ -113,7 +136,11 @@ class LiveState:
         """when the run (or its resumption) started, seconds since the epoch"""
         self.finished_at: float | None = None
         self.outline: dict[str, Any] | None = None
-        """the fixture being scanned as the live line plot draws it (:func:`scan_outline`)"""
+        """where the platter and the fixture being scanned should appear in the live line plot
+        (the ``outline`` event, in mm)"""
+        self.cloud: dict[str, Any] | None = None
+        """the scan's cloud so far (the ``cloud`` events): ``id`` (one per scan), ``scan``,
+        ``source`` and the points' ``x``, ``y``, ``z`` lists (mm, frame D)"""
         self.status = "idle"
         self.step: str | None = None
         self.attempt = 0
@@ -237,6 +264,17 @@ class LiveState:
             return True
 
     # --- reading ---------------------------------------------------------------------------
+    def cloud_since(self, cloud_id: int, start: int) -> dict[str, Any]:
+        """The points of cloud ``cloud_id`` from the ``start``-th on (all of the current cloud
+        when ``cloud_id`` is not it: the page then starts again)."""
+        with self._cond:
+            c = self.cloud
+            if c is None:
+                return {"id": None, "start": 0, "x": [], "y": [], "z": []}
+            first = max(0, start) if c["id"] == cloud_id else 0
+            return {"id": c["id"], "scan": c["scan"], "source": c["source"], "start": first,
+                    "x": c["x"][first:], "y": c["y"][first:], "z": c["z"][first:]}
+
     def snapshot(self) -> dict[str, Any]:
         """The state as JSON-ready data (the operator page's JSON twin)."""
         with self._cond:
@@ -259,6 +297,10 @@ class LiveState:
                 "prompt": None if self.prompt is None else dict(self.prompt),
                 "line": self.line,
                 "outline": self.outline,
+                # the points are fetched apart, only the new ones (cloud_since)
+                "cloud": None if self.cloud is None else {
+                    k: self.cloud[k] for k in ("id", "scan", "source")
+                } | {"count": len(self.cloud["x"])},
                 "accuracy": [dict(a) for a in self.accuracy],
                 "log": list(self.log),
                 "result": self.result,
@@ -271,12 +313,17 @@ class WebOperator:
     """The station's operator for the web pages (see the module docstring)."""
 
     unattended = False
+    previews = True
+    """the station publishes the fixture's expected outline and the scan's cloud"""
 
     def __init__(self, live: LiveState, recipe: Any) -> None:
         self.live = live
         self.recipe = recipe
         self._last_line = 0.0
         self._lines = 0
+        self._with_outline = False
+        """outlines arrive: a line is shown with each (else every LINE_PREVIEW_PERIOD_S)"""
+        self._line_due = False
 
     # --- the Operator protocol -------------------------------------------------------------
     def info(self, message: str) -> None:
@@ -355,7 +402,8 @@ class WebOperator:
                                            started_at=time.time(), seconds=None)
                 st.progress = None
                 if d["step"] not in ("static_scan", "spin_scan", "cube_scan"):
-                    st.line = None
+                    st.line = st.outline = None
+            self._with_outline = False
             self.live.update(started)
             self.live.add_log("info", f"▶ {d['step']} (attempt {d['attempt']})")
         elif event.kind == "step_finished":
@@ -365,7 +413,17 @@ class WebOperator:
                             seconds=None if step["started_at"] is None
                             else time.time() - step["started_at"])
                 st.progress = None
+                if d["step"] == "preflight" and not st.serial:
+                    # the lidar's serial, when the operator gave none
+                    st.serial = (d.get("result") or {}).get("unit_serial") or None
             self.live.update(finished)
+        elif event.kind == "outline":
+            # the next line is shown with it: the line and the outline at one platter angle
+            self._with_outline = True
+            self._line_due = True
+            self.live.update(lambda st: setattr(st, "outline", _outline_mm(d)))
+        elif event.kind == "cloud":
+            self.live.update(lambda st: _add_cloud(st, d))
         elif event.kind == "lidar_line":
             self._preview(d["kind"], d["line"])
         elif event.kind == "accuracy":
@@ -386,9 +444,11 @@ class WebOperator:
 
     def _preview(self, kind: str, line: Any) -> None:
         now = time.monotonic()
-        if now - self._last_line < LINE_PREVIEW_PERIOD_S:
+        if self._with_outline and not self._line_due and now - self._last_line < 1.0:
             return
-        self._last_line = now
+        if not self._with_outline and now - self._last_line < LINE_PREVIEW_PERIOD_S:
+            return
+        self._last_line, self._line_due = now, False
         self._lines += 1
         seq = self._lines
         valid = np.asarray(line.valid, dtype=bool)

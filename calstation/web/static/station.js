@@ -51,6 +51,9 @@
     plot.hidden = true;
     plot.removeAttribute("data-seq");
     plot.removeAttribute("data-drawn");
+    plot.removeAttribute("data-key");
+    resetCloud(null);
+    $("cloud-plot").hidden = true;
     var list = $("steps");
     list.innerHTML = "";
     s.steps.forEach(function (st) {
@@ -122,7 +125,8 @@
       $("progress-text").textContent = p.title + (p.phase ? ": " + p.phase : "") + " — " + Math.round(p.fraction * 100) + " %";
       $("progress-bar").value = p.fraction;
     }
-    renderLine(s.line, s.busy);
+    renderLine(s.line, s.outline, s.busy);
+    renderCloud(s.busy ? s.cloud : null);
     renderAccuracy(s.accuracy || [], s.busy);
     if (previous.busy && !s.busy) {
       // the run ended: the end screen (values beside their limits) is rendered by the server
@@ -164,25 +168,104 @@
     });
   }
 
-  function renderLine(line, busy) {
+  function renderLine(line, outline, busy) {
     var el = $("line-plot");
     if (!line || !busy || !window.Plotly) { el.hidden = !line || !busy; return; }
     el.hidden = false;
-    if (el.getAttribute("data-seq") === String(line.seq)) { return; }
+    var key = String(line.seq) + "/" + (outline ? outline.source + "/" + outline.platter_angle_deg + "/" + outline.lines.length : "");
+    if (el.getAttribute("data-key") === key) { return; }
+    el.setAttribute("data-key", key);
     el.setAttribute("data-seq", String(line.seq));
     // SVG, not WebGL: plotly's WebGL traces compile code at run time, which the page's
     // Content-Security-Policy does not allow (no eval)
     var data = [{x: line.x_mm, y: line.y_mm, mode: "markers", type: "scatter",
                  marker: {size: 3, color: "#0969da"}, name: "returns"}];
-    var layout = {title: {text: "live lidar line (" + line.kind + " scan, " + line.points + " returns)"},
-                  height: 320, margin: {l: 50, r: 10, t: 40, b: 40},
-                  // zoomed on the returns that matter (the platter and its fixture, not the room)
-                  xaxis: {title: {text: "x_L (mm)"}, range: line.window ? line.window.x : undefined},
+    var title = "live lidar line (" + line.kind + " scan, " + line.points + " returns)";
+    var notes = [];
+    if (outline && outline.known) {
+      // where the platter and the fixture should appear under the calibration known so far
+      var ox = [], oy = [];
+      outline.lines.forEach(function (l) { ox = ox.concat(l.x, [null]); oy = oy.concat(l.y, [null]); });
+      data.push({x: ox, y: oy, mode: "lines", type: "scatter", name: "expected outline",
+                 line: {color: "#e36209", width: 2, dash: "dot"}, hoverinfo: "skip"});
+      title += "<br><span style='font-size:12px'>dotted: the " + outline.fixture.replace(/_/g, " ") +
+        " and the platter as expected under " + outline.source + "</span>";
+    } else if (outline) {
+      notes.push({text: "no expected outline: " + outline.source, xref: "paper", yref: "paper",
+                  x: 0.5, y: 0.98, showarrow: false, font: {color: "#9a6700"}});
+    }
+    // zoomed on what matters: the platter and its fixture where they are expected, else the
+    // nearest returns (not the room)
+    var win = line.window;
+    if (outline && outline.known && outline.lines.length) {
+      var xs = [], ys = [];
+      outline.lines.forEach(function (l) { xs = xs.concat(l.x); ys = ys.concat(l.y); });
+      var pad = 120;
+      win = {x: [Math.min.apply(null, xs) - pad, Math.max.apply(null, xs) + pad],
+             y: [Math.min.apply(null, ys) - pad, Math.max.apply(null, ys) + pad]};
+    }
+    var layout = {title: {text: title, font: {size: 15}},
+                  height: 340, margin: {l: 50, r: 10, t: 55, b: 40},
+                  xaxis: {title: {text: "x_L (mm)"}, range: win ? win.x : undefined},
                   yaxis: {title: {text: "y_L (mm, boresight)"}, scaleanchor: "x",
-                          range: line.window ? line.window.y : undefined},
-                  showlegend: false};
+                          range: win ? win.y : undefined},
+                  annotations: notes, showlegend: false};
     Plotly.react(el, data, layout, {displaylogo: false, responsive: true, staticPlot: false});
     el.setAttribute("data-drawn", "1");
+    el.setAttribute("data-outline", outline ? (outline.known ? "expected" : "unknown") : "none");
+  }
+
+  // the scan's cloud under the calibration known so far, growing as the platter turns: only
+  // the new points are fetched
+  var cloud = {id: null, n: 0, fetching: false};
+  function renderCloud(meta) {
+    var el = $("cloud-plot");
+    if (!meta || !window.Plotly) { el.hidden = !meta; return; }
+    el.hidden = false;
+    if (meta.id !== cloud.id) { resetCloud(meta.id); }
+    if (meta.count > cloud.n) { fetchCloud(); }
+  }
+
+  function resetCloud(id) {
+    var el = $("cloud-plot");
+    if (window.Plotly) { Plotly.purge(el); }
+    el.innerHTML = "";
+    el.removeAttribute("data-points");
+    cloud = {id: id, n: 0, fetching: cloud.fetching};
+  }
+
+  function fetchCloud() {
+    if (cloud.fetching) { return; }
+    cloud.fetching = true;
+    fetch("/cloud.json?cloud=" + (cloud.id || 0) + "&since=" + cloud.n, {credentials: "same-origin"})
+      .then(function (r) { return r.json(); })
+      .then(function (c) {
+        if (c.id === null) { return; }
+        if (c.id !== cloud.id) { resetCloud(c.id); }
+        if (c.start !== cloud.n || c.x.length === 0) { return; }
+        var el = $("cloud-plot");
+        // plotly's z is up: (y_D, z_D, x_D) so that the platter lies flat, as in the report
+        if (cloud.n === 0) {
+          Plotly.newPlot(el, [{type: "scatter3d", mode: "markers", x: c.y, y: c.z, z: c.x,
+                               marker: {size: 1.5, color: c.x, colorscale: "Viridis"}, name: "cloud"}],
+            {title: {text: c.scan + " scan reconstructed under " + c.source, font: {size: 15}},
+             height: 400, margin: {l: 0, r: 0, t: 40, b: 0}, showlegend: false,
+             scene: {aspectmode: "data", camera: {eye: {x: 1.3, y: 1.3, z: 1.0}}, xaxis: {title: {text: "y_D (mm)"}},
+                     yaxis: {title: {text: "z_D (mm)"}}, zaxis: {title: {text: "x_D (mm, up)"}}}},
+            {displaylogo: false, responsive: true});
+        } else {
+          Plotly.extendTraces(el, {x: [c.y], y: [c.z], z: [c.x], "marker.color": [c.x]}, [0]);
+        }
+        cloud.n += c.x.length;
+        el.setAttribute("data-points", String(cloud.n));
+      })
+      .catch(function () { /* the next state retries */ })
+      .finally(function () {
+        cloud.fetching = false;
+        if (state.cloud && state.cloud.id === cloud.id && state.cloud.count > cloud.n) {
+          window.setTimeout(fetchCloud, 200);
+        }
+      });
   }
 
   $("start-form").addEventListener("submit", function (ev) {
@@ -240,5 +323,8 @@
       showError("Your session ended: log in again to follow the run.");
     });
   }
-  window.addEventListener("load", function () { if (state.line) { renderLine(state.line, state.busy); } });
+  window.addEventListener("load", function () {
+    if (state.line) { renderLine(state.line, state.outline, state.busy); }
+    if (state.busy && state.cloud) { renderCloud(state.cloud); }
+  });
 })();

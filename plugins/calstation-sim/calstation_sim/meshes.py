@@ -16,6 +16,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
+from calstation.engine import outline
 from calstation.errors import SimulationError
 from calstation.recipes import (
     CubeGeometry,
@@ -190,23 +191,15 @@ def frustum_polygon(geom: FrustumGeometry) -> FloatArray:
 
 
 def frustum_top_scale(geom: FrustumGeometry, poly: FloatArray) -> float:
-    """Scale of the top face about the centroid so the facets slope ≈ ``slope_deg``.
-
-    Uses the median distance of the edge lines from the centroid: a facet whose edge is at
-    distance d from the centroid is inset by d·(1 − scale) over ``height``.
-    """
-    c = polygon_centroid(poly)
-    q = np.roll(poly, -1, axis=0)
-    edge = q - poly
-    normal = np.column_stack([edge[:, 1], -edge[:, 0]]) / np.linalg.norm(edge, axis=1)[:, None]
-    dist = np.abs(((poly - c) * normal).sum(axis=1))
-    inset = geom.height / math.tan(math.radians(geom.slope_deg))
-    scale = 1.0 - inset / float(np.median(dist))
+    """Scale of the top face about the centroid so the facets slope ≈ ``slope_deg``
+    (:func:`calstation.engine.outline.frustum_top_scale`, which the live outline uses too)."""
+    scale = outline.frustum_top_scale(poly, geom.height, geom.slope_deg)
     if scale <= 0.02:
+        inset = geom.height / math.tan(math.radians(geom.slope_deg))
         raise SimulationError(
             f"fixtures.spin_target: height {geom.height} m at slope {geom.slope_deg}° needs an "
-            f"inset of {inset:.3f} m, more than the polygon allows (median edge distance "
-            f"{np.median(dist):.3f} m); lower the height or raise slope_deg"
+            f"inset of {inset:.3f} m, more than the polygon allows (scale of its top "
+            f"{scale:.3f}); lower the height or raise slope_deg"
         )
     return scale
 
