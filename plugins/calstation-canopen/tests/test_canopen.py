@@ -101,6 +101,16 @@ def test_tpdo_frame_is_decoded(
     assert turntable.position_rad() == pytest.approx(2 * math.pi * 509 / 10_000)
 
 
+def _at_speed(platter: RampPlatter, clock: HostClock, rpm: float, timeout_s: float = 5.0) -> None:
+    """Wait until the emulated platter turns at ``rpm`` (its ramp is 0.25 s at 30 rpm; a busy
+    host can take longer to deliver the command)."""
+    deadline = time.monotonic() + timeout_s
+    while platter.platter_speed_rpm(clock.now_ns()) != pytest.approx(rpm):
+        assert time.monotonic() < deadline, platter.platter_speed_rpm(clock.now_ns())
+        time.sleep(0.02)
+    time.sleep(0.05)  # a few SYNC periods at speed: the drive's TPDOs report it
+
+
 def test_enable_sequence_then_spin_turns_the_platter(
     drive: DriveEmulator, turntable: Cia402Turntable, platter: RampPlatter,
     sniffer: can.BusABC, clock: HostClock,
@@ -113,8 +123,7 @@ def test_enable_sequence_then_spin_turns_the_platter(
     assert controlwords == [0x06, 0x07, 0x0F]
     assert turntable.status().state is TurntableState.ENABLED
     turntable.spin(30.0)
-    time.sleep(0.3)
-    assert platter.platter_speed_rpm(clock.now_ns()) == pytest.approx(30.0)
+    _at_speed(platter, clock, 30.0)
     status = turntable.status()
     assert status.state is TurntableState.MOVING
     assert status.speed_rpm == pytest.approx(30.0)
@@ -136,11 +145,10 @@ def test_a_second_pass_turns_the_other_way(
     speed turns the platter backwards, and the drive reports the signed speed."""
     turntable.enable()
     turntable.spin(20.0)
-    time.sleep(0.3)
-    assert platter.platter_speed_rpm(clock.now_ns()) == pytest.approx(20.0)
+    _at_speed(platter, clock, 20.0)
     turntable.stop()
     turntable.spin(-20.0)
-    time.sleep(0.3)
+    _at_speed(platter, clock, -20.0)
     before = turntable.status()
     time.sleep(0.2)
     after = turntable.status()
