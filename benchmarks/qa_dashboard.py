@@ -149,7 +149,8 @@ def main() -> int:
         load = statistics.median(bt) if bt else statistics.median(st)
         if bt:
             print(f"dashboard in chromium, request to every figure drawn: median "
-                  f"{statistics.median(bt):.3f} s (max {max(bt):.3f} s)")
+                  f"{statistics.median(bt):.3f} s (max {max(bt):.3f} s; each: "
+                  f"{', '.join(f'{b:.2f}' for b in bt)} s)")
         else:
             print("chromium or Playwright missing: the browser's load is not measured")
         drift_ok = flagged_report(base, stations, history, drift)
