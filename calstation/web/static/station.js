@@ -181,6 +181,7 @@
     var data = [{x: line.x_mm, y: line.y_mm, mode: "markers", type: "scatter",
                  marker: {size: 3, color: "#0969da"}, name: "returns"}];
     var title = "live lidar line (" + line.kind + " scan, " + line.points + " returns)";
+    var subtitle = "";
     var notes = [];
     if (outline && outline.known) {
       // where the platter and the fixture should appear under the calibration known so far
@@ -188,8 +189,10 @@
       outline.lines.forEach(function (l) { ox = ox.concat(l.x, [null]); oy = oy.concat(l.y, [null]); });
       data.push({x: ox, y: oy, mode: "lines", type: "scatter", name: "expected outline",
                  line: {color: "#e36209", width: 2, dash: "dot"}, hoverinfo: "skip"});
-      title += "<br><span style='font-size:12px'>dotted: the " + outline.fixture.replace(/_/g, " ") +
-        " and the platter as expected under " + outline.source + "</span>";
+      // a subtitle, not a styled span in the title: plotly would set that span's style
+      // attribute, which the page's policy refuses
+      subtitle = "dotted: the " + outline.fixture.replace(/_/g, " ") +
+        " and the platter as expected under " + outline.source;
     } else if (outline) {
       notes.push({text: "no expected outline: " + outline.source, xref: "paper", yref: "paper",
                   x: 0.5, y: 0.98, showarrow: false, font: {color: "#9a6700"}});
@@ -204,7 +207,8 @@
       win = {x: [Math.min.apply(null, xs) - pad, Math.max.apply(null, xs) + pad],
              y: [Math.min.apply(null, ys) - pad, Math.max.apply(null, ys) + pad]};
     }
-    var layout = {title: {text: title, font: {size: 15}},
+    var layout = {title: {text: title, font: {size: 15},
+                          subtitle: {text: subtitle, font: {size: 12}}},
                   height: 340, margin: {l: 50, r: 10, t: 55, b: 40},
                   xaxis: {title: {text: "x_L (mm)"}, range: win ? win.x : undefined},
                   yaxis: {title: {text: "y_L (mm, boresight)"}, scaleanchor: "x",
