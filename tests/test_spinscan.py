@@ -135,3 +135,35 @@ def test_lines_that_begin_before_the_first_reading_do_not_hold_the_scan_back(sim
     # the returns of the first two lines have no angle: none of them is in the scan
     first_two = int(np.sum(lines[0].valid)) + int(np.sum(lines[1].valid))
     assert so_far.n_points < int(sum(np.sum(ln.valid) for ln in lines[:ready[-1]])) - first_two + 1
+
+
+def test_lines_wait_for_the_platter_to_move_before_their_angles_are_found(sim_run) -> None:
+    """The first readings of a slow platter can hold one count: an angle found from them alone
+    would be that count's for every time, even outside their span, where the whole recording
+    gives none (the returns before the first reading) — the scan prepared as it arrives must
+    equal the one prepared with every reading."""
+    rec = read_recording(sim_run()["spin"])
+    lines = list(rec.lines())
+    start = int(lines[2].timestamp_ns) + 1
+    samples = [EncoderSample(int(t), int(c))
+               for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)
+               if t - rec.encoder_latency_s * 1e9 >= start]
+    # the first three readings hold the first one's count (the platter had not moved a count)
+    samples[1:3] = [EncoderSample(s.timestamp_ns, samples[0].count) for s in samples[1:3]]
+
+    def builder() -> SpinScanBuilder:
+        return SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
+                               rec.encoder_latency_s)
+
+    live = builder()
+    live.write_encoder(samples[:3])
+    for line in lines[:20]:
+        live.write_line(line)
+    _interleaved(live, samples[3:], lines[20:])
+    everything = builder()
+    everything.write_encoder(samples)
+    for line in lines:
+        everything.write_line(line)
+    a, b = live.finish(), everything.finish()
+    assert a.n_points == b.n_points
+    assert np.array_equal(a.phi, b.phi)

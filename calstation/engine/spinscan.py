@@ -369,6 +369,8 @@ class SpinScanBuilder:
         self._enc_c: list[int] = []
         self._late = False
         """a reading arrived after a newer one: the angles so far are to be found again"""
+        self._moved = False
+        """the readings so far hold two counts (before, every angle would be one constant)"""
         self._enc_arrays: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
         self.during_s = 0.0
         """seconds of per-line work done while the scan ran"""
@@ -408,6 +410,7 @@ class SpinScanBuilder:
             else:
                 self._enc_t.append(t)
                 self._enc_c.append(count)
+            self._moved = self._moved or count != self._enc_c[0] or count != self._enc_c[-1]
         self._angles_so_far()
         self.during_s += time.perf_counter() - t0
 
@@ -417,7 +420,9 @@ class SpinScanBuilder:
     def _angles_so_far(self) -> None:
         """Angles of the waiting lines that lie between the first and the last reading."""
         n_lines = len(self._line_ends)
-        if len(self._enc_t) < 2:
+        if not self._moved:
+            # readings of one count give every time that count's angle, even outside their
+            # span: wait for the platter to move, as the whole recording is prepared with it
             return
         if self._late:
             self._angles_again()
