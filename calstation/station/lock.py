@@ -35,6 +35,7 @@ from sqlalchemy.exc import IntegrityError, SQLAlchemyError
 
 from calstation.errors import DatabaseError, StationError
 from calstation.storage.db import Database, Run, StationLock, get_or_create_station, utcnow
+from calstation.storage.db.journal import process_alive as process_alive
 
 HEARTBEAT_S = 15.0
 """How often a holder renews its lock's ``heartbeat_at``."""
@@ -84,17 +85,6 @@ def terminal_front_end(command: str) -> str:
         except OSError:
             continue
     return f"{command} (no terminal)"
-
-
-def process_alive(pid: int) -> bool:
-    """Whether process ``pid`` exists on this host (one we may not signal counts)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def process_start(pid: int) -> str | None:

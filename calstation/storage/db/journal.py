@@ -227,8 +227,11 @@ def _owner_alive(host: str | None, pid: int | None) -> bool | None:
     """Whether the process that executes a run is alive: None when it cannot be told."""
     if pid is None or host != socket.gethostname():
         return None
-    if pid == os.getpid():
-        return True
+    return pid == os.getpid() or process_alive(pid)
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this host (one we may not signal counts)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
