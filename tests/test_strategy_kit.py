@@ -139,7 +139,7 @@ def test_plugins_command_lists_each_strategy_with_its_plugin() -> None:
     assert proc.returncode == 0, proc.stderr
     rows = {s["name"]: s for s in json.loads(proc.stdout)["strategies"]}
     assert rows["shape"]["plugin"] == "calstation.plugins.builtin.strategies"
-    assert rows["shape"]["options"] == ["box", "estimate_ry", "coarse"]
+    assert rows["shape"]["options"] == ["box", "estimate_ry", "coarse", "known_size"]
     assert rows["periodicity"]["options"] == []  # its settings are calibration.periodicity
     if "example-ry-held" in rows:  # the example plugin, when installed
         assert rows["example-ry-held"]["plugin"] == "example"

@@ -41,9 +41,13 @@ SHAPE_ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
     "default": {},
     "no coarse alignment": {"calibration": {"options": {"shape": {"coarse": False}}}},
     "ry held (no face flatness)": {"calibration": {"options": {"shape": {"estimate_ry": False}}}},
+    "box cost only (no known-size cube)": {
+        "calibration": {"options": {"shape": {"known_size": False}}}
+    },
     "paper (minimal box, joint ry, no coarse)": {
         "calibration": {
-            "options": {"shape": {"box": "minimal", "estimate_ry": True, "coarse": False}}
+            "options": {"shape": {"box": "minimal", "estimate_ry": True, "coarse": False,
+                                  "known_size": False}}
         }
     },
 }

@@ -230,7 +230,7 @@ def check_cube_points(
     then the cube check of its result) does not segment again."""
     t0 = time.perf_counter()
     s = cube.edge
-    cloud = _cube_cloud_memo(p_L, phi, H, s, platter_radius, memo)
+    cloud = cube_cloud(p_L, phi, H, s, platter_radius, memo)
     if cloud.pts.shape[0] < 500:
         raise VerificationError(
             f"the QA cube was not found: {cloud.pts.shape[0]} returns more than "
@@ -269,7 +269,7 @@ def check_cube_points(
     )
 
 
-def _cube_cloud_memo(
+def cube_cloud(
     p_L: FloatArray,
     phi: FloatArray,
     H: Extrinsics,

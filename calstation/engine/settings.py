@@ -80,6 +80,13 @@ class CubeGeometry(Settings):
 
     kind: Literal["cube"] = "cube"
     edge: float = Field(0.100, ge=0.01, le=1.0)
+    edge_tolerance: float = Field(
+        0.00005,
+        ge=0.0,
+        le=0.01,
+        description="± how well the edge is known, metres (the cube's certificate): the shape "
+        "strategy's known-size fit carries it in its σ",
+    )
     offset: tuple[Coordinate, Coordinate] = (0.08, 0.05)
     yaw_deg: Yaw = 20.0
     mesh: str | None = None
@@ -143,6 +150,11 @@ class ShapeOptions(Settings):
     )
     estimate_ry: bool = Field(True, description="estimate ry (false: hold it at its start)")
     coarse: bool = Field(True, description="coarse periodicity alignment on the cube scan first")
+    known_size: bool = Field(
+        True,
+        description="finish with an upright cube of the recipe's edge fitted to the faces "
+        "(false: the box cost's result)",
+    )
 
 
 class SigmaLimits(Settings):

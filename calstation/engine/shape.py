@@ -33,6 +33,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from calstation.engine.cube import check_cube_points
+from calstation.engine.cubefit import KnownSizeFit, known_size_fit
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import face_labels, minimal_obb, upright_box
 from calstation.engine.periodicity import block_ids, parameter_sigma, periodicity_fine_tune_scan
@@ -524,6 +525,7 @@ def shape_fine_tune_points(
     box: str = "upright",
     estimate_ry: bool = True,
     coarse: bool = True,
+    known_size: bool = True,
     progress: Progress | None = None,
     scan: SpinScan | None = None,
 ) -> CalibrationResult:
@@ -536,7 +538,9 @@ def shape_fine_tune_points(
     joint solve; ``False`` holds ry at its start. ``coarse``: align a far start first with the
     coarse periodicity stages on the same scan; when only the coarsest stage could run (the
     start's ry too far off for the second), the whole pass is repeated from its result
-    (docs/algorithms.md). ``scan``: the same returns already prepared
+    (docs/algorithms.md). ``known_size``: finish with an upright cube of the recipe's edge
+    fitted to the labelled faces (:mod:`calstation.engine.cubefit`; tx, tz, rz and, with
+    ``estimate_ry``, ry; σ from that fit). ``scan``: the same returns already prepared
     (:mod:`calstation.engine.spinscan`). Returns a :class:`CalibrationResult` with strategy
     ``"shape"`` and cost ``C1 + C2`` (m²).
     """
@@ -570,8 +574,11 @@ def shape_fine_tune_points(
         result = run(result.H)
         passes = 2
     result.diagnostics["passes"] = passes
-    # what the residuals cannot see: the cube's own dimensions under the result, and where
-    # the platter top lies along the axis
+    fitted = None
+    if known_size:
+        result, fitted = _known_size(result, prepared, cube, platter_radius, estimate_ry)
+    # where the platter top lies along the axis, and (without the known-size fit) what the box
+    # cost's residuals cannot see: the cube's own dimensions under the result
     level = math.nan
     try:
         check = check_cube_points(
@@ -581,16 +588,44 @@ def shape_fine_tune_points(
         edge_error, level = check.edge_error, check.platter_level
     except VerificationError:
         edge_error = math.nan
-    noise = float(result.diagnostics.get("range_noise_m", math.nan))
-    floor = axis_sigma_floor(edge_error, noise)
-    for name in ("tx", "tz"):
-        result.sigma[name] = math.hypot(result.sigma[name], floor)
-    result.sigma["rz"] = math.hypot(result.sigma["rz"], rz_sigma_floor(noise))
     result.diagnostics["edge_error_m"] = edge_error
+    if fitted is None:
+        noise = float(result.diagnostics.get("range_noise_m", math.nan))
+        floor = axis_sigma_floor(edge_error, noise)
+        for name in ("tx", "tz"):
+            result.sigma[name] = math.hypot(result.sigma[name], floor)
+        result.sigma["rz"] = math.hypot(result.sigma["rz"], rz_sigma_floor(noise))
     if math.isfinite(level):
         result = _platter_gauge(result, level)
     result.timings["total"] = time.perf_counter() - t0
     return result
+
+
+def _known_size(
+    result: CalibrationResult,
+    scan: SpinScan,
+    cube: CubeGeometry,
+    platter_radius: float,
+    estimate_ry: bool,
+) -> tuple[CalibrationResult, KnownSizeFit | None]:
+    """``result`` after the known-size cube fit (:mod:`calstation.engine.cubefit`) from its
+    H: the fit's H, σ and covariance, ``diagnostics.known_size``; unchanged but for the reason
+    in the diagnostics (and None) when the cube's faces could not be labelled."""
+    try:
+        fit = known_size_fit(
+            scan, result.H, cube, platter_radius=platter_radius, estimate_ry=estimate_ry
+        )
+    except FineTuningError as exc:
+        result.diagnostics["known_size"] = {"used": False, "reason": str(exc)}
+        return result, None
+    diagnostics = dict(result.diagnostics)
+    diagnostics.update(box_H=result.H.as_dict(), known_size=fit.details,
+                       covariance=fit.covariance)
+    if estimate_ry:
+        diagnostics["ry_source"] = "known-size cube"
+    sigma = dict(result.sigma)
+    sigma.update({n: v for n, v in fit.sigma.items() if math.isfinite(v)})
+    return replace(result, H=fit.H, sigma=sigma, diagnostics=diagnostics), fit
 
 
 PLATTER_LEVEL_SIGMA = 0.00005
@@ -617,8 +652,17 @@ def _platter_gauge(result: CalibrationResult, level: float) -> CalibrationResult
     u = np.array([-a[1], a[0], 0.0])
     u /= max(float(np.linalg.norm(u)), 1e-12)
     across = result.sigma["tx"] * abs(u[0])
+    before = result.sigma["tx"]
     for i, name in enumerate(("tx", "ty")):
         result.sigma[name] = math.hypot(across * u[i], PLATTER_LEVEL_SIGMA * a[i])
+    record = result.diagnostics.get("covariance")
+    if record and "tx" in record["parameters"] and before > 0:
+        # tx's share of the covariance keeps its correlations at its new σ
+        k = record["parameters"].index("tx")
+        scale = np.ones(len(record["parameters"]))
+        scale[k] = result.sigma["tx"] / before
+        matrix = np.asarray(record["matrix"]) * np.outer(scale, scale)
+        result.diagnostics["covariance"] = {**record, "matrix": matrix.tolist()}
     result.diagnostics["platter_level_m"] = level
     result.diagnostics["gauge"] = "platter"
     result.diagnostics["gauge_note"] = (
@@ -637,6 +681,7 @@ def shape_fine_tune(
     box: str = "upright",
     estimate_ry: bool = True,
     coarse: bool = True,
+    known_size: bool = True,
     progress: Progress | None = None,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on a QA-cube spin-scan recording."""
@@ -652,6 +697,7 @@ def shape_fine_tune(
             box=box,
             estimate_ry=estimate_ry,
             coarse=coarse,
+            known_size=known_size,
             progress=progress,
             scan=scan,
         )

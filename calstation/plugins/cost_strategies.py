@@ -123,7 +123,8 @@ class ShapeStrategy:
     ``calibration.options.shape``: ``box`` — ``upright`` (default) or ``minimal`` (the
     paper's box); ``estimate_ry`` — estimate ry too (default true; false holds it at its
     start); ``coarse`` — align a far start first with the coarse periodicity stages on the cube
-    scan (default true).
+    scan (default true); ``known_size`` — finish with a cube of the recipe's edge fitted to its
+    faces (default true).
     """
 
     name = "shape"
@@ -150,6 +151,7 @@ class ShapeStrategy:
             box=options.box,
             estimate_ry=options.estimate_ry,
             coarse=options.coarse,
+            known_size=options.known_size,
             progress=progress,
         )
 
@@ -163,7 +165,8 @@ class ShapeStrategy:
         return shape_fine_tune_points(
             scan.p_L, scan.phi, start, recipe.fixtures.qa_cube, recipe.calibration.shape,
             platter_radius=recipe.fixtures.platter.radius, box=options.box,
-            estimate_ry=options.estimate_ry, coarse=options.coarse, progress=progress, scan=scan,
+            estimate_ry=options.estimate_ry, coarse=options.coarse,
+            known_size=options.known_size, progress=progress, scan=scan,
         )
 
 
