@@ -82,8 +82,8 @@ MUTATIONS = (
         "twist-bias",
         "the cube's twist σ without its jackknife (the bias term alone)",
         "calstation/engine/twist.py",
-        "return twist, float(math.hypot(spread, _range_twist_bias(noise)))",
-        "return twist, float(_range_twist_bias(noise))",
+        "return twist, float(math.hypot(spread, range_twist_bias(noise)))",
+        "return twist, float(range_twist_bias(noise))",
         ("tests/test_trust.py", "tests/test_calibrate_cli.py"),
     ),
     Mutation(
@@ -93,6 +93,22 @@ MUTATIONS = (
         "    twist = float(res.x[0])\n",
         "    twist = -float(res.x[0])\n",
         ("tests/test_trust.py",),
+    ),
+    Mutation(
+        "cube-edge",
+        "the known-size cube fit with a cube 0.4 mm smaller than the recipe's",
+        "calstation/engine/cubefit.py",
+        "half = 0.5 * (self.edge if edge is None else edge)",
+        "half = 0.5 * ((self.edge if edge is None else edge) - 0.0004)",
+        ("tests/test_cubefit.py", "tests/test_shape.py"),
+    ),
+    Mutation(
+        "cube-tolerance",
+        "the known-size cube fit's σ without the edge tolerance",
+        "calstation/engine/cubefit.py",
+        "    if tolerance > 0:\n",
+        "    if False:\n",
+        ("tests/test_cubefit.py",),
     ),
 )
 
