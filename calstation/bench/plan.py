@@ -133,11 +133,17 @@ def _simulate_and_fit(
         from calstation_sim import simulate_run
     except ImportError:
         raise BenchError("calstation plan needs the calstation-sim plugin") from None
-    scan = {"revolutions": turns + 0.05, "max_revolutions": turns + 0.05,
+    from calstation import plugins
+    from calstation.bench.records import scan_of
+
+    long = {"revolutions": turns + 0.05, "max_revolutions": turns + 0.05,
             "second_pass_rpm": None}
+    one = {**long, "revolutions": 1.05, "max_revolutions": 1.05}
+    # the turns are those of the strategy's own scan: the cube's for shape
+    on_cube = scan_of(plugins.strategy(loaded.recipe.calibration.strategy)) == "cube"
     recipe = apply_overrides(loaded.recipe, {
-        **patch, "steps": {"spin_scan": scan, "cube_scan": {**scan, "revolutions": 1.05,
-                                                             "max_revolutions": 1.05}},
+        **patch, "steps": {"spin_scan": one if on_cube else long,
+                           "cube_scan": long if on_cube else one},
         "simulation": {"seed": seed},
     })
     import yaml
@@ -155,6 +161,7 @@ def _fit(recipe: Any, files: dict[str, Any], turns: int) -> dict[str, Any]:
     """The station's fine-tuning on the first ``turns`` turns: σ, predicted error, and (for
     a spin-target strategy) the predicted error once the cube's faces join ry."""
     from calstation import plugins
+    from calstation.bench.records import scan_of
     from calstation.engine.frames import Extrinsics
     from calstation.engine.initial import initial_calibration
     from calstation.plugins.cost_strategies import fine_tune_with_cube, run_strategy
@@ -173,7 +180,7 @@ def _fit(recipe: Any, files: dict[str, Any], turns: int) -> dict[str, Any]:
         static = read_recording(files["static"])
         start = initial_calibration(static, recipe.fixtures.static_target,
                                     recipe.calibration.initial).H
-    scan = read_recording(files[("spin")]).first_turns(turns)
+    scan = read_recording(files[scan_of(strategy)]).first_turns(turns)
     result, _ = run_strategy(strategy, scan, start, recipe)
     result, predicted = with_prediction(result, recipe, turns=turns)
     with_cube = predicted.max_m
