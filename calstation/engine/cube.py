@@ -158,7 +158,7 @@ RING_POINTS = 150_000
 
 
 @dataclass(frozen=True)
-class _CubeCloud:
+class CubeCloud:
     """The cube's returns under one H, found from a spin scan's returns."""
 
     level: float
@@ -177,7 +177,7 @@ class _CubeCloud:
 
 def _cube_cloud(
     p_L: FloatArray, phi: FloatArray, H: Extrinsics, s: float, platter_radius: float
-) -> _CubeCloud:
+) -> CubeCloud:
     """Find the platter and the cube's returns under H (the cube check's segmentation)."""
     # height along the axis and distance from it do not depend on the platter angle: find the
     # platter and the returns the steps below can use before turning any by its angle
@@ -208,7 +208,7 @@ def _cube_cloud(
     p_D[:, 0] -= level
     idx = np.flatnonzero(density_outlier_mask(p_D))
     idx = idx[largest_cluster(p_D[idx])]
-    return _CubeCloud(level, p_ring, p_L, phi, idx, p_D[idx])
+    return CubeCloud(level, p_ring, p_L, phi, idx, p_D[idx])
 
 
 def check_cube_points(
@@ -276,13 +276,13 @@ def cube_cloud(
     s: float,
     platter_radius: float,
     memo: dict[str, Any] | None,
-) -> _CubeCloud:
+) -> CubeCloud:
     """:func:`_cube_cloud`, taken from ``memo`` when it holds the one under the same H, cube
     and platter, and kept there."""
     key = (H.as_vector().tobytes(), s, platter_radius)
     found = memo.get("cube_cloud") if memo is not None else None
     if found is not None and found[0] == key:
-        cloud: _CubeCloud = found[1]
+        cloud: CubeCloud = found[1]
         return cloud
     cloud = _cube_cloud(p_L, phi, H, s, platter_radius)
     if memo is not None:
@@ -330,7 +330,7 @@ ADJACENT_FACES = (
 """The pairs of faces whose angle the perpendicularity measures."""
 
 
-def _face_dimensions(cloud: _CubeCloud, s: float, platter_radius: float) -> _Dimensions:
+def _face_dimensions(cloud: CubeCloud, s: float, platter_radius: float) -> _Dimensions:
     """Robust dimensioning: planes on the faces of the robust upright box of the cube's
     returns; an edge is the distance between opposite faces, the height the top face's above
     the platter beside the cube."""
@@ -374,7 +374,7 @@ def _face_dimensions(cloud: _CubeCloud, s: float, platter_radius: float) -> _Dim
     )
 
 
-def _side_twist(cloud: _CubeCloud, dims: _Dimensions, H: Extrinsics) -> tuple[float, float]:
+def _side_twist(cloud: CubeCloud, dims: _Dimensions, H: Extrinsics) -> tuple[float, float]:
     """:func:`face_twist` of the side faces found by the dimensioning (rad)."""
     sides = [dims.faces[n].members for n in ("1-", "1+", "2-", "2+") if n in dims.faces]
     return face_twist(
@@ -383,7 +383,7 @@ def _side_twist(cloud: _CubeCloud, dims: _Dimensions, H: Extrinsics) -> tuple[fl
 
 
 def _flatness_beyond_noise(
-    cloud: _CubeCloud, dims: _Dimensions, H: Extrinsics
+    cloud: CubeCloud, dims: _Dimensions, H: Extrinsics
 ) -> tuple[float, float]:
     """The worst face's plane-fit RMS beyond what the range noise explains (m), and that noise
     (m, 1σ along the rays).
@@ -410,7 +410,7 @@ def _flatness_beyond_noise(
 
 def _failures(
     dims: _Dimensions,
-    cloud: _CubeCloud,
+    cloud: CubeCloud,
     obb_error: float,
     twist_and_sigma: tuple[float, float],
     flatness_excess: float,

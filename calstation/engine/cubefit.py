@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from calstation.engine.cube import cube_cloud
+from calstation.engine.cube import CubeCloud, cube_cloud
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import face_labels, upright_box
 from calstation.engine.periodicity.covariance import (
@@ -92,16 +92,17 @@ class _Faces:
     """faces labelled"""
 
 
-def _label(scan: SpinScan, H: Extrinsics, cube: CubeGeometry, platter_radius: float) -> _Faces:
-    """The returns on the cube's faces under H, labelled against its upright box."""
-    cloud = cube_cloud(scan.p_L, scan.phi, H, cube.edge, platter_radius, scan.memo)
+def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
+    """The returns on the cube's faces under H, labelled against its upright box; ``cloud``
+    the cube's returns found under H or an H within a millimetre of it (the labels' bands are
+    several millimetres wide)."""
     if cloud.pts.shape[0] < 500:
         raise FineTuningError(
             f"the known-size cube fit found {cloud.pts.shape[0]} returns of the cube"
         )
-    centre, axes, extents = upright_box(cloud.pts, strays=True)
     p_D = lidar_to_dynamic(cloud.p_L, cloud.phi, H)
     p_D[:, 0] -= cloud.level
+    centre, axes, extents = upright_box(p_D[cloud.idx], strays=True)
     labels = face_labels(p_D, centre, axes, extents)
     found = [f for f in np.unique(labels) if f >= 1 and np.count_nonzero(labels == f) >= 30]
     if len(found) < MIN_FACES:
@@ -195,9 +196,11 @@ def known_size_fit(
     names = ("tx", "tz", "ry", "rz") if estimate_ry else ("tx", "tz", "rz")
     free = [PARAMETER_NAMES.index(n) for n in names]
     H = start.with_(rx=0.0)
+    # the cube's returns are found once: the rounds move H by less than a millimetre
+    cloud = cube_cloud(scan.p_L, scan.phi, H, cube.edge, platter_radius, scan.memo)
     res: Any = None
     for _ in range(LABEL_ROUNDS):
-        faces = _label(scan, H, cube, platter_radius)
+        faces = _label(cloud, H)
         base = H.as_vector()
         errors = _RangeErrors(faces, base, free, cube.edge)
         x0 = np.concatenate([base[free], faces.pose])
