@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -203,3 +204,65 @@ def test_flatness_is_judged_beyond_the_range_noise(tmp_path) -> None:
     # a bow of amplitude A has an RMS of A·√(1/2 − 4/π²) = 0.31·A about its plane
     assert bowed.flatness_excess == pytest.approx(0.31 * 0.006, rel=0.4)
     assert any("beyond the range noise" in f for f in bowed.failures), bowed.failures
+
+
+def _side_faces(n: int, noise: float, rng: np.random.Generator, skew_deg: float = 0.0) -> Any:
+    """Two adjacent side faces of a 100 mm cube (returns in D, noisy across each face), the
+    second turned by ``skew_deg`` about the vertical, fitted as the check fits them."""
+    from calstation.engine.cube import _Face
+
+    s = 0.1
+    a = np.column_stack([rng.uniform(0.01, s, n), np.full(n, -s / 2), rng.uniform(-0.04, 0.04, n)])
+    b = np.column_stack([rng.uniform(0.01, s, n), rng.uniform(-0.04, 0.04, n), np.full(n, -s / 2)])
+    t = math.radians(skew_deg)
+    b[:, 1:] = b[:, 1:] @ np.array([[math.cos(t), math.sin(t)], [-math.sin(t), math.cos(t)]])
+    a[:, 1] += rng.normal(0, noise, n)
+    b[:, 1:] += rng.normal(0, noise, (n, 1)) * np.array([math.sin(t), math.cos(t)])
+    pts = np.vstack([a, b])
+    faces = {}
+    for name, idx in (("1-", np.arange(n)), ("2-", np.arange(n, 2 * n))):
+        c, normal, rms = fit_plane(pts[idx])
+        faces[name] = _Face(c, normal, rms, n, idx)
+    return faces, pts
+
+
+def test_the_perpendicularity_sigma_is_its_spread_over_noise_draws() -> None:
+    """A sparse scan's faces come from few returns; the σ from the two plane fits is the
+    spread of the angle over noise draws (so the limit fails only what the noise cannot
+    explain)."""
+    from calstation.engine.cube import _perpendicularity
+
+    rng = np.random.default_rng(7)
+    deviations, sigmas = [], []
+    for _ in range(200):
+        faces, pts = _side_faces(150, 0.001, rng)
+        # signed: the check's |90° − angle| folds it
+        cosine = float(np.dot(faces["1-"].normal, faces["2-"].normal))
+        deviations.append(math.degrees(math.asin(cosine)))
+        sigmas.append(_perpendicularity(faces, pts)[1])
+    spread = float(np.std(deviations))
+    assert 0.1 < spread < 1.0  # a few dozen lines: tenths of a degree
+    assert float(np.median(sigmas)) == pytest.approx(spread, rel=0.2)
+
+
+def test_perpendicularity_fails_only_beyond_its_limit_and_3_sigma() -> None:
+    from calstation.engine.cube import CubeCloud, _Dimensions, _failures
+    from calstation.engine.settings import QALimits
+
+    limits = QALimits(perpendicularity_deg=0.5)
+    empty = np.zeros((0, 3))
+    cloud = CubeCloud(0.0, empty, empty, np.zeros(0), np.zeros(0, dtype=np.intp), empty)
+
+    def failures(perp: float, sigma: float) -> list[str]:
+        dims = _Dimensions({}, [], np.full(3, 0.1), 0.0, 0.0, perp, sigma)
+        return _failures(dims, cloud, 0.0, (0.0, 0.001), 0.0, limits, edges_only=True)
+
+    assert failures(0.6, 0.3) == []  # 2σ: the noise of a sparse scan explains it
+    assert failures(0.6, 0.1) == ["perpendicularity 0.600° (±0.100°) > 0.500° and beyond 3σ"]
+    assert failures(0.4, 0.01) == []  # within the limit
+    # a real skew of the faces is found beyond its σ
+    faces, pts = _side_faces(2000, 0.001, np.random.default_rng(1), skew_deg=1.5)
+    from calstation.engine.cube import _perpendicularity
+
+    perp, sigma = _perpendicularity(faces, pts)
+    assert perp == pytest.approx(1.5, abs=4 * sigma) and perp > 3 * sigma

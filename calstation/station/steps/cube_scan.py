@@ -115,6 +115,7 @@ def _cube_measurements(check: Any) -> dict[str, Any]:
             "flatness_excess": check.flatness_excess,
             "range_noise": check.range_noise,
             "perpendicularity_deg": check.perpendicularity_deg,
+            "perpendicularity_sigma_deg": check.perpendicularity_sigma_deg,
             "twist_deg": check.twist_deg,
             "twist_sigma_deg": check.twist_sigma_deg,
             "passed": check.passed,
