@@ -161,3 +161,39 @@ def test_exactly_the_asked_turns_without_turn_by_turn(tmp_path: Path, db: Databa
     assert "turn_by_turn" not in spin and _turns(spin["recording"]) == 1
     assert not [e for e in ui.events if e.kind == "accuracy"]
     assert status == "failed"
+
+
+def test_a_cube_fits_noise_bias_over_the_budget_is_told_what_would_help() -> None:
+    """At 2 mm of range noise the cube faces' bias in ry (0.08°, which the shape strategy's
+    known-size fit declares) alone exceeds a 0.1 mm budget: more turns cannot help, and the
+    advice is about the cube's sensor and strategy, not the spin target the recipe never
+    scans."""
+    import math
+
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.result import CalibrationResult
+    from calstation.station.accuracy import budget_failure, with_prediction
+
+    recipe = load_recipe(RECIPES / "sim-shape.yaml").recipe
+    recipe = recipe.model_copy(update={"calibration": recipe.calibration.model_copy(
+        update={"accuracy": recipe.calibration.accuracy.model_copy(update={"max_error": 1e-4})})})
+    H = Extrinsics(0.0, 1.5, 0.0, 0.0, 0.0, math.radians(-30.0))
+    sigma = {"tx": 2e-5, "ty": math.nan, "tz": 2e-5, "rx": math.nan,
+             "ry": math.radians(0.081), "rz": math.radians(0.004)}
+    result = CalibrationResult(H=H, sigma=sigma, cost=0.0, iterations=1, strategy="shape",
+                               timings={}, diagnostics={"bias_bound": {"ry": math.radians(0.08)},
+                                                        "range_noise_m": 0.002})
+    result, predicted = with_prediction(result, recipe, turns=1)
+    assert predicted.bias_m > 1e-4
+    error = budget_failure(result, predicted, recipe, scan="spin_scan", turns=1)
+    assert error is not None and "more data cannot help" in error
+    assert "about 1.0 mm of range noise instead of 2.0 mm" in error
+    assert "the spin target with the periodicity strategy" in error
+    assert "taller" not in error and "off-centre" not in error
+    # the same for a periodicity recipe speaks of its spin target
+    spin = load_recipe(RECIPES / "sim-periodicity.yaml").recipe
+    spin = spin.model_copy(update={"calibration": spin.calibration.model_copy(
+        update={"accuracy": spin.calibration.accuracy.model_copy(update={"max_error": 1e-4})})})
+    result, predicted = with_prediction(result, spin, turns=1)
+    error = budget_failure(result, predicted, spin, scan="spin_scan", turns=1)
+    assert error is not None and "taller, off-centre" in error

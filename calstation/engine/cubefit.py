@@ -18,9 +18,10 @@ labelled under the start H, away from edges and the bottom cut, and labelled aga
 result (:data:`LABEL_ROUNDS`).
 
 σ is the cluster-robust sandwich over 2 cm blocks (as the periodicity cost's) times
-:data:`SIGMA_SCALE`, with the periodicity's model floor and, in ry, the cube twist's noise bias
-bound (the same range-error residuals on the same faces leave the same bias), plus what the
-cube's edge tolerance
+:data:`SIGMA_SCALE`, with the periodicity's model floor, and in quadrature a bias bound that
+more data does not remove (``diagnostics.bias_bound``, which the accuracy budget adds at its
+worst): in ry the cube twist's noise bias (the same range-error residuals on the same faces
+leave the same bias), and in every parameter what the cube's edge tolerance
 (``qa_cube.edge_tolerance``) moves H by: the fit leans on the edge, and a cube 0.05 mm larger
 than the recipe says reads as an axis about 0.04 mm off.
 """
@@ -178,7 +179,11 @@ class KnownSizeFit:
     sigma: dict[str, float]
     """1σ per parameter (NaN for those held: rx, ty, and ry when it is not estimated)"""
     covariance: dict[str, Any] | None
-    """the covariance record of the free parameters (:func:`covariance_record`)"""
+    """the covariance record of the free parameters (:func:`covariance_record`): the part of
+    the uncertainty that falls with more data"""
+    bias: dict[str, float]
+    """per free parameter, a bound on what more data does not remove (m, rad): ``sigma`` holds
+    it in quadrature, the accuracy budget adds it at its worst"""
     details: dict[str, Any]
 
 
@@ -209,12 +214,16 @@ def known_size_fit(
             diff_step=1e-4, x_scale=np.full(x0.size, 1e-3), max_nfev=MAX_NFEV,
         )
         H = errors.H(res.x)
-    cov = _covariance(res, errors, faces, free, cube.edge_tolerance)
-    sigma = sigma_from_covariance(cov, free)
+    cov = _covariance(res, errors, faces, free)
+    bias = _bias_bound(res, errors, faces, free, cube.edge_tolerance)
+    random = sigma_from_covariance(cov, free)
+    sigma = {n: math.hypot(v, bias.get(n, 0.0)) if math.isfinite(v) else v
+             for n, v in random.items()}
     return KnownSizeFit(
         H=H,
         sigma=sigma,
         covariance=covariance_record(cov, free),
+        bias=bias,
         details={
             "used": True,
             "faces": faces.faces,
@@ -230,24 +239,34 @@ def known_size_fit(
 
 
 def _covariance(
-    res: Any, errors: _RangeErrors, faces: _Faces, free: list[int], tolerance: float
+    res: Any, errors: _RangeErrors, faces: _Faces, free: list[int]
 ) -> FloatArray | None:
-    """(n, n) covariance of the free parameters of H: the block sandwich × :data:`SIGMA_SCALE`,
-    the model floor, and the edge tolerance moved through the fit (dx = −J⁺ ∂r/∂edge)."""
+    """(n, n) covariance of the free parameters of H, the part that falls with more data: the
+    block sandwich × :data:`SIGMA_SCALE` and the model floor."""
     H = errors.H(res.x)
     p_D = lidar_to_dynamic(faces.p_L, np.arctan2(faces.sin, faces.cos), H)
     full = parameter_covariance(res, list(range(res.x.size)), blocks=block_ids(p_D, SIGMA_BLOCK))
     if full is None:
         return None
     n = len(free)
-    cov: FloatArray = full[:n, :n] * SIGMA_SCALE**2 + model_floor(free)
-    if RY in free:
-        # the range-error residuals leave the twist's noise bias in ry (+0.08–0.10° at 2 mm)
-        k = free.index(RY)
-        cov[k, k] += range_twist_bias(faces.noise) ** 2
+    out: FloatArray = full[:n, :n] * SIGMA_SCALE**2 + model_floor(free)
+    return out
+
+
+def _bias_bound(
+    res: Any, errors: _RangeErrors, faces: _Faces, free: list[int], tolerance: float
+) -> dict[str, float]:
+    """Per parameter, a bound on what more data does not remove (m, rad): the edge tolerance
+    moved through the fit (|dx| with dx = −J⁺·∂r/∂edge·tolerance) and, in ry, the range
+    errors' noise bias on the faces (the twist's: +0.08–0.10° at 2 mm)."""
+    n = len(free)
+    out = {PARAMETER_NAMES[i]: 0.0 for i in free}
     if tolerance > 0:
         step = 1e-5
         dr = (errors(res.x, errors.edge + step) - errors(res.x)) / step
         dx = -np.linalg.lstsq(np.asarray(res.jac), dr, rcond=None)[0][:n]
-        cov = cov + tolerance**2 * np.outer(dx, dx)
-    return cov
+        out.update({PARAMETER_NAMES[i]: abs(float(dx[k])) * tolerance
+                    for k, i in enumerate(free)})
+    if RY in free:
+        out["ry"] += range_twist_bias(faces.noise)
+    return out

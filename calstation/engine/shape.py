@@ -620,7 +620,7 @@ def _known_size(
         return result, None
     diagnostics = dict(result.diagnostics)
     diagnostics.update(box_H=result.H.as_dict(), known_size=fit.details,
-                       covariance=fit.covariance)
+                       covariance=fit.covariance, bias_bound=fit.bias)
     if estimate_ry:
         diagnostics["ry_source"] = "known-size cube"
     sigma = dict(result.sigma)

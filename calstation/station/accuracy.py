@@ -75,10 +75,9 @@ def advice(
     (``scan``: ``spin_scan`` or ``cube_scan``, taken over ``turns`` turns)."""
     accuracy = recipe.calibration.accuracy
     factor = data_factor(predicted, accuracy.max_error)
+    on_cube = scan == "cube_scan" or _fits_the_cube(recipe)
     if not math.isfinite(factor):
-        return (f"The bound on the remaining bias, {predicted.bias_m * 1e3:.3f} mm, is itself over "
-                "the budget: more data cannot help. Use a spin target that shows the axis tilt "
-                "better (taller, off-centre) or raise calibration.accuracy.max_error.")
+        return _bias_advice(result, predicted, recipe, on_cube)
     cfg = getattr(recipe.steps, scan)
     say = []
     needed = math.ceil(turns * factor)
@@ -98,12 +97,46 @@ def advice(
         say.append(f"a lidar line rate of {rate * factor:.0f} lines/s instead of {rate:g}")
     else:
         say.append(f"a lidar line rate {factor:.1f} times higher")
-    say += _geometry_advice(result, recipe, scan, factor)
+    say += _geometry_advice(result, recipe, on_cube, factor)
     return "What would help (each alone): " + "; ".join(say) + "."
 
 
+def _fits_the_cube(recipe: Recipe) -> bool:
+    """Whether the recipe's fine-tuning strategy fits the QA cube (its spin scan turns the
+    cube, not the spin target)."""
+    from calstation import plugins
+    from calstation.errors import PluginError
+
+    try:
+        return bool(plugins.strategy(recipe.calibration.strategy).fixture == "qa_cube")
+    except PluginError:  # an unknown strategy was refused long before a refusal's advice
+        return False
+
+
+def _bias_advice(
+    result: CalibrationResult, predicted: PredictedError, recipe: Recipe, on_cube: bool
+) -> str:
+    """What would help when the bias bound alone is over the budget: more data cannot."""
+    budget = recipe.calibration.accuracy.max_error
+    head = (f"The bound on the remaining bias, {predicted.bias_m * 1e3:.3f} mm, is itself over "
+            "the budget: more data cannot help.")
+    if not on_cube:
+        return (f"{head} Use a spin target that shows the axis tilt better (taller, "
+                "off-centre) or raise calibration.accuracy.max_error.")
+    noise = float(result.diagnostics.get("range_noise_m", math.nan))
+    say = []
+    if math.isfinite(noise) and noise > 0:
+        # the cube faces' bias in ry grows with the range noise's square
+        quieter = noise * math.sqrt(0.5 * budget / predicted.bias_m)
+        say.append(f"a lidar with about {quieter * 1e3:.1f} mm of range noise instead of "
+                   f"{noise * 1e3:.1f} mm (the bias of the cube's faces grows with its square)")
+    say.append("the spin target with the periodicity strategy (calibration.strategy)")
+    say.append(f"a calibration.accuracy.max_error of at least {predicted.max_m * 1e3:.2f} mm")
+    return f"{head} What would help (each alone): " + "; ".join(say) + "."
+
+
 def _geometry_advice(
-    result: CalibrationResult, recipe: Recipe, scan: str, factor: float
+    result: CalibrationResult, recipe: Recipe, on_cube: bool, factor: float
 ) -> list[str]:
     """Advice on the fixture, when the parameter that limits the accuracy is one a fixture's
     height or placement sets."""
@@ -118,7 +151,7 @@ def _geometry_advice(
     worst = max(parts, key=lambda n: parts[n] if math.isfinite(parts[n]) else -1.0)
     if worst != "ry":
         return []
-    if scan == "cube_scan":
+    if on_cube:
         return ["re-seat the QA cube so that two side faces face the lidar"]
     target = recipe.fixtures.spin_target
     say = [f"a spin target {math.sqrt(factor):.1f} times taller (ry, the axis tilt out of the "
