@@ -574,6 +574,21 @@ def shape_fine_tune_points(
         result = run(result.H)
         passes = 2
     result.diagnostics["passes"] = passes
+    result = _finish(result, prepared, cube, platter_radius, estimate_ry, known_size)
+    result.timings["total"] = time.perf_counter() - t0
+    return result
+
+
+def _finish(
+    result: CalibrationResult,
+    prepared: SpinScan,
+    cube: CubeGeometry,
+    platter_radius: float,
+    estimate_ry: bool,
+    known_size: bool,
+) -> CalibrationResult:
+    """The box cost's ``result`` finished: the known-size cube fit (when asked), the σ floors
+    of the box cost (without it), and the origin moved onto the platter top (the gauge)."""
     fitted = None
     if known_size:
         result, fitted = _known_size(result, prepared, cube, platter_radius, estimate_ry)
@@ -597,7 +612,6 @@ def shape_fine_tune_points(
         result.sigma["rz"] = math.hypot(result.sigma["rz"], rz_sigma_floor(noise))
     if math.isfinite(level):
         result = _platter_gauge(result, level)
-    result.timings["total"] = time.perf_counter() - t0
     return result
 
 
