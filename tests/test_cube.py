@@ -55,6 +55,30 @@ def test_true_calibration_passes_and_a_wrong_one_fails(sim_run) -> None:
     assert d["passed"] is False and len(d["face_edges_m"]) == 3
 
 
+def test_the_obb_limit_applies_beyond_the_range_noises_extremes(sim_run) -> None:
+    """The paper's OBB edges sit at the outermost returns, ~4.5σ of range noise outside each
+    face: under the true H most of the OBB error is the noise's, and its excess is what a
+    calibration error adds (at 2 mm of noise good units failed the raw 15 mm limit)."""
+    from calstation.engine.cube import obb_noise
+
+    recipe, rec, truth = _cube_scan(sim_run)
+    good = check_cube(rec, truth, recipe.fixtures.qa_cube, recipe.qa)
+    assert good.obb_excess == pytest.approx(
+        good.obb_error - obb_noise(good.range_noise, good.points))
+    assert good.obb_error > 5e-3 and good.obb_excess < 0.4 * good.obb_error
+    # an axis 3 mm off doubles each side face about 6 mm apart: the excess sees it
+    off = check_cube(rec, truth.with_(tx=truth.tx + 0.003), recipe.fixtures.qa_cube, recipe.qa)
+    assert off.obb_excess > good.obb_excess + 3e-3
+    # and the limit applies to the excess
+    tight = recipe.qa.model_copy(update={"obb_edge_error": 0.5 * (good.obb_error
+                                                                   + good.obb_excess)})
+    assert not any(f.startswith("OBB") for f in check_cube(
+        rec, truth, recipe.fixtures.qa_cube, tight).failures)
+    assert any(f.startswith("OBB") and "beyond the range noise's extremes" in f
+               for f in check_cube(rec, truth.with_(tx=truth.tx + 0.003),
+                                   recipe.fixtures.qa_cube, tight).failures)
+
+
 def _same(a, b) -> bool:
     da, db = a.to_dict(), b.to_dict()
     da.pop("timings", None), db.pop("timings", None)
@@ -255,7 +279,7 @@ def test_perpendicularity_fails_only_beyond_its_limit_and_3_sigma() -> None:
 
     def failures(perp: float, sigma: float) -> list[str]:
         dims = _Dimensions({}, [], np.full(3, 0.1), 0.0, 0.0, perp, sigma)
-        return _failures(dims, cloud, 0.0, (0.0, 0.001), 0.0, limits, edges_only=True)
+        return _failures(dims, cloud, (0.0, 0.0), (0.0, 0.001), 0.0, limits, edges_only=True)
 
     assert failures(0.6, 0.3) == []  # 2σ: the noise of a sparse scan explains it
     assert failures(0.6, 0.1) == ["perpendicularity 0.600° (±0.100°) > 0.500° and beyond 3σ"]

@@ -54,7 +54,9 @@ class CubeCheck:
     """Result of a cube check. Lengths in metres, angles in degrees.
 
     - ``obb_edges`` (3,) sorted extents of the minimum-volume OBB (height corrected for the
-      segmentation margin), ``obb_error`` the paper's ``max_i(ŝ_i − s)``;
+      segmentation margin), ``obb_error`` the paper's ``max_i(ŝ_i − s)``, ``obb_excess`` what
+      of it the range noise's extremes do not explain (the limit ``qa.obb_edge_error`` applies
+      to it, see :func:`obb_noise`);
     - ``face_edges`` (3,) face-fit edges (height, then the two horizontal edges),
       ``edge_error`` ``max_i |ŝ_i − s|`` of those;
     - ``flatness_rms`` the worst face's plane-fit RMS; ``flatness_excess`` the worst face's
@@ -90,6 +92,7 @@ class CubeCheck:
     flatness_excess: float = math.nan
     range_noise: float = math.nan
     perpendicularity_sigma_deg: float = math.nan
+    obb_excess: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """A plain mapping (YAML/JSON ready), metres and degrees."""
@@ -97,6 +100,7 @@ class CubeCheck:
             "edge_m": self.edge,
             "obb_edges_m": [float(v) for v in self.obb_edges],
             "obb_error_m": float(self.obb_error),
+            "obb_excess_m": float(self.obb_excess),
             "face_edges_m": [float(v) for v in self.face_edges],
             "edge_error_m": float(self.edge_error),
             "flatness_rms_m": float(self.flatness_rms),
@@ -251,12 +255,16 @@ def check_cube_points(
         twist, twist_sigma = _side_twist(cloud, dims, H)
     t3 = time.perf_counter()
     excess, noise = _flatness_beyond_noise(cloud, dims, H)
-    failures = _failures(dims, cloud, obb_error, (twist, twist_sigma), excess, limits,
-                         edges_only)
+    obb_excess = obb_error
+    if math.isfinite(noise):
+        obb_excess -= obb_noise(noise, cloud.pts.shape[0])
+    failures = _failures(dims, cloud, (obb_error, obb_excess), (twist, twist_sigma), excess,
+                         limits, edges_only)
     return CubeCheck(
         edge=s,
         obb_edges=obb_edges,
         obb_error=obb_error,
+        obb_excess=obb_excess,
         face_edges=dims.face_edges,
         edge_error=dims.edge_error,
         flatness_rms=dims.flatness,
@@ -293,6 +301,18 @@ def cube_cloud(
     if memo is not None:
         memo["cube_cloud"] = (key, cloud)
     return cloud
+
+
+def obb_noise(noise: float, points: int) -> float:
+    """How much range noise ``noise`` (m, 1σ along the rays) alone lengthens the paper's OBB
+    edges, for a cube of ``points`` returns (m): each side of the box sits at the outermost of a
+    face's returns, about √(2·ln n) σ outside the face for n returns on it (the expected largest
+    of n Gaussian draws; n a fifth of the cube's returns), so an edge grows by twice that. On the
+    capability sweep's 72 cube checks the OBB error was 7–10 σ_noise at 1 and 2 mm (16.9 and
+    19.9 mm at 2 mm failed the 15 mm limit with the axis within 0.08° and 0.03 mm): the raw
+    limit judged the sensor, as the flatness's did."""
+    n = max(points / 5.0, 2.0)
+    return 2.0 * math.sqrt(2.0 * math.log(n)) * noise
 
 
 def _paper_obb(pts: FloatArray, s: float) -> tuple[FloatArray, float]:
@@ -434,7 +454,7 @@ def _flatness_beyond_noise(
 def _failures(
     dims: _Dimensions,
     cloud: CubeCloud,
-    obb_error: float,
+    obb: tuple[float, float],
     twist_and_sigma: tuple[float, float],
     flatness_excess: float,
     limits: QALimits,
@@ -456,9 +476,11 @@ def _failures(
         failures.append(
             f"face-fit edge error {edge_error * 1e3:.2f} mm > {limits.edge_error * 1e3:.2f} mm"
         )
-    if obb_error > limits.obb_edge_error:
+    obb_error, obb_excess = obb
+    if obb_excess > limits.obb_edge_error:
         failures.append(
-            f"OBB edge error {obb_error * 1e3:.2f} mm > {limits.obb_edge_error * 1e3:.2f} mm"
+            f"OBB edge error {obb_error * 1e3:.2f} mm, {obb_excess * 1e3:.2f} mm beyond the range "
+            f"noise's extremes > {limits.obb_edge_error * 1e3:.2f} mm"
         )
     if flatness_excess > limits.flatness_rms:
         failures.append(

@@ -109,6 +109,7 @@ def _cube_measurements(check: Any) -> dict[str, Any]:
         {
             "obb_edges": check.obb_edges,
             "obb_error": check.obb_error,
+            "obb_excess": check.obb_excess,
             "face_edges": check.face_edges,
             "edge_error": check.edge_error,
             "flatness_rms": check.flatness_rms,
