@@ -18,7 +18,9 @@ of the box is ``s − margin`` (the segmentation cuts the bottom off); by defaul
 near them instead of the extremes, which removes the ~3σ noise inflation of the extremes from
 C2; and ry taken from the flatness of the cube's faces (an ry error twists them), alternating
 with the box solve of tx, tz and rz, because the box cost's own ry minimum is biased by a few
-tenths of a degree. ``box="minimal"`` keeps the paper's Open3D box and joint solve.
+tenths of a degree; and, last, a rigid cube of the recipe's edge fitted to the faces with H
+(:mod:`calstation.engine.cubefit`): the cube's size places the axis where the box cost's blur
+could not. ``box="minimal"`` keeps the paper's Open3D box and joint solve.
 """
 
 from __future__ import annotations
