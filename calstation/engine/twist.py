@@ -205,7 +205,7 @@ def _jackknife_sigma(
     neither the linearised σ (0.5× the spread over seeds on the simulator: the noise also moves
     the planes and the rays' cosines, which the Jacobian holds fixed) nor the block sandwich
     (5–8×: each face's plane, re-fitted with H, correlates the blocks) measured it. It costs
-    :data:`JACKKNIFE_GROUPS` refits (0.6 s of a 0.9 s cube check on the default scene).
+    :data:`JACKKNIFE_GROUPS` refits (0.52 s of a 0.62 s cube check on the default scene).
     """
     labels = _line_groups(faces)
     estimates = []
