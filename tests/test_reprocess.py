@@ -25,11 +25,19 @@ REPO = Path(__file__).resolve().parents[1]
 RECIPE = REPO / "recipes" / "sim-periodicity.yaml"
 
 
-def _store_run(db: Database, files: dict[str, Path], status: str = "passed") -> int:
-    """A finished periodicity run of ``files`` as the station stores it; returns its id."""
+def _store_run(db: Database, files: dict[str, Path], status: str = "passed",
+               shape: dict[str, object] | None = None) -> int:
+    """A finished periodicity run of ``files`` as the station stores it; returns its id.
+    ``shape``: the recipe's ``calibration.options.shape``."""
     from calstation.engine.initial import initial_calibration
+    from calstation.recipes import LoadedRecipe, parse_recipe
 
     loaded = load_recipe(RECIPE)
+    if shape is not None:
+        data = yaml.safe_load(loaded.text)
+        data["calibration"].setdefault("options", {})["shape"] = shape
+        text = yaml.safe_dump(data, sort_keys=False)
+        loaded = LoadedRecipe(parse_recipe(text, str(RECIPE)), RECIPE, text)
     static = read_recording(files["static"])
     initial = initial_calibration(static, loaded.recipe.fixtures.static_target,
                                   loaded.recipe.calibration.initial).H.as_dict()
@@ -64,16 +72,19 @@ def test_reprocessing_with_shape_stores_a_second_calibration(
     files = sim_run()
     url = f"sqlite:///{tmp_path / 'qa.db'}"
     db = open_database(url)
-    run_id = _store_run(db, files)
+    run_id = _store_run(db, files, shape={"known_size": False})
 
     code, out, err = _run(
         ["calibrate", "--run", str(run_id), "--strategy", "shape", "--db", url, "--json"], capsys
     )
-    # at 1 mm of noise shape does not determine the axis to the recipe's budget: stored, refused
+    # at 1 mm of noise the box cost alone (the recipe turns the known-size cube fit off) does
+    # not determine the axis to the recipe's budget: stored, refused
     assert code == 3, err
     data = json.loads(out)
     assert data["run_id"] == run_id and data["strategy"] == "shape"
-    assert data["accepted"] is False and data["warnings"] == []
+    # the recordings were taken with the recipe before its shape option was changed: said so
+    assert data["accepted"] is False
+    assert all("the recipe text differs from the one of the scan" in w for w in data["warnings"])
     assert data["refused"] and any("calibration.accuracy.max_error" in r and "What would help"
                                    in r for r in data["refused"])
     assert "refused" in err and "not accepted" in err
@@ -124,6 +135,35 @@ def test_reprocessing_with_shape_stores_a_second_calibration(
         assert len(accepted) == 1 and accepted[0].stage == "reprocess"
         assert accepted[0].id > new.id and accepted[0].strategy == "periodicity+cube"
         assert accepted[0].diagnostics["reprocess"]["recordings"]["cube"] == str(files["cube"])
+    db.dispose()
+
+
+def test_reprocessing_with_shape_and_its_known_size_cube_meets_the_budget(
+    sim_run, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """With the recipe's default shape options the known-size cube fit places the axis to a
+    few hundredths of a millimetre: the re-processing is within the budget, and --accept makes
+    it the run's accepted calibration."""
+    files = sim_run()
+    url = f"sqlite:///{tmp_path / 'qa.db'}"
+    db = open_database(url)
+    run_id = _store_run(db, files)
+    code, out, err = _run(["calibrate", "--run", str(run_id), "--strategy", "shape", "--accept",
+                           "--db", url, "--json"], capsys)
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["strategy"] == "shape" and data["refused"] == [] and data["accepted"] is True
+    truth = read_recording(files["cube"]).truth
+    assert truth is not None
+    with db.session() as s:
+        accepted = s.query(Calibration).filter_by(run_id=run_id, accepted=True).one()
+        assert accepted.stage == "reprocess" and accepted.strategy == "shape"
+        assert accepted.diagnostics["known_size"]["used"] is True
+        from calstation.engine.frames import Extrinsics
+
+        e = axis_errors(Extrinsics.from_dict(accepted.params()), truth)
+        assert e["axis_offset_m"] < 0.15e-3
+        assert accepted.predicted_error_m is not None and accepted.predicted_error_m <= 0.0003
     db.dispose()
 
 
