@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -117,15 +118,21 @@ def test_readings_handed_over_late_are_put_in_their_place(sim_run) -> None:
     assert np.array_equal(half.phi, first_phi)
 
 
+def _readings_from_the_third_line(rec: Any, lines: list[Any]) -> list[EncoderSample]:
+    """The recording's encoder readings from just after the third line began (on the lidar's
+    clock): the first lands inside that line."""
+    start = int(lines[2].timestamp_ns) + 1
+    return [EncoderSample(int(t), int(c))
+            for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)
+            if t - rec.encoder_latency_s * 1e9 >= start]
+
+
 def test_lines_that_begin_before_the_first_reading_do_not_hold_the_scan_back(sim_run) -> None:
     rec = read_recording(sim_run()["spin"])
     lines = list(rec.lines())
     # the encoder's first reading lands inside the third line: the returns before it have no
     # angle, and the lines after it are prepared as their readings arrive
-    start = int(lines[2].timestamp_ns) + 1
-    samples = [EncoderSample(int(t), int(c))
-               for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)
-               if t - rec.encoder_latency_s * 1e9 >= start]
+    samples = _readings_from_the_third_line(rec, lines)
     builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
                               rec.encoder_latency_s)
     ready = _interleaved(builder, samples[: len(samples) // 2], lines[: len(lines) // 2])
@@ -144,10 +151,7 @@ def test_lines_wait_for_the_platter_to_move_before_their_angles_are_found(sim_ru
     equal the one prepared with every reading."""
     rec = read_recording(sim_run()["spin"])
     lines = list(rec.lines())
-    start = int(lines[2].timestamp_ns) + 1
-    samples = [EncoderSample(int(t), int(c))
-               for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)
-               if t - rec.encoder_latency_s * 1e9 >= start]
+    samples = _readings_from_the_third_line(rec, lines)
     # the first three readings hold the first one's count (the platter had not moved a count)
     samples[1:3] = [EncoderSample(s.timestamp_ns, samples[0].count) for s in samples[1:3]]
 

@@ -48,7 +48,7 @@ from calstation.engine.periodicity.covariance import (
 )
 from calstation.engine.settings import CubeGeometry
 from calstation.engine.spinscan import SpinScan
-from calstation.engine.twist import GRAZING_FACE, face_range_noise, range_twist_bias
+from calstation.engine.twist import away_from_grazing, face_range_noise, range_twist_bias
 from calstation.errors import FineTuningError
 
 FIT_POINTS = 200_000
@@ -165,9 +165,7 @@ class _RangeErrors:
         half = 0.5 * (self.edge if edge is None else edge)
         dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - half, q[:, 0] - top)
         cosine = np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
-        cosine = np.where(cosine < 0, np.minimum(cosine, -GRAZING_FACE),
-                          np.maximum(cosine, GRAZING_FACE))
-        out: FloatArray = dist / cosine
+        out: FloatArray = dist / away_from_grazing(cosine)
         return out
 
 

@@ -122,10 +122,15 @@ def _range_errors(q: FloatArray, v: FloatArray, noise: float) -> FloatArray:
         s_w = (w[:, None] * d).T @ d - noise**2 * ((w[:, None] * v).T @ v)
         n = np.linalg.eigh(s_w)[1][:, 0]
     n = n if n[np.argmax(np.abs(n))] > 0 else -n
-    c = v @ n
-    out: FloatArray = (d @ n) / np.where(
-        c < 0, np.minimum(c, -GRAZING_FACE), np.maximum(c, GRAZING_FACE)
-    )
+    out: FloatArray = (d @ n) / away_from_grazing(v @ n)
+    return out
+
+
+def away_from_grazing(cosine: FloatArray) -> FloatArray:
+    """Rays' cosines with their face, kept at least :data:`GRAZING_FACE` from zero (sign kept):
+    the divisor that turns a distance to the face into a range error along the ray."""
+    out: FloatArray = np.where(cosine < 0, np.minimum(cosine, -GRAZING_FACE),
+                               np.maximum(cosine, GRAZING_FACE))
     return out
 
 
