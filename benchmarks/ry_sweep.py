@@ -210,12 +210,9 @@ def _at_turns(recipe: Any, spin: Any, cube: Any, start: Any, truth: Any,
     """The periodicity (alone, and with the cube's faces) and shape estimates on n turns."""
     from calstation.engine.metrics import axis_errors
     from calstation.errors import CalstationError
-    from calstation.plugins.cost_strategies import (
-        PeriodicityStrategy,
-        ShapeStrategy,
-        fine_tune_with_cube,
-        run_strategy,
-    )
+    from calstation.pipeline import turned
+    from calstation.pipeline.stages import with_cube
+    from calstation.plugins.cost_strategies import PeriodicityStrategy, ShapeStrategy, run_strategy
 
     out = []
 
@@ -230,12 +227,15 @@ def _at_turns(recipe: Any, spin: Any, cube: Any, start: Any, truth: Any,
                     "err": axis_errors(result.H, truth), "s": time.perf_counter() - t0})
         return result
 
-    spin_n, cube_n = spin.first_turns(n), cube.first_turns(n)
-    fine = record("periodicity", lambda: run_strategy(PeriodicityStrategy(), spin_n, start,
-                                                      recipe)[0])
+    # each scan's returns prepared once, for every estimate made from it
+    spin_n, cube_n = turned(spin.first_turns(n)), turned(cube.first_turns(n))
+    fine = record("periodicity", lambda: run_strategy(
+        PeriodicityStrategy(), spin_n.recording, start, recipe, prepared=spin_n.prepared)[0])
     if fine is not None:
-        record("periodicity+cube", lambda: fine_tune_with_cube(fine, cube_n, recipe)[0])
-    record("shape", lambda: run_strategy(ShapeStrategy(), cube_n, start, recipe)[0])
+        record("periodicity+cube",
+               lambda: with_cube(recipe, PeriodicityStrategy(), fine, cube_n).result)
+    record("shape", lambda: run_strategy(ShapeStrategy(), cube_n.recording, start, recipe,
+                                         prepared=cube_n.prepared)[0])
     return out
 
 

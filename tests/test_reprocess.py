@@ -15,10 +15,10 @@ import yaml
 from clirun import run_cli as _run
 
 from calstation.engine.metrics import axis_errors
+from calstation.pipeline import recording_disagreements
 from calstation.recipes import load_recipe
 from calstation.recordings.reader import read_recording
 from calstation.recordings.runfolder import file_sha256
-from calstation.station.reprocess import recording_disagreements
 from calstation.storage.db import Artifact, Calibration, Database, Run, Station, Step, open_database
 
 REPO = Path(__file__).resolve().parents[1]

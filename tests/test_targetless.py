@@ -110,7 +110,7 @@ def test_an_axis_far_from_the_scan_plane_is_found_from_the_platter(
     from calstation_sim import simulate_run
 
     from calstation import plugins
-    from calstation.plugins.cost_strategies import fine_tune_targetless
+    from calstation.pipeline import Scans, calibrate, turned
 
     data = yaml.safe_load(TARGETLESS.read_text())
     data["simulation"]["truth"] = {"H": {"tx": 0.015, "ty": 1.25, "tz": tz, "ry": 0.003,
@@ -122,8 +122,8 @@ def test_an_axis_far_from_the_scan_plane_is_found_from_the_platter(
     spin = read_recording(files["spin"])
     truth = spin.truth
     assert truth is not None and truth.tz == tz
-    result, _, start = fine_tune_targetless(plugins.strategy("periodicity"), spin,
-                                            loaded.recipe)
+    done = calibrate(loaded.recipe, Scans(spin=turned(spin)), plugins.strategy("periodicity"))
+    result, start = done.result, done.start
     assert abs(start.diagnostics["tz_from_chord_m"] - abs(tz)) < 0.02
     assert abs(result.H.tz - tz) < 1e-3  # the sign too
     errors = axis_errors(result.H, truth)

@@ -20,11 +20,9 @@ from calstation.engine.frames import Extrinsics
 from calstation.engine.initial import initial_calibration
 from calstation.engine.metrics import axis_errors
 from calstation.engine.result import CalibrationResult
-from calstation.plugins.cost_strategies import (
-    PeriodicityStrategy,
-    ShapeStrategy,
-    fine_tune_with_cube,
-)
+from calstation.pipeline import turned
+from calstation.pipeline.stages import with_cube
+from calstation.plugins.cost_strategies import PeriodicityStrategy, ShapeStrategy
 from calstation.recipes import load_recipe
 from calstation.recordings.reader import read_recording
 
@@ -72,7 +70,7 @@ def test_periodicity_with_the_cube_is_within_3_sigma_accepted_or_not(
     """One turn, decided as the station decides it: the σ covers the error of the periodicity
     estimate and of its combination with the cube, whatever the budget decides; an accepted
     run's axis direction is within the issue's threshold, and every 0.5 mm run is accepted."""
-    from calstation.station.accuracy import with_prediction
+    from calstation.pipeline.judgement import with_prediction
 
     run, recipe = _simulate(tmp_path, noise=noise, background=background, offset=offset,
                             rate=rate, scenario=scenario, seed=seed)
@@ -83,7 +81,8 @@ def test_periodicity_with_the_cube_is_within_3_sigma_accepted_or_not(
     fine = PeriodicityStrategy().run(read_recording(run["spin"]), initial.H, recipe)
     assert fine.diagnostics["range_noise_m"] == pytest.approx(noise, rel=0.2)
     _assert_covered(fine, truth)
-    outcome, _, failure = fine_tune_with_cube(fine, read_recording(run["cube"]), recipe)
+    cubed = with_cube(recipe, PeriodicityStrategy(), fine, turned(read_recording(run["cube"])))
+    outcome, failure = cubed.result, cubed.ry_failure
     assert failure is None or "ry" in failure, failure
     _assert_covered(outcome, truth)
     _, predicted = with_prediction(outcome, recipe)
@@ -106,7 +105,7 @@ def test_shape_at_1_mm_is_within_3_sigma(tmp_path: Path, rate: float) -> None:
     """The shape strategy at the default noise, one cube turn: it does not stop, its σ covers
     the error in every parameter, and an accepted result is within 0.5 mm and 0.1° of the
     axis."""
-    from calstation.station.accuracy import with_prediction
+    from calstation.pipeline.judgement import with_prediction
 
     run, recipe = _simulate(tmp_path, noise=0.001, background=True, offset=0.06, rate=rate,
                             scenario=(1.25, 45.0), seed=31)

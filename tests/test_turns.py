@@ -172,7 +172,7 @@ def test_a_cube_fits_noise_bias_over_the_budget_is_told_what_would_help() -> Non
 
     from calstation.engine.frames import Extrinsics
     from calstation.engine.result import CalibrationResult
-    from calstation.station.accuracy import budget_failure, with_prediction
+    from calstation.pipeline.judgement import budget_failure, with_prediction
 
     recipe = load_recipe(RECIPES / "sim-shape.yaml").recipe
     recipe = recipe.model_copy(update={"calibration": recipe.calibration.model_copy(

@@ -158,35 +158,27 @@ def _simulate_and_fit(
 
 
 def _fit(recipe: Any, files: dict[str, Any], turns: int) -> dict[str, Any]:
-    """The station's fine-tuning on the first ``turns`` turns: σ, predicted error, and (for
-    a spin-target strategy) the predicted error once the cube's faces join ry."""
+    """The station's calibration (:func:`calstation.pipeline.calibrate`) on the first
+    ``turns`` turns of the strategy's scan: σ and the predicted error of the fine-tuning, and
+    (for a spin-target strategy) the predicted error once the cube's faces join ry."""
     from calstation import plugins
     from calstation.bench.records import scan_of
-    from calstation.engine.frames import Extrinsics
-    from calstation.engine.initial import initial_calibration
-    from calstation.plugins.cost_strategies import fine_tune_with_cube, run_strategy
+    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.pipeline.judgement import with_prediction
     from calstation.recordings.reader import read_recording
-    from calstation.station.accuracy import with_prediction
 
     t0 = time.perf_counter()
     strategy = plugins.strategy(recipe.calibration.strategy)
-    start: Extrinsics
-    if recipe.calibration.start == "platter" or "static" not in files:
-        from calstation.engine.targetless import targetless_start
-
-        spin_all = read_recording(files["spin"])
-        start = targetless_start(spin_all, recipe.fixtures.platter, recipe.calibration.initial).H
-    else:
-        static = read_recording(files["static"])
-        start = initial_calibration(static, recipe.fixtures.static_target,
-                                    recipe.calibration.initial).H
+    static = (None if recipe.calibration.start == "platter" or "static" not in files
+              else read_recording(files["static"]))
     scan = read_recording(files[scan_of(strategy)]).first_turns(turns)
-    result, _ = run_strategy(strategy, scan, start, recipe)
-    result, predicted = with_prediction(result, recipe, turns=turns)
-    with_cube = predicted.max_m
-    if strategy.fixture == "spin_target":
-        combined, _, _ = fine_tune_with_cube(result, read_recording(files["cube"]), recipe)
-        with_cube = with_prediction(combined, recipe)[1].max_m
+    on_target = strategy.fixture == "spin_target"
+    done = calibrate(recipe, Scans(
+        spin=turned(scan), static=static,
+        cube=turned(read_recording(files["cube"])) if on_target else None), strategy)
+    result = done.fine_tuned
+    predicted = with_prediction(result, recipe, turns=turns)[1]
+    with_cube = with_prediction(done.result, recipe)[1].max_m if on_target else predicted.max_m
     return {"turns": turns, "sigma": {p: result.sigma.get(p, math.nan) for p in PARAMS},
             "predicted_error_m": predicted.max_m, "with_cube_m": with_cube,
             "seconds": time.perf_counter() - t0}

@@ -59,8 +59,7 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
     from calstation_sim import simulate_run
 
     from calstation import plugins
-    from calstation.engine.initial import initial_calibration
-    from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
+    from calstation.pipeline import Scans, calibrate, turned
     from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
@@ -70,15 +69,17 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
     files = simulate_run(loaded, folder, seed=seed, range_m=scenario.range_m,
                          pitch_deg=scenario.pitch_deg, progress=False)
     strategy = plugins.strategy(method)
-    spin = read_recording(files["spin" if strategy.fixture == "spin_target" else "cube"])
-    truth = spin.truth
+    recording = read_recording(files["spin" if strategy.fixture == "spin_target" else "cube"])
+    truth = recording.truth
     assert truth is not None
+    spin = turned(recording)
     record: dict[str, Any] = {"scenario": scenario.name, "range_m": scenario.range_m,
                               "pitch_deg": scenario.pitch_deg, "seed": seed, "method": method,
                               "truth": {"tz": truth.tz, "ry": truth.ry}}
     t0 = time.perf_counter()
     try:
-        result, _, start = fine_tune_targetless(strategy, spin, rc)
+        done = calibrate(rc, Scans(spin=spin), strategy)
+        result, start = done.result, done.start
     except Exception as exc:  # a failure is a result of the sweep, kept with its reason
         record["targetless"] = {"status": "failed", "message": f"{type(exc).__name__}: {exc}",
                                 "converged": False}
@@ -90,9 +91,8 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
     record["targetless"]["time_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     try:
-        initial = initial_calibration(read_recording(files["static"]),
-                                      rc.fixtures.static_target, rc.calibration.initial)
-        from_l, _ = run_strategy(strategy, spin, initial.H, rc)
+        from_l = calibrate(rc, Scans(spin=spin, static=read_recording(files["static"])),
+                           strategy).result
     except Exception as exc:
         record["l_target"] = {"status": "failed", "message": f"{type(exc).__name__}: {exc}",
                               "converged": False}
@@ -119,7 +119,8 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
 
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
-    from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
+    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.plugins.cost_strategies import run_strategy
     from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
@@ -136,16 +137,19 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
     loaded = load_recipe(path)
     files = simulate_run(loaded, folder / "scans", seed=seed, progress=False)
     strategy = plugins.strategy(method)
-    spin = read_recording(files["spin" if strategy.fixture == "spin_target" else "cube"])
+    spin = turned(read_recording(files["spin" if strategy.fixture == "spin_target"
+                                         else "cube"]))
     record: dict[str, Any] = {"param": param, "value": value, "scenario": scenario.name,
                               "seed": seed, "truth": H.as_dict()}
     try:
-        from_truth, _ = run_strategy(strategy, spin, H, loaded.recipe)
+        from_truth, _ = run_strategy(strategy, spin.recording, H, loaded.recipe,
+                                     prepared=spin.prepared)
     except Exception as exc:  # the station itself is beyond the strategy: not the start's doing
         record.update(status="station", message=f"even from the true H: {exc}", same=False)
         return record
     try:
-        result, _, start = fine_tune_targetless(strategy, spin, loaded.recipe)
+        done = calibrate(loaded.recipe, Scans(spin=spin), strategy)
+        result, start = done.result, done.start
     except Exception as exc:  # a failure is a result of the sweep, kept with its reason
         record.update(status="failed", message=f"{type(exc).__name__}: {exc}", same=False)
         return record

@@ -201,18 +201,18 @@ def _calibrate_files(
     recipe: Path, static: Path | None, spin: Path, strategy: str | None, out: Path | None,
     as_json: bool, cube: Path | None = None, spin_pass2: Path | None = None,
 ) -> None:
-    """``calibrate RECIPE [--static] --spin``: nothing is stored. Without ``static`` the start
-    comes from the platter's chord in the spin scan (:mod:`calstation.engine.targetless`)."""
+    """``calibrate RECIPE [--static] --spin``: the recordings read and checked, then the
+    calibration pipeline (:func:`calstation.pipeline.calibrate`) whole; nothing is stored.
+    Without ``static`` the start comes from the platter's chord in the spin scan."""
     from dataclasses import replace
 
     from rich.console import Console
 
     from calstation import plugins
     from calstation.errors import CalibrationError
+    from calstation.pipeline import calibrate
+    from calstation.quiet import stdout_to_stderr
     from calstation.recipes import load_recipe
-    from calstation.recordings.reader import read_recording
-    from calstation.station.accuracy import judge
-    from calstation.station.reprocess import recording_disagreements
 
     console = Console(stderr=True)
     loaded = load_recipe(recipe)
@@ -224,126 +224,106 @@ def _calibrate_files(
             f"--cube: the {name} strategy fine-tunes on the cube scan itself; give the cube "
             "scan as --spin (--cube adds the cube to a spin-target strategy's ry)"
         )
-    warnings: list[str] = []
-    st = None
-    if static is not None:
-        with console.status(f"reading {static}"):
-            st = read_recording(static)
-        if st.kind in ("spin", "cube"):
-            raise CalibrationError(
-                f"{static}: this is a {st.kind!r} recording, not the static scan of the L-target "
-                "(recording kind 'static', static.mcap of a run)"
-            )
-        warnings = recording_disagreements(st, loaded)
-    with console.status(f"reading {spin}"):
-        sp = read_recording(spin)
-    if sp.kind == "static":
-        raise CalibrationError(
-            f"{spin}: this is a 'static' recording; fine-tuning needs a spin scan "
-            f"({'spin' if strat.fixture == 'spin_target' else 'cube'}.mcap of a run)"
-        )
-    warnings += recording_disagreements(sp, loaded)
+    files = {"static": static, "spin": spin, "spin_pass2": spin_pass2, "cube": cube}
+    read, warnings = _read_files(console, files, strat, loaded)
     _warn(console, warnings)
-    initial, result, strategy_warnings = _start_and_fine_tune(console, strat, st, sp, rc)
-    _warn(console, strategy_warnings)
-    joint_failure = None
-    if cube is not None:
-        result, joint_failure = _with_cube(console, result, cube, loaded)
-    if spin_pass2 is not None:
-        result = _with_second_pass(console, result, sp, spin_pass2, loaded)
-    diagnostics = dict(result.diagnostics)
-    diagnostics["initial"] = {"H": initial.H.as_dict(), "timings": dict(initial.timings),
-                              "strategy": initial.strategy}
-    diagnostics["recordings"] = {"spin": str(spin)}
-    if static is not None:
-        diagnostics["recordings"]["static"] = str(static)
-    if spin_pass2 is not None:
-        diagnostics["recordings"]["spin_pass2"] = str(spin_pass2)
-    if cube is not None:
-        diagnostics["recordings"]["cube"] = str(cube)
-    diagnostics["recipe"] = {"name": rc.name, "sha256": loaded.sha256}
-    if warnings or strategy_warnings:
-        diagnostics["warnings"] = warnings + strategy_warnings
-    result, refused = judge(replace(result, diagnostics=diagnostics), rc,
-                            ry_failure=joint_failure, turns=float(sp.whole_turns()))
-    if out is not None:
-        result.save(out)
-    if as_json:
-        summary = result.summary()
-        summary["initial"] = initial.H.as_dict()
-        summary["refused"] = refused
-        typer.echo(json.dumps(summary, indent=2))
-    else:
-        _print_result(initial.H, result)
-        typer.echo(_timing_line(result) + (f"; written to {out}" if out is not None else ""))
-    if refused:
-        _refuse(refused)
-
-
-def _start_and_fine_tune(
-    console: Any, strat: Any, static: Any, spin: Any, rc: Any
-) -> tuple[Any, Any, list[str]]:
-    """(the start, the fine-tuned result, its warnings): the start from the L-target's
-    ``static`` scan, or without one from the platter's chord in the ``spin`` scan."""
-    from calstation.engine.initial import initial_calibration
-    from calstation.plugins.cost_strategies import fine_tune_targetless, run_strategy
-    from calstation.quiet import stdout_to_stderr
-
-    initial = None
-    if static is not None:
-        with console.status("initial calibration"), stdout_to_stderr():
-            initial = initial_calibration(static, rc.fixtures.static_target,
-                                          rc.calibration.initial)
     with _progress_bar(console) as bar, stdout_to_stderr():
         task = bar.add_task(f"{strat.name} fine-tuning", total=1.0)
 
         def progress(message: str, fraction: float) -> None:
             bar.update(task, description=message, completed=max(0.0, min(1.0, fraction)))
 
-        if initial is None:
-            result, warnings, initial = fine_tune_targetless(strat, spin, rc, progress)
-        else:
-            result, warnings = run_strategy(strat, spin, initial.H, rc, progress)
+        done = calibrate(rc, _scans(read), strat, progress)
         bar.update(task, completed=1.0)
-    return initial, result, warnings
+    _warn(console, done.warnings)
+    if done.cube_check is not None:
+        _print_cube(console, done)
+    diagnostics = dict(done.result.diagnostics)
+    diagnostics["initial"] = {"H": done.start.H.as_dict(), "timings": dict(done.start.timings),
+                              "strategy": done.start.strategy}
+    diagnostics["recordings"] = {k: str(v) for k, v in files.items() if v is not None}
+    diagnostics["recipe"] = {"name": rc.name, "sha256": loaded.sha256}
+    if warnings or done.warnings:
+        diagnostics["warnings"] = warnings + done.warnings
+    result = replace(done.result, diagnostics=diagnostics)
+    if out is not None:
+        result.save(out)
+    if as_json:
+        summary = result.summary()
+        summary["initial"] = done.start.H.as_dict()
+        summary["refused"] = done.refused
+        typer.echo(json.dumps(summary, indent=2))
+    else:
+        _print_result(done.start.H, result)
+        typer.echo(_timing_line(result) + (f"; written to {out}" if out is not None else ""))
+    if done.refused:
+        _refuse(done.refused)
 
 
-def _with_second_pass(console: Any, result: Any, first: Any, path: Path, loaded: Any) -> Any:
-    """``result`` with the lidar–encoder time offset from the spin scan's two passes."""
-    from calstation.engine.timeoffset import with_time_offset
+def _read_files(
+    console: Any, files: dict[str, Path | None], strat: Any, loaded: Any
+) -> tuple[dict[str, Any], list[str]]:
+    """The recordings named on the command line, each checked to be the scan it is given as;
+    (kind → recording, every disagreement between a recording and the recipe)."""
     from calstation.errors import CalibrationError
-    from calstation.station.reprocess import recording_disagreements
+    from calstation.pipeline import recording_disagreements
 
-    second = _read_kind(console, path, "spin", CalibrationError,
-                        "--spin-pass2 takes the spin scan's second pass", "spin-pass2.mcap")
-    _warn(console, recording_disagreements(second, loaded))
-    with console.status("lidar–encoder time offset"):
-        return with_time_offset(
-            result, first, second, loaded.recipe.fixtures.platter.radius
+    read: dict[str, Any] = {}
+    if files["static"] is not None:
+        read["static"] = _read_any(console, files["static"])
+        if read["static"].kind in ("spin", "cube"):
+            raise CalibrationError(
+                f"{files['static']}: this is a {read['static'].kind!r} recording, not the static "
+                "scan of the L-target (recording kind 'static', static.mcap of a run)"
+            )
+    spin = files["spin"]
+    assert spin is not None
+    read["spin"] = _read_any(console, spin)
+    if read["spin"].kind == "static":
+        raise CalibrationError(
+            f"{files['spin']}: this is a 'static' recording; fine-tuning needs a spin scan "
+            f"({'spin' if strat.fixture == 'spin_target' else 'cube'}.mcap of a run)"
         )
+    if files["spin_pass2"] is not None:
+        read["spin_pass2"] = _read_kind(console, files["spin_pass2"], "spin", CalibrationError,
+                                        "--spin-pass2 takes the spin scan's second pass",
+                                        "spin-pass2.mcap")
+    if files["cube"] is not None:
+        read["cube"] = _read_cube(console, files["cube"], CalibrationError,
+                                  "--cube needs the cube's spin scan")
+    warnings = [w for rec in read.values() for w in recording_disagreements(rec, loaded)]
+    return read, warnings
 
 
-def _with_cube(console: Any, result: Any, cube: Path, loaded: Any) -> tuple[Any, str | None]:
-    """``result`` with ry combined from the cube scan (a spin-target strategy), and the
-    failure of that combination or None; prints the cube's figures."""
+def _scans(read: dict[str, Any]) -> Any:
+    """The recordings as the pipeline takes them (each spin scan's returns prepared once)."""
+    from calstation.pipeline import Scans, turned
+
+    return Scans(spin=turned(read["spin"]), static=read.get("static"),
+                 spin_pass2=read.get("spin_pass2"),
+                 cube=turned(read["cube"]) if "cube" in read else None)
+
+
+def _print_cube(console: Any, done: Any) -> None:
+    """The cube's figures under the result (and the ry combination, when there was one)."""
     from rich.markup import escape
 
     from calstation.engine.joint import joint_summary
-    from calstation.errors import CalibrationError
-    from calstation.plugins.cost_strategies import fine_tune_with_cube
-    from calstation.quiet import stdout_to_stderr
-    from calstation.station.reprocess import recording_disagreements
 
-    rec = _read_cube(console, cube, CalibrationError, "--cube needs the cube's spin scan")
-    _warn(console, recording_disagreements(rec, loaded))
-    with console.status("combining ry with the cube's side faces"), stdout_to_stderr():
-        combined, check, failure = fine_tune_with_cube(result, rec, loaded.recipe)
+    check = done.cube_check
     line = (f"cube: side-face twist {check.twist_deg:+.3f}° ± {check.twist_sigma_deg:.3f}°, "
             f"edge error {check.edge_error * 1e3:.2f} mm")
-    if combined is not result:
-        line += f"; {joint_summary(combined)}"
+    if "joint" in done.result.diagnostics:
+        line += f"; {joint_summary(done.result)}"
     console.print(escape(line), highlight=False)
-    return combined, failure
+
+
+def _read_any(console: Any, path: Path) -> Any:
+    """The recording at ``path``."""
+    from calstation.recordings.reader import read_recording
+
+    with console.status(f"reading {path}"):
+        return read_recording(path)
 
 
 def _read_cube(console: Any, path: Path, error: type[Exception], need: str) -> Any:

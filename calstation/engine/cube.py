@@ -44,6 +44,7 @@ from calstation.errors import VerificationError
 
 if TYPE_CHECKING:
     from calstation.engine.scan import Scan
+    from calstation.engine.spinscan import SpinScan
 
 SEGMENT_MARGIN = 0.005
 """Cube points are those more than 5 mm above the platter top (the OBB height adds it back)."""
@@ -539,13 +540,15 @@ def check_cube(
     limits: QALimits,
     *,
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
+    prepared: SpinScan | None = None,
 ) -> CubeCheck:
-    """Cube check on a QA-cube spin-scan recording with the calibration H (its returns
-    prepared once per recording, or as the scan ran:
-    :func:`calstation.engine.spinscan.from_recording`)."""
+    """Cube check on a QA-cube spin-scan recording with the calibration H. ``prepared``: the
+    recording's returns already prepared (:func:`calstation.engine.spinscan.from_recording`, or
+    a :class:`~calstation.engine.spinscan.SpinScanBuilder` as the scan ran), else they are
+    prepared here."""
     from calstation.engine.spinscan import from_recording
 
-    scan = from_recording(recording)
+    scan = prepared if prepared is not None else from_recording(recording)
     try:
         return check_cube_points(
             scan.p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=scan.memo

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from calstation.engine.cube import CubeCheck
     from calstation.engine.scan import Scan
     from calstation.engine.settings import CubeGeometry, QALimits
+    from calstation.engine.spinscan import SpinScan
 
 MORE_DATA = (
     "Scan more turns (steps.spin_scan.revolutions and steps.cube_scan.revolutions: the σ falls "
@@ -146,22 +147,26 @@ def combine_with_cube_scan(
     platter_radius: float,
     max_sigma_ry: float | None,
     progress: Callable[[str, float], None] | None = None,
+    prepared: SpinScan | None = None,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` with ry combined from the cube scan ``cube``, as
     the station does at its cube step: (the combined result, strategy ``<name>+cube``, with
     ``result``'s diagnostics and the ``joint`` details, or ``result`` itself when nothing could
     be combined; the cube check under that H; the failure of :func:`ry_with_cube` or None).
     ``geometry`` and ``qa`` are the cube's and the check's settings, ``max_sigma_ry`` the ry
-    gate (rad)."""
+    gate (rad); ``prepared`` the cube scan's returns already prepared
+    (:func:`calstation.engine.cube.check_cube`)."""
     from calstation.engine.cube import check_cube
 
-    check = check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius)
+    check = check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius,
+                       prepared=prepared)
     combined, failure = with_cube_ry(result, check, max_sigma_ry)
     if combined is result:
         return result, check, failure
     if progress is not None:
         progress("measuring the cube with ry from both scans", 0.6)
-    check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius)
+    check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
+                       prepared=prepared)
     return combined, check, failure
 
 

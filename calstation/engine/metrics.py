@@ -21,6 +21,7 @@ from calstation.errors import CalibrationError
 
 if TYPE_CHECKING:
     from calstation.engine.scan import Scan
+    from calstation.engine.spinscan import SpinScan
 
 
 def axis_errors(estimate: Extrinsics, truth: Extrinsics) -> dict[str, float]:
@@ -101,14 +102,13 @@ def distortion_points(
 
 
 def reconstruction_distortion(
-    recording: Scan, estimate: Extrinsics, truth: Extrinsics
+    recording: Scan, estimate: Extrinsics, truth: Extrinsics, *, prepared: SpinScan | None = None
 ) -> dict[str, float]:
     """Distortion of a recording's object (e.g. the QA cube) reconstructed with ``estimate``
-    instead of ``truth``: ``rms_m``, ``max_m`` (metres) after the best rigid alignment. The
-    returns come from the recording's prepared scan
-    (:func:`calstation.engine.spinscan.from_recording`,
-    made once per recording)."""
+    instead of ``truth``: ``rms_m``, ``max_m`` (metres) after the best rigid alignment.
+    ``prepared``: the recording's returns already prepared
+    (:func:`calstation.engine.spinscan.from_recording`), else they are prepared here."""
     from calstation.engine.spinscan import from_recording
 
-    scan = from_recording(recording)
+    scan = prepared if prepared is not None else from_recording(recording)
     return distortion_points(scan.p_L, scan.phi, estimate, truth)

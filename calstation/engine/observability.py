@@ -103,7 +103,7 @@ def problems_with_cube(
     result: CalibrationResult, limits: SigmaLimits, ry_failure: str | None
 ) -> list[str]:
     """:func:`sigma_problems` of a result whose ry went through the cube step
-    (:func:`calstation.plugins.cost_strategies.fine_tune_with_cube`): that step's
+    (:func:`calstation.pipeline.stages.with_cube`): that step's
     ``ry_failure``, when it has one, stands for ry."""
     if ry_failure is None:
         return sigma_problems(result, limits)

@@ -501,6 +501,28 @@ class SpinScanBuilder:
             phi, p_L, rng, az, b, c = phi[keep], p_L[keep], rng[keep], az[keep], b[keep], c[keep]
         return SpinScan(p_L, phi, rng, az, {"during_scan": self.during_s}, cells=(b, c))
 
+    @property
+    def lines(self) -> int:
+        """How many lines the builder was handed."""
+        return len(self._line_ends)
+
+    def first_lines(self, lines: int) -> SpinScan:
+        """The first ``lines`` lines of the finished scan, prepared: the :class:`SpinScan` that
+        :func:`prepare` makes of the recording cut after them
+        (:meth:`calstation.engine.scan.Scan.first_lines`), without preparing it again. The
+        whole scan (:meth:`finish`) when it has no more lines."""
+        done = self.finish()
+        if lines >= len(self._line_ends):
+            return done
+        end = self._line_ends[lines - 1] if lines > 0 else 0
+        phi, p_L = self._phi.view()[:end], self._p.view()[:end]
+        rng, az = self._rng.view()[:end], self._az.view()[:end]
+        b, c = self._bin.view()[:end], self._cell.view()[:end]
+        keep = np.isfinite(phi)
+        if not keep.all():
+            phi, p_L, rng, az, b, c = phi[keep], p_L[keep], rng[keep], az[keep], b[keep], c[keep]
+        return SpinScan(p_L, phi, rng, az, {"during_scan": self.during_s}, cells=(b, c))
+
     def finish(self) -> SpinScan:
         """The prepared scan (computed once; later calls return the same object)."""
         if self._done is not None:

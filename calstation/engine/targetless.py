@@ -8,7 +8,7 @@ direction gives rz, its midpoint tx and ty (the origin on the platter top, the p
 gauge), and its length |tz|: ``length = 2·√(R² − tz²)``. tz itself (its sign, and whether a
 short chord means |tz| or only a blurred rim) and ry are left to the fine-tuning, which is run
 from each candidate start — tz = 0, +|tz|, −|tz|
-(:func:`calstation.plugins.cost_strategies.fine_tune_targetless`): the one with the lowest cost
+(:func:`calstation.pipeline.stages.fine_tune`): the one with the lowest cost
 is kept.
 
 A scan where no such chord is seen — the rim out of the field of view or hidden, the platter
@@ -33,6 +33,7 @@ from calstation.errors import InitialCalibrationError
 if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
     from calstation.engine.scan import Scan
+    from calstation.engine.spinscan import SpinScan
 
 BIN_DEG = 0.05
 """Azimuth bins of the static profile (degrees)."""
@@ -202,20 +203,25 @@ def extrinsics_from_chord(chord: PlatterChord, radius: float) -> tuple[Extrinsic
 
 
 def targetless_start(
-    recording: Scan, platter: PlatterGeometry, settings: InitialSettings = InitialSettings()
+    recording: Scan,
+    platter: PlatterGeometry,
+    settings: InitialSettings = InitialSettings(),
+    *,
+    prepared: SpinScan | None = None,
 ) -> CalibrationResult:
     """The initial calibration from the platter's chord in a spin scan (strategy ``platter``),
     with the line segmentation of the initial calibration (``settings``).
 
     tz is 0 here; the diagnostics give the chord, its |tz| and the candidates for the
     fine-tuning (``tz_candidates_m``). σ: rz from the chord's
-    residuals, tx and ty from its ends (a bin's width), tz and ry not estimated.
+    residuals, tx and ty from its ends (a bin's width), tz and ry not estimated. ``prepared``:
+    the recording's returns already prepared (:func:`calstation.engine.spinscan.from_recording`).
     """
     from calstation.engine.result import CalibrationResult
     from calstation.engine.spinscan import from_recording
 
     t0 = time.perf_counter()
-    scan = from_recording(recording)
+    scan = prepared if prepared is not None else from_recording(recording)
     all_az = recording.azimuth_rad
     if all_az.size == 0:
         raise InitialCalibrationError(f"{recording.path}: the spin scan has no returns")

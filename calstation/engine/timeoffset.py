@@ -36,6 +36,7 @@ from calstation.errors import FineTuningError
 if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
     from calstation.engine.scan import Scan
+    from calstation.engine.spinscan import SpinScan
 
 SEARCH_S = 0.1
 """The coarse search covers offsets of ± this many seconds."""
@@ -128,13 +129,16 @@ def mean_speed(recording: Scan) -> float:
     return float((phi[1] - phi[0]) / ((t[-1] - t[0]) * 1e-9))
 
 
-def fixture_cloud(recording: Scan, H: Extrinsics, platter_radius: float) -> FloatArray:
-    """The moving returns above the platter, in D under ``H``: (N, 3) points."""
+def fixture_cloud(
+    recording: Scan, H: Extrinsics, platter_radius: float, prepared: SpinScan | None = None
+) -> FloatArray:
+    """The moving returns above the platter, in D under ``H``: (N, 3) points (``prepared``: the
+    recording's returns already prepared)."""
     from calstation.engine.geometry import segment_above_platter
     from calstation.engine.reconstruct import lidar_points_to_dynamic
     from calstation.engine.spinscan import from_recording
 
-    scan = from_recording(recording)
+    scan = prepared if prepared is not None else from_recording(recording)
     p_D = lidar_points_to_dynamic(scan.p_L, scan.phi, H)
     keep = ~scan.static & segment_above_platter(
         p_D, margin=MARGIN, radius=platter_radius, height=math.inf
@@ -311,11 +315,14 @@ def estimate_time_offset(
     H: Extrinsics,
     platter_radius: float,
     progress: Callable[[str, float], None] | None = None,
+    *,
+    prepared_first: SpinScan | None = None,
 ) -> TimeOffset:
     """The lidar–encoder time offset from two passes of the spin scan under the calibration H.
 
     ``first`` and ``second`` are the two passes' recordings (the same fixture, different signed
-    speeds, the same configured encoder latency). Raises :class:`FineTuningError` when they
+    speeds, the same configured encoder latency); ``prepared_first`` the first pass's returns
+    already prepared. Raises :class:`FineTuningError` when they
     cannot give it: speeds too alike, too little of the fixture in common, or an offset beyond
     ± :data:`SEARCH_S`.
     """
@@ -337,7 +344,8 @@ def estimate_time_offset(
         )
     if progress is not None:
         progress("time offset: reconstructing both passes", 0.0)
-    clouds = [fixture_cloud(rec, H, platter_radius) for rec in (first, second)]
+    clouds = [fixture_cloud(first, H, platter_radius, prepared_first),
+              fixture_cloud(second, H, platter_radius)]
     timings["clouds"] = time.perf_counter() - t0
     if progress is not None:
         progress("time offset: aligning the passes", 0.3)
@@ -373,10 +381,14 @@ def with_time_offset(
     second: Scan,
     platter_radius: float,
     progress: Callable[[str, float], None] | None = None,
+    *,
+    prepared_first: SpinScan | None = None,
 ) -> CalibrationResult:
     """``result`` with the time offset estimated from the spin scan's two passes under its H:
-    ``encoder_latency_s``, its σ, and the estimate's details in ``diagnostics["time_offset"]``."""
-    offset = estimate_time_offset(first, second, result.H, platter_radius, progress)
+    ``encoder_latency_s``, its σ, and the estimate's details in ``diagnostics["time_offset"]``
+    (``prepared_first``: the first pass's returns already prepared)."""
+    offset = estimate_time_offset(first, second, result.H, platter_radius, progress,
+                                  prepared_first=prepared_first)
     diagnostics = {**result.diagnostics, "time_offset": offset.as_dict()}
     timings = {**result.timings, "time_offset": sum(offset.timings.values())}
     return replace(

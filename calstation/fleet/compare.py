@@ -42,12 +42,11 @@ def _finite(value: Any) -> float | None:
 
 def stored_calibration(c: Calibration) -> dict[str, Any]:
     """A stored calibration as :func:`compare` takes it: id, stage, strategy, gauge, H, σ (None
-    where not estimated) and the covariance record."""
+    where not estimated), and the whole of it as the engine's result (``result``)."""
     diagnostics = c.diagnostics or {}
     return {"calibration_id": c.id, "stage": c.stage, "strategy": c.strategy,
             "gauge": diagnostics.get("gauge"), "H": c.params(), "sigma": c.sigmas(),
-            "covariance": diagnostics.get("covariance"),
-            "bias_bound": diagnostics.get("bias_bound")}
+            "result": c.result()}
 
 
 def cube_figures(check: CubeCheckRecord | dict[str, Any] | Any | None) -> dict[str, Any] | None:
@@ -62,19 +61,14 @@ def cube_figures(check: CubeCheckRecord | dict[str, Any] | Any | None) -> dict[s
     return out
 
 
-def predicted(H: dict[str, float], sigma: dict[str, Any], diagnostics: dict[str, Any],
-               recipe: Recipe) -> float | None:
+def predicted(result: CalibrationResult | None, recipe: Recipe) -> float | None:
     """The predicted reconstruction error (m) of a calibration over the recipe's work volume,
     as the station predicts it (:func:`calstation.engine.observability.predict`: the covariance,
-    or the σ, and any bound on a remaining bias), None when it has no σ."""
+    or the σ, and any bound on a remaining bias), None when it has no σ (or there is none)."""
     from calstation.engine.observability import predict
 
-    result = CalibrationResult(
-        H=Extrinsics.from_dict(H), sigma={p: math.nan if v is None else float(v)
-                                          for p, v in sigma.items()},
-        cost=math.nan, iterations=0, strategy="", timings={},
-        diagnostics={k: diagnostics[k] for k in ("covariance", "bias_bound")
-                     if diagnostics.get(k) is not None})
+    if result is None:
+        return None
     return _finite(predict(result, recipe.calibration.accuracy, recipe.fixtures.platter).max_m)
 
 
@@ -94,8 +88,8 @@ def compare(
     difference = {p: new_H[p] - float(stored["H"][p]) for p in PARAMS}
     moved = true_distortion(new.H, Extrinsics.from_dict(stored["H"]), radius=radius,
                             height=height)["max_m"]
-    before = predicted(stored["H"], stored["sigma"], stored, recipe)
-    after = predicted(new_H, dict(new.sigma), new.diagnostics, recipe)
+    before = predicted(stored.get("result"), recipe)
+    after = predicted(new, recipe)
     gauge = new.diagnostics.get("gauge")
     cube = None
     if stored_cube is not None or new_cube is not None:

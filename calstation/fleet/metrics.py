@@ -259,7 +259,7 @@ def predicted_errors(cal: Calibration, run: Run) -> dict[str, float]:
         return {}
     diagnostics = cal.diagnostics or {}
     radius, height = work_volume(recipe)
-    out = {"all": predicted(cal.params(), cal.sigmas(), diagnostics, recipe)}
+    out = {"all": predicted(cal.result(), recipe)}
     sigma = {p: math.nan if v is None else float(v) for p, v in cal.sigmas().items()}
     out.update(contributions(Extrinsics.from_dict(cal.params()), sigma,
                              diagnostics.get("covariance"), radius=radius, height=height,

@@ -4,11 +4,10 @@ A strategy refines a starting H from the spin scan of one fixture. Plugins add s
 the ``calstation_register_cost_strategies`` hook (see :mod:`calstation.plugins.hookspecs`); the
 built-ins register the same way (:mod:`calstation.plugins.builtin.strategies`).
 
-Beside the interface, the recipe-level entry points the station, ``calstation calibrate`` and
-the bench share: :func:`run_strategy` (a strategy with its result checked),
-:func:`fine_tune_targetless` (the targetless start, then a strategy from each of its starts) and
-:func:`fine_tune_with_cube` (ry combined from the QA cube's faces). Each hands the recipe's
-sections to the engine (:mod:`calstation.engine`), which knows no recipe.
+Beside the interface, :func:`run_strategy`: a strategy run with its result checked, the way
+every caller runs one (the calibration pipeline, :mod:`calstation.pipeline`, and the plugin
+author's tests). The strategies hand the recipe's sections to the engine
+(:mod:`calstation.engine`), which knows no recipe.
 """
 
 from __future__ import annotations
@@ -21,11 +20,10 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from calstation.errors import CalstationError, FineTuningError, PluginError
+from calstation.errors import FineTuningError, PluginError
 from calstation.recipes import Recipe, ShapeOptions
 
 if TYPE_CHECKING:  # NumPy loads when a strategy runs: `recipes validate` checks options only
-    from calstation.engine.cube import CubeCheck
     from calstation.engine.frames import Extrinsics
     from calstation.engine.result import CalibrationResult
     from calstation.engine.spinscan import SpinScan
@@ -304,18 +302,25 @@ def _shown(p: str, v: float) -> str:
 
 def run_strategy(
     strategy: Any,
-    recording: Recording,
+    recording: Recording | None,
     start: Extrinsics,
     recipe: Recipe,
     progress: Progress | None = None,
+    *,
+    prepared: SpinScan | None = None,
 ) -> tuple[CalibrationResult, list[str]]:
     """Run ``strategy`` and check its result (:func:`check_result`); returns (result, warnings).
 
-    The wall-clock time of the run is stored as ``timings["total"]`` when the strategy did not
-    report a finite one itself, so no caller ever prints a missing time.
+    ``prepared``: the recording's returns already prepared
+    (:func:`calstation.engine.spinscan.from_recording`, or while the scan was taken): a strategy
+    with ``run_prepared`` then fine-tunes them instead of preparing the recording again (the
+    same result). ``recording`` may be None for a scan still being taken, whose ``prepared``
+    lines only such a strategy can fine-tune. The wall-clock time of the run is stored as
+    ``timings["total"]`` when the strategy did not report a finite one itself, so no caller ever
+    prints a missing time.
     """
     t0 = time.perf_counter()
-    result = strategy.run(recording, start, recipe, progress)
+    result = _run(strategy, recording, start, recipe, progress, prepared)
     elapsed = time.perf_counter() - t0
     result, warnings = check_result(strategy, result, start)
     total = result.timings.get("total")
@@ -324,58 +329,26 @@ def run_strategy(
     return result, warnings
 
 
-def fine_tune_targetless(
+def _run(
     strategy: Any,
-    recording: Recording,
+    recording: Recording | None,
+    start: Extrinsics,
     recipe: Recipe,
-    progress: Callable[[str, float], None] | None = None,
-) -> tuple[CalibrationResult, list[str], CalibrationResult]:
-    """The targetless start, then ``strategy`` from each of its tz candidates; the result with
-    the lowest cost. Returns (result, warnings, the start it came from)."""
-    from calstation.engine.targetless import targetless_start
-
-    start = targetless_start(recording, recipe.fixtures.platter, recipe.calibration.initial)
-    candidates = start.diagnostics["tz_candidates_m"]
-    tried: list[tuple[float, CalibrationResult, list[str]]] = []
-    errors = []
-    for k, tz in enumerate(candidates):
-        def part(message: str, fraction: float, k: int = k) -> None:
-            if progress is not None:
-                progress(message, (k + fraction) / len(candidates))
-
+    progress: Progress | None,
+    prepared: SpinScan | None,
+) -> Any:
+    """The strategy's own result: on ``prepared`` with ``run_prepared`` when both are there
+    (its errors naming the recording as ``run``'s do), else on ``recording``."""
+    if prepared is not None and hasattr(strategy, "run_prepared"):
         try:
-            result, warnings = run_strategy(strategy, recording, start.H.with_(tz=tz), recipe,
-                                            part)
-        except CalstationError as exc:
-            errors.append(f"from tz {tz * 1e3:+.1f} mm: {exc}")
-        else:
-            tried.append((tz, result, warnings))
-    if not tried:
-        raise FineTuningError(f"the fine-tuning failed from every start the platter gave: "
-                              f"{'; '.join(errors)}")
-    tz, result, warnings = min(tried, key=lambda t: t[1].cost)
-    start = replace(start, H=start.H.with_(tz=tz))
-    diagnostics = {**result.diagnostics, "start": {
-        "strategy": "platter", "H": start.H.as_dict(), "chord": start.diagnostics["chord"],
-        "candidates": [{"tz_m": float(tz), "cost": float(r.cost)} for tz, r, _ in tried],
-        "failed": errors}}
-    return replace(result, diagnostics=diagnostics), warnings, start
-
-
-def fine_tune_with_cube(
-    result: CalibrationResult,
-    cube: Recording,
-    recipe: Recipe,
-    progress: Callable[[str, float], None] | None = None,
-) -> tuple[CalibrationResult, CubeCheck, str | None]:
-    """:func:`calstation.engine.joint.combine_with_cube_scan` with the recipe's cube, QA limits,
-    platter and ry gate: the station's cube step."""
-    from calstation.engine.joint import combine_with_cube_scan
-
-    return combine_with_cube_scan(
-        result, cube, recipe.fixtures.qa_cube, recipe.qa,
-        platter_radius=recipe.fixtures.platter.radius,
-        max_sigma_ry=None if (ry := recipe.calibration.max_sigma.ry_deg) is None
-        else math.radians(ry),
-        progress=progress,
-    )
+            return strategy.run_prepared(prepared, start, recipe, progress)
+        except FineTuningError as exc:
+            if recording is None:
+                raise
+            raise FineTuningError(f"{recording.path}: {exc}") from None
+    if recording is None and prepared is not None:
+        raise FineTuningError(
+            f"strategy {getattr(strategy, 'name', strategy)!r} cannot fine-tune a scan still "
+            "being taken (it has no run_prepared)"
+        )
+    return strategy.run(recording, start, recipe, progress)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from calstation import plugins
 from calstation.errors import StationError
@@ -15,6 +15,9 @@ from calstation.station import stored
 from calstation.station.hardware import Drivers
 from calstation.station.operator import Operator
 from calstation.storage.db import Calibration, Database
+
+if TYPE_CHECKING:
+    from calstation.engine.result import CalibrationResult
 
 
 @dataclass
@@ -78,6 +81,11 @@ class RunContext:
     def stored_calibration(self, stage: str) -> Calibration:
         """The run's newest ``stage`` calibration (:func:`stored.stored_calibration`)."""
         return stored.stored_calibration(self.db, self.run_id, stage)
+
+    def stored_result(self, stage: str) -> CalibrationResult:
+        """The run's newest ``stage`` calibration as the engine's result
+        (:meth:`~calstation.storage.db.Calibration.result`)."""
+        return self.stored_calibration(stage).result()
 
     def artifact_path(self, kind: str) -> Path:
         """The run's newest complete ``kind`` recording, checked

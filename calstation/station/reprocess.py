@@ -11,9 +11,8 @@ worker: :func:`plan_reprocessing` reads what the run needs from the database int
 :class:`ReprocessJob` of plain values, :func:`compute_reprocessing` does the work from the job
 alone (no database), and :func:`add_reprocessing` stores the result.
 
-:func:`recording_disagreements` compares a recording's own metadata with the recipe it is
-calibrated with (also for ``calibrate RECIPE --static --spin``); the recording's values are the
-ones the reconstruction uses, so each disagreement is a warning naming both values.
+Every disagreement between a recording's own metadata and the recipe it is calibrated with
+(:func:`calstation.pipeline.recording_disagreements`) is a warning naming both values.
 """
 
 from __future__ import annotations
@@ -33,45 +32,17 @@ from calstation.errors import DatabaseError, RecordingError, RecordingUnavailabl
 from calstation.recipes import LoadedRecipe, parse_recipe
 from calstation.recordings.runfolder import second_pass
 from calstation.recordings.shared import StoredFile
-from calstation.station.turns import as_fitted, turns_fitted
+from calstation.station.turns import turns_fitted
 from calstation.storage.db import PARAMS, Calibration, Database, Run
 
 if TYPE_CHECKING:
+    from calstation.pipeline import Scans
     from calstation.recordings.recorded import Recording
 
 REPROCESS_STAGE = "reprocess"
 """The ``calibration.stage`` of a re-processing."""
 
 Progress = Callable[[str, float], None]
-
-
-def recording_disagreements(recording: Recording, loaded: LoadedRecipe) -> list[str]:
-    """Where ``recording``'s metadata and the recipe differ: encoder direction, counts per
-    revolution (4·ppr) and the recipe's sha256. One message per difference, naming both values
-    and which one is used (the recording's: it describes the data as it was taken)."""
-    rc = loaded.recipe
-    name = recording.path.name
-    out: list[str] = []
-    enc = rc.station.encoder
-    if recording.encoder_direction != enc.direction:
-        out.append(
-            f"{name}: encoder direction {recording.encoder_direction:+d} in the recording, "
-            f"{enc.direction:+d} in the recipe (station.encoder.direction); the recording's "
-            "value is used"
-        )
-    if recording.counts_per_revolution != 4 * enc.ppr:
-        out.append(
-            f"{name}: {recording.counts_per_revolution} encoder counts per revolution in the "
-            f"recording, {4 * enc.ppr} in the recipe (4 × station.encoder.ppr {enc.ppr}); the "
-            "recording's value is used"
-        )
-    recorded = str(recording.metadata.get("calstation", {}).get("recipe_sha256") or "")
-    if recorded and recorded != loaded.sha256:
-        out.append(
-            f"{name}: taken with recipe sha256 {recorded[:12]}…, calibrated with recipe sha256 "
-            f"{loaded.sha256[:12]}… (the recipe text differs from the one of the scan)"
-        )
-    return out
 
 
 @dataclass(frozen=True)
@@ -230,7 +201,7 @@ def _turns_fitted(run: Run) -> dict[str, tuple[int, int | None]]:
 
 
 def _cut(job: ReprocessJob, kind: str) -> tuple[int, int | None] | None:
-    """What :func:`~calstation.station.turns.as_fitted` cuts ``kind``'s recording to."""
+    """What :func:`~calstation.pipeline.as_fitted` cuts ``kind``'s recording to."""
     turns = job.turns.get(kind)
     return None if turns is None else (int(turns), job.lines.get(kind))
 
@@ -258,12 +229,13 @@ def compute_reprocessing(
     status: Callable[[str], Any] | None = None,
 ) -> Recomputed:
     """Calibrate ``job``'s run again from its recordings (each checked against its sha256
-    first) with its recipe, as the station did: the initial calibration (or the platter's
-    chord), the strategy, ry combined with the cube scan for a spin-target strategy, the time
-    offset from a second pass, judged as a run judges it (``calibration.max_sigma``, the
-    accuracy budget: :func:`calstation.station.accuracy.judge`). Touches no database.
-    :class:`RecordingUnavailable` when a required recording is missing or changed."""
-    from calstation.station.accuracy import judge
+    first) with its recipe, as the station did: :func:`calstation.pipeline.calibrate` — the
+    initial calibration (or the platter's chord), the strategy, ry combined with the cube scan
+    for a spin-target strategy, the time offset from a second pass, judged as a run judges it.
+    Touches no database. :class:`RecordingUnavailable` when a required recording is missing or
+    changed."""
+    from calstation import plugins
+    from calstation.pipeline import calibrate
     from calstation.station.stored import checked_recording
 
     say = status or (lambda message: None)
@@ -276,72 +248,47 @@ def compute_reprocessing(
             paths[k] = checked_recording(job.recordings.get(k), job.run_id, k, RecordingError)
         except RecordingError as exc:
             warnings.append(f"ry from the spin target alone: {exc}")
-    result, initial, joint_failure, check, turns = _recompute(job, loaded, paths, warnings,
-                                                              progress, say)
-    result, refused = judge(result, loaded.recipe, ry_failure=joint_failure, turns=turns)
+    scans = _read_scans(job, loaded, paths, warnings, say)
+    say("calibrating")
+    done = calibrate(loaded.recipe, scans, plugins.strategy(job.strategy), progress)
+    warnings += done.warnings
+    initial = done.start
     recordings = {k: str(v) for k, v in paths.items()}
-    result = replace(result, diagnostics={
-        **result.diagnostics,
+    result = replace(done.result, diagnostics={
+        **done.result.diagnostics,
         "initial": {"H": initial.H.as_dict(), "timings": dict(initial.timings)},
         "reprocess": {"recordings": recordings, "warnings": warnings,
-                      "recipe_sha256": loaded.sha256, "refused": refused},
+                      "recipe_sha256": loaded.sha256, "refused": done.refused},
     })
-    return Recomputed(job.run_id, initial, result, recordings, warnings, refused, check)
+    return Recomputed(job.run_id, initial, result, recordings, warnings, done.refused,
+                      done.cube_check)
 
 
-def _recompute(
+def _read_scans(
     job: ReprocessJob,
     loaded: LoadedRecipe,
     paths: dict[str, Path],
     warnings: list[str],
-    progress: Progress | None,
     say: Callable[[str], Any],
-) -> tuple[CalibrationResult, CalibrationResult, str | None, Any, float]:
-    """The engine's part of :func:`compute_reprocessing`: (result, initial, the failure of the
-    ry combination or None, the cube check under the combined H or None, the whole turns of the
-    scan the strategy ran on); appends warnings."""
-    from calstation import plugins
-    from calstation.engine.initial import initial_calibration
-    from calstation.plugins.cost_strategies import (
-        fine_tune_targetless,
-        fine_tune_with_cube,
-        run_strategy,
-    )
+) -> Scans:
+    """The job's recordings read (each cut to what the station's fit saw), as the pipeline
+    takes them; every disagreement with the recipe appended to ``warnings``."""
+    from calstation.pipeline import Scans, recording_disagreements, turned
     from calstation.recordings.reader import read_recording
 
-    rc = loaded.recipe
-    strategy = plugins.strategy(job.strategy)
-    say(f"reading {paths[job.kind]}")
-    spin_all = read_recording(paths[job.kind])
-    warnings += recording_disagreements(spin_all, loaded)
-    spin = as_fitted(spin_all, _cut(job, job.kind))
-    if "static" not in paths:
-        say("start from the platter's chord, then the fine-tuning")
-        result, strategy_warnings, initial = fine_tune_targetless(strategy, spin, rc, progress)
-    else:
-        say(f"reading {paths['static']}")
-        static = read_recording(paths["static"])
-        warnings += recording_disagreements(static, loaded)
-        say("initial calibration")
-        initial = initial_calibration(static, rc.fixtures.static_target, rc.calibration.initial)
-        result, strategy_warnings = run_strategy(strategy, spin, initial.H, rc, progress)
-    warnings += strategy_warnings
-    joint_failure = check = None
-    if "cube" in paths and job.kind != "cube":
-        say(f"combining ry with the cube scan {paths['cube']}")
-        cube = read_recording(paths["cube"])
-        warnings += recording_disagreements(cube, loaded)
-        cube = as_fitted(cube, _cut(job, "cube"))
-        result, check, joint_failure = fine_tune_with_cube(result, cube, rc)
-    pass2 = paths.get(second_pass("spin"))
-    if pass2 is not None:  # under the final H (it moves a little with ry)
-        from calstation.engine.timeoffset import with_time_offset
+    def read(kind: str) -> Recording:
+        say(f"reading {paths[kind]}")
+        recording = read_recording(paths[kind])
+        warnings.extend(recording_disagreements(recording, loaded))
+        return recording
 
-        say(f"lidar–encoder time offset with {pass2}")
-        second = read_recording(pass2)
-        warnings += recording_disagreements(second, loaded)
-        result = with_time_offset(result, spin_all, second, rc.fixtures.platter.radius)
-    return result, initial, joint_failure, check, float(spin.whole_turns())
+    spin = turned(read(job.kind), fitted=_cut(job, job.kind))
+    static = read("static") if "static" in paths else None
+    cube = (turned(read("cube"), fitted=_cut(job, "cube"))
+            if "cube" in paths and job.kind != "cube" else None)
+    pass2 = second_pass("spin")
+    return Scans(spin=spin, static=static, cube=cube,
+                 spin_pass2=read(pass2) if pass2 in paths else None)
 
 
 def reprocess_run(

@@ -7,7 +7,6 @@ The read side of a run's database rows, for the station and its steps; the write
 
 from __future__ import annotations
 
-import math
 from contextlib import suppress
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,7 +20,6 @@ from calstation.storage.report import run_brief
 
 if TYPE_CHECKING:
     from calstation.engine.frames import Extrinsics
-    from calstation.engine.result import CalibrationResult
 
 
 def stored_file(art: Artifact) -> StoredFile:
@@ -140,28 +138,3 @@ def brief(db: Database, run_id: int) -> dict[str, Any]:
         run = s.get(Run, run_id)
         assert run is not None
         return run_brief(run)
-
-
-def as_result(fine: Calibration) -> CalibrationResult:
-    """The stored fine calibration as the engine's result (what the joint fine-tuning starts
-    from): its H, σ, cost, gauge, covariance, bias bound and time offset."""
-    from calstation.engine.frames import Extrinsics
-    from calstation.engine.result import CalibrationResult
-
-    diagnostics = fine.diagnostics or {}
-    return CalibrationResult(
-        H=Extrinsics.from_dict(fine.params()),
-        sigma={p: math.nan if v is None else float(v) for p, v in fine.sigmas().items()},
-        cost=float(fine.cost) if fine.cost is not None else math.nan,
-        iterations=int(fine.iterations or 0),
-        strategy=fine.strategy,
-        timings={},
-        diagnostics={"gauge": diagnostics.get("gauge"),
-                     "covariance": diagnostics.get("covariance"),
-                     **({"bias_bound": diagnostics["bias_bound"]}
-                        if "bias_bound" in diagnostics else {}),
-                     **({"time_offset": diagnostics["time_offset"]}
-                        if "time_offset" in diagnostics else {})},
-        encoder_latency_s=fine.encoder_latency_s,
-        sigma_encoder_latency_s=fine.sigma_encoder_latency_s,
-    )

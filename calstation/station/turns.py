@@ -183,20 +183,6 @@ def turns_fitted(summary: dict[str, Any] | None) -> tuple[int, int | None] | Non
     return int(fits[-1]["turns"]), None if lines is None else int(lines)
 
 
-def as_fitted(recording: Any, fitted: tuple[int, int | None] | None) -> Any:
-    """``recording`` cut to what a fit made while scanning saw (:func:`turns_fitted`; all of it
-    when None): its first lines — else its first turns — whoever computes the result again (a
-    resumed run, a re-processing), so that it is the station's to the last digit."""
-    if fitted is None:
-        return recording
-    turns, lines = fitted
-    if lines is not None:
-        return recording.first_lines(lines)
-    if turns >= recording.whole_turns():
-        return recording
-    return recording.first_turns(turns + 0.02)
-
-
 def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnByTurn] | None:
     """How the spin scan ``scan`` (``spin_scan``) goes on until the budget holds, or None when
     it takes exactly its ``revolutions``: a recipe whose ``max_revolutions`` adds none, a
@@ -210,16 +196,15 @@ def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnBy
     if (most <= cfg.revolutions or not hasattr(strategy, "run_prepared")
             or ctx.recipe.calibration.start != "l_target"):
         return None
-    from calstation.engine.frames import Extrinsics
-    from calstation.plugins.cost_strategies import check_result
-    from calstation.station.accuracy import with_prediction
+    from calstation.pipeline.judgement import with_prediction
+    from calstation.pipeline.scans import so_far as lines_so_far
+    from calstation.pipeline.stages import Start, fine_tune
 
-    start = Extrinsics.from_dict(ctx.stored_calibration("initial").params())
+    begun = Start.at(ctx.stored_result("initial"))
     recipe = ctx.recipe
 
     def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError]:
-        result = strategy.run_prepared(so_far, start, recipe)
-        result, _ = check_result(strategy, result, start)
+        result = fine_tune(recipe, strategy, begun, lines_so_far(so_far)).result
         return with_prediction(result, recipe)
 
     def controller(builder: SpinScanBuilder) -> TurnByTurn:
@@ -244,11 +229,10 @@ def more_cube_turns(ctx: RunContext) -> Callable[[SpinScanBuilder], TurnByTurn] 
         return None
     from calstation.engine.cube import check_cube_points
     from calstation.engine.joint import with_cube_ry
-    from calstation.station.accuracy import with_prediction
-    from calstation.station.stored import as_result
+    from calstation.pipeline.judgement import with_prediction
 
     recipe = ctx.recipe
-    fine = as_result(ctx.stored_calibration("fine"))
+    fine = ctx.stored_result("fine")
     if with_prediction(fine, recipe)[1].max_m <= recipe.calibration.accuracy.max_error:
         return None
     limit = recipe.calibration.max_sigma.ry_deg

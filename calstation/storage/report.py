@@ -11,7 +11,6 @@ import csv
 import datetime as dt
 import io
 import json
-import math
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Select, select
@@ -218,7 +217,6 @@ def export_calibration(
     ``platform``) picks the direction of the URDF joint and the TransformStamped; ``frames`` the
     frame ids."""
     from calstation.engine.frames import Extrinsics
-    from calstation.engine.result import CalibrationResult
     from calstation.storage import ros
 
     if fmt not in EXPORT_FORMATS:
@@ -268,18 +266,7 @@ def export_calibration(
         writer.writerow(header)
         writer.writerow(row)
         return buf.getvalue()
-    sigma = {p: math.nan if s is None else s for p, s in cal.sigmas().items()}
-    result = CalibrationResult(
-        H=H,
-        sigma=sigma,
-        cost=math.nan if cal.cost is None else cal.cost,
-        iterations=cal.iterations or 0,
-        strategy=cal.strategy,
-        diagnostics=dict(cal.diagnostics or {}),
-        encoder_latency_s=cal.encoder_latency_s,
-        sigma_encoder_latency_s=cal.sigma_encoder_latency_s,
-    )
-    data = result.to_dict()
+    data = cal.result().to_dict()
     data["run"] = {
         "id": run.id,
         "station": run.station.name,

@@ -13,15 +13,15 @@ from __future__ import annotations
 from typing import Any
 
 from calstation.engine.result import CalibrationResult
+from calstation.pipeline.judgement import budget_failure, describe, with_prediction
+from calstation.pipeline.scans import Turned
 from calstation.recordings.runfolder import second_pass
-from calstation.station.accuracy import budget_failure, describe, with_prediction
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome, plain
 from calstation.station.recording_io import record_scan, record_second_pass, spin_acquisition
 from calstation.station.steps.fine_tune import with_stored_time_offset
 from calstation.station.steps.place import place
-from calstation.station.stored import as_result
-from calstation.station.turns import as_fitted, more_cube_turns
+from calstation.station.turns import more_cube_turns
 from calstation.storage.db import Calibration
 
 CUBE_SECOND_PASS = second_pass("cube")
@@ -37,6 +37,7 @@ class CubeScan:
     def run(self, ctx: RunContext, step_id: int) -> StepOutcome:
         """Scan and check; the recordings, the cube check (and a combined calibration), and a
         ``failure`` when the check failed."""
+        from calstation.pipeline import turned
         from calstation.recordings.reader import read_recording
 
         d = ctx.hardware()
@@ -50,20 +51,22 @@ class CubeScan:
         if path2 is not None:
             artifacts.append((CUBE_SECOND_PASS, path2))
         fine = ctx.stored_calibration("fine")
-        recording = read_recording(path)
-        turned = ctx.scans.fitted.get(path)
-        if turned is not None and turned.fit is not None:
-            # the turns that met the budget: the result does not depend on how many more the
-            # scan took while the fit was computed
-            recording = as_fitted(recording, (turned.fit.turns, turned.fit.lines))
+        scanned = ctx.scans.fitted.get(path)
+        # the turns that met the budget: the result does not depend on how many more the scan
+        # took while the fit was computed
+        fitted = (None if scanned is None or scanned.fit is None
+                  else (scanned.fit.turns, scanned.fit.lines))
+        cube_scan = turned(read_recording(path), fitted=fitted)
+        recording = cube_scan.recording
+        assert recording is not None
         with ctx.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
-            check, joint, ry_failure = _check_cube_joint(ctx, recording, fine, progress)
+            check, joint, ry_failure = _check_cube_joint(ctx, cube_scan, fine, progress)
             if path2 is not None:
                 progress("measuring the cube from both passes", 0.8)
                 check = _check_cube_passes(ctx, recording, read_recording(path2), joint, fine)
         cube = _cube_measurements(check)
-        joint, budget = _budget(ctx, fine, joint, recording)
+        joint, budget = _budget(ctx, fine, joint, cube_scan)
         ctx.ui.info(
             f"  cube: edge error {check.edge_error * 1000:.2f} mm, OBB error "
             f"{check.obb_error * 1000:.2f} mm, side-face twist {check.twist_deg:+.3f}° "
@@ -78,7 +81,7 @@ class CubeScan:
              "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
              "points": int(getattr(check, "points", 0)),
              "joint_ry": None if joint is None else plain(joint.diagnostics["joint"]),
-             **({"turn_by_turn": plain(turned.summary)} if turned is not None else {})},
+             **({"turn_by_turn": plain(scanned.summary)} if scanned is not None else {})},
             artifacts=artifacts,
             calibration=None if joint is None else ("fine", joint),
             cube=(None if joint is not None else fine.id, cube),
@@ -87,7 +90,7 @@ class CubeScan:
 
 
 def _budget(
-    ctx: RunContext, fine: Calibration, joint: CalibrationResult | None, recording: Any
+    ctx: RunContext, fine: Calibration, joint: CalibrationResult | None, cube_scan: Turned
 ) -> tuple[CalibrationResult | None, str | None]:
     """The accuracy budget on the run's final calibration — the combination with the cube's
     faces, or the fine calibration when nothing was combined — for a spin-target strategy (a
@@ -95,8 +98,8 @@ def _budget(
     error recorded, or None; the refusal, with what would help, or None)."""
     if ctx.strategy().fixture != "spin_target":
         return joint, None
-    turns = float(recording.whole_turns())
-    final = joint if joint is not None else as_result(fine)
+    turns = cube_scan.turns()
+    final = joint if joint is not None else fine.result()
     final, predicted = with_prediction(final, ctx.recipe, turns=turns)
     ctx.ui.info(f"  {describe(predicted, ctx.recipe)}")
     failure = budget_failure(final, predicted, ctx.recipe, scan="cube_scan", turns=turns)
@@ -148,36 +151,31 @@ def _check_cube_passes(
 
 
 def _check_cube_joint(
-    ctx: RunContext, recording: Any, fine: Calibration, progress: Any
+    ctx: RunContext, cube_scan: Turned, fine: Calibration, progress: Any
 ) -> tuple[Any, CalibrationResult | None, str | None]:
-    """The cube check, with ry combined from the spin target and the cube's side faces.
+    """The cube check, with ry combined from the spin target and the cube's side faces (the
+    pipeline's cube stage, :func:`calstation.pipeline.stages.with_cube`).
 
     The twist of the side faces under the fine-tuned H measures ry; when the fine-tuning
     came from the spin target the two are combined (:mod:`calstation.engine.joint`) and the
     cube is measured again with the combined H. Returns (the check, the combined calibration or
     None, a failure when ry stays undetermined or the two disagree).
     """
-    from calstation.engine.cube import check_cube
-    from calstation.engine.frames import Extrinsics
     from calstation.engine.joint import joint_summary
-    from calstation.plugins.cost_strategies import fine_tune_with_cube
+    from calstation.pipeline import turned
+    from calstation.pipeline.stages import with_cube
+    from calstation.recordings.reader import read_recording
 
-    H = Extrinsics.from_dict(fine.params())
-    if ctx.strategy().fixture != "spin_target":
-        check = check_cube(recording, H, ctx.recipe.fixtures.qa_cube, ctx.recipe.qa,
-                           platter_radius=ctx.recipe.fixtures.platter.radius)
-        return check, None, None
-    stored = as_result(fine)
-    result, check, failure = fine_tune_with_cube(stored, recording, ctx.recipe, progress)
-    if result is stored:
-        return check, None, failure
+    stored = fine.result()
+    cubed = with_cube(ctx.recipe, ctx.strategy(), stored, cube_scan, progress)
+    if not cubed.combined(stored):
+        return cubed.check, None, cubed.ry_failure
+    result = cubed.result
     result.diagnostics["from_calibration"] = fine.id
     ctx.ui.info(f"  {joint_summary(result)}")
     if result.encoder_latency_s is not None:
         # estimated again under the H whose ry the cube changed: the estimate moves a
         # little with ry (~0.08 ms per 0.1°, docs/algorithms.md)
-        from calstation.recordings.reader import read_recording
-
-        result = with_stored_time_offset(ctx, result, read_recording(ctx.artifact_path("spin")),
-                                         progress, " under the combined H")
-    return check, result, failure
+        spin = turned(read_recording(ctx.artifact_path("spin")))
+        result = with_stored_time_offset(ctx, result, spin, progress, " under the combined H")
+    return cubed.check, result, cubed.ry_failure

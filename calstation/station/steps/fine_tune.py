@@ -1,9 +1,10 @@
 """The fine-tuning: the recipe's strategy on the stored spin scan, from the initial calibration
-(or, with ``calibration.start: platter``, from the platter's chord in the scan) — or the fit made
-while the scan was taken, when it covers the whole scan; with a second pass, the lidar–encoder
-time offset; then the gate: the predicted reconstruction error against the accuracy budget
-(``calibration.accuracy``), and any ``calibration.max_sigma`` limit. A refusal says what would
-help, and the station retries from the spin target's placement."""
+(or, with ``calibration.start: platter``, from the platter's chord in the scan: the start and
+strategy stages of :mod:`calstation.pipeline`) — or the fit made while the scan was taken, when
+it covers the whole scan; with a second pass, the lidar–encoder time offset; then the gate: the
+predicted reconstruction error against the accuracy budget (``calibration.accuracy``), and any
+``calibration.max_sigma`` limit. A refusal says what would help, and the station retries from
+the spin target's placement."""
 
 from __future__ import annotations
 
@@ -15,12 +16,13 @@ from calstation.engine.accuracy import PredictedError
 from calstation.engine.observability import check_sigma
 from calstation.engine.result import CalibrationResult
 from calstation.errors import ObservabilityError
-from calstation.station.accuracy import budget_failure, describe, with_prediction
+from calstation.pipeline.judgement import budget_failure, describe, with_prediction
+from calstation.pipeline.scans import Turned
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome, format_h, plain
 from calstation.station.steps.spin_scan import SECOND_PASS
 from calstation.station.stored import passed_result
-from calstation.station.turns import as_fitted, turns_fitted
+from calstation.station.turns import turns_fitted
 
 
 class FineTune:
@@ -87,72 +89,68 @@ def _gate(
 def _fitted(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, float]:
     """The fine-tuning and the whole turns it used: the fit made while the spin scan was taken
     when it met the budget (with the time offset added when there is a second pass), else the
-    strategy run on the stored recording."""
-    path = ctx.artifact_path("spin")
-    turned = ctx.scans.fitted.get(path)
-    if turned is not None and turned.fit is not None:
-        ctx.ui.info(f"  the fit made while scanning, on the first {turned.fit.turns} "
-                    f"turn{'s' if turned.fit.turns > 1 else ''}, met the budget")
-        result = turned.fit.result
-        if ctx.recipe.steps.spin_scan.second_pass_rpm is not None:
-            from calstation.recordings.reader import read_recording
-
-            with ctx.ui.progress("lidar–encoder time offset") as progress:
-                result = with_stored_time_offset(ctx, result, read_recording(path), progress, "")
-        return result, float(turned.fit.turns)
-    result, recording = _fit(ctx, strategy)
-    return result, float(recording.whole_turns())
-
-
-def _fit(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, Any]:
-    """The strategy's result on the stored spin scan, with the time offset when there is a
-    second pass, and the recording; its warnings go to the operator. A scan that stopped on a
-    fit within the budget, made by another process (a resumed run), is fitted again on the
-    turns that fit saw, as the uninterrupted run and a re-processing do."""
-    from calstation.engine.frames import Extrinsics
-    from calstation.plugins.cost_strategies import run_strategy
+    pipeline's start and strategy stages on the stored recording."""
+    from calstation.pipeline import turned
     from calstation.recordings.reader import read_recording
 
-    whole = read_recording(ctx.artifact_path("spin"))
+    path = ctx.artifact_path("spin")
+    scanned = ctx.scans.fitted.get(path)
+    if scanned is not None and scanned.fit is not None:
+        ctx.ui.info(f"  the fit made while scanning, on the first {scanned.fit.turns} "
+                    f"turn{'s' if scanned.fit.turns > 1 else ''}, met the budget")
+        result = scanned.fit.result
+        if ctx.recipe.steps.spin_scan.second_pass_rpm is not None:
+            with ctx.ui.progress("lidar–encoder time offset") as progress:
+                result = with_stored_time_offset(ctx, result, turned(read_recording(path)),
+                                                 progress, "")
+        return result, float(scanned.fit.turns)
+    result, spin = _fit(ctx, strategy)
+    return result, spin.turns()
+
+
+def _fit(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, Turned]:
+    """The pipeline's start and strategy on the stored spin scan, with the time offset when
+    there is a second pass, and the scan; the strategy's warnings go to the operator. A scan
+    that stopped on a fit within the budget, made by another process (a resumed run), is
+    fitted again on the lines that fit saw, as the uninterrupted run and a re-processing do."""
+    from calstation.pipeline import turned
+    from calstation.pipeline.stages import Start, fine_tune, platter_start
+    from calstation.recordings.reader import read_recording
+
     met = turns_fitted(passed_result(ctx.db, ctx.run_id, "spin_scan").get("turn_by_turn"))
-    recording = as_fitted(whole, met)
+    spin = turned(read_recording(ctx.artifact_path("spin")), fitted=met)
     if met is not None:
         ctx.ui.info(f"  the spin scan stopped on a fit within the budget after {met[0]} "
                     f"turn{'s' if met[0] != 1 else ''}: fine-tuning what that fit saw of its "
                     f"recording")
     with ctx.ui.progress(f"fine-tuning ({strategy.name})") as progress:
         if ctx.recipe.calibration.start == "platter":
-            from calstation.plugins.cost_strategies import fine_tune_targetless
-
-            result, warnings, first = fine_tune_targetless(
-                strategy, recording, ctx.recipe, progress)
-            ctx.ui.info(f"  start from the platter: {format_h(first.H.as_dict())} "
-                        f"(chord {first.diagnostics['chord']})")
+            begun = platter_start(ctx.recipe, spin)
         else:
-            start = ctx.stored_calibration("initial")
-            result, warnings = run_strategy(
-                strategy, recording, Extrinsics.from_dict(start.params()), ctx.recipe,
-                progress
-            )
+            begun = Start.at(ctx.stored_result("initial"))
+        fine = fine_tune(ctx.recipe, strategy, begun, spin, progress)
+        if begun.from_platter and fine.start is not None:
+            ctx.ui.info(f"  start from the platter: {format_h(fine.start.H.as_dict())} "
+                        f"(chord {fine.start.diagnostics['chord']})")
+        result = fine.result
         if ctx.recipe.steps.spin_scan.second_pass_rpm is not None:
-            result = with_stored_time_offset(ctx, result, whole, progress, "")
-    for warning in warnings:
+            result = with_stored_time_offset(ctx, result, spin, progress, "")
+    for warning in fine.warnings:
         ctx.ui.warn(warning)
-    return result, recording
+    return result, spin
 
 
 def with_stored_time_offset(
-    ctx: RunContext, result: CalibrationResult, first: Any, progress: Any, under: str
+    ctx: RunContext, result: CalibrationResult, first: Turned, progress: Any, under: str
 ) -> CalibrationResult:
     """``result`` with the lidar–encoder time offset from the spin scan's ``first`` pass and
-    its stored second pass; ``under`` says which H, for the operator."""
-    from calstation.engine.timeoffset import with_time_offset
+    its stored second pass (the pipeline's time-offset stage); ``under`` says which H, for the
+    operator."""
+    from calstation.pipeline.stages import time_offset
     from calstation.recordings.reader import read_recording
 
-    out = with_time_offset(
-        result, first, read_recording(ctx.artifact_path(SECOND_PASS)),
-        ctx.recipe.fixtures.platter.radius, progress,
-    )
+    out = time_offset(ctx.recipe, result, first, read_recording(ctx.artifact_path(SECOND_PASS)),
+                      progress)
     ctx.ui.info(
         f"  lidar–encoder time offset{under}: {(out.encoder_latency_s or 0.0) * 1e3:.3f} ± "
         f"{(out.sigma_encoder_latency_s or math.nan) * 1e3:.3f} ms"

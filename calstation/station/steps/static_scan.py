@@ -1,5 +1,6 @@
 """The static scan: lines at rest of the L-target → ``static.mcap``, and the initial
-calibration from them (paper §III-A)."""
+calibration from them (paper §III-A; the pipeline's first stage,
+:func:`calstation.pipeline.stages.initial`)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ class StaticScan:
 
     def run(self, ctx: RunContext, step_id: int) -> StepOutcome:
         """Scan, then fit the L-target; the recording and the ``initial`` calibration."""
-        from calstation.engine.initial import initial_calibration
+        from calstation.pipeline.stages import initial
         from calstation.recordings.reader import read_recording
 
         d = ctx.hardware()
@@ -24,9 +25,7 @@ class StaticScan:
         recording = read_recording(path)
         with ctx.ui.progress("initial calibration") as progress:
             progress("fitting the L-target", 0.1)
-            result = initial_calibration(
-                recording, ctx.recipe.fixtures.static_target, ctx.recipe.calibration.initial
-            )
+            result = initial(ctx.recipe, recording).result
         ctx.ui.info(f"  initial: {format_h(result.H.as_dict())}")
         return StepOutcome(
             {"recording": str(path), "lines": lines, "H": result.H.as_dict()},

@@ -9,7 +9,7 @@ Constraints are named through :data:`NAMING_CONVENTION` so SQLite batch migratio
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import (
     JSON,
@@ -25,6 +25,9 @@ from sqlalchemy import (
     UniqueConstraint,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+
+if TYPE_CHECKING:
+    from calstation.engine.result import CalibrationResult
 
 NAMING_CONVENTION: dict[str, str] = {
     "ix": "ix_%(column_0_label)s",
@@ -184,6 +187,30 @@ class Calibration(Base):
     def sigmas(self) -> dict[str, float | None]:
         """1σ of each parameter (m / rad), None when not estimated."""
         return {p: getattr(self, f"sigma_{p}") for p in PARAMS}
+
+    def result(self) -> CalibrationResult:
+        """The calibration as the engine's result, as it was stored (the inverse of
+        :func:`calstation.station.persist.calibration_row`): H, σ (NaN where not estimated),
+        cost, iterations, strategy, the timings and the other diagnostics, the time offset.
+        The one place a row becomes a result again."""
+        import math
+
+        from calstation.engine.frames import Extrinsics
+        from calstation.engine.result import CalibrationResult
+
+        diagnostics = dict(self.diagnostics or {})
+        timings = diagnostics.pop("timings", None) or {}
+        return CalibrationResult(
+            H=Extrinsics.from_dict(self.params()),
+            sigma={p: math.nan if v is None else float(v) for p, v in self.sigmas().items()},
+            cost=math.nan if self.cost is None else float(self.cost),
+            iterations=int(self.iterations or 0),
+            strategy=self.strategy,
+            timings={str(k): float(v) for k, v in timings.items() if v is not None},
+            diagnostics=diagnostics,
+            encoder_latency_s=self.encoder_latency_s,
+            sigma_encoder_latency_s=self.sigma_encoder_latency_s,
+        )
 
 
 class CubeCheckRecord(Base):

@@ -1,5 +1,5 @@
-"""The accuracy budget at the station: the predicted error of a calibration, the gate, and what
-would help when it is refused.
+"""The judgement, the pipeline's last stage: the predicted error of a calibration against the
+accuracy budget, the ``calibration.max_sigma`` gate, and what would help when it is refused.
 
 The engine predicts the distortion a calibration's uncertainty allows over the recipe's work
 volume (:func:`calstation.engine.observability.predict`); here that figure is kept with the
@@ -170,8 +170,9 @@ def judge(
     """A final calibration judged as the station judges it: (``result`` with its predicted
     error recorded, every reason it is refused). The reasons: any ``calibration.max_sigma``
     limit exceeded, the cube step's ry failure (``ry_failure``), and the accuracy budget, with
-    what would help. Used where a calibration is made outside a run (``calstation calibrate``,
-    re-processing) so that it is accepted or refused exactly as a run would."""
+    what would help. The last stage of :func:`calstation.pipeline.calibrate`, so that a
+    calibration made outside a run (``calstation calibrate``, re-processing) is accepted or
+    refused exactly as a run would."""
     from calstation.engine.observability import problems_with_cube
 
     refused = problems_with_cube(result, recipe.calibration.max_sigma, ry_failure)
