@@ -375,8 +375,8 @@ def test_console_operator_prompts_and_abort(
 
     from calstation.station.operator import ConsoleOperator
 
-    # the operator presses Enter for the static and spin targets, then types "a" at the cube
-    monkeypatch.setattr("sys.stdin", io.StringIO("\n\na\n"))
+    # the operator continues after the static and spin targets, then types "a" at the cube
+    monkeypatch.setattr("sys.stdin", io.StringIO("c\ncontinue\na\n"))
     out = io.StringIO()
     ui = ConsoleOperator(unattended=False, console=Console(file=out, width=120))
     run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ui, operator="bob",
@@ -384,7 +384,7 @@ def test_console_operator_prompts_and_abort(
     text = out.getvalue()
     assert status == "aborted"
     assert "Place the L-shaped static target" in text and "Place the QA cube" in text
-    assert "Press Enter when done" in text
+    assert "Type continue (c) when it is placed" in text
     assert "ABORTED" in text and "place_qa_cube" not in [s[0] for s in _steps(db, run_id)
                                                          if s[2] == "passed"]
     assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]

@@ -54,6 +54,13 @@ FIXTURE_PROMPTS: dict[str, str] = {
     "none": "Clear the platter.",
 }
 
+PLACEMENT_ANSWERS: dict[str, tuple[str, ...]] = {"continue": ("continue", "c"),
+                                                 "abort": ("abort", "a")}
+"""What the terminal's placement prompt accepts: the scan starts on ``continue`` only."""
+
+FAILURE_ANSWERS: dict[str, tuple[str, ...]] = {"retry": ("retry", "r"), "abort": ("abort", "a")}
+"""What the terminal's failed-step prompt accepts: the step runs again on ``retry`` only."""
+
 
 FIXTURE_NAMES: dict[str, str] = {
     "static_target": "L-shaped static target",
@@ -204,7 +211,8 @@ class ConsoleOperator:
         self.console.print(f"[yellow]warning:[/] {escape(message)}", highlight=False)
 
     def confirm_fixture(self, fixture: str, description: str) -> bool:
-        """Prompt "place …, press Enter" (unattended: announce and go on)."""
+        """Prompt "place …", then wait for ``continue`` or ``abort`` (unattended: announce and
+        go on)."""
         text = FIXTURE_PROMPTS.get(fixture, f"Place the {fixture} on the platter.")
         if description:
             text += f"\n[dim]{escape(description)}[/]"
@@ -212,8 +220,7 @@ class ConsoleOperator:
             self.console.print(f"[cyan]→ {fixture}[/]: placed automatically (--yes)")
             return True
         self.console.print(Panel(text, title=f"operator: {fixture}", border_style="cyan"))
-        answer = self.console.input("Press [bold]Enter[/] when done, or type [bold]a[/] to abort: ")
-        return answer.strip().lower() not in ("a", "abort", "q")
+        return self._ask(PLACEMENT_ANSWERS, "when it is placed") == "continue"
 
     def on_failure(self, step: str, error: str, attempt: int) -> Decision:
         """Show the error; ask retry/abort (unattended: abort)."""
@@ -226,13 +233,30 @@ class ConsoleOperator:
         )
         if self.unattended or attempt > self.max_retries:
             return "abort"
+        return "retry" if self._ask(FAILURE_ANSWERS, "to run the step again") == "retry" \
+            else "abort"
+
+    def _ask(self, answers: dict[str, tuple[str, ...]], why: str) -> str:
+        """Ask until the operator types one of ``answers``' words; the answer's key. Anything
+        else (an empty line, ``x``, ``exit``) asks again: only a listed word moves the run on.
+        The end of the input (Ctrl-D, a closed pipe) aborts."""
+        go, *_ = answers
+        words = "; ".join(f"[bold]{w[0]}[/] ({w[1]}) {why if key == go else 'to abort the run'}"
+                          for key, w in answers.items())
+        question = f"Type {words}: "
         while True:
-            answer = self.console.input("[bold]r[/]etry the step or [bold]a[/]bort the run? ")
-            a = answer.strip().lower()
-            if a in ("r", "retry", ""):
-                return "retry"
-            if a in ("a", "abort"):
+            try:
+                typed = self.console.input(question)
+            except EOFError:
                 return "abort"
+            said = typed.strip().lower()
+            for key, accepted in answers.items():
+                if said in accepted:
+                    return key
+            shown = f"“{escape(typed.strip()[:40])}”" if typed.strip() else "An empty line"
+            listed = ", ".join(w for a in answers.values() for w in a)
+            self.console.print(f"[yellow]{shown} is not an answer here[/]: nothing moves until "
+                               f"you type one of {listed}", highlight=False)
 
     @contextmanager
     def progress(self, title: str) -> Iterator[ProgressCallback]:

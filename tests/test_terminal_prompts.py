@@ -1,0 +1,70 @@
+"""The terminal's prompts through a real terminal (a pty, pexpect): only a listed answer moves the
+run on. A placement prompt answered with anything but ``continue`` leaves the turntable at rest
+and asks again."""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from calstation.storage.db import Step, open_database
+
+pexpect = pytest.importorskip("pexpect")
+
+REPO = Path(__file__).resolve().parents[1]
+PROMPT = r"Type continue \(c\) when it is placed"
+
+
+def _spawn(home: Path, *args: str) -> pexpect.spawn:
+    env = {**os.environ, "CALSTATION_HOME": str(home), "COLUMNS": "120", "TERM": "dumb",
+           "CALSTATION_OPERATOR": "pty"}
+    env.pop("CALSTATION_DB_URL", None)
+    return pexpect.spawn(sys.executable, ["-m", "calstation", *args], cwd=str(REPO), env=env,
+                         encoding="utf-8", timeout=180, dimensions=(40, 120))
+
+
+def _steps(home: Path) -> list[tuple[str, str]]:
+    db = open_database(f"sqlite:///{home / 'calstation.db'}")
+    try:
+        with db.session() as s:
+            return [(st.name, st.status) for st in s.query(Step).order_by(Step.id)]
+    finally:
+        db.dispose()
+
+
+def test_a_placement_prompt_moves_nothing_until_continue(tmp_path: Path) -> None:
+    # the targetless recipe has no L-target: the first prompt places the spin target, and the
+    # next step spins the turntable
+    child = _spawn(tmp_path, "run", "recipes/sim-targetless.yaml")
+    try:
+        child.expect("Place the heptagonal spin target")
+        child.expect(PROMPT)
+        for answer in ("x", "n", "exit", "stop", ""):
+            child.sendline(answer)
+            child.expect("is not an answer here")
+            child.expect(PROMPT)  # asked again
+        assert not (tmp_path / "runs" / "1" / "spin.mcap").exists()
+        child.sendline("abort")
+        child.expect(pexpect.EOF)
+    finally:
+        child.close(force=True)
+    assert child.exitstatus == 3  # aborted
+    steps = _steps(tmp_path)
+    assert ("place_spin_target", "aborted") in steps
+    assert all(name != "spin_scan" for name, _ in steps), steps  # the turntable never spun
+    assert not (tmp_path / "runs" / "1" / "spin.mcap").exists()
+
+
+def test_end_of_input_at_a_prompt_aborts(tmp_path: Path) -> None:
+    child = _spawn(tmp_path, "run", "recipes/sim-targetless.yaml")
+    try:
+        child.expect(PROMPT)
+        child.sendeof()
+        child.expect(pexpect.EOF)
+    finally:
+        child.close(force=True)
+    assert child.exitstatus == 3
+    assert all(name != "spin_scan" for name, _ in _steps(tmp_path))
