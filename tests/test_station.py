@@ -635,3 +635,41 @@ def test_a_targetless_recipe_drops_the_l_target_steps_everywhere() -> None:
     live = LiveState()
     live.begin(1, "sim-targetless", "ann", None, steps)
     assert tuple(live.steps) == steps  # the operator page lists only the steps the run takes
+
+
+def test_the_runs_end_is_stored_then_told_to_each_observer_in_turn(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    """Storing comes first; the observers see the stored summary, in order; one that raises is
+    a warning naming it, and the next is told all the same."""
+    from calstation.station.machine import Station
+    from calstation.station.observers import RunEnded
+    from calstation.station.runs import create_run
+
+    seen: list[tuple[str, RunEnded]] = []
+
+    def first(ended: RunEnded) -> None:
+        with db.session() as s:  # stored before any observer is told
+            run = s.get(Run, ended.run_id)
+            assert run is not None
+            seen.append(("first", ended) if run.status == ended.status else ("unstored", ended))
+
+    def broken(ended: RunEnded) -> None:
+        raise OSError("disk full")
+
+    def last(ended: RunEnded) -> None:
+        seen.append(("last", ended))
+
+    loaded = load_recipe(lean_recipe(tmp_path))
+    ui = ScriptedOperator(place=_stop_at("spin_target"))
+    run_id = create_run(loaded, db, operator="ann", unattended=True, data_dir=tmp_path)
+    status = Station(db, run_id, loaded, ui, observers=[first, broken, last]).run()
+    assert status == "aborted"
+    assert [name for name, _ in seen] == ["first", "last"]
+    ended = seen[0][1]
+    assert ended.run_id == run_id and ended.status == "aborted" and ended.error
+    assert ended.summary["id"] == run_id and ended.summary["status"] == "aborted"
+    assert any("broken failed at the end of run" in m and "disk full" in m for m in ui.messages)
+    # only the observers given were told: no summary printed, no plugin hook
+    assert ui.summaries == [] and ("run", "aborted") not in station_plugin.events
+    assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]

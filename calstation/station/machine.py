@@ -1,9 +1,13 @@
 """The station state machine: one guided run of a recipe, step by step, into the database.
 
-The states are the steps of :mod:`calstation.station.steps`, in order, plus ``failed`` (a failed
-step; the operator retries it or gives up), ``aborted`` (the operator or a signal stopped the
-run) and ``done``; a ``transitions`` machine. :class:`Station` only sequences the steps, persists
-each outcome and decides retry and abort; each step's work is its own class.
+The states are the steps of :mod:`calstation.station.steps`, in order, plus ``failed`` (a step
+failed; the operator retries it or gives up), ``refused`` (a step's QA verdict failed: the
+operator retries it, or the run goes on to its report), ``aborted`` (the operator or a signal
+stopped the run), ``interrupted`` (the database went away: the run is resumed later) and
+``done``; a ``transitions`` machine, and the only record of where the run is: which step runs,
+which is retried, whether a failure may still be reported are its states and transitions, never
+flags kept beside it. :class:`Station` only sequences the steps, persists each outcome and
+decides retry and abort; each step's work is its own class.
 
 **Where a step's retry is decided:** here, and only here, in :meth:`Station._after_failure`. The
 operator answers retry or abort (``Operator.on_failure``); a retry starts at the step
@@ -19,35 +23,44 @@ process killed mid-step therefore leaves every earlier step intact, and a resume
 (:func:`calstation.station.runs.resume_run`) continues at the first step without a passed
 attempt, re-using the recordings already taken. Recordings are written while scanning into the
 run's folder ``<data dir>/runs/<run id>/`` (``static.mcap``, ``spin.mcap``, ``cube.mcap``), with
-``report.json`` and ``calibration.yaml`` at the end.
+``report.json`` and ``calibration.yaml`` at the end. Once the run's end is stored, its observers
+(:mod:`calstation.station.observers`: ``report.html``, the plugins' hook, the operator's summary,
+the upload) are told.
 
 The turntable is always stopped when the run ends, however it ends: ``stop()``, and
-``emergency_stop()`` if that fails or the run was aborted.
+``emergency_stop()`` if that fails or the run was aborted or interrupted.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import suppress
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from rich.markup import escape
 from transitions import Machine
 
-from calstation import plugins
 from calstation.errors import AbortRun, CalstationError, DatabaseError, StationError
 from calstation.recipes import LoadedRecipe
 from calstation.station import persist, stored
 from calstation.station.context import RunContext
 from calstation.station.hardware import open_drivers, stop_and_close
+from calstation.station.observers import (
+    EndObserver,
+    RunEnded,
+    default_observers,
+    notify,
+    run_brief_from,
+    tell_observers,
+)
 from calstation.station.operator import Operator, publish
 from calstation.station.outcome import StepOutcome, plain
 from calstation.station.preload import preload_engine
 from calstation.station.steps import REGISTRY, STEPS, run_steps
-from calstation.storage.db import Database, Run
+from calstation.storage.db import Database, Run, RunStatus, StepStatus
 
-STATES: tuple[str, ...] = ("idle", *STEPS, "failed", "aborted", "done")
+STATES: tuple[str, ...] = ("idle", *STEPS, "failed", "refused", "aborted", "interrupted", "done")
 
 SCAN_PLACEMENT: dict[str, str] = {
     "static_scan": "place_static_target",
@@ -60,6 +73,9 @@ RETRY_FROM: dict[str, str] = {"fine_tune": "place_spin_target"}
 """Where a retry of a failed step starts: a fine-tuning refused for what its scan could see
 is retried by re-placing the spin target and scanning again, not by re-reading the same scan."""
 
+__all__ = ["RETRY_FROM", "SCAN_PLACEMENT", "STATES", "Station", "next_in_order",
+           "run_brief_from"]
+
 
 def next_in_order(step: str, steps: tuple[str, ...] = STEPS) -> str:
     """The step after ``step`` in ``steps``; ``done`` after the last."""
@@ -67,24 +83,39 @@ def next_in_order(step: str, steps: tuple[str, ...] = STEPS) -> str:
     return steps[i + 1] if i + 1 < len(steps) else "done"
 
 
-def run_brief_from(summary: dict[str, Any]) -> dict[str, Any]:
-    """The brief part of a summary (without steps and results)."""
-    return {k: v for k, v in summary.items()
-            if k not in ("steps", "calibrations", "cube_check", "artifacts")}
+@dataclass(frozen=True)
+class _Attempt:
+    """How one attempt at a step ended: its ``outcome`` when it passed, else the ``error`` the
+    operator reads."""
+
+    outcome: StepOutcome | None = None
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class _End:
+    """How the run ends: its final status, and why it did not pass."""
+
+    status: RunStatus
+    error: str | None = None
 
 
 class Station:
     """Runs (or resumes) one run of a recipe on the station's drivers.
 
-    ``run_id`` must exist in ``db``; ``loaded`` is its recipe; ``ui`` the operator. Call
-    :meth:`run`, which returns the run's final status (``"passed"``, ``"failed"``,
-    ``"aborted"``).
+    ``run_id`` must exist in ``db``; ``loaded`` is its recipe; ``ui`` the operator;
+    ``observers`` what happens once the run's end is stored (default:
+    :func:`~calstation.station.observers.default_observers`). Call :meth:`run`, which returns
+    the run's final status (``passed``, ``failed``, ``aborted``, ``interrupted``).
     """
 
     state: str
     trigger: Callable[..., bool]
 
-    def __init__(self, db: Database, run_id: int, loaded: LoadedRecipe, ui: Operator) -> None:
+    def __init__(
+        self, db: Database, run_id: int, loaded: LoadedRecipe, ui: Operator,
+        observers: Sequence[EndObserver] | None = None,
+    ) -> None:
         with db.session() as s:
             run = s.get(Run, run_id)
             if run is None:
@@ -94,261 +125,200 @@ class Station:
         db.on_wait = lambda message: ui.warn(escape(message))
         self.ctx = RunContext(db, run_id, run_dir, loaded, ui)
         self.db, self.run_id, self.ui = db, run_id, ui
-        self.failed_step: str | None = None
+        self.observers = default_observers(db, ui) if observers is None else observers
         self.steps = run_steps(loaded.recipe)
         self.machine = self._build_machine()
-        self._plan: list[str] = []
-        self._final = "interrupted"
-        self._last_error = ""
-        self._verdict_failure = False
-        self._drift_failure: str | None = None
 
     def _build_machine(self) -> Machine:
-        """The states and transitions: ``advance`` through the run's steps in order, ``begin``
-        at the plan's first, ``fail``/``retry``/``conclude`` around ``failed``, ``abort``."""
+        """The states and transitions: ``begin`` at a step, ``advance`` through the run's steps
+        in order to ``done``, ``fail`` and ``refuse`` out of a step, ``retry`` into one,
+        ``conclude`` from a refused verdict to the report, ``abort`` and ``interrupt``."""
         machine = Machine(model=self, states=list(STATES), initial="idle", auto_transitions=False)
         machine.add_ordered_transitions(
             states=[*self.steps, "done"], trigger="advance", loop=False
         )
         for step in self.steps:
-            machine.add_transition("begin", "idle", step, conditions=[self._is_first(step)])
-            machine.add_transition("retry", "failed", step, conditions=[self._is_failed(step)])
+            machine.add_transition("begin", "idle", step, conditions=[_at(step)])
+            machine.add_transition("retry", ["failed", "refused"], step, conditions=[_at(step)])
         machine.add_transition("fail", list(self.steps), "failed")
         # a QA verdict (failed cube check) the operator does not retry still gets its report
-        machine.add_transition("conclude", "failed", "report")
+        machine.add_transition("refuse", list(self.steps), "refused")
+        machine.add_transition("conclude", "refused", "report")
         machine.add_transition("abort", "*", "aborted")
+        machine.add_transition("interrupt", "*", "interrupted")
         return machine
 
-    def _is_first(self, step: str) -> Callable[[], bool]:
-        return lambda: bool(self._plan) and self._plan[0] == step
-
-    def _is_failed(self, step: str) -> Callable[[], bool]:
-        return lambda: self.failed_step == step
-
     # --- the run -----------------------------------------------------------------------------
-    def run(self) -> str:
+    def run(self) -> RunStatus:
         """Execute the remaining steps; returns the final status. The motor is always stopped."""
-        aborted = False
-        self._final = "interrupted"
+        end = _End(RunStatus.INTERRUPTED, "the run was stopped")
         try:
-            self._start()
-            return self._walk()
-        except (AbortRun, KeyboardInterrupt) as exc:
-            aborted = True
-            self.trigger("abort")
-            return self._finish("aborted", str(exc) or "aborted by the operator")
-        except DatabaseError as exc:
-            # the database failed (a lock outlasted the wait, or it went away): what could not be
-            # stored is journalled; the run stops as interrupted, to be resumed
-            aborted = True
-            self.ui.warn(escape(str(exc)))
-            return self._finish("interrupted", str(exc))
-        except BaseException as exc:
-            # an unexpected error (not a step failure): the run is failed, never left running
-            self._finish("failed", f"{type(exc).__name__}: {exc}")
-            raise
+            try:
+                self._start()
+                end = self._walk()
+            except (AbortRun, KeyboardInterrupt) as exc:
+                self.trigger("abort")
+                end = _End(RunStatus.ABORTED, str(exc) or "aborted by the operator")
+            except DatabaseError as exc:
+                # the database failed (a lock outlasted the wait, or it went away): what could
+                # not be stored is journalled; the run stops as interrupted, to be resumed
+                self.trigger("interrupt")
+                self.ui.warn(escape(str(exc)))
+                end = _End(RunStatus.INTERRUPTED, str(exc))
+            except BaseException as exc:
+                # an unexpected error (not a step failure): the run is failed, never left running
+                end = _End(RunStatus.FAILED, f"{type(exc).__name__}: {exc}")
+                self._end(end)
+                raise
+            self._end(end)
+            return end.status
         finally:
-            self._stop_hardware(emergency=aborted)
+            self._stop_hardware(end.status)
 
     def _start(self) -> None:
-        """Plan the steps still to do, claim the run, open the drivers, enter the first step."""
-        self._plan = self._remaining_steps()
+        """Claim the run, open the drivers, enter the first step still to do."""
+        first = self._first_step()
         persist.mark_running(self.db, self.run_id)
         preload_engine()
-        self._notify("run_started", run=stored.brief(self.db, self.run_id))
+        notify(self.ui, "run_started", run=stored.brief(self.db, self.run_id))
         self.ctx.drivers = open_drivers(self.ctx.loaded)
-        self.trigger("begin")
+        self.trigger("begin", first)
 
-    def _walk(self) -> str:
-        """Attempt the planned steps in order until none is left; the run's final status."""
-        while True:
+    def _walk(self) -> _End:
+        """Attempt the steps in order, from where the machine is, until it is done; the run's
+        end (its verdict is the report step's)."""
+        retrying = False
+        report: StepOutcome | None = None
+        while self.state != "done":
             step = self.state
-            if not self._attempt(step):
-                final = self._after_failure(step)
-                if final is not None:
-                    return final
+            attempt = self._attempt(step, retrying)
+            if attempt.outcome is not None:
+                report = attempt.outcome
+                self.trigger("advance")
+                retrying = False
                 continue
-            self._plan.pop(0)
-            if not self._plan:
-                break
-            # plans are suffixes of the run's steps
-            if self._plan[0] != next_in_order(step, self.steps):
-                raise StationError(f"cannot go from {step} to {self._plan[0]}")
-            self.trigger("advance")
-        verdict = self._verdict()
-        return self._finish(verdict, None if verdict == "passed" else self._failure_reason())
+            decided = self._after_failure(step, attempt.error)
+            if isinstance(decided, _End):
+                return decided
+            retrying = decided == "retry"
+        return self._verdict(report)
 
-    def _after_failure(self, step: str) -> str | None:
+    def _after_failure(self, step: str, error: str) -> _End | str:
         """The retry decision for a failed ``step``: the operator's retry restarts at
         :data:`RETRY_FROM` (the step itself by default); giving up on a QA verdict still reports;
-        giving up otherwise fails the run. The final status when the run ends here, else None."""
+        giving up otherwise fails the run. The trigger pulled (``retry``, ``conclude``), or the
+        run's end when it ends here."""
         attempts = stored.attempts(self.db, self.run_id, step)
-        if self.ui.on_failure(step, self._last_error, attempts) == "retry":
-            self._restart_from(RETRY_FROM.get(step, step))
-            return None
-        if not self._verdict_failure:
-            return self._finish("failed", f"step {step} failed: {self._last_error}")
-        self._plan = ["report"]
-        self.trigger("conclude")
-        return None
+        if self.ui.on_failure(step, error, attempts) == "retry":
+            self.trigger("retry", RETRY_FROM.get(step, step))
+            return "retry"
+        if self.state == "refused":
+            self.trigger("conclude")
+            return "conclude"
+        return _End(RunStatus.FAILED, f"step {step} failed: {error}")
 
-    def _restart_from(self, step: str) -> None:
-        """Leave the failed state for ``step`` (the failed step or an earlier one) and plan
-        every step from there again."""
-        self.failed_step = step
-        self._plan = list(self.steps[self.steps.index(step) :])
-        self.trigger("retry")
-
-    def _remaining_steps(self) -> list[str]:
-        """Steps still to do: from the first without a passed attempt; a scan's placement first."""
+    def _first_step(self) -> str:
+        """The first step still to do: the first without a passed attempt, or its scan's
+        placement when the run resumes at a scan; the report when every step passed."""
         passed = stored.passed_steps(self.db, self.run_id)
         todo = [step for step in self.steps if step not in passed]
         if not todo:
-            return ["report"]
-        first = self.steps.index(todo[0])
-        plan = list(self.steps[first:])
-        placement = SCAN_PLACEMENT.get(plan[0])
-        if placement is not None and placement in passed:
-            plan.insert(0, placement)
-        return plan
+            return "report"
+        placement = SCAN_PLACEMENT.get(todo[0])
+        return placement if placement is not None and placement in passed else todo[0]
 
     # --- one attempt -------------------------------------------------------------------------
-    def _attempt(self, step: str) -> bool:
-        """One attempt at ``step``: row, work, commit. False (with ``_last_error``) on failure.
+    def _attempt(self, step: str, retrying: bool) -> _Attempt:
+        """One attempt at ``step``: row, work, commit; the machine leaves the step by ``fail``
+        or ``refuse`` when it does not pass. ``retrying``: the attempt follows a failed one (of
+        this step, or of a later one that :data:`RETRY_FROM` restarts here).
 
         A step whose outcome is a failed QA verdict (``outcome.failure``) keeps its recordings and
         results and fails like any step, so the operator may retry it.
         """
         step_id, attempt = persist.begin_step(self.db, self.run_id, step)
-        self._verdict_failure = False
         self.ctx.scans.take()
-        self.ctx.retrying = self.failed_step == step
+        self.ctx.retrying = retrying
         try:
             publish(self.ui, "step_started", step=step, attempt=attempt)
             outcome = REGISTRY[step].run(self.ctx, step_id)
         except (AbortRun, KeyboardInterrupt) as exc:
             with suppress(DatabaseError):  # journalled if not stored; the abort goes on
-                persist.end_step(self.ctx, step_id, "aborted", {},
+                persist.end_step(self.ctx, step_id, StepStatus.ABORTED, {},
                                  str(exc) or "aborted by the operator", StepOutcome({}))
             raise
         except DatabaseError:
             raise
         except Exception as exc:  # a step failure, whatever raised it, is the operator's call
-            self._step_raised(step, step_id, attempt, exc)
-            return False
+            return _Attempt(error=self._step_raised(step, step_id, attempt, exc))
         if outcome.failure is not None:
             self._step_refused(step, step_id, outcome)
-            return False
+            return _Attempt(error=outcome.failure)
         self._step_passed(step, step_id, attempt, outcome)
-        return True
+        return _Attempt(outcome=outcome)
 
-    def _step_raised(self, step: str, step_id: int, attempt: int, exc: Exception) -> None:
-        """Store and announce a step that raised; the machine goes to ``failed``."""
+    def _step_raised(self, step: str, step_id: int, attempt: int, exc: Exception) -> str:
+        """Store and announce a step that raised; the machine goes to ``failed``. Its error."""
         message = str(exc) if isinstance(exc, CalstationError) else (
             f"{type(exc).__name__}: {exc}"
         )
-        self._last_error = message
         failed = {"error": message, **plain(getattr(exc, "details", {}))}
-        persist.end_step(self.ctx, step_id, "failed", failed, message, StepOutcome({}))
+        persist.end_step(self.ctx, step_id, StepStatus.FAILED, failed, message, StepOutcome({}))
         publish(self.ui, "step_finished", step=step, attempt=attempt, status="failed",
                 result={"error": message}, error=message)
-        self._notify("step_finished", run=stored.brief(self.db, self.run_id), step=step,
-                     status="failed", result={"error": message})
-        self.failed_step = step
+        notify(self.ui, "step_finished", run=stored.brief(self.db, self.run_id), step=step,
+               status="failed", result={"error": message})
         self.trigger("fail")
+        return message
 
     def _step_refused(self, step: str, step_id: int, outcome: StepOutcome) -> None:
         """Store a step whose QA verdict failed, with what it measured; the machine goes to
-        ``failed``."""
+        ``refused``."""
         assert outcome.failure is not None
-        self._last_error = outcome.failure
-        self._verdict_failure = True
-        persist.end_step(self.ctx, step_id, "failed", outcome.result, outcome.failure, outcome)
-        self._notify("step_finished", run=stored.brief(self.db, self.run_id), step=step,
-                     status="failed", result=outcome.result)
-        self.failed_step = step
-        self.trigger("fail")
+        persist.end_step(self.ctx, step_id, StepStatus.FAILED, outcome.result, outcome.failure,
+                         outcome)
+        notify(self.ui, "step_finished", run=stored.brief(self.db, self.run_id), step=step,
+               status="failed", result=outcome.result)
+        self.trigger("refuse")
 
     def _step_passed(self, step: str, step_id: int, attempt: int, outcome: StepOutcome) -> None:
         """Store and announce a passed step."""
-        persist.end_step(self.ctx, step_id, "passed", outcome.result, None, outcome)
-        if outcome.drift_failure is not None:
-            self._drift_failure = outcome.drift_failure
+        persist.end_step(self.ctx, step_id, StepStatus.PASSED, outcome.result, None, outcome)
         publish(self.ui, "step_finished", step=step, attempt=attempt, status="passed",
                 result=plain(outcome.result), error=None)
-        self._notify("step_finished", run=stored.brief(self.db, self.run_id), step=step,
-                     status="passed", result=outcome.result)
+        notify(self.ui, "step_finished", run=stored.brief(self.db, self.run_id), step=step,
+               status="passed", result=outcome.result)
 
     # --- the end -----------------------------------------------------------------------------
-    def _verdict(self) -> str:
-        return "failed" if self._drift_failure else stored.cube_verdict(self.db, self.run_id)
+    def _verdict(self, report: StepOutcome | None) -> _End:
+        """The run's end after its last step: the report step's verdict, and why it failed
+        (drift beyond the recipe's limits, else the cube check)."""
+        status = RunStatus(report.run_status) if report is not None and report.run_status \
+            else RunStatus(stored.cube_verdict(self.db, self.run_id))
+        if status == RunStatus.PASSED:
+            return _End(status)
+        drift = report.drift_failure if report is not None else None
+        return _End(status, drift or stored.cube_failure(self.db, self.run_id))
 
-    def _failure_reason(self) -> str | None:
-        """Why a run that went through every step failed: drift, else the cube check."""
-        if self._drift_failure:
-            return self._drift_failure
-        return stored.cube_failure(self.db, self.run_id)
-
-    def _finish(self, status: str, error: str | None) -> str:
-        """Store the run's end (journalled if the database fails: never raises for that)."""
-        self._final = status
+    def _end(self, end: _End) -> None:
+        """Store the run's end (journalled if the database fails: never raises for that), then
+        tell the observers (:mod:`calstation.station.observers`)."""
         try:
-            summary = persist.end_run(self.ctx, status, error)
+            summary = persist.end_run(self.ctx, end.status, end.error)
         except DatabaseError as exc:
             self.ui.warn(escape(str(exc)))
-            return status
-        self._write_report_html()
-        self._notify("run_finished", run=run_brief_from(summary), status=status, summary=summary)
-        self.ui.summary(summary)
-        self._upload_files()
-        return status
-
-    def _write_report_html(self) -> None:
-        """``report.html`` in the run folder, whatever the outcome; a failure is a warning."""
-        from calstation.storage.report_html import write_run_report
-
-        try:
-            write_run_report(self.db, self.run_id)
-        except Exception as exc:
-            self.ui.warn(f"could not write report.html: {type(exc).__name__}: {exc}")
-
-    def _upload_files(self) -> None:
-        """Copy the run's files to the fleet's shared store when one is configured
-        (``$CALSTATION_RECORDINGS_URL``, :mod:`calstation.storage.uploads`). A failure is a
-        warning: the run folder keeps every file, and ``calstation upload`` sends them later."""
-        from calstation.storage.uploads import recordings_store, upload_run
-
-        store = recordings_store()
-        if store is None:
             return
-        try:
-            done = upload_run(self.db, self.run_id, store)
-        except CalstationError as exc:
-            problem = str(exc)
-        else:
-            if done.ok:
-                self.ui.info(f"files copied to {escape(store)}: {len(done.sent)} sent, "
-                             f"{len(done.present)} there already")
-                return
-            problem = "; ".join(done.failed)
-        self.ui.warn(f"the run's files were not all copied to {escape(store)}: "
-                     f"{escape(problem)}; the run folder keeps them, and `calstation upload "
-                     f"{self.run_id}` sends them later")
+        tell_observers(self.observers, RunEnded(self.run_id, end.status, end.error, summary),
+                       self.ui)
 
-    def _notify(self, hook: str, **kwargs: Any) -> None:
-        """Call an observer hook; an observer's exception is a warning, never a failed run."""
-        try:
-            getattr(plugins, hook)(**kwargs)
-        except Exception as exc:
-            self.ui.warn(f"a plugin's {hook} observer failed: {type(exc).__name__}: {exc}")
-
-    def _stop_hardware(self, emergency: bool) -> None:
-        """Stop the turntable and close the drivers, if open; say how on the console and store
-        it in the run (``run.motor_stop``)."""
+    def _stop_hardware(self, status: RunStatus) -> None:
+        """Stop the turntable and close the drivers, if open (an emergency stop too when the run
+        was aborted or interrupted); say how on the console and store it in the run
+        (``run.motor_stop``)."""
         d = self.ctx.drivers
         if d is None:
             return
-        record = stop_and_close(d, emergency, self._final)
+        record = stop_and_close(d, self.state in ("aborted", "interrupted"), str(status))
         self.ctx.drivers = None
         text = f"motor stopped by {record['how']} (run {record['reason']})"
         if record["ok"]:
@@ -357,3 +327,8 @@ class Station:
             self.ui.warn(f"the motor could not be stopped: {'; '.join(record['errors'])}")
         with suppress(DatabaseError):  # journalled when the database is unavailable
             persist.store_motor_stop(self.ctx, record)
+
+
+def _at(step: str) -> Callable[[str], bool]:
+    """The condition of a transition into ``step``: the trigger names it."""
+    return lambda at: at == step

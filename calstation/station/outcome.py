@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from calstation.storage.db import RunStatus
+
 
 @dataclass
 class StepOutcome:
@@ -26,7 +28,7 @@ class StepOutcome:
     """A failed QA verdict: the step fails (the operator may retry) but keeps what it stored."""
     staged: list[tuple[str, Path, Path]] = field(default_factory=list)
     """(kind, temporary file, final path): moved into place once the step is stored."""
-    run_status: str | None = None
+    run_status: RunStatus | None = None
     """The run's verdict, stored with the step (the report step)."""
     accept_calibration: int | None = None
     """The calibration the verdict accepts (the report step of a passed run)."""

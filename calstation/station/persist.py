@@ -25,7 +25,9 @@ from calstation.storage.db import (
     CubeCheckRecord,
     Database,
     Run,
+    RunStatus,
     Step,
+    StepStatus,
     journal,
     utcnow,
 )
@@ -36,7 +38,7 @@ def begin_step(db: Database, run_id: int, step: str) -> tuple[int, int]:
     """Store a ``running`` attempt of ``step``; (its row id, its attempt number)."""
     with db.session() as s:
         attempt = attempts(db, run_id, step) + 1
-        row = Step(run_id=run_id, name=step, attempt=attempt, status="running")
+        row = Step(run_id=run_id, name=step, attempt=attempt, status=StepStatus.RUNNING)
         s.add(row)
         s.flush()
         return row.id, attempt
@@ -45,7 +47,7 @@ def begin_step(db: Database, run_id: int, step: str) -> tuple[int, int]:
 def end_step(
     ctx: RunContext,
     step_id: int,
-    status: str,
+    status: StepStatus,
     result: dict[str, Any],
     error: str | None,
     outcome: StepOutcome,
@@ -88,21 +90,21 @@ def mark_running(db: Database, run_id: int) -> None:
     process are ``interrupted``, and the run is ``running`` here (host, pid)."""
     with db.session() as s:
         for row in s.scalars(
-            select(Step).where(Step.run_id == run_id, Step.status == "running")
+            select(Step).where(Step.run_id == run_id, Step.status == StepStatus.RUNNING)
         ):
-            row.status = "interrupted"
+            row.status = StepStatus.INTERRUPTED
             row.error = "the process ended during this step"
             row.finished_at = row.finished_at or utcnow()
         run = s.get(Run, run_id)
         assert run is not None
-        run.status = "running"
+        run.status = RunStatus.RUNNING
         run.finished_at = None
         run.error = None
         run.host = socket.gethostname()
         run.pid = os.getpid()
 
 
-def end_run(ctx: RunContext, status: str, error: str | None) -> dict[str, Any]:
+def end_run(ctx: RunContext, status: RunStatus, error: str | None) -> dict[str, Any]:
     """Store the run's end (journalled if the database fails: then DatabaseError is raised) and
     read back its summary (:func:`calstation.storage.report.run_summary`)."""
     journal.store(ctx.db, ctx.run_dir, journal.run_end(ctx.run_id, status, error),

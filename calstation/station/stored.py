@@ -15,7 +15,16 @@ from sqlalchemy import select
 
 from calstation.errors import CalstationError, StationError
 from calstation.recordings.shared import SharedStorageError, StoredFile, local_copy
-from calstation.storage.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
+from calstation.storage.db import (
+    Artifact,
+    Calibration,
+    CubeCheckRecord,
+    Database,
+    Run,
+    RunStatus,
+    Step,
+    StepStatus,
+)
 from calstation.storage.report import run_brief
 
 if TYPE_CHECKING:
@@ -94,7 +103,7 @@ def passed_result(db: Database, run_id: int, step: str) -> dict[str, Any]:
     with db.session() as s:
         result = s.scalars(
             select(Step.result)
-            .where(Step.run_id == run_id, Step.name == step, Step.status == "passed")
+            .where(Step.run_id == run_id, Step.name == step, Step.status == StepStatus.PASSED)
             .order_by(Step.id.desc())
         ).first()
     return dict(result or {})
@@ -104,11 +113,12 @@ def passed_steps(db: Database, run_id: int) -> set[str]:
     """The steps of run ``run_id`` with a passed attempt."""
     with db.session() as s:
         return set(
-            s.scalars(select(Step.name).where(Step.run_id == run_id, Step.status == "passed"))
+            s.scalars(select(Step.name).where(Step.run_id == run_id,
+                                              Step.status == StepStatus.PASSED))
         )
 
 
-def cube_verdict(db: Database, run_id: int) -> str:
+def cube_verdict(db: Database, run_id: int) -> RunStatus:
     """``passed`` when the run's newest cube check passed, else ``failed`` (none is a fail)."""
     with db.session() as s:
         check = s.scalars(
@@ -116,7 +126,7 @@ def cube_verdict(db: Database, run_id: int) -> str:
             .where(CubeCheckRecord.run_id == run_id)
             .order_by(CubeCheckRecord.id.desc())
         ).first()
-    return "passed" if check is not None and check.passed else "failed"
+    return RunStatus.PASSED if check is not None and check.passed else RunStatus.FAILED
 
 
 def cube_failure(db: Database, run_id: int) -> str | None:

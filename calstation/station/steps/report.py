@@ -17,7 +17,7 @@ from typing import Any
 from calstation.station import stored
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome
-from calstation.storage.db import Calibration, Run
+from calstation.storage.db import Calibration, Run, RunStatus
 from calstation.storage.report import previous_accepted, run_summary
 
 
@@ -39,14 +39,14 @@ class Report:
             prev = previous_accepted(s, run) if fine else None
             drift = _drift(fine[-1], prev, ctx.recipe.qa) if prev is not None else None
             if drift is not None and drift["flagged"] and ctx.recipe.qa.drift_fails \
-                    and verdict == "passed":
-                verdict = "failed"
+                    and verdict == RunStatus.PASSED:
+                verdict = RunStatus.FAILED
                 drift_failure = (
                     f"calibration drifted beyond the recipe's limits since run "
                     f"{drift['previous_run']}: {', '.join(drift['flagged'])} "
                     "(qa.drift_fails is set)"
                 )
-            accept = fine[-1].id if fine and verdict == "passed" else None
+            accept = fine[-1].id if fine and verdict == RunStatus.PASSED else None
             run.status = verdict  # as the step's transaction will store it; not committed here
             for c in run.calibrations:
                 c.accepted = c.id == accept

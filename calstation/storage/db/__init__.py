@@ -44,9 +44,11 @@ from calstation.storage.db.models import (
     CampaignRun as CampaignRun,
     CubeCheckRecord as CubeCheckRecord,
     Run as Run,
+    RunStatus as RunStatus,
     Station as Station,
     StationLock as StationLock,
     Step as Step,
+    StepStatus as StepStatus,
     utcnow as utcnow,
 )
 from calstation.storage.db.opening import open_database as open_database

@@ -9,6 +9,7 @@ Constraints are named through :data:`NAMING_CONVENTION` so SQLite batch migratio
 from __future__ import annotations
 
 import datetime as dt
+from enum import StrEnum
 from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import (
@@ -24,7 +25,7 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
 )
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship, validates
 
 if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
@@ -53,6 +54,29 @@ class Base(DeclarativeBase):
     metadata = MetaData(naming_convention=NAMING_CONVENTION)
 
 
+class RunStatus(StrEnum):
+    """A run's ``status``: running, or how it ended (stored as its value)."""
+
+    RUNNING = "running"
+    PASSED = "passed"
+    FAILED = "failed"
+    ABORTED = "aborted"
+    INTERRUPTED = "interrupted"
+    """its process ended, or lost the database, before the run finished: it is resumed"""
+
+
+class StepStatus(StrEnum):
+    """A step attempt's ``status`` (stored as its value)."""
+
+    RUNNING = "running"
+    """started; left so by a crash"""
+    PASSED = "passed"
+    FAILED = "failed"
+    ABORTED = "aborted"
+    INTERRUPTED = "interrupted"
+    """found running by a resume"""
+
+
 class Station(Base):
     """A calibration station, known by the ``station.id`` of its recipes."""
 
@@ -68,12 +92,12 @@ class Station(Base):
 class Run(Base):
     """One run of a recipe on a station.
 
-    ``status`` is ``"running"``, ``"passed"``, ``"failed"``, ``"aborted"`` or ``"interrupted"``
-    (its process ended, or lost the database, before the run finished); ``calstation resume``
-    continues a run that did not pass. ``host`` and ``pid`` name the process executing it (so a
-    second process cannot drive the same run). ``motor_stop`` says how the turntable was stopped
-    when the run's drivers closed: ``{"how": "stop" | "emergency_stop" | ..., "reason", "ok",
-    "at"}``.
+    ``status`` is a :class:`RunStatus`: ``"running"``, ``"passed"``, ``"failed"``, ``"aborted"``
+    or ``"interrupted"`` (its process ended, or lost the database, before the run finished);
+    ``calstation resume`` continues a run that did not pass. ``host`` and ``pid`` name the
+    process executing it (so a second process cannot drive the same run). ``motor_stop`` says
+    how the turntable was stopped when the run's drivers closed: ``{"how": "stop" |
+    "emergency_stop" | ..., "reason", "ok", "at"}``.
     ``unit_serial`` is the serial number of the calibrated unit: given by the operator
     (``calstation run --serial``), else the lidar driver's ``info().serial`` at preflight.
     """
@@ -91,7 +115,7 @@ class Run(Base):
     data_dir: Mapped[str] = mapped_column(String(1000))
     started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
-    status: Mapped[str] = mapped_column(String(16), default="running", index=True)
+    status: Mapped[str] = mapped_column(String(16), default=RunStatus.RUNNING.value, index=True)
     error: Mapped[str | None] = mapped_column(Text)
     host: Mapped[str | None] = mapped_column(String(255))
     pid: Mapped[int | None] = mapped_column(Integer)
@@ -112,13 +136,18 @@ class Run(Base):
         back_populates="run", order_by="Artifact.id", cascade="all, delete-orphan"
     )
 
+    @validates("status")
+    def _known_status(self, key: str, value: str) -> str:
+        """A :class:`RunStatus`, kept as its plain value (ValueError for another)."""
+        return str(RunStatus(value))
+
 
 class Step(Base):
     """One attempt at one step of a run.
 
-    ``status`` is ``"running"`` (started; left so by a crash), ``"passed"``, ``"failed"``,
-    ``"interrupted"`` (found running by ``resume``) or ``"aborted"``. ``result`` is the step's JSON
-    result mapping.
+    ``status`` is a :class:`StepStatus`: ``"running"`` (started; left so by a crash),
+    ``"passed"``, ``"failed"``, ``"interrupted"`` (found running by ``resume``) or ``"aborted"``.
+    ``result`` is the step's JSON result mapping.
     """
 
     __tablename__ = "step"
@@ -128,11 +157,16 @@ class Step(Base):
     run_id: Mapped[int] = mapped_column(ForeignKey("run.id", ondelete="CASCADE"), index=True)
     name: Mapped[str] = mapped_column(String(50))
     attempt: Mapped[int] = mapped_column(Integer, default=1)
-    status: Mapped[str] = mapped_column(String(16), default="running")
+    status: Mapped[str] = mapped_column(String(16), default=StepStatus.RUNNING.value)
     started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
     result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     error: Mapped[str | None] = mapped_column(Text)
+
+    @validates("status")
+    def _known_status(self, key: str, value: str) -> str:
+        """A :class:`StepStatus`, kept as its plain value (ValueError for another)."""
+        return str(StepStatus(value))
 
     run: Mapped[Run] = relationship(back_populates="steps")
     artifacts: Mapped[list[Artifact]] = relationship(back_populates="step")
