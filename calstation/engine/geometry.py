@@ -262,6 +262,23 @@ def fit_plane(points: FloatArray, trim_sigma: float = 3.0) -> tuple[FloatArray, 
     return c, n, rms
 
 
+LINE_JUMP = 10.0
+"""A jump in azimuth between returns next in time (or platter angle), in median steps, that
+starts another scan line (a line's own returns step by one, or a few over dropouts)."""
+
+
+def line_ids(az: FloatArray) -> NDArray[np.int64]:
+    """(N,) the scan line of each of the returns whose azimuths (rad) ``az`` are given in the
+    order they were taken (or of platter angle): a line ends where the azimuth jumps by more
+    than :data:`LINE_JUMP` median steps; every return its own line when no step is seen."""
+    jumps = np.abs(np.diff(az))
+    step = float(np.median(jumps)) if jumps.size else 0.0
+    if step <= 0:
+        return np.arange(az.shape[0], dtype=np.int64)
+    out: NDArray[np.int64] = np.concatenate([[0], np.cumsum(jumps > LINE_JUMP * step)])
+    return out
+
+
 def kth_neighbour_distance(p: FloatArray, k: int, upper: float = math.inf) -> FloatArray:
     """(N,) distance (m) from each of the (N, 3) points to its ``k``-th nearest other point;
     inf where that point is ``upper`` or farther.

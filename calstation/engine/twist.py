@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from calstation.engine.frames import Extrinsics, FloatArray, lidar_to_dynamic
-from calstation.engine.geometry import fit_plane
+from calstation.engine.geometry import fit_plane, line_ids
 
 TWIST_BOUND_DEG = 3.0
 """The ry correction the twist fit searches (±, degrees)."""
@@ -46,9 +46,12 @@ JACKKNIFE_GROUPS = 16
 from G groups is itself uncertain by about 1/√(2(G − 1)): 27 % with 8 groups, which let one
 of 72 station sweep runs (0.5 mm, 180 lines/s, one turn) through at 0.35 of its error; 18 % with
 16."""
-LINE_JUMP = 10.0
-"""A jump in azimuth between returns next in platter angle, in median steps, that starts
-another scan line (a line's own returns step by one, or a few over dropouts)."""
+JACOBIAN_STEP = 1e-3
+"""The step (rad) of the jackknife's forward-difference derivative: the twist fit's own
+(``diff_step`` 1e-3 at a correction below 1 rad)."""
+GAUSS_NEWTON_STEPS = 2
+"""Gauss–Newton steps per jackknife group from the full solution: on the default scene the
+second moves the groups' estimates by < 1e-8 rad, a third by < 1e-17."""
 GRAZING_FACE = 0.2
 """Least |cosine| of a return's ray with its face its range error is divided by (and in the
 1/c² weights of the face's plane)."""
@@ -204,27 +207,123 @@ def _jackknife_sigma(
     noise: float,
 ) -> float:
     """1σ (rad) of the twist from a delete-one-group jackknife over :data:`JACKKNIFE_GROUPS`
-    random groups of each face's returns: the fit repeated without each group (from ``x``).
+    random groups of each face's returns: the fit repeated without each group.
 
     The returns' noise is independent, so the spread of the refits is the estimate's own:
     neither the linearised σ (0.5× the spread over seeds on the simulator: the noise also moves
     the planes and the rays' cosines, which the Jacobian holds fixed) nor the block sandwich
-    (5–8×: each face's plane, re-fitted with H, correlates the blocks) measured it. It costs
-    :data:`JACKKNIFE_GROUPS` refits (0.52 s of a 0.62 s cube check on the default scene).
+    (5–8×: each face's plane, re-fitted with H, correlates the blocks) measured it.
+
+    Each group's refit starts at the full solution ``x``, a few hundredths of a degree from
+    its own: every group's planes are re-fitted under ``x`` and one step beyond it
+    (:class:`_GroupedFaces`, all groups in two evaluations, where 16 refits by TRF took ~85),
+    which gives each group's residuals and their derivative in the correction; Gauss–Newton
+    steps on those, with the soft-L1 weights of the fit, find each group's minimum. Over the
+    capability and shape sweeps' cube scans the σ so found is the one of full refits to
+    within 1 % (docs/performance.md).
     """
-    labels = _line_groups(faces)
-    estimates = []
-    for g in range(JACKKNIFE_GROUPS):
-        keep = [lab != g for lab in labels]
-        flat = FaceFlatness(
-            [p[k] for (p, _), k in zip(faces, keep, strict=True)],
-            [f[k] for (_, f), k in zip(faces, keep, strict=True)],
-            noise,
-        )
-        estimates.append(float(_fit_twist(flat, H, x, f_scale, max_nfev=15).x[0]))
-    e = np.asarray(estimates)
+    grouped = _GroupedFaces(faces, _line_groups(faces), noise)
+    r0 = grouped(H.with_(ry=H.ry + x))
+    r1 = grouped(H.with_(ry=H.ry + x + JACOBIAN_STEP))
+    # a group's own returns are left out of its fit: zero residual and derivative add nothing
+    jac = [(b - a) / JACOBIAN_STEP * keep for a, b, keep in zip(r0, r1, grouped.keep, strict=True)]
+    r0 = [a * keep for a, keep in zip(r0, grouped.keep, strict=True)]
+    step = np.zeros(JACKKNIFE_GROUPS)
+    for _ in range(GAUSS_NEWTON_STEPS):
+        gradient = np.zeros(JACKKNIFE_GROUPS)
+        curvature = np.zeros(JACKKNIFE_GROUPS)
+        for a, j in zip(r0, jac, strict=True):
+            r = a + j * step
+            # soft-L1 with z = 1 + (r/f)²: ρ' = z^-½ weighs the gradient, ρ' + 2ρ''·(r/f)² =
+            # z^-3/2 the curvature
+            root = np.sqrt(1.0 + (r / f_scale) ** 2)
+            gradient += np.einsum("ij,ij->j", r / root, j)
+            curvature += np.einsum("ij,ij->j", j / root**3, j)
+        step -= gradient / np.maximum(curvature, 1e-300)
+    e = x + step
     k = JACKKNIFE_GROUPS
     return float(math.sqrt((k - 1) / k * np.sum((e - e.mean()) ** 2)))
+
+
+class _GroupedFaces:
+    """The side faces' range errors under H with each jackknife group left out, every group
+    at once: for each face, the least-range-error plane of :func:`_range_errors` (the noise's
+    covariance removed, :data:`PLANE_REWEIGHTS` reweightings by 1/c²) fitted without each
+    group from the group's weighted sums of the returns' moments, and every return's range
+    error against every group's plane.
+
+    ``faces``: each face's returns ((N_f, 3) in L) and platter angles; ``labels`` each
+    return's group (0 … :data:`JACKKNIFE_GROUPS` − 1); ``noise`` the range σ (m)."""
+
+    def __init__(
+        self,
+        faces: list[tuple[FloatArray, FloatArray]],
+        labels: list[NDArray[np.int64]],
+        noise: float,
+    ) -> None:
+        self.flat = FaceFlatness([p for p, _ in faces], [f for _, f in faces], noise)
+        self.noise = noise
+        self.keep = [
+            (lab[:, None] != np.arange(JACKKNIFE_GROUPS)[None, :]).astype(np.float64)
+            for lab in labels
+        ]
+        """per face, (N_f, G) 1 where a return belongs to a group's fit, else 0"""
+
+    def __call__(self, H: Extrinsics) -> list[FloatArray]:
+        """Per face, (N_f, G) each return's range error (m) against each group's plane (the
+        entries of a group's own returns are not used)."""
+        flat = self.flat
+        q_all = flat._to_D(flat.p_L - H.t, H)
+        v_all = flat._to_D(flat._rays, H)
+        bounds = flat._bounds
+        return [
+            _grouped_range_errors(q_all[a:b], v_all[a:b], keep, self.noise)
+            for a, b, keep in zip(bounds[:-1], bounds[1:], self.keep, strict=True)
+        ]
+
+
+def _grouped_range_errors(
+    q: FloatArray, v: FloatArray, keep: FloatArray, noise: float
+) -> FloatArray:
+    """(N, G) one face's returns' range errors (m) against its plane fitted to the returns
+    of each column of ``keep`` (N, G; 1 or 0), as :func:`_range_errors` fits it to all of them:
+    ``q`` (N, 3) the returns in D, ``v`` (N, 3) their unit rays in D, ``noise`` the range σ."""
+    centre = q.mean(axis=0)
+    d = q - centre  # moments about the face's centre: no cancellation in the scatter
+    moments = np.empty((q.shape[0], 16))
+    moments[:, 0] = 1.0
+    moments[:, 1:4] = d
+    for k, (i, j) in enumerate(zip(*np.triu_indices(3), strict=True)):
+        np.multiply(d[:, i], d[:, j], out=moments[:, 4 + k])
+        np.multiply(v[:, i], v[:, j], out=moments[:, 10 + k])
+    n, m = _group_planes(keep.T @ moments, noise)
+    for _ in range(PLANE_REWEIGHTS):
+        c = v @ n.T
+        w = keep / np.maximum(c * c, GRAZING_FACE**2, out=c)
+        n, m = _group_planes(w.T @ moments, noise)
+    out: FloatArray = d @ n.T
+    out -= np.sum(m * n, axis=1)
+    out /= away_from_grazing(v @ n.T)
+    return out
+
+
+def _group_planes(sums: FloatArray, noise: float) -> tuple[FloatArray, FloatArray]:
+    """(G, 3) the normals and (G, 3) the weighted means (about the face's centre) of planes
+    from their returns' weighted moment sums ``sums`` (G, 16): the weight, Σw·d, Σw·d dᵀ and
+    Σw·v vᵀ (upper triangles); the scatter less the noise's covariance along the rays."""
+    iu = np.triu_indices(3)
+    weight = sums[:, 0]
+    mean = sums[:, 1:4] / weight[:, None]
+    scatter = np.zeros((sums.shape[0], 3, 3))
+    rays = np.zeros((sums.shape[0], 3, 3))
+    scatter[:, *iu] = sums[:, 4:10]
+    rays[:, *iu] = sums[:, 10:16]
+    lower = np.tril_indices(3, -1)
+    scatter[:, *lower] = scatter.transpose(0, 2, 1)[:, *lower]
+    rays[:, *lower] = rays.transpose(0, 2, 1)[:, *lower]
+    scatter -= weight[:, None, None] * mean[:, :, None] * mean[:, None, :]
+    normals: FloatArray = np.linalg.eigh(scatter - noise**2 * rays)[1][:, :, 0]
+    return normals, mean
 
 
 def _line_groups(faces: list[tuple[FloatArray, FloatArray]]) -> list[NDArray[np.int64]]:
@@ -233,16 +332,12 @@ def _line_groups(faces: list[tuple[FloatArray, FloatArray]]) -> list[NDArray[np.
     groups of single returns, at 200 lines a turn, gave a σ 1.6× too small against the spread
     of the twist over repeated scans. A face's returns in platter-angle order run along one
     line's azimuths, then jump back to the next line's: a jump of more than
-    :data:`LINE_JUMP` azimuth steps starts a line."""
+    :data:`calstation.engine.geometry.LINE_JUMP` azimuth steps starts a line."""
     rng = np.random.default_rng(1)
     labels = []
     for p, f in faces:
         order = np.argsort(f, kind="stable")
-        az = np.arctan2(p[order, 0], p[order, 1])
-        jumps = np.abs(np.diff(az))
-        step = float(np.median(jumps)) if jumps.size else 0.0
-        line = np.concatenate([[0], np.cumsum(jumps > LINE_JUMP * step)]) if step > 0 else (
-            np.arange(f.shape[0]))
+        line = line_ids(np.arctan2(p[order, 0], p[order, 1]))
         dealt = rng.integers(0, JACKKNIFE_GROUPS, int(line[-1]) + 1 if line.size else 0)
         label = np.empty(f.shape[0], dtype=np.int64)
         label[order] = dealt[line]
