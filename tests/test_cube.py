@@ -325,3 +325,57 @@ def test_the_twist_jackknife_by_gauss_newton_steps_is_the_one_by_refits(sim_run)
         assert twist._jackknife_sigma(faces, H, x, f_scale, noise) == pytest.approx(
             by_refits, rel=0.01)
 
+
+def test_the_check_uses_at_most_cube_returns_in_whole_scan_lines(sim_run, monkeypatch) -> None:
+    """Beyond ``CUBE_RETURNS`` returns above the platter (a large cube, many turns) the
+    segmentation and everything after it take every k-th scan line's returns: the cost stays
+    bounded, the lines stay whole (the twist's jackknife groups lines), and the check still
+    measures the cube."""
+    from calstation.engine import cube as cube_module
+    from calstation.engine.geometry import line_ids
+
+    recipe, rec, truth = _cube_scan(sim_run)
+    scan = from_recording(rec)
+    edge, radius = recipe.fixtures.qa_cube.edge, recipe.fixtures.platter.radius
+    full = cube_module._cube_cloud(scan.p_L, scan.phi, truth, edge, radius)
+    assert full.p_L.shape[0] < cube_module.CUBE_RETURNS  # the default scene is whole
+    whole = check_cube_points(scan.p_L, scan.phi, truth, recipe.fixtures.qa_cube, recipe.qa,
+                              platter_radius=radius)
+    monkeypatch.setattr(cube_module, "CUBE_RETURNS", 30_000)
+    part = cube_module._cube_cloud(scan.p_L, scan.phi, truth, edge, radius)
+    assert part.p_L.shape[0] == full.p_L.shape[0]  # the known-size fit labels them all
+    assert 0.5 * 30_000 < part.idx.size <= 30_000
+    lines = line_ids(np.arctan2(part.p_L[:, 0], part.p_L[:, 1]))
+    used = cube_module._whole_lines(part.p_L, 30_000)
+    assert set(part.idx) <= set(used)
+    assert np.array_equal(np.flatnonzero(np.isin(lines, lines[used])), used)  # whole lines
+    check = check_cube_points(scan.p_L, scan.phi, truth, recipe.fixtures.qa_cube, recipe.qa,
+                              platter_radius=radius)
+    assert check.passed, check.failures
+    assert check.points == part.idx.size and math.isfinite(check.twist_sigma_deg)
+    assert check.twist_sigma_deg > whole.twist_sigma_deg  # fewer returns, a wider σ
+
+
+def test_a_check_near_the_kept_segmentation_turns_it_to_its_h(sim_run) -> None:
+    """``nearby``: a segmentation kept under an H within a millimetre is turned to the new H
+    (the shape strategy's result after its known-size fit) and measures what a segmentation of
+    its own measures."""
+    from calstation.engine.cube import moved_cloud
+
+    recipe, rec, truth = _cube_scan(sim_run)
+    cube, qa = recipe.fixtures.qa_cube, recipe.qa
+    scan = from_recording(rec)
+    first = truth.with_(tx=truth.tx + 0.0005, rz=truth.rz + math.radians(0.01))
+    check_cube_points(scan.p_L, scan.phi, first, cube, qa, edges_only=True, memo=scan.memo)
+    kept = scan.memo["cube_cloud"][1]
+    moved = check_cube_points(scan.p_L, scan.phi, truth, cube, qa, edges_only=True,
+                              memo=scan.memo, nearby=True)
+    assert scan.memo["cube_cloud"][1].idx is kept.idx  # the same returns, not segmented again
+    fresh = check_cube_points(scan.p_L, scan.phi, truth, cube, qa, edges_only=True)
+    assert moved.platter_level == pytest.approx(fresh.platter_level, abs=2e-6)
+    assert np.allclose(moved.face_edges, fresh.face_edges, atol=5e-6)
+    assert moved.edge_error < 0.3e-3 < check_cube_points(
+        scan.p_L, scan.phi, first, cube, qa, edges_only=True).edge_error
+    back = moved_cloud(scan.memo["cube_cloud"][1], scan.p_L, scan.phi, first)
+    assert back.level == pytest.approx(kept.level, abs=1e-12)
+    assert np.allclose(back.pts, kept.pts, atol=1e-12)

@@ -196,3 +196,31 @@ def test_the_coarse_alignment_runs_only_for_a_start_the_cube_does_not_confirm(si
     e = axis_errors(far.H, truth)
     assert e["axis_offset_m"] <= 2e-3
     assert math.degrees(e["axis_angle_rad"]) <= 0.3
+
+
+def test_before_the_known_size_fit_the_faces_flatness_rounds_are_left_out(
+        sim_run, monkeypatch) -> None:
+    """The known-size fit estimates ry from the cube's faces itself: the box cost before it
+    holds ry (no flatness rounds), and the one segmentation the fit found serves the platter's
+    level. When the fit cannot label the faces, the rounds run after all and give ry."""
+    from calstation.engine import cube, cubefit
+
+    recipe, initial, rec = _from_initial(sim_run)
+    truth = rec.truth
+    assert truth is not None
+    segmented = []
+    found = cube._cube_cloud
+    monkeypatch.setattr(cube, "_cube_cloud", lambda *a: segmented.append(a[2]) or found(*a))
+    res = shape_fine_tune(rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape)
+    assert res.diagnostics["ry_rounds"] == [] and res.diagnostics["known_size"]["used"]
+    assert res.diagnostics["box_H"]["ry"] == initial.H.ry
+    assert segmented == [Extrinsics.from_dict(res.diagnostics["box_H"])]  # once, for both
+    monkeypatch.setattr(cubefit, "MIN_FACES", 6)
+    fallback = shape_fine_tune(rec, initial.H, recipe.fixtures.qa_cube,
+                               recipe.calibration.shape)
+    assert fallback.diagnostics["known_size"]["used"] is False
+    assert "faces" in fallback.diagnostics["known_size"]["reason"]
+    assert fallback.diagnostics["ry_rounds"] and fallback.diagnostics["ry_source"] == (
+        "face flatness")
+    e = axis_errors(fallback.H, truth)
+    assert abs(e["ry_error"]) <= 3 * fallback.sigma["ry"]

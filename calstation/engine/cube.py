@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -28,6 +28,7 @@ from calstation.engine.geometry import (
     fit_plane,
     largest_cluster,
     level_of_heights,
+    line_ids,
     minimal_obb,
     upright_box,
 )
@@ -164,6 +165,14 @@ RING_BAND = 0.004
 level (m)."""
 RING_POINTS = 150_000
 """At most this many of those, a regular subset (the platter gives ~0.75 M in a 3 M scan)."""
+CUBE_RETURNS = 400_000
+"""Returns above the platter the segmentation (density outlier removal, largest cluster) and
+everything after it in the check (the paper's box, the faces, the twist) use at most: beyond,
+every k-th scan line of them. The check's cost is then bounded whatever the cube's size or the
+scan's turns: a 0.1 m cube gives ~110 000 a turn at 1000 lines/s (3.5 turns are used whole;
+the twist's own cap, :data:`calstation.engine.twist.TWIST_POINTS`, was reached at ~5), a
+0.4 m cube centred on the platter ~1.3 M, whose check took a minute. The known-size cube fit
+labels all of them (:attr:`CubeCloud.p_L`)."""
 
 
 @dataclass(frozen=True)
@@ -182,6 +191,10 @@ class CubeCloud:
     """positions in ``p_L`` of the cube's cleaned returns"""
     pts: FloatArray
     """(n, 3) the cube's cleaned returns in D, heights from ``level``"""
+    window: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    """positions in the scan's returns of those the platter's level was found from"""
+    ring: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    """positions in the scan's returns of ``p_ring``"""
 
 
 def _cube_cloud(
@@ -204,8 +217,8 @@ def _cube_cloud(
     # measure from the platter as seen, not from x_D = 0: a calibration's origin along the axis
     # is a gauge (the shape strategy holds ty), and a few millimetres there would otherwise
     # lift the platter itself above the segmentation cut
-    window = np.flatnonzero(np.abs(x) < PLATTER_WINDOW)
-    level = level_of_heights(x[within(window, platter_radius - 0.005)])
+    window = within(np.flatnonzero(np.abs(x) < PLATTER_WINDOW), platter_radius - 0.005)
+    level = level_of_heights(x[window])
     x -= level
     above = within(np.flatnonzero((x > SEGMENT_MARGIN) & (x < 3 * s)), platter_radius)
     ring = within(np.flatnonzero(np.abs(x) < RING_BAND), platter_radius - 0.005)
@@ -213,11 +226,39 @@ def _cube_cloud(
     p_ring = lidar_to_dynamic(p_L[ring], phi[ring], H)
     p_ring[:, 0] -= level
     p_L, phi = p_L[above], phi[above]
-    p_D = lidar_to_dynamic(p_L, phi, H)
+    used = _whole_lines(p_L, CUBE_RETURNS)
+    p_D = lidar_to_dynamic(p_L[used], phi[used], H)
     p_D[:, 0] -= level
-    idx = np.flatnonzero(density_outlier_mask(p_D))
-    idx = idx[largest_cluster(p_D[idx])]
-    return CubeCloud(level, p_ring, p_L, phi, idx, p_D[idx])
+    keep = np.flatnonzero(density_outlier_mask(p_D))
+    keep = keep[largest_cluster(p_D[keep])]
+    return CubeCloud(level, p_ring, p_L, phi, used[keep], p_D[keep], window, ring)
+
+
+def _whole_lines(p_L: FloatArray, most: int) -> NDArray[np.intp]:
+    """Positions of at most about ``most`` of the returns ((N, 3) in L, in scan order): all of
+    them, or every k-th scan line's (a line ends where the azimuth jumps back,
+    :func:`calstation.engine.geometry.line_ids`), so that a line's returns stay together."""
+    if p_L.shape[0] <= most:
+        return np.arange(p_L.shape[0])
+    stride = -(-p_L.shape[0] // most)
+    lines = line_ids(np.arctan2(p_L[:, 0], p_L[:, 1]))
+    out: NDArray[np.intp] = np.flatnonzero(lines % stride == 0)
+    return out
+
+
+def moved_cloud(cloud: CubeCloud, p_L: FloatArray, phi: FloatArray, H: Extrinsics) -> CubeCloud:
+    """``cloud``'s returns, found under another H within a millimetre of this one, under H:
+    the platter's level from the same returns and the cube's cleaned returns and the ring
+    turned into D by H, without segmenting again (``p_L``, ``phi``: the scan's returns
+    ``cloud`` was found in). The level, a median refined to the returns within 3 mm of it,
+    does not depend on the window's edges."""
+    t_P = H.t @ H.R
+    level = level_of_heights(p_L[cloud.window] @ H.R[:, 0] - t_P[0])
+    p_ring = lidar_to_dynamic(p_L[cloud.ring], phi[cloud.ring], H)
+    p_ring[:, 0] -= level
+    pts = lidar_to_dynamic(cloud.p_L[cloud.idx], cloud.phi[cloud.idx], H)
+    pts[:, 0] -= level
+    return replace(cloud, level=level, p_ring=p_ring, pts=pts)
 
 
 def check_cube_points(
@@ -230,16 +271,20 @@ def check_cube_points(
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
     edges_only: bool = False,
     memo: dict[str, Any] | None = None,
+    nearby: bool = False,
 ) -> CubeCheck:
     """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H.
     ``edges_only`` leaves out the paper's minimum-volume box and the twist (NaN), for callers
     that need only the face-fit dimensions. ``memo``: a mapping kept with these returns
     (:attr:`calstation.engine.spinscan.SpinScan.memo`) in which the cube's segmentation under the
     last H is kept, so that a second check under the same H (the shape strategy's σ floor,
-    then the cube check of its result) does not segment again."""
+    then the cube check of its result) does not segment again; with ``nearby``, one kept
+    under another H within a millimetre of this one is turned to this H (:func:`moved_cloud`:
+    the shape strategy's result, a known-size cube fit from the H its segmentation was found
+    under)."""
     t0 = time.perf_counter()
     s = cube.edge
-    cloud = cube_cloud(p_L, phi, H, s, platter_radius, memo)
+    cloud = cube_cloud(p_L, phi, H, s, platter_radius, memo, nearby=nearby)
     if cloud.pts.shape[0] < 500:
         raise VerificationError(
             f"the QA cube was not found: {cloud.pts.shape[0]} returns more than "
@@ -290,15 +335,21 @@ def cube_cloud(
     s: float,
     platter_radius: float,
     memo: dict[str, Any] | None,
+    *,
+    nearby: bool = False,
 ) -> CubeCloud:
     """:func:`_cube_cloud`, taken from ``memo`` when it holds the one under the same H, cube
-    and platter, and kept there."""
+    and platter (with ``nearby``, under any H: :func:`moved_cloud` turns it to this one), and
+    kept there."""
     key = (H.as_vector().tobytes(), s, platter_radius)
     found = memo.get("cube_cloud") if memo is not None else None
     if found is not None and found[0] == key:
         cloud: CubeCloud = found[1]
         return cloud
-    cloud = _cube_cloud(p_L, phi, H, s, platter_radius)
+    if found is not None and nearby and found[0][1:] == key[1:]:
+        cloud = moved_cloud(found[1], p_L, phi, H)
+    else:
+        cloud = _cube_cloud(p_L, phi, H, s, platter_radius)
     if memo is not None:
         memo["cube_cloud"] = (key, cloud)
     return cloud
@@ -541,17 +592,19 @@ def check_cube(
     *,
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
     prepared: SpinScan | None = None,
+    nearby: bool = False,
 ) -> CubeCheck:
     """Cube check on a QA-cube spin-scan recording with the calibration H. ``prepared``: the
     recording's returns already prepared (:func:`calstation.engine.spinscan.from_recording`, or
     a :class:`~calstation.engine.spinscan.SpinScanBuilder` as the scan ran), else they are
-    prepared here."""
+    prepared here. ``nearby``: see :func:`check_cube_points`."""
     from calstation.engine.spinscan import from_recording
 
     scan = prepared if prepared is not None else from_recording(recording)
     try:
         return check_cube_points(
-            scan.p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=scan.memo
+            scan.p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=scan.memo,
+            nearby=nearby,
         )
     except VerificationError as exc:
         raise VerificationError(f"{recording.path}: {exc}") from None

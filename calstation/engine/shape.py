@@ -29,6 +29,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -232,9 +233,10 @@ def _shape_pass(
     estimate_ry: bool,
     coarse: bool,
     progress: Progress | None,
+    flatness_ry: bool = True,
 ) -> CalibrationResult:
     """One pass of :func:`shape_fine_tune_points` (coarse alignment, box, faces) from
-    ``start`` on the prepared cube scan."""
+    ``start`` on the prepared cube scan; ``flatness_ry``: see :func:`_solve`."""
     start = start.with_(rx=0.0)
     # the platter ring and the background are static in L: they never belong to the cube
     moving = ~scan.static
@@ -270,7 +272,7 @@ def _shape_pass(
         box=box,
     )
     fit = _BoxFit(cost, p_L_near, phi_near, start, settings, box, progress)
-    solved = _solve(fit, estimate_ry)
+    solved = _solve(fit, estimate_ry, flatness_ry)
     return _pass_result(fit, solved, estimate_ry, coarse_report, n_all)
 
 
@@ -417,9 +419,10 @@ class _Solved:
     """1σ of ry from the last face-flatness step (rad; NaN without one)"""
 
 
-def _solve(fit: _BoxFit, estimate_ry: bool) -> _Solved:
+def _solve(fit: _BoxFit, estimate_ry: bool, flatness_ry: bool = True) -> _Solved:
     """Run the pass's solves on ``fit``: with the upright box and ``estimate_ry``, tx, tz, rz
-    from the box alternating with ry from the faces; with the minimal box, the paper's joint
+    from the box alternating with ry from the faces (without ``flatness_ry``, tx, tz, rz only:
+    the known-size cube fit that follows estimates ry); with the minimal box, the paper's joint
     solve; without ``estimate_ry``, tx, tz, rz with ry held."""
     settings = fit.settings
     names = FREE if estimate_ry else ("tx", "tz", "rz")
@@ -430,7 +433,7 @@ def _solve(fit: _BoxFit, estimate_ry: bool) -> _Solved:
         # the box cost is nearly flat and jumpy in ry: settle tx, tz, rz with ry held, then
         # alternate ry from the faces' flatness with tx, tz, rz from the box
         res = fit.solve(("tx", "tz", "rz"), settings.max_nfev)
-        for _ in range(2):
+        for _ in range(2 if flatness_ry else 0):
             ry, ry_sigma = fit.planar_ry()
             change = abs(ry - fit.x6[RY])
             fit.x6[RY] = ry
@@ -554,30 +557,37 @@ def shape_fine_tune_points(
             f"shape needs (N, 3) returns and (N,) angles, got {p_L.shape} and {phi.shape}"
         )
     prepared = prepare(p_L, phi) if scan is None else scan
+    one_pass = partial(
+        _shape_pass, prepared, cube=cube, settings=settings, platter_radius=platter_radius,
+        max_points=max_points, box=box, estimate_ry=estimate_ry, coarse=coarse,
+        progress=progress,
+    )
+    # the known-size fit estimates ry itself: the faces' flatness rounds before it changed
+    # nothing but the time (docs/performance.md); they run when it cannot label the faces
+    flatness = not (known_size and estimate_ry and box == "upright")
+    result = _finish(_box_passes(one_pass, start, coarse, flatness), prepared, cube,
+                     platter_radius, estimate_ry, known_size)
+    if not flatness and not result.diagnostics["known_size"]["used"]:
+        reason = result.diagnostics["known_size"]
+        result = _finish(_box_passes(one_pass, start, coarse, True), prepared, cube,
+                         platter_radius, estimate_ry, known_size=False)
+        result.diagnostics["known_size"] = reason
+    result.timings["total"] = time.perf_counter() - t0
+    return result
 
-    def run(h: Extrinsics) -> CalibrationResult:
-        return _shape_pass(
-            prepared,
-            h,
-            cube,
-            settings,
-            platter_radius=platter_radius,
-            max_points=max_points,
-            box=box,
-            estimate_ry=estimate_ry,
-            coarse=coarse,
-            progress=progress,
-        )
 
-    result = run(start)
+def _box_passes(
+    one_pass: Callable[..., CalibrationResult], start: Extrinsics, coarse: bool, flatness: bool
+) -> CalibrationResult:
+    """The box cost's result from ``start``: one pass, or two when the first's coarse
+    alignment could run only its coarsest stage (the start's ry too far off for the second)."""
+    result = one_pass(start, flatness_ry=flatness)
     passes = 1
     report = result.diagnostics["coarse"]
     if coarse and report.get("used") and report.get("stages", COARSE_STAGES) < COARSE_STAGES:
-        result = run(result.H)
+        result = one_pass(result.H, flatness_ry=flatness)
         passes = 2
     result.diagnostics["passes"] = passes
-    result = _finish(result, prepared, cube, platter_radius, estimate_ry, known_size)
-    result.timings["total"] = time.perf_counter() - t0
     return result
 
 
@@ -595,12 +605,14 @@ def _finish(
     if known_size:
         result, fitted = _known_size(result, prepared, cube, platter_radius, estimate_ry)
     # where the platter top lies along the axis, and (without the known-size fit) what the box
-    # cost's residuals cannot see: the cube's own dimensions under the result
+    # cost's residuals cannot see: the cube's own dimensions under the result; after the
+    # known-size fit, on the cube's returns it found (under the box cost's H, < 1 mm away)
     level = math.nan
     try:
         check = check_cube_points(
             prepared.p_L, prepared.phi, result.H, cube, QALimits(),
             platter_radius=platter_radius, edges_only=True, memo=prepared.memo,
+            nearby=fitted is not None,
         )
         edge_error, level = check.edge_error, check.platter_level
     except VerificationError:
