@@ -13,7 +13,11 @@ matter (centred against 60 mm off-centre, and 1.5 times taller), and recommends.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import os
+import shutil
 import statistics
 import tempfile
 import time
@@ -50,14 +54,21 @@ class Trial:
 def plan(
     loaded: Any,
     *,
-    seeds: int = 2,
+    seeds: int = 1,
     turns: int = 2,
     alternatives: bool = True,
     progress: Progress | None = None,
     out_dir: Path | None = None,
+    cache: Path | None = None,
 ) -> dict[str, Any]:
     """Simulate the recipe ``loaded`` (:class:`~calstation.recipes.LoadedRecipe`, with a
-    ``simulation`` section) and return the plan as plain data (see the module docstring)."""
+    ``simulation`` section) and return the plan as plain data (see the module docstring).
+
+    ``progress(message, fraction)`` is called as each simulation and each fine-tuning starts
+    and when the plan is done (fraction 0 … 1 of the work, by its expected time). ``cache``: a
+    folder that keeps the simulated runs by the hash of the recipe as simulated
+    (:func:`simulated`; :func:`cache_folder` is the command's), so that a plan of the same
+    station again, or with another budget or strategy option, fits without simulating."""
     recipe = loaded.recipe
     if recipe.simulation is None:
         raise BenchError(
@@ -70,11 +81,12 @@ def plan(
     say = progress or (lambda message, fraction: None)
     with tempfile.TemporaryDirectory(prefix="calstation-plan-") as scratch:
         work = Path(out_dir or scratch)
-        return _plan(loaded, seeds, turns, alternatives, say, work)
+        return _plan(loaded, seeds, turns, alternatives, say, work, cache)
 
 
 def _plan(
-    loaded: Any, seeds: int, turns: int, alternatives: bool, say: Progress, work: Path
+    loaded: Any, seeds: int, turns: int, alternatives: bool, say: Progress, work: Path,
+    cache: Path | None,
 ) -> dict[str, Any]:
     """:func:`plan` with its folder for the simulated recordings."""
     recipe = loaded.recipe
@@ -84,19 +96,50 @@ def _plan(
     t0 = time.perf_counter()
     runs = [(name, change, patch, seed) for name, change, patch in designs
             for seed in range(1, (seeds if not patch else 1) + 1)]
+    # the work of each run in turns of scan simulated and fine-tuned: an alternative simulates
+    # its spin target alone and fine-tunes one turn
+    weights = [3 * turns + 2 if not patch else 2 for _, _, patch, _ in runs]
+    done = 0.0
     trials: dict[str, Trial] = {}
-    for k, (name, change, patch, seed) in enumerate(runs):
-        say(f"simulating {name}, seed {seed}", k / len(runs))
-        trial = trials.setdefault(name, Trial(name, change))
-        try:
-            trial.turns += _simulate_and_fit(loaded, patch, seed, turns if not patch else 1,
-                                             work / f"{len(trials)}-{seed}")
-        except CalstationError as exc:
-            if not patch:
-                raise
-            trial.error = str(exc)  # an alternative the recipe's geometry does not allow
+    designed: Path | None = None
+    simulated_files: list[Path] = []
+    try:
+        for k, (name, change, patch, seed) in enumerate(runs):
+            trial = trials.setdefault(name, Trial(name, change))
+            part = _Part(say, f"{name}, seed {seed}", done / sum(weights),
+                         weights[k] / sum(weights))
+            try:
+                simulated_recipe, files = _simulated_run(
+                    loaded, patch, seed, turns if not patch else 1, work / f"{k}", cache,
+                    None if not patch else designed, part)
+                simulated_files += files.values()
+                if not patch and seed == 1:
+                    designed = files["spin"].parent
+                trial.turns += _fits(simulated_recipe, files, turns if not patch else 1, part)
+            except CalstationError as exc:
+                if not patch:
+                    raise
+                trial.error = str(exc)  # an alternative the recipe's geometry does not allow
+            done += weights[k]
+    finally:
+        if cache is None:
+            for path in simulated_files:
+                path.unlink(missing_ok=True)
     say("done", 1.0)
     return _summary(recipe, trials, turns, seeds, time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class _Part:
+    """The progress of one run of the plan: its share of the whole, from ``start``."""
+
+    say: Progress
+    name: str
+    start: float
+    share: float
+
+    def __call__(self, message: str, fraction: float) -> None:
+        self.say(f"{message} ({self.name})", self.start + self.share * fraction)
 
 
 def _alternatives(recipe: Any) -> list[tuple[str, str, dict[str, Any]]]:
@@ -121,61 +164,173 @@ def _alternatives(recipe: Any) -> list[tuple[str, str, dict[str, Any]]]:
     return out
 
 
-def _simulate_and_fit(
-    loaded: Any, patch: dict[str, Any], seed: int, turns: int, out: Path
-) -> list[dict[str, Any]]:
-    """Simulate ``turns`` turns of the (patched) recipe with ``seed`` and fine-tune on the
-    first 1 … ``turns`` of them as the station would."""
+def _patched(loaded: Any, patch: dict[str, Any], seed: int = 1, turns: int = 1) -> Any:
+    """The recipe as the plan simulates it: ``patch`` applied, ``turns`` turns of the
+    strategy's own scan (the cube's for shape) and one of the other, no second passes, the
+    simulation's ``seed``."""
+    from calstation import plugins
+    from calstation.bench.records import scan_of
     from calstation.bench.worker import apply_overrides
+
+    long = {"revolutions": turns + 0.05, "max_revolutions": turns + 0.05,
+            "second_pass_rpm": None}
+    one = {**long, "revolutions": 1.05, "max_revolutions": 1.05}
+    on_cube = scan_of(plugins.strategy(loaded.recipe.calibration.strategy)) == "cube"
+    return apply_overrides(loaded.recipe, {
+        **patch, "steps": {"spin_scan": one if on_cube else long,
+                           "cube_scan": long if on_cube else one},
+        "simulation": {"seed": seed},
+    })
+
+
+def _simulated_run(
+    loaded: Any, patch: dict[str, Any], seed: int, turns: int, out: Path,
+    cache: Path | None, designed: Path | None, say: Progress,
+) -> tuple[Any, dict[str, Path]]:
+    """The (patched) recipe as simulated and the recordings of its run with ``seed``. An
+    alternative (``designed``: the folder of the recipe as designed, seed 1) changes the spin
+    target only (:func:`_alternatives`): its spin scan is simulated and the static and cube
+    scans are the design's, which show the same station with the same truth."""
+    recipe = _patched(loaded, patch, seed, turns)
+    say("simulating the scans", 0.0)
+    if designed is None:
+        return recipe, simulated(recipe, out, cache)
+    spin = simulated(recipe, out, cache, only=("spin",))
+    base = json.loads((designed / "truth.json").read_text())
+    own = json.loads(spin["truth"].read_text())
+    if any(base.get(k) != own.get(k) for k in PARAMETERS):
+        return recipe, simulated(recipe, out, cache)
+    shared = {k: designed / f"{k}.mcap" for k in ("static", "cube")
+              if (designed / f"{k}.mcap").is_file()}
+    return recipe, {**shared, "spin": spin["spin"], "truth": spin["truth"]}
+
+
+PARAMETERS = ("tx", "ty", "tz", "rx", "ry", "rz")
+"""The true H's parameters in a simulated run's ``truth.json``."""
+
+
+def _fits(
+    recipe: Any, files: dict[str, Path], turns: int, say: Progress
+) -> list[dict[str, Any]]:
+    """The station's fine-tuning on the first 1 … ``turns`` turns of the simulated run
+    ``files``, each recording read once (the cube's preparation then serves every fit)."""
+    from calstation.recordings.reader import read_recording
+
+    recordings = {k: read_recording(v) for k, v in files.items() if k != "truth"}
+    out = []
+    for k in range(1, turns + 1):
+        say(f"fine-tuning on {k} turn{'s' if k > 1 else ''}",
+            (turns + 2 + sum(range(1, k))) / (3 * turns + 2))
+        out.append(_fit(recipe, recordings, k))
+    return out
+
+
+CACHE_ENTRIES = 8
+"""Simulated runs the plan's cache keeps, the most recently used (one of two turns at 1000
+lines/s is ~90 MB)."""
+
+
+def simulated(
+    recipe: Any, out: Path, cache: Path | None, only: tuple[str, ...] | None = None
+) -> dict[str, Path]:
+    """The recordings of one simulated run of ``recipe`` (``{"static", "spin", "cube",
+    "truth"}`` → paths): from ``cache`` (a folder per simulated run, named by the hash of the
+    recipe as simulated and of the simulator's version and source), else simulated into ``out``
+    or, with a cache, into the cache (a folder of its own, renamed into place when complete, so
+    that an interrupted plan leaves no half run to be read). ``only``: the scans to simulate
+    (``calstation_sim.simulate_run``'s)."""
     from calstation.recipes import LoadedRecipe
 
     try:
         from calstation_sim import simulate_run
     except ImportError:
         raise BenchError("calstation plan needs the calstation-sim plugin") from None
-    from calstation import plugins
-    from calstation.bench.records import scan_of
-
-    long = {"revolutions": turns + 0.05, "max_revolutions": turns + 0.05,
-            "second_pass_rpm": None}
-    one = {**long, "revolutions": 1.05, "max_revolutions": 1.05}
-    # the turns are those of the strategy's own scan: the cube's for shape
-    on_cube = scan_of(plugins.strategy(loaded.recipe.calibration.strategy)) == "cube"
-    recipe = apply_overrides(loaded.recipe, {
-        **patch, "steps": {"spin_scan": one if on_cube else long,
-                           "cube_scan": long if on_cube else one},
-        "simulation": {"seed": seed},
-    })
     import yaml
 
     text = yaml.safe_dump(recipe.model_dump(mode="json"), sort_keys=False)
-    files = simulate_run(LoadedRecipe(recipe, None, text), out, progress=False)
+    loaded = LoadedRecipe(recipe, None, text)
+    if cache is None:
+        return {k: Path(v) for k, v in simulate_run(loaded, out, progress=False,
+                                                    only=only).items()}
+    folder = cache / _cache_key(text + f"\nonly: {only}")
+    index = folder / "files.json"
+    if index.is_file():
+        try:
+            files = {k: folder / v for k, v in json.loads(index.read_text()).items()}
+        except (OSError, ValueError, AttributeError):
+            files = {}
+        if files and all(p.is_file() for p in files.values()):
+            os.utime(index)  # most recently used
+            return files
+    cache.mkdir(parents=True, exist_ok=True)
+    partial = Path(tempfile.mkdtemp(prefix=".partial-", dir=cache))
     try:
-        return [_fit(recipe, files, k) for k in range(1, turns + 1)]
-    finally:
-        for path in files.values():
-            Path(path).unlink(missing_ok=True)
+        made = simulate_run(loaded, partial, progress=False, only=only)
+        (partial / "files.json").write_text(json.dumps({k: Path(v).name
+                                                        for k, v in made.items()}))
+        shutil.rmtree(folder, ignore_errors=True)
+        partial.rename(folder)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    _prune(cache)
+    return {k: folder / Path(v).name for k, v in made.items()}
 
 
-def _fit(recipe: Any, files: dict[str, Any], turns: int) -> dict[str, Any]:
+def _cache_key(text: str) -> str:
+    """The cache's name for a simulated run of the recipe ``text``: its hash with the
+    simulator's version and source files (their names, sizes and times), so that a changed
+    simulator simulates again."""
+    import calstation_sim
+
+    from calstation import __version__
+
+    digest = hashlib.sha256(text.encode())
+    digest.update(f"calstation {__version__}".encode())
+    for path in sorted(Path(calstation_sim.__file__).parent.glob("*.py")):
+        stat = path.stat()
+        digest.update(f"{path.name} {stat.st_size} {stat.st_mtime_ns}".encode())
+    return digest.hexdigest()[:32]
+
+
+def _prune(cache: Path) -> None:
+    """Keep the :data:`CACHE_ENTRIES` most recently used simulated runs in ``cache``."""
+    entries = sorted((p for p in cache.iterdir() if (p / "files.json").is_file()),
+                     key=lambda p: (p / "files.json").stat().st_mtime, reverse=True)
+    for old in entries[CACHE_ENTRIES:]:
+        shutil.rmtree(old, ignore_errors=True)
+    day_ago = time.time() - 86_400
+    for left in cache.glob(".partial-*"):  # a plan killed while it simulated
+        if left.stat().st_mtime < day_ago:
+            shutil.rmtree(left, ignore_errors=True)
+
+
+def cache_folder() -> Path:
+    """Where the plan keeps its simulated runs: ``$CALSTATION_HOME/plan-cache``."""
+    from calstation.storage.db.database import calstation_home
+
+    return calstation_home() / "plan-cache"
+
+
+def _fit(recipe: Any, recordings: dict[str, Any], turns: int) -> dict[str, Any]:
     """The station's calibration (:func:`calstation.pipeline.calibrate`) on the first
-    ``turns`` turns of the strategy's scan: σ and the predicted error of the fine-tuning, and
-    (for a spin-target strategy) the predicted error once the cube's faces join ry."""
+    ``turns`` turns of the strategy's scan (``recordings``: the simulated run's, read once for
+    all its fits): σ and the predicted error of the fine-tuning, and (for a spin-target
+    strategy) the predicted error once the cube's faces join ry."""
     from calstation import plugins
     from calstation.bench.records import scan_of
     from calstation.pipeline import Scans, calibrate, turned
     from calstation.pipeline.judgement import with_prediction
-    from calstation.recordings.reader import read_recording
 
     t0 = time.perf_counter()
     strategy = plugins.strategy(recipe.calibration.strategy)
-    static = (None if recipe.calibration.start == "platter" or "static" not in files
-              else read_recording(files["static"]))
-    scan = read_recording(files[scan_of(strategy)]).first_turns(turns)
+    static = (None if recipe.calibration.start == "platter" or "static" not in recordings
+              else recordings["static"])
+    scan = recordings[scan_of(strategy)].first_turns(turns)
     on_target = strategy.fixture == "spin_target"
     done = calibrate(recipe, Scans(
         spin=turned(scan), static=static,
-        cube=turned(read_recording(files["cube"])) if on_target else None), strategy)
+        cube=turned(recordings["cube"]) if on_target else None), strategy)
     result = done.fine_tuned
     predicted = with_prediction(result, recipe, turns=turns)[1]
     with_cube = with_prediction(done.result, recipe)[1].max_m if on_target else predicted.max_m

@@ -17,7 +17,7 @@ def register(app: typer.Typer) -> None:
     def plan_cmd(
         recipe: Path = typer.Argument(..., help="The station's recipe, with a simulation "
                                       "section describing it.", show_default=False),
-        seeds: int = typer.Option(2, "--seeds", min=1, max=20,
+        seeds: int = typer.Option(1, "--seeds", min=1, max=20,
                                   help="Simulated stations (noise draws) per figure."),
         turns: int = typer.Option(2, "--turns", min=1, max=8,
                                   help="Turns of the simulated spin scans (1 … N are fitted)."),
@@ -30,6 +30,10 @@ def register(app: typer.Typer) -> None:
             "(repeatable; values are YAML).",
         ),
         as_json: bool = typer.Option(False, "--json", help="Print the plan as JSON."),
+        cache: bool = typer.Option(True, "--cache/--no-cache",
+                                   help="Keep the simulated scans in $CALSTATION_HOME/plan-cache "
+                                   "and take them from there when the same station is planned "
+                                   "again."),
     ) -> None:
         """Simulate RECIPE's station and print, per parameter, the σ the fine-tuning states,
         the predicted reconstruction error over the work volume against the recipe's budget
@@ -37,13 +41,14 @@ def register(app: typer.Typer) -> None:
         which placement or height of the spin target helps."""
         from rich.console import Console
 
-        from calstation.bench.plan import plan
+        from calstation.bench.plan import cache_folder, plan
         from calstation.quiet import stdout_to_stderr
 
         loaded = _loaded(recipe, overrides)
         console = Console(stderr=True)
         with console.status("planning") as status, stdout_to_stderr():
             result = plan(loaded, seeds=seeds, turns=turns, alternatives=alternatives,
+                          cache=cache_folder() if cache else None,
                           progress=lambda message, fraction: status.update(
                               f"planning: {message} ({fraction:.0%})"))
         if as_json:

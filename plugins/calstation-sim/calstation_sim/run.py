@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -70,6 +70,7 @@ def simulate_run(
     range_m: float | None = None,
     pitch_deg: float | None = None,
     progress: bool = True,
+    only: Collection[str] | None = None,
 ) -> dict[str, Path]:
     """Simulate a whole run of ``recipe`` and write its recordings into ``out_dir``.
 
@@ -81,7 +82,8 @@ def simulate_run(
     (:meth:`SimulatedStation.truth_dict`; also stored as the ``"truth"`` metadata of each
     recording). Returns ``{"static", "spin", "cube", "truth"}`` (plus the second passes) →
     paths. ``seed``, ``range_m`` (m) and ``pitch_deg`` override the
-    recipe's simulation.
+    recipe's simulation. ``only``: the stems of the scans to simulate (``{"spin"}``: the spin
+    scan alone; the truth is the seed's either way, the placements' errors may differ).
     """
     from calstation.recordings.writer import RecordingWriter
 
@@ -99,6 +101,8 @@ def simulate_run(
     truth_H = Extrinsics.from_dict({k: truth[k] for k in PARAMETER_NAMES})
     with _progress_bars(progress) as task:
         for stem, kind, fixture, step in _scans(recipe):
+            if only is not None and stem not in only:
+                continue
             if station.current_fixture != fixture:
                 station.place(fixture)
             path = out / f"{stem}.mcap"
