@@ -161,37 +161,29 @@ def _own_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("CALSTATION_HOME", str(tmp_path / "home"))
 
 
-def test_a_plan_again_takes_its_simulated_scans_from_the_cache(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_a_plan_again_takes_its_simulated_scans_from_the_cache(tmp_path: Path) -> None:
     """The simulated scans are kept by the hash of the recipe as simulated: the same plan
     again simulates nothing and gives the same figures; another station simulates again. An
     alternative placement of the spin target simulates its spin scan alone (the static and cube
     scans are the design's), and the progress runs from 0 to 1."""
-    import calstation_sim
-
     from calstation.bench.plan import CACHE_ENTRIES, plan
     from calstation.recipes import load_recipe
 
-    made: list[Any] = []
-    simulate = calstation_sim.simulate_run
-
-    def counting(*args: Any, **kwargs: Any) -> Any:
-        files = simulate(*args, **kwargs)  # the taller target does not fit: raises
-        made.append(kwargs.get("only"))
-        return files
-
-    monkeypatch.setattr(calstation_sim, "simulate_run", counting)
     cache = tmp_path / "cache"
+
+    def kept() -> dict[str, tuple[list[str], int]]:
+        return {p.parent.name: (sorted(json.loads(p.read_text())), p.parent.stat().st_ino)
+                for p in cache.glob("*/files.json")}
+
     loaded = load_recipe(_quick(tmp_path))
     said: list[float] = []
     first = plan(loaded, turns=1, cache=cache, progress=lambda m, f: said.append(f))
-    assert made[0] is None and made[1:] == [("spin",)] * (len(made) - 1)
+    runs = kept()
+    assert sorted(files for files, _ in runs.values()) == [
+        ["cube", "spin", "static", "truth"], ["spin", "truth"]]  # the design; centred's spin
     assert said == sorted(said) and said[0] == 0.0 and said[-1] == 1.0
-    simulated = len(made)
     again = plan(loaded, turns=1, cache=cache)
-    assert len(made) == simulated and again["designs"] == first["designs"]
-    assert len(list(cache.glob("*/files.json"))) <= CACHE_ENTRIES
+    assert kept() == runs and again["designs"] == first["designs"]
     noisier = load_recipe(_quick(tmp_path, range_noise=0.002))
     plan(noisier, turns=1, cache=cache, alternatives=False)
-    assert len(made) == simulated + 1
+    assert len(kept()) == len(runs) + 1 <= CACHE_ENTRIES

@@ -84,62 +84,167 @@ def plan(
         return _plan(loaded, seeds, turns, alternatives, say, work, cache)
 
 
+PLAN_WORKERS = 2
+"""Processes the plan simulates and fine-tunes in at once (a station computer's two cores)."""
+
+
+@dataclass(frozen=True)
+class _Run:
+    """One simulated run of the plan: a design and a seed."""
+
+    name: str
+    change: str
+    patch: dict[str, Any]
+    seed: int
+    turns: int
+
+
 def _plan(
     loaded: Any, seeds: int, turns: int, alternatives: bool, say: Progress, work: Path,
     cache: Path | None,
 ) -> dict[str, Any]:
-    """:func:`plan` with its folder for the simulated recordings."""
+    """:func:`plan` with its folder for the simulated recordings: every run simulated, then
+    every fit, each on :data:`PLAN_WORKERS` processes."""
     recipe = loaded.recipe
     designs: list[tuple[str, str, dict[str, Any]]] = [("as designed", "the recipe", {})]
     if alternatives:
         designs += _alternatives(recipe)
     t0 = time.perf_counter()
-    runs = [(name, change, patch, seed) for name, change, patch in designs
+    runs = [_Run(name, change, patch, seed, turns if not patch else 1)
+            for name, change, patch in designs
             for seed in range(1, (seeds if not patch else 1) + 1)]
-    # the work of each run in turns of scan simulated and fine-tuned: an alternative simulates
-    # its spin target alone and fine-tunes one turn
-    weights = [3 * turns + 2 if not patch else 2 for _, _, patch, _ in runs]
-    done = 0.0
-    trials: dict[str, Trial] = {}
-    designed: Path | None = None
-    simulated_files: list[Path] = []
+    trials = {r.name: Trial(r.name, r.change) for r in runs}
+    # the work in turns of scan: each run's simulation (an alternative's spin scan alone), then
+    # each fine-tuning on 1 … turns turns with the cube
+    work_share = _Shares(say, sum(r.turns + (2 if not r.patch else 0) for r in runs)
+                         + sum(n + 1 for r in runs for n in range(1, r.turns + 1)))
+    made: dict[int, tuple[Any, dict[str, Path]]] = {}
     try:
-        for k, (name, change, patch, seed) in enumerate(runs):
-            trial = trials.setdefault(name, Trial(name, change))
-            part = _Part(say, f"{name}, seed {seed}", done / sum(weights),
-                         weights[k] / sum(weights))
-            try:
-                simulated_recipe, files = _simulated_run(
-                    loaded, patch, seed, turns if not patch else 1, work / f"{k}", cache,
-                    None if not patch else designed, part)
-                simulated_files += files.values()
-                if not patch and seed == 1:
-                    designed = files["spin"].parent
-                trial.turns += _fits(simulated_recipe, files, turns if not patch else 1, part)
-            except CalstationError as exc:
-                if not patch:
-                    raise
-                trial.error = str(exc)  # an alternative the recipe's geometry does not allow
-            done += weights[k]
+        with _pool() as pool:
+            made = _simulate_all(pool, loaded, runs, work, cache, trials, work_share)
+            _fit_all(pool, runs, made, trials, work_share)
     finally:
         if cache is None:
-            for path in simulated_files:
-                path.unlink(missing_ok=True)
+            for _, files in made.values():
+                for path in files.values():
+                    path.unlink(missing_ok=True)
     say("done", 1.0)
     return _summary(recipe, trials, turns, seeds, time.perf_counter() - t0)
 
 
-@dataclass(frozen=True)
-class _Part:
-    """The progress of one run of the plan: its share of the whole, from ``start``."""
+class _Shares:
+    """Progress by the share of the plan's work done: ``say(message, done ÷ total)``."""
 
-    say: Progress
-    name: str
-    start: float
-    share: float
+    def __init__(self, say: Progress, total: float) -> None:
+        self.say, self.total, self.done = say, total, 0.0
 
-    def __call__(self, message: str, fraction: float) -> None:
-        self.say(f"{message} ({self.name})", self.start + self.share * fraction)
+    def __call__(self, message: str, work: float = 0.0) -> None:
+        self.done += work
+        self.say(message, min(1.0, self.done / self.total))
+
+
+def _pool() -> Any:
+    """The plan's worker processes (spawned: the plan may run on a web server's thread)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(max_workers=max(1, min(PLAN_WORKERS, os.cpu_count() or 1)),
+                               mp_context=multiprocessing.get_context("spawn"))
+
+
+def _simulate_all(
+    pool: Any, loaded: Any, runs: list[_Run], work: Path, cache: Path | None,
+    trials: dict[str, Trial], share: _Shares,
+) -> dict[int, tuple[Any, dict[str, Path]]]:
+    """Every run simulated (or taken from ``cache``) at once: {run's index: (the recipe as
+    simulated, its recordings)}. An alternative changes the spin target only
+    (:func:`_alternatives`): its spin scan is simulated and the static and cube scans are the
+    design's (seed 1), which show the same station with the same truth — else the whole run is
+    simulated. An alternative the recipe's geometry does not allow gets its error."""
+    share("simulating the scans")
+    futures = {pool.submit(_simulate_job, loaded, r.patch, r.seed, r.turns, work / f"{k}",
+                           cache, ("spin",) if r.patch else None): k
+               for k, r in enumerate(runs)}
+    made: dict[int, tuple[Any, dict[str, Path]]] = {}
+    for future in _as_completed(futures):
+        k = futures[future]
+        run = runs[k]
+        try:
+            made[k] = future.result()
+        except CalstationError as exc:
+            if not run.patch:
+                raise
+            trials[run.name].error = str(exc)  # an alternative the geometry does not allow
+        share(f"simulated {run.name}, seed {run.seed}",
+              run.turns + (2 if not run.patch else 0))
+    designed = made[0][1]
+    for k, run in enumerate(runs):
+        if not run.patch or k not in made:
+            continue
+        recipe, spin = made[k]
+        if _truth(designed) != _truth(spin):
+            made[k] = _simulate_job(loaded, run.patch, run.seed, run.turns, work / f"{k}",
+                                    cache, None)
+        else:
+            shared: dict[str, Path] = {
+                name: designed[name] for name in ("static", "cube") if name in designed}
+            made[k] = (recipe, {**shared, "spin": spin["spin"], "truth": spin["truth"]})
+    return made
+
+
+def _fit_all(
+    pool: Any, runs: list[_Run], made: dict[int, tuple[Any, dict[str, Path]]],
+    trials: dict[str, Trial], share: _Shares,
+) -> None:
+    """Every run's fine-tunings on 1 … its turns at once, into ``trials`` (an alternative's
+    failure is its error; the design's is raised)."""
+    share("fine-tuning")
+    futures = {pool.submit(_fit_job, made[k][0], made[k][1], n): (k, n)
+               for k in made for n in range(1, runs[k].turns + 1)}
+    found: dict[tuple[int, int], dict[str, Any]] = {}
+    for future in _as_completed(futures):
+        k, n = futures[future]
+        run = runs[k]
+        try:
+            found[k, n] = future.result()
+        except CalstationError as exc:
+            if not run.patch:
+                raise
+            trials[run.name].error = str(exc)
+        share(f"fine-tuned {run.name}, seed {run.seed}, on {n} turn{'s' if n > 1 else ''}",
+              n + 1)
+    for (k, _), row in sorted(found.items()):
+        trials[runs[k].name].turns.append(row)
+
+
+def _as_completed(futures: dict[Any, Any]) -> Any:
+    from concurrent.futures import as_completed
+
+    return as_completed(futures)
+
+
+def _truth(files: dict[str, Path]) -> list[Any]:
+    """The true H of a simulated run (its ``truth.json``)."""
+    truth = json.loads(files["truth"].read_text())
+    return [truth.get(k) for k in PARAMETERS]
+
+
+def _simulate_job(
+    loaded: Any, patch: dict[str, Any], seed: int, turns: int, out: Path, cache: Path | None,
+    only: tuple[str, ...] | None,
+) -> tuple[Any, dict[str, Path]]:
+    """In a worker: the (patched) recipe as simulated and its run's recordings (``only``: the
+    scans to simulate)."""
+    recipe = _patched(loaded, patch, seed, turns)
+    return recipe, simulated(recipe, out, cache, only=only)
+
+
+def _fit_job(recipe: Any, files: dict[str, Path], turns: int) -> dict[str, Any]:
+    """In a worker: :func:`_fit` on the recordings ``files``."""
+    from calstation.recordings.reader import read_recording
+
+    return _fit(recipe, {k: read_recording(v) for k, v in files.items() if k != "truth"},
+                turns)
 
 
 def _alternatives(recipe: Any) -> list[tuple[str, str, dict[str, Any]]]:
@@ -183,46 +288,8 @@ def _patched(loaded: Any, patch: dict[str, Any], seed: int = 1, turns: int = 1) 
     })
 
 
-def _simulated_run(
-    loaded: Any, patch: dict[str, Any], seed: int, turns: int, out: Path,
-    cache: Path | None, designed: Path | None, say: Progress,
-) -> tuple[Any, dict[str, Path]]:
-    """The (patched) recipe as simulated and the recordings of its run with ``seed``. An
-    alternative (``designed``: the folder of the recipe as designed, seed 1) changes the spin
-    target only (:func:`_alternatives`): its spin scan is simulated and the static and cube
-    scans are the design's, which show the same station with the same truth."""
-    recipe = _patched(loaded, patch, seed, turns)
-    say("simulating the scans", 0.0)
-    if designed is None:
-        return recipe, simulated(recipe, out, cache)
-    spin = simulated(recipe, out, cache, only=("spin",))
-    base = json.loads((designed / "truth.json").read_text())
-    own = json.loads(spin["truth"].read_text())
-    if any(base.get(k) != own.get(k) for k in PARAMETERS):
-        return recipe, simulated(recipe, out, cache)
-    shared = {k: designed / f"{k}.mcap" for k in ("static", "cube")
-              if (designed / f"{k}.mcap").is_file()}
-    return recipe, {**shared, "spin": spin["spin"], "truth": spin["truth"]}
-
-
 PARAMETERS = ("tx", "ty", "tz", "rx", "ry", "rz")
 """The true H's parameters in a simulated run's ``truth.json``."""
-
-
-def _fits(
-    recipe: Any, files: dict[str, Path], turns: int, say: Progress
-) -> list[dict[str, Any]]:
-    """The station's fine-tuning on the first 1 … ``turns`` turns of the simulated run
-    ``files``, each recording read once (the cube's preparation then serves every fit)."""
-    from calstation.recordings.reader import read_recording
-
-    recordings = {k: read_recording(v) for k, v in files.items() if k != "truth"}
-    out = []
-    for k in range(1, turns + 1):
-        say(f"fine-tuning on {k} turn{'s' if k > 1 else ''}",
-            (turns + 2 + sum(range(1, k))) / (3 * turns + 2))
-        out.append(_fit(recipe, recordings, k))
-    return out
 
 
 CACHE_ENTRIES = 8
