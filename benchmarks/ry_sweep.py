@@ -158,11 +158,14 @@ def _station_row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dic
                         "strategy": "refused"}
         spin_result = (steps.get("spin_scan").result or {}) if "spin_scan" in steps else {}
         fine_result = (steps.get("fine_tune").result or {}) if "fine_tune" in steps else {}
+        cube_result = (steps.get("cube_scan").result or {}) if "cube_scan" in steps else {}
         failed = [st.error for st in steps.values() if st.status == "failed" and st.error]
     row: dict[str, Any] = {
         "status": status, "accepted": status == "passed", "failure": failed[:1],
         "turn_by_turn": spin_result.get("turn_by_turn"), "turns": fine_result.get("turns"),
         "fit_s": fine_result.get("after_scan_s"),
+        "cube_after_scan_s": cube_result.get("after_scan_s"),
+        "cube_check_s": cube_result.get("cube_check_s"),
     }
     if estimate is not None and truth is not None:
         H = Extrinsics.from_dict(estimate["H"])
@@ -277,12 +280,15 @@ def station_table(rows: list[dict[str, Any]]) -> None:
               f"mean {np.mean([r['wall_s'] for r in sel]):.0f} s")
         scanned = [(r.get("turn_by_turn") or {}).get("whole_turns", r.get("turns")) for r in sel]
         scanned = [t for t in scanned if t]
-        ready = [r["fit_s"] for r in sel if r.get("fit_s") is not None]
         print(f"  spin scan on the station (whole turns at {SPIN_RPM:g} rpm): mean "
-              f"{np.mean(scanned) * 60 / SPIN_RPM if scanned else math.nan:.1f} s; fine "
-              f"calibration ready after the scan ended: median "
-              f"{np.median(ready) if ready else math.nan:.2f} s, max "
-              f"{max(ready) if ready else math.nan:.2f} s")
+              f"{np.mean(scanned) * 60 / SPIN_RPM if scanned else math.nan:.1f} s")
+        for key, what in (("fit_s", "fine calibration ready after the spin scan ended"),
+                          ("cube_after_scan_s", "result ready after the last scan ended"),
+                          ("cube_check_s", "cube check")):
+            ready = [r[key] for r in sel if r.get(key) is not None]
+            print(f"  {what}: median {np.median(ready) if ready else math.nan:.2f} s, p95 "
+                  f"{np.percentile(ready, 95) if ready else math.nan:.2f} s, max "
+                  f"{max(ready) if ready else math.nan:.2f} s")
         cover = []
         for p in PARAMS:
             flags = [_covered(r["estimate"] | {"err": r["err"]}, p) for r in with_est]

@@ -101,6 +101,7 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
     with db.session() as s:
         steps = [(st.name, st.status) for st in s.query(Step).filter_by(run_id=run_id)]
         fine = s.query(Step).filter_by(run_id=run_id, name="fine_tune").one().result
+        cube_step = s.query(Step).filter_by(run_id=run_id, name="cube_scan").one().result
         arts = s.query(Artifact).filter_by(run_id=run_id).all()
         rows = s.query(Calibration).filter_by(run_id=run_id).order_by(Calibration.id).all()
         every = [(c.stage, c.params()) for c in rows]
@@ -112,6 +113,8 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
     assert steps == [(name, "passed") for name in STEPS]
     # `calstation run` prepared the spin scan as its lines arrived and says when H was ready
     assert fine["prepared_while_scanning"] and fine["after_scan_s"] > 0
+    # and how long after the last scan the result was ready, the cube check a part of it
+    assert 0 < cube_step["cube_check_s"] < cube_step["after_scan_s"]
     assert "after the scan ended" in proc.stdout
     run_dir = tmp_path / "home" / "runs" / str(run_id)
     assert {a.kind for a in arts} == {"static", "spin", "cube", "report", "calibration"}

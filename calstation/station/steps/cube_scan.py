@@ -10,6 +10,8 @@ A failed check fails the step but keeps its recording and measurements (the outc
 
 from __future__ import annotations
 
+import math
+import time
 from typing import Any
 
 from calstation.engine.result import CalibrationResult
@@ -36,7 +38,9 @@ class CubeScan:
 
     def run(self, ctx: RunContext, step_id: int) -> StepOutcome:
         """Scan and check; the recordings, the cube check (and a combined calibration), and a
-        ``failure`` when the check failed."""
+        ``failure`` when the check failed. The result holds ``after_scan_s``, how long after the
+        last scan ended the result was ready (the operator's wait), and ``cube_check_s``, the
+        last cube check's time."""
         from calstation.pipeline import turned
         from calstation.recordings.reader import read_recording
 
@@ -50,6 +54,7 @@ class CubeScan:
         path2 = record_second_pass(ctx, self.name, step_id, path, CUBE_SECOND_PASS)
         if path2 is not None:
             artifacts.append((CUBE_SECOND_PASS, path2))
+        scan_ended = time.perf_counter()  # the run's last scan: the operator waits from here
         fine = ctx.stored_calibration("fine")
         scanned = ctx.scans.fitted.get(path)
         # the turns that met the budget: the result does not depend on how many more the scan
@@ -80,6 +85,8 @@ class CubeScan:
             {"recording": str(path), "passed": not failures,
              "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
              "points": int(getattr(check, "points", 0)),
+             "after_scan_s": time.perf_counter() - scan_ended,
+             "cube_check_s": float(getattr(check, "timings", {}).get("total", math.nan)),
              "joint_ry": None if joint is None else plain(joint.diagnostics["joint"]),
              **({"turn_by_turn": plain(scanned.summary)} if scanned is not None else {})},
             artifacts=artifacts,
