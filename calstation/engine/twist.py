@@ -313,7 +313,8 @@ def _group_planes(sums: FloatArray, noise: float) -> tuple[FloatArray, FloatArra
     Σw·v vᵀ (upper triangles); the scatter less the noise's covariance along the rays."""
     iu = np.triu_indices(3)
     weight = sums[:, 0]
-    mean = sums[:, 1:4] / weight[:, None]
+    # a group that holds a whole face leaves it out of that group's fit: no returns, no plane
+    mean = sums[:, 1:4] / np.where(weight > 0, weight, 1.0)[:, None]
     scatter = np.zeros((sums.shape[0], 3, 3))
     rays = np.zeros((sums.shape[0], 3, 3))
     scatter[:, *iu] = sums[:, 4:10]
