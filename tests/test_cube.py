@@ -86,9 +86,9 @@ def _same(a, b) -> bool:
 
 
 def test_a_second_check_under_the_same_h_reuses_the_segmentation(sim_run) -> None:
-    """The shape strategy's edges-only check, then the full check of its result: the second
-    reuses the first's segmentation (kept with the prepared scan) and gives what a check of
-    its own gives; another H segments again."""
+    """The shape strategy's edges-only check, then the full check of its result on the same
+    prepared scan: the second reuses the first's segmentation (kept with the prepared scan) and
+    gives what a check of its own gives; another H segments again."""
     recipe, rec, truth = _cube_scan(sim_run)
     cube, qa = recipe.fixtures.qa_cube, recipe.qa
     scan = from_recording(rec)
@@ -97,9 +97,9 @@ def test_a_second_check_under_the_same_h_reuses_the_segmentation(sim_run) -> Non
     edges = check_cube_points(scan.p_L, scan.phi, H, cube, qa, edges_only=True, memo=scan.memo)
     assert edges.edge_error == fresh.edge_error and math.isnan(edges.obb_error)
     kept = scan.memo["cube_cloud"][1]
-    full = check_cube(rec, H, cube, qa)
+    full = check_cube(rec, H, cube, qa, prepared=scan)
     assert scan.memo["cube_cloud"][1] is kept and _same(full, fresh)
-    other = check_cube(rec, truth, cube, qa)
+    other = check_cube(rec, truth, cube, qa, prepared=scan)
     assert scan.memo["cube_cloud"][1] is not kept
     assert _same(other, check_cube_points(scan.p_L, scan.phi, truth, cube, qa))
 

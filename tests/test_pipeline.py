@@ -97,6 +97,8 @@ def test_a_scan_prepared_while_taken_serves_its_first_lines_as_the_file_does(sim
                           for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True))
     for line in rec.lines():
         builder.write_line(line)
+    # the whole scan: the builder's own preparation, not one made again from the file
+    assert turned(rec, builder=builder).prepared is builder.finish()
     lines = rec.n_lines * 2 // 3
     live = turned(rec, fitted=(1, lines), builder=builder)
     read = turned(rec, fitted=(1, lines))

@@ -2,8 +2,9 @@
 process, and what the worker keeps between tasks.
 
 Workers (separate processes, ``spawn``) load the recipe and the plugins once
-(:func:`_init_worker`) and a scenario's recordings once, keeping them while tasks of the same
-scenario arrive (tasks are ordered by scenario), so no big array is pickled per task.
+(:func:`_init_worker`) and a scenario's recordings once, each spin scan's returns prepared once
+too (:func:`_prepared`), keeping them while tasks of the same scenario arrive (tasks are ordered
+by scenario), so no big array is pickled per task and no fine-tuning prepares its scan again.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from calstation.bench.records import (
 from calstation.bench.scenarios import load_truth, paper_scenarios, simulate_scenario
 from calstation.bench.tasks import Task
 from calstation.engine.frames import Extrinsics
+from calstation.plugins.cost_strategies import strategy_result
 
 _WORKER: dict[str, Any] = {}
 
@@ -63,6 +65,19 @@ def _recording(directory: str, which: str) -> Any:
         else:
             cache[which] = read_recording(Path(directory) / f"{which}.mcap")
     return cache[which]
+
+
+def _prepared(directory: str, which: str) -> Any:
+    """The scenario's ``which`` spin scan ("spin" | "cube") with its returns prepared
+    (:func:`calstation.pipeline.turned`), made once per worker and kept with the recordings."""
+    from calstation.pipeline import turned
+
+    _recording(directory, which)  # a new scenario empties the cache first
+    cache: dict[str, Any] = _WORKER["cache"]
+    key = f"prepared:{which}"
+    if key not in cache:
+        cache[key] = turned(_recording(directory, which))
+    return cache[key]
 
 
 def _recipe(overrides: str) -> Any:
@@ -164,9 +179,9 @@ def _run_finetune(task: Task, record: dict[str, Any]) -> None:
     start = Extrinsics(*task.start)
     record["start"] = _h_dict(start)
     strategy = plugins.strategy(task.method)
-    recording = _recording(task.directory, scan_of(strategy))
+    scan = _prepared(task.directory, scan_of(strategy))
     t0 = time.perf_counter()
-    result = strategy.run(recording, start, recipe)
+    result = strategy_result(strategy, scan.recording, start, recipe, prepared=scan.prepared)
     record["stage_s"] = time.perf_counter() - t0
     record.update(result_fields(result))
     record.update(_evaluate(task.directory, result.H, recipe))
@@ -180,9 +195,10 @@ def _run_basin(task: Task, record: dict[str, Any]) -> None:
     recipe = _recipe(task.overrides)
     assert task.start is not None
     strategy = plugins.strategy(task.method)
-    rec = _recording(task.directory, scan_of(strategy))
+    scan = _prepared(task.directory, scan_of(strategy))
     t0 = time.perf_counter()
-    result = strategy.run(rec, Extrinsics(*task.start), recipe)
+    result = strategy_result(strategy, scan.recording, Extrinsics(*task.start), recipe,
+                             prepared=scan.prepared)
     record.update({"stage_s": time.perf_counter() - t0, **result_fields(result)})
     record.update(against_truth(result.H, _recording(task.directory, "truth")))
 
@@ -192,7 +208,7 @@ def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
     paper's cube check on the QA-cube scan, and the reconstruction distortion of that scan. A
     measurement that fails is recorded as ``{"failed": message}``; the estimate stays valid."""
     truth: Extrinsics = _recording(directory, "truth")
-    cube_rec = _recording(directory, "cube")
+    cube = _prepared(directory, "cube")
     out = against_truth(H, truth)
     t0 = time.perf_counter()
     out["cube"] = _cube_check(directory, H, recipe)
@@ -201,7 +217,8 @@ def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
         from calstation.engine.metrics import reconstruction_distortion
 
         out["distortion"] = {
-            k: float(v) for k, v in reconstruction_distortion(cube_rec, H, truth).items()
+            k: float(v) for k, v in reconstruction_distortion(
+                cube.recording, H, truth, prepared=cube.prepared).items()
         }
     except Exception as exc:
         out["distortion"] = {"failed": f"{type(exc).__name__}: {exc}"}
@@ -216,9 +233,10 @@ def _cube_check(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
     try:
         from calstation.engine.cube import check_cube
 
+        cube = _prepared(directory, "cube")
         check = check_cube(
-            _recording(directory, "cube"), H, recipe.fixtures.qa_cube, recipe.qa,
-            platter_radius=recipe.fixtures.platter.radius,
+            cube.recording, H, recipe.fixtures.qa_cube, recipe.qa,
+            platter_radius=recipe.fixtures.platter.radius, prepared=cube.prepared,
         )
         return _jsonable(check.to_dict())  # type: ignore[no-any-return]
     except Exception as exc:

@@ -10,7 +10,7 @@ builds a :class:`Scan` from its own arrays.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Self
 
@@ -62,9 +62,7 @@ class Scan:
     - ``line_point_period_ns`` (L,) and ``line_has_offsets`` (L,): each line's return period and
       whether it carried explicit per-return offsets (None when not known).
 
-    ``path`` names where the scan came from, for messages. ``derived`` keeps what is computed
-    once from the data and reused (the prepared spin scan of
-    :func:`calstation.engine.spinscan.from_recording`).
+    ``path`` names where the scan came from, for messages.
     """
 
     path: Path = Path("<scan>")
@@ -82,7 +80,6 @@ class Scan:
     encoder_count: NDArray[np.int64]
     line_point_period_ns: NDArray[np.float64] | None = None
     line_has_offsets: NDArray[np.bool_] | None = None
-    derived: dict[str, Any] = field(default_factory=dict, init=False, compare=False, repr=False)
 
     # --- summaries -----------------------------------------------------------------------
     @property

@@ -14,7 +14,6 @@ import math
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 import numpy as np
@@ -277,26 +276,15 @@ def prepare(
 
 
 def from_recording(recording: Scan) -> SpinScan:
-    """:class:`SpinScan` of a recording's valid returns with a known platter angle.
-
-    When the scan was prepared while it was recorded (:class:`SpinScanBuilder` handed to
-    :func:`remember`) and the file is unchanged since, that preparation is finished and used.
-    Either way it is kept with the recording (``recording.derived``): several fine-tunings of
-    one scan (the bench's perturbed starts) prepare it once.
-    """
-    done = recording.derived.get("spin_scan")
-    if isinstance(done, SpinScan):
-        return done
-    builder = _take_remembered(recording.path)
-    if builder is not None and builder.encoder_latency_s == recording.encoder_latency_s:
-        scan = builder.finish()
-    else:
-        t0 = time.perf_counter()
-        p_L, phi, rng, az = recording.valid_returns()
-        t1 = time.perf_counter()
-        scan = prepare(p_L, phi, (rng, az))
-        scan.timings["points"] = t1 - t0
-    recording.derived["spin_scan"] = scan
+    """:class:`SpinScan` of a recording's valid returns with a known platter angle, prepared
+    anew at each call: whoever fine-tunes one scan several times (the calibration pipeline's
+    stages, the bench's perturbed starts) prepares it once and hands the result on, and a scan
+    prepared while it was taken is :meth:`SpinScanBuilder.finish`'s (the engine keeps none)."""
+    t0 = time.perf_counter()
+    p_L, phi, rng, az = recording.valid_returns()
+    t1 = time.perf_counter()
+    scan = prepare(p_L, phi, (rng, az))
+    scan.timings["points"] = t1 - t0
     return scan
 
 
@@ -554,31 +542,3 @@ class SpinScanBuilder:
             cells=(b, c),
         )
         return self._done
-
-
-_REMEMBERED: dict[str, tuple[int, int, SpinScanBuilder]] = {}
-"""The last spin scan prepared while it was recorded: resolved path → (size, mtime, builder)."""
-
-
-def remember(path: Path, builder: SpinScanBuilder) -> None:
-    """Keep ``builder`` for the recording just written at ``path`` (only the latest is kept:
-    one spin scan's returns are a few hundred MB)."""
-    st = path.stat()
-    _REMEMBERED.clear()
-    _REMEMBERED[str(path.resolve())] = (st.st_size, st.st_mtime_ns, builder)
-
-
-def _take_remembered(path: Path | str) -> SpinScanBuilder | None:
-    key = str(Path(path).resolve())
-    entry = _REMEMBERED.get(key)
-    if entry is None:
-        return None
-    size, mtime, builder = entry
-    try:
-        st = Path(path).stat()
-    except OSError:
-        return None
-    if (st.st_size, st.st_mtime_ns) != (size, mtime):
-        _REMEMBERED.pop(key, None)  # the file changed since: read it again
-        return None
-    return builder

@@ -320,7 +320,7 @@ def run_strategy(
     prints a missing time.
     """
     t0 = time.perf_counter()
-    result = _run(strategy, recording, start, recipe, progress, prepared)
+    result = strategy_result(strategy, recording, start, recipe, progress, prepared=prepared)
     elapsed = time.perf_counter() - t0
     result, warnings = check_result(strategy, result, start)
     total = result.timings.get("total")
@@ -329,16 +329,18 @@ def run_strategy(
     return result, warnings
 
 
-def _run(
+def strategy_result(
     strategy: Any,
     recording: Recording | None,
     start: Extrinsics,
     recipe: Recipe,
-    progress: Progress | None,
-    prepared: SpinScan | None,
+    progress: Progress | None = None,
+    *,
+    prepared: SpinScan | None = None,
 ) -> Any:
-    """The strategy's own result: on ``prepared`` with ``run_prepared`` when both are there
-    (its errors naming the recording as ``run``'s do), else on ``recording``."""
+    """The strategy's own result, unchecked (the bench measures what a strategy returns): on
+    ``prepared`` with ``run_prepared`` when both are there (its errors naming the recording as
+    ``run``'s do), else on ``recording``. :func:`run_strategy` checks it."""
     if prepared is not None and hasattr(strategy, "run_prepared"):
         try:
             return strategy.run_prepared(prepared, start, recipe, progress)

@@ -4,7 +4,7 @@ of the step under way, which the station stores with the step however it ends.""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -14,6 +14,7 @@ from calstation.recipes import LoadedRecipe, Recipe
 from calstation.station import stored
 from calstation.station.hardware import Drivers
 from calstation.station.operator import Operator
+from calstation.station.prepared import PreparedScan
 from calstation.storage.db import Calibration, Database
 
 if TYPE_CHECKING:
@@ -33,10 +34,6 @@ class ScanFiles:
     scan_ended: float | None = None
     """When this process's last spin scan ended (monotonic s): how long the operator waited
     for H after it is the fine-tuning's ``after_scan_s``."""
-    fitted: dict[Path, Any] = field(default_factory=dict)
-    """Fits made while a scan was taken (:class:`~calstation.station.turns.TurnFit`), by the
-    recording's path, when they cover all of its whole revolutions: the step after the scan
-    takes the fit instead of making it again."""
 
     def take(self) -> tuple[list[tuple[str, Path]], list[tuple[str, Path]]]:
         """(partial, finished) of the step under way, forgotten here: the step is ending."""
@@ -51,7 +48,9 @@ class RunContext:
 
     ``drivers`` is set while the station has them open; ``retrying`` is set by the station
     before each attempt: True when it follows a failed attempt of the same step (the cube scan
-    then asks for the cube to be re-seated).
+    then asks for the cube to be re-seated). ``prepared``: what a scan step prepared while its
+    lines arrived, by the recording's path (:mod:`calstation.station.prepared`), for the steps
+    after it.
     """
 
     db: Database
@@ -62,6 +61,14 @@ class RunContext:
     drivers: Drivers | None = None
     retrying: bool = False
     scans: ScanFiles = field(default_factory=ScanFiles)
+    prepared: dict[Path, PreparedScan] = field(default_factory=dict)
+
+    def keep_prepared(self, scan: PreparedScan) -> None:
+        """Keep what was prepared while ``scan.path`` was taken; a preparation of the returns
+        (a few hundred MB for a long scan) is kept for the newest scan alone."""
+        if scan.builder is not None:
+            self.prepared = {p: replace(k, builder=None) for p, k in self.prepared.items()}
+        self.prepared[scan.path] = scan
 
     @property
     def recipe(self) -> Recipe:

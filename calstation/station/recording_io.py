@@ -22,13 +22,14 @@ import numpy as np
 from sqlalchemy import select
 
 from calstation.drivers import DriverContext
-from calstation.engine.spinscan import SpinScanBuilder, remember as remember_spin_scan
+from calstation.engine.spinscan import SpinScanBuilder
 from calstation.recordings.runfolder import RECORDING_OF
 from calstation.station.acquisition import MoreTurns, acquire_spin, acquire_static
 from calstation.station.context import RunContext
 from calstation.station.hardware import Drivers
 from calstation.station.operator import Operator, publish
 from calstation.station.outcome import plain
+from calstation.station.prepared import PreparedScan
 from calstation.station.preview import ScanPreview, wants_previews
 from calstation.station.stored import latest_calibration
 from calstation.station.turns import TurnByTurn
@@ -71,8 +72,10 @@ def record_scan(
 ) -> Path:
     """Write the step's recording while acquiring; returns its path. ``stem`` names the file
     (and the artifact) when a step takes a second recording, default the recording's kind.
-    ``more_turns`` makes a spin scan go on until its accuracy budget holds; what it did (and a
-    fit covering the whole scan) is kept in ``ctx.scans.fitted``."""
+    ``more_turns`` makes a spin scan go on until its accuracy budget holds. What the scan
+    prepared while its lines arrived — its returns, and what it did turn by turn — is kept in
+    ``ctx.prepared`` (:class:`~calstation.station.prepared.PreparedScan`) for the steps after
+    it."""
     from calstation.recordings.writer import RecordingWriter
 
     d = ctx.hardware()
@@ -122,10 +125,8 @@ def record_scan(
     ctx.scans.partial = []
     if kind == "spin":
         ctx.scans.scan_ended = time.monotonic()
-    if builder is not None:
-        remember_spin_scan(path, builder)
-    if turns is not None:
-        ctx.scans.fitted[path] = turns
+    if builder is not None or turns is not None:
+        ctx.keep_prepared(PreparedScan(path, builder, turns))
     return path
 
 
@@ -145,7 +146,8 @@ def record_second_pass(ctx: RunContext, step: str, step_id: int, first: Path,
     second = getattr(ctx.recipe.steps, step).second_pass()
     if second is None:
         return None
-    turned = ctx.scans.fitted.get(first)
+    prepared = ctx.prepared.get(first)
+    turned = None if prepared is None else prepared.turns
     if turned is not None:  # the first pass went on for accuracy: the same turns again
         whole = int(turned.summary.get("whole_turns", 0))
         second = second.model_copy(update={"revolutions": max(second.revolutions, whole + 0.05)})

@@ -22,7 +22,6 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
 from typing import Any
 
 from calstation.engine.accuracy import PredictedError
@@ -30,32 +29,10 @@ from calstation.engine.result import CalibrationResult
 from calstation.engine.spinscan import SpinScan, SpinScanBuilder
 from calstation.station.context import RunContext
 from calstation.station.operator import Operator, publish
+from calstation.station.prepared import ScanTurns, TurnFit
 
 Fit = Callable[[SpinScan], tuple[CalibrationResult, PredictedError]]
 """``fit(scan so far)``: the calibration from it and its predicted error."""
-
-
-@dataclass(frozen=True)
-class TurnFit:
-    """A fine-tuning on the first ``turns`` whole revolutions of a scan under way."""
-
-    turns: int
-    result: CalibrationResult
-    predicted: PredictedError
-    seconds: float
-    """how long the fit took"""
-    lines: int | None = None
-    """the recording's first lines the fit saw (those prepared when its turn was complete)"""
-
-
-@dataclass(frozen=True)
-class ScanTurns:
-    """What a scan that went on turn by turn did: the fit that met the budget (None when none
-    did: the step after the scan fine-tunes the whole recording), and its
-    :meth:`TurnByTurn.summary`."""
-
-    fit: TurnFit | None
-    summary: dict[str, Any]
 
 
 class TurnByTurn:

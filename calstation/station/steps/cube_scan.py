@@ -56,12 +56,12 @@ class CubeScan:
             artifacts.append((CUBE_SECOND_PASS, path2))
         scan_ended = time.perf_counter()  # the run's last scan: the operator waits from here
         fine = ctx.stored_calibration("fine")
-        scanned = ctx.scans.fitted.get(path)
+        prepared = ctx.prepared.get(path)
         # the turns that met the budget: the result does not depend on how many more the scan
-        # took while the fit was computed
-        fitted = (None if scanned is None or scanned.fit is None
-                  else (scanned.fit.turns, scanned.fit.lines))
-        cube_scan = turned(read_recording(path), fitted=fitted)
+        # took while the fit was computed; the returns as they were prepared while it turned
+        cube_scan = (turned(read_recording(path)) if prepared is None else
+                     turned(read_recording(path), fitted=prepared.fitted(),
+                            builder=prepared.builder))
         recording = cube_scan.recording
         assert recording is not None
         with ctx.ui.progress("cube check") as progress:
@@ -88,7 +88,8 @@ class CubeScan:
              "after_scan_s": time.perf_counter() - scan_ended,
              "cube_check_s": float(getattr(check, "timings", {}).get("total", math.nan)),
              "joint_ry": None if joint is None else plain(joint.diagnostics["joint"]),
-             **({"turn_by_turn": plain(scanned.summary)} if scanned is not None else {})},
+             **({"turn_by_turn": plain(prepared.turns.summary)}
+                if prepared is not None and prepared.turns is not None else {})},
             artifacts=artifacts,
             calibration=None if joint is None else ("fine", joint),
             cube=(None if joint is not None else fine.id, cube),
@@ -183,6 +184,9 @@ def _check_cube_joint(
     if result.encoder_latency_s is not None:
         # estimated again under the H whose ry the cube changed: the estimate moves a
         # little with ry (~0.08 ms per 0.1°, docs/algorithms.md)
-        spin = turned(read_recording(ctx.artifact_path("spin")))
+        path = ctx.artifact_path("spin")
+        prepared = ctx.prepared.get(path)
+        spin = turned(read_recording(path),
+                      builder=None if prepared is None else prepared.builder)
         result = with_stored_time_offset(ctx, result, spin, progress, " under the combined H")
     return cubed.check, result, cubed.ry_failure

@@ -15,6 +15,7 @@ from typing import Any
 from calstation.engine.accuracy import PredictedError
 from calstation.engine.observability import check_sigma
 from calstation.engine.result import CalibrationResult
+from calstation.engine.spinscan import SpinScanBuilder
 from calstation.errors import ObservabilityError
 from calstation.pipeline.judgement import budget_failure, describe, with_prediction
 from calstation.pipeline.scans import Turned
@@ -94,22 +95,27 @@ def _fitted(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, float]:
     from calstation.recordings.reader import read_recording
 
     path = ctx.artifact_path("spin")
-    scanned = ctx.scans.fitted.get(path)
-    if scanned is not None and scanned.fit is not None:
-        ctx.ui.info(f"  the fit made while scanning, on the first {scanned.fit.turns} "
-                    f"turn{'s' if scanned.fit.turns > 1 else ''}, met the budget")
-        result = scanned.fit.result
+    prepared = ctx.prepared.get(path)
+    builder = None if prepared is None else prepared.builder
+    met = None if prepared is None or prepared.turns is None else prepared.turns.fit
+    if met is not None:
+        ctx.ui.info(f"  the fit made while scanning, on the first {met.turns} "
+                    f"turn{'s' if met.turns > 1 else ''}, met the budget")
+        result = met.result
         if ctx.recipe.steps.spin_scan.second_pass_rpm is not None:
             with ctx.ui.progress("lidar–encoder time offset") as progress:
-                result = with_stored_time_offset(ctx, result, turned(read_recording(path)),
-                                                 progress, "")
-        return result, float(scanned.fit.turns)
-    result, spin = _fit(ctx, strategy)
+                whole = turned(read_recording(path), builder=builder)
+                result = with_stored_time_offset(ctx, result, whole, progress, "")
+        return result, float(met.turns)
+    result, spin = _fit(ctx, strategy, builder)
     return result, spin.turns()
 
 
-def _fit(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, Turned]:
-    """The pipeline's start and strategy on the stored spin scan, with the time offset when
+def _fit(
+    ctx: RunContext, strategy: Any, builder: SpinScanBuilder | None
+) -> tuple[CalibrationResult, Turned]:
+    """The pipeline's start and strategy on the stored spin scan (its returns as ``builder``
+    prepared them while it was taken, when this process took it), with the time offset when
     there is a second pass, and the scan; the strategy's warnings go to the operator. A scan
     that stopped on a fit within the budget, made by another process (a resumed run), is
     fitted again on the lines that fit saw, as the uninterrupted run and a re-processing do."""
@@ -118,7 +124,7 @@ def _fit(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, Turned]:
     from calstation.recordings.reader import read_recording
 
     met = turns_fitted(passed_result(ctx.db, ctx.run_id, "spin_scan").get("turn_by_turn"))
-    spin = turned(read_recording(ctx.artifact_path("spin")), fitted=met)
+    spin = turned(read_recording(ctx.artifact_path("spin")), fitted=met, builder=builder)
     if met is not None:
         ctx.ui.info(f"  the spin scan stopped on a fit within the budget after {met[0]} "
                     f"turn{'s' if met[0] != 1 else ''}: fine-tuning what that fit saw of its "

@@ -31,9 +31,9 @@ class SpinScan:
         result: dict[str, Any] = {"recording": str(path), "rpm": cfg.rpm,
                                   "revolutions": cfg.revolutions,
                                   "fixture": ctx.strategy().fixture}
-        turned = ctx.scans.fitted.get(path)
-        if turned is not None:
-            result["turn_by_turn"] = plain(turned.summary)
+        prepared = ctx.prepared.get(path)
+        if prepared is not None and prepared.turns is not None:
+            result["turn_by_turn"] = plain(prepared.turns.summary)
         artifacts = [("spin", path)]
         # the same turns again at another speed: the fine-tune estimates the lidar–encoder time
         # offset from the two

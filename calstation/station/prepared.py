@@ -1,0 +1,59 @@
+"""What a scan step prepared while its lines arrived, handed explicitly to the steps after it
+through the run's context (:attr:`calstation.station.context.RunContext.prepared`).
+
+A spin or cube scan's returns are prepared line by line as they arrive
+(:class:`~calstation.engine.spinscan.SpinScanBuilder`), and a scan that turns until the accuracy
+budget holds fine-tunes the turns so far while it goes on (:class:`ScanTurns`). The fine-tune
+and cube steps take both from here instead of preparing or fitting the recording again; a run
+resumed by another process finds nothing here and prepares its recordings from their files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from calstation.engine.accuracy import PredictedError
+from calstation.engine.result import CalibrationResult
+from calstation.engine.spinscan import SpinScanBuilder
+
+
+@dataclass(frozen=True)
+class TurnFit:
+    """A fine-tuning on the first ``turns`` whole revolutions of a scan under way."""
+
+    turns: int
+    result: CalibrationResult
+    predicted: PredictedError
+    seconds: float
+    """how long the fit took"""
+    lines: int | None = None
+    """the recording's first lines the fit saw (those prepared when its turn was complete)"""
+
+
+@dataclass(frozen=True)
+class ScanTurns:
+    """What a scan that went on turn by turn did: the fit that met the budget (None when none
+    did: the step after the scan fine-tunes the whole recording), and its
+    :meth:`~calstation.station.turns.TurnByTurn.summary`."""
+
+    fit: TurnFit | None
+    summary: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class PreparedScan:
+    """What was prepared while the recording at ``path`` was taken: its returns as they arrived
+    (``builder``; None once a later scan needed the memory) and what it did turn by turn
+    (``turns``; None when it took exactly its revolutions)."""
+
+    path: Path
+    builder: SpinScanBuilder | None = None
+    turns: ScanTurns | None = None
+
+    def fitted(self) -> tuple[int, int | None] | None:
+        """(whole turns, the recording's first lines) the fit that met the budget saw; None
+        when the scan did not stop on one."""
+        fit = None if self.turns is None else self.turns.fit
+        return None if fit is None else (fit.turns, fit.lines)
