@@ -47,6 +47,10 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
+ENVIRONMENT = dict(os.environ)
+"""The environment as given, for the measurements' processes: importing the engine here (to
+simulate) sets one BLAS thread for this process and its children, which a revision without
+that setting must not inherit."""
 TARGETS = {
     "read": 0.25,
     "periodicity after scan": 1.0,
@@ -282,7 +286,7 @@ def _accuracy(m: dict[str, Any]) -> None:
 
 def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """One measurement in a fresh process, of this revision or of the one in ``rev_dir``."""
-    env = dict(os.environ)
+    env = dict(ENVIRONMENT)
     script = Path(__file__).resolve()
     if rev_dir is not None:
         # that revision's own benchmark, package and plugins (their import paths differ)
