@@ -3,6 +3,7 @@
 #               its URL (open it, start a run, click through the prompts)
 #   make demo-console   the same run in the terminal, unattended
 #   make test   set everything up, then run ruff, mypy, lint-imports and the test suite
+#   make wheel-smoke   build the wheels, install them outside the checkout and run them there
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -10,7 +11,7 @@ PLUGIN_DIRS := $(sort $(dir $(wildcard plugins/*/pyproject.toml)))
 STAMP  := $(VENV)/.calstation-installed
 OUT    ?= out
 
-.PHONY: setup system-deps demo demo-console test lint bench bench-fleet clean
+.PHONY: setup system-deps demo demo-console test wheel-smoke lint bench bench-fleet clean
 
 setup: $(STAMP)
 
@@ -43,6 +44,12 @@ test: setup
 	$(BIN)/lint-imports --no-logo
 	$(BIN)/python -m pytest -n 2 -q
 	$(BIN)/python -m pytest -q -m browser tests/
+
+# The package as a user installs it: the wheels of calstation and each plugin built and
+# checked, installed into a new virtual environment outside the checkout, and a simulated run to
+# PASS, history and serve there (scripts/wheel-smoke.sh; CI runs it after the tests).
+wheel-smoke: setup
+	bash scripts/wheel-smoke.sh
 
 bench: setup
 	$(BIN)/python benchmarks/simulate_revolution.py

@@ -203,3 +203,37 @@ def test_a_settings_model_named_by_path_loads_when_a_recipe_is_checked() -> None
     factory.settings_model = "calstation_sim.settings:NoSuchModel"  # type: ignore[attr-defined]
     with pytest.raises(PluginError, match="NoSuchModel"):
         settings_model_of(factory)
+
+
+def test_the_simulator_is_reached_through_its_hook_and_missing_it_says_how_to_install_it(
+    tmp_path: Path,
+) -> None:
+    """calstation imports no simulator (import-linter's plugins-apart contract): the kit, the
+    bench and plan find the one the calstation-sim plugin registers."""
+    sim_plugin = pytest.importorskip("calstation_sim.plugin")
+    with plugins.isolated(), pytest.raises(
+        PluginError, match=r"no simulator named 'sim'.*calstation\[sim\]"
+    ):
+        plugins.simulator()
+    with plugins.isolated(sim_plugin):
+        simulator = plugins.simulator()
+        assert simulator.name == "sim" and plugins.simulators() == {"sim": simulator}
+        from calstation.plugins.simulation import Simulator
+        from calstation.recipes import SHIPPED_DIR, load_recipe
+
+        assert isinstance(simulator, Simulator)
+        loaded = load_recipe(SHIPPED_DIR / "sim-periodicity.yaml")
+        truth = simulator.truth(loaded, seed=3)
+        assert truth == simulator.truth(loaded, seed=3) != simulator.truth(loaded, seed=4)
+
+    class Twice:
+        __name__ = "twice"
+
+        @hookimpl
+        def calstation_register_simulators(self, register: Any) -> None:
+            register(SimpleNamespace(name="sim"))
+
+    with plugins.isolated(sim_plugin, Twice()), pytest.raises(
+        PluginError, match="simulator 'sim' registered twice"
+    ):
+        plugins.simulators()

@@ -205,3 +205,51 @@ def test_cli_validate_and_list(
     assert exit_info.value.code in (0, None)
     out = capsys.readouterr().out
     assert "good.yaml" in out and "bad.yaml" in out and "invalid" in out
+
+
+def test_the_shipped_recipes_come_from_the_package_listed_and_copied(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An installed calstation lists and copies the recipes it ships without its checkout:
+    they are the package's own files (a wheel carries them: pyproject's package-data)."""
+    import calstation
+    from calstation.recipes import SHIPPED_DIR, shipped_recipes
+
+    assert SHIPPED_DIR.is_relative_to(Path(calstation.__file__).resolve().parent)
+    assert "sim-periodicity.yaml" in [p.name for p in shipped_recipes()]
+    monkeypatch.chdir(tmp_path)  # no ./recipes here
+    monkeypatch.setenv("CALSTATION_HOME", str(tmp_path / "home"))
+    monkeypatch.delenv("CALSTATION_RECIPES", raising=False)
+
+    def cli(*argv: str) -> tuple[int, str, str]:
+        try:
+            main(list(argv))
+        except SystemExit as exc:
+            out, err = capsys.readouterr()
+            return int(exc.code or 0), out, err
+        out, err = capsys.readouterr()
+        return 0, out, err
+
+    code, out, _ = cli("recipes", "list")
+    assert code == 0 and "sim-periodicity.yaml" in out and "shipped" in out
+    mine = tmp_path / "mine.yaml"
+    code, out, _ = cli("recipes", "copy", "sim-periodicity", str(mine))
+    assert code == 0 and str(mine) in out
+    assert mine.read_bytes() == (SHIPPED_DIR / "sim-periodicity.yaml").read_bytes()
+    # a file there already is replaced only when named and --force is given
+    mine.write_text("name: edited\n")
+    code, _, err = cli("recipes", "copy", "sim-periodicity.yaml", str(mine))
+    assert code == 2 and "exists; give --force" in err and mine.read_text() == "name: edited\n"
+    code, _, _ = cli("recipes", "copy", "sim-periodicity", str(mine), "--force")
+    assert code == 0 and mine.read_bytes() == (SHIPPED_DIR / "sim-periodicity.yaml").read_bytes()
+    # a folder gets NAME.yaml, never over a file it holds
+    code, _, _ = cli("recipes", "copy", "sim-shape", str(tmp_path))
+    assert code == 0 and (tmp_path / "sim-shape.yaml").is_file()
+    code, _, err = cli("recipes", "copy", "sim-shape", str(tmp_path), "--force")
+    assert code == 2 and "name the file to write" in err
+    for name, target, says in (("nope", mine, "no shipped recipe named 'nope'"),
+                               ("../sim-shape", mine, "no shipped recipe"),
+                               ("sim-shape", tmp_path / "none" / "x.yaml", "does not exist")):
+        code, _, err = cli("recipes", "copy", name, str(target))
+        assert code == 2 and says in " ".join(err.split()) and "Traceback" not in err
+    assert not list(tmp_path.glob(".*.part"))

@@ -54,6 +54,19 @@ def test_quick_commands_leave_the_heavy_modules_alone(
     assert _imported(args, tmp_path) <= allowed
 
 
+def test_version_is_the_installed_distributions(tmp_path: Path) -> None:
+    """``calstation --version`` and ``calstation version`` print the version the package was
+    built with (from its git tag: setuptools-scm), quickly."""
+    from importlib.metadata import version
+
+    for args in (["--version"], ["version"]):
+        proc = subprocess.run([sys.executable, "-m", "calstation", *args], capture_output=True,
+                              text=True, cwd=tmp_path, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.strip() == f"calstation {version('calstation')}"
+    assert _imported(["--version"], tmp_path) == set()
+
+
 def test_a_database_at_the_newest_revision_opens_without_alembic(tmp_path: Path) -> None:
     """The first command on a new database creates its tables with Alembic; the next ones find
     it at the newest revision from the version table alone."""

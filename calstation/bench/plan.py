@@ -19,6 +19,7 @@ import math
 import os
 import shutil
 import statistics
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -305,21 +306,19 @@ def simulated(
     recipe as simulated and of the simulator's version and source), else simulated into ``out``
     or, with a cache, into the cache (a folder of its own, renamed into place when complete, so
     that an interrupted plan leaves no half run to be read). ``only``: the scans to simulate
-    (``calstation_sim.simulate_run``'s)."""
-    from calstation.recipes import LoadedRecipe
-
-    try:
-        from calstation_sim import simulate_run
-    except ImportError:
-        raise BenchError("calstation plan needs the calstation-sim plugin") from None
+    (:class:`calstation.plugins.simulation.Simulator`'s)."""
     import yaml
 
+    from calstation import plugins
+    from calstation.recipes import LoadedRecipe
+
+    simulator = plugins.simulator()
     text = yaml.safe_dump(recipe.model_dump(mode="json"), sort_keys=False)
     loaded = LoadedRecipe(recipe, None, text)
     if cache is None:
-        return {k: Path(v) for k, v in simulate_run(loaded, out, progress=False,
-                                                    only=only).items()}
-    folder = cache / _cache_key(text + f"\nonly: {only}")
+        return {k: Path(v) for k, v in simulator.simulate_run(loaded, out, progress=False,
+                                                              only=only).items()}
+    folder = cache / _cache_key(text + f"\nonly: {only}", simulator)
     index = folder / "files.json"
     if index.is_file():
         try:
@@ -332,7 +331,7 @@ def simulated(
     cache.mkdir(parents=True, exist_ok=True)
     partial = Path(tempfile.mkdtemp(prefix=".partial-", dir=cache))
     try:
-        made = simulate_run(loaded, partial, progress=False, only=only)
+        made = simulator.simulate_run(loaded, partial, progress=False, only=only)
         (partial / "files.json").write_text(json.dumps({k: Path(v).name
                                                         for k, v in made.items()}))
         shutil.rmtree(folder, ignore_errors=True)
@@ -344,17 +343,16 @@ def simulated(
     return {k: folder / Path(v).name for k, v in made.items()}
 
 
-def _cache_key(text: str) -> str:
-    """The cache's name for a simulated run of the recipe ``text``: its hash with the
-    simulator's version and source files (their names, sizes and times), so that a changed
-    simulator simulates again."""
-    import calstation_sim
-
+def _cache_key(text: str, simulator: Any) -> str:
+    """The cache's name for a simulated run of the recipe ``text``: its hash with calstation's
+    version and the source files of ``simulator``'s package (their names, sizes and times), so
+    that a changed simulator simulates again."""
     from calstation import __version__
 
     digest = hashlib.sha256(text.encode())
     digest.update(f"calstation {__version__}".encode())
-    for path in sorted(Path(calstation_sim.__file__).parent.glob("*.py")):
+    module = sys.modules[type(simulator).__module__]
+    for path in sorted(Path(str(module.__file__)).parent.glob("*.py")):
         stat = path.stat()
         digest.update(f"{path.name} {stat.st_size} {stat.st_mtime_ns}".encode())
     return digest.hexdigest()[:32]

@@ -166,8 +166,7 @@ def simulate_scenario(recipe_path: Path, scenario: Scenario, directory: Path) ->
     """Simulate ``scenario`` into ``directory`` (static, spin and cube scans plus truth.json) with
     the recipe at ``recipe_path`` and the scenario's range, pitch and seed; reuse it if already
     there. A stamp file written last marks a complete simulation."""
-    from calstation_sim import simulate_run
-
+    from calstation import plugins
     from calstation.recipes import load_recipe
 
     loaded = load_recipe(recipe_path)
@@ -175,7 +174,7 @@ def simulate_scenario(recipe_path: Path, scenario: Scenario, directory: Path) ->
         return scenario_data(scenario, directory)
     directory.mkdir(parents=True, exist_ok=True)
     (directory / STAMP).unlink(missing_ok=True)
-    paths = simulate_run(
+    paths = plugins.simulator().simulate_run(
         loaded,
         directory,
         seed=scenario.seed,

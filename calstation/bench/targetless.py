@@ -56,8 +56,6 @@ def _errors(H: Any, truth: Any, method: str) -> dict[str, Any]:
 def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
              ) -> dict[str, Any]:
     """Simulate one station, fine-tune its scan from both starts; its record."""
-    from calstation_sim import simulate_run
-
     from calstation import plugins
     from calstation.pipeline import Scans, calibrate, turned
     from calstation.recipes import load_recipe
@@ -66,7 +64,7 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
     loaded = load_recipe(recipe)
     rc = loaded.recipe
     folder = out / f"{scenario.name}-s{seed}"
-    files = simulate_run(loaded, folder, seed=seed, range_m=scenario.range_m,
+    files = plugins.simulator().simulate_run(loaded, folder, seed=seed, range_m=scenario.range_m,
                          pitch_deg=scenario.pitch_deg, progress=False)
     strategy = plugins.strategy(method)
     recording = read_recording(files["spin" if strategy.fixture == "spin_target" else "cube"])
@@ -115,7 +113,6 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
     the one from the true H on the same scan (the start is in the basin when both land in the
     same place)."""
     import yaml
-    from calstation_sim import SimulatedStation, simulate_run
 
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
@@ -124,8 +121,9 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
     from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
-    nominal = SimulatedStation(load_recipe(recipe), seed=seed, range_m=scenario.range_m,
-                               pitch_deg=scenario.pitch_deg).truth
+    simulator = plugins.simulator()
+    nominal = simulator.truth(load_recipe(recipe), seed=seed, range_m=scenario.range_m,
+                              pitch_deg=scenario.pitch_deg)
     H = (nominal.with_(tz=value * 1e-3) if param == "tz_mm"
          else nominal.with_(ry=nominal.ry + math.radians(value)))
     data = yaml.safe_load(recipe.read_text())
@@ -135,7 +133,7 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
     path = folder / "recipe.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     loaded = load_recipe(path)
-    files = simulate_run(loaded, folder / "scans", seed=seed, progress=False)
+    files = simulator.simulate_run(loaded, folder / "scans", seed=seed, progress=False)
     strategy = plugins.strategy(method)
     spin = turned(read_recording(files["spin" if strategy.fixture == "spin_target"
                                          else "cube"]))

@@ -76,8 +76,23 @@ _collector = {"was_on": True}
 """Whether the collector was on when :func:`main` was called (it is left as it was found)."""
 
 
+def _print_version(asked: bool) -> None:
+    """``--version``: print calstation's version and end."""
+    if asked:
+        from calstation import __version__
+
+        typer.echo(f"calstation {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root(ctx: typer.Context) -> None:
+def _root(
+    ctx: typer.Context,
+    version: bool = typer.Option(
+        False, "--version", is_eager=True, callback=_print_version,
+        help="Print calstation's version and exit.",
+    ),
+) -> None:
     """Calibrate a static line-scanning lidar against a motorised turntable."""
     if ctx.invoked_subcommand not in QUICK_COMMANDS and _collector["was_on"]:
         gc.enable()

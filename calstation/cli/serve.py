@@ -18,8 +18,9 @@ def register(app: typer.Typer) -> None:
         ),
         port: int = typer.Option(8470, "--port", help="TCP port."),
         recipes: Path = typer.Option(
-            Path("recipes"), "--recipes",
-            help="Folder of the recipe files the operator chooses from.",
+            None, "--recipes",
+            help="Folder of the recipe files the operator chooses from (default: ./recipes, "
+            "else the recipes calstation ships).", show_default=False,
         ),
         db: str = typer.Option(
             None, "--db", help="Database URL (default: $CALSTATION_DB_URL or SQLite)."
@@ -71,6 +72,10 @@ def register(app: typer.Typer) -> None:
         token = TokenSource.from_environment(token_file)
         database = open_database(db)
         folder = (data_dir or calstation_home()).expanduser().resolve()
+        if recipes is None:
+            from calstation.recipes import SHIPPED_DIR
+
+            recipes = Path("recipes") if Path("recipes").is_dir() else SHIPPED_DIR
         tls = tls_cert is not None
         application = create_app(database, data_dir=folder, recipes_dir=recipes.resolve(),
                                  host=host, token=token, allow_hosts=allowed, tls=tls)

@@ -293,6 +293,50 @@ def strategy(name: str) -> Any:
     return found[name]
 
 
+def simulators() -> dict[str, Any]:
+    """Every registered simulator, by name (see :mod:`calstation.plugins.simulation`)."""
+    with _lock:
+        if "simulators" in _registry_cache:
+            return dict(_registry_cache["simulators"])
+        pm = load_plugins()
+        found: dict[str, Any] = {}
+        owners: dict[str, str] = {}
+        for impl in pm.hook.calstation_register_simulators.get_hookimpls():
+            plugin = impl.plugin_name
+
+            def register(simulator: Any, _plugin: str = plugin) -> None:
+                name = getattr(simulator, "name", None)
+                if not isinstance(name, str) or not name:
+                    raise PluginError(f"plugin {_plugin} registered a simulator without a name")
+                if name in found:
+                    raise PluginError(
+                        f"simulator {name!r} registered twice: by {owners[name]} and by {_plugin}"
+                    )
+                found[name] = simulator
+                owners[name] = _plugin
+
+            _trace(f"calstation_register_simulators(register) → {plugin}")
+            impl.function(register=register)
+        _registry_cache["simulators"] = found
+        return dict(found)
+
+
+def simulator(name: str | None = None) -> Any:
+    """The simulator called ``name`` (default ``sim``, the calstation-sim plugin's);
+    :class:`PluginError` says how to install it when there is none."""
+    from calstation.plugins.simulation import DEFAULT_SIMULATOR
+
+    wanted = name or DEFAULT_SIMULATOR
+    found = simulators()
+    if wanted not in found:
+        hint = (" (the calstation-sim plugin: pip install 'calstation[sim]')"
+                if wanted == DEFAULT_SIMULATOR else "")
+        raise PluginError(
+            f"no simulator named {wanted!r}{hint}; installed: {', '.join(sorted(found)) or 'none'}"
+        )
+    return found[wanted]
+
+
 def fixture_placed(context: Any, fixture: str, geometry: Any) -> None:
     """Tell plugins that ``fixture`` is now on the platter."""
     hook = load_plugins().hook

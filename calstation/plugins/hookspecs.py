@@ -19,6 +19,10 @@ RegisterStrategy = Callable[[Any], None]
 """``register(strategy)``: an object implementing
 :class:`calstation.plugins.cost_strategies.Strategy`."""
 
+RegisterSimulator = Callable[[Any], None]
+"""``register(simulator)``: an object implementing
+:class:`calstation.plugins.simulation.Simulator`."""
+
 
 @hookspec
 def calstation_register_drivers(register: RegisterDriver) -> None:
@@ -40,6 +44,18 @@ def calstation_register_cost_strategies(register: RegisterStrategy) -> None:
     ``calibration.strategy`` and what ``calstation calibrate --strategy`` accepts. An optional
     ``options_model`` (a pydantic model class) validates ``calibration.options[name]``; it must
     be a pydantic model class, or registering fails.
+    """
+
+
+@hookspec
+def calstation_register_simulators(register: RegisterSimulator) -> None:
+    """Register simulated stations. Called once when plugins load.
+
+    Call ``register(simulator)`` with an object implementing
+    :class:`calstation.plugins.simulation.Simulator`; its ``name`` is how
+    :func:`calstation.plugins.simulator` finds it (``"sim"`` for the kit, the bench and
+    ``calstation plan``). Registering a name twice is an error. calstation imports no simulator
+    package: this hook is how it reaches one.
     """
 
 

@@ -10,7 +10,8 @@ models (the engine's settings nested where the engine takes them,
 :mod:`calstation.engine.settings`); :mod:`~calstation.recipes.recipe` the whole recipe;
 :mod:`~calstation.recipes.load` reading it, :mod:`~calstation.recipes.validation` the checks that
 relate fields to each other and :mod:`~calstation.recipes.problems` how a problem is located and
-worded. The public names are importable from the package, as below.
+worded; :mod:`~calstation.recipes.catalog` the recipes calstation ships. The public names are
+importable from the package, as below.
 
 Recipes know nothing of plugins: the checks against the installed drivers and strategies are the
 plugin layer's, :func:`calstation.plugins.recipe_checks.check_plugins`.
@@ -40,6 +41,11 @@ from calstation.recipes.calibration import (
     CalibrationSettings as CalibrationSettings,
     PeriodicityOptions as PeriodicityOptions,
     options_problems as options_problems,
+)
+from calstation.recipes.catalog import (
+    SHIPPED_DIR as SHIPPED_DIR,
+    shipped_recipe as shipped_recipe,
+    shipped_recipes as shipped_recipes,
 )
 from calstation.recipes.fixtures import (
     MAX_MESH_BYTES as MAX_MESH_BYTES,

@@ -23,10 +23,11 @@ from typing import Any
 
 from calstation.engine.frames import Extrinsics
 from calstation.errors import PluginError
-from calstation.recipes import LoadedRecipe, load_recipe
+from calstation.recipes import SHIPPED_DIR, LoadedRecipe, load_recipe
 
-SHIPPED_RECIPES = Path(__file__).resolve().parents[2] / "recipes"
-"""The recipes shipped with calstation (the simulated station's among them)."""
+SHIPPED_RECIPES = SHIPPED_DIR
+"""The recipes shipped with calstation (the simulated station's among them;
+:data:`calstation.recipes.SHIPPED_DIR`)."""
 
 
 def lean_recipe(folder: Path) -> Path:
@@ -78,14 +79,12 @@ def simulate_scans(
     """Simulate a whole run (static, spin and cube scans) into ``out_dir``.
 
     ``recipe`` is a path, a recipe shipped with calstation by file name, or a loaded recipe.
-    Needs the ``calstation-sim`` plugin; :class:`PluginError` says so when it is missing.
+    Needs a simulator (the calstation-sim plugin, ``pip install 'calstation[sim]'``);
+    :class:`PluginError` says so when there is none.
     """
-    try:
-        from calstation_sim import simulate_run
-    except ImportError:
-        raise PluginError(
-            "simulating scans needs the calstation-sim plugin (pip install calstation-sim)"
-        ) from None
+    from calstation import plugins
+
+    simulator = plugins.simulator()
     if isinstance(recipe, LoadedRecipe):
         loaded = recipe
     else:
@@ -93,7 +92,7 @@ def simulate_scans(
         if not path.is_file() and (SHIPPED_RECIPES / path).is_file():
             path = SHIPPED_RECIPES / path
         loaded = load_recipe(path)
-    files: dict[str, Any] = simulate_run(
+    files: dict[str, Any] = simulator.simulate_run(
         loaded, Path(out_dir), seed=seed, range_m=range_m, pitch_deg=pitch_deg, progress=False
     )
     from calstation.recordings.reader import read_recording

@@ -54,11 +54,14 @@ def fleet_recipe(folder: Path) -> Path:
 
 def simulate_recordings(folder: Path, recipe: Path, seeds: Sequence[int]) -> list[dict[str, Path]]:
     """One simulated run of ``recipe`` per seed, in ``folder/sim-<seed>/``: its recordings
-    (``static``, ``spin``, ``cube``), as :func:`calstation_sim.simulate_run` writes them."""
-    from calstation_sim import simulate_run
+    (``static``, ``spin``, ``cube``), as the simulator (:func:`calstation.plugins.simulator`)
+    writes them."""
+    from calstation import plugins
 
+    simulator = plugins.simulator()
     loaded = load_recipe(recipe)
-    return [dict(simulate_run(loaded, folder / f"sim-{seed}", seed=seed, progress=False))
+    return [dict(simulator.simulate_run(loaded, folder / f"sim-{seed}", seed=seed,
+                                        progress=False))
             for seed in seeds]
 
 

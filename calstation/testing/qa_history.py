@@ -77,15 +77,15 @@ class History:
 def station_truths(n: int) -> list[dict[str, float]]:
     """The simulator's true H (m, rad) of ``n`` stations of ``sim-periodicity.yaml``, with
     seeds 0…n−1."""
-    from calstation_sim.station import SimulatedStation
-
+    from calstation import plugins
     from calstation.recipes import load_recipe
     from calstation.testing import SHIPPED_RECIPES
 
+    simulator = plugins.simulator()
     loaded = load_recipe(SHIPPED_RECIPES / "sim-periodicity.yaml")
     out = []
     for seed in range(n):
-        t = SimulatedStation(loaded, seed=seed).truth
+        t = simulator.truth(loaded, seed=seed)
         out.append({p: float(getattr(t, p)) for p in ("tx", "ty", "tz", "rx", "ry", "rz")})
     return out
 

@@ -4,7 +4,8 @@ By default the database is SQLite at ``$CALSTATION_HOME/calstation.db`` (``CALST
 defaults to ``$XDG_DATA_HOME/calstation``, i.e. ``~/.local/share/calstation``), opened in WAL
 mode. ``CALSTATION_DB_URL`` or a ``--db URL`` option selects another database, e.g.
 ``postgresql+psycopg://user@host/calstation`` for a fleet of stations (``pip install
-calstation[postgres]``). The schema is managed by the Alembic migrations in ``migrations/``;
+calstation[postgres]``). The schema is managed by the Alembic migrations shipped in the package
+(``calstation/storage/db/migrations/``);
 ``calstation db upgrade`` applies them, and a fresh, empty database is migrated automatically
 when first opened (by one process at a time: concurrent first runs do not race).
 

@@ -70,8 +70,9 @@ def default_database_url() -> str:
 
 
 def migrations_dir() -> Path:
-    """The Alembic script folder (``migrations/`` beside the package)."""
-    path = Path(__file__).resolve().parents[3] / "migrations"
+    """The Alembic script folder, shipped in the package (``calstation/storage/db/migrations``:
+    an installed calstation creates and upgrades its database without its checkout)."""
+    path = Path(__file__).resolve().parent / "migrations"
     if not (path / "env.py").is_file():
         raise DatabaseError(f"the database migrations are missing: {path}/env.py not found")
     return path
@@ -235,7 +236,8 @@ def _driver_message(exc: BaseException) -> str:
 
 
 def alembic_config(connection: Any = None, url: str | None = None) -> Any:
-    """An Alembic ``Config`` for ``migrations/``, optionally bound to an open ``connection``."""
+    """An Alembic ``Config`` for the migrations (:func:`migrations_dir`), optionally bound to an
+    open ``connection``."""
     from alembic.config import Config
 
     cfg = Config()
@@ -248,7 +250,8 @@ def alembic_config(connection: Any = None, url: str | None = None) -> Any:
 
 
 SCHEMA_HEAD = "0010_station_lock"
-"""The newest migration's revision id, as written in ``migrations/versions`` (a test checks
+"""The newest migration's revision id, as written in ``migrations/versions`` beside this module
+(a test checks
 that they agree). Opening a database that is at it needs no Alembic, which takes ~0.1 s to
 import; only a new, older or unknown database loads it."""
 
@@ -264,7 +267,7 @@ def head_revision() -> str:
 
 
 def known_revisions() -> set[str]:
-    """Every revision id in ``migrations/``."""
+    """Every revision id of the migrations (:func:`migrations_dir`)."""
     from alembic.script import ScriptDirectory
 
     return {rev.revision for rev in ScriptDirectory.from_config(alembic_config()).walk_revisions()}

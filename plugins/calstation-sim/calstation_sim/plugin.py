@@ -1,7 +1,11 @@
-"""Registers the simulated station's drivers (``sim``) and the ``calstation simulate`` command."""
+"""Registers the simulated station's drivers (``sim``), the simulator itself (``sim``: what
+calstation's kit, bench and ``calstation plan`` simulate with) and the ``calstation simulate``
+command."""
 
 from __future__ import annotations
 
+from collections.abc import Collection
+from pathlib import Path
 from typing import Any
 
 from calstation import hookimpl
@@ -38,6 +42,39 @@ def _encoder(*args: Any, **kwargs: Any) -> Any:
 for _factory in (_lidar, _turntable, _encoder):
     # named by path: pydantic loads when a recipe is checked, not at registration
     _factory.settings_model = "calstation_sim.settings:SimSettings"  # type: ignore[attr-defined]
+
+
+class Simulator:
+    """The ray-cast station as a :class:`calstation.plugins.simulators.Simulator` (its modules,
+    and Open3D with them, are imported when it simulates)."""
+
+    name = "sim"
+
+    def simulate_run(
+        self, loaded: Any, out: Path, *, seed: int | None = None, range_m: float | None = None,
+        pitch_deg: float | None = None, progress: bool = True,
+        only: Collection[str] | None = None,
+    ) -> dict[str, Path]:
+        """:func:`calstation_sim.run.simulate_run`."""
+        from .run import simulate_run
+
+        return simulate_run(loaded, out, seed=seed, range_m=range_m, pitch_deg=pitch_deg,
+                            progress=progress, only=only)
+
+    def truth(
+        self, loaded: Any, *, seed: int | None = None, range_m: float | None = None,
+        pitch_deg: float | None = None,
+    ) -> Any:
+        """:attr:`calstation_sim.station.SimulatedStation.truth`."""
+        from .station import SimulatedStation
+
+        return SimulatedStation(loaded, seed=seed, range_m=range_m, pitch_deg=pitch_deg).truth
+
+
+@hookimpl
+def calstation_register_simulators(register: Any) -> None:
+    """The ray-cast simulated station."""
+    register(Simulator())
 
 
 @hookimpl
