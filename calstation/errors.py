@@ -32,6 +32,11 @@ class RecordingImportError(RecordingError):
     the field and what was found."""
 
 
+class OutputError(CalstationError):
+    """An output cannot be written where it was named: a folder, a device or a FIFO named as the
+    file, a missing folder, a full disk. The previous file, if any, is left as it was."""
+
+
 class SimulationError(CalstationError):
     """The simulated station was configured in a way it cannot simulate."""
 

@@ -22,7 +22,7 @@ import pytest
 
 from calstation.engine.frames import Extrinsics
 from calstation.recordings.runfolder import file_sha256
-from calstation.station.runs import wait_for_step
+from calstation.station.runs import run_folder, wait_for_step
 from calstation.station.steps import STEPS
 from calstation.storage.db import Artifact, Calibration, CubeCheckRecord, Database, Run, Step
 from calstation.testing import lean_recipe
@@ -116,7 +116,7 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
     # and how long after the last scan the result was ready, the cube check a part of it
     assert 0 < cube_step["cube_check_s"] < cube_step["after_scan_s"]
     assert "after the scan ended" in proc.stdout
-    run_dir = tmp_path / "home" / "runs" / str(run_id)
+    run_dir = run_folder(db, run_id)
     assert {a.kind for a in arts} == {"static", "spin", "cube", "report", "calibration"}
     for a in arts:
         assert Path(a.path).parent == run_dir.resolve()
@@ -185,7 +185,7 @@ def test_sigkill_during_spin_scan_then_resume(tmp_path: Path) -> None:
             except Exception:  # the database may not exist yet
                 time.sleep(0.2)
         assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
-        spin = tmp_path / "home" / "runs" / "1" / "spin.mcap"
+        spin = run_folder(db, 1) / "spin.mcap"
         while time.monotonic() < deadline and not (spin.exists() and spin.stat().st_size > 0):
             time.sleep(0.02)
         time.sleep(0.3)  # well inside the scan
@@ -231,6 +231,6 @@ def test_sigkill_during_spin_scan_then_resume(tmp_path: Path) -> None:
     assert arts["static"] == before_arts["static"] and initial == before_initial
     for path, size, sha in arts.values():
         assert Path(path).stat().st_size == size and file_sha256(Path(path)) == sha
-    assert (tmp_path / "home" / "runs" / "1" / "spin.attempt1.mcap").exists()
+    assert (run_folder(db, 1) / "spin.attempt1.mcap").exists()
     _assert_accurate_and_passed(db, 1)
     db.dispose()

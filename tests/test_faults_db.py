@@ -25,7 +25,7 @@ from calstation import hookimpl, plugins
 from calstation.errors import DatabaseError
 from calstation.recipes import load_recipe
 from calstation.recordings.runfolder import file_sha256
-from calstation.station.runs import resume_run, start_run
+from calstation.station.runs import resume_run, run_folder, start_run
 from calstation.station.steps import STEPS
 from calstation.storage.db import (
     Artifact,
@@ -249,7 +249,7 @@ def test_a_lost_step_end_is_journalled_and_written_by_the_next_command(
 ) -> None:
     ui = ScriptedOperator()
     db, failing, run_id = _run_losing_step_updates_after(tmp_path, "place_spin_target", ui)
-    run_dir = tmp_path / "runs" / str(run_id)
+    run_dir = run_folder(db, run_id)
     entries = journal_mod.read(run_dir / "journal.jsonl")
     assert [e["op"] for e in entries] == ["step_end", "run_end"]
     assert entries[0]["status"] == "passed"  # the spin scan's end, with its recording
@@ -286,7 +286,7 @@ def test_a_lost_calibration_is_journalled_with_its_step_and_written_later(
     tmp_path: Path, station_plugin: StationTestPlugin
 ) -> None:
     db, failing, run_id = _run_losing_step_updates_after(tmp_path, "spin_scan")
-    entries = journal_mod.read(tmp_path / "runs" / str(run_id) / "journal.jsonl")
+    entries = journal_mod.read(run_folder(db, run_id) / "journal.jsonl")
     fine = entries[0]["calibration"]
     assert entries[0]["status"] == "passed" and fine["stage"] == "fine"
     with db.session() as s:
@@ -300,7 +300,7 @@ def test_a_lost_calibration_is_journalled_with_its_step_and_written_later(
         assert stored.diagnostics is not None and stored.diagnostics["note"] == "toy"
     assert ("fine_tune", "passed") in _step_rows(again, run_id)
     # replaying the same journal again changes nothing
-    applied = tmp_path / "runs" / str(run_id) / "journal.applied.jsonl"
+    applied = run_folder(db, run_id) / "journal.applied.jsonl"
     with again.session() as s:
         for entry in journal_mod.read(applied):
             journal_mod.APPLY[entry["op"]](s, entry)
@@ -315,9 +315,9 @@ def test_report_json_never_claims_a_verdict_the_database_does_not_hold(
     tmp_path: Path, station_plugin: StationTestPlugin
 ) -> None:
     db, failing, run_id = _run_losing_step_updates_after(tmp_path, "cube_scan")
-    run_dir = tmp_path / "runs" / str(run_id)
+    run_dir = run_folder(db, run_id)
     assert not (run_dir / "report.json").exists()  # staged, not in place
-    assert (run_dir / "report.json.pending").exists()
+    assert [p for p in run_dir.iterdir() if p.name.startswith(".report.json.")]  # staged
     failing.armed = False
     again = open_database(db.url)
     report = json.loads((run_dir / "report.json").read_text())

@@ -142,8 +142,10 @@ def default_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Data
 
 def test_the_default_runs_report_is_small_and_prints_every_figure(
         default_run: tuple[Database, int, Path], browser: Any) -> None:
-    _, run_id, tmp = default_run
-    report = tmp / "data" / "runs" / str(run_id) / "report.html"
+    from calstation.station.runs import run_folder
+
+    db, run_id, _ = default_run
+    report = run_folder(db, run_id) / "report.html"
     size = report.stat().st_size
     print(f"report.html of the default run: {size / 1e6:.2f} MB")
     assert size <= REPORT_MAX_BYTES

@@ -186,6 +186,7 @@ def test_cli_reconstruct(tmp_path: Path) -> None:
     truth = tmp_path / "truth.json"
     truth.write_text(json.dumps(H.as_dict()))
     out = tmp_path / "out" / "spin.ply"
+    out.parent.mkdir()  # an output's folder is the user's to make (a typo makes none)
     result = CliRunner().invoke(
         _app(), ["reconstruct", str(rec_path), "--truth", str(truth), "--out", str(out)]
     )

@@ -175,7 +175,7 @@ def test_runs_on_s3_are_reprocessed_by_dask_workers_from_their_shared_copies(
     with db.session() as s:
         arts = s.scalars(select(Artifact).order_by(Artifact.id)).all()
         assert [a.location for a in arts] == [
-            f"{store}/line-{k + 1}/runs/{run}/{kind}.mcap"
+            f"{store}/line-{k + 1}/runs/{db.identity}/{run}/{kind}.mcap"
             for k, run in enumerate(ids) for kind in ("static", "spin", "cube")]
         local = [Path(a.path) for a in arts]
     for path in local:  # the run folders are gone: only the shared copies are left
@@ -186,7 +186,7 @@ def test_runs_on_s3_are_reprocessed_by_dask_workers_from_their_shared_copies(
     assert [r["outcome"] for r in data["runs"]] == ["reprocessed", "reprocessed"], data["runs"]
     assert data["runs"][0]["difference"]["tx"] == 0.0
     # another object now under that name: the run is reported and skipped, never used
-    fs, path = filesystem(f"{store}/line-1/runs/{ids[0]}/spin.mcap")
+    fs, path = filesystem(f"{store}/line-1/runs/{db.identity}/{ids[0]}/spin.mcap")
     fs.pipe(path, b"not the recording")
     code, _, err = run_cli(["calibrate", "--run", str(ids[0]), "--db", url], capsys)
     assert code == 2 and "holds other bytes than stored" in " ".join(err.split())
@@ -212,7 +212,8 @@ def test_a_station_uploads_its_run_after_it_ends(
         arts = s.scalars(select(Artifact).where(Artifact.run_id == run_id)).all()
         assert {a.kind for a in arts} >= {"static", "spin", "cube", "report"}
         for a in arts:
-            assert a.location == f"file://{store}/sim-test/runs/{run_id}/{Path(a.path).name}"
+            assert a.location == (f"file://{store}/sim-test/runs/{db.identity}/{run_id}/"
+                                  f"{Path(a.path).name}")
             assert file_sha256(Path(a.location.removeprefix("file://"))) == a.sha256
             assert Path(a.path).is_file()  # the local copy stays
     # unreachable store: a warning, the run keeps its files, `calstation upload` sends later

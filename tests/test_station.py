@@ -246,7 +246,7 @@ def test_run_until_abort_commits_each_step_and_stops_the_motor(
     assert any("after the scan ended" in line for line in ui.messages)
     # abort: the motor got an emergency stop and a stop, whatever it was doing
     assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]
-    run_dir = tmp_path / "data" / "runs" / str(run_id)
+    run_dir = tmp_path / "data" / "runs" / db.identity / str(run_id)
     with db.session() as s:
         run = s.get(Run, run_id)
         assert run is not None and run.status == "aborted" and run.operator == "ann"

@@ -29,6 +29,7 @@ from calstation.engine.timeoffset import (
 from calstation.errors import FineTuningError, RecipeError
 from calstation.recipes import SigmaLimits, load_recipe
 from calstation.recordings.reader import read_recording
+from calstation.station.runs import run_folder
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 BOTH_WAYS = RECIPES / "sim-periodicity-both-ways.yaml"
@@ -257,7 +258,7 @@ def test_station_run_both_ways_stores_and_exports_the_offset(
     assert code == 0 and float(row[header.index("encoder_latency_s")]) == latency
     code, out, _ = run_cli(["export", str(run_id), "--format", "urdf", "--db", url], capsys)
     assert code == 0 and f"time offset {latency * 1e3:.3f}" in out
-    report = (tmp_path / "home" / "runs" / str(run_id) / "report.html").read_text()
+    report = (run_folder(db, run_id) / "report.html").read_text()
     assert "Lidar–encoder time offset" in report and f"{latency * 1e3:.3f} ms" in report
     cal = tmp_path / "cal.yaml"
     code, out, _ = run_cli(["export", str(run_id), "--format", "yaml", "--db", url], capsys)

@@ -22,6 +22,7 @@ from test_station import StationTestPlugin, lean_recipe
 from webstation import CHROMIUM, copy_recipe, run_status, served, shot, steps_of
 
 from calstation import plugins
+from calstation.station.runs import run_folder
 from calstation.storage.db import Database, Run, open_database
 from calstation.web.app import create_app
 
@@ -141,7 +142,7 @@ def test_a_full_simulated_run_by_clicking_with_a_reload(
         assert "face-fit edge error" in values and "≤ 1.000 mm" in values
         shot(page, "end", full=True)
         # the run folder's report.html opens offline with its 3D views drawn
-        report = tmp_path / "data" / "runs" / str(run_id) / "report.html"
+        report = run_folder(db, run_id) / "report.html"
         offline = browser.new_context(offline=True, viewport={"width": 1200, "height": 860})
         rp = offline.new_page()
         rp.goto(report.as_uri())

@@ -247,7 +247,9 @@ def _calibrate_files(
         diagnostics["warnings"] = warnings + done.warnings
     result = replace(done.result, diagnostics=diagnostics)
     if out is not None:
-        result.save(out)
+        from calstation.recordings.files import save_calibration
+
+        save_calibration(result, out)
     if as_json:
         summary = result.summary()
         summary["initial"] = done.start.H.as_dict()
@@ -428,7 +430,9 @@ def _reprocess(
     _warn(console, done.warnings)
     result = done.result
     if out is not None:
-        result.save(out)
+        from calstation.recordings.files import save_calibration
+
+        save_calibration(result, out)
     if as_json:
         summary = result.summary()
         summary["initial"] = done.initial.H.as_dict()

@@ -238,6 +238,7 @@ def register(app: typer.Typer) -> None:
         db: str = typer.Option(None, "--db", help=DB_HELP),
     ) -> None:
         """Export a run's final calibration (yaml/json load with `calibrate`/`verify`)."""
+        from calstation.atomic import check_output, write_atomic
         from calstation.storage.db import open_database
         from calstation.storage.report import export_calibration, get_run
         from calstation.storage.ros import Frames
@@ -252,6 +253,8 @@ def register(app: typer.Typer) -> None:
                 param_hint="--fragment",
             )
         frames = Frames(lidar_frame, platform_frame, platter_frame)
+        if out is not None:
+            check_output(out, "export")  # refused before the database is opened
         database = open_database(db)
         with database.session("reading the runs", read_only=True) as s:
             text = export_calibration(get_run(s, run_id), fmt, parent=parent, frames=frames,
@@ -260,7 +263,7 @@ def register(app: typer.Typer) -> None:
         if out is None:
             typer.echo(text, nl=False)
         else:
-            out.write_text(text, encoding="utf-8")
+            write_atomic(out, text, "export")
             typer.echo(f"wrote {out}", err=True)
 
     @app.command("trend")
@@ -339,10 +342,14 @@ def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Pat
     red, the allowed band around each previous value shaded."""
     import matplotlib.pyplot as plt
 
+    from calstation.atomic import atomic_output
+
     fig = trend_figure(points, station, param)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        with atomic_output(path, "plot") as tmp:
+            fig.savefig(tmp, dpi=120, format="png")
+    finally:
+        plt.close(fig)
 
 
 def trend_figure(points: list[dict[str, Any]], station: str, param: str) -> Any:

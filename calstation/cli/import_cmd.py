@@ -59,8 +59,10 @@ def register(app: typer.Typer) -> None:
         Bearings map to calstation azimuths by REP-103 (α = −θ, docs/frames.md), point times
         come from time_increment, and inf, nan or out-of-range returns are kept as invalid.
         """
+        from calstation.atomic import check_output
         from calstation.recordings.rosbag import TopicSpec, read_rosbag
 
+        check_output(out, "recording")  # refused before the bag is read
         scan_spec = TopicSpec.parse(scan, "--scan")
         angle_spec = TopicSpec.parse(angle, "--angle")
         with _progress(f"reading {', '.join(map(str, bags))}") as step:
@@ -110,8 +112,10 @@ def register(app: typer.Typer) -> None:
         Empty or non-numeric range cells, and ranges outside --range-min..--range-max, are
         kept as invalid returns.
         """
+        from calstation.atomic import check_output
         from calstation.recordings.linelog import LineLogColumns, read_line_log
 
+        check_output(out, "recording")  # refused before the log is read
         columns = LineLogColumns(
             time=time_col, time_unit=time_unit, angle=angle, ranges=ranges,
             range_unit=range_unit, azimuths=azimuths, point_period_s=point_period,

@@ -41,6 +41,7 @@ def register(app: typer.Typer) -> None:
         import numpy as np
         from rich.console import Console
 
+        from calstation.atomic import check_output
         from calstation.engine.reconstruct import reconstruct
         from calstation.errors import RecordingError
         from calstation.quiet import stdout_to_stderr
@@ -49,6 +50,7 @@ def register(app: typer.Typer) -> None:
 
         if (calibration is None) == (truth is None):
             raise typer.BadParameter("give exactly one of --calibration FILE or --truth FILE")
+        check_output(out, "PLY file")  # refused before the recordings are read
         source = "calibration" if calibration is not None else "truth"
         h_path = calibration if calibration is not None else truth
         assert h_path is not None

@@ -70,11 +70,16 @@ def register(app: typer.Typer) -> None:
         check_selection(sel)
         tol = parse_tolerance(tolerance) if tolerance else None
         _check_cluster_options(scheduler, workers)
+        if report is not None:
+            from calstation.atomic import check_output
+
+            check_output(report, "report")  # refused before the campaign runs
         data, tally = _run(db, sel, tol, scheduler, workers, new)
         if report is not None:
+            from calstation.atomic import write_atomic
             from calstation.fleet.view import render_report
 
-            report.write_text(render_report(data, link_base), encoding="utf-8")
+            write_atomic(report, render_report(data, link_base), "report")
         if as_json:
             typer.echo(json.dumps(_json(data, tally), indent=2, default=_plain))
         else:

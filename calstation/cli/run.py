@@ -58,7 +58,7 @@ def register(app: typer.Typer) -> None:
         data_dir: Path = typer.Option(
             None, "--data-dir",
             help="Folder for run folders (default: $CALSTATION_HOME); "
-            "recordings go to DATA_DIR/runs/RUN_ID/.",
+            "recordings go to DATA_DIR/runs/DATABASE_ID/RUN_ID/.",
         ),
         foxglove: int | None = typer.Option(
             None, "--foxglove", metavar="[PORT]",

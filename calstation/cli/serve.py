@@ -27,7 +27,8 @@ def register(app: typer.Typer) -> None:
         ),
         data_dir: Path = typer.Option(
             None, "--data-dir",
-            help="Folder for run folders (default: $CALSTATION_HOME); runs go to DATA_DIR/runs/N/.",
+            help="Folder for run folders (default: $CALSTATION_HOME); runs go to "
+            "DATA_DIR/runs/DATABASE_ID/N/.",
         ),
         token_file: Path = typer.Option(
             None, "--token-file",

@@ -1,6 +1,7 @@
-"""Files beside the recordings: point clouds as PLY, and calibration files read back.
+"""Files beside the recordings: point clouds as PLY, and calibration files.
 
 :func:`write_ply` and :func:`read_ply` keep a reconstructed cloud (``calstation reconstruct``);
+:func:`save_calibration` writes a calibration file (``calstation calibrate -o``);
 :func:`load_calibration_file` reads a calibration written by ``calstation calibrate`` or
 ``export`` (YAML or JSON) back into H and its lidar–encoder time offset. Every problem is a
 :class:`~calstation.errors.RecordingError` that names the file and the field.
@@ -10,20 +11,25 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calstation.atomic import write_atomic
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 from calstation.errors import RecordingError
 
+if TYPE_CHECKING:
+    from calstation.engine.result import CalibrationResult
+
 
 def write_ply(path: str | Path, points: ArrayLike) -> None:
-    """Write (N, 3) points (metres) as a binary little-endian PLY (float32 x, y, z).
+    """Write (N, 3) points (metres) as a binary little-endian PLY (float32 x, y, z), whole or
+    not at all (:func:`calstation.atomic.write_atomic`: a folder, device or FIFO named as
+    ``path`` is refused, and so is a missing folder).
 
     Readable by Open3D, MeshLab and CloudCompare. Non-finite points are an error.
     """
@@ -43,17 +49,7 @@ def write_ply(path: str | Path, points: ArrayLike) -> None:
         "property float z\n"
         "end_header\n"
     ).encode("ascii")
-    p = Path(path)
-    tmp = p.with_name(p.name + ".part")
-    try:
-        p.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as f:
-            f.write(header)
-            f.write(np.ascontiguousarray(pts, dtype="<f4").tobytes())
-        os.replace(tmp, p)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise RecordingError(f"cannot write PLY {p}: {exc}") from exc
+    write_atomic(path, header + np.ascontiguousarray(pts, dtype="<f4").tobytes(), "PLY file")
 
 
 def read_ply(path: str | Path) -> NDArray[np.float64]:
@@ -83,6 +79,15 @@ def read_ply(path: str | Path) -> NDArray[np.float64]:
 
 
 # --- calibration files ---------------------------------------------------------------------
+def save_calibration(result: CalibrationResult, path: str | Path) -> Path:
+    """Write ``result`` as a calibration file, YAML for ``.yaml``/``.yml`` and JSON otherwise
+    (what :meth:`~calstation.engine.result.CalibrationResult.save` writes), whole or not at all
+    (:func:`calstation.atomic.write_atomic`); the path written."""
+    p = Path(path)
+    text = result.to_yaml() if p.suffix.lower() in (".yaml", ".yml") else result.to_json()
+    return write_atomic(p, text, "calibration file")
+
+
 def load_extrinsics(path: str | Path, *, source: str = "calibration") -> Extrinsics:
     """Read H from a file, in metres and radians.
 

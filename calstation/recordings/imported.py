@@ -13,10 +13,8 @@ latency 0 (the samples are already on the lines' clock).
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import math
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calstation.atomic import atomic_output
 from calstation.clock import SimClock
 from calstation.drivers import EncoderSample, LidarInfo, LidarLine
 from calstation.errors import RecordingImportError
@@ -139,8 +138,10 @@ def write_imported(
 ) -> ImportResult:
     """Write ``scan`` to the version-2 recording ``out``: all of it, or nothing.
 
-    The file is written beside ``out`` under a temporary name and renamed at the end, so a
-    failure (or Ctrl-C) leaves no half-written file and never touches an existing ``out``.
+    The file is written beside ``out`` under a temporary name and renamed at the end
+    (:func:`calstation.atomic.atomic_output`), so a failure (or Ctrl-C, or a full disk) leaves
+    no half-written file and never touches an existing ``out``; a folder, device or FIFO named
+    as ``out`` is refused before anything is written.
     ``kind`` (:data:`KINDS`) is the recording's kind; ``counts_per_revolution`` and
     ``direction`` (+1/−1: the sign of the platter angle φ relative to the imported angle)
     go to the ``encoder`` record. ``progress(done, total)`` is told about the lines written.
@@ -174,49 +175,49 @@ def write_imported(
         )
     source = {**scan.source, "counts_per_revolution": cpr, "direction": direction,
               "notes": notes}
-    out = Path(out)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    with atomic_output(out, "recording") as tmp, RecordingWriter(
+        tmp,
+        kind=kind,
+        lidar_info=scan.lidar,
+        counts_per_revolution=cpr,
+        encoder_direction=direction,
+        encoder_latency_s=0.0,
+        station_id=station_id,
+        metadata={"import": source},
+        clock=SimClock(min(int(scan.lines[0].timestamp_ns), int(enc_t[0]))),
+        live=_NoLive(),
+    ) as writer:
+        points, valid = _write_scan(writer, scan.lines, enc_t, enc_c, progress)
+    return ImportResult(Path(out), len(scan.lines), points, valid, len(enc_t), cpr, outside,
+                        notes)
+
+
+def _write_scan(writer: Any, lines: Sequence[LidarLine], enc_t: NDArray[np.int64],
+                enc_c: NDArray[np.int64], progress: Callable[[int, int], None] | None,
+                ) -> tuple[int, int]:
+    """Write ``lines`` and the encoder readings between them in time order; (points, valid)."""
     points = valid = 0
-    try:
-        with RecordingWriter(
-            tmp,
-            kind=kind,
-            lidar_info=scan.lidar,
-            counts_per_revolution=cpr,
-            encoder_direction=direction,
-            encoder_latency_s=0.0,
-            station_id=station_id,
-            metadata={"import": source},
-            clock=SimClock(min(int(scan.lines[0].timestamp_ns), int(enc_t[0]))),
-            live=_NoLive(),
-        ) as writer:
-            k = 0
-            for i, line in enumerate(scan.lines):
-                end = int(line.point_times_ns().max())
-                while k < len(enc_t) and enc_t[k] <= end:
-                    j = min(k + ENCODER_BATCH, int(np.searchsorted(enc_t, end, "right")))
-                    writer.write_encoder(
-                        EncoderSample(int(t), int(c)) for t, c in zip(enc_t[k:j], enc_c[k:j],
-                                                                     strict=True)
-                    )
-                    k = j
-                writer.write_line(line)
-                points += len(line)
-                valid += int(np.count_nonzero(line.valid))
-                if progress is not None:
-                    progress(i + 1, len(scan.lines))
-            for j in range(k, len(enc_t), ENCODER_BATCH):
-                writer.write_encoder(
-                    EncoderSample(int(t), int(c))
-                    for t, c in zip(enc_t[j : j + ENCODER_BATCH], enc_c[j : j + ENCODER_BATCH],
-                                    strict=True)
-                )
-        os.replace(tmp, out)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-    return ImportResult(out, len(scan.lines), points, valid, len(enc_t), cpr, outside, notes)
+    k = 0
+    for i, line in enumerate(lines):
+        end = int(line.point_times_ns().max())
+        while k < len(enc_t) and enc_t[k] <= end:
+            j = min(k + ENCODER_BATCH, int(np.searchsorted(enc_t, end, "right")))
+            writer.write_encoder(
+                EncoderSample(int(t), int(c)) for t, c in zip(enc_t[k:j], enc_c[k:j], strict=True)
+            )
+            k = j
+        writer.write_line(line)
+        points += len(line)
+        valid += int(np.count_nonzero(line.valid))
+        if progress is not None:
+            progress(i + 1, len(lines))
+    for j in range(k, len(enc_t), ENCODER_BATCH):
+        writer.write_encoder(
+            EncoderSample(int(t), int(c))
+            for t, c in zip(enc_t[j : j + ENCODER_BATCH], enc_c[j : j + ENCODER_BATCH],
+                            strict=True)
+        )
+    return points, valid
 
 
 class _NoLive:

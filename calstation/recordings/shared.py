@@ -9,7 +9,8 @@ environment as every AWS tool does (``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_K
 
 :func:`upload` copies a file to a location: under a ``.partial`` name first, read back and
 checked against the sha256, then moved into place, so a location never holds a file that is not
-the recording. It is resumable: a file already in place with the right sha256 is not sent again,
+the recording; a location that holds another file already is refused, never replaced. It is
+resumable: a file already in place with the right sha256 is not sent again,
 and on a file system that can append (local, memory) a ``.partial`` left by an interrupted copy is
 continued after its bytes are checked; an object store writes whole objects, so there the file
 is sent again. The source is only ever read.
@@ -29,7 +30,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from calstation.errors import RecordingError
+from calstation.atomic import atomic_output, write_atomic
+from calstation.errors import OutputError, RecordingError
 
 CHUNK = 8 << 20
 """Bytes per read and write while copying or hashing (8 MiB)."""
@@ -114,8 +116,16 @@ def upload(source: Path, location: str, sha256: str) -> Uploaded:
     fs, path = filesystem(location)
     size = source.stat().st_size
     try:
-        if fs.exists(path) and fs.size(path) == size and sha256_of(fs, path) == sha256:
-            return Uploaded(location, 0)
+        if fs.exists(path):
+            found = sha256_of(fs, path) if fs.size(path) == size else None
+            if found == sha256:
+                return Uploaded(location, 0)
+            raise SharedStorageError(
+                f"{location} holds another file already ("
+                + (f"sha256 {found[:12]}…" if found else f"{fs.size(path)} bytes")
+                + f", not the {size} bytes of {source}): calstation never replaces an object "
+                "it did not write; nothing was sent"
+            )
         partial = path + ".partial"
         kept = _resumable_part(fs, partial, source, size)
         parent = path.rsplit("/", 1)[0]
@@ -233,8 +243,7 @@ def fetch(location: str, sha256: str, cache: Path | None = None) -> Path:
             )
         return path
     fs, path_in = filesystem(location)
-    folder = (cache or cache_dir()) / "recordings" / sha256[:2]
-    target = folder / (sha256 + Path(path_in).suffix)
+    target = (cache or cache_dir()) / "recordings" / sha256[:2] / (sha256 + Path(path_in).suffix)
     stamp = target.with_name(target.name + ".source")
     try:
         if not fs.exists(path_in):
@@ -242,23 +251,20 @@ def fetch(location: str, sha256: str, cache: Path | None = None) -> Path:
         key = f"{location}\n{fs.ukey(path_in)}"
         if target.is_file() and stamp.is_file() and stamp.read_text() == key:
             return target
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = target.with_name(f"{target.name}.{os.getpid()}.tmp")
-        h = hashlib.sha256()
-        with fs.open(path_in, "rb") as src, tmp.open("wb") as dst:
-            for chunk in iter(lambda: src.read(CHUNK), b""):
-                h.update(chunk)
-                dst.write(chunk)
-    except SharedStorageError:
+        with atomic_output(target, "cached copy", make_parents=True) as tmp:
+            h = hashlib.sha256()
+            with fs.open(path_in, "rb") as src, tmp.open("wb") as dst:
+                for chunk in iter(lambda: src.read(CHUNK), b""):
+                    h.update(chunk)
+                    dst.write(chunk)
+            if h.hexdigest() != sha256:
+                raise SharedStorageError(
+                    f"{location} holds other bytes than stored (sha256 {h.hexdigest()[:12]}… "
+                    f"there, {sha256[:12]}… stored)"
+                )
+        write_atomic(stamp, key, "cache stamp")
+    except (SharedStorageError, OutputError):
         raise
     except Exception as exc:
         raise SharedStorageError(f"cannot read {location}: {type(exc).__name__}: {exc}") from None
-    if h.hexdigest() != sha256:
-        tmp.unlink(missing_ok=True)
-        raise SharedStorageError(
-            f"{location} holds other bytes than stored (sha256 {h.hexdigest()[:12]}… there, "
-            f"{sha256[:12]}… stored)"
-        )
-    tmp.replace(target)
-    stamp.write_text(key)
     return target

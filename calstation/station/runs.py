@@ -69,8 +69,8 @@ def start_run(
     The recipe is validated against the installed plugins first. The station's lock is taken
     first (:class:`~calstation.station.lock.StationBusy` when another run holds it), for
     ``front_end`` (default: ``calstation run`` in this terminal). The run folder is
-    ``<data_dir>/runs/<run id>/``. ``serial`` is the unit's serial number when the operator
-    gives it (else the lidar's, read at preflight).
+    ``<data_dir>/runs/<database identity>/<run id>/`` (:func:`new_run_folder`). ``serial`` is
+    the unit's serial number when the operator gives it (else the lidar's, read at preflight).
     """
     check_plugins(loaded)
     holder = Holder.here(operator, front_end or terminal_front_end("calstation run"))
@@ -79,7 +79,7 @@ def start_run(
                             data_dir=data_dir, serial=serial)
         hold.attach(run_id)
         ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
-                f"{loaded.recipe.station.id}; recordings in {escape(str(_run_dir(db, run_id)))}")
+                f"{loaded.recipe.station.id}; recordings in {escape(str(run_folder(db, run_id)))}")
         with _signals_abort():
             return run_id, Station(db, run_id, loaded, ui).run()
 
@@ -94,10 +94,13 @@ def hold_station(db: Database, station: str, holder: Holder, ui: Operator,
     return hold
 
 
-def _run_dir(db: Database, run_id: int) -> Path:
+def run_folder(db: Database, run_id: int) -> Path:
+    """The folder of run ``run_id``, as its row records it (:class:`StationError` when there is
+    no such run)."""
     with db.session("reading the run", read_only=True) as s:
         run = s.get(Run, run_id)
-        assert run is not None
+        if run is None:
+            raise StationError(f"no run {run_id} in the database")
         return Path(run.data_dir)
 
 
@@ -120,6 +123,7 @@ def create_run(
     check_plugins(loaded)
     base = (data_dir or data_dir_default()).expanduser().resolve()
     station_id = get_or_create_station(db, loaded.recipe.station.id)
+    identity = db.identity
     with db.session("creating the run") as s:
         run = Run(
             station_id=station_id,
@@ -135,11 +139,32 @@ def create_run(
         )
         s.add(run)
         s.flush()
-        run_dir = base / "runs" / str(run.id)
-        run.data_dir = str(run_dir)
+        run.data_dir = str(new_run_folder(base, identity, run.id))
         run_id = run.id
-    run_dir.mkdir(parents=True, exist_ok=True)
     return run_id
+
+
+def new_run_folder(base: Path, identity: str, run_id: int) -> Path:
+    """A folder of its own for run ``run_id`` of the database ``identity``, made now:
+    ``<base>/runs/<identity>/<run id>/``, or ``<run id>-2``, ``-3``... should that one hold files
+    already (a copy of the database that went on numbering runs in the same place). Never a
+    folder another run has written to; the run's row records which it is."""
+    parent = base / "runs" / identity
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        for n in range(1, 1000):
+            folder = parent / (str(run_id) if n == 1 else f"{run_id}-{n}")
+            try:
+                folder.mkdir()
+                return folder
+            except FileExistsError:
+                if folder.is_dir() and not any(folder.iterdir()):
+                    return folder  # made for this run id by a creation that was rolled back
+    except OSError as exc:
+        raise StationError(
+            f"cannot make the folder of run {run_id} in {parent}: {exc.strerror or exc}"
+        ) from None
+    raise StationError(f"{parent} holds 999 folders named for run {run_id}: clear it up")
 
 
 def resumable_run(session: Session, run_id: int, force: bool) -> Run:

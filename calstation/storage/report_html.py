@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from calstation.atomic import write_atomic
 from calstation.errors import CalstationError
 from calstation.storage.db import Database, Run
 
@@ -670,10 +671,7 @@ def write_plotly_beside(runs_dir: Path) -> Path:
     path = runs_dir / plotly_file_name()
     text = plotly_js()
     if not path.is_file() or path.stat().st_size != len(text.encode("utf-8")):
-        runs_dir.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{dt.datetime.now().timestamp():.0f}.tmp")
-        tmp.write_text(text, encoding="utf-8")
-        tmp.replace(path)
+        write_atomic(path, text, "plotly.js", make_parents=True)
     return path
 
 
@@ -685,11 +683,7 @@ def write_run_report(db: Database, run_id: int) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     write_plotly_beside(folder.parent)
     path = folder / "report.html"
-    tmp = path.with_suffix(".html.tmp")
-    tmp.write_text(render_report(data, plotly_src=f"../{plotly_file_name()}"), encoding="utf-8")
-    tmp.replace(path)
-    views = folder / VIEWS_FILE
-    tmp = views.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(_views_of(data), separators=(",", ":")), encoding="utf-8")
-    tmp.replace(views)
+    write_atomic(path, render_report(data, plotly_src=f"../{plotly_file_name()}"), "report")
+    write_atomic(folder / VIEWS_FILE, json.dumps(_views_of(data), separators=(",", ":")),
+                 "report's 3D views")
     return path

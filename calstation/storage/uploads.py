@@ -1,10 +1,14 @@
 """A finished run's files copied to the fleet's shared store, and where they went recorded.
 
 The store is ``$CALSTATION_RECORDINGS_URL`` (an fsspec URL or a folder: ``s3://bucket/stations``,
-``file:///srv/calstation``). A run's files go to ``<store>/<station>/runs/<run id>/<file name>``;
-each is copied and checked (:func:`calstation.recordings.shared.upload`), then its artifact's
-``location`` is stored. The local copy is never touched: a failed upload leaves the run as it was
-(the locations it had stay), and the next upload of the run sends only what is not there yet.
+``file:///srv/calstation``). A run's files go to
+``<store>/<station>/runs/<database identity>/<run id>/<file name>``, so that the runs of two
+databases never share a place (copies made before, under ``<store>/<station>/runs/<run id>/``,
+are kept where their artifacts say); each is copied and checked
+(:func:`calstation.recordings.shared.upload`, which never replaces another object), then its
+artifact's ``location`` is stored. The local copy is never touched: a failed upload leaves the
+run as it was (the locations it had stay), and the next upload of the run sends only what is not
+there yet.
 """
 
 from __future__ import annotations
@@ -45,8 +49,15 @@ class RunUpload:
         return not self.failed
 
 
-def run_location(store: str, station: str, run_id: int) -> str:
-    """Where run ``run_id`` of ``station`` goes in ``store``."""
+def run_location(store: str, station: str, run_id: int, identity: str) -> str:
+    """Where run ``run_id`` of ``station`` in the database ``identity`` goes in ``store``: its
+    own place, whatever other databases upload to the same store."""
+    return join(store, station, "runs", identity, str(run_id))
+
+
+def legacy_run_location(store: str, station: str, run_id: int) -> str:
+    """Where calstation put run ``run_id`` of ``station`` before run locations named their
+    database: copies there are kept and still read (their artifacts record them)."""
     return join(store, station, "runs", str(run_id))
 
 
@@ -60,9 +71,10 @@ def upload_run(
         run = s.get(Run, run_id)
         if run is None:
             raise DatabaseError(f"no run with id {run_id} in the database")
-        base = run_location(store, run.station.name, run_id)
+        base = run_location(store, run.station.name, run_id, db.identity)
+        there = (base + "/", legacy_run_location(store, run.station.name, run_id) + "/")
         files = [(a.id, Path(a.path), a.sha256) for a in run.artifacts
-                 if not (a.location or "").startswith(base)]
+                 if not (a.location or "").startswith(there)]
     done = RunUpload(run_id)
     for art_id, path, sha256 in files:
         location = join(base, path.name)

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
+from calstation.atomic import stage
 from calstation.station import stored
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome
@@ -82,13 +82,9 @@ def _stage_files(
 
 
 def _write_staged(final: Path, text: str) -> Path:
-    """Write ``text`` beside ``final`` under a temporary name (flushed to disk); its path."""
-    tmp = final.with_name(final.name + ".pending")
-    with tmp.open("w", encoding="utf-8") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    return tmp
+    """Write ``text`` beside ``final`` under a temporary name (flushed to disk); its path
+    (:func:`calstation.atomic.stage`; the journal puts it in place once the step is stored)."""
+    return stage(final, text, final.name)
 
 
 def _drift(current: Calibration, previous: Calibration, qa: Any) -> dict[str, Any]:

@@ -25,6 +25,7 @@ from calstation.storage.db.models import (
     Base,
     Calibration,
     CubeCheckRecord,
+    DatabaseIdentity,
     Run,
     Station,
     StationLock,
@@ -249,7 +250,7 @@ def alembic_config(connection: Any = None, url: str | None = None) -> Any:
     return cfg
 
 
-SCHEMA_HEAD = "0010_station_lock"
+SCHEMA_HEAD = "0011_database_identity"
 """The newest migration's revision id, as written in ``migrations/versions`` beside this module
 (a test checks
 that they agree). Opening a database that is at it needs no Alembic, which takes ~0.1 s to
@@ -304,6 +305,7 @@ class Database:
         self._readers = sessionmaker(self.reader, class_=ReadingSession, expire_on_commit=False)
         self.on_wait: Callable[[str], None] = on_wait or _say_waiting
         self.log_path: Path = calstation_home() / "database.log"
+        self._identity: str | None = None
 
     def __repr__(self) -> str:
         return f"Database({self.engine.url.render_as_string(hide_password=True)!r})"
@@ -494,6 +496,27 @@ class Database:
     def dispose(self) -> None:
         """Close every pooled connection."""
         self.engine.dispose()
+
+    @property
+    def identity(self) -> str:
+        """This database's identity (:class:`~calstation.storage.db.models.DatabaseIdentity`),
+        which names its run folders and shared copies: read once, and given now to a database
+        whose tables were made without the migrations."""
+        if self._identity is None:
+            from sqlalchemy import select
+
+            with self.session("reading the database's identity", read_only=True) as s:
+                uid = s.scalars(select(DatabaseIdentity.uid).order_by(DatabaseIdentity.id)).first()
+            if uid is None:
+                import uuid
+
+                with self.session("giving the database its identity") as s:
+                    uid = s.scalars(select(DatabaseIdentity.uid)).first()
+                    if uid is None:
+                        uid = uuid.uuid4().hex[:12]
+                        s.add(DatabaseIdentity(uid=uid))
+            self._identity = uid
+        return self._identity
 
 
 def get_or_create_station(db: Database, name: str) -> int:

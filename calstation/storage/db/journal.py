@@ -25,6 +25,7 @@ from typing import Any
 from sqlalchemy import inspect as sa_inspect, select
 from sqlalchemy.orm import Session
 
+from calstation.atomic import commit
 from calstation.errors import DatabaseError, ResultJournalled
 from calstation.recordings.runfolder import SCAN_RECORDINGS, file_sha256
 from calstation.storage.db.database import Database
@@ -173,7 +174,7 @@ APPLY: dict[str, Callable[[Session, Payload], None]] = {
 def _move_staged(p: Payload) -> None:
     for tmp, final in p.get("staged") or []:
         if Path(tmp).exists():
-            os.replace(tmp, final)
+            commit(tmp, final, Path(final).name)
 
 
 # --- writing, or journalling ---------------------------------------------------------------

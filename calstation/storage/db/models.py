@@ -1,5 +1,5 @@
-"""The run database's tables: station, run, step, calibration, cube check, artifact, and the
-re-processing campaigns (campaign, campaign run).
+"""The run database's tables: the database's identity, station, run, step, calibration, cube
+check, artifact, and the re-processing campaigns (campaign, campaign run).
 
 SQLAlchemy 2 typed models. Only portable column types are used (the same schema runs on SQLite and
 PostgreSQL). Lengths are metres and angles radians, as everywhere in storage; times are UTC.
@@ -75,6 +75,19 @@ class StepStatus(StrEnum):
     ABORTED = "aborted"
     INTERRUPTED = "interrupted"
     """found running by a resume"""
+
+
+class DatabaseIdentity(Base):
+    """This database's identity: a random ``uid`` given when its tables were created (or when a
+    database made before identities was migrated to them). Run folders and the runs' shared
+    copies are named with it (``runs/<uid>/<run id>``), so that two databases sharing one
+    ``CALSTATION_HOME`` or one shared store never write into each other's runs. One row."""
+
+    __tablename__ = "database_identity"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    uid: Mapped[str] = mapped_column(String(32), unique=True)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
 
 class Station(Base):
