@@ -37,6 +37,11 @@ class OutputError(CalstationError):
     file, a missing folder, a full disk. The previous file, if any, is left as it was."""
 
 
+class TextError(CalstationError, ValueError):
+    """Text a person typed (an operator's name, a unit serial) that cannot be stored: too long
+    for its column, or holding a control character or another it may not."""
+
+
 class SimulationError(CalstationError):
     """The simulated station was configured in a way it cannot simulate."""
 

@@ -89,19 +89,51 @@ def read_text_file(path: Path, what: str, max_bytes: int) -> str:
         raise ValueError(f"line {line}: the {what} is not UTF-8 text ({exc.reason})") from None
 
 
+MAX_INT_DIGITS = 100
+"""Most digits an integer may have (Python refuses to convert past 4300; no setting needs 20)."""
+
+_PARSER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+"""libyaml's parser when PyYAML has it: the bounds below are checked before anything is built,
+and at its speed a file of a hundred thousand values is refused in a tenth of a second (the
+pure-Python parser takes seconds)."""
+
+
+def _line(event: yaml.Event) -> int | None:
+    return event.start_mark.line + 1 if event.start_mark else None
+
+
 def _check_depth(text: str) -> None:
-    """Walk the event stream (PyYAML's parser is not recursive) and bound the nesting."""
-    depth = 0
-    for event in yaml.parse(text, Loader=yaml.SafeLoader):
+    """Walk the event stream (the parser is not recursive) and bound the nesting and the number
+    of values written (anchors expanded are counted by :func:`_check_tree`). Text libyaml
+    refuses is walked again by PyYAML's own parser, whose errors say more."""
+    try:
+        _check_events(text, _PARSER)
+    except yaml.YAMLError:
+        if _PARSER is yaml.SafeLoader:
+            raise
+        _check_events(text, yaml.SafeLoader)
+
+
+def _check_events(text: str, loader: Any) -> None:
+    depth = values = 0
+    for event in yaml.parse(text, Loader=loader):
         if isinstance(event, yaml.MappingStartEvent | yaml.SequenceStartEvent):
             depth += 1
             if depth > MAX_DEPTH:
-                line = event.start_mark.line + 1 if event.start_mark else None
                 raise YamlProblem(
-                    line, (), f"nested more than {MAX_DEPTH} levels deep; a recipe is not that deep"
+                    _line(event), (),
+                    f"nested more than {MAX_DEPTH} levels deep; a recipe is not that deep"
                 )
         elif isinstance(event, yaml.MappingEndEvent | yaml.SequenceEndEvent):
             depth -= 1
+            continue
+        elif not isinstance(event, yaml.ScalarEvent | yaml.AliasEvent):
+            continue
+        values += 1
+        if values > MAX_NODES:
+            raise YamlProblem(
+                _line(event), (), f"holds more than {MAX_NODES} values; a recipe is smaller"
+            )
 
 
 def _key_text(node: yaml.Node) -> str:
@@ -137,6 +169,12 @@ def _check_tree(root: yaml.Node) -> None:
         elif isinstance(node, yaml.SequenceNode):
             for i, item in enumerate(node.value):
                 size += walk(item, (*loc, i))
+        elif node.tag == "tag:yaml.org,2002:int" and len(node.value) > MAX_INT_DIGITS:
+            raise YamlProblem(
+                node.start_mark.line + 1, loc,
+                f"an integer of {len(node.value)} characters; no value is written with more "
+                f"than {MAX_INT_DIGITS} digits"
+            )
         if size > MAX_NODES:
             raise YamlProblem(
                 node.start_mark.line + 1,
@@ -163,6 +201,9 @@ def load_yaml(text: str) -> tuple[Any, yaml.Node | None]:
         if node is None:
             return None, None
         _check_tree(node)
-        return loader.construct_document(node), node
+        try:
+            return loader.construct_document(node), node
+        except ValueError as exc:  # a value Python cannot build, as a last guard
+            raise YamlProblem(None, (), f"a value cannot be read: {exc}") from None
     finally:
         loader.dispose()

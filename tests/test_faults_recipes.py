@@ -313,6 +313,20 @@ def _tabs(tmp_path: Path) -> Path:
     return p
 
 
+def _long_integer(tmp_path: Path) -> Path:
+    p = tmp_path / "digits.yaml"
+    p.write_text(BASE.replace("    rpm: 20\n", "    rpm: " + "9" * 5000 + "\n", 1),
+                 encoding="utf-8")
+    return p
+
+
+def _many_keys(tmp_path: Path) -> Path:
+    """Nearly 1 MB: the recipe and 60 000 keys more."""
+    p = tmp_path / "keys.yaml"
+    p.write_text(BASE + "".join(f"k{i:05d}: {i:05d}\n" for i in range(60_000)), encoding="utf-8")
+    return p
+
+
 FILE_CASES: list[tuple[str, Callable[[Path], Path], str]] = [
     ("20000 nested brackets", _nested, r"nested\.yaml:1: .*nested more than \d+ levels deep"),
     ("50 MB recipe", _big, r"big\.yaml: the recipe is \d+\.\d MB, more than"),
@@ -323,6 +337,9 @@ FILE_CASES: list[tuple[str, Callable[[Path], Path], str]] = [
     ("empty file", _empty, r"empty\.yaml: a recipe must be a YAML mapping"),
     ("tab indentation", _tabs, r"tabs\.yaml:\d+: not valid YAML"),
     ("missing file", lambda tmp: tmp / "nope.yaml", r"nope\.yaml: recipe file not found"),
+    ("5000-digit integer", _long_integer,
+     r"digits\.yaml:\d+: steps\.spin_scan\.rpm: an integer of 5000 characters"),
+    ("60 000 keys", _many_keys, r"keys\.yaml:\d+: holds more than 50000 values"),
 ]
 
 
@@ -348,6 +365,39 @@ def test_bad_recipe_file_is_refused_quickly(
     assert not worker.is_alive(), f"validating {path.name} hung"
     assert "escaped" not in outcome, outcome.get("escaped")
     assert re.search(pattern, str(outcome.get("error"))), outcome
+
+
+def test_a_recipe_of_too_many_values_is_refused_before_anything_is_built(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The count is taken on the parser's events: the node tree (PyYAML's pure-Python
+    composer: seconds for a megabyte) is never made for such a file."""
+    import yaml
+
+    def never(self: Any) -> Any:
+        raise AssertionError("the node tree was built")
+
+    monkeypatch.setattr(yaml.SafeLoader, "get_single_node", never)
+    with pytest.raises(RecipeError, match="holds more than 50000 values"):
+        load_recipe(_many_keys(tmp_path))
+
+
+def test_thousands_of_unknown_keys_are_counted_not_each_located(
+    monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from calstation.recipes import load as load_module
+
+    located: list[object] = []
+    real = load_module.line_of
+    monkeypatch.setattr(load_module, "line_of",
+                        lambda node, loc: located.append(loc) or real(node, loc))
+    text = BASE.replace("qa:\n", "qa:\n" + "".join(f"  k{i}: {i}\n" for i in range(20_000)), 1)
+    with pytest.raises(RecipeError) as info:
+        parse_recipe(text, "r.yaml")
+    lines = str(info.value).splitlines()
+    assert lines[1].strip().endswith("qa.k0: unknown key")
+    assert lines[-1].strip() == "… and 19980 more problems"
+    assert len(located) == 20
 
 
 def test_cli_validate_reports_without_traceback(

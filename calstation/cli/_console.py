@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import unicodedata
+from typing import Any
+
 from rich.console import Console
 
 
@@ -11,3 +14,23 @@ def wide_console() -> Console:
     emoji codes."""
     console = Console(emoji=False)
     return console if console.is_terminal else Console(width=140, emoji=False)
+
+
+_UNSAFE = {"Cc", "Cf", "Cs", "Co", "Zl", "Zp"}
+
+
+def terminal_safe(data: Any) -> Any:
+    """``data`` (strings, and lists and mappings of them) with every control or format
+    character (ESC, a line break, a bidirectional override) shown as its escape (``\\x1b``):
+    text stored by others (an operator's name, a serial, an error) can never move the cursor,
+    recolour or clear the terminal that lists it."""
+    if isinstance(data, str):
+        if not any(unicodedata.category(ch) in _UNSAFE for ch in data):
+            return data
+        return "".join(ch.encode("unicode_escape").decode("ascii")
+                       if unicodedata.category(ch) in _UNSAFE else ch for ch in data)
+    if isinstance(data, dict):
+        return {k: terminal_safe(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return type(data)(terminal_safe(v) for v in data)
+    return data

@@ -48,7 +48,7 @@ def register(app: typer.Typer) -> None:
         """Print the database URL and its revision."""
         from calstation.storage.db import Database, head_revision, known_revisions
 
-        database = Database(db)
+        database = Database(db, read_only=True)
         current = database.current_revision()
         head = head_revision()
         if current == head:

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 import typer
 from rich.markup import escape
 
-from calstation.cli._console import wide_console
+from calstation.cli._console import terminal_safe, wide_console
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -138,7 +138,7 @@ def register(app: typer.Typer) -> None:
         from calstation.storage.db import Run, Station, open_database
         from calstation.storage.report import history_item, with_results
 
-        database = open_database(db)
+        database = open_database(db, read_only=True)
         rows: list[dict[str, Any]] = []
         with database.session("reading the runs", read_only=True) as s:
             stmt = with_results(select(Run).join(Station).order_by(Run.id.desc()).limit(limit))
@@ -158,7 +158,7 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(rows, indent=2))
             return
-        print_history(rows, wide_console())
+        print_history(terminal_safe(rows), wide_console())
 
     @app.command("show")
     def show(
@@ -173,13 +173,14 @@ def register(app: typer.Typer) -> None:
         from calstation.storage.db import open_database
         from calstation.storage.report import get_run, run_summary
 
-        database = open_database(db)
+        database = open_database(db, read_only=True)
         with database.session("reading the runs", read_only=True) as s:
             summary = run_summary(get_run(s, run_id))
         database.dispose()
         if as_json:
             typer.echo(json.dumps(summary, indent=2))
             return
+        summary = terminal_safe(summary)
         console = wide_console()
         console.print(escape(
             f"run {summary['id']}: station {summary['station']}, unit serial "
@@ -255,7 +256,7 @@ def register(app: typer.Typer) -> None:
         frames = Frames(lidar_frame, platform_frame, platter_frame)
         if out is not None:
             check_output(out, "export")  # refused before the database is opened
-        database = open_database(db)
+        database = open_database(db, read_only=True)
         with database.session("reading the runs", read_only=True) as s:
             text = export_calibration(get_run(s, run_id), fmt, parent=parent, frames=frames,
                                       fragment=fragment)
@@ -301,7 +302,7 @@ def register(app: typer.Typer) -> None:
             table = Table(title=f"{param} of station {station} ({unit})")
             for col in ("run", "date (UTC)", "serial", param, "Δ vs previous", "limit", "drift"):
                 table.add_column(col)
-            for p in points:
+            for p in terminal_safe(points):
                 shown = _display("t" if param in CUBE_PARAMS else param, p["value"])
                 delta = ("—" if p["delta"] is None
                          else _display("t" if param in CUBE_PARAMS else param, p["delta"]))
@@ -328,7 +329,7 @@ def trend_points(
     from calstation.storage.db import open_database
     from calstation.storage.qa import trend_points as query
 
-    database = open_database(db)
+    database = open_database(db, read_only=True)
     try:
         with database.session("reading the runs", read_only=True) as s:
             points = query(s, station, param, serial)

@@ -14,7 +14,14 @@ import yaml
 from pydantic import ValidationError
 
 from calstation.errors import RecipeError
-from calstation.recipes.problems import error_message, format_loc, format_problems, line_of
+from calstation.recipes.problems import (
+    MAX_SHOWN,
+    error_message,
+    format_loc,
+    format_problems,
+    line_of,
+    problems_message,
+)
 from calstation.recipes.recipe import LoadedRecipe, Recipe
 from calstation.recipes.validation import cross_field_problems
 from calstation.yamlsafe import YamlProblem, load_yaml, read_text_file
@@ -87,12 +94,12 @@ def parse_recipe(text: str, source: str = "<recipe>", base_dir: Path | None = No
         recipe = Recipe.model_validate(data)
     except ValidationError as exc:
         problems = []
-        for err in exc.errors():
+        for err in exc.errors()[:MAX_SHOWN]:
             loc = tuple(k for k in err["loc"] if not _is_union_tag(k))
             line = line_of(node, loc)
             where = f"{source}:{line}" if line else source
             problems.append(f"{where}: {format_loc(loc)}: {error_message(err)}")
-        raise RecipeError("invalid recipe:\n  " + "\n  ".join(problems)) from None
+        raise RecipeError(problems_message(problems, exc.error_count())) from None
     cross = cross_field_problems(recipe, base_dir)
     if cross:
         raise RecipeError(format_problems(cross, node, source))

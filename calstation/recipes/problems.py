@@ -14,6 +14,10 @@ import yaml
 Problem = tuple[tuple[int | str, ...], str]
 """A validation problem: the field path in the recipe and what is wrong."""
 
+MAX_SHOWN = 20
+"""Problems listed in one error; the rest are counted (a file of thousands of unknown keys is
+refused at once, not after locating each)."""
+
 
 def line_of(node: yaml.Node | None, loc: tuple[int | str, ...]) -> int | None:
     """1-based line of the YAML node at ``loc`` (the deepest one that exists)."""
@@ -64,8 +68,15 @@ def format_problems(problems: list[Problem], node: yaml.Node | None, source: str
     """The message of a :class:`~calstation.errors.RecipeError` listing ``problems``, each with
     ``source`` (the file) and the line of its field in the YAML tree ``node``."""
     lines = []
-    for loc, msg in problems:
+    for loc, msg in problems[:MAX_SHOWN]:
         line = line_of(node, loc)
         where = f"{source}:{line}" if line else source
         lines.append(f"{where}: {format_loc(loc)}: {msg}")
-    return "invalid recipe:\n  " + "\n  ".join(lines)
+    return problems_message(lines, len(problems))
+
+
+def problems_message(lines: list[str], total: int) -> str:
+    """``invalid recipe:`` and the located problems ``lines`` (the first of ``total``)."""
+    more = total - len(lines)
+    tail = [f"… and {more} more problem{'s' if more > 1 else ''}"] if more > 0 else []
+    return "invalid recipe:\n  " + "\n  ".join([*lines, *tail])

@@ -46,6 +46,8 @@ from calstation.storage.db import (
     get_or_create_station,
     journal,
 )
+from calstation.storage.db.fields import operator_name, unit_serial
+from calstation.storage.report import find_run
 
 
 def data_dir_default() -> Path:
@@ -72,6 +74,7 @@ def start_run(
     ``<data_dir>/runs/<database identity>/<run id>/`` (:func:`new_run_folder`). ``serial`` is
     the unit's serial number when the operator gives it (else the lidar's, read at preflight).
     """
+    operator, serial = operator_name(operator), unit_serial(serial)
     check_plugins(loaded)
     holder = Holder.here(operator, front_end or terminal_front_end("calstation run"))
     with hold_station(db, loaded.recipe.station.id, holder, ui) as hold:
@@ -115,11 +118,14 @@ def create_run(
 ) -> int:
     """Create (and commit) a ``running`` run of ``loaded`` and its folder; returns its id.
 
-    ``serial`` is the unit's serial number when the operator gives it.
+    ``serial`` is the unit's serial number when the operator gives it. The operator's name and
+    the serial are checked as every front end checks them
+    (:mod:`calstation.storage.db.fields`: :class:`~calstation.errors.TextError`).
 
     The recipe is validated against the installed plugins first. Execute it with
     ``Station(db, run_id, loaded, ui).run()``.
     """
+    operator, serial = operator_name(operator), unit_serial(serial)
     check_plugins(loaded)
     base = (data_dir or data_dir_default()).expanduser().resolve()
     station_id = get_or_create_station(db, loaded.recipe.station.id)
@@ -132,7 +138,7 @@ def create_run(
             recipe_text=loaded.text,
             recipe_sha256=loaded.sha256,
             operator=operator,
-            unit_serial=serial or None,
+            unit_serial=serial,
             unattended=unattended,
             data_dir="",
             status="running",
@@ -170,7 +176,7 @@ def new_run_folder(base: Path, identity: str, run_id: int) -> Path:
 def resumable_run(session: Session, run_id: int, force: bool) -> Run:
     """Run ``run_id`` from ``session`` if it may be resumed: :class:`StationError` when there
     is none, it already passed, or another live process executes it (unless ``force``)."""
-    run = session.get(Run, run_id)
+    run = find_run(session, run_id)
     if run is None:
         raise StationError(f"no run {run_id} in the database")
     if run.status == "passed":

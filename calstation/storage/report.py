@@ -18,6 +18,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from calstation.errors import DatabaseError
 from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord, Run
+from calstation.storage.db.models import MAX_ROW_ID
 
 if TYPE_CHECKING:
     from calstation.storage.ros import Frames
@@ -177,9 +178,17 @@ def qa_limits(recipe_text: str) -> dict[str, Any] | None:
         return None
 
 
+def find_run(session: Session, run_id: int) -> Run | None:
+    """The run ``run_id``, None when there is none (an id no row can have, below 1 or past
+    :data:`~calstation.storage.db.models.MAX_ROW_ID`, included: the database is not asked)."""
+    if not 1 <= run_id <= MAX_ROW_ID:
+        return None
+    return session.get(Run, run_id)
+
+
 def get_run(session: Session, run_id: int) -> Run:
     """The run ``run_id``; :class:`DatabaseError` if there is none."""
-    run = session.get(Run, run_id)
+    run = find_run(session, run_id)
     if run is None:
         raise DatabaseError(f"no run with id {run_id} in the database")
     return run

@@ -23,6 +23,7 @@ from sqlalchemy import select
 from calstation.errors import DatabaseError
 from calstation.recordings.shared import SharedStorageError, join, upload
 from calstation.storage.db import Artifact, Database, Run
+from calstation.storage.report import find_run
 
 STORE_ENV = "CALSTATION_RECORDINGS_URL"
 """The environment variable naming the shared store."""
@@ -68,7 +69,7 @@ def upload_run(
     module docstring); ``say`` is told of each file."""
     tell = say or (lambda message: None)
     with db.session("reading the run's files", read_only=True) as s:
-        run = s.get(Run, run_id)
+        run = find_run(s, run_id)
         if run is None:
             raise DatabaseError(f"no run with id {run_id} in the database")
         base = run_location(store, run.station.name, run_id, db.identity)

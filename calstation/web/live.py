@@ -507,10 +507,10 @@ class Runner:
         run, from any front end, holds the station."""
         from calstation.plugins.recipe_checks import check_plugins
         from calstation.recipes import load_recipe
+        from calstation.storage.db.fields import operator_name, unit_serial
         from calstation.web.offer import refuse_unrunnable
 
-        if not operator.strip():
-            raise StationError("enter the operator's name")
+        operator, serial = operator_name(operator), unit_serial(serial)
         self._take()
         hold: StationHold | None = None
         try:

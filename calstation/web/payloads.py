@@ -6,13 +6,13 @@ is not what it claims to be (not UTF-8, not JSON, a JSON constant such as ``Infi
 given twice, nested past reason) is refused with 400; then the fields are validated by strict
 pydantic models (422): no unknown field, no type coercion (a ``prompt_id`` of ``1.5``,
 ``true`` or ``"1"`` is not a prompt id), lengths and characters within what the database
-stores (``calstation/storage/db/models.py``: operator and serial are ``String(100)``).
+stores: operator and serial by the one check every front end uses
+(:mod:`calstation.storage.db.fields`).
 """
 
 from __future__ import annotations
 
 import json
-import unicodedata
 from typing import Annotated, Any, Literal
 from urllib.parse import parse_qsl
 
@@ -20,44 +20,26 @@ from fastapi import Request
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints
 from starlette.exceptions import HTTPException
 
+from calstation.storage.db.fields import (
+    NAME_LENGTH,
+    SERIAL_LENGTH,
+    operator_name,
+    printable as printable,
+    unit_serial,
+)
 from calstation.web.sessions import CSRF_FIELD
 from calstation.web.tokens import TOKEN_MAX_LENGTH
 
-NAME_LENGTH = 100
-"""Operator names and unit serials (``runs.operator``, ``runs.unit_serial``: String(100))."""
-
 MAX_PROMPT_ID = 2**53 - 1
 """Prompt ids are counted from 1; this is the largest a browser's script holds exactly."""
-
-_FORBIDDEN = {"Cc", "Cf", "Cs", "Co", "Cn", "Zl", "Zp"}
-
-
-def printable(value: str) -> str:
-    """``value`` (NFC) if it has no control, format, private-use, unassigned or surrogate
-    character and no line break; spaces other than U+0020 are refused too."""
-    value = unicodedata.normalize("NFC", value)
-    for ch in value:
-        category = unicodedata.category(ch)
-        if category in _FORBIDDEN or (category == "Zs" and ch != " "):
-            raise ValueError(f"character U+{ord(ch):04X} is not allowed here")
-    return value
-
-
-def operator_name(value: str) -> str:
-    """An operator's name: letters of any script, digits, spaces and ``.'’-_,()@``."""
-    value = printable(value)
-    for ch in value:
-        if not (ch.isalnum() or ch in " .'’-_,()@" or unicodedata.category(ch)[0] == "M"):
-            raise ValueError(f"{ch!r} is not allowed in an operator's name")
-    return value
 
 
 Text = Annotated[str, AfterValidator(printable)]
 OperatorName = Annotated[
     str, StringConstraints(strip_whitespace=True, min_length=1, max_length=NAME_LENGTH),
     AfterValidator(operator_name)]
-Serial = Annotated[str, StringConstraints(strip_whitespace=True, max_length=NAME_LENGTH,
-                                          pattern=r"^([A-Za-z0-9][A-Za-z0-9 ._:/#+-]*)?$")]
+Serial = Annotated[str, StringConstraints(strip_whitespace=True, max_length=SERIAL_LENGTH),
+                   AfterValidator(unit_serial)]
 RecipeFile = Annotated[str, StringConstraints(min_length=1, max_length=200,
                                               pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]*\.yaml$")]
 

@@ -7,7 +7,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-MAX_ID = 2**63 - 1
+from calstation.storage.db.models import MAX_ROW_ID
+
+MAX_ID = MAX_ROW_ID
 """The largest id a database row can have (a signed 64-bit integer); larger ids are refused."""
 
 

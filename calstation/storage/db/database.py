@@ -281,12 +281,48 @@ def _say_waiting(message: str) -> None:
 _MIGRATION_LOCK_KEY = 0x63616C73  # "cals": PostgreSQL advisory lock held while migrating
 
 
+def _readable(url: str) -> tuple[str, bool]:
+    """For a command that only reads: (the URL to open, whether the database may be written).
+
+    A SQLite file must exist (a mistyped path is a :class:`DatabaseError`, and nothing is
+    made); a file this process may not write (a read-only copy, a read-only mount) is opened
+    read-only, as immutable when no other process has it open in WAL mode (no ``-wal`` file
+    beside it: SQLite could otherwise not read it without writing its ``-shm``)."""
+    from sqlalchemy.engine import make_url
+
+    try:
+        parsed = make_url(url)
+    except Exception:
+        return url, True  # make_engine says what is wrong with it
+    database = parsed.database or ""
+    if parsed.get_backend_name() != "sqlite" or database in ("", ":memory:") or \
+            database.startswith("file:"):
+        return url, True
+    path = Path(database).expanduser()
+    if not path.exists():
+        raise DatabaseError(
+            f"there is no database at {path}: this command only reads one and makes none "
+            "(a mistyped --db or $CALSTATION_DB_URL?)"
+        )
+    if not path.is_file():
+        raise DatabaseError(f"{path} is not a database file (it is not a regular file)")
+    if os.access(path, os.W_OK) and os.access(path.parent, os.W_OK):
+        return url, True
+    wal = path.with_name(path.name + "-wal").exists()
+    options = "mode=ro" + ("" if wal else "&immutable=1")
+    uri = parsed.set(database=f"file:{path.resolve()}?{options}", query={"uri": "true"})
+    return uri.render_as_string(hide_password=False), False
+
+
 class Database:
     """An opened run database: an engine plus sessions from a context manager.
 
     ``lock_timeout`` (seconds, default :func:`lock_timeout_s`) bounds the wait for a lock;
     ``on_wait(message)`` is told when a transaction has waited :data:`WAIT_NOTICE_S` (default:
-    a line on standard error); failures are logged in full to :attr:`log_path`.
+    a line on standard error); failures are logged in full to :attr:`log_path`. ``read_only``:
+    for a command that only reads, which makes nothing: a SQLite file must exist, and one this
+    process may not write is opened read-only (:attr:`writable` is then False and a writing
+    session is refused).
     """
 
     def __init__(
@@ -295,10 +331,17 @@ class Database:
         *,
         lock_timeout: float | None = None,
         on_wait: Callable[[str], None] | None = None,
+        read_only: bool = False,
     ) -> None:
         self.url = url or default_database_url()
+        self.read_only = read_only
+        self.writable = True
+        """Whether the database may be written (False: a read-only file opened to read)."""
+        opened = self.url
+        if read_only:
+            opened, self.writable = _readable(self.url)
         self.lock_timeout = lock_timeout_s() if lock_timeout is None else float(lock_timeout)
-        self.engine = make_engine(self.url, self.lock_timeout)
+        self.engine = make_engine(opened, self.lock_timeout)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
         self.reader: Engine = self.engine.execution_options(**{READ_ONLY: True})
         """The engine for reading only: its connections take no lock (see :func:`make_engine`)."""
@@ -319,7 +362,8 @@ class Database:
     def log(self, text: str) -> Path | None:
         """Append ``text`` (with the time) to :attr:`log_path`; the path, or None if unwritable."""
         try:
-            self.log_path.parent.mkdir(parents=True, exist_ok=True)
+            if not self.read_only:
+                self.log_path.parent.mkdir(parents=True, exist_ok=True)
             with self.log_path.open("a", encoding="utf-8") as f:
                 f.write(f"{dt.datetime.now(dt.UTC).isoformat()} {self.display_url}\n{text}\n\n")
         except OSError:
@@ -390,6 +434,11 @@ class Database:
         ``read_only`` session must not write: on SQLite it takes no lock, so it never waits for
         a run that is writing (and never holds one up); it reads the last commit.
         """
+        if not read_only and not self.writable:
+            raise DatabaseError(
+                f"the database {self.display_url} is a file calstation may only read here; "
+                f"nothing was written while {doing}"
+            )
         session = (self._readers if read_only else self._sessions)()
         try:
             with self._waiting_notice():
@@ -398,6 +447,12 @@ class Database:
         except SQLAlchemyError as exc:
             session.rollback()
             raise self.error(exc, doing) from exc
+        except OverflowError:  # a number the database cannot hold (an id past 64 bits)
+            session.rollback()
+            raise DatabaseError(
+                f"a number too large for the database {self.display_url} while {doing}: its "
+                "integers hold at most 2^63 − 1"
+            ) from None
         except BaseException:
             session.rollback()
             raise
@@ -457,6 +512,22 @@ class Database:
                 "by a newer calstation; use that version, or another database (--db)"
             )
         return current
+
+    def check_schema(self) -> None:
+        """For reading only: :class:`DatabaseError` unless the database is at the newest
+        revision (nothing is migrated or made; an empty file is no calstation database)."""
+        if self._at_head():
+            return
+        current = self._check_known(self.current_revision())
+        if current is None:
+            raise DatabaseError(
+                f"the database {self.display_url} holds no calstation tables: this command only "
+                "reads (a run, or `calstation db upgrade`, makes them)"
+            )
+        raise DatabaseError(
+            f"the database {self.display_url} is at revision {current}, calstation needs "
+            f"{head_revision()}: run `calstation db upgrade`"
+        )
 
     def ensure_schema(self) -> None:
         """Migrate a brand-new (empty) database; refuse one that is behind or ahead of the code.

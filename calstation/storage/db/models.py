@@ -39,6 +39,9 @@ NAMING_CONVENTION: dict[str, str] = {
 }
 """Constraint names (Alembic's recommended convention)."""
 
+MAX_ROW_ID = 2**63 - 1
+"""The largest id a row can have (a signed 64-bit integer): a larger one names no row."""
+
 PARAMS: tuple[str, ...] = ("tx", "ty", "tz", "rx", "ry", "rz")
 """The calibration parameters, in storage order (tx, ty, tz metres; rx, ry, rz radians)."""
 
