@@ -166,7 +166,7 @@ def test_file_is_plain_mcap_in_well_known_schemas(tmp_path: Path) -> None:
     H = Extrinsics(0.01, 1.2, -0.003, 0.0, 0.002, -0.78)
     with writer(path, calibration=H, calibration_source="fine") as w:
         w.write_line(line)
-        w.write_encoder([EncoderSample(T0, 0), EncoderSample(T0 + 2_000_000, 1024)])
+        w.write_encoder([EncoderSample(T0, 0), EncoderSample(T0 + 200_000_000, 1024)])
         w.write_turntable(TurntableStatus(T0, TurntableState.MOVING, 20.0, None, ()))
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])

@@ -13,6 +13,7 @@ from __future__ import annotations
 import binascii
 import functools
 import json
+import struct
 import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -47,9 +48,13 @@ def read_recording(path: str | Path) -> Recording:
     (format version 1 or 2).
 
     Raises :class:`RecordingError` (naming the file and the problem) for a missing or non-MCAP
-    file, one without the ``calstation`` metadata, or one without lidar lines. A file whose writer
-    was killed is read up to its last complete chunk: a :class:`RecordingTruncatedWarning` says
-    how much was read, and the result has ``truncated = True``.
+    file, one without the ``calstation`` metadata, or one without lidar lines; for a file
+    damaged since its writer finished it (a CRC that does not match, with the footer present);
+    for one that asks for more than :class:`~calstation.recordings.mcapscan.ReadLimits` allow
+    (a decompression bomb); and for one whose line times go backwards or whose encoder jumps
+    faster than a turntable turns (:func:`check_timing`). A file whose writer was killed is read
+    up to its last complete chunk: a :class:`RecordingTruncatedWarning` says how much was read,
+    and the result has ``truncated = True``.
     """
     p = Path(path)
     if not p.exists():
@@ -59,9 +64,19 @@ def read_recording(path: str | Path) -> Recording:
     try:
         with open(p, "rb") as f:
             col = _collect(p, f)
+        rec = _assemble(p, col)
+        check_timing(p, rec)
     except OSError as exc:
         raise RecordingError(f"cannot read recording {p}: {exc}") from exc
-    rec = _assemble(p, col)
+    except RecordingError as exc:
+        if str(p) in str(exc):
+            raise
+        raise RecordingError(f"recording {p}: {exc}") from exc
+    except (ValueError, KeyError, IndexError, TypeError, OverflowError, struct.error) as exc:
+        # whatever else malformed content makes the decoders meet: named, never a traceback
+        raise RecordingError(
+            f"recording {p} is malformed: {type(exc).__name__}: {exc}"
+        ) from exc
     if rec.truncated:
         t_end = (
             (int(rec.t_ns[-1]) - int(rec.line_timestamp_ns[0])) * 1e-9 if rec.n_points else 0.0
@@ -78,7 +93,7 @@ def read_recording(path: str | Path) -> Recording:
 
 
 def _collect(p: Path, f: IO[bytes]) -> Collected:
-    from calstation.recordings.mcapscan import MAGIC, Handlers, scan
+    from calstation.recordings.mcapscan import MAGIC, Handlers, Refused, scan
 
     col = Collected()
     data = f.read()
@@ -106,7 +121,16 @@ def _collect(p: Path, f: IO[bytes]) -> Collected:
     def on_attachment(name: str, payload: bytes) -> None:
         col.attachments[name] = payload
 
-    result = scan(data, Handlers(on_channel, on_message, on_metadata, on_attachment))
+    try:
+        result = scan(data, Handlers(on_channel, on_message, on_metadata, on_attachment))
+    except Refused as exc:
+        raise RecordingError(f"recording {p} is refused: {exc}") from None
+    if not result.clean and result.complete:
+        raise RecordingError(
+            f"recording {p} is damaged: {result.problem}. The file ends with its footer, so "
+            "its writer finished it: it was damaged since (on the disk, or in a copy); read "
+            "its shared copy or a backup instead"
+        )
     col.clean, col.problem = result.clean, result.problem
     return col
 
@@ -370,6 +394,42 @@ def _point_times(
             )
         t_ns[starts[i] : starts[i] + counts[i]] = line_ts[i] + off
     return t_ns
+
+
+MAX_TURN_RATE = 10.0
+"""Turns per second no turntable reaches (600 rpm: five times the fastest a recipe may turn):
+an encoder that jumps faster than this between two readings wrapped, or the data are damaged."""
+
+
+def check_timing(p: Path, rec: Recording) -> None:
+    """:class:`RecordingError` naming the reading when the lines' times go backwards or the
+    encoder jumps between two readings faster than :data:`MAX_TURN_RATE` (a raw counter that
+    wrapped, as a 32-bit count does): either would make a wrong cloud without a word."""
+    line_t = rec.line_timestamp_ns
+    back = np.flatnonzero(np.diff(line_t) < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise RecordingError(
+            f"recording {p}: lidar line {i} is stamped {(line_t[i - 1] - line_t[i]) * 1e-6:,.3f}"
+            f" ms before line {i - 1}: the line times go backwards (a clock that jumped?), and "
+            "calstation reads a scan only in time order"
+        )
+    t, c, cpr = rec.encoder_t_ns, rec.encoder_count, rec.counts_per_revolution
+    if len(t) < 2:
+        return
+    dt = np.diff(t).astype(np.float64) * 1e-9
+    jump = np.abs(np.diff(c).astype(np.float64))
+    allowed = MAX_TURN_RATE * dt * cpr + max(2.0, cpr / 3600.0)  # and 0.1° of reading noise
+    fast = np.flatnonzero(jump > allowed)
+    if fast.size:
+        i = int(fast[0]) + 1
+        raise RecordingError(
+            f"recording {p}: encoder reading {i} is {jump[i - 1]:,.0f} counts "
+            f"({jump[i - 1] / cpr:,.3g} turns) from reading {i - 1}, {dt[i - 1] * 1e3:,.3f} ms "
+            f"before it: faster than any turntable turns ({MAX_TURN_RATE * 60:.0f} rpm). A raw "
+            "counter that wrapped (a 32-bit count?) or damaged data; the counts must be "
+            "unwrapped (docs/recording-format.md)"
+        )
 
 
 def _encoder_arrays(col: Collected) -> tuple[NDArray[np.int64], NDArray[np.int64]]:

@@ -173,7 +173,9 @@ class RecordingWriter:
             raise RecordingError(f"cannot create recording {self.path}: {exc}") from exc
         # the mcap writer never closes a chunk on its own: this class decides (size or time)
         # and flushes the file right after, so finished chunks are on disk during the scan
-        self._writer = Writer(self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD)
+        # the data section's CRC lets a reader tell damage done since the file was finished
+        self._writer = Writer(self._file, chunk_size=1 << 62, compression=CompressionType.ZSTD,
+                              enable_data_crcs=True)
         self._closed = False
         self._pending = 0
         self._last_flush = time.monotonic()
