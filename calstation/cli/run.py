@@ -113,7 +113,7 @@ def register(app: typer.Typer) -> None:
         from calstation.station.runs import resume_run
         from calstation.storage.db import open_database
 
-        database = open_database(db)
+        database = open_database(db, existing=True)
         try:
             with _live_view(foxglove):
                 status = resume_run(

@@ -29,6 +29,7 @@ def register(app: typer.Typer) -> None:
         from calstation.storage.db import open_database
         from calstation.storage.uploads import (
             STORE_ENV,
+            check_store,
             recordings_store,
             runs_to_upload,
             upload_run,
@@ -39,7 +40,8 @@ def register(app: typer.Typer) -> None:
             raise FleetError(f"no shared store: give --to URL or set {STORE_ENV}")
         if not run_ids and not pending:
             raise FleetError("name the runs to upload, or give --pending")
-        database = open_database(db)
+        store = check_store(store)
+        database = open_database(db, existing=True)
         failed = 0
         try:
             todo = list(run_ids or []) or runs_to_upload(database, station)
@@ -48,6 +50,9 @@ def register(app: typer.Typer) -> None:
                 typer.echo(f"run {run_id}: {len(done.sent)} sent, {len(done.present)} there "
                            f"already, {len(done.failed)} not sent")
                 failed += len(done.failed)
+                if done.unanswered:
+                    typer.echo(f"stopped: {done.unanswered}", err=True)
+                    break
         finally:
             database.dispose()
         if failed:

@@ -8,9 +8,12 @@ environment as every AWS tool does (``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_K
 (``pip install 'calstation[s3]'``).
 
 :func:`upload` copies a file to a location: under a ``.partial`` name first, read back and
-checked against the sha256, then moved into place, so a location never holds a file that is not
-the recording; a location that holds another file already is refused, never replaced. It is
-resumable: a file already in place with the right sha256 is not sent again,
+checked against the sha256, then moved into place and read back once more through new
+connections (past any cache of the file system that wrote it), so a location never holds a file
+that is not the recording; a location that holds another file already is refused, never
+replaced. A store that does not answer within ``$CALSTATION_UPLOAD_TIMEOUT`` seconds (default
+30, for connecting and for each read or write) is :class:`StoreUnanswered`, a sentence naming
+its endpoint. It is resumable: a file already in place with the right sha256 is not sent again,
 and on a file system that can append (local, memory) a ``.partial`` left by an interrupted copy is
 continued after its bytes are checked; an object store writes whole objects, so there the file
 is sent again. The source is only ever read.
@@ -43,18 +46,94 @@ class SharedStorageError(RecordingError):
     """A shared location cannot be reached, written, or holds other bytes than expected."""
 
 
+class StoreUnanswered(SharedStorageError):
+    """The shared store did not answer within :func:`transfer_timeout_s`."""
+
+
+TIMEOUT_ENV = "CALSTATION_UPLOAD_TIMEOUT"
+DEFAULT_TIMEOUT_S = 30.0
+"""Seconds a shared store has to accept a connection, and to answer each read or write."""
+
+
+def transfer_timeout_s() -> float:
+    """``$CALSTATION_UPLOAD_TIMEOUT`` (seconds, > 0 and at most an hour), else
+    :data:`DEFAULT_TIMEOUT_S`."""
+    text = os.environ.get(TIMEOUT_ENV)
+    if not text:
+        return DEFAULT_TIMEOUT_S
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 < value <= 3600.0:
+        raise SharedStorageError(f"{TIMEOUT_ENV}={text!r}: expected seconds, more than 0 and "
+                                 "at most 3600")
+    return value
+
+
 def is_url(location: str) -> bool:
     """Whether ``location`` is an fsspec URL (``scheme://…``) rather than a local path."""
     return bool(_URL.match(location))
 
 
-def filesystem(location: str) -> tuple[Any, str]:
+def endpoint(location: str) -> str:
+    """Who answers for ``location``, in words: the S3 endpoint (``AWS_ENDPOINT_URL``, else AWS
+    itself) for ``s3://``, the scheme and host of another URL, the folder of a local path."""
+    if not is_url(location):
+        return f"the folder {location}"
+    scheme, _, rest = location.partition("://")
+    host = rest.split("/", 1)[0]
+    if scheme in ("s3", "s3a"):
+        url = next((os.environ[k] for k in ("AWS_ENDPOINT_URL_S3", "AWS_ENDPOINT_URL",
+                                            "FSSPEC_S3_ENDPOINT_URL") if os.environ.get(k)),
+                   None)
+        return f"the S3 endpoint {url} (bucket {host})" if url else f"AWS S3 (bucket {host})"
+    return f"{scheme}://{host}"
+
+
+def _options(protocol: str, timeout: float) -> dict[str, Any]:
+    """The file system's options that bound its waits, for the protocols that take them."""
+    if protocol in ("s3", "s3a"):
+        return {"config_kwargs": {"connect_timeout": timeout, "read_timeout": timeout,
+                                  "retries": {"max_attempts": 2, "mode": "standard"}}}
+    if protocol in ("sftp", "ssh"):
+        return {"timeout": timeout}
+    return {}
+
+
+def unanswered(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what caused it) is a time-out of the network."""
+    seen: BaseException | None = exc
+    for _ in range(10):
+        if seen is None:
+            return False
+        if isinstance(seen, TimeoutError) or "Timeout" in type(seen).__name__:
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
+def timed_out(location: str) -> StoreUnanswered:
+    """The sentence for a store that did not answer."""
+    return StoreUnanswered(
+        f"{endpoint(location)} did not answer within {transfer_timeout_s():g} s "
+        f"({TIMEOUT_ENV}) for {location}: nothing was changed there or in the database"
+    )
+
+
+def filesystem(location: str, *, fresh: bool = False) -> tuple[Any, str]:
     """(the fsspec file system, the path within it) of ``location``; a clear error when its
-    protocol is unknown or its package is missing (``s3fs`` for ``s3://``)."""
+    protocol is unknown or its package is missing (``s3fs`` for ``s3://``). Connections and
+    reads wait at most :func:`transfer_timeout_s` (S3: one retry). ``fresh``: a file system
+    of its own, on new connections (to read back what was written, past any cache)."""
     import fsspec
 
+    protocol = location.split("://", 1)[0] if is_url(location) else "file"
     try:
-        fs, path = fsspec.core.url_to_fs(location)
+        fs, path = fsspec.core.url_to_fs(location, skip_instance_cache=fresh,
+                                         **_options(protocol, transfer_timeout_s()))
+        if protocol in ("s3", "s3a"):
+            fs.retries = 1  # s3fs's own retries, on top of botocore's
         return fs, str(path)
     except ImportError as exc:
         raise SharedStorageError(
@@ -117,7 +196,7 @@ def upload(source: Path, location: str, sha256: str) -> Uploaded:
     size = source.stat().st_size
     try:
         if fs.exists(path):
-            found = sha256_of(fs, path) if fs.size(path) == size else None
+            found = _read_back(location, size)
             if found == sha256:
                 return Uploaded(location, 0)
             raise SharedStorageError(
@@ -146,13 +225,34 @@ def upload(source: Path, location: str, sha256: str) -> Uploaded:
                 f"{sha256[:12]}…; it was removed (the local file {source} is kept)"
             )
         fs.mv(partial, path)
+        again = _read_back(location, size)
+        if again != sha256:
+            raise SharedStorageError(
+                f"{location}: the copy reads back from a new connection as "
+                + (f"sha256 {again[:12]}…" if again else "missing, or of another size")
+                + f", not {sha256[:12]}…; its location is not stored (the local file {source} "
+                "is kept)"
+            )
     except SharedStorageError:
         raise
     except Exception as exc:  # any file system's failure: the local copy stays as it was
+        if unanswered(exc):
+            raise timed_out(location) from None
         raise SharedStorageError(
             f"could not copy {source} to {location}: {type(exc).__name__}: {exc}"
         ) from None
     return Uploaded(location, size - kept, kept)
+
+
+def _read_back(location: str, size: int) -> str | None:
+    """The sha256 of the file at ``location`` read through a file system of its own (new
+    connections, no cache), or None when it is not there or not ``size`` bytes long."""
+    fs, path = filesystem(location, fresh=True)
+    try:
+        found = fs.size(path)
+    except FileNotFoundError:
+        return None
+    return sha256_of(fs, path) if found == size else None
 
 
 def _resumable_part(fs: Any, partial: str, source: Path, size: int) -> int:
@@ -266,5 +366,7 @@ def fetch(location: str, sha256: str, cache: Path | None = None) -> Path:
     except (SharedStorageError, OutputError):
         raise
     except Exception as exc:
+        if unanswered(exc):
+            raise timed_out(location) from None
         raise SharedStorageError(f"cannot read {location}: {type(exc).__name__}: {exc}") from None
     return target

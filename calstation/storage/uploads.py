@@ -14,14 +14,21 @@ there yet.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from sqlalchemy import select
 
-from calstation.errors import DatabaseError
-from calstation.recordings.shared import SharedStorageError, join, upload
+from calstation.errors import DatabaseError, FleetError
+from calstation.recordings.shared import (
+    SharedStorageError,
+    StoreUnanswered,
+    is_url,
+    join,
+    upload,
+)
 from calstation.storage.db import Artifact, Database, Run
 from calstation.storage.report import find_run
 
@@ -29,9 +36,37 @@ STORE_ENV = "CALSTATION_RECORDINGS_URL"
 """The environment variable naming the shared store."""
 
 
+PERSISTENT_SCHEMES = ("file", "s3", "s3a", "gs", "gcs", "az", "abfs", "abfss", "adl", "sftp",
+                      "ssh", "hdfs", "webhdfs", "smb")
+"""fsspec protocols whose copies outlive the process that wrote them (``memory://`` does not)."""
+
+
 def recordings_store() -> str | None:
     """``$CALSTATION_RECORDINGS_URL``, or None when runs stay in their run folders only."""
     return os.environ.get(STORE_ENV) or None
+
+
+def check_store(store: str) -> str:
+    """``store`` if copies kept there outlive this process and can be found again from anywhere:
+    a URL of :data:`PERSISTENT_SCHEMES`, or an absolute folder. :class:`FleetError` saying why
+    not (``memory://`` vanishes with the process; ``s3:/bucket`` is a folder named ``s3:``)."""
+    if is_url(store):
+        scheme = store.split("://", 1)[0].lower()
+        if scheme == "memory":
+            raise FleetError(f"{store}: memory:// is this process's memory, and its copies "
+                             "vanish when calstation ends; name a shared store (s3://, "
+                             "file:///…, a folder)")
+        if scheme not in PERSISTENT_SCHEMES:
+            raise FleetError(f"{store}: {scheme}:// is not a store calstation keeps copies on; "
+                             f"use one of {', '.join(s + '://' for s in PERSISTENT_SCHEMES)}")
+        return store
+    if re.match(r"^[A-Za-z][A-Za-z0-9+.-]*:", store):
+        raise FleetError(f"{store!r} looks like a URL without its '//' (s3://bucket/…); as a "
+                         "folder it would be named after the scheme")
+    if not Path(store).expanduser().is_absolute():
+        raise FleetError(f"{store!r}: a store folder must be an absolute path (a relative one "
+                         "names another place from every folder calstation runs in)")
+    return str(Path(store).expanduser())
 
 
 @dataclass
@@ -43,6 +78,8 @@ class RunUpload:
     sent: list[str] = field(default_factory=list)
     present: list[str] = field(default_factory=list)
     failed: list[str] = field(default_factory=list)
+    unanswered: str | None = None
+    """Why the upload stopped early: the store did not answer (the sentence naming it)."""
 
     @property
     def ok(self) -> bool:
@@ -66,7 +103,10 @@ def upload_run(
     db: Database, run_id: int, store: str, say: Callable[[str], None] | None = None
 ) -> RunUpload:
     """Copy every file of run ``run_id`` that has no shared copy in ``store`` yet (see the
-    module docstring); ``say`` is told of each file."""
+    module docstring); ``say`` is told of each file. ``store`` must keep its copies
+    (:func:`check_store`). A store that does not answer ends the upload at the first file
+    (:attr:`RunUpload.unanswered`): the others would wait as long."""
+    store = check_store(store)
     tell = say or (lambda message: None)
     with db.session("reading the run's files", read_only=True) as s:
         run = find_run(s, run_id)
@@ -86,6 +126,9 @@ def upload_run(
         except SharedStorageError as exc:
             done.failed.append(str(exc))
             tell(f"not uploaded: {exc}")
+            if isinstance(exc, StoreUnanswered):
+                done.unanswered = str(exc)
+                break
             continue
         with db.session("storing where a file was uploaded") as s:
             art = s.get(Artifact, art_id)

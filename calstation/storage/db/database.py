@@ -281,31 +281,41 @@ def _say_waiting(message: str) -> None:
 _MIGRATION_LOCK_KEY = 0x63616C73  # "cals": PostgreSQL advisory lock held while migrating
 
 
-def _readable(url: str) -> tuple[str, bool]:
-    """For a command that only reads: (the URL to open, whether the database may be written).
-
-    A SQLite file must exist (a mistyped path is a :class:`DatabaseError`, and nothing is
-    made); a file this process may not write (a read-only copy, a read-only mount) is opened
-    read-only, as immutable when no other process has it open in WAL mode (no ``-wal`` file
-    beside it: SQLite could otherwise not read it without writing its ``-shm``)."""
+def _existing(url: str) -> tuple[Any, Path] | None:
+    """(the parsed URL, the file) of a SQLite file URL, which must exist (a mistyped path is a
+    :class:`DatabaseError`, and nothing is made); None for any other URL."""
     from sqlalchemy.engine import make_url
 
     try:
         parsed = make_url(url)
     except Exception:
-        return url, True  # make_engine says what is wrong with it
+        return None  # make_engine says what is wrong with it
     database = parsed.database or ""
     if parsed.get_backend_name() != "sqlite" or database in ("", ":memory:") or \
             database.startswith("file:"):
-        return url, True
+        return None
     path = Path(database).expanduser()
     if not path.exists():
         raise DatabaseError(
-            f"there is no database at {path}: this command only reads one and makes none "
-            "(a mistyped --db or $CALSTATION_DB_URL?)"
+            f"there is no database at {path}: this command works on a database that exists "
+            "and makes none (a mistyped --db or $CALSTATION_DB_URL?)"
         )
     if not path.is_file():
         raise DatabaseError(f"{path} is not a database file (it is not a regular file)")
+    return parsed, path
+
+
+def _readable(url: str) -> tuple[str, bool]:
+    """For a command that only reads: (the URL to open, whether the database may be written).
+
+    A SQLite file must exist (:func:`_existing`); a file this process may not write (a
+    read-only copy, a read-only mount) is opened read-only, as immutable when no other process
+    has it open in WAL mode (no ``-wal`` file beside it: SQLite could otherwise not read it
+    without writing its ``-shm``)."""
+    found = _existing(url)
+    if found is None:
+        return url, True
+    parsed, path = found
     if os.access(path, os.W_OK) and os.access(path.parent, os.W_OK):
         return url, True
     wal = path.with_name(path.name + "-wal").exists()
@@ -322,7 +332,8 @@ class Database:
     a line on standard error); failures are logged in full to :attr:`log_path`. ``read_only``:
     for a command that only reads, which makes nothing: a SQLite file must exist, and one this
     process may not write is opened read-only (:attr:`writable` is then False and a writing
-    session is refused).
+    session is refused). ``must_exist``: for a command that works on stored runs, a SQLite
+    file that is not there is refused rather than made.
     """
 
     def __init__(
@@ -332,6 +343,7 @@ class Database:
         lock_timeout: float | None = None,
         on_wait: Callable[[str], None] | None = None,
         read_only: bool = False,
+        must_exist: bool = False,
     ) -> None:
         self.url = url or default_database_url()
         self.read_only = read_only
@@ -340,6 +352,8 @@ class Database:
         opened = self.url
         if read_only:
             opened, self.writable = _readable(self.url)
+        elif must_exist:
+            _existing(self.url)
         self.lock_timeout = lock_timeout_s() if lock_timeout is None else float(lock_timeout)
         self.engine = make_engine(opened, self.lock_timeout)
         self._sessions = sessionmaker(self.engine, expire_on_commit=False)
