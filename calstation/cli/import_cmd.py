@@ -17,6 +17,9 @@ ANGLE_HELP = ("Unit of the angle as stored: deg, rad or counts (encoder counts: 
               "--counts-per-rev).")
 CPR_HELP = ("Counts per turn: of an angle in counts (required), or the grid a deg/rad angle is "
             "stored on (default 2^32 per turn; give the encoder's own to keep its counts).")
+BITS_HELP = ("The angle in counts is a raw counter of this many bits (8, 16, 24, 32 or 64, "
+             "signed or not) that wraps at 2^bits: it is unwrapped. Without it, a counter's "
+             "wrap is refused.")
 DIRECTION_HELP = ("+1 or -1: the platter angle φ (right-handed about the rotation axis X_P) is "
                   "direction × the imported angle.")
 KIND_HELP = "The recording's kind: spin, static or cube."
@@ -45,6 +48,8 @@ def register(app: typer.Typer) -> None:
         angle_unit: str = typer.Option("rad", "--angle-unit", help=ANGLE_HELP),
         counts_per_rev: int | None = typer.Option(None, "--counts-per-rev", help=CPR_HELP,
                                                   show_default=False),
+        counts_bits: int | None = typer.Option(None, "--counts-bits", help=BITS_HELP,
+                                               show_default=False),
         direction: int = typer.Option(1, "--direction", help=DIRECTION_HELP),
         kind: str = typer.Option("spin", "--kind", help=KIND_HELP),
         stamps: str = typer.Option("auto", "--stamps", help="Message times: header (the "
@@ -68,7 +73,7 @@ def register(app: typer.Typer) -> None:
         with _progress(f"reading {', '.join(map(str, bags))}") as step:
             imported = read_rosbag(bags, scan_spec, angle_spec, angle_unit=angle_unit,
                                    stamps=stamps, progress=step)
-        _write(imported, out, kind, counts_per_rev, direction, station)
+        _write(imported, out, kind, counts_per_rev, direction, station, counts_bits)
 
     @group.command("csv")
     def csv_cmd(
@@ -101,6 +106,8 @@ def register(app: typer.Typer) -> None:
         angle_unit: str = typer.Option("rad", "--angle-unit", help=ANGLE_HELP),
         counts_per_rev: int | None = typer.Option(None, "--counts-per-rev", help=CPR_HELP,
                                                   show_default=False),
+        counts_bits: int | None = typer.Option(None, "--counts-bits", help=BITS_HELP,
+                                               show_default=False),
         direction: int = typer.Option(1, "--direction", help=DIRECTION_HELP),
         kind: str = typer.Option("spin", "--kind", help=KIND_HELP),
         station: str = typer.Option("", "--station", help="Station id to store."),
@@ -123,18 +130,19 @@ def register(app: typer.Typer) -> None:
         )
         with _progress(f"reading {log}") as step:
             imported = read_line_log(log, columns, angle_unit=angle_unit, progress=step)
-        _write(imported, out, kind, counts_per_rev, direction, station)
+        _write(imported, out, kind, counts_per_rev, direction, station, counts_bits)
 
 
 def _write(imported: Any, out: Path, kind: str, counts_per_rev: int | None, direction: int,
-           station: str) -> None:
+           station: str, counts_bits: int | None) -> None:
     from rich.console import Console
 
     from calstation.recordings.imported import write_imported
 
     with _progress(f"writing {out}") as step:
         result = write_imported(imported, out, kind=kind, counts_per_revolution=counts_per_rev,
-                                direction=direction, station_id=station, progress=step)
+                                direction=direction, station_id=station, progress=step,
+                                counts_bits=counts_bits)
     err = Console(stderr=True)
     for note in result.notes:
         err.print(f"note: {note}", highlight=False, markup=False)

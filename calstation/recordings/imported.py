@@ -72,16 +72,24 @@ class ImportResult:
     notes: list[str]
 
 
+COUNTS_BITS = (8, 16, 24, 32, 64)
+"""Widths of the raw counters ``--counts-bits`` unwraps."""
+
+
 def angle_counts(
-    values: ArrayLike, unit: str, counts_per_revolution: int | None, what: str
+    values: ArrayLike, unit: str, counts_per_revolution: int | None, what: str,
+    counts_bits: int | None = None,
 ) -> tuple[NDArray[np.int64], int]:
     """Angle samples as unwrapped integer encoder counts, and the counts per revolution.
 
     ``unit`` is one of :data:`ANGLE_UNITS`; ``counts`` needs ``counts_per_revolution``; for
     degrees and radians it is the grid (default :data:`FINE_COUNTS_PER_REVOLUTION`), so give
-    the encoder's own to keep its counts exactly. A jump of more than half a turn between two
-    samples is taken as a wrap (an angle reported modulo one turn) and unwrapped. ``what``
-    names the angle's source in errors.
+    the encoder's own to keep its counts exactly. ``counts_bits``: the counts are a raw counter
+    of that many bits (signed or not), which wraps at 2^bits: unwrapped first. A jump of more
+    than half a turn between two samples is taken as a wrap of an angle reported modulo one
+    turn and unwrapped; a jump of more than a turn and a half (a counter that wrapped, or a
+    gap no unwrapping can bridge) is refused, naming the sample. ``what`` names the angle's
+    source in errors.
     """
     if unit not in ANGLE_UNITS:
         raise RecordingImportError(
@@ -95,6 +103,12 @@ def angle_counts(
         raise RecordingImportError(
             f"{what}: counts per revolution must be positive, got {counts_per_revolution}"
         )
+    if counts_bits is not None and (unit != "counts" or counts_bits not in COUNTS_BITS):
+        raise RecordingImportError(
+            f"{what}: --counts-bits is the width of a raw counter: "
+            + ("one of " + ", ".join(map(str, COUNTS_BITS)) if unit == "counts"
+               else "it needs --angle-unit counts")
+        )
     if unit == "counts":
         if counts_per_revolution is None:
             raise RecordingImportError(
@@ -102,6 +116,11 @@ def angle_counts(
             )
         cpr = int(counts_per_revolution)
         counts = np.round(v)
+        if counts_bits is not None and len(counts) > 1:
+            modulus = float(2**counts_bits)
+            steps = np.diff(counts)
+            steps = (steps + modulus / 2) % modulus - modulus / 2
+            counts = counts[0] + np.concatenate([[0.0], np.cumsum(steps)])
     else:
         cpr = int(counts_per_revolution or FINE_COUNTS_PER_REVOLUTION)
         full = 360.0 if unit == "deg" else 2.0 * math.pi
@@ -109,8 +128,26 @@ def angle_counts(
     if len(counts) > 1:  # unwrap: a step of more than half a turn is a wrap
         steps = np.diff(counts)
         wraps = np.round(steps / cpr)
+        _refuse_impossible_jumps(steps, wraps, cpr, unit, what)
         counts = counts - np.concatenate([[0.0], np.cumsum(wraps)]) * cpr
     return counts.astype(np.int64), cpr
+
+
+def _refuse_impossible_jumps(steps: NDArray[np.float64], wraps: NDArray[np.float64], cpr: int,
+                             unit: str, what: str) -> None:
+    """An angle reported modulo one turn wraps by one turn; more than that between two samples
+    is a raw counter that wrapped (2^bits, not a turn) or a gap no unwrapping can bridge."""
+    bad = np.flatnonzero(np.abs(wraps) > 1)
+    if not bad.size:
+        return
+    i = int(bad[0]) + 1
+    turns = steps[i - 1] / cpr
+    hint = ("a raw counter that wrapped: give --counts-bits N (its width in bits)"
+            if unit == "counts" else "samples missing there, or an angle that is not one")
+    raise RecordingImportError(
+        f"{what}: angle sample {i} is {turns:+,.2f} turns from sample {i - 1}; an angle "
+        f"reported modulo one turn wraps by one turn, so this is {hint}"
+    )
 
 
 def file_digest(path: Path) -> dict[str, Any]:
@@ -135,6 +172,7 @@ def write_imported(
     direction: int = 1,
     station_id: str = "",
     progress: Callable[[int, int], None] | None = None,
+    counts_bits: int | None = None,
 ) -> ImportResult:
     """Write ``scan`` to the version-2 recording ``out``: all of it, or nothing.
 
@@ -145,6 +183,7 @@ def write_imported(
     ``kind`` (:data:`KINDS`) is the recording's kind; ``counts_per_revolution`` and
     ``direction`` (+1/−1: the sign of the platter angle φ relative to the imported angle)
     go to the ``encoder`` record. ``progress(done, total)`` is told about the lines written.
+    ``counts_bits``: the angle is a raw counter of that many bits (:func:`angle_counts`).
     """
     from calstation.recordings.writer import RecordingWriter
 
@@ -157,7 +196,8 @@ def write_imported(
         raise RecordingImportError(f"{scan.source.get('scan', 'the scan')}: no lidar lines")
     if len(scan.angle_t_ns) == 0:
         raise RecordingImportError(f"{what}: no angle samples")
-    counts, cpr = angle_counts(scan.angle, scan.angle_unit, counts_per_revolution, str(what))
+    counts, cpr = angle_counts(scan.angle, scan.angle_unit, counts_per_revolution, str(what),
+                               counts_bits)
     order = np.argsort(scan.angle_t_ns, kind="stable")
     enc_t, enc_c = np.asarray(scan.angle_t_ns, np.int64)[order], counts[order]
     outside = _lines_outside(scan.lines, enc_t, enc_c)

@@ -441,6 +441,7 @@ def _lines(scans: Sequence[tuple[int, int | None, Any]], line_t: NDArray[np.int6
             continue
         inc = float(ls.angle_increment)
         amin, amax = float(ls.angle_min), float(ls.angle_max)
+        _check_geometry(ls, i, where)
         if n > 1 and (inc == 0.0 or not math.isfinite(inc)):
             raise RecordingImportError(
                 f"--scan {where}: message {i}: angle_increment is {inc} for {n} ranges"
@@ -488,6 +489,25 @@ def _lines(scans: Sequence[tuple[int, int | None, Any]], line_t: NDArray[np.int6
         notes.append(f"{order_broken} scans stamped before the one received before them: "
                      "sorted by time")
     return lines, notes
+
+
+def _check_geometry(ls: Any, i: int, where: str) -> None:
+    """A LaserScan's bearings, times and range limits must be numbers: a NaN or infinite
+    ``angle_min`` would give every return a NaN azimuth, and a NaN ``time_increment`` NaN
+    times, each read as valid (an infinite ``range_max`` only means no upper limit)."""
+    fields = {"angle_min": ls.angle_min, "angle_max": ls.angle_max,
+              "angle_increment": ls.angle_increment, "time_increment": ls.time_increment,
+              "range_min": ls.range_min}
+    for name, value in fields.items():
+        if not math.isfinite(float(value)):
+            raise RecordingImportError(
+                f"--scan {where}: message {i}: {name} is {float(value)}, not a number; the "
+                "scan's bearings and times cannot be known"
+            )
+    if math.isnan(float(ls.range_max)):
+        raise RecordingImportError(
+            f"--scan {where}: message {i}: range_max is nan, not a number (inf: no limit)"
+        )
 
 
 def _dedupe(t: NDArray[np.int64], v: NDArray[np.float64]
