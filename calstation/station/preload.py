@@ -11,16 +11,24 @@ ENGINE_MODULES = (
     "calstation.engine.periodicity",
     "calstation.engine.shape",
     "calstation.engine.cube",
-    "open3d",
 )
-"""What :func:`preload_engine` imports, in order: the fine-tuning, the cube check, Open3D."""
+"""What :func:`preload_engine` imports in the background, in order: the fine-tuning, the cube
+check."""
 
 
 def preload_engine() -> threading.Thread:
-    """Import the engine (fine-tuning, cube check, Open3D) on a background thread while the
-    operator places the targets and the scans run, so that no step after a scan waits for an
-    import (~1.5 s together, Open3D ~0.8 s of it). A module that fails to import is left to
-    fail with a clear error in the step that needs it."""
+    """Import Open3D now, and the engine (fine-tuning, cube check) on a background thread while
+    the operator places the targets and the scans run, so that no step after a scan waits for an
+    import (~1.5 s together, Open3D ~0.8 s of it; it is imported once per process).
+
+    Open3D first, in the caller's thread and before the engine's imports begin: its import
+    fails when another thread imports meanwhile, and the drivers the run opens next (the
+    simulator's) import it too (:func:`calstation.quiet.import_open3d`). A module that fails to
+    import is left to fail with a clear error in the step that needs it."""
+    from calstation.quiet import import_open3d
+
+    with suppress(ImportError):
+        import_open3d()
 
     def load() -> None:
         for name in ENGINE_MODULES:
