@@ -110,6 +110,56 @@ MUTATIONS = (
         "    if False:\n",
         ("tests/test_cubefit.py",),
     ),
+    Mutation(
+        "reconstruct-latency",
+        "reconstruct ignores the calibration's encoder latency",
+        "calstation/engine/reconstruct.py",
+        "        recording = recording.with_encoder_latency(encoder_latency_s)\n",
+        "        pass\n",
+        ("tests/test_reconstruct.py",),
+    ),
+    Mutation(
+        "csv-sigma-swap",
+        "the CSV export with the σ_ry and σ_rz columns swapped",
+        "calstation/storage/report.py",
+        'row += ["" if s is None else repr(s) for s in cal.sigmas().values()]',
+        'row += ["" if s is None else repr(s) for s in (lambda v: [*v[:4], v[5], v[4]])('
+        "list(cal.sigmas().values()))]",
+        ("tests/test_cli_qa.py",),
+    ),
+    Mutation(
+        "journal-fsync",
+        "the journal's entries not flushed to the disk (its os.fsync deleted)",
+        "calstation/storage/db/journal.py",
+        "        os.fsync(f.fileno())\n",
+        "",
+        ("tests/test_faults_db.py::test_a_journalled_result_is_on_the_disk_before_the_run_goes_on",),
+    ),
+    Mutation(
+        "half-turn-shift",
+        "the periodicity's second half-turn with its platter angles 1 mrad off",
+        "calstation/engine/periodicity/cells.py",
+        "    halves = [half(first & moving), half(~first & moving)]\n",
+        "    halves = [half(first & moving), half(~first & moving)]\n"
+        "    halves[1].phi = halves[1].phi + 1e-3\n",
+        ("tests/test_periodicity.py",),
+    ),
+    Mutation(
+        "targetless-sign",
+        "the targetless start tries +|tz| twice instead of ±|tz|",
+        "calstation/engine/targetless.py",
+        "candidates = [0.0, tz, -tz] if tz >= TZ_SIGN_MIN_M else [0.0]",
+        "candidates = [0.0, tz, tz] if tz >= TZ_SIGN_MIN_M else [0.0]",
+        ("tests/test_targetless.py",),
+    ),
+    Mutation(
+        "static-lines-bound",
+        "steps.static_scan.lines without its ge=1 bound",
+        "calstation/recipes/steps.py",
+        "lines: int = Field(100, ge=1, le=10_000)",
+        "lines: int = Field(100, le=10_000)",
+        ("tests/test_faults_recipes.py",),
+    ),
 )
 
 

@@ -180,6 +180,9 @@ def test_export_formats_round_trip(cli: CliRunner, db_url: str, tmp_path: Path) 
     assert {k: float(row[k]) for k in H1} == H1
     assert row["accepted"] == "true"  # as JSON, YAML and most CSV readers spell booleans
     assert row["sigma_ty"] == "" and float(row["sigma_tx"]) == 1.234567e-5
+    # every σ under its own name (σ(ry) 7.1e-4 rad and σ(rz) 1.9e-5 rad were swapped once)
+    assert {k: float(row[f"sigma_{k}"]) for k in ("tz", "ry", "rz")} == {
+        "tz": 3.3e-5, "ry": 7.1e-4, "rz": 1.9e-5}
     assert row["strategy"] == "periodicity" and int(row["run_id"]) == run_id
     assert f'xyz="{H1["tx"]:.9g} {H1["ty"]:.9g} {H1["tz"]:.9g}"' in out["urdf"]
     res = cli.invoke(app, ["export", str(run_id), "--format", "xml", "--db", db_url])

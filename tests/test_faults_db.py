@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import sqlite3
 import threading
 import time
@@ -500,3 +501,23 @@ def test_cli_downgrade_of_a_populated_database(tmp_path: Path,
     err = capsys.readouterr().err
     assert "would drop every table" in err and "Traceback" not in err
     db.dispose()
+
+
+def test_a_journalled_result_is_on_the_disk_before_the_run_goes_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The journal is what survives a lost database and then a power cut: each entry is
+    flushed to the disk (fsync of the journal, with the entry in it) before append returns."""
+    synced: list[tuple[str, int]] = []
+    real = os.fsync
+
+    def fsync(fd: int) -> None:
+        synced.append((os.readlink(f"/proc/self/fd/{fd}"), os.fstat(fd).st_size))
+        real(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    entry = journal_mod.run_end(7, "interrupted", "the database went away")
+    path = journal_mod.append(tmp_path / "runs" / "7", entry)
+    size = path.stat().st_size
+    assert (str(path), size) in synced
+    assert journal_mod.read(path) == [entry]

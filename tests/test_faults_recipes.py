@@ -506,3 +506,18 @@ def test_a_plugin_strategy_options_model_is_enforced(
         good = tmp_path / "good.yaml"
         good.write_text(BASE.replace("  strategy: periodicity\n", "  strategy: planes\n"))
         check_plugins(load_recipe(good))  # defaults fit the model
+
+
+def test_a_static_scan_of_no_lines_is_refused_even_where_no_static_scan_is_used(
+    tmp_path: Path
+) -> None:
+    """The targetless recipe takes no static scan, so no cross-field check looks at its length:
+    the field's own bound refuses 0 lines."""
+    text = (REPO / "recipes" / "sim-targetless.yaml").read_text(encoding="utf-8")
+    assert "    lines: 100\n" in text
+    path = tmp_path / "targetless.yaml"
+    path.write_text(text.replace("    lines: 100\n", "    lines: 0\n", 1), encoding="utf-8")
+    with pytest.raises(RecipeError) as info:
+        check_plugins(load_recipe(path))
+    assert f"{path}:{_line_of(path.read_text(), '    lines: 0')}: steps.static_scan.lines: " \
+           "Input should be greater than or equal to 1" in str(info.value)

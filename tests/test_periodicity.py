@@ -121,3 +121,29 @@ def test_a_start_far_off_without_the_coarse_stages_is_a_clear_error(sim_run, gau
     settings = PeriodicitySettings(coarse_to_fine=False, gauge=gauge)
     with pytest.raises(FineTuningError, match="too far off"):
         periodicity_fine_tune(rec, start, settings)
+
+
+def test_each_half_turn_carries_its_returns_own_platter_angle(sim_run) -> None:  # type: ignore[no-untyped-def]
+    """The two half-turns the periodicity compares: every return of the first has its own φ
+    (mod 2π) in [0, π), of the second in [π, 2π), exactly the φ the scan gave it. A half-turn
+    whose angles were off by a milliradian would bias H by less than its σ on one scan, and so
+    be seen here rather than in the result."""
+    from calstation.engine.periodicity.cells import _split, _whole_revolutions
+    from calstation.engine.spinscan import from_recording
+
+    rec = read_recording(sim_run()["spin"])
+    assert rec.truth is not None
+    scan = from_recording(rec)
+    start6 = rec.truth.with_(rx=0.0).as_vector()
+    radius = load_recipe("recipes/sim-periodicity.yaml").recipe.fixtures.platter.radius
+    halves, halves_all, _ = _split(scan, _whole_revolutions(scan), start6, radius)
+    rows = np.ascontiguousarray(scan.p_L).view(np.dtype((np.void, 24))).ravel()
+    order = np.argsort(rows)
+    for pair in (halves, halves_all):
+        for k, half in enumerate(pair):
+            keys = np.ascontiguousarray(half.p_L).view(np.dtype((np.void, 24))).ravel()
+            at = order[np.searchsorted(rows[order], keys)]
+            assert np.array_equal(scan.p_L[at], half.p_L)
+            assert np.array_equal(half.phi, np.mod(scan.phi[at], 2 * math.pi))
+            lo, hi = k * math.pi, (k + 1) * math.pi
+            assert np.all((half.phi >= lo) & (half.phi < hi))

@@ -78,6 +78,23 @@ def test_reconstruct_matches_frames_with_per_point_angle(tmp_path: Path) -> None
     assert np.abs(per_line - points).max() > 0.01
 
 
+def test_a_calibrations_encoder_latency_replaces_the_recordings(tmp_path: Path) -> None:
+    """The recording says 0; a calibration's 5 ms (encoder time minus lidar time) puts every
+    reading 5 ms earlier on the lidar's clock, so each point sees the platter 5 ms further on:
+    φ + 2π·RATE·5 ms (15.7 mrad, 19 mm at 1.2 m)."""
+    path = tmp_path / "spin.mcap"
+    _spin_recording(path)
+    rec = read_recording(path)
+    assert rec.encoder_latency_s == 0.0
+    v = rec.valid
+    p_L = polar_to_lidar(rec.range_m[v], rec.azimuth_rad[v])
+    phi = 2 * np.pi * RATE * ((rec.t_ns[v] - T0) * 1e-9 + 0.005)
+    expected = lidar_to_dynamic(p_L, phi, H)
+    got = reconstruct(rec, H, encoder_latency_s=0.005)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1.5 * 0.5 * 2 * np.pi / CPR)
+    assert np.abs(got - reconstruct(rec, H)).max() > 0.01
+
+
 def test_known_point_reconstructs_back(tmp_path: Path) -> None:
     """A point of D seen at a known φ, put in a recording, comes back where it was in D."""
     t = T0 + 196_400_000  # the encoder turns one revolution in the second from T0

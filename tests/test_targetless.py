@@ -125,6 +125,9 @@ def test_an_axis_far_from_the_scan_plane_is_found_from_the_platter(
     done = calibrate(loaded.recipe, Scans(spin=turned(spin)), plugins.strategy("periodicity"))
     result, start = done.result, done.start
     assert abs(start.diagnostics["tz_from_chord_m"] - abs(tz)) < 0.02
+    # both signs of |tz| are tried (the chord cannot tell them apart), and 0
+    chord = start.diagnostics["tz_from_chord_m"]
+    assert sorted(start.diagnostics["tz_candidates_m"]) == pytest.approx([-chord, 0.0, chord])
     assert abs(result.H.tz - tz) < 1e-3  # the sign too
     errors = axis_errors(result.H, truth)
     assert abs(errors["rz_error"]) < math.radians(0.05) and errors["axis_offset_m"] < 1e-3
