@@ -4,6 +4,7 @@
 #   make demo-console   the same run in the terminal, unattended
 #   make test   set everything up, then run ruff, mypy, lint-imports and the test suite
 #   make wheel-smoke   build the wheels, install them outside the checkout and run them there
+#   make test-stress   make test while `stress --cpu 4` loads the machine (RUNS=3: three in a row)
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
@@ -11,7 +12,7 @@ PLUGIN_DIRS := $(sort $(dir $(wildcard plugins/*/pyproject.toml)))
 STAMP  := $(VENV)/.calstation-installed
 OUT    ?= out
 
-.PHONY: setup system-deps demo demo-console test wheel-smoke lint bench bench-fleet clean
+.PHONY: setup system-deps demo demo-console test test-stress wheel-smoke lint bench bench-fleet clean
 
 setup: $(STAMP)
 
@@ -50,6 +51,15 @@ test: setup
 # PASS, history and serve there (scripts/wheel-smoke.sh; CI runs it after the tests).
 wheel-smoke: setup
 	bash scripts/wheel-smoke.sh
+
+# The suite must not depend on the machine's speed: tests wait on events, not clocks. This runs
+# `make test` beside `stress --cpu $(STRESS_CPU)` (Debian's stress, installed when missing), $(RUNS)
+# time(s) in a row; docs/reliability.md records the result.
+STRESS_CPU ?= 4
+RUNS ?= 1
+test-stress: setup
+	@bash scripts/system-deps.sh stress
+	STRESS_CPU=$(STRESS_CPU) RUNS=$(RUNS) bash scripts/test-stress.sh
 
 bench: setup
 	$(BIN)/python benchmarks/simulate_revolution.py

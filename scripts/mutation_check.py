@@ -180,14 +180,14 @@ def _apply(root: Path, m: Mutation) -> None:
     path.write_text(text.replace(m.old, m.new))
 
 
-def _run_tests(root: Path, tests: tuple[str, ...]) -> tuple[bool, float]:
+def _run_tests(root: Path, tests: tuple[str, ...]) -> tuple[bool, float, str]:
     plugins = sorted(str(p.parent) for p in (root / "plugins").glob("*/pyproject.toml"))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), *plugins]),
            "OMP_NUM_THREADS": "1"}
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
                            *tests], cwd=root, env=env, capture_output=True, text=True)
-    return proc.returncode == 0, time.perf_counter() - t0
+    return proc.returncode == 0, time.perf_counter() - t0, proc.stdout[-4000:]
 
 
 def main() -> int:
@@ -199,16 +199,18 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="calstation-mutation-") as tmp:
         clean = Path(tmp) / "clean"
         _tree(clean)
-        passed, seconds = _run_tests(clean, tuple(sorted({t for m in chosen for t in m.tests})))
+        passed, seconds, said = _run_tests(clean,
+                                           tuple(sorted({t for m in chosen for t in m.tests})))
         print(f"unmutated tree: tests {'pass' if passed else 'FAIL'} ({seconds:.0f} s)")
         if not passed:
+            print(said)
             print("the unmutated tree must pass first")
             return 1
         for m in chosen:
             root = Path(tmp) / m.name
             _tree(root)
             _apply(root, m)
-            passed, seconds = _run_tests(root, m.tests)
+            passed, seconds, _ = _run_tests(root, m.tests)
             missed += passed
             print(f"{'MISSED' if passed else 'caught'}  {m.name:15} {m.what} "
                   f"({', '.join(m.tests)}; {seconds:.0f} s)", flush=True)

@@ -13,7 +13,6 @@ import multiprocessing
 import os
 import sqlite3
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -55,37 +54,65 @@ def station_plugin() -> Iterator[StationTestPlugin]:
         yield plugin
 
 
-def hold_lock(path: Path, seconds: float) -> threading.Thread:
-    """Another process's write lock on the SQLite file ``path`` for ``seconds`` (returns once
-    the lock is held)."""
-    held = threading.Event()
+class Holder:
+    """Another connection's lock, held from :meth:`start` until :meth:`release`: the tests say
+    when it ends (an event), never a number of seconds that a loaded machine may outlast."""
 
-    def hold() -> None:
-        conn = sqlite3.connect(path, isolation_level=None, timeout=30)
+    def __init__(self, hold: Callable[[threading.Event, threading.Event], None]) -> None:
+        self._held, self._release = threading.Event(), threading.Event()
+        self._thread = threading.Thread(target=hold, args=(self._held, self._release),
+                                        daemon=True)
+
+    def start(self) -> Holder:
+        self._thread.start()
+        assert self._held.wait(600), "the lock was never taken"
+        return self
+
+    @property
+    def holding(self) -> bool:
+        return self._thread.is_alive() and not self._release.is_set()
+
+    def release(self) -> None:
+        self._release.set()
+
+    def join(self) -> None:
+        self.release()
+        self._thread.join()
+
+
+def hold_lock(path: Path) -> Holder:
+    """Another process's write lock on the SQLite file ``path``, until released (returns once
+    the lock is held)."""
+
+    def hold(held: threading.Event, release: threading.Event) -> None:
+        conn = sqlite3.connect(path, isolation_level=None, timeout=600)
         conn.execute("BEGIN IMMEDIATE")
         held.set()
-        time.sleep(seconds)
+        release.wait()
         conn.execute("COMMIT")
         conn.close()
 
-    thread = threading.Thread(target=hold, daemon=True)
-    thread.start()
-    assert held.wait(30)
-    return thread
+    return Holder(hold).start()
 
 
 # --- locks ---------------------------------------------------------------------------------
 def test_a_lock_is_waited_for_and_said(tmp_path: Path) -> None:
+    """The writer waits, says so, and writes once the lock is let go (here: when it has said
+    so)."""
     said: list[str] = []
-    db = Database(f"sqlite:///{tmp_path / 'w.db'}", lock_timeout=20, on_wait=said.append)
+    holder: Holder | None = None
+
+    def on_wait(message: str) -> None:
+        said.append(message)
+        assert holder is not None and holder.holding  # said while the lock was still held
+        holder.release()
+
+    db = Database(f"sqlite:///{tmp_path / 'w.db'}", lock_timeout=600, on_wait=on_wait)
     db.ensure_schema()
-    holder = hold_lock(tmp_path / "w.db", 3.0)
-    start = time.monotonic()
+    holder = hold_lock(tmp_path / "w.db")
     station_id = get_or_create_station(db, "waited")
-    waited = time.monotonic() - start
     holder.join()
-    assert 2.5 < waited < 15, waited
-    assert said and "waiting for the database" in said[0] and "up to 20 s" in said[0]
+    assert said and "waiting for the database" in said[0] and "up to 600 s" in said[0]
     with db.session() as s:
         assert s.get(Station, station_id) is not None
     db.dispose()
@@ -95,7 +122,7 @@ def test_a_lock_past_the_timeout_is_one_sentence_with_details_in_the_log(tmp_pat
     db = Database(f"sqlite:///{tmp_path / 'l.db'}", lock_timeout=0.5, on_wait=lambda m: None)
     db.ensure_schema()
     db.log_path = tmp_path / "database.log"
-    holder = hold_lock(tmp_path / "l.db", 2.0)
+    holder = hold_lock(tmp_path / "l.db")
     with pytest.raises(DatabaseError) as info:
         get_or_create_station(db, "x" * 50 + "-recipe-text-marker")
     holder.join()
@@ -130,14 +157,14 @@ def test_the_qa_commands_read_while_another_process_holds_the_write_lock(
                           tx=0.0123, ty=-0.004, tz=0.2, rx=0.0, ry=0.001, rz=0.5))
     db.dispose()
     monkeypatch.setenv("CALSTATION_DB_LOCK_TIMEOUT", "1")
-    holder = hold_lock(path, 4.0)
+    holder = hold_lock(path)
     with pytest.raises(DatabaseError, match="stayed locked"):  # the lock is really held
         get_or_create_station(Database(url), "writer")
     for argv in (["history", "--json"], ["show", "1", "--json"], ["export", "1", "-f", "json"]):
         code, out, err = run_cli([*argv, "--db", url], capsys)
         assert code == 0, err
         assert "S-17" in out or "0.0123" in out, (argv, out)
-    assert holder.is_alive()  # all of it while the lock was held
+    assert holder.holding  # all of it while the lock was held
     holder.join()
 
 
@@ -150,37 +177,40 @@ def test_lock_timeout_is_configurable_and_checked(monkeypatch: pytest.MonkeyPatc
         Database(f"sqlite:///{tmp_path / 'c.db'}")
 
 
-def _hold_pg_lock(url: str, seconds: float) -> threading.Thread:
-    """Another PostgreSQL session holding an exclusive lock on the station table."""
+def _hold_pg_lock(url: str) -> Holder:
+    """Another PostgreSQL session holding an exclusive lock on the station table, until
+    released."""
     from sqlalchemy import create_engine
 
-    held = threading.Event()
-
-    def hold() -> None:
+    def hold(held: threading.Event, release: threading.Event) -> None:
         engine = create_engine(url)
         with engine.begin() as conn:
             conn.exec_driver_sql("LOCK TABLE station IN ACCESS EXCLUSIVE MODE")
             held.set()
-            time.sleep(seconds)
+            release.wait()
         engine.dispose()
 
-    thread = threading.Thread(target=hold, daemon=True)
-    thread.start()
-    assert held.wait(30)
-    return thread
+    return Holder(hold).start()
 
 
 def test_a_postgresql_lock_is_waited_for_then_one_sentence(postgres_url: str) -> None:
     said: list[str] = []
-    db = Database(postgres_url, lock_timeout=20, on_wait=said.append)
+    holder: Holder | None = None
+
+    def on_wait(message: str) -> None:
+        said.append(message)
+        assert holder is not None
+        holder.release()
+
+    db = Database(postgres_url, lock_timeout=600, on_wait=on_wait)
     db.ensure_schema()
-    holder = _hold_pg_lock(postgres_url, 3.0)
+    holder = _hold_pg_lock(postgres_url)
     get_or_create_station(db, "pg-waited")
     holder.join()
     assert said and "waiting for the database" in said[0]
     db.dispose()
     short = Database(postgres_url, lock_timeout=0.5, on_wait=lambda m: None)
-    holder = _hold_pg_lock(postgres_url, 2.0)
+    holder = _hold_pg_lock(postgres_url)
     with pytest.raises(DatabaseError) as info:
         get_or_create_station(short, "pg-refused")
     holder.join()

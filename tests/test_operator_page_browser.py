@@ -198,10 +198,10 @@ def test_the_live_plots_show_the_expected_outline_and_the_cloud_as_it_grows(
         # the spin scan: the outline under the initial calibration, and the cloud in 3D
         # (polled from here: the page's policy refuses the evaluated strings of
         # wait_for_function once it has to poll)
-        first = wait_until(lambda: _points(page), timeout=60)
-        wait_until(lambda: _points(page) > first, timeout=60)
+        first = wait_until(lambda: _points(page))
+        wait_until(lambda: _points(page) > first)
         wait_until(lambda: page.get_attribute("#line-plot", "data-outline") == "expected"
-                   and "initial" in page.inner_text("#line-plot"), timeout=60)
+                   and "initial" in page.inner_text("#line-plot"))
         traces = _plot(page, "#line-plot")
         returns = np.column_stack([traces[0]["x"], traces[0]["y"]]) / 1000.0
         outline = _outline(traces[1])

@@ -15,6 +15,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -150,17 +151,18 @@ def test_the_holder_renews_its_heartbeat(db: Database, monkeypatch: pytest.Monke
     monkeypatch.setattr(lock_mod, "HEARTBEAT_S", 0.05)
     with take_station(db, "bench-1", _holder()):
         first = station_holder(db, "bench-1")["heartbeat_at"]  # type: ignore[index]
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 600  # a hang guard: the renewal ends the wait
         while station_holder(db, "bench-1")["heartbeat_at"] == first:  # type: ignore[index]
             assert time.monotonic() < deadline, "the heartbeat was not renewed"
             time.sleep(0.1)
 
 
 def _take_and_sleep(url: str, station: str, ready: Any) -> None:
+    """Take the station and hold it until this process is killed (the tests kill it)."""
     database = Database(url)
     take_station(database, station, Holder.here("kim", "calstation run (no terminal)"))
     ready.set()
-    time.sleep(120)
+    threading.Event().wait()
 
 
 def test_a_holder_killed_with_sigkill_leaves_a_lock_the_next_start_takes(tmp_path: Path,
@@ -170,11 +172,11 @@ def test_a_holder_killed_with_sigkill_leaves_a_lock_the_next_start_takes(tmp_pat
     proc = ctx.Process(target=_take_and_sleep, args=(db.url, "bench-1", ready))
     proc.start()
     try:
-        assert ready.wait(60)
+        assert ready.wait(600)
         with pytest.raises(StationBusy, match="operator kim"):
             take_station(db, "bench-1", _holder())
         os.kill(proc.pid, signal.SIGKILL)
-        proc.join(30)
+        proc.join(600)
         with take_station(db, "bench-1", _holder()) as hold:
             assert hold.taken_over is not None and hold.taken_over["pid"] == proc.pid
     finally:
@@ -182,28 +184,32 @@ def test_a_holder_killed_with_sigkill_leaves_a_lock_the_next_start_takes(tmp_pat
             proc.kill()
 
 
-def _race(url: str, start: Any, out: Any) -> None:
+def _race(url: str, start: Any, done: Any, out: Any) -> None:
     database = Database(url)
-    start.wait(30)
+    out.put("ready")
+    start.wait()
     try:
         take_station(database, "bench-1", Holder.here(f"p{os.getpid()}", "race"))
         out.put("took")
-        time.sleep(3)  # hold it while the others try
+        done.wait()  # hold it until every other process has tried
     except StationBusy:
         out.put("refused")
 
 
 def test_of_simultaneous_starts_exactly_one_takes_the_station(db: Database) -> None:
     ctx = multiprocessing.get_context("spawn")
-    start, out = ctx.Event(), ctx.Queue()
-    procs = [ctx.Process(target=_race, args=(db.url, start, out)) for _ in range(4)]
+    start, done, out = ctx.Event(), ctx.Event(), ctx.Queue()
+    procs = [ctx.Process(target=_race, args=(db.url, start, done, out)) for _ in range(4)]
     for p in procs:
         p.start()
-    time.sleep(1.5)  # let them import
-    start.set()
-    answers = sorted(out.get(timeout=60) for _ in procs)
-    for p in procs:
-        p.join(30)
+    try:
+        assert [out.get(timeout=600) for _ in procs] == ["ready"] * 4  # all imported
+        start.set()
+        answers = sorted(out.get(timeout=600) for _ in procs)
+    finally:
+        done.set()
+        for p in procs:
+            p.join(600)
     assert answers == ["refused", "refused", "refused", "took"]
 
 
@@ -225,7 +231,7 @@ def test_run_is_refused_while_another_process_holds_the_station(
     proc = ctx.Process(target=_take_and_sleep, args=(db.url, "sim-test", ready))
     proc.start()
     try:
-        assert ready.wait(60)
+        assert ready.wait(600)
         code, out, err = run_cli(["run", str(recipe), "--yes", "--db", db.url,
                                   "--data-dir", str(tmp_path)], capsys)
         assert code == 4, out + err
@@ -235,7 +241,7 @@ def test_run_is_refused_while_another_process_holds_the_station(
             assert s.scalars(select(Run)).first() is None
     finally:
         proc.kill()
-        proc.join(30)
+        proc.join(600)
     # the holder is gone: the next run takes the station over, says so, and passes
     code, out, err = run_cli(["run", str(recipe), "--yes", "--db", db.url,
                               "--data-dir", str(tmp_path)], capsys)
@@ -293,5 +299,5 @@ def test_two_web_stations_over_one_database_run_one_run_at_a_time(
         assert "operator ann" in r.json()["error"]
     finally:
         first.state.runner.abort("test over")
-        assert first.state.runner.join(60)
+        assert first.state.runner.join(600)
     assert station_holder(db, "sim-test") is None

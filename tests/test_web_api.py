@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 from fastapi.testclient import TestClient
 from test_station import StationTestPlugin, lean_recipe
-from webstation import run_status, steps_of, wait_until
+from webstation import run_status, steps_of, wait_live, wait_until
 
 from calstation import plugins
 from calstation.errors import CalstationError
@@ -67,11 +67,12 @@ def csrf_of(client: TestClient) -> dict[str, str]:
 
 
 def wait_prompt(client: TestClient, kind: str | None = None) -> dict[str, Any]:
-    def pending() -> dict[str, Any] | None:
-        st = client.get("/state.json").json()
+    """The next prompt (of ``kind``), waited for on the station's changes, however long a
+    loaded machine takes to get there."""
+    def pending(st: dict[str, Any]) -> dict[str, Any] | None:
         p = st["prompt"]
         return p if p is not None and (kind is None or p["kind"] == kind) else None
-    prompt: dict[str, Any] = wait_until(pending, timeout=60)
+    prompt: dict[str, Any] = wait_live(client, pending)
     return prompt
 
 
@@ -93,8 +94,7 @@ def finish(client: TestClient, headers: dict[str, str]) -> dict[str, Any]:
             if r.status_code == 409:
                 continue
         version = st["version"]
-        wait_until(lambda v=version: client.get("/state.json").json()["version"] != v,
-                   timeout=60, period=0.05)
+        wait_live(client, lambda s, v=version: s["version"] != v or not s["busy"])
 
 
 def test_a_run_from_the_api_to_its_report(
@@ -224,7 +224,7 @@ def test_a_non_local_station_needs_its_token(
         run_id = r.json()["run_id"]
         wait_prompt(client)
         assert client.post("/api/abort", headers=headers).status_code == 200
-        wait_until(lambda: not client.get("/state.json").json()["busy"])
+        wait_live(client, lambda s: not s["busy"])
         assert run_status(db, run_id) == "aborted"
     # a script with the token needs no cookie and no CSRF value
     with make_client(tmp_path, db, host="0.0.0.0", token=TOKEN) as script:
@@ -233,7 +233,7 @@ def test_a_non_local_station_needs_its_token(
         assert r.status_code == 201, r.text
         wait_prompt(script)
         assert script.post("/api/abort", headers=auth).status_code == 200
-        wait_until(lambda: not script.get("/state.json").json()["busy"])
+        wait_live(script, lambda s: not s["busy"])
 
 
 def test_two_starts_at_once_start_exactly_one_run(
@@ -263,7 +263,7 @@ def test_two_starts_at_once_start_exactly_one_run(
             assert s.query(Run).count() == 1
         wait_prompt(client)
         client.post("/api/abort", headers=headers)
-        wait_until(lambda: not client.get("/state.json").json()["busy"])
+        wait_live(client, lambda s: not s["busy"])
 
 
 def test_prompts_answers_and_abort(
@@ -294,7 +294,7 @@ def test_prompts_answers_and_abort(
                     json={"prompt_id": prompt["id"], "answer": "continue"})
         wait_prompt(client)  # the spin target
         assert client.post("/api/abort", headers=headers).status_code == 200
-        st = wait_until(lambda: (s := client.get("/state.json").json())["busy"] is False and s)
+        st = wait_live(client, lambda s: s if not s["busy"] else None)
         assert st["status"] == "aborted" and st["result"]["verdict"] == "ABORTED"
         assert run_status(db, run_id) == "aborted"
         assert steps_of(db, run_id)[-1] == ("place_spin_target", 1, "aborted")
@@ -328,7 +328,7 @@ def test_failed_step_offers_retry_and_the_retry_runs_it_again(
         assert cube["fixture"] == "qa_cube"
         client.post("/api/answer", headers=headers, json={"prompt_id": cube["id"],
                                                           "answer": "abort"})
-        wait_until(lambda: not client.get("/state.json").json()["busy"])
+        wait_live(client, lambda s: not s["busy"])
         steps = steps_of(db, run_id)
         assert ("fine_tune", 1, "failed") in steps and ("fine_tune", 2, "passed") in steps
         assert ("spin_scan", 2, "passed") in steps
@@ -442,7 +442,7 @@ def test_calstation_serve_prints_its_address_and_serves(tmp_path: Path) -> None:
         assert proc.stderr is not None
         line = proc.stderr.readline()
         assert f"http://127.0.0.1:{port}/" in line
-        state = wait_until(lambda: _get(httpx, f"http://127.0.0.1:{port}/state.json"), timeout=30)
+        state = wait_until(lambda: _get(httpx, f"http://127.0.0.1:{port}/state.json"))
         assert state["status"] == "idle" and state["recipes"] == ["lean.yaml"]
     finally:
         proc.send_signal(signal.SIGINT)

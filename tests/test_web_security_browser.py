@@ -206,7 +206,7 @@ def test_a_page_on_another_port_cannot_post_through_a_307_redirect(
             page.wait_for_url(url + "/api/start")
             answer = json.loads(page.inner_text("body"))
         assert "Origin: null" in answer["error"], answer
-        wait_until(lambda: station_log(caplog).count("Origin: null") >= 2, timeout=10)
+        wait_until(lambda: station_log(caplog).count("Origin: null") >= 2)
         # a page of another port shares the cookie jar, but the session cookie is not for
         # scripts
         assert runs(db) == 0 and station_plugin.motor_calls == []

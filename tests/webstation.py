@@ -69,8 +69,34 @@ def steps_of(db: Database, run_id: int) -> list[tuple[str, int, str]]:
                 for r in s.query(Step).filter_by(run_id=run_id).order_by(Step.id)]
 
 
-def wait_until(predicate: Any, timeout: float = 60.0, period: float = 0.1) -> Any:
-    """Poll ``predicate`` until it returns something truthy; fails after ``timeout`` s."""
+HANG_S = 900.0
+"""How long a wait in these tests may last before it is taken for a hang: far longer than any
+step takes on a loaded machine (a wait ends at its event, never at this)."""
+
+
+def wait_live(client: Any, predicate: Any, hang_s: float = HANG_S) -> Any:
+    """Wait on the web station's live state (its condition, notified at every change) until
+    ``predicate(snapshot)`` is truthy, and return that. Fails at once when the run has ended
+    and the predicate still does not hold (it never will), and after ``hang_s`` only as a
+    hang guard."""
+    live = client.app.state.runner.live
+    deadline = time.monotonic() + hang_s
+    with live._cond:
+        while True:
+            snapshot = live.snapshot()
+            value = predicate(snapshot)
+            if value:
+                return value
+            if not snapshot["busy"] and not client.app.state.runner.busy:
+                raise AssertionError(f"the run ended without {predicate}: {snapshot['status']}, "
+                                     f"{snapshot['error']}, log {snapshot['log'][-5:]}")
+            if not live._cond.wait(timeout=max(0.0, deadline - time.monotonic())):
+                raise AssertionError(f"no change of the station in {hang_s:g} s (a hang?)")
+
+
+def wait_until(predicate: Any, timeout: float = HANG_S, period: float = 0.1) -> Any:
+    """Poll ``predicate`` until it returns something truthy; fails after ``timeout`` s (a hang
+    guard: the wait ends when the predicate holds)."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         value = predicate()

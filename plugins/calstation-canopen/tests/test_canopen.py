@@ -8,7 +8,7 @@ import json
 import math
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import can
 import pytest
@@ -89,6 +89,18 @@ def test_sdo_write_and_rpdo_frames_are_the_documented_bytes(
     assert "205#0F00E8030000" in frames(sniffer)
 
 
+HANG_S = 600.0
+"""A hang guard: a wait below ends when its condition holds, however busy the machine."""
+
+
+def eventually(condition: Callable[[], object], what: str) -> None:
+    """Wait until ``condition()`` holds (the emulators answer on their own threads)."""
+    deadline = time.monotonic() + HANG_S
+    while not condition():
+        assert time.monotonic() < deadline, f"{what}: not after {HANG_S:g} s"
+        time.sleep(0.01)
+
+
 def test_tpdo_frame_is_decoded(
     channel: str, sniffer: can.BusABC, clock: HostClock, drive: DriveEmulator,
     turntable: Cia402Turntable,
@@ -96,19 +108,19 @@ def test_tpdo_frame_is_decoded(
     turntable._subscribe(0x185, turntable._on_tpdo1)
     sniffer.send(can.Message(arbitration_id=0x185, data=bytes.fromhex("3702FD010000"),
                              is_extended_id=False))
-    time.sleep(0.05)
-    assert turntable._statusword == 0x0237
+    eventually(lambda: turntable._statusword == 0x0237, "the TPDO decoded")
     assert turntable.position_rad() == pytest.approx(2 * math.pi * 509 / 10_000)
 
 
-def _at_speed(platter: RampPlatter, clock: HostClock, rpm: float, timeout_s: float = 5.0) -> None:
+def _at_speed(platter: RampPlatter, clock: HostClock, rpm: float,
+              turntable: Cia402Turntable | None = None) -> None:
     """Wait until the emulated platter turns at ``rpm`` (its ramp is 0.25 s at 30 rpm; a busy
-    host can take longer to deliver the command)."""
-    deadline = time.monotonic() + timeout_s
-    while platter.platter_speed_rpm(clock.now_ns()) != pytest.approx(rpm):
-        assert time.monotonic() < deadline, platter.platter_speed_rpm(clock.now_ns())
-        time.sleep(0.02)
-    time.sleep(0.05)  # a few SYNC periods at speed: the drive's TPDOs report it
+    host can take longer to deliver the command), and the drive's TPDOs report it."""
+    eventually(lambda: platter.platter_speed_rpm(clock.now_ns()) == pytest.approx(rpm),
+               f"the platter at {rpm} rpm")
+    if turntable is not None:
+        eventually(lambda: turntable.status().speed_rpm == pytest.approx(rpm),
+                   f"the drive reporting {rpm} rpm")
 
 
 def test_enable_sequence_then_spin_turns_the_platter(
@@ -123,7 +135,7 @@ def test_enable_sequence_then_spin_turns_the_platter(
     assert controlwords == [0x06, 0x07, 0x0F]
     assert turntable.status().state is TurntableState.ENABLED
     turntable.spin(30.0)
-    _at_speed(platter, clock, 30.0)
+    _at_speed(platter, clock, 30.0, turntable)
     status = turntable.status()
     assert status.state is TurntableState.MOVING
     assert status.speed_rpm == pytest.approx(30.0)
@@ -148,7 +160,7 @@ def test_a_second_pass_turns_the_other_way(
     _at_speed(platter, clock, 20.0)
     turntable.stop()
     turntable.spin(-20.0)
-    _at_speed(platter, clock, -20.0)
+    _at_speed(platter, clock, -20.0, turntable)
     before = turntable.status()
     time.sleep(0.2)
     after = turntable.status()
@@ -165,11 +177,9 @@ def test_drive_fault_is_reported_and_reset(
 ) -> None:
     turntable.enable()
     turntable.spin(20.0)
-    time.sleep(0.1)
     drive.inject_fault(0x2310)
-    time.sleep(0.1)
+    eventually(lambda: turntable.status().state is TurntableState.FAULT, "the fault reported")
     status = turntable.status()
-    assert status.state is TurntableState.FAULT
     assert any("0x2310" in f for f in status.faults)
     assert drive.commanded_rpm == 0.0  # the drive let go of the motor
     with pytest.raises(CanopenError, match="FAULT"):
@@ -182,10 +192,9 @@ def test_drive_fault_is_reported_and_reset(
 def test_quick_stop(drive: DriveEmulator, turntable: Cia402Turntable) -> None:
     turntable.enable()
     turntable.spin(10.0)
-    time.sleep(0.05)
     turntable.emergency_stop()
-    time.sleep(0.1)
-    assert turntable.status().state is TurntableState.EMERGENCY_STOP
+    eventually(lambda: turntable.status().state is TurntableState.EMERGENCY_STOP,
+               "the quick stop reported")
     assert drive.commanded_rpm == 0.0
 
 
@@ -196,7 +205,7 @@ def test_lost_drive_heartbeat_stops_and_refuses_to_spin(
     turntable.spin(10.0)
     frames(sniffer)
     drive.node.nmt.stop_heartbeat()  # the drive goes silent
-    time.sleep(0.6)
+    eventually(lambda: "heartbeat lost" in turntable.status().faults, "the lost heartbeat")
     status = turntable.status()
     assert status.state is TurntableState.FAULT
     assert "heartbeat lost" in status.faults
@@ -210,10 +219,8 @@ def test_lost_master_heartbeat_stops_the_drive(
 ) -> None:
     turntable.enable()
     turntable.spin(10.0)
-    time.sleep(0.05)
     turntable.bus.stop_heartbeat()  # the host process hangs
-    time.sleep(0.5)
-    assert drive.state.name == "FAULT"
+    eventually(lambda: drive.state.name == "FAULT", "the drive's fault")
     assert 0x8130 in drive.faults
     assert drive.commanded_rpm == 0.0
 
@@ -338,8 +345,7 @@ def test_drive_emulator_in_another_process_over_udp_multicast() -> None:
         try:
             tt.enable()
             tt.spin(30.0)
-            time.sleep(0.3)
-            assert tt.status().speed_rpm == pytest.approx(30.0)
+            eventually(lambda: tt.status().speed_rpm == pytest.approx(30.0), "30 rpm reported")
             tt.stop()
         finally:
             tt.close()

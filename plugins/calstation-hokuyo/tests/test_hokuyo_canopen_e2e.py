@@ -98,8 +98,13 @@ def test_emulated_drivers_share_one_simulated_station() -> None:
         context.clock.sleep(1.0)
         encoder.samples()
         sample = encoder.read()
+        received = context.clock.now_ns()
         assert sim.platter_speed_rpm(context.clock.now_ns()) == pytest.approx(30.0, rel=0.02)
-        assert sample.count == pytest.approx(sim.encoder_count(sample.timestamp_ns), abs=40)
+        # latched by the emulated encoder after the SYNC it is stamped with and before it was
+        # received, however late a loaded machine ran the threads between (a fixed ±40 counts
+        # failed at load 8: 1646 for 1837)
+        lo, hi = sorted((sim.encoder_count(sample.timestamp_ns), sim.encoder_count(received)))
+        assert lo - 2 <= sample.count <= hi + 2, (lo, sample.count, hi)
         assert sim.platter_angle(context.clock.now_ns()) > sim.platter_angle(t0)
         turntable.stop()
     finally:

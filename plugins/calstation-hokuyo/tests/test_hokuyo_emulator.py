@@ -201,4 +201,5 @@ def test_times_out_when_the_sensor_stays_silent(lidar: HokuyoLidar, sensor: Scip
     with pytest.raises(ScipTimeout, match="no scan"):
         for _ in lidar.lines():
             pass
-    assert time.monotonic() - t0 < 5.0
+    # a hang guard, not a timing: the 0.5 s time-out once, then the one reconnect's
+    assert time.monotonic() - t0 < 120.0
