@@ -9,13 +9,12 @@ faster than a turntable turns are refused naming the line or the reading.
 
 from __future__ import annotations
 
-import io
 import json
 import struct
 import subprocess
 import sys
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -50,57 +49,11 @@ def recording(path: Path, lines: int = 120, encoder: Callable[[int], int] | None
 
 
 # --- decompression bombs -------------------------------------------------------------------
-def _record(op: int, body: bytes) -> bytes:
-    return struct.pack("<BQ", op, len(body)) + body
-
-
-def _string(text: str) -> bytes:
-    return struct.pack("<I", len(text)) + text.encode()
-
-
-def _zeros(total: int) -> Iterator[bytes]:
-    """``total`` bytes: one message record on a channel nobody registered, of zeros."""
-    yield struct.pack("<BQ", 0x05, total - 9)
-    left = total - 9
-    block = bytes(8 * MiB)
-    while left > 0:
-        yield block[: min(left, len(block))]
-        left -= min(left, len(block))
-
-
-def _compressed(compression: str, total: int, declared_frame_size: bool = True) -> bytes:
-    out = io.BytesIO()
-    if compression == "zstd":
-        import zstandard
-
-        writer = zstandard.ZstdCompressor().stream_writer(
-            out, size=total if declared_frame_size else -1, closefd=False)
-        for part in _zeros(total):
-            writer.write(part)
-        writer.close()
-        return out.getvalue()
-    import lz4.frame
-
-    comp = lz4.frame.LZ4FrameCompressor()
-    data = [comp.begin()]
-    data += [comp.compress(part) for part in _zeros(total)]
-    data.append(comp.flush())
-    return b"".join(data)
-
-
 def bomb(path: Path, compression: str, inflated: int, declared: int | None = None,
          chunks: int = 1) -> Path:
-    """A finished MCAP file of ``chunks`` chunks, each inflating to ``inflated`` bytes and
-    declaring ``declared`` (default: the truth)."""
-    body = _compressed(compression, inflated)
-    size = inflated if declared is None else declared
-    chunk = _record(0x06, struct.pack("<QQQI", 0, 0, size, 0) + _string(compression)
-                    + struct.pack("<Q", len(body)) + body)
-    data = MAGIC + _record(0x01, _string("") + _string("bomb")) + chunk * chunks
-    data += _record(0x0F, struct.pack("<I", 0))
-    data += _record(0x02, struct.pack("<QQI", 0, 0, 0)) + MAGIC
-    path.write_bytes(data)
-    return path
+    from calstation.testing.hostile import decompression_bomb
+
+    return decompression_bomb(path, compression, inflated, declared=declared, chunks=chunks)
 
 
 READ = """

@@ -9,6 +9,8 @@
 - :mod:`calstation.testing.fixtures`: pytest fixtures giving the recordings of a simulated run
   (through the ``calstation-sim`` plugin when installed) for a strategy test; import them into a
   ``conftest.py``.
+- :mod:`calstation.testing.hostile`: hostile files made on purpose (decompression bombs, flipped
+  bytes), for reliability tests.
 - :func:`simulate_scans` and :func:`strategy_start` below: the same without pytest;
   :func:`lean_recipe`, the simulated recipe made quick for whole runs.
 

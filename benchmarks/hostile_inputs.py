@@ -1,0 +1,215 @@
+"""Hostile inputs, measured: what each costs before calstation refuses it, and what it leaves.
+
+Each case runs the real command in a process of its own, and reports its exit code, its first
+line of error, its peak memory (the child's own maximum resident set, from ``wait4``), its wall
+and CPU time, and whether the files it must not touch are as they were:
+
+- decompression bombs through ``calstation reconstruct``: one zstd chunk and one lz4 chunk
+  inflating to 2.5 GiB (declared), a zstd chunk declaring 1 MiB that inflates to 2.5 GiB, and
+  forty 16 MiB chunks of zeros;
+- two databases sharing one ``CALSTATION_HOME`` (the damaged-database advice): two simulated
+  runs, the first run's files checked against the sha256 its database stored;
+- an export onto a nearly full disk (a 64 KiB tmpfs; needs root and ``mount``, else skipped): the
+  previous export checked.
+
+``--compare REV`` runs the same cases on another revision side by side (its tree from ``git
+archive``, the plugins of this checkout). Prints figures; not a test.
+
+    .venv/bin/python benchmarks/hostile_inputs.py [--compare main] [--gib 2.5] [--skip-runs]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import json
+import os
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+MiB = 1 << 20
+
+
+@dataclass
+class Outcome:
+    """One case on one tree."""
+
+    code: int
+    said: str
+    peak_mb: float
+    wall_s: float
+    cpu_s: float
+    intact: str = ""
+
+
+def _tree(rev: str, into: Path) -> Path:
+    data = subprocess.run(["git", "archive", rev], cwd=REPO, check=True,
+                          capture_output=True).stdout
+    with tarfile.open(fileobj=io.BytesIO(data)) as tar:
+        tar.extractall(into, filter="data")
+    return into
+
+
+def _env(tree: Path, **extra: str) -> dict[str, str]:
+    plugins = sorted(str(p.parent) for p in (REPO / "plugins").glob("*/pyproject.toml"))
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), *plugins]),
+            "OMP_NUM_THREADS": "1", **extra}
+
+
+def _run(tree: Path, argv: list[str], **env: str) -> Outcome:
+    """``calstation argv`` from ``tree``, measured by the kernel (``wait4``: this child's own
+    peak memory and CPU time)."""
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-c",
+                                 "from calstation.cli import main; main()", *argv],
+                                env=_env(tree, **env), stdout=out, stderr=err, text=True)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        text = err.read().strip() or out.read().strip()
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    said = next((ln for ln in lines if ln.startswith("error")), lines[-1] if lines else "")
+    return Outcome(proc.returncode, said[:160], usage.ru_maxrss / 1024, wall,
+                   usage.ru_utime + usage.ru_stime)
+
+
+def _bombs(folder: Path, gib: float) -> dict[str, Path]:
+    from calstation.testing.hostile import decompression_bomb
+
+    size = int(gib * 1024 * MiB)
+    return {
+        f"zstd chunk of {gib:g} GiB": decompression_bomb(folder / "zstd.mcap", "zstd", size),
+        f"lz4 chunk of {gib:g} GiB": decompression_bomb(folder / "lz4.mcap", "lz4", size),
+        f"zstd chunk declaring 1 MiB, inflating to {gib:g} GiB": decompression_bomb(
+            folder / "liar.mcap", "zstd", size, declared=MiB),
+        "40 zstd chunks of 16 MiB": decompression_bomb(folder / "many.mcap", "zstd", 16 * MiB,
+                                                        chunks=40),
+    }
+
+
+def _sha(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _two_databases(tree: Path, folder: Path) -> Outcome:
+    """Two runs in one home, the first database moved aside in between: the first run's files
+    as its database stored them?"""
+    import sqlite3
+
+    from calstation.testing import lean_recipe
+
+    home = folder / "home"
+    home.mkdir()
+    recipe = lean_recipe(folder)
+    env = {"CALSTATION_HOME": str(home), "CALSTATION_OPERATOR": "bench"}
+    first = _run(tree, ["run", str(recipe), "--yes"], **env)
+    with sqlite3.connect(home / "calstation.db") as conn:
+        stored = conn.execute("SELECT path, sha256 FROM artifact WHERE run_id = 1").fetchall()
+    for suffix in ("", "-wal", "-shm"):
+        if (home / f"calstation.db{suffix}").exists():
+            os.replace(home / f"calstation.db{suffix}", home / f"aside.db{suffix}")
+    second = _run(tree, ["run", str(recipe), "--yes"], **env)
+    changed = sum(1 for path, sha in stored if not Path(path).is_file() or _sha(Path(path)) != sha)
+    second.intact = f"{len(stored) - changed} of {len(stored)} files of the first run intact"
+    second.said = f"runs: exit {first.code}, then {second.code}"
+    return second
+
+
+def _full_disk(tree: Path, folder: Path) -> Outcome | None:
+    """An export onto a 64 KiB tmpfs filled to its last page: the previous export?"""
+    if os.geteuid() != 0:
+        return None
+    disk = folder / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(disk)],
+                      capture_output=True).returncode != 0:
+        return None
+    try:
+        db = _seeded_database(folder)
+        out = disk / "calibration.csv"
+        out.write_text("the previous export\n")
+        filler = disk / "filler"
+        try:
+            with filler.open("wb") as f:
+                while True:
+                    f.write(b"\0" * 512)
+                    f.flush()
+        except OSError:
+            pass
+        before = _sha(out)
+        got = _run(tree, ["export", "1", "-f", "csv", "--db", db, "-o", str(out)])
+        got.intact = ("the previous export intact" if out.is_file() and _sha(out) == before
+                      else f"the previous export lost ({out.stat().st_size} bytes now)")
+        return got
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def _seeded_database(folder: Path) -> str:
+    """A database with one run and its calibration (as `calstation history` shows runs)."""
+    from calstation.storage.db import Calibration, Run, Station, open_database
+
+    url = f"sqlite:///{folder / 'qa.db'}"
+    db = open_database(url)
+    with db.session() as s:
+        run = Run(station=Station(name="bench"), recipe_name="r", recipe_text="x: 1",
+                  recipe_sha256="ab", operator="qa", data_dir=str(folder), status="passed")
+        s.add(run)
+        s.flush()
+        s.add(Calibration(run=run, stage="fine", strategy="periodicity", accepted=True,
+                          **{p: 0.123456789 for p in ("tx", "ty", "tz", "rx", "ry", "rz")}))
+    db.dispose()
+    return url
+
+
+def main() -> None:
+    """Measure the cases and print the table."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--compare", metavar="REV", help="also measure this git revision")
+    ap.add_argument("--gib", type=float, default=2.5, help="the bombs' inflated size")
+    ap.add_argument("--skip-runs", action="store_true", help="leave out the two-database runs")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="calstation-hostile-") as tmp:
+        root = Path(tmp)
+        trees = {"this checkout": REPO}
+        if args.compare:
+            trees[args.compare] = _tree(args.compare, root / "rev")
+        bombs = _bombs(root, args.gib)
+        calib = root / "calibration.json"
+        calib.write_text(json.dumps({"H": dict.fromkeys(("tx", "ty", "tz", "rx", "ry", "rz"),
+                                                        0.0)}))
+        rows: list[tuple[str, str, Outcome | None]] = []
+        for name, path in bombs.items():
+            for label, tree in trees.items():
+                got = _run(tree, ["reconstruct", str(path), "-c", str(calib), "-o",
+                                       str(root / "out.ply")])
+                got.intact = f"{path.stat().st_size / MiB:.2f} MB file"
+                rows.append((name, label, got))
+        for label, tree in trees.items():
+            rows.append(("export onto a full disk", label,
+                         _full_disk(tree, Path(tempfile.mkdtemp(dir=root)))))
+            if not args.skip_runs:
+                rows.append(("two databases in one home", label,
+                             _two_databases(tree, Path(tempfile.mkdtemp(dir=root)))))
+    print("| case | code | exit | peak memory | wall | CPU | files | said |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, label, got in rows:
+        if got is None:
+            print(f"| {name} | {label} | — | — | — | — | skipped (needs root and mount) | |")
+            continue
+        print(f"| {name} | {label} | {got.code} | {got.peak_mb:,.0f} MB | {got.wall_s:.1f} s | "
+              f"{got.cpu_s:.1f} s | {got.intact} | {got.said.replace('|', '/')} |")
+
+
+if __name__ == "__main__":
+    main()
