@@ -63,23 +63,36 @@ def _env(tree: Path, **extra: str) -> dict[str, str]:
             "OMP_NUM_THREADS": "1", **extra}
 
 
+MAIN = """
+import atexit, os
+def _peak():  # VmHWM: this program's own peak (ru_maxrss would keep the forking parent's)
+    with open("/proc/self/status") as f, open(os.environ["CALSTATION_BENCH_PEAK"], "w") as o:
+        o.write(next(ln for ln in f if ln.startswith("VmHWM:")).split()[1])
+atexit.register(_peak)
+from calstation.cli import main
+main()
+"""
+
+
 def _run(tree: Path, argv: list[str], **env: str) -> Outcome:
-    """``calstation argv`` from ``tree``, measured by the kernel (``wait4``: this child's own
-    peak memory and CPU time)."""
-    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+    """``calstation argv`` from ``tree`` in a process of its own: its exit code and first error
+    line, its peak memory (its own VmHWM), its wall time and CPU time (``wait4``)."""
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err, \
+            tempfile.NamedTemporaryFile("r") as peak:
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-c",
-                                 "from calstation.cli import main; main()", *argv],
-                                env=_env(tree, **env), stdout=out, stderr=err, text=True)
+        proc = subprocess.Popen([sys.executable, "-c", MAIN, *argv],
+                                env=_env(tree, CALSTATION_BENCH_PEAK=peak.name, **env),
+                                stdout=out, stderr=err, text=True)
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t0
         proc.returncode = os.waitstatus_to_exitcode(status)
         out.seek(0)
         err.seek(0)
         text = err.read().strip() or out.read().strip()
+        peak_kb = float(peak.read() or "nan")
     lines = [ln for ln in text.splitlines() if ln.strip()]
     said = next((ln for ln in lines if ln.startswith("error")), lines[-1] if lines else "")
-    return Outcome(proc.returncode, said[:160], usage.ru_maxrss / 1024, wall,
+    return Outcome(proc.returncode, said[:160], peak_kb / 1024, wall,
                    usage.ru_utime + usage.ru_stime)
 
 

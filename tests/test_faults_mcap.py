@@ -57,7 +57,7 @@ def bomb(path: Path, compression: str, inflated: int, declared: int | None = Non
 
 
 READ = """
-import json, resource, sys, time
+import json, sys, time
 from calstation.errors import RecordingError
 from calstation.recordings.reader import read_recording
 t0 = time.process_time()
@@ -65,8 +65,10 @@ try:
     read_recording(sys.argv[1]); said = None
 except RecordingError as exc:
     said = str(exc)
+# VmHWM: this program's own peak (ru_maxrss would keep the forking parent's)
+hwm = next(ln for ln in open("/proc/self/status") if ln.startswith("VmHWM:"))
 print(json.dumps({"error": said, "cpu_s": time.process_time() - t0,
-                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                  "peak_mb": int(hwm.split()[1]) / 1024}))
 """
 
 

@@ -27,6 +27,11 @@ CHROMIUM_ARGS = [
 ]
 
 
+HANG_S = 900.0
+"""How long a wait in these tests may last before it is taken for a hang: far longer than any
+step takes on a loaded machine (a wait ends at its event, never at this)."""
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -44,7 +49,7 @@ def served(app: Any, *, port: int | None = None, **config: Any) -> Iterator[str]
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port, **config))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + HANG_S  # a hang guard: the wait ends when it serves
     while not server.started:
         if time.monotonic() > deadline or not thread.is_alive():
             raise RuntimeError("the test server did not start")
@@ -67,11 +72,6 @@ def steps_of(db: Database, run_id: int) -> list[tuple[str, int, str]]:
     with db.session() as s:
         return [(r.name, r.attempt, r.status)
                 for r in s.query(Step).filter_by(run_id=run_id).order_by(Step.id)]
-
-
-HANG_S = 900.0
-"""How long a wait in these tests may last before it is taken for a hang: far longer than any
-step takes on a loaded machine (a wait ends at its event, never at this)."""
 
 
 def wait_live(client: Any, predicate: Any, hang_s: float = HANG_S) -> Any:
