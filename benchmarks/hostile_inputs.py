@@ -80,7 +80,8 @@ def _run(tree: Path, argv: list[str], **env: str) -> Outcome:
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err, \
             tempfile.NamedTemporaryFile("r") as peak:
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-c", MAIN, *argv],
+        # in the tree's folder: `python -c` puts the working folder first on sys.path
+        proc = subprocess.Popen([sys.executable, "-c", MAIN, *argv], cwd=tree,
                                 env=_env(tree, CALSTATION_BENCH_PEAK=peak.name, **env),
                                 stdout=out, stderr=err, text=True)
         _, status, usage = os.wait4(proc.pid, 0)

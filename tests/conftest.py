@@ -8,14 +8,19 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from hypothesis import settings
+from hypothesis import HealthCheck, settings
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 # CI (.ci/run) draws the same property-test examples on every run, so a landing is judged on the
 # code and not on the draw; a local run draws new ones each time and keeps what fails in
-# .hypothesis/ to replay it.
-settings.register_profile("ci", derandomize=True, print_blob=True)
+# .hypothesis/ to replay it. Neither times an example or its drawing: on a loaded machine (CI's
+# runners, `make test-stress`) a deadline or the "too slow" health check fails a test for the
+# machine's speed, not for the code.
+UNTIMED = {"deadline": None, "suppress_health_check": [HealthCheck.too_slow]}
+settings.register_profile("default", **UNTIMED)  # type: ignore[arg-type]
+settings.register_profile("ci", derandomize=True, print_blob=True,
+                          **UNTIMED)  # type: ignore[arg-type]
 settings.load_profile(os.environ.get("CALSTATION_HYPOTHESIS_PROFILE", "default"))
 
 REPO = Path(__file__).resolve().parents[1]
