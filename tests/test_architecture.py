@@ -125,3 +125,23 @@ def test_there_are_no_import_cycles() -> None:
             if graph.chain_exists(importer=imported, imported=module):
                 chain = graph.find_shortest_chain(importer=imported, imported=module)
                 pytest.fail(f"import cycle: {module} → {' → '.join(chain or [])}")
+
+
+def _replaces(tree: ast.AST) -> list[int]:
+    """Lines of ``tree`` that call ``os.replace`` (the rename that puts a file in place)."""
+    return [node.lineno for node in ast.walk(tree)
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "replace" and isinstance(node.func.value, ast.Name)
+            and node.func.value.id == "os"]
+
+
+def test_outputs_are_put_in_place_by_the_one_atomic_writer() -> None:
+    """Only calstation/atomic.py renames a written file over its target: every other output goes
+    through it, so that each one is checked (no device, FIFO or folder replaced), flushed, and
+    the previous file kept on failure."""
+    plugins = PACKAGE.parent / "plugins"
+    files = [*_modules(), *sorted(p for p in plugins.rglob("*.py") if "tests" not in p.parts)]
+    found = [f"{p.relative_to(PACKAGE.parent)}:{line}" for p in files
+             if p != PACKAGE / "atomic.py" for line in _replaces(ast.parse(p.read_text()))]
+    assert found == []
+    assert _replaces(ast.parse((PACKAGE / "atomic.py").read_text()))  # the measure sees it

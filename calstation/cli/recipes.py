@@ -123,7 +123,9 @@ def copy_recipe(source: Path, path: Path, *, force: bool = False) -> Path:
     """Write ``source``'s text to ``path`` (a folder: ``path/<source's name>``), in one step: a
     reader sees the old file or the whole new one. An existing file is replaced only when it was
     named and ``force`` is given; :class:`~calstation.errors.RecipeError` otherwise, and when the
-    folder is missing."""
+    folder is missing; :class:`~calstation.errors.OutputError` when the write fails (the file
+    there is then as it was)."""
+    from calstation.atomic import write_atomic
     from calstation.errors import RecipeError
 
     named = not path.is_dir()
@@ -135,11 +137,4 @@ def copy_recipe(source: Path, path: Path, *, force: bool = False) -> Path:
     if not target.parent.is_dir():
         raise RecipeError(f"cannot copy the recipe to {target}: the folder {target.parent} "
                           "does not exist")
-    tmp = target.with_name(f".{target.name}.{os.getpid()}.part")
-    try:
-        tmp.write_bytes(source.read_bytes())
-        os.replace(tmp, target)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise RecipeError(f"cannot copy the recipe to {target}: {exc.strerror or exc}") from None
-    return target
+    return write_atomic(target, source.read_bytes(), "recipe")
