@@ -52,6 +52,20 @@ def test_a_laserscan_without_numbers_for_its_geometry_is_refused(
     assert f"message 2: {field} is {value}, not a number" in err, err
 
 
+@pytest.mark.parametrize("value", [1e6, -1e6, 3e38])
+def test_a_time_increment_no_scanner_has_is_refused(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, bag_with: Callable[..., Path],
+    value: float
+) -> None:
+    """A finite time_increment of days would give the points times past the nanosecond range:
+    refused naming the message and the field, not written as a silently wrong line."""
+    out = tmp_path / "out"
+    out.mkdir()
+    err = _fails(capsys, out, "import", "rosbag", bag_with("time_increment", value), "--scan",
+                 "/scan", "--angle", "/angle", "--out", out / "x.mcap")
+    assert "message 2: time_increment is" in err and "longer than any line scanner" in err, err
+
+
 def test_an_infinite_range_max_is_no_upper_limit(
     capsys: pytest.CaptureFixture[str], tmp_path: Path, bag_with: Callable[..., Path]
 ) -> None:

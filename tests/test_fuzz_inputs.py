@@ -207,6 +207,7 @@ SCAN_FIELDS = st.fixed_dictionaries({
                               "scan_time", "range_min", "range_max")})
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # an overflow is a wrong line, not a pass
 @FUZZ
 @given(scan=SCAN_FIELDS, ranges=st.lists(FLOATS, max_size=40))
 def test_a_laserscan_of_any_numbers_is_imported_or_refused(

@@ -441,7 +441,7 @@ def _lines(scans: Sequence[tuple[int, int | None, Any]], line_t: NDArray[np.int6
             continue
         inc = float(ls.angle_increment)
         amin, amax = float(ls.angle_min), float(ls.angle_max)
-        _check_geometry(ls, i, where)
+        _check_geometry(ls, i, n, where)
         if n > 1 and (inc == 0.0 or not math.isfinite(inc)):
             raise RecordingImportError(
                 f"--scan {where}: message {i}: angle_increment is {inc} for {n} ranges"
@@ -491,10 +491,17 @@ def _lines(scans: Sequence[tuple[int, int | None, Any]], line_t: NDArray[np.int6
     return lines, notes
 
 
-def _check_geometry(ls: Any, i: int, where: str) -> None:
+MAX_LINE_SPAN_S = 10.0
+"""Longest time the ``n`` returns of one LaserScan may span (``|time_increment|·(n − 1)``): a
+line scanner sweeps a line in well under a second; past this the times are not a scan's (a huge
+``time_increment`` would overflow the points' nanosecond times)."""
+
+
+def _check_geometry(ls: Any, i: int, n: int, where: str) -> None:
     """A LaserScan's bearings, times and range limits must be numbers: a NaN or infinite
     ``angle_min`` would give every return a NaN azimuth, and a NaN ``time_increment`` NaN
-    times, each read as valid (an infinite ``range_max`` only means no upper limit)."""
+    times, each read as valid (an infinite ``range_max`` only means no upper limit). The ``n``
+    returns' times must span at most :data:`MAX_LINE_SPAN_S`."""
     fields = {"angle_min": ls.angle_min, "angle_max": ls.angle_max,
               "angle_increment": ls.angle_increment, "time_increment": ls.time_increment,
               "range_min": ls.range_min}
@@ -507,6 +514,13 @@ def _check_geometry(ls: Any, i: int, where: str) -> None:
     if math.isnan(float(ls.range_max)):
         raise RecordingImportError(
             f"--scan {where}: message {i}: range_max is nan, not a number (inf: no limit)"
+        )
+    span = abs(float(ls.time_increment)) * max(n - 1, 0)
+    if span > MAX_LINE_SPAN_S:
+        raise RecordingImportError(
+            f"--scan {where}: message {i}: time_increment is {float(ls.time_increment):.6g} s: "
+            f"its {n} ranges would span {span:.6g} s, longer than any line scanner sweeps a "
+            f"line ({MAX_LINE_SPAN_S:g} s)"
         )
 
 
