@@ -7,10 +7,11 @@ and CPU time, and whether the files it must not touch are as they were:
 - decompression bombs through ``calstation reconstruct``: one zstd chunk and one lz4 chunk
   inflating to 2.5 GiB (declared), a zstd chunk declaring 1 MiB that inflates to 2.5 GiB, and
   forty 16 MiB chunks of zeros;
+- recipes of 60,000 keys and of 20,000 unknown keys through ``calstation recipes validate``;
 - two databases sharing one ``CALSTATION_HOME`` (the damaged-database advice): two simulated
   runs, the first run's files checked against the sha256 its database stored;
-- an export onto a nearly full disk (a 64 KiB tmpfs; needs root and ``mount``, else skipped): the
-  previous export checked.
+- a JSON export of ~40 kB onto a nearly full disk (a 64 KiB tmpfs; needs root and ``mount``, else
+  skipped): the previous export checked.
 
 ``--compare REV`` runs the same cases on another revision side by side (its tree from ``git
 archive``, the plugins of this checkout). Prints figures; not a test.
@@ -111,6 +112,17 @@ def _bombs(folder: Path, gib: float) -> dict[str, Path]:
     }
 
 
+def _big_recipes(folder: Path) -> dict[str, Path]:
+    """A 0.95 MB recipe of 60,000 keys and one of 20,000 unknown keys."""
+    many = folder / "many-keys.yaml"
+    many.write_text("\n".join(["name: big", "steps:",
+                               *(f"  k{i:05d}: {i}" for i in range(60_000))]) + "\n")
+    unknown = folder / "unknown-keys.yaml"
+    unknown.write_text("\n".join(["name: big", *(f"k{i:05d}: {i}" for i in range(20_000))])
+                       + "\n")
+    return {"a recipe of 60,000 keys": many, "a recipe of 20,000 unknown keys": unknown}
+
+
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
@@ -149,8 +161,8 @@ def _full_disk(tree: Path, folder: Path) -> Outcome | None:
                       capture_output=True).returncode != 0:
         return None
     try:
-        db = _seeded_database(folder)
-        out = disk / "calibration.csv"
+        db = _seeded_database(tree, folder)
+        out = disk / "calibration.json"
         out.write_text("the previous export\n")
         filler = disk / "filler"
         try:
@@ -161,28 +173,46 @@ def _full_disk(tree: Path, folder: Path) -> Outcome | None:
         except OSError:
             pass
         before = _sha(out)
-        got = _run(tree, ["export", "1", "-f", "csv", "--db", db, "-o", str(out)])
+        got = _run(tree, ["export", "1", "-f", "json", "--db", db, "-o", str(out)])
         got.intact = ("the previous export intact" if out.is_file() and _sha(out) == before
-                      else f"the previous export lost ({out.stat().st_size} bytes now)")
+                      else _what_is_left(out))
         return got
     finally:
         subprocess.run(["umount", "-l", str(disk)], check=False)
 
 
-def _seeded_database(folder: Path) -> str:
-    """A database with one run and its calibration (as `calstation history` shows runs)."""
-    from calstation.storage.db import Calibration, Run, Station, open_database
+SEED = """
+import sys
+from calstation.storage.db import Calibration, Run, Station, open_database
+db = open_database(sys.argv[1])
+with db.session() as s:
+    run = Run(station=Station(name="bench"), recipe_name="r", recipe_text="x: 1",
+              recipe_sha256="ab", operator="qa", data_dir=sys.argv[2], status="passed")
+    s.add(run)
+    s.flush()
+    s.add(Calibration(run=run, stage="fine", strategy="periodicity", accepted=True,
+                      diagnostics={"residuals_m": [1e-4 * k for k in range(1500)]},
+                      **{p: 0.123456789 for p in ("tx", "ty", "tz", "rx", "ry", "rz")}))
+db.dispose()
+"""
 
+
+def _what_is_left(out: Path) -> str:
+    """What an export that replaced the previous one left: the whole new file, or a cut one."""
+    try:
+        json.loads(out.read_text())
+    except (OSError, ValueError):
+        return f"the previous export lost: {out.stat().st_size:,} bytes of cut JSON left"
+    return "the new export written whole"
+
+
+def _seeded_database(tree: Path, folder: Path) -> str:
+    """A database with one run and its calibration (as `calstation history` shows runs; its
+    diagnostics make the JSON export ~40 kB, pages more than the full disk's last one), made by
+    ``tree``'s own code, so that each tree opens a database of its own revision."""
     url = f"sqlite:///{folder / 'qa.db'}"
-    db = open_database(url)
-    with db.session() as s:
-        run = Run(station=Station(name="bench"), recipe_name="r", recipe_text="x: 1",
-                  recipe_sha256="ab", operator="qa", data_dir=str(folder), status="passed")
-        s.add(run)
-        s.flush()
-        s.add(Calibration(run=run, stage="fine", strategy="periodicity", accepted=True,
-                          **{p: 0.123456789 for p in ("tx", "ty", "tz", "rx", "ry", "rz")}))
-    db.dispose()
+    subprocess.run([sys.executable, "-c", SEED, url, str(folder)], cwd=tree, env=_env(tree),
+                   check=True, capture_output=True)
     return url
 
 
@@ -209,6 +239,9 @@ def main() -> None:
                                        str(root / "out.ply")])
                 got.intact = f"{path.stat().st_size / MiB:.2f} MB file"
                 rows.append((name, label, got))
+        for name, path in _big_recipes(root).items():
+            for label, tree in trees.items():
+                rows.append((name, label, _run(tree, ["recipes", "validate", str(path)])))
         for label, tree in trees.items():
             rows.append(("export onto a full disk", label,
                          _full_disk(tree, Path(tempfile.mkdtemp(dir=root)))))
