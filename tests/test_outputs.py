@@ -238,3 +238,30 @@ def test_export_on_a_full_disk_keeps_the_previous_file(
     assert code == 2 and "No space left on device" in err and "is as it was" in err, err
     assert out.read_text() == '{"H": "the previous export"}\n'
     assert [p.name for p in out.parent.iterdir()] == ["calibration.json"]
+
+
+@pytest.mark.parametrize("kind", ["full disk", "fifo"])
+def test_a_calibration_result_saved_is_written_whole_or_not_at_all(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, kind: str
+) -> None:
+    """CalibrationResult.save (the library's writer of calibration files) goes through the one
+    atomic writer: a full disk keeps the previous file, a FIFO is refused without blocking."""
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.result import CalibrationResult
+    from calstation.errors import OutputError
+
+    result = CalibrationResult(Extrinsics(0.1, 0.0, 0.2, 0.0, 0.01, 0.0), {}, 0.0, 1, "manual",
+                               diagnostics={"residuals": list(range(2000))})
+    if kind == "fifo":
+        target = _special("fifo", tmp_path)
+        with pytest.raises(OutputError, match="never replaces a named pipe"):
+            result.save(target)
+        assert stat.S_ISFIFO(os.stat(target).st_mode)
+        return
+    target = tmp_path / "calibration.json"
+    target.write_text('{"H": "the previous calibration"}')
+    _full_disk(monkeypatch, tmp_path)
+    with pytest.raises(OutputError, match=r"No space left on device.*is as it was"):
+        result.save(target)
+    assert target.read_text() == '{"H": "the previous calibration"}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json"]

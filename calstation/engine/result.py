@@ -148,11 +148,15 @@ class CalibrationResult:
         """JSON text of :meth:`to_dict` (NaN written as null)."""
         return json.dumps(self.to_dict(), indent=2)
 
-    def save(self, path: str | Path) -> None:
-        """Write YAML (``.yaml``/``.yml``) or JSON (any other suffix)."""
+    def save(self, path: str | Path, what: str = "calibration file") -> Path:
+        """Write YAML (``.yaml``/``.yml``) or JSON (any other suffix), whole or not at all
+        (:func:`calstation.atomic.write_atomic`: a folder, device or FIFO at ``path`` is refused,
+        and on a failure the file there is as it was); the path written."""
+        from calstation.atomic import write_atomic
+
         p = Path(path)
         text = self.to_yaml() if p.suffix.lower() in (".yaml", ".yml") else self.to_json()
-        p.write_text(text, encoding="utf-8")
+        return write_atomic(p, text, what)
 
     @classmethod
     def load(cls, path: str | Path) -> CalibrationResult:

@@ -83,9 +83,7 @@ def save_calibration(result: CalibrationResult, path: str | Path) -> Path:
     """Write ``result`` as a calibration file, YAML for ``.yaml``/``.yml`` and JSON otherwise
     (what :meth:`~calstation.engine.result.CalibrationResult.save` writes), whole or not at all
     (:func:`calstation.atomic.write_atomic`); the path written."""
-    p = Path(path)
-    text = result.to_yaml() if p.suffix.lower() in (".yaml", ".yml") else result.to_json()
-    return write_atomic(p, text, "calibration file")
+    return result.save(path, "calibration file")
 
 
 def load_extrinsics(path: str | Path, *, source: str = "calibration") -> Extrinsics:
