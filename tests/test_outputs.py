@@ -265,3 +265,23 @@ def test_a_calibration_result_saved_is_written_whole_or_not_at_all(
         result.save(target)
     assert target.read_text() == '{"H": "the previous calibration"}'
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json"]
+
+
+def test_a_bench_resumed_on_a_full_disk_keeps_every_finished_record(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """--resume rewrites records.jsonl without the line a kill cut short: whole or not at all,
+    so a failure meanwhile keeps every record finished before."""
+    from calstation.bench.execute import RecordStore
+    from calstation.errors import OutputError
+
+    path = tmp_path / "records.jsonl"
+    finished = "".join(json.dumps({"id": f"t{k}", "data": "x" * 200}) + "\n" for k in range(40))
+    path.write_text(finished + '{"id": "cut sho')
+    _full_disk(monkeypatch, tmp_path)
+    with pytest.raises(OutputError, match="No space left on device"):
+        RecordStore(path, resume=True)
+    assert path.read_text() == finished + '{"id": "cut sho'
+    monkeypatch.undo()
+    assert list(RecordStore(path, resume=True).records) == [f"t{k}" for k in range(40)]
+    assert path.read_text() == finished

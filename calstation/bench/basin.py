@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from calstation.atomic import write_atomic
 from calstation.bench.tasks import Task
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 
@@ -164,7 +165,7 @@ def basin_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
 def basin_figure(records: Sequence[dict[str, Any]], methods: Sequence[str], path: Path) -> None:
     """One panel per parameter and one for the joint starts: converged fraction against the
     start's distance, a line per method."""
-    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _plt
+    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _plt, save_figure
 
     plt = _plt()
     groups = (*PARAMS, "joint")
@@ -184,8 +185,7 @@ def basin_figure(records: Sequence[dict[str, Any]], methods: Sequence[str], path
     axes[0].set_ylabel("converged fraction")
     axes[-1].legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -215,8 +215,8 @@ def run_basin(
             "ry_bound_deg": ry_bound,
             "workers": workers, "scenario": f"{scenario.name} ({scenario.range_m:.2f} m, "
             f"{scenario.pitch_deg:.0f}°)", "starts": starts, "methods": list(methods)}
-    (out / "basin.json").write_text(json.dumps(meta, indent=2))
+    write_atomic(out / "basin.json", json.dumps(meta, indent=2), "records")
     basin_figure(records, methods, report_dir / "results" / "basin.png")
     path = report_dir / "basin.md"
-    path.write_text(basin_markdown(records, meta))
+    write_atomic(path, basin_markdown(records, meta), "bench report")
     return path

@@ -16,6 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+from calstation.atomic import write_atomic
 from calstation.bench.tasks import Task
 from calstation.bench.worker import _init_worker, run_task
 
@@ -47,12 +48,12 @@ class RecordStore:
                     except ValueError:
                         continue  # a line cut short by a kill
                     self.records[rec["id"]] = rec
-            with path.open("w") as fh:  # rewrite without any torn line
-                for rec in self.records.values():
-                    fh.write(json.dumps(rec) + "\n")
+            # rewritten without any torn line, whole or not at all: a kill meanwhile keeps
+            # every record finished before
+            write_atomic(path, "".join(json.dumps(r) + "\n" for r in self.records.values()),
+                         "records")
         else:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text("")
+            write_atomic(path, "", "records", make_parents=True)
 
     def add(self, record: dict[str, Any]) -> None:
         """Keep ``record`` and append it to the file."""

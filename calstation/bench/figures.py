@@ -26,6 +26,15 @@ PARAMS_BOX: tuple[tuple[str, str, float, float], ...] = (
 )
 
 
+
+def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
+    """Write the matplotlib figure ``fig`` to ``path`` (its format from the suffix), whole or not
+    at all (:func:`calstation.atomic.atomic_output`; a missing folder is made)."""
+    from calstation.atomic import atomic_output
+
+    with atomic_output(path, "figure", make_parents=True) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
+
 def _plt() -> Any:
     import matplotlib
 
@@ -76,7 +85,7 @@ def param_boxplots(
             ax.grid(True, axis="y", alpha=0.3)
     which = " and ".join(METHOD_LABELS.get(m, m) for m in methods)
     fig.suptitle(f"Spread of the fine-tuned parameters over perturbed starts: {which}")
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -153,7 +162,7 @@ def cube_boxplots(records: Sequence[dict[str, Any]], path: Path, methods: Sequen
     fig.suptitle(
         "10 cm QA-cube edge error (initial: one value per scenario; n/m: cube not measurable)"
     )
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -188,7 +197,7 @@ def landscape_figure(
         ax.set_title(f"{METHOD_LABELS.get(m, m)} cost", fontsize=10)
         ax.legend(loc="upper right", fontsize=7)
     fig.suptitle(title)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -209,5 +218,5 @@ def ablation_figure(
     ax.legend(fontsize=8)
     ax.grid(True, axis="y", alpha=0.3)
     ax.set_title(title, fontsize=10)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     plt.close(fig)

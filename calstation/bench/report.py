@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from calstation.atomic import write_atomic
 from calstation.bench import BenchError
 from calstation.bench.figures import (
     ablation_figure,
@@ -137,7 +138,7 @@ def write_report(
         if (report_dir / name).is_file():
             text += "\n" + (report_dir / name).read_text()
     path = report_dir / "results.md"
-    path.write_text(text)
+    write_atomic(path, text, "bench report")
     return path
 
 

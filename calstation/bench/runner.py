@@ -17,6 +17,7 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+from calstation.atomic import write_atomic
 from calstation.bench import BenchError
 from calstation.bench.execute import (
     DeadlineReached,
@@ -107,7 +108,7 @@ class _BenchRun:
         )
         meta["records"] = len(self.store.records)
         meta["load_end"] = _load()
-        (self.config.out / "run.json").write_text(json.dumps(meta, indent=2))
+        write_atomic(self.config.out / "run.json", json.dumps(meta, indent=2), "run record")
 
     def phase(self, name: str, tasks: Sequence[Task], ex: Executor) -> float:
         """Run the phase's tasks not yet recorded; the seconds per task it took (0 if none

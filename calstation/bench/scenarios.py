@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from calstation.atomic import write_atomic
 from calstation.bench import BenchError
 from calstation.engine.frames import Extrinsics
 
@@ -188,7 +189,7 @@ def simulate_scenario(recipe_path: Path, scenario: Scenario, directory: Path) ->
         got = Path(paths[key])
         if got.resolve() != expected.resolve():
             raise BenchError(f"simulate_run wrote {key} to {got}, expected {expected}")
-    (directory / STAMP).write_text(json.dumps(_stamp(scenario, loaded.sha256), indent=2))
+    write_atomic(directory / STAMP, json.dumps(_stamp(scenario, loaded.sha256), indent=2), "stamp")
     return data
 
 

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from calstation.atomic import write_atomic
 from calstation.engine.frames import PARAMETER_NAMES
 
 
@@ -40,8 +41,7 @@ def speed_recipe(recipe: Path, rpm: float, out: Path) -> tuple[Path, int]:
             seconds = scan.settle_s + rpm / accel + scan.revolutions * 60.0 / rpm
             ppl = min(ppl, int(0.98 * MAX_SCAN_POINTS / (seconds * lidar.line_rate_hz)))
         data["simulation"]["lidar"]["points_per_line"] = ppl
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(yaml.safe_dump(data, sort_keys=False))
+    write_atomic(out, yaml.safe_dump(data, sort_keys=False), "recipe", make_parents=True)
     return out, ppl
 
 
@@ -126,7 +126,7 @@ def speed_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
 
 def speed_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
     """Axis offset and direction error against platter speed, a line per method."""
-    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _plt
+    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _plt, save_figure
 
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(8.0, 3.0))
@@ -145,8 +145,7 @@ def speed_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -168,12 +167,12 @@ def run_speed(recipe: Path, out: Path, report_dir: Path, scenario_name: str,
     for rpm in speeds:
         console.print(f"platter speed {rpm:g} rpm …")
         records += run_speed_case(recipe, scenario, rpm, out, methods)
-        (out / "records.json").write_text(json.dumps(records, indent=2))
+        write_atomic(out / "records.json", json.dumps(records, indent=2), "records")
     rate = load_recipe(recipe).recipe.simulation
     meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
             "scenario": f"{scenario.name} ({scenario.range_m:.2f} m, {scenario.pitch_deg:.0f}°)",
             "line_rate_hz": float(rate.lidar.line_rate_hz) if rate is not None else math.nan}
     speed_figure(records, report_dir / "results" / "speed.png")
     path = report_dir / "speed.md"
-    path.write_text(speed_markdown(records, meta))
+    write_atomic(path, speed_markdown(records, meta), "bench report")
     return path

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from calstation.atomic import write_atomic
 from calstation.bench.scenarios import Scenario
 
 EXTRA_SCENARIOS: tuple[tuple[str, float, float], ...] = (
@@ -131,7 +132,7 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
     folder = out / f"{scenario.name}-{param}{value:+g}"
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "recipe.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    write_atomic(path, yaml.safe_dump(data, sort_keys=False), "recipe")
     loaded = load_recipe(path)
     files = simulator.simulate_run(loaded, folder / "scans", seed=seed, progress=False)
     strategy = plugins.strategy(method)
@@ -248,7 +249,7 @@ def targetless_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any])
 def targetless_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
     """The start's distance from the truth against the final one (the targetless start's basin:
     how far from the truth its starts land, and whether they converge)."""
-    from calstation.bench.figures import _plt
+    from calstation.bench.figures import _plt, save_figure
 
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.0, 3.4))
@@ -265,8 +266,7 @@ def targetless_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -299,7 +299,7 @@ def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds
                           + ("converged" if t["converged"] else f"NOT converged ({t['status']})")
                           + f" from the platter, {t['time_s']:.1f} s")
             shutil.rmtree(out / f"{scenario.name}-s{seed}", ignore_errors=True)
-            (out / "records.json").write_text(json.dumps(records, indent=2))
+            write_atomic(out / "records.json", json.dumps(records, indent=2), "records")
     rows: list[dict[str, Any]] = []
     if geometry:
         d5 = next(s for s in targetless_scenarios() if s.name == "D5")
@@ -310,11 +310,11 @@ def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds
                 console.print(f"{param} {value:+g}: "
                               + ("same as from the truth" if row["same"] else "NOT the same"))
                 shutil.rmtree(out / f"D5-{param}{value:+g}", ignore_errors=True)
-                (out / "geometry.json").write_text(json.dumps(rows, indent=2))
+                write_atomic(out / "geometry.json", json.dumps(rows, indent=2), "records")
     meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
             "method": method, "seeds": f"{SEED_BASE} + 100·k + scenario index, k < {seeds}",
             "geometry": rows}
     targetless_figure(records, report_dir / "results" / "targetless.png")
     path = report_dir / "targetless.md"
-    path.write_text(targetless_markdown(records, meta))
+    write_atomic(path, targetless_markdown(records, meta), "bench report")
     return path
