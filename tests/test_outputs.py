@@ -285,3 +285,23 @@ def test_a_bench_resumed_on_a_full_disk_keeps_every_finished_record(
     monkeypatch.undo()
     assert list(RecordStore(path, resume=True).records) == [f"t{k}" for k in range(40)]
     assert path.read_text() == finished
+
+
+def test_simulate_onto_a_fifo_among_its_outputs_is_refused(tmp_path: Path) -> None:
+    """`calstation simulate --out DIR` writes each recording whole or not at all: a FIFO where a
+    recording goes is refused in a sentence and stays a FIFO (opening it for writing blocked)."""
+    import subprocess
+    import sys
+
+    from calstation.testing import lean_recipe
+
+    out = tmp_path / "sim"
+    out.mkdir()
+    os.mkfifo(out / "static.mcap")
+    proc = subprocess.run([sys.executable, "-m", "calstation", "simulate",
+                           str(lean_recipe(tmp_path)), "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)  # a hang guard
+    assert proc.returncode == 2, proc.stderr
+    assert "static.mcap is a named pipe (FIFO)" in proc.stderr and "Traceback" not in proc.stderr
+    assert stat.S_ISFIFO(os.stat(out / "static.mcap").st_mode)
+    assert sorted(p.name for p in out.iterdir()) == ["static.mcap"]

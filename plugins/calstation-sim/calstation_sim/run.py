@@ -8,6 +8,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from calstation.atomic import atomic_output, write_atomic
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 from calstation.errors import SimulationError
 from calstation.recipes import LoadedRecipe, SpinScanStep
@@ -107,8 +108,9 @@ def simulate_run(
                 station.place(fixture)
             path = out / f"{stem}.mcap"
             update = task(stem, f"{stem} scan ({fixture})")
-            with RecordingWriter(
-                path,
+            # whole or not at all, beside the file it replaces (a device or FIFO is refused)
+            with atomic_output(path, "recording", make_parents=True) as tmp, RecordingWriter(
+                tmp,
                 kind=kind,
                 lidar_info=lidar.info(),
                 counts_per_revolution=encoder.counts_per_revolution,
@@ -144,9 +146,5 @@ def simulate_run(
 
 
 def write_truth(path: Path, truth: dict[str, Any]) -> Path:
-    """Write ``truth`` as indented JSON; returns ``path``."""
-    try:
-        path.write_text(json.dumps(truth, indent=2, sort_keys=True) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise SimulationError(f"cannot write {path}: {exc}") from None
-    return path
+    """Write ``truth`` as indented JSON, whole or not at all; returns ``path``."""
+    return write_atomic(path, json.dumps(truth, indent=2, sort_keys=True) + "\n", "truth file")
