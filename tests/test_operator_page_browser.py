@@ -18,7 +18,7 @@ import pytest
 import yaml
 from test_station import StationTestPlugin, lean_recipe
 from test_web_browser import click_answer, db, place, station, wait_end  # noqa: F401  (fixtures, helpers)
-from webstation import CHROMIUM, shot, wait_until
+from webstation import CHROMIUM, HANG_S, shot, wait_until
 
 from calstation import plugins
 from calstation.engine.outline import distance_to_outline
@@ -49,7 +49,7 @@ def dialogs(browser: Any) -> Iterator[tuple[Any, list[str]]]:
     accepted; the dialogs' messages are collected."""
     context = browser.new_context(viewport={"width": 1200, "height": 860})
     pg = context.new_page()
-    pg.set_default_timeout(90_000)
+    pg.set_default_timeout(HANG_S * 1000)  # a hang guard: waits end at their event
     answers = ["accept"]
     seen: list[str] = []
 
@@ -189,7 +189,7 @@ def test_the_live_plots_show_the_expected_outline_and_the_cloud_as_it_grows(
         click_answer(page, "continue")
         # before any calibration of this station: the outline under the recipe's nominal
         # mounting, named as such
-        page.wait_for_selector('#line-plot[data-outline="expected"]', timeout=60_000)
+        page.wait_for_selector('#line-plot[data-outline="expected"]')
         traces = _plot(page, "#line-plot")
         assert [t["name"] for t in traces] == ["returns", "expected outline"]
         assert "nominal mounting" in page.inner_text("#line-plot")

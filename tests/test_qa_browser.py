@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from webstation import CHROMIUM, served, shot as docs_shot
+from webstation import CHROMIUM, HANG_S, served, shot as docs_shot
 
 from calstation.storage.db import Database, Run, open_database
 from calstation.web.app import create_app
@@ -40,7 +40,7 @@ pytestmark = [
 def page(browser: Any) -> Iterator[Any]:
     context = browser.new_context(viewport={"width": 1250, "height": 900})
     pg = context.new_page()
-    pg.set_default_timeout(90_000)
+    pg.set_default_timeout(HANG_S * 1000)  # a hang guard: waits end at their event
     yield pg
     context.close()
 
@@ -154,9 +154,9 @@ def test_the_default_runs_report_is_small_and_prints_every_figure(
     context = browser.new_context(offline=True, viewport={"width": 1100, "height": 900})
     rp = context.new_page()
     rp.goto(report.as_uri())
-    rp.wait_for_selector("body[data-report-ready]", timeout=90_000)
+    rp.wait_for_selector("body[data-report-ready]")
     t0 = time.perf_counter()
-    rp.wait_for_selector("body[data-print-ready]", timeout=120_000)
+    rp.wait_for_selector("body[data-print-ready]")
     print(f"pictures for print ready {time.perf_counter() - t0:.1f} s after the figures")
     figures = rp.locator("[data-figure]").count()
     assert figures >= 4  # two 3D views, residuals, cost

@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 from sqlalchemy import func, select
 from test_web_browser import click_answer, db, page, place, start, station  # noqa: F401  (the fixtures)
-from webstation import CHROMIUM, copy_recipe, wait_until
+from webstation import CHROMIUM, HANG_S, copy_recipe, wait_until
 
 from calstation import plugins
 from calstation.station.lock import station_holder
@@ -71,7 +71,7 @@ def test_a_web_run_holds_the_station_against_a_terminal_run(
         start(page, url, sim_recipe.name, operator="ann")
         place(page, "static_target")  # the web run waits at its first placement
         terminal = _terminal_run(tmp_path, db, sim_recipe, yes=True)
-        out, err = terminal.communicate(timeout=120)
+        out, err = terminal.communicate(timeout=HANG_S)
         assert terminal.returncode == 4, out + err
         said = " ".join(err.split())
         assert "station sim-01 is in use" in said and "operator ann" in said, said
@@ -92,7 +92,7 @@ def test_a_terminal_run_holds_the_station_against_the_web_station(
     terminal = _terminal_run(tmp_path, db, sim_recipe, yes=False)
     try:
         wait_until(lambda: station_holder(db, "sim-01") is not None
-                   and station_holder(db, "sim-01")["run_id"] is not None, timeout=120)
+                   and station_holder(db, "sim-01")["run_id"] is not None)
         with station(tmp_path, db, sim_recipe) as url:
             page.goto(url + "/")
             page.select_option("#recipe", sim_recipe.name)
@@ -108,7 +108,7 @@ def test_a_terminal_run_holds_the_station_against_the_web_station(
     finally:
         terminal.stdin.write("a\n")  # type: ignore[union-attr]
         terminal.stdin.flush()  # type: ignore[union-attr]
-        out, err = terminal.communicate(timeout=120)
+        out, err = terminal.communicate(timeout=HANG_S)
     assert terminal.returncode == 3, out + err
     with db.session() as s:
         only = s.scalars(select(Run)).one()

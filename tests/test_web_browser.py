@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 import yaml
 from test_station import StationTestPlugin, lean_recipe
-from webstation import CHROMIUM, copy_recipe, run_status, served, shot, steps_of
+from webstation import CHROMIUM, HANG_S, copy_recipe, run_status, served, shot, steps_of
 
 from calstation import plugins
 from calstation.station.runs import run_folder
@@ -44,7 +44,7 @@ pytestmark = [
 def page(browser: Any, request: pytest.FixtureRequest) -> Iterator[Any]:
     context = browser.new_context(viewport={"width": 1200, "height": 860})
     pg = context.new_page()
-    pg.set_default_timeout(90_000)
+    pg.set_default_timeout(HANG_S * 1000)  # a hang guard: waits end at their event
     pg.on("dialog", lambda d: d.accept())  # "Abort the run?" → yes
     failed_before = request.session.testsfailed
     yield pg
@@ -88,7 +88,7 @@ def click_answer(page: Any, answer: str) -> None:
 
 
 def wait_end(page: Any) -> str:
-    verdict = page.wait_for_selector("#verdict", timeout=180_000)
+    verdict = page.wait_for_selector("#verdict")
     return str(verdict.inner_text())
 
 

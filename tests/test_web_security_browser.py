@@ -25,7 +25,7 @@ from typing import Any
 import pytest
 from test_station import StationTestPlugin, lean_recipe
 from test_web_browser import FAILURES
-from webstation import CHROMIUM, CHROMIUM_ARGS, free_port, served, wait_until
+from webstation import CHROMIUM, CHROMIUM_ARGS, HANG_S, free_port, served, wait_until
 
 from calstation import plugins
 from calstation.storage.db import Database, Run, open_database
@@ -70,7 +70,7 @@ def page(browser: Any, request: pytest.FixtureRequest) -> Iterator[Any]:
     context = browser.new_context(viewport={"width": 1200, "height": 860})
     context.add_init_script(VIOLATIONS)
     pg = context.new_page()
-    pg.set_default_timeout(60_000)
+    pg.set_default_timeout(HANG_S * 1000)  # a hang guard: waits end at their event
     pg.on("dialog", lambda d: d.accept())
     failed_before = request.session.testsfailed
     yield pg
@@ -316,7 +316,7 @@ def test_the_stations_pages_draw_under_their_policy(
         violations = page.evaluate("window.__violations")
         page.wait_for_selector('#prompt:not([hidden])[data-fixture="qa_cube"]')
         page.click('#prompt button[data-answer="continue"]:not([hidden])')
-        page.wait_for_selector("#verdict", timeout=120_000)
+        page.wait_for_selector("#verdict")
         run_id = max(int(x) for x in [page.inner_text("#run-id")])
         checks = {f"/runs/{run_id}": ".view3d[data-drawn]",
                   f"/runs/{run_id}/report.html": ".view3d[data-drawn]",
