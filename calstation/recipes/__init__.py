@@ -74,6 +74,7 @@ from calstation.recipes.simulation import (
     EncoderModel as EncoderModel,
     LidarModel as LidarModel,
     PlacementError as PlacementError,
+    SensorModel as SensorModel,
     SimulationConfig as SimulationConfig,
     TruthConfig as TruthConfig,
     TurntableModel as TurntableModel,

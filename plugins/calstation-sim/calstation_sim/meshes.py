@@ -137,14 +137,52 @@ def polygon_area(poly: FloatArray) -> float:
 
 
 # --- fixtures -------------------------------------------------------------------------------
+PLATTER_RINGS = 24
+"""Rings of the top surface of a platter that is not flat (its dish is sampled radially)."""
+
+
 def platter_mesh(
-    geom: PlatterGeometry, segments: int = PLATTER_SEGMENTS
+    geom: PlatterGeometry, segments: int = PLATTER_SEGMENTS, flatness: float = 0.0
 ) -> o3d.geometry.TriangleMesh:
-    """The platter disk in frame D: top surface at x = 0, bottom at x = −thickness."""
+    """The platter disk in frame D: top surface at x = 0, bottom at x = −thickness.
+
+    ``flatness`` (m, peak to valley): the top is a shallow dish
+    x = (flatness/2)·(2·(r/R)² − 1) instead (the rim higher than the centre when positive),
+    whose mean over the top's area is 0."""
     a = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
     r = 0.5 * geom.diameter
     outline = np.column_stack([r * np.cos(a), r * np.sin(a)])
-    return to_mesh(*_prism(outline, -geom.thickness, 0.0))
+    if flatness == 0.0:
+        return to_mesh(*_prism(outline, -geom.thickness, 0.0))
+    return to_mesh(*_dished_disk(outline, r, -geom.thickness, flatness))
+
+
+def _dished_disk(
+    outline_yz: FloatArray, radius: float, x0: float, flatness: float
+) -> tuple[FloatArray, IntArray]:
+    """The platter of :func:`platter_mesh` with a dished top: the side and bottom as a prism's,
+    the top triangulated over :data:`PLATTER_RINGS` rings."""
+    n = len(outline_yz)
+
+    def height(frac: float) -> float:
+        return 0.5 * flatness * (2.0 * frac**2 - 1.0)
+
+    rings = np.linspace(0.0, 1.0, PLATTER_RINGS + 1)[1:]
+    verts = [[x0, 0.0, 0.0], [height(0.0), 0.0, 0.0]]  # bottom centre, top centre
+    verts += [[x0, *p] for p in outline_yz]  # bottom rim: 2 … n+1
+    for f in rings:  # top rings: ring k at 2 + n·(k+1)
+        verts += [[height(f), *(f * p)] for p in outline_yz]
+    tris: list[tuple[int, int, int]] = []
+    bottom, top_rim = 2, 2 + n * PLATTER_RINGS
+    for i in range(n):
+        j = (i + 1) % n
+        tris.append((0, bottom + j, bottom + i))  # bottom cap
+        tris += [(bottom + i, bottom + j, top_rim + j), (bottom + i, top_rim + j, top_rim + i)]
+        tris.append((1, 2 + n + i, 2 + n + j))  # the top's centre fan
+        for k in range(1, PLATTER_RINGS):
+            inner, outer = 2 + n * k, 2 + n * (k + 1)
+            tris += [(inner + i, outer + i, outer + j), (inner + i, outer + j, inner + j)]
+    return np.asarray(verts, dtype=np.float64), np.asarray(tris, dtype=np.int32)
 
 
 def wall_height(geom: LTargetGeometry, z: float | FloatArray) -> float | FloatArray:

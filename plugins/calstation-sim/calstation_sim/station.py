@@ -37,6 +37,9 @@ FIXTURE_NAMES = ("static_target", "spin_target", "qa_cube")
 MIXED_PIXEL_GAP_M = 0.03
 """Two sub-beams whose ranges differ by more than this straddle a depth edge (mixed pixel)."""
 
+FOOTPRINT_BEAMS = 7
+"""Sub-beams across the beam's divergence of the footprint model of mixed pixels."""
+
 _STREAM_TRUTH, _STREAM_PLACEMENT, _STREAM_NOISE = 1, 2, 3
 _FAR = 1.0e3  # stands in for "no return" when comparing neighbouring ranges
 
@@ -72,6 +75,14 @@ class Placement:
         }
 
 
+def _rotation_about(axis: FloatArray, angle: float) -> FloatArray:
+    """3×3 rotation by ``angle`` (rad) about the unit vector ``axis`` (Rodrigues)."""
+    k = np.asarray(axis, dtype=np.float64)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    out: FloatArray = np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+    return out
+
+
 def _tensor_scene(parts: list[o3d.geometry.TriangleMesh]) -> o3d.t.geometry.RaycastingScene:
     scene = o3d.t.geometry.RaycastingScene()
     for mesh in parts:
@@ -83,15 +94,33 @@ def _tensor_scene(parts: list[o3d.geometry.TriangleMesh]) -> o3d.t.geometry.Rayc
     return scene
 
 
-def _cast(
-    scene: o3d.t.geometry.RaycastingScene, origins: FloatArray, dirs: FloatArray
-) -> FloatArray:
-    """Ranges (M,) along unit rays (inf where nothing is hit)."""
+@dataclass(frozen=True)
+class _Hits:
+    """What a batch of rays hit: ranges (M,) (inf where nothing), the cosine of each ray with
+    the surface's normal (M,) (1 where nothing) and the mesh each hit (M,) (the order the
+    scene's meshes were added in; −1 where nothing)."""
+
+    range: FloatArray
+    cosine: FloatArray
+    mesh: NDArray[np.int64]
+
+
+def _cast(scene: o3d.t.geometry.RaycastingScene, rays: NDArray[np.float32]) -> _Hits:
+    """Cast (M, 6) rays (origin, unit direction) against ``scene``."""
+    hit = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)), nthreads=0)
+    r = np.asarray(hit["t_hit"].numpy(), dtype=np.float64)
+    normals = np.asarray(hit["primitive_normals"].numpy(), dtype=np.float64)
+    cosine = np.abs(np.einsum("ij,ij->i", normals, rays[:, 3:].astype(np.float64)))
+    found = np.isfinite(r)
+    mesh = np.where(found, np.asarray(hit["geometry_ids"].numpy(), dtype=np.int64), -1)
+    return _Hits(r, np.where(found, np.clip(cosine, 1e-6, 1.0), 1.0), mesh)
+
+
+def _rays(origins: FloatArray, dirs: FloatArray) -> NDArray[np.float32]:
     rays = np.empty((len(dirs), 6), dtype=np.float32)
     rays[:, :3] = origins
     rays[:, 3:] = dirs
-    hit = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)), nthreads=0)
-    return np.asarray(hit["t_hit"].numpy(), dtype=np.float64)
+    return rays
 
 
 class SimulatedStation:
@@ -199,6 +228,12 @@ class SimulatedStation:
             return np.asarray(d_L @ R, dtype=np.float64)  # rows Rᵀ·d_L
 
         self._dirs_P = (dirs(0.0), dirs(-half), dirs(+half))
+        spread = np.linspace(-half, half, FOOTPRINT_BEAMS)
+        self._footprint_dirs = tuple(dirs(float(a)) for a in spread)
+        axis = self.config.sensor.axis
+        tilt = np.array([0.0, math.cos(math.radians(axis.wobble_phase_deg)),
+                         math.sin(math.radians(axis.wobble_phase_deg))])
+        self._wobble = _rotation_about(tilt, math.radians(axis.wobble_deg))
 
     def _setup_turntable_and_encoder(self) -> None:
         tm = self.config.turntable
@@ -214,7 +249,9 @@ class SimulatedStation:
 
     def _setup_scenes(self) -> None:
         fx = self.recipe.recipe.fixtures
-        self._platter = meshes.platter_mesh(fx.platter)
+        self._platter = meshes.platter_mesh(
+            fx.platter, flatness=self.config.sensor.platter.flatness
+        )
         self._scene_D = _tensor_scene([self._platter])
         bg = self.config.background
         self._background: list[o3d.geometry.TriangleMesh] = []
@@ -241,10 +278,18 @@ class SimulatedStation:
             scene_P = _tensor_scene(self._background)
             origins = np.broadcast_to(self._origin_P, self._dirs_P[0].shape)
             # the background is static: its ranges per azimuth never change, cast them once
-            self._bg_ranges = tuple(_cast(scene_P, origins, d) for d in self._dirs_P)
+            self._bg = tuple(_cast(scene_P, _rays(origins, d)) for d in self._dirs_P)
         else:
-            inf = np.full(len(self.azimuths), np.inf)
-            self._bg_ranges = (inf, inf, inf)
+            n = len(self.azimuths)
+            none = _Hits(np.full(n, np.inf), np.ones(n), np.full(n, -1, dtype=np.int64))
+            self._bg = (none, none, none)
+        self._bg_ranges = tuple(h.range for h in self._bg)
+        if bg.enabled and self.config.sensor.mixed_pixels == "footprint":
+            self._footprint_bg = tuple(
+                _cast(scene_P, _rays(origins, d)).range for d in self._footprint_dirs)
+        else:
+            self._footprint_bg = tuple(np.full(len(self.azimuths), np.inf)
+                                       for _ in self._footprint_dirs)
 
     # --- time helpers -----------------------------------------------------------------------
     def _seconds(self, t_ns: NDArray[np.int64] | int) -> FloatArray:
@@ -333,12 +378,22 @@ class SimulatedStation:
     def truth_dict(self) -> dict[str, Any]:
         """Ground truth for ``truth.json`` and the recordings' ``"truth"`` metadata.
 
-        Top level tx, ty, tz (m), rx, ry, rz (rad) (DESIGN §2), ``fixtures`` (pose in D of every
-        fixture placed so far), ``fixture_on_platter``, ``seed``, ``scenario`` (range_m,
-        pitch_deg) and the encoder's simulated latency.
+        Top level tx, ty, tz (m), rx, ry, rz (rad) (DESIGN §2), the lidar's ``range_offset``
+        (m) and ``range_scale`` (DESIGN §9), ``sensor`` (every systematic error simulated,
+        ``simulation.sensor``, and the warm-up drift at this moment), ``fixtures`` (pose in D
+        of every fixture placed so far), ``fixture_on_platter``, ``seed``, ``scenario``
+        (range_m, pitch_deg) and the encoder's simulated latency.
         """
+        sensor = self.config.sensor
         return {
             **self.truth.as_dict(),
+            # the lidar's true range model (DESIGN §9), beside the physical H
+            "range_offset": sensor.range.offset,
+            "range_scale": sensor.range.scale,
+            "sensor": {
+                **sensor.model_dump(mode="json"),
+                "warmup_drift_now_m": float(self.warmup_drift(self.clock.now_ns())),
+            },
             "fixtures": {k: dict(v) for k, v in self.placements.items()},
             "fixture_on_platter": self.current_fixture,
             "seed": self.seed,
@@ -379,8 +434,22 @@ class SimulatedStation:
         """Counts the encoder reports with timestamps ``t_ns``: the quantised angle at
         ``t_ns − latency``, ``floor(direction·φ·counts_per_rev/2π)`` (DESIGN §2)."""
         phi = self.platter_angles(np.asarray(t_ns, dtype=np.int64) - self.encoder_latency_ns)
+        phi = phi + self._encoder_error(phi)
         x = self.encoder_direction * phi * (self.counts_per_revolution / (2.0 * math.pi))
         return np.floor(x + 1e-9).astype(np.int64)
+
+    def _encoder_error(self, phi: FloatArray) -> FloatArray:
+        """The encoder's angle error (rad) at true angles ``phi``: an eccentric code disc once
+        per turn and its second harmonic (``simulation.sensor.encoder``)."""
+        e = self.config.sensor.encoder
+        out = np.zeros_like(phi)
+        if e.eccentricity_deg:
+            out += math.radians(e.eccentricity_deg) * np.sin(
+                phi + math.radians(e.eccentricity_phase_deg))
+        if e.second_harmonic_deg:
+            out += math.radians(e.second_harmonic_deg) * np.sin(
+                2.0 * phi + math.radians(e.second_harmonic_phase_deg))
+        return out
 
     def encoder_count(self, t_ns: int) -> int:
         """The quantised count the encoder reports stamped ``t_ns`` (see :meth:`encoder_counts`)."""
@@ -398,14 +467,17 @@ class SimulatedStation:
         phi = self.platter_angles(t_ns)  # (B, N) per-point platter angle
         n_lines, n = phi.shape
         cols = np.broadcast_to(np.arange(n), (n_lines, n))
-        r = np.minimum(
-            self._cast_D(phi.ravel(), self._dirs_P[0], cols.ravel()),
-            np.tile(self._bg_ranges[0], n_lines),
-        ).reshape(n_lines, n)
+        dyn = self._cast_D(phi.ravel(), self._dirs_P[0], cols.ravel())
+        bg = self._bg[0]
+        bg_r = np.tile(bg.range, n_lines)
+        nearer = dyn.range <= bg_r
+        r = np.where(nearer, dyn.range, bg_r).reshape(n_lines, n)
         rng = self._noise_rng
-        if lm.mixed_pixel_prob > 0 and lm.beam_divergence_deg > 0:
+        footprint = self.config.sensor.mixed_pixels == "footprint"
+        if (lm.mixed_pixel_prob > 0 or footprint) and lm.beam_divergence_deg > 0:
             self._mix_pixels(r, phi, rng)
         hit = np.isfinite(r)
+        r = self._systematic(r, t_ns, dyn, bg, nearer.reshape(n_lines, n))
         noisy = r + lm.range_noise * rng.standard_normal(r.shape) if lm.range_noise else r.copy()
         dropped = rng.random(r.shape) < lm.dropout if lm.dropout > 0 else np.zeros(r.shape, bool)
         noisy[~hit] = 0.0
@@ -421,9 +493,54 @@ class SimulatedStation:
             for b in range(n_lines)
         ]
 
-    def _cast_D(self, phi: FloatArray, dirs_P: FloatArray, cols: NDArray[np.intp]) -> FloatArray:
-        """Ranges (M,) of the rays of azimuth columns ``cols`` at platter angles ``phi`` (M,)
-        against the dynamic scene: origin and direction turned from P into D, Rx(φ)ᵀ."""
+    def _systematic(
+        self, r: FloatArray, t_ns: NDArray[np.int64], dyn: _Hits, bg: _Hits,
+        nearer: NDArray[np.bool_],
+    ) -> FloatArray:
+        """The ranges ``r`` (B, N) as the lidar reports them before its noise (DESIGN §9):
+        (1 + scale)·r + offset + the incidence bias + the surface's reflectivity bias + the
+        warm-up drift at each return's time ``t_ns``. ``dyn``/``bg``: what the main beams hit
+        in the platter's scene and in the background; ``nearer``: the platter's was nearer."""
+        sensor = self.config.sensor
+        rm, refl, warm = sensor.range, sensor.reflectivity, sensor.warmup
+        if not (rm.offset or rm.scale or rm.incidence_bias or refl.bias or warm.drift):
+            return r
+        shape = r.shape
+        flat_near = nearer.ravel()
+        out = (1.0 + rm.scale) * r + rm.offset
+        if rm.incidence_bias:
+            cosine = np.where(flat_near, dyn.cosine, np.tile(bg.cosine, shape[0]))
+            out = out + rm.incidence_bias * (1.0 / cosine - 1.0).reshape(shape)
+        if refl.bias:
+            fixture = self._surface_name()
+            dyn_bias = np.where(dyn.mesh == 0, refl.range_bias("platter"),
+                                refl.range_bias(fixture) if fixture else 0.0)
+            bias = np.where(flat_near, dyn_bias, refl.range_bias("background"))
+            out = out + bias.reshape(shape)
+        if warm.drift:
+            out = out + self.warmup_drift(t_ns)
+        return np.asarray(out, dtype=np.float64)
+
+    def _surface_name(self) -> str | None:
+        """The reflectivity surface of the fixture on the platter (None when bare)."""
+        if self.current_fixture == "none":
+            return None
+        return "demo" if self.current_fixture.startswith("demo:") else self.current_fixture
+
+    def warmup_drift(self, t_ns: NDArray[np.int64] | int) -> FloatArray:
+        """The warm-up drift (m) the lidar adds to its ranges at ``t_ns``."""
+        w = self.config.sensor.warmup
+        on = self._seconds(t_ns) + w.on_before_s
+        return np.asarray(w.drift * (1.0 - np.exp(-np.maximum(on, 0.0) / w.time_constant_s)))
+
+    def range_offset_at(self, t_ns: int) -> float:
+        """The lidar's whole range offset (m) at ``t_ns``: its offset and its warm-up drift."""
+        return float(self.config.sensor.range.offset + self.warmup_drift(t_ns))
+
+    def _cast_D(self, phi: FloatArray, dirs_P: FloatArray, cols: NDArray[np.intp]) -> _Hits:
+        """What the rays of azimuth columns ``cols`` at platter angles ``phi`` (M,) hit in the
+        dynamic scene: origin and direction turned from P into D, Rx(φ)ᵀ, then by the axis
+        wobble's tilt of the platter (:meth:`_unwobble`)."""
         c, s = np.cos(phi), np.sin(phi)
         o = self._origin_P
         d = dirs_P[cols]
@@ -434,15 +551,29 @@ class SimulatedStation:
         rays[:, 3] = d[:, 0]
         rays[:, 4] = c * d[:, 1] + s * d[:, 2]
         rays[:, 5] = -s * d[:, 1] + c * d[:, 2]
-        hit = self._scene_D.cast_rays(
-            o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)), nthreads=0
-        )
-        return np.asarray(hit["t_hit"].numpy(), dtype=np.float64)
+        return _cast(self._scene_D, self._unwobble(rays))
+
+    def _unwobble(self, rays: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Rays in D taken into the wobbling platter's own frame. A once-per-turn precession
+        of the axis, locked to the platter, is a fixed tilt of the platter (and of what stands
+        on it) in D: by ``wobble_deg`` about the horizontal direction ``wobble_phase_deg``
+        from +Y_D."""
+        axis = self.config.sensor.axis
+        if axis.wobble_deg == 0.0:
+            return rays
+        W = self._wobble
+        out = np.empty_like(rays)
+        out[:, :3] = rays[:, :3] @ W  # rows Wᵀ·v
+        out[:, 3:] = rays[:, 3:] @ W
+        return out
 
     def _mix_pixels(self, r: FloatArray, phi: FloatArray, rng: np.random.Generator) -> None:
-        """Mixed pixels, in place: where a point sits at a depth edge, cast its two sub-beams
-        (±divergence/2 in azimuth); if they disagree by more than :data:`MIXED_PIXEL_GAP_M`,
-        with probability ``mixed_pixel_prob`` return a random blend of the two ranges."""
+        """Mixed pixels, in place, where a point sits at a depth edge (its range differs from a
+        neighbour's by more than :data:`MIXED_PIXEL_GAP_M`). ``sensor.mixed_pixels: random``:
+        cast its two sub-beams (±divergence/2 in azimuth); if they disagree by more than the
+        gap, with probability ``mixed_pixel_prob`` return a random blend of the two ranges.
+        ``footprint``: the mean range over :data:`FOOTPRINT_BEAMS` sub-beams spread across the
+        beam's divergence (the share of the footprint on each surface sets the blend)."""
         cmp = np.where(np.isfinite(r), r, _FAR)
         jump = np.abs(np.diff(cmp, axis=1)) > MIXED_PIXEL_GAP_M
         edge = np.zeros(r.shape, dtype=bool)
@@ -452,8 +583,11 @@ class SimulatedStation:
         if len(rows) == 0:
             return
         ph = phi[rows, cols]
-        ra = np.minimum(self._cast_D(ph, self._dirs_P[1], cols), self._bg_ranges[1][cols])
-        rb = np.minimum(self._cast_D(ph, self._dirs_P[2], cols), self._bg_ranges[2][cols])
+        if self.config.sensor.mixed_pixels == "footprint":
+            self._footprint_blend(r, rows, cols, ph)
+            return
+        ra = np.minimum(self._cast_D(ph, self._dirs_P[1], cols).range, self._bg_ranges[1][cols])
+        rb = np.minimum(self._cast_D(ph, self._dirs_P[2], cols).range, self._bg_ranges[2][cols])
         u = rng.random(len(rows))
         w = rng.random(len(rows))
         with np.errstate(invalid="ignore"):  # two misses: inf − inf, not a mixed pixel
@@ -465,6 +599,21 @@ class SimulatedStation:
             & (u < self.config.lidar.mixed_pixel_prob)
         )
         r[rows[mixed], cols[mixed]] = ra[mixed] + w[mixed] * (rb[mixed] - ra[mixed])
+
+    def _footprint_blend(
+        self, r: FloatArray, rows: NDArray[np.intp], cols: NDArray[np.intp], ph: FloatArray
+    ) -> None:
+        """``sensor.mixed_pixels: footprint``: at the depth-edge returns (``rows``, ``cols``,
+        platter angles ``ph``), the mean range of the footprint's sub-beams that hit."""
+        total = np.zeros(len(rows))
+        hits = np.zeros(len(rows))
+        for dirs, bg in zip(self._footprint_dirs, self._footprint_bg, strict=True):
+            sub = np.minimum(self._cast_D(ph, dirs, cols).range, bg[cols])
+            found = np.isfinite(sub)
+            total[found] += sub[found]
+            hits[found] += 1
+        blend = hits >= 1
+        r[rows[blend], cols[blend]] = total[blend] / hits[blend]
 
 
 def shared_station(
