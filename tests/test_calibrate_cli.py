@@ -20,6 +20,11 @@ def test_calibrate_json_then_verify(sim_run, tmp_path, capsys) -> None:
     run = sim_run()
     calib = tmp_path / "calib.yaml"
     argv = ["calibrate", RECIPE, "--static", str(run["static"]), "--spin", str(run["spin"])]
+    # the spin target alone cannot measure the lidar's range offset: refused, saying so
+    code, out, _ = _run([*argv, "--json"], capsys)
+    assert code == 3 and any("range offset" in r and "QA cube" in r
+                             for r in json.loads(out)["refused"])
+    argv += ["--cube", str(run["cube"])]
     code, out, _ = _run([*argv, "--out", str(calib), "--json"], capsys)
     assert code == 0
     data = json.loads(out)
@@ -27,9 +32,10 @@ def test_calibrate_json_then_verify(sim_run, tmp_path, capsys) -> None:
         assert key in data
     for n in ("tx", "ty", "tz", "ry", "rz"):
         assert data[f"sigma_{n}"] > 0
-    assert data["strategy"] == "periodicity" and data["sigma_rx"] is None
+    assert data["strategy"] == "periodicity+cube" and data["sigma_rx"] is None
     saved = CalibrationResult.load(calib)
-    assert saved.H.tx == pytest.approx(data["tx"]) and saved.strategy == "periodicity"
+    assert saved.H.tx == pytest.approx(data["tx"]) and saved.strategy == "periodicity+cube"
+    assert saved.range_offset == pytest.approx(data["range_offset"])
     truth = read_recording(run["spin"]).truth
     assert truth is not None
     assert axis_errors(saved.H, truth)["axis_offset_m"] < 0.5e-3
@@ -91,11 +97,14 @@ def test_calibrate_with_the_cube_combines_ry(sim_run, tmp_path, capsys) -> None:
     assert both["strategy"] == "periodicity+cube" and "side-face twist" in err
     # the cube's faces add to ry: the combined σ is smaller, and it covers the real error
     joint = CalibrationResult.load(saved).diagnostics["joint"]
-    assert both["sigma_ry"] < joint["sigma_ry_spin_target"]
-    assert both["sigma_ry"] < joint["sigma_ry_cube"]
+    assert both["sigma_ry"] < joint["spin_target"]["sigma"]["ry"]
+    assert both["sigma_ry"] < joint["cube"]["sigma"]["ry"]
     truth = read_recording(run["spin"]).truth
     assert truth is not None
     assert abs(both["ry"] - truth.ry) <= 3 * both["sigma_ry"]
+    # and the lidar's range offset (none on the simulator) is measured, within its σ
+    assert abs(both["range_offset"]) <= 3 * both["sigma_range_offset"]
+    assert both["sigma_range_offset"] < 0.3e-3 and both["range_scale"] is None
 
     # the wrong recording, or a strategy that already fine-tunes on the cube: a clear message
     code, _, err = _run([*argv, "--cube", str(run["spin"])], capsys)

@@ -70,13 +70,17 @@ def _assert_accurate_and_passed(db: Database, run_id: int) -> dict[str, Any]:
     assert errors["axis_angle_rad"] <= AXIS_ANGLE_RAD, errors
     assert abs(errors["rz_error"]) <= RZ_RAD, errors
     sigma = fine.sigmas()
-    for name in ("tx", "tz", "ry", "rz"):
+    for name in ("tx", "ty", "tz", "ry", "rz"):  # ty from the cube, with the range model
         s = sigma[name]
         assert s is not None and abs(errors[f"{name}_error"]) <= 3 * s, (name, errors, sigma)
     assert cube.passed, cube.failures
-    # the accepted calibration combines the spin target's periodicity with the cube's faces
+    # the accepted calibration combines the spin target's periodicity with the cube's known-size
+    # fit and the lidar's range offset, and the two agreed
     assert fine.stage == "fine" and fine.strategy == "periodicity+cube"
-    assert (fine.diagnostics or {}).get("joint", {}).get("disagreement_sigma", 99) <= 3
+    assert fine.range_offset is not None and fine.sigma_range_offset is not None
+    assert abs(fine.range_offset) <= 3 * fine.sigma_range_offset  # the simulator's is 0
+    disagreement = (fine.diagnostics or {})["joint"]["disagreement"]
+    assert max(abs(z) for z in disagreement["sigmas"].values()) <= 3, disagreement
     print(
         f"run {run_id}: axis offset {errors['axis_offset_m'] * 1e3:.3f} mm, direction "
         f"{math.degrees(errors['axis_angle_rad']):.3f}°, "

@@ -26,16 +26,20 @@ RECIPE = REPO / "recipes" / "sim-periodicity.yaml"
 
 
 def _store_run(db: Database, files: dict[str, Path], status: str = "passed",
-               shape: dict[str, object] | None = None) -> int:
+               shape: dict[str, object] | None = None, range_model: str | None = None) -> int:
     """A finished periodicity run of ``files`` as the station stores it; returns its id.
-    ``shape``: the recipe's ``calibration.options.shape``."""
+    ``shape``: the recipe's ``calibration.options.shape``; ``range_model``: its
+    ``calibration.range_model``."""
     from calstation.engine.initial import initial_calibration
     from calstation.recipes import LoadedRecipe, parse_recipe
 
     loaded = load_recipe(RECIPE)
-    if shape is not None:
+    if shape is not None or range_model is not None:
         data = yaml.safe_load(loaded.text)
-        data["calibration"].setdefault("options", {})["shape"] = shape
+        if shape is not None:
+            data["calibration"].setdefault("options", {})["shape"] = shape
+        if range_model is not None:
+            data["calibration"]["range_model"] = range_model
         text = yaml.safe_dump(data, sort_keys=False)
         loaded = LoadedRecipe(parse_recipe(text, str(RECIPE)), RECIPE, text)
     static = read_recording(files["static"])
@@ -72,7 +76,8 @@ def test_reprocessing_with_shape_stores_a_second_calibration(
     files = sim_run()
     url = f"sqlite:///{tmp_path / 'qa.db'}"
     db = open_database(url)
-    run_id = _store_run(db, files, shape={"known_size": False})
+    # the box cost alone: neither the known-size cube fit nor the range model it estimates
+    run_id = _store_run(db, files, shape={"known_size": False}, range_model="none")
 
     code, out, err = _run(
         ["calibrate", "--run", str(run_id), "--strategy", "shape", "--db", url, "--json"], capsys

@@ -251,3 +251,46 @@ def test_export_cli_formats(tmp_path: Path) -> None:
     res = runner.invoke(app, ["export", str(run_id), "--db", url, "--format", "urdf",
                               "--parent", "world"])
     assert res.exit_code == 2 and "parent must be 'lidar' or 'platform'" in res.output
+
+
+def test_export_carries_the_lidars_range_model(tmp_path: Path) -> None:
+    """A calibration with the lidar's range model: ``ros2-params`` gives the transform, the
+    range terms estimated and the time offset as ROS 2 parameters (one not estimated left out,
+    named in a comment); yaml carries them as fields; tf says how to correct a range."""
+    url = f"sqlite:///{tmp_path / 'ros.db'}"
+    db = open_database(url)
+    with db.session() as s:
+        run = Run(station=Station(name="st-ros"), recipe_name="r", recipe_path="r.yaml",
+                  recipe_text="name: r\n", recipe_sha256="ab" * 32, operator="qa",
+                  unattended=True, data_dir=str(tmp_path), status="passed",
+                  started_at=dt.datetime(2026, 3, 1, tzinfo=dt.UTC))
+        s.add(run)
+        s.flush()
+        s.add(Calibration(run=run, stage="fine", strategy="periodicity+cube", **H.as_dict(),
+                          accepted=True, range_offset=0.0031, sigma_range_offset=0.0001,
+                          incidence_bias=0.0004, sigma_incidence_bias=0.00005,
+                          encoder_latency_s=0.005, sigma_encoder_latency_s=1e-5,
+                          created_at=dt.datetime(2026, 3, 1, 9, tzinfo=dt.UTC)))
+        s.flush()
+        run_id = run.id
+    db.dispose()
+    _build()
+    runner = CliRunner()
+
+    def export(*args: str) -> str:
+        res = runner.invoke(app, ["export", str(run_id), "--db", url, *args])
+        assert res.exit_code == 0, res.output
+        return res.output
+
+    text = export("--format", "ros2-params")
+    params = yaml.safe_load(text)["/**"]["ros__parameters"]["calstation"]
+    assert (params["frame_id"], params["child_frame_id"]) == ("lidar", "platform")
+    np.testing.assert_allclose(_matrix(params["translation"], params["rotation_xyzw"]),
+                               H.as_matrix(), atol=1e-8)
+    assert params["range_offset"] == 0.0031 and params["sigma_range_offset"] == 0.0001
+    assert params["incidence_bias"] == 0.0004 and params["encoder_latency_s"] == 0.005
+    assert "range_scale" not in params and "# range_scale: not estimated" in text
+    assert yaml.safe_load(export("--format", "yaml"))["range_offset"] == 0.0031
+    tf = export("--format", "tf")
+    assert "lidar range offset b +3.100 ± 0.100 mm" in tf
+    assert "rho = (rho_measured - b) / (1 + k) with b = 0.0031 m" in tf

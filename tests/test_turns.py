@@ -58,7 +58,7 @@ class Operator:
         self.events.append(event)
 
 
-def _recipe(tmp_path: Path, budget: float, **spin: Any) -> Path:
+def _recipe(tmp_path: Path, budget: float, range_model: str = "offset", **spin: Any) -> Path:
     """The simulated station made quick: 500 points per line at 60 rpm."""
     data = yaml.safe_load((RECIPES / "sim-periodicity.yaml").read_text())
     data["simulation"]["lidar"]["points_per_line"] = 500
@@ -67,7 +67,7 @@ def _recipe(tmp_path: Path, budget: float, **spin: Any) -> Path:
                      "spin_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1, **spin},
                      "cube_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1,
                                    "max_revolutions": 1.02}}
-    data["calibration"] = {"accuracy": {"max_error": budget}}
+    data["calibration"] = {"accuracy": {"max_error": budget}, "range_model": range_model}
     path = tmp_path / "turns.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
@@ -126,13 +126,14 @@ def test_a_generous_budget_ends_the_spin_scan_after_its_first_fit(
         assert again[name] == pytest.approx(value, abs=1e-9), (name, again, stored)
 
 
+@pytest.mark.parametrize("range_model", ["none", "offset"])
 def test_an_unreachable_budget_turns_to_the_maximum_and_is_refused_with_what_would_help(
-    tmp_path: Path, db: Database
+    tmp_path: Path, db: Database, range_model: str
 ) -> None:
     ui = Operator()
     run_id, status = start_run(
-        load_recipe(_recipe(tmp_path, 0.00005, max_revolutions=3)), db, ui, operator="t",
-        data_dir=tmp_path,
+        load_recipe(_recipe(tmp_path, 0.00005, range_model, max_revolutions=3)), db, ui,
+        operator="t", data_dir=tmp_path,
     )
     assert status == "failed"
     spin = _step(db, run_id, "spin_scan").result
@@ -141,8 +142,14 @@ def test_an_unreachable_budget_turns_to_the_maximum_and_is_refused_with_what_wou
     assert _turns(spin["recording"]) == 3  # the recording holds every turn
     assert [f["turns"] for f in summary["fits"]] == sorted({f["turns"] for f in summary["fits"]})
     (step, error), = ui.failures
-    assert step == "fine_tune"
     assert "calibration.accuracy.max_error" in error and "What would help" in error
+    if range_model == "offset":
+        # the cube's known-size fit sets ty and the range offset: the cube step decides, and
+        # more turns of the cube are what would help most
+        assert step == "cube_scan", error
+        assert "turns (steps.cube_scan.max_revolutions:" in error and "this scan took 1" in error
+        return
+    assert step == "fine_tune", error
     # every suggestion is computed from this scan: more turns (how many), a slower platter, a
     # faster line rate, each with its number
     assert "turns (steps.spin_scan.max_revolutions:" in error and "this scan took 3" in error

@@ -164,6 +164,7 @@ def register(app: typer.Typer) -> None:
                 rc.fixtures.qa_cube,
                 rc.qa,
                 platter_radius=rc.fixtures.platter.radius,
+                range_model=calib.range_model,
             )
         if as_json:
             typer.echo(json.dumps(check.to_dict(), indent=2))

@@ -218,10 +218,13 @@ def register(app: typer.Typer) -> None:
         run_id: int = typer.Argument(..., help="Run id."),
         fmt: str = typer.Option(
             "yaml", "--format", "-f",
-            help="yaml | json | csv | tf | urdf | xacro | ros2-yaml (values in m, rad; "
-            "quaternions x y z w). tf: static_transform_publisher arguments, both directions; "
-            "urdf: a <robot> file with the two links and the joint; xacro: a macro adding the "
-            "joint between links you name; ros2-yaml: a geometry_msgs/TransformStamped.",
+            help="yaml | json | csv | tf | urdf | xacro | ros2-yaml | ros2-params (values in "
+            "m, rad; quaternions x y z w). tf: static_transform_publisher arguments, both "
+            "directions; urdf: a <robot> file with the two links and the joint; xacro: a macro "
+            "adding the joint between links you name; ros2-yaml: a "
+            "geometry_msgs/TransformStamped; ros2-params: a ROS 2 parameter file with the "
+            "transform, the lidar's range model and the time offset. The range model, when "
+            "estimated, is in every format (a comment in tf, urdf, xacro, ros2-yaml).",
         ),
         fragment: bool = typer.Option(
             False, "--fragment",

@@ -45,7 +45,11 @@ def register(app: typer.Typer) -> None:
         from calstation.engine.reconstruct import reconstruct
         from calstation.errors import RecordingError
         from calstation.quiet import stdout_to_stderr
-        from calstation.recordings.files import load_calibration_file, write_ply
+        from calstation.recordings.files import (
+            load_calibration_file,
+            load_range_model,
+            write_ply,
+        )
         from calstation.recordings.reader import read_recording
 
         if (calibration is None) == (truth is None):
@@ -55,6 +59,7 @@ def register(app: typer.Typer) -> None:
         h_path = calibration if calibration is not None else truth
         assert h_path is not None
         H, latency = load_calibration_file(h_path, source=source)
+        ranges = load_range_model(h_path, source=source)
         console = Console(stderr=True)
         clouds, lines, truncated = [], 0, []
         for path in recordings:
@@ -66,7 +71,7 @@ def register(app: typer.Typer) -> None:
                     f"(the recording says {rec.encoder_latency_s * 1e3:.3f} ms)"
                 )
             with console.status(f"reconstructing {rec.n_points:,} points"), stdout_to_stderr():
-                clouds.append(reconstruct(rec, H, latency))
+                clouds.append(reconstruct(rec, H, latency, ranges))
             lines += rec.n_lines
             if rec.truncated:
                 truncated.append(str(path))

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
+from calstation.engine.rangemodel import IDENTITY, RANGE_NAMES, RangeModel, unit_rays
 
 RINGS = 24
 """Points around each circle of the work volume."""
@@ -122,6 +123,12 @@ def displacement_jacobian(
     the parameters ``names`` (the returns ``p_L`` and their φ held: they are measured)."""
     out = np.empty((p_L.shape[0], 3, len(names)))
     for k, name in enumerate(names):
+        if name in RANGE_NAMES:
+            # the range terms move each return along its own ray (the lidar at the origin of
+            # L): −ray per metre of offset, −p_L per unit of scale error
+            along = unit_rays(p_L) if name == "range_offset" else p_L
+            out[:, :, k] = -lidar_to_dynamic(along, phi, H.with_(tx=0.0, ty=0.0, tz=0.0))
+            continue
         value = getattr(H, name)
         plus = lidar_to_dynamic(p_L, phi, H.with_(**{name: value + STEP}))
         minus = lidar_to_dynamic(p_L, phi, H.with_(**{name: value - STEP}))
@@ -190,8 +197,9 @@ def predicted_error(
 
     ``sigma``: 1σ per parameter (NaN: held, not propagated); ``covariance``: the stored record
     (``parameters`` and ``matrix``, SI) when the strategy gives one; ``bias``: a bound on the
-    remaining bias per parameter (m or rad). ty is the gauge along the axis and is not
-    propagated: it moves the object rigidly.
+    remaining bias per parameter (m or rad). The covariance's range terms (``range_offset``,
+    ``range_scale``) move each return along its ray. ty is propagated when the covariance has
+    it; its σ alone is not (without its correlations it would be the gauge along the axis).
     """
     names, cov = _covariance_of(covariance, sigma)
     points = work_volume(radius, height)
@@ -237,16 +245,21 @@ def _bias_bound(
 
 
 def true_distortion(
-    estimate: Extrinsics, truth: Extrinsics, *, radius: float, height: float
+    estimate: Extrinsics, truth: Extrinsics, *, radius: float, height: float,
+    estimate_range: RangeModel = IDENTITY, truth_range: RangeModel = IDENTITY,
 ) -> dict[str, float]:
-    """What the simulator knows: the work volume seen under the true H and reconstructed with
-    ``estimate``; after the best rigid alignment, the largest and the RMS displacement (m)."""
+    """What the simulator knows: the work volume seen under the true H by a lidar of the true
+    range model (``truth_range``: its offset and scale error), and reconstructed with
+    ``estimate`` and the estimated range model; after the best rigid alignment, the largest and
+    the RMS displacement (m)."""
     from calstation.engine.metrics import kabsch
 
     points = work_volume(radius, height)
     index, phi, p_L = sightings(points, truth)
     p_D = points[index]
-    est = lidar_to_dynamic(p_L, phi, estimate)
+    rho = np.linalg.norm(p_L, axis=1, keepdims=True)
+    measured = p_L * (((1.0 + truth_range.scale) * rho + truth_range.offset) / rho)
+    est = lidar_to_dynamic(estimate_range.points(measured), phi, estimate)
     R, t = kabsch(est, p_D)
     d = np.linalg.norm(est @ R.T + t - p_D, axis=1)
     return {"max_m": float(d.max()), "rms_m": float(np.sqrt(np.mean(d**2)))}

@@ -32,6 +32,13 @@ from calstation.engine.geometry import (
     minimal_obb,
     upright_box,
 )
+from calstation.engine.rangemodel import (
+    IDENTITY,
+    RangeModel,
+    correct_points,
+    incidence_shape,
+    unit_rays,
+)
 from calstation.engine.settings import DEFAULT_PLATTER_RADIUS, CubeGeometry, QALimits
 from calstation.engine.twist import (  # the twist lived here; its names are still importable
     FaceFlatness as FaceFlatness,
@@ -593,21 +600,72 @@ def check_cube(
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
     prepared: SpinScan | None = None,
     nearby: bool = False,
+    range_model: RangeModel = IDENTITY,
 ) -> CubeCheck:
-    """Cube check on a QA-cube spin-scan recording with the calibration H. ``prepared``: the
-    recording's returns already prepared (:func:`calstation.engine.spinscan.from_recording`, or
-    a :class:`~calstation.engine.spinscan.SpinScanBuilder` as the scan ran), else they are
+    """Cube check on a QA-cube spin-scan recording with the calibration H and the lidar's
+    ``range_model``. ``prepared``: the recording's returns already prepared
+    (:func:`calstation.engine.spinscan.from_recording`, or a
+    :class:`~calstation.engine.spinscan.SpinScanBuilder` as the scan ran), else they are
     prepared here. ``nearby``: see :func:`check_cube_points`."""
     from calstation.engine.spinscan import from_recording
 
     scan = prepared if prepared is not None else from_recording(recording)
+    p_L, memo = scan.p_L, scan.memo
+    if not (range_model.is_identity and range_model.incidence == 0.0):
+        # the corrected returns have their own segmentation: a memo of their own
+        p_L = range_model.points(p_L)
+        if range_model.incidence != 0.0:
+            p_L = incidence_corrected(p_L, scan.phi, H, range_model.incidence, cube.edge,
+                                      platter_radius)
+        memo = scan.memo.setdefault(f"range {range_model.as_vector().tolist()!r}", {})
     try:
         return check_cube_points(
-            scan.p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=scan.memo,
+            p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=memo,
             nearby=nearby,
         )
     except VerificationError as exc:
         raise VerificationError(f"{recording.path}: {exc}") from None
+
+
+def incidence_corrected(
+    p_L: FloatArray, phi: FloatArray, H: Extrinsics, incidence: float, edge: float,
+    platter_radius: float,
+) -> FloatArray:
+    """The returns (N, 3) in L of a cube scan with the lidar's incidence bias taken out
+    (``incidence``, m at 60°, :func:`calstation.engine.rangemodel.incidence_shape`): each return
+    on the platter top by its ray's angle with the axis, each return of the cube by its ray's
+    angle with the nearest face of the cube's upright box found under H; the rest (the
+    background) as they are. The surfaces' normals come from this scan, as a reconstruction
+    knows none."""
+    cloud = _cube_cloud(p_L, phi, H, edge, platter_radius)
+    t_P = H.t @ H.R
+    x = p_L @ H.R[:, 0] - t_P[0] - cloud.level
+    yz = p_L @ H.R[:, 1:] - t_P[1:]
+    near = np.einsum("ij,ij->i", yz, yz) < platter_radius**2
+    rays = unit_rays(p_L)
+    cosine = np.zeros(p_L.shape[0])
+    on_cube = np.zeros(p_L.shape[0], dtype=bool)
+    if cloud.pts.shape[0] >= 8:
+        centre, axes, ext = upright_box(cloud.pts, strays=True)
+        close = np.flatnonzero(near & (x > -PLATTER_WINDOW))
+        p_D = lidar_to_dynamic(p_L[close], phi[close], H)
+        p_D[:, 0] -= cloud.level
+        local = (p_D - centre) @ axes
+        # over the cube's footprint (and a little around it): the nearest of its faces
+        inside = np.all(np.abs(local[:, 1:]) <= 0.5 * ext[1:] + PLATTER_WINDOW, axis=1) & (
+            local[:, 0] > -0.5 * ext[0] + 0.002)
+        idx, local = close[inside], local[inside]
+        gaps = np.abs(0.5 * ext - np.abs(local))
+        gaps[:, 0] = np.where(local[:, 0] > 0, gaps[:, 0], np.inf)  # no bottom face
+        nearest = np.argmin(gaps, axis=1)
+        normal_D = axes[:, nearest].T * np.sign(local[np.arange(len(idx)), nearest])[:, None]
+        ray_D = lidar_to_dynamic(rays[idx], phi[idx], H.with_(tx=0.0, ty=0.0, tz=0.0))
+        cosine[idx] = np.einsum("ij,ij->i", normal_D, ray_D)
+        on_cube[idx] = True
+    platter = near & ~on_cube & (np.abs(x) < PLATTER_WINDOW)
+    cosine[platter] = rays[platter] @ H.R[:, 0]
+    shift = np.where(cosine != 0.0, incidence * incidence_shape(cosine), 0.0)
+    return correct_points(p_L, shift, 0.0)
 
 
 def check_cube_passes(

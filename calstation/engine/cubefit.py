@@ -46,6 +46,18 @@ from calstation.engine.periodicity.covariance import (
     parameter_covariance,
     sigma_from_covariance,
 )
+from calstation.engine.rangemodel import (
+    ESTIMATED_NAMES,
+    IDENTITY,
+    OFFSET,
+    SCALE,
+    RangeModel,
+    RangeModelName,
+    correct_vector,
+    estimated_indices,
+    incidence_shape,
+    unit_rays,
+)
 from calstation.engine.settings import CubeGeometry
 from calstation.engine.spinscan import SpinScan
 from calstation.engine.twist import away_from_grazing, face_range_noise, range_twist_bias
@@ -169,13 +181,73 @@ class _RangeErrors:
         return out
 
 
+class _RangeSizeErrors:
+    """The range errors of the known-size fit when the lidar's range model is estimated too:
+    the labelled returns against an upright cube of edge ``edge`` standing on the platter (its
+    top at ``edge`` above the origin), and the platter's returns against a plane perpendicular
+    to the axis — at a level of their own, or with the scale error at the origin (the cube's
+    height, a known length, is what sets the scale) — every return first corrected along its
+    ray by the range terms. x = (the free parameters of the estimated vector, indices ``free``
+    of :data:`~calstation.engine.rangemodel.ESTIMATED_NAMES`; centre y, centre z, yaw)."""
+
+    def __init__(self, faces: _Faces, platter: FloatArray, base: FloatArray, free: list[int],
+                 edge: float) -> None:
+        self.f, self.base, self.free, self.edge = faces, base, free, edge
+        self.platter = platter
+        self.platter_rays = unit_rays(platter)
+        self.level_free = SCALE not in free
+        """the platter's level free, unless the scale error is fitted: then the cube's height
+        above the platter is the known length that sets it (the platter and the cube must read
+        alike: one finish)"""
+
+    def vector(self, x: FloatArray) -> FloatArray:
+        v = self.base.copy()
+        v[self.free] = x[: len(self.free)]
+        return v
+
+    def H(self, x: FloatArray) -> Extrinsics:
+        return Extrinsics.from_vector(self.vector(x)[: len(PARAMETER_NAMES)])
+
+    def __call__(self, x: FloatArray, edge: float | None = None) -> FloatArray:
+        f = self.f
+        v = self.vector(x)
+        H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
+        size = self.edge if edge is None else edge
+        r = _turned(f.rays, H, f.cos, f.sin)
+        cy, cz, yaw = x[len(self.free):]
+        c, s = math.cos(yaw), math.sin(yaw)
+        ny = np.where(f.across_u, c, -s) * f.sign
+        nz = np.where(f.across_u, s, c) * f.sign
+        cosine = np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
+        q = _turned(correct_vector(f.p_L, v, incidence_shape(cosine)) - H.t, H, f.cos, f.sin)
+        dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - 0.5 * size,
+                        q[:, 0] - size)
+        down = self.platter_rays @ H.R[:, 0]
+        on_platter = (correct_vector(self.platter, v, incidence_shape(down)) - H.t) @ H.R[:, 0]
+        platter = on_platter / away_from_grazing(down)
+        if self.level_free:
+            # about their mean: the platter gives the axis's direction; its level is free, as
+            # a platter of another finish reads at another range than the cube (the cube's
+            # top, at its edge above the origin, gives the origin)
+            platter = platter - platter.mean()
+        out: FloatArray = np.concatenate([dist / away_from_grazing(cosine), platter])
+        return out
+
+
+def _turned(v: FloatArray, H: Extrinsics, cos: FloatArray, sin: FloatArray) -> FloatArray:
+    """(N, 3) vectors in L taken into D: Rx(φ)ᵀ·Rᵀ·v (φ as its cosine and sine)."""
+    q = v @ H.R
+    return np.column_stack([q[:, 0], cos * q[:, 1] + sin * q[:, 2], -sin * q[:, 1] + cos * q[:, 2]])
+
+
 @dataclass(frozen=True)
 class KnownSizeFit:
     """The known-size cube fit's estimate."""
 
     H: Extrinsics
     sigma: dict[str, float]
-    """1σ per parameter (NaN for those held: rx, ty, and ry when it is not estimated)"""
+    """1σ per parameter (NaN for those held: rx, ty, and ry when it is not estimated; the range
+    terms when estimated)"""
     covariance: dict[str, Any] | None
     """the covariance record of the free parameters (:func:`covariance_record`): the part of
     the uncertainty that falls with more data"""
@@ -183,6 +255,29 @@ class KnownSizeFit:
     """per free parameter, a bound on what more data does not remove (m, rad): ``sigma`` holds
     it in quadrature, the accuracy budget adds it at its worst"""
     details: dict[str, Any]
+    range_model: RangeModel = IDENTITY
+    """the range model the fit ended on (its start when not estimated)"""
+    edge_direction: dict[str, float] | None = None
+    """per free parameter, how far (m, rad) a cube larger than the recipe's edge by its
+    tolerance moves it, with its sign: the bias bound's part that moves every parameter at once
+    (None when not computed)"""
+
+    def total_covariance(self) -> dict[str, Any] | None:
+        """The covariance record with the bias bound's parts as the covariance they are: the
+        edge tolerance's rank-one term (fully correlated across the parameters) and the
+        faces' noise bias in ry. What combining this fit with another estimate weighs it by."""
+        if self.covariance is None:
+            return None
+        names = list(self.covariance["parameters"])
+        C = np.asarray(self.covariance["matrix"], dtype=np.float64).copy()
+        if self.edge_direction is not None:
+            v = np.array([self.edge_direction.get(n, 0.0) for n in names])
+            C += np.outer(v, v)
+        if "ry" in names:
+            k = names.index("ry")
+            edge_part = abs((self.edge_direction or {}).get("ry", 0.0))
+            C[k, k] += max(self.bias.get("ry", 0.0) - edge_part, 0.0) ** 2
+        return {"parameters": names, "matrix": C.tolist()}
 
 
 def known_size_fit(
@@ -192,10 +287,20 @@ def known_size_fit(
     *,
     platter_radius: float,
     estimate_ry: bool = True,
+    range_model: RangeModelName = "none",
+    start_range: RangeModel = IDENTITY,
+    incidence: bool = False,
 ) -> KnownSizeFit:
     """Fit H's tx, tz, rz (and ry) with an upright cube of the recipe's edge to the cube scan's
     returns, from ``start`` (within a few millimetres: the box cost's result). Raises
-    :class:`FineTuningError` when the cube's faces cannot be labelled."""
+    :class:`FineTuningError` when the cube's faces cannot be labelled.
+
+    ``range_model`` other than ``none``: the lidar's range terms are fitted too (and the
+    incidence bias with ``incidence``), from ``start_range`` (:func:`range_size_fit`)."""
+    if range_model != "none":
+        return range_size_fit(scan, start, cube, platter_radius=platter_radius,
+                              estimate_ry=estimate_ry, range_model=range_model,
+                              start_range=start_range, incidence=incidence)
     names = ("tx", "tz", "ry", "rz") if estimate_ry else ("tx", "tz", "rz")
     free = [PARAMETER_NAMES.index(n) for n in names]
     H = start.with_(rx=0.0)
@@ -236,6 +341,216 @@ def known_size_fit(
     )
 
 
+PLATTER_POINTS = 60_000
+"""Platter returns the fit with a range model uses at most (a fixed random subset)."""
+
+
+def range_size_fit(
+    scan: SpinScan,
+    start: Extrinsics,
+    cube: CubeGeometry,
+    *,
+    platter_radius: float,
+    estimate_ry: bool = True,
+    range_model: RangeModelName = "offset",
+    start_range: RangeModel = IDENTITY,
+    incidence: bool = False,
+) -> KnownSizeFit:
+    """The known-size cube fit with the lidar's range model (DESIGN §9): H's tx, ty, tz, rz
+    (and ry) and the range terms of ``range_model`` fitted to the cube's faces — the cube's
+    edge and height are known lengths, its faces square to each other and to the platter —
+    and to the platter top (the plane x_P = 0, which also fixes ty). A range offset turns the
+    faces that face the rays at 45° (the platter and the top one way, the side faces the other)
+    by about b/(2ρ); a scale error changes the cube's size (k·edge) and nothing else.
+
+    The returns are chosen by their rays, not by where their noisy ranges put them
+    (:func:`model_labels`): at this precision a choice that depends on the noise biases the
+    offset (a static mask or a band around a face keeps the returns whose noise moved them in).
+
+    σ as :func:`known_size_fit`'s; the bias bound carries the edge tolerance (which now also
+    moves the scale error and the offset) and the faces' noise bias in ry."""
+    names = ["tx", "ty", "tz", "ry", "rz"] if estimate_ry else ["tx", "ty", "tz", "rz"]
+    free = [PARAMETER_NAMES.index(n) for n in names] + estimated_indices(range_model,
+                                                                          incidence)
+    base = np.concatenate([start.with_(rx=0.0).as_vector(), start_range.as_vector()])
+    cloud = cube_cloud(start_range_points(scan.p_L, start_range), scan.phi,
+                       start.with_(rx=0.0), cube.edge, platter_radius, None)
+    first = _label(cloud, start.with_(rx=0.0))
+    pose, noise = first.pose[:3], first.noise
+    near = _near_platter(scan, base, platter_radius)
+    res: Any = None
+    for _ in range(LABEL_ROUNDS):
+        faces, platter = model_labels(scan.p_L[near], scan.phi[near], base, pose, cube.edge,
+                                      platter_radius, noise)
+        errors = _RangeSizeErrors(faces, platter, base, free, cube.edge)
+        x0 = np.concatenate([base[free], pose])
+        res = least_squares(
+            errors, x0, method="trf", loss="soft_l1", f_scale=max(0.002, 3.0 * noise),
+            diff_step=1e-4, x_scale=_scales(free, 3), max_nfev=MAX_NFEV,
+        )
+        base, pose = errors.vector(res.x), res.x[len(free):]
+    return _range_fit_result(res, errors, faces, free, cube, platter)
+
+
+MARGIN = 0.006
+"""How far (m) from a face's edges, and from the cube's footprint on the platter, a return's
+ray must meet its surface to be used: the beam's footprint and the mixed pixels of an edge
+stay out."""
+
+
+def _near_platter(scan: SpinScan, v: FloatArray, radius: float) -> NDArray[np.intp]:
+    """The returns whose ray meets the platter's top plane inside its rim (under the estimate
+    ``v``), or something above it: those :func:`model_labels` may use (the background stays
+    out). Chosen by the ray alone."""
+    H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
+    rays = unit_rays(scan.p_L) @ H.R  # in P
+    origin = -(H.t @ H.R)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_hit = -origin[0] / rays[:, 0]
+    hit = origin + s_hit[:, None] * rays
+    out: NDArray[np.intp] = np.flatnonzero(
+        (s_hit > 0) & (np.hypot(hit[:, 1], hit[:, 2]) < radius + 0.05))
+    return out
+
+
+def model_labels(
+    p_L: FloatArray, phi: FloatArray, v: FloatArray, pose: FloatArray, edge: float,
+    platter_radius: float, noise: float,
+) -> tuple[_Faces, FloatArray]:
+    """The returns of the cube's faces and of the platter top, chosen by casting each return's
+    ray against the model (an upright cube of ``edge`` at ``pose`` = centre y, z and yaw in D,
+    on the platter top x_D = 0, under the estimate ``v``): a face's returns are those whose ray
+    enters the cube through that face at least :data:`MARGIN` from its edges; the platter's,
+    those whose ray meets the platter inside its rim, the cube missed by :data:`MARGIN`. Of
+    them, those whose range is within max(6σ, 5 mm) of the model's (a window symmetric about
+    the model: mixed pixels and strays out, no selection on the noise). Returns the faces and
+    the platter's returns (as measured, in L)."""
+    H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
+    rays = unit_rays(p_L)
+    cos, sin = np.cos(phi), np.sin(phi)
+    o = _turned(np.broadcast_to(-H.t, p_L.shape), H, cos, sin)
+    d = _turned(rays, H, cos, sin)
+    cy, cz, yaw = (float(a) for a in pose[:3])
+    c, s = math.cos(yaw), math.sin(yaw)
+    # the cube's frame: x up, u = (cos yaw, sin yaw) and w = (−sin yaw, cos yaw) across
+    ol = np.column_stack([o[:, 0], c * (o[:, 1] - cy) + s * (o[:, 2] - cz),
+                          -s * (o[:, 1] - cy) + c * (o[:, 2] - cz)])
+    dl = np.column_stack([d[:, 0], c * d[:, 1] + s * d[:, 2], -s * d[:, 1] + c * d[:, 2]])
+    label, cube_range = _box_entry(ol, dl, edge, MARGIN)
+    _, shadow = _box_entry(ol, dl, edge + 2 * MARGIN, 0.0, floor=-MARGIN)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plate_range = -o[:, 0] / d[:, 0]
+    at = o + plate_range[:, None] * d
+    on_plate = ~np.isfinite(shadow) & (plate_range > 0) & (
+        np.hypot(at[:, 1], at[:, 2]) <= platter_radius - MARGIN)
+    predicted = np.where(label > 0, cube_range, plate_range)
+    measured = RangeModel.from_vector(v).ranges(np.linalg.norm(p_L, axis=1))
+    window = max(6.0 * noise if math.isfinite(noise) else 0.0, 0.005)
+    close = np.abs(measured - predicted) <= window
+    on_face = (label > 0) & close
+    faces_idx = np.flatnonzero(on_face)
+    if faces_idx.size > FIT_POINTS:
+        faces_idx = np.sort(np.random.default_rng(0).choice(faces_idx, FIT_POINTS, replace=False))
+    plate_idx = np.flatnonzero(on_plate & close)
+    if plate_idx.size > PLATTER_POINTS:
+        plate_idx = np.sort(
+            np.random.default_rng(1).choice(plate_idx, PLATTER_POINTS, replace=False))
+    found = [f for f in range(1, 6) if np.count_nonzero(label[faces_idx] == f) >= 30]
+    if len(found) < MIN_FACES or plate_idx.size < 200:
+        raise FineTuningError(
+            f"the known-size cube fit with the range model needs {MIN_FACES} faces of the cube "
+            f"with 30 returns and the platter around it: found {len(found)} faces and "
+            f"{plate_idx.size} returns of the platter"
+        )
+    lab = label[faces_idx]
+    # the labels of :func:`_label`: 1 the top, 2/3 the −u/+u sides, 4/5 the −w/+w sides
+    faces = _Faces(
+        p_L=p_L[faces_idx], cos=cos[faces_idx], sin=sin[faces_idx], rays=rays[faces_idx],
+        side=lab >= 2, across_u=lab < 4, sign=np.where(lab % 2 == 1, 1.0, -1.0),
+        pose=np.array([cy, cz, yaw, edge]), noise=noise, faces=len(found),
+    )
+    platter: FloatArray = p_L[plate_idx]
+    return faces, platter
+
+
+def _box_entry(
+    origin: FloatArray, direction: FloatArray, edge: float, margin: float, floor: float = 0.0,
+) -> tuple[NDArray[np.int64], FloatArray]:
+    """Where rays (origin, direction (N, 3) in the cube's frame: x up, then across) enter the
+    box x ∈ [floor, edge], u, w ∈ [−edge/2, edge/2]: (N,) the face (1 the top, 2/3 −u/+u,
+    4/5 −w/+w; 0 when missed, through the bottom, or within ``margin`` of the face's edges)
+    and (N,) the range to it (inf when missed)."""
+    lo = np.array([floor, -0.5 * edge, -0.5 * edge])
+    hi = np.array([edge, 0.5 * edge, 0.5 * edge])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (lo - origin) / direction
+        t2 = (hi - origin) / direction
+    near = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf)
+    far = np.nan_to_num(np.maximum(t1, t2), nan=np.inf)
+    enter, leave = near.max(axis=1), far.min(axis=1)
+    axis = near.argmax(axis=1)
+    rows = np.arange(origin.shape[0])
+    hit = (enter <= leave) & (enter > 0)
+    point = origin + enter[:, None] * direction
+    # entering through the face at the upper end of an axis means moving down along it
+    upper = direction[rows, axis] < 0
+    label = np.where(axis == 0, np.where(upper, 1, 0), 2 * axis + upper).astype(np.int64)
+    inside = np.ones(origin.shape[0], dtype=bool)
+    for k in range(3):
+        inside &= (axis == k) | ((point[:, k] >= lo[k] + margin) & (point[:, k] <= hi[k] - margin))
+    label = np.where(hit & inside, label, 0)
+    return label, np.where(hit, enter, np.inf)
+
+
+def start_range_points(p_L: FloatArray, model: RangeModel) -> FloatArray:
+    """The returns ``p_L`` corrected by ``model`` (themselves when it is the identity)."""
+    return p_L if model.is_identity else model.points(p_L)
+
+
+def _scales(free: list[int], pose: int) -> FloatArray:
+    """TRF's x_scale: a millimetre or a milliradian for H and the offset, 1e-4 for the scale
+    error, a millimetre for the pose."""
+    return np.array([1e-4 if i == SCALE else 1e-3 for i in free] + [1e-3] * pose)
+
+
+def _range_fit_result(res: Any, errors: _RangeSizeErrors, faces: _Faces, free: list[int],
+                      cube: CubeGeometry, platter: FloatArray) -> KnownSizeFit:
+    """The :class:`KnownSizeFit` of :func:`range_size_fit`: σ from the block sandwich of the
+    faces and the platter (× :data:`SIGMA_SCALE`, with the model floor), the bias bound in
+    quadrature."""
+    v = errors.vector(res.x)
+    H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
+    phi = np.arctan2(faces.sin, faces.cos)
+    # the blocks by where the model puts each return (its ray at the model's range): blocks cut
+    # by the noisy positions would split a surface's returns by the sign of their noise
+    model = np.vstack([correct_vector(faces.p_L, v), correct_vector(platter, v)])
+    model -= unit_rays(model) * np.asarray(res.fun)[:, None]
+    n_faces = faces.p_L.shape[0]
+    # faces in D (what turns with the cube), the platter in P (what stays with the lidar's rays)
+    where = np.vstack([lidar_to_dynamic(model[:n_faces], phi, H), (model[n_faces:] - H.t) @ H.R])
+    full = parameter_covariance(res, list(range(res.x.size)), blocks=block_ids(where, SIGMA_BLOCK))
+    n = len(free)
+    cov = None if full is None else full[:n, :n] * SIGMA_SCALE**2 + model_floor(free)
+    edge = _edge_direction(res, errors, free, cube.edge_tolerance)
+    bias = _bias_bound(res, errors, faces, free, cube.edge_tolerance, edge)
+    random = sigma_from_covariance(cov, free)
+    sigma = {k: math.hypot(val, bias.get(k, 0.0)) if math.isfinite(val) else val
+             for k, val in random.items()}
+    return KnownSizeFit(
+        H=H, sigma=sigma, covariance=covariance_record(cov, free), bias=bias,
+        edge_direction=edge,
+        details={
+            "used": True, "faces": faces.faces, "returns": int(faces.p_L.shape[0]),
+            "platter_returns": int(platter.shape[0]), "range_noise_m": faces.noise,
+            "edge_m": cube.edge, "edge_tolerance_m": cube.edge_tolerance,
+            "rms_range_error_m": float(np.sqrt(np.mean(res.fun**2))),
+            "evaluations": int(res.nfev), "status": str(res.message),
+            "range_model": [ESTIMATED_NAMES[i] for i in free if i >= OFFSET],
+        },
+        range_model=RangeModel.from_vector(v),
+    )
+
+
 def _covariance(
     res: Any, errors: _RangeErrors, faces: _Faces, free: list[int]
 ) -> FloatArray | None:
@@ -251,20 +566,29 @@ def _covariance(
     return out
 
 
+def _edge_direction(
+    res: Any, errors: _RangeErrors | _RangeSizeErrors, free: list[int], tolerance: float
+) -> dict[str, float]:
+    """Per free parameter, the signed move (m, rad) of a cube ``tolerance`` larger than the
+    recipe's edge: dx = −J⁺·∂r/∂edge·tolerance."""
+    if tolerance <= 0:
+        return {ESTIMATED_NAMES[i]: 0.0 for i in free}
+    step = 1e-5
+    dr = (errors(res.x, errors.edge + step) - errors(res.x)) / step
+    dx = -np.linalg.lstsq(np.asarray(res.jac), dr, rcond=None)[0][: len(free)]
+    return {ESTIMATED_NAMES[i]: float(dx[k]) * tolerance for k, i in enumerate(free)}
+
+
 def _bias_bound(
-    res: Any, errors: _RangeErrors, faces: _Faces, free: list[int], tolerance: float
+    res: Any, errors: _RangeErrors | _RangeSizeErrors, faces: _Faces, free: list[int],
+    tolerance: float, edge: dict[str, float] | None = None,
 ) -> dict[str, float]:
     """Per parameter, a bound on what more data does not remove (m, rad): the edge tolerance
     moved through the fit (|dx| with dx = −J⁺·∂r/∂edge·tolerance) and, in ry, the range
     errors' noise bias on the faces (the twist's: +0.08–0.10° at 2 mm)."""
-    n = len(free)
-    out = {PARAMETER_NAMES[i]: 0.0 for i in free}
-    if tolerance > 0:
-        step = 1e-5
-        dr = (errors(res.x, errors.edge + step) - errors(res.x)) / step
-        dx = -np.linalg.lstsq(np.asarray(res.jac), dr, rcond=None)[0][:n]
-        out.update({PARAMETER_NAMES[i]: abs(float(dx[k])) * tolerance
-                    for k, i in enumerate(free)})
+    if edge is None:
+        edge = _edge_direction(res, errors, free, tolerance)
+    out = {k: abs(v) for k, v in edge.items()}
     if RY in free:
         out["ry"] += range_twist_bias(faces.noise)
     return out

@@ -15,16 +15,24 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
+from calstation.engine.rangemodel import (
+    ESTIMATED_NAMES,
+    RANGE_NAMES,
+    RangeModelName,
+    range_result_fields,
+)
 from calstation.engine.result import CalibrationResult
 
 if TYPE_CHECKING:
     from calstation.engine.cube import CubeCheck
+    from calstation.engine.cubefit import KnownSizeFit
+    from calstation.engine.fusion import Fused
     from calstation.engine.scan import Scan
     from calstation.engine.settings import CubeGeometry, QALimits
     from calstation.engine.spinscan import SpinScan
@@ -148,6 +156,7 @@ def combine_with_cube_scan(
     max_sigma_ry: float | None,
     progress: Callable[[str, float], None] | None = None,
     prepared: SpinScan | None = None,
+    refit: Callable[[CalibrationResult], CalibrationResult] | None = None,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` with ry combined from the cube scan ``cube``, as
     the station does at its cube step: (the combined result, strategy ``<name>+cube``, with
@@ -155,9 +164,14 @@ def combine_with_cube_scan(
     be combined; the cube check under that H; the failure of :func:`ry_with_cube` or None).
     ``geometry`` and ``qa`` are the cube's and the check's settings, ``max_sigma_ry`` the ry
     gate (rad); ``prepared`` the cube scan's returns already prepared
-    (:func:`calstation.engine.cube.check_cube`)."""
+    (:func:`calstation.engine.cube.check_cube`). A ``result`` that holds the lidar's range model
+    is combined with it instead (:func:`combine_range_with_cube_scan`, ``refit``)."""
     from calstation.engine.cube import check_cube
 
+    if result.range_offset is not None:
+        return combine_range_with_cube_scan(result, cube, geometry, qa,
+                                            platter_radius=platter_radius, progress=progress,
+                                            prepared=prepared, refit=refit)
     check = check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared)
     combined, failure = with_cube_ry(result, check, max_sigma_ry)
@@ -170,6 +184,135 @@ def combine_with_cube_scan(
     check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared, nearby=True)
     return combined, check, failure
+
+
+REFITS = 2
+"""Times the spin target's fine-tuning is run again from the combined estimate (its range
+terms and ty held there) before the last combination: the spin scan's response to the range
+terms is not linear over millimetres of offset."""
+
+
+def combine_range_with_cube_scan(
+    result: CalibrationResult,
+    cube: Scan,
+    geometry: CubeGeometry,
+    qa: QALimits,
+    *,
+    platter_radius: float,
+    progress: Callable[[str, float], None] | None = None,
+    prepared: SpinScan | None = None,
+    refit: Callable[[CalibrationResult], CalibrationResult] | None = None,
+) -> tuple[CalibrationResult, CubeCheck, str | None]:
+    """A spin-target fine-tuning ``result`` that holds the lidar's range model, combined with
+    the cube scan as the station does at its cube step: the known-size cube fit with the range
+    model (:func:`calstation.engine.cubefit.range_size_fit`, from ``result``) and ``result``
+    combined in information form (:mod:`calstation.engine.fusion`), which gives the range
+    offset and the incidence bias the cube's edge and square faces, the scale error the cube's
+    size, ty the cube's top, and ry the cube's side faces. ``refit(start)``: the spin target's
+    fine-tuning run again from a combined estimate, holding its range terms and ty
+    (:data:`REFITS` times). Returns (the combined result, strategy ``<name>+cube``, or
+    ``result`` when they could not be combined, with why in ``diagnostics["joint"]``; the cube
+    check under it; why not, or None)."""
+    from calstation.engine.cube import check_cube
+    from calstation.engine.cubefit import known_size_fit
+    from calstation.engine.spinscan import from_recording
+    from calstation.errors import FineTuningError
+
+    model: RangeModelName = "offset+scale" if result.range_scale is not None else "offset"
+    if progress is not None:
+        progress("fitting the cube with the lidar's range model", 0.2)
+    failure: str | None = None
+    combined = result
+    try:
+        scan = prepared if prepared is not None else from_recording(cube)
+        fit = known_size_fit(scan, result.H, geometry,
+                             platter_radius=platter_radius, range_model=model,
+                             start_range=result.range_model,
+                             incidence=result.incidence_bias is not None)
+    except FineTuningError as exc:
+        failure = f"the cube could not add to the range model: {exc}"
+    else:
+        combined, failure = _combine_with_fit(result, fit, refit, progress)
+    if progress is not None:
+        progress("measuring the cube", 0.8)
+    check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
+                       prepared=prepared, range_model=combined.range_model)
+    return combined, check, failure
+
+
+def _combine_with_fit(
+    result: CalibrationResult, fit: KnownSizeFit,
+    refit: Callable[[CalibrationResult], CalibrationResult] | None,
+    progress: Callable[[str, float], None] | None,
+) -> tuple[CalibrationResult, str | None]:
+    """``result`` (the spin target's) and the cube's ``fit`` combined, the spin target's
+    fine-tuning run again from the combination (``refit``) in between: (the combined result,
+    or ``result`` with the reason in its diagnostics; the failure or None)."""
+    from calstation.engine.fusion import Estimate, consistent, fuse
+
+    total = fit.total_covariance()
+    if total is None:
+        return result, "the cube's fit has no covariance: its faces do not fix the calibration"
+    cube = Estimate.of(fit.H, fit.range_model, total)
+    spin = result
+    for k in range(REFITS + 1):
+        fused = fuse(Estimate.of(spin.H, spin.range_model, spin.diagnostics["covariance"],
+                                 spin.diagnostics.get("follows", {})), cube)
+        if refit is None or k == REFITS:
+            break
+        if progress is not None:
+            progress("the spin target again, from the cube's range model", 0.3 + 0.15 * k)
+        spin = refit(_combined(spin, fit, fused))
+    # the refits are the strategy's alone: what ``result`` estimated beside H stays with it
+    combined = replace(_combined(spin, fit, fused), encoder_latency_s=result.encoder_latency_s,
+                       sigma_encoder_latency_s=result.sigma_encoder_latency_s)
+    if consistent(fused):
+        return combined, None
+    diagnostics = {**result.diagnostics, "joint": combined.diagnostics["joint"]}
+    return replace(result, diagnostics=diagnostics), range_disagreement(fused.disagreement)
+
+
+def range_disagreement(disagreement: dict[str, Any]) -> str:
+    """The refusal when the spin target and the cube disagree (:mod:`~calstation.engine.
+    fusion`), naming what differs most; the lidar's range error when it is the offset or the
+    scale."""
+    sigmas = disagreement["sigmas"]
+    worst = sorted(sigmas, key=lambda n: -abs(sigmas[n]))[:2]
+    said = ", ".join(f"{n} by {sigmas[n]:+.1f} σ" for n in worst)
+    head = (f"the spin target and the QA cube disagree on the calibration (χ² "
+            f"{disagreement['chi2']:.1f} on {disagreement['dof']} parameters, p = "
+            f"{disagreement['p']:.1e}; most on {said})")
+    if worst and worst[0] in ("range_offset", "range_scale"):
+        return (f"{head}: the lidar's range error is not what its range model says — a bias "
+                "that depends on the surface (its reflectivity or the angle the rays meet it) "
+                "reads differently on the two fixtures. See the residuals against incidence and "
+                "range in the report; use fixtures of one finish, or re-seat the cube so its "
+                "faces meet the rays less obliquely")
+    return (f"{head}: re-place the spin target off-centre and re-seat the cube, then re-run the "
+            "calibration")
+
+
+def _combined(result: CalibrationResult, fit: KnownSizeFit, fused: Fused) -> CalibrationResult:
+    """The combined :class:`CalibrationResult` of :func:`combine_range_with_cube_scan`."""
+    sigma = {n: math.nan for n in PARAMETER_NAMES}
+    fused_sigma = fused.sigma
+    sigma.update({n: v for n, v in fused_sigma.items() if n in PARAMETER_NAMES})
+    details = {
+        "spin_target": {"H": result.H.as_dict(), **result.range_fields(),
+                        "sigma": dict(result.sigma)},
+        "cube": {"H": fit.H.as_dict(), "range_offset": fit.range_model.offset,
+                 "range_scale": fit.range_model.scale,
+                 "incidence_bias": fit.range_model.incidence, "sigma": fit.sigma,
+                 "bias_bound": fit.bias, "known_size": fit.details},
+        "disagreement": fused.disagreement,
+    }
+    diagnostics = {**result.diagnostics, "joint": details, "covariance": fused.record(),
+                   "bias_bound": {}}
+    vector = np.concatenate([fused.H.as_vector(), fused.range_model.as_vector()])
+    terms = [ESTIMATED_NAMES.index(n) for n in fused.names if n in RANGE_NAMES]
+    combined = replace(result, H=fused.H, sigma=sigma, strategy=f"{result.strategy}+cube",
+                       diagnostics=diagnostics)
+    return combined.with_range(range_result_fields(vector, dict(fused_sigma), terms))
 
 
 def with_cube_ry(
@@ -201,8 +344,32 @@ def with_cube_ry(
 def joint_summary(combined: CalibrationResult) -> str:
     """One line of what :func:`combine_with_cube_scan` combined (degrees)."""
     d = combined.diagnostics["joint"]
+    if "cube" in d:  # combined with the lidar's range model (combine_range_with_cube_scan)
+        return range_summary(combined)
     return (f"ry from the spin target {math.degrees(d['ry_spin_target']):.3f}° ± "
             f"{math.degrees(d['sigma_ry_spin_target']):.3f}°, from the cube "
             f"{math.degrees(d['ry_cube']):.3f}° ± {math.degrees(d['sigma_ry_cube']):.3f}° → "
             f"combined {math.degrees(combined.H.ry):.3f}° ± "
             f"{math.degrees(combined.sigma['ry']):.3f}°")
+
+
+def range_summary(result: CalibrationResult) -> str:
+    """One line of the lidar's range model and ry after the spin target and the cube were
+    combined (millimetres, degrees)."""
+    def mm(value: float | None, sigma: float | None) -> str:
+        if value is None:
+            return "not estimated"
+        spread = "" if sigma is None or not math.isfinite(sigma) else f" ± {sigma * 1e3:.3f}"
+        return f"{value * 1e3:+.3f}{spread} mm"
+
+    parts = [f"range offset {mm(result.range_offset, result.sigma_range_offset)}"]
+    if result.range_scale is not None:
+        sigma = result.sigma_range_scale
+        spread = "" if sigma is None or not math.isfinite(sigma) else f" ± {sigma * 1e6:.0f}"
+        parts.append(f"scale error {result.range_scale * 1e6:+.0f}{spread} ppm")
+    if result.incidence_bias is not None:
+        parts.append(f"incidence bias {mm(result.incidence_bias, result.sigma_incidence_bias)} "
+                     "at 60°")
+    parts.append(f"ry {math.degrees(result.H.ry):.3f}° ± "
+                 f"{math.degrees(result.sigma.get('ry', math.nan)):.3f}°")
+    return "the spin target and the QA cube combined: " + ", ".join(parts)

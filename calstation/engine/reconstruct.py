@@ -11,22 +11,27 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calstation.engine.frames import Extrinsics, lidar_to_dynamic
+from calstation.engine.rangemodel import IDENTITY, RangeModel
 from calstation.engine.scan import Scan
 
 
 def reconstruct(
-    recording: Scan, H: Extrinsics, encoder_latency_s: float | None = None
+    recording: Scan, H: Extrinsics, encoder_latency_s: float | None = None,
+    range_model: RangeModel = IDENTITY,
 ) -> NDArray[np.float64]:
     """The recording's valid points in frame D: (N, 3) metres.
 
     Invalid returns and points outside the encoder's time span are left out (see
     :meth:`Scan.points_lidar`). ``encoder_latency_s``, when given (a calibration's
-    estimated lidar–encoder time offset), replaces the recording's configured latency.
+    estimated lidar–encoder time offset), replaces the recording's configured latency;
+    ``range_model`` (a calibration's, DESIGN §9) corrects every range first: its offset and
+    scale error (the incidence bias needs the surfaces' normals, which a plain reconstruction
+    does not know).
     """
     if encoder_latency_s is not None:
         recording = recording.with_encoder_latency(encoder_latency_s)
     p_L, phi = recording.points_lidar()
-    return lidar_points_to_dynamic(p_L, phi, H)
+    return lidar_points_to_dynamic(range_model.points(p_L), phi, H)
 
 
 def lidar_points_to_dynamic(

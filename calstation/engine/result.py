@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ import numpy as np
 import yaml
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray
+from calstation.engine.rangemodel import RANGE_NAMES, RangeModel
 from calstation.errors import CalibrationError, FrameError
 
 RESULT_FORMAT = "calstation-calibration"
@@ -45,20 +47,33 @@ def _optional(value: float | None) -> float | None:
     return None if value is None else _plain(float(value))
 
 
-def _seconds(d: dict[str, Any], key: str) -> float | None:
-    """The optional finite number ``d[key]`` (seconds), None when absent or null."""
+def _number(d: dict[str, Any], key: str, unit: str = "") -> float | None:
+    """The optional finite number ``d[key]`` (of ``unit``, for messages), None when absent or
+    null."""
     value = d.get(key)
     if value is None:
         return None
+    what = f"a number of {unit}" if unit else "a number"
     try:
         out = float(value)
     except (TypeError, ValueError):
         raise CalibrationError(
-            f"calibration field '{key}': expected seconds, got {value!r}"
+            f"calibration field '{key}': expected {what}, got {value!r}"
         ) from None
     if not math.isfinite(out):
-        raise CalibrationError(f"calibration field '{key}': expected a finite number of seconds")
+        raise CalibrationError(f"calibration field '{key}': expected a finite {what[2:]}")
     return out
+
+
+def _seconds(d: dict[str, Any], key: str) -> float | None:
+    """The optional finite number ``d[key]`` (seconds), None when absent or null."""
+    return _number(d, key, "seconds")
+
+
+RANGE_FIELDS: tuple[str, ...] = tuple(
+    f for name in RANGE_NAMES for f in (name, f"sigma_{name}")
+)
+"""The range model's fields of a result, a summary and a stored calibration (DESIGN §9)."""
 
 
 @dataclass(frozen=True)
@@ -77,6 +92,11 @@ class CalibrationResult:
       (encoder time minus lidar time, s) and its 1σ, when the spin scan had a second pass to
       estimate it (:mod:`calstation.engine.timeoffset`); reconstruction then uses it in place of the
       recording's configured latency. None otherwise.
+    - ``range_offset`` / ``sigma_range_offset`` (m), ``range_scale`` / ``sigma_range_scale``
+      (dimensionless) and ``incidence_bias`` / ``sigma_incidence_bias`` (m at 60°): the lidar's
+      range model estimated with H (DESIGN §9, :mod:`calstation.engine.rangemodel`); every
+      reconstruction corrects the ranges with the offset and the scale error. None when not
+      estimated.
     """
 
     H: Extrinsics
@@ -88,6 +108,33 @@ class CalibrationResult:
     diagnostics: dict[str, Any] = field(default_factory=dict)
     encoder_latency_s: float | None = None
     sigma_encoder_latency_s: float | None = None
+    range_offset: float | None = None
+    sigma_range_offset: float | None = None
+    range_scale: float | None = None
+    sigma_range_scale: float | None = None
+    incidence_bias: float | None = None
+    sigma_incidence_bias: float | None = None
+
+    @property
+    def range_model(self) -> RangeModel:
+        """The range correction every reconstruction with this calibration applies (none when
+        the range model was not estimated)."""
+        return RangeModel(self.range_offset or 0.0, self.range_scale or 0.0,
+                          self.incidence_bias or 0.0)
+
+    def with_range(self, fields: Mapping[str, float | None]) -> CalibrationResult:
+        """The same result with the range model's ``fields`` (:data:`RANGE_FIELDS`) given."""
+        unknown = set(fields) - set(RANGE_FIELDS)
+        if unknown:
+            raise CalibrationError(f"not a range model field: {', '.join(sorted(unknown))}")
+        values: dict[str, Any] = dict(fields)
+        return replace(self, **values)
+
+    def range_fields(self) -> dict[str, float | None]:
+        """``range_offset``, ``sigma_range_offset`` (m), ``range_scale``, ``sigma_range_scale``,
+        ``incidence_bias``, ``sigma_incidence_bias`` (m at 60°): as :meth:`summary` and the
+        stored calibration carry them (None: not estimated)."""
+        return {name: _optional(getattr(self, name)) for name in RANGE_FIELDS}
 
     # --- serialisation -----------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -102,6 +149,7 @@ class CalibrationResult:
             "iterations": int(self.iterations),
             "encoder_latency_s": _optional(self.encoder_latency_s),
             "sigma_encoder_latency_s": _optional(self.sigma_encoder_latency_s),
+            **self.range_fields(),
             "timings": _plain(dict(self.timings)),
             "diagnostics": _plain(dict(self.diagnostics)),
             "T_L_P": self.as_matrix().tolist(),
@@ -126,6 +174,11 @@ class CalibrationResult:
         }
         cost = d.get("cost")
         latency = _seconds(d, "encoder_latency_s")
+        ranges: dict[str, float | None] = {}
+        for name in RANGE_NAMES:
+            value = _number(d, name)
+            ranges[name] = value
+            ranges[f"sigma_{name}"] = None if value is None else _number(d, f"sigma_{name}")
         return cls(
             H=H,
             sigma=sigma,
@@ -138,6 +191,7 @@ class CalibrationResult:
             sigma_encoder_latency_s=(
                 None if latency is None else _seconds(d, "sigma_encoder_latency_s")
             ),
+            **ranges,
         )
 
     def to_yaml(self) -> str:
@@ -194,7 +248,10 @@ class CalibrationResult:
         """The flat mapping ``calstation calibrate --json`` prints.
 
         tx, ty, tz (m), rx, ry, rz (rad), ``sigma_<name>`` for each, strategy, cost, iterations,
-        ``encoder_latency_s`` and its ``sigma_encoder_latency_s`` (s, None when not estimated).
+        ``encoder_latency_s`` and its ``sigma_encoder_latency_s`` (s, None when not estimated),
+        ``range_offset`` and ``sigma_range_offset`` (m), ``range_scale`` and
+        ``sigma_range_scale``, ``incidence_bias`` and ``sigma_incidence_bias`` (m at 60°)
+        (DESIGN §9; None when not estimated).
         """
         out: dict[str, Any] = {n: float(getattr(self.H, n)) for n in PARAMETER_NAMES}
         for n in PARAMETER_NAMES:
@@ -205,5 +262,6 @@ class CalibrationResult:
         out["iterations"] = int(self.iterations)
         out["encoder_latency_s"] = _optional(self.encoder_latency_s)
         out["sigma_encoder_latency_s"] = _optional(self.sigma_encoder_latency_s)
+        out.update(self.range_fields())
         out["timings"] = _plain(dict(self.timings))
         return out

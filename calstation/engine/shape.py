@@ -40,6 +40,7 @@ from calstation.engine.cubefit import KnownSizeFit, known_size_fit
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import face_labels, minimal_obb, upright_box
 from calstation.engine.periodicity import block_ids, parameter_sigma, periodicity_fine_tune_scan
+from calstation.engine.rangemodel import RangeModelName, estimated_indices, range_result_fields
 from calstation.engine.result import CalibrationResult
 from calstation.engine.settings import (
     DEFAULT_PLATTER_RADIUS,
@@ -533,6 +534,8 @@ def shape_fine_tune_points(
     known_size: bool = True,
     progress: Progress | None = None,
     scan: SpinScan | None = None,
+    range_model: RangeModelName = "none",
+    incidence: bool = False,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
 
@@ -546,8 +549,10 @@ def shape_fine_tune_points(
     (docs/algorithms.md). ``known_size``: finish with an upright cube of the recipe's edge
     fitted to the labelled faces (:mod:`calstation.engine.cubefit`; tx, tz, rz and, with
     ``estimate_ry``, ry; σ from that fit). ``scan``: the same returns already prepared
-    (:mod:`calstation.engine.spinscan`). Returns a :class:`CalibrationResult` with strategy
-    ``"shape"`` and cost ``C1 + C2`` (m²).
+    (:mod:`calstation.engine.spinscan`). ``range_model``: the lidar's range terms the
+    known-size fit estimates with H (:func:`calstation.engine.cubefit.range_size_fit`; the box
+    cost before it reads the ranges as measured), and the incidence bias with ``incidence``.
+    Returns a :class:`CalibrationResult` with strategy ``"shape"`` and cost ``C1 + C2`` (m²).
     """
     t0 = time.perf_counter()
     p_L = np.asarray(p_L, dtype=np.float64)
@@ -566,7 +571,7 @@ def shape_fine_tune_points(
     # nothing but the time (docs/performance.md); they run when it cannot label the faces
     flatness = not (known_size and estimate_ry and box == "upright")
     result = _finish(_box_passes(one_pass, start, coarse, flatness), prepared, cube,
-                     platter_radius, estimate_ry, known_size)
+                     platter_radius, estimate_ry, known_size, range_model, incidence)
     if not flatness and not result.diagnostics["known_size"]["used"]:
         reason = result.diagnostics["known_size"]
         result = _finish(_box_passes(one_pass, start, coarse, True), prepared, cube,
@@ -598,12 +603,23 @@ def _finish(
     platter_radius: float,
     estimate_ry: bool,
     known_size: bool,
+    range_model: RangeModelName = "none",
+    incidence: bool = False,
 ) -> CalibrationResult:
     """The box cost's ``result`` finished: the known-size cube fit (when asked), the σ floors
-    of the box cost (without it), and the origin moved onto the platter top (the gauge)."""
+    of the box cost (without it), and the origin moved onto the platter top (the gauge; the
+    fit with a range model fixes it itself, from the platter's returns)."""
     fitted = None
-    if known_size:
-        result, fitted = _known_size(result, prepared, cube, platter_radius, estimate_ry)
+    if known_size or range_model != "none":
+        result, fitted = _known_size(result, prepared, cube, platter_radius, estimate_ry,
+                                     range_model, incidence)
+    if fitted is not None and range_model != "none":
+        return result
+    if range_model != "none":
+        raise FineTuningError(
+            "the lidar's range model (calibration.range_model) is estimated by the known-size "
+            f"cube fit, which failed: {result.diagnostics['known_size']['reason']}"
+        )
     # where the platter top lies along the axis, and (without the known-size fit) what the box
     # cost's residuals cannot see: the cube's own dimensions under the result; after the
     # known-size fit, on the cube's returns it found (under the box cost's H, < 1 mm away)
@@ -635,13 +651,17 @@ def _known_size(
     cube: CubeGeometry,
     platter_radius: float,
     estimate_ry: bool,
+    range_model: RangeModelName = "none",
+    incidence: bool = False,
 ) -> tuple[CalibrationResult, KnownSizeFit | None]:
     """``result`` after the known-size cube fit (:mod:`calstation.engine.cubefit`) from its
-    H: the fit's H, σ and covariance, ``diagnostics.known_size``; unchanged but for the reason
-    in the diagnostics (and None) when the cube's faces could not be labelled."""
+    H: the fit's H, σ and covariance, ``diagnostics.known_size`` (and the range model it
+    estimated); unchanged but for the reason in the diagnostics (and None) when the cube's faces
+    could not be labelled."""
     try:
         fit = known_size_fit(
-            scan, result.H, cube, platter_radius=platter_radius, estimate_ry=estimate_ry
+            scan, result.H, cube, platter_radius=platter_radius, estimate_ry=estimate_ry,
+            range_model=range_model, incidence=incidence,
         )
     except FineTuningError as exc:
         result.diagnostics["known_size"] = {"used": False, "reason": str(exc)}
@@ -652,8 +672,16 @@ def _known_size(
     if estimate_ry:
         diagnostics["ry_source"] = "known-size cube"
     sigma = dict(result.sigma)
-    sigma.update({n: v for n, v in fit.sigma.items() if math.isfinite(v)})
-    return replace(result, H=fit.H, sigma=sigma, diagnostics=diagnostics), fit
+    sigma.update({n: v for n, v in fit.sigma.items() if math.isfinite(v) and n in sigma})
+    result = replace(result, H=fit.H, sigma=sigma, diagnostics=diagnostics)
+    if range_model != "none":
+        diagnostics.update(range_model=range_model, gauge="platter", gauge_note=(
+            "origin along the axis fixed by the platter top in the cube scan (x_P = 0)"))
+        terms = estimated_indices(range_model, incidence)
+        sigma_all = dict(fit.sigma)
+        result = result.with_range(range_result_fields(
+            np.concatenate([fit.H.as_vector(), fit.range_model.as_vector()]), sigma_all, terms))
+    return result, fit
 
 
 PLATTER_LEVEL_SIGMA = 0.00005
@@ -711,6 +739,8 @@ def shape_fine_tune(
     coarse: bool = True,
     known_size: bool = True,
     progress: Progress | None = None,
+    range_model: RangeModelName = "none",
+    incidence: bool = False,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on a QA-cube spin-scan recording."""
     scan = from_recording(recording)
@@ -728,6 +758,8 @@ def shape_fine_tune(
             known_size=known_size,
             progress=progress,
             scan=scan,
+            range_model=range_model,
+            incidence=incidence,
         )
     except FineTuningError as exc:
         raise FineTuningError(f"{recording.path}: {exc}") from None

@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calstation.engine.frames import Extrinsics, FloatArray
+from calstation.engine.rangemodel import IDENTITY, RangeModel
 from calstation.errors import FineTuningError
 
 if TYPE_CHECKING:
@@ -130,16 +131,17 @@ def mean_speed(recording: Scan) -> float:
 
 
 def fixture_cloud(
-    recording: Scan, H: Extrinsics, platter_radius: float, prepared: SpinScan | None = None
+    recording: Scan, H: Extrinsics, platter_radius: float, prepared: SpinScan | None = None,
+    range_model: RangeModel = IDENTITY,
 ) -> FloatArray:
-    """The moving returns above the platter, in D under ``H``: (N, 3) points (``prepared``: the
-    recording's returns already prepared)."""
+    """The moving returns above the platter, in D under ``H`` and the lidar's ``range_model``:
+    (N, 3) points (``prepared``: the recording's returns already prepared)."""
     from calstation.engine.geometry import segment_above_platter
     from calstation.engine.reconstruct import lidar_points_to_dynamic
     from calstation.engine.spinscan import from_recording
 
     scan = prepared if prepared is not None else from_recording(recording)
-    p_D = lidar_points_to_dynamic(scan.p_L, scan.phi, H)
+    p_D = lidar_points_to_dynamic(range_model.points(scan.p_L), scan.phi, H)
     keep = ~scan.static & segment_above_platter(
         p_D, margin=MARGIN, radius=platter_radius, height=math.inf
     )
@@ -317,8 +319,10 @@ def estimate_time_offset(
     progress: Callable[[str, float], None] | None = None,
     *,
     prepared_first: SpinScan | None = None,
+    range_model: RangeModel = IDENTITY,
 ) -> TimeOffset:
-    """The lidar–encoder time offset from two passes of the spin scan under the calibration H.
+    """The lidar–encoder time offset from two passes of the spin scan under the calibration H
+    (and the lidar's ``range_model``).
 
     ``first`` and ``second`` are the two passes' recordings (the same fixture, different signed
     speeds, the same configured encoder latency); ``prepared_first`` the first pass's returns
@@ -344,8 +348,8 @@ def estimate_time_offset(
         )
     if progress is not None:
         progress("time offset: reconstructing both passes", 0.0)
-    clouds = [fixture_cloud(first, H, platter_radius, prepared_first),
-              fixture_cloud(second, H, platter_radius)]
+    clouds = [fixture_cloud(first, H, platter_radius, prepared_first, range_model),
+              fixture_cloud(second, H, platter_radius, range_model=range_model)]
     timings["clouds"] = time.perf_counter() - t0
     if progress is not None:
         progress("time offset: aligning the passes", 0.3)
@@ -388,7 +392,7 @@ def with_time_offset(
     ``encoder_latency_s``, its σ, and the estimate's details in ``diagnostics["time_offset"]``
     (``prepared_first``: the first pass's returns already prepared)."""
     offset = estimate_time_offset(first, second, result.H, platter_radius, progress,
-                                  prepared_first=prepared_first)
+                                  prepared_first=prepared_first, range_model=result.range_model)
     diagnostics = {**result.diagnostics, "time_offset": offset.as_dict()}
     timings = {**result.timings, "time_offset": sum(offset.timings.values())}
     return replace(

@@ -84,7 +84,8 @@ def calibrate(
     if scans.cube is not None:
         say("combining ry with the cube's side faces" if strategy.fixture == "spin_target"
             else "checking the QA cube", 0.85)
-        cubed = with_cube(recipe, strategy, result, scans.cube, part(progress, 0.85, 0.95))
+        cubed = with_cube(recipe, strategy, result, scans.cube, part(progress, 0.85, 0.95),
+                          spin=scans.spin)
         result, check, ry_failure = cubed.result, cubed.check, cubed.ry_failure
     if scans.spin_pass2 is not None:  # under the final H (it moves a little with ry)
         say("lidar–encoder time offset", 0.95)

@@ -176,7 +176,27 @@ def judge(
     from calstation.engine.observability import problems_with_cube
 
     refused = problems_with_cube(result, recipe.calibration.max_sigma, ry_failure)
+    unset = range_model_unset(result)
+    if unset:
+        refused.append(unset)
     result, predicted = with_prediction(result, recipe, turns=turns)
     budget = budget_failure(result, predicted, recipe, scan="spin_scan",
                             turns=1.0 if turns is None else turns)
     return result, [*refused, *([budget] if budget else [])]
+
+
+def range_model_unset(result: CalibrationResult) -> str | None:
+    """Why ``result`` cannot be accepted when the recipe's range model (DESIGN §9) was not set
+    by a scan that sees it: a range term held at its start, without a σ of its own (a spin
+    target alone cannot tell the lidar's range offset from its distance), else None."""
+    unset = [name for name, value, sigma in (
+        ("range offset", result.range_offset, result.sigma_range_offset),
+        ("range scale error", result.range_scale, result.sigma_range_scale),
+        ("incidence bias", result.incidence_bias, result.sigma_incidence_bias),
+    ) if value is not None and not (sigma is not None and math.isfinite(sigma))]
+    if not unset:
+        return None
+    return (f"the lidar's {' and '.join(unset)} (calibration.range_model) were not measured: "
+            "the spin target alone cannot tell them from where the lidar stands, so H would "
+            "hold them. Scan the QA cube too (its known size and square faces set them), or set "
+            "calibration.range_model: none for a lidar without a range error")

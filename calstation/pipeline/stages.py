@@ -141,11 +141,13 @@ class CubeChecked:
 
 def with_cube(
     recipe: Recipe, strategy: Any, result: CalibrationResult, cube: Turned,
-    progress: Progress | None = None,
+    progress: Progress | None = None, spin: Turned | None = None,
 ) -> CubeChecked:
     """The third stage: the QA cube's scan checked under ``result``; for a spin-target strategy
     its side faces' twist combined into ry first (:func:`calstation.engine.joint.
-    combine_with_cube_scan`, gated on ``calibration.max_sigma.ry_deg``)."""
+    combine_with_cube_scan`, gated on ``calibration.max_sigma.ry_deg``), or with the lidar's
+    range model, the cube's known-size fit combined with ``result`` — the strategy run again on
+    ``spin`` from the combination when it can (its ``refit``)."""
     from calstation.engine.cube import check_cube
     from calstation.engine.joint import combine_with_cube_scan
 
@@ -155,14 +157,18 @@ def with_cube(
     rc = recipe
     if strategy.fixture != "spin_target":
         check = check_cube(cube.recording, result.H, rc.fixtures.qa_cube, rc.qa,
-                           platter_radius=rc.fixtures.platter.radius, prepared=cube.prepared)
+                           platter_radius=rc.fixtures.platter.radius, prepared=cube.prepared,
+                           range_model=result.range_model)
         return CubeChecked(result, check)
     limit = rc.calibration.max_sigma.ry_deg
+    refit = getattr(strategy, "refit", None)
     combined, check, failure = combine_with_cube_scan(
         result, cube.recording, rc.fixtures.qa_cube, rc.qa,
         platter_radius=rc.fixtures.platter.radius,
         max_sigma_ry=None if limit is None else math.radians(limit),
         progress=progress, prepared=cube.prepared,
+        refit=None if spin is None or refit is None else (
+            lambda start: refit(spin.prepared, start, rc)),
     )
     return CubeChecked(combined, check, failure)
 

@@ -55,6 +55,10 @@ class Strategy(Protocol):
       :class:`~calstation.engine.spinscan.SpinScan` prepared while it is taken. A strategy with
       it lets the station scan revolution by revolution until the accuracy budget holds
       (``steps.*.max_revolutions``); without it the scan takes its ``revolutions``.
+    - ``refit(scan, start, recipe, progress)``: for a spin-target strategy that holds the
+      lidar's range model (``calibration.range_model``), the fine-tuning run again from a
+      :class:`~calstation.engine.result.CalibrationResult` whose range terms the QA cube set,
+      holding them; without it the cube step combines the first result alone.
     """
 
     name: str
@@ -101,6 +105,8 @@ class PeriodicityStrategy:
             recipe.calibration.periodicity,
             platter_radius=recipe.fixtures.platter.radius,
             progress=progress,
+            range_model=recipe.calibration.range_model,
+            incidence=recipe.calibration.incidence_bias == "estimate",
         )
 
     def run_prepared(
@@ -112,6 +118,27 @@ class PeriodicityStrategy:
         return periodicity_fine_tune_scan(
             scan, start, recipe.calibration.periodicity,
             platter_radius=recipe.fixtures.platter.radius, progress=progress,
+            range_model=recipe.calibration.range_model,
+            incidence=recipe.calibration.incidence_bias == "estimate",
+        )
+
+
+    def refit(
+        self, scan: SpinScan, start: CalibrationResult, recipe: Recipe,
+        progress: Progress | None = None,
+    ) -> CalibrationResult:
+        """The fine-tuning run again from ``start`` (a combined estimate), its last stage only,
+        holding ``start``'s range terms and ty: how the cube step lets the spin target follow
+        the range model the cube set (:func:`calstation.engine.joint.
+        combine_range_with_cube_scan`)."""
+        from calstation.engine.periodicity import periodicity_fine_tune_scan
+
+        return periodicity_fine_tune_scan(
+            scan, start.H, recipe.calibration.periodicity,
+            platter_radius=recipe.fixtures.platter.radius, progress=progress, warm=True,
+            range_model=recipe.calibration.range_model,
+            incidence=recipe.calibration.incidence_bias == "estimate",
+            start_range=start.range_model,
         )
 
 
@@ -151,6 +178,8 @@ class ShapeStrategy:
             coarse=options.coarse,
             known_size=options.known_size,
             progress=progress,
+            range_model=recipe.calibration.range_model,
+            incidence=recipe.calibration.incidence_bias == "estimate",
         )
 
     def run_prepared(
@@ -165,6 +194,8 @@ class ShapeStrategy:
             platter_radius=recipe.fixtures.platter.radius, box=options.box,
             estimate_ry=options.estimate_ry, coarse=options.coarse,
             known_size=options.known_size, progress=progress, scan=scan,
+            range_model=recipe.calibration.range_model,
+            incidence=recipe.calibration.incidence_bias == "estimate",
         )
 
 

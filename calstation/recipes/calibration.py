@@ -34,6 +34,18 @@ class CalibrationSettings(Model):
         description="where the fine-tuning starts: the L-target's static scan (the paper), or "
         "the platter's chord in the spin scan itself (no L-target, no static scan)",
     )
+    range_model: Literal["none", "offset", "offset+scale"] = Field(
+        "offset",
+        description="the lidar's range terms estimated with H (DESIGN §9): none, its range "
+        "offset (every real lidar has one), or its offset and scale error (the scale needs "
+        "the QA cube's known size)",
+    )
+    incidence_bias: Literal["estimate", "none"] = Field(
+        "estimate",
+        description="with a range model, estimate the lidar's bias that grows with the angle "
+        "between its rays and the surface, c·(1/cos θ − 1), where the fits know the surfaces "
+        "(docs/algorithms.md)",
+    )
     initial: InitialSettings = InitialSettings()
     shape: ShapeSettings = ShapeSettings()
     periodicity: PeriodicitySettings = PeriodicitySettings()

@@ -20,7 +20,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from calstation.atomic import write_atomic
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
-from calstation.errors import RecordingError
+from calstation.engine.rangemodel import RangeModel
+from calstation.errors import CalibrationError, RecordingError
 
 if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
@@ -142,6 +143,30 @@ def load_calibration_file(
     seconds = None if latency is None else _finite(
         latency, f"{source} file {p}: field {latency_field}", " of seconds")
     return Extrinsics(**values), seconds
+
+
+def load_range_model(path: str | Path, *, source: str = "calibration") -> RangeModel:
+    """The lidar's range model (DESIGN §9) from a calibration file (``range_offset``,
+    ``range_scale``, as :func:`load_calibration_file` reads its H) or the true one of a
+    simulator ``truth.json`` (the same top-level keys); none (the identity) when the file has
+    none. Raises :class:`RecordingError` naming the file and field on any problem."""
+    from calstation.yamlsafe import read_text_file
+
+    p = Path(path)
+    try:
+        text = read_text_file(p, f"{source} file", 10_000_000)
+    except ValueError as exc:
+        raise RecordingError(f"cannot read {source} file {p}: {exc}") from None
+    data = _parse_mapping(p, text, source)
+    values = {}
+    for name in ("range_offset", "range_scale"):
+        value = data.get(name)
+        values[name] = 0.0 if value is None else _finite(
+            value, f"{source} file {p}: field {name}", "")
+    try:
+        return RangeModel(values["range_offset"], values["range_scale"])
+    except CalibrationError as exc:
+        raise RecordingError(f"{source} file {p}: {exc}") from None
 
 
 def _finite(value: Any, what: str, unit: str) -> float:

@@ -143,6 +143,7 @@ def calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> C
         encoder_latency_s=plain(getattr(res, "encoder_latency_s", None)),
         sigma_encoder_latency_s=plain(getattr(res, "sigma_encoder_latency_s", None)),
         predicted_error_m=plain((diagnostics.get("predicted_error") or {}).get("max_m")),
+        **{k: plain(v) for k, v in res.range_fields().items()},
         accepted=False,
         diagnostics=diagnostics,
     )

@@ -23,7 +23,7 @@ from calstation.storage.db.models import MAX_ROW_ID
 if TYPE_CHECKING:
     from calstation.storage.ros import Frames
 
-EXPORT_FORMATS = ("yaml", "json", "urdf", "xacro", "csv", "tf", "ros2-yaml")
+EXPORT_FORMATS = ("yaml", "json", "urdf", "xacro", "csv", "tf", "ros2-yaml", "ros2-params")
 
 
 def iso(t: dt.datetime | None) -> str | None:
@@ -222,9 +222,12 @@ def export_calibration(
     (``static_transform_publisher`` arguments, both directions), ``urdf`` (a complete
     ``<robot>`` file with the two links and the joint; with ``fragment``, the elements to paste
     into your own), ``xacro`` (a macro adding the joint between two links you name) or
-    ``ros2-yaml`` (a ``geometry_msgs/TransformStamped``). ``parent`` (``lidar`` or
-    ``platform``) picks the direction of the URDF joint and the TransformStamped; ``frames`` the
-    frame ids."""
+    ``ros2-yaml`` (a ``geometry_msgs/TransformStamped``), ``ros2-params`` (a ROS 2 parameter
+    file with the transform, the lidar's range model and the time offset). ``parent``
+    (``lidar`` or ``platform``) picks the direction of the URDF joint and the
+    TransformStamped; ``frames`` the frame ids. The lidar's range model (DESIGN §9), when
+    estimated, is in every format: fields of yaml, json, csv and ros2-params, and a comment
+    (with how to correct a range) in the others."""
     from calstation.engine.frames import Extrinsics
     from calstation.storage import ros
 
@@ -246,6 +249,12 @@ def export_calibration(
             f" ± {cal.sigma_encoder_latency_s * 1e3:.3f}")
         title += (f"; lidar–encoder time offset {cal.encoder_latency_s * 1e3:.3f}{sigma_ms} ms "
                   "(encoder time minus lidar time)")
+    ranges = cal.result().range_model if cal.range_offset is not None else None
+    if ranges is not None:
+        title += f"; {ros.range_note(ranges, cal.range_fields())}"
+    if fmt == "ros2-params":
+        return ros.ros2_params_export(H, title, names, parent, cal.range_fields(),
+                                      cal.encoder_latency_s)
     if fmt == "tf":
         return ros.tf_export(H, title, names)
     if fmt in ("urdf", "xacro"):
@@ -262,6 +271,7 @@ def export_calibration(
         header = ["run_id", "station", "stage", "strategy", "accepted", *PARAMS]
         header += [f"sigma_{p}" for p in PARAMS] + ["cost", "iterations"]
         header += ["encoder_latency_s", "sigma_encoder_latency_s"]
+        header += list(cal.range_fields())
         header += ["qx", "qy", "qz", "qw"]  # rotation of P in L, quaternion order x y z w
         row: list[Any] = [run.id, run.station.name, cal.stage, cal.strategy,
                           "true" if cal.accepted else "false"]
@@ -270,6 +280,7 @@ def export_calibration(
         row += ["" if cal.cost is None else repr(cal.cost), cal.iterations]
         row += ["" if v is None else repr(v)
                 for v in (cal.encoder_latency_s, cal.sigma_encoder_latency_s)]
+        row += ["" if v is None else repr(v) for v in cal.range_fields().values()]
         row += [repr(float(q)) for q in H.as_quaternion()]
         writer = csv.writer(buf, lineterminator="\n")
         writer.writerow(header)

@@ -16,11 +16,13 @@ Every export states its quaternion order: (x, y, z, w), scalar last, as ROS and 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from calstation.engine.frames import Extrinsics, FloatArray
+from calstation.engine.rangemodel import RangeModel
 from calstation.errors import CalstationError
 
 QUATERNION_ORDER = "x y z w (scalar last, as ROS and scipy)"
@@ -243,3 +245,56 @@ def ros2_yaml_export(
         f"  translation: {{x: {tx}, y: {ty}, z: {tz}}}\n"
         f"  rotation: {{x: {qx}, y: {qy}, z: {qz}, w: {qw}}}\n"
     )
+
+
+def range_note(model: RangeModel, fields: Mapping[str, float | None]) -> str:
+    """One sentence of the lidar's range model (DESIGN §9) for the exports that carry it as a
+    comment: its values with their σ, and how to correct a range before using the transform."""
+    def mm(name: str) -> str:
+        value, sigma = fields.get(name), fields.get(f"sigma_{name}")
+        if value is None:
+            return "not estimated"
+        spread = "" if sigma is None else f" ± {float(sigma) * 1e3:.3f}"
+        return f"{float(value) * 1e3:+.3f}{spread} mm"
+
+    scale = fields.get("range_scale")
+    scale_text = "not estimated" if scale is None else f"{float(scale):+.6g}"
+    return (f"lidar range offset b {mm('range_offset')}, scale error k {scale_text}, "
+            f"incidence bias {mm('incidence_bias')} at 60°: this transform holds for ranges "
+            f"corrected as rho = (rho_measured - b) / (1 + k) with b = {model.offset:.9g} m, "
+            f"k = {model.scale:.9g}")
+
+
+def ros2_params_export(
+    H: Extrinsics,
+    title: str,
+    frames: Frames = Frames(),
+    parent: str = "lidar",
+    ranges: Mapping[str, float | None] | None = None,
+    encoder_latency_s: float | None = None,
+) -> str:
+    """A ROS 2 parameter file (``--params-file``) for any node, ``/**``: the transform (pose of
+    the child frame in the parent), the lidar's range model (metres, dimensionless) and the
+    lidar–encoder time offset (s). A value not estimated is left out (ROS 2 parameters cannot be
+    null), named in a comment."""
+    tf = lidar_platform(H, frames, parent)
+    tx, ty, tz = (_num(v) for v in tf.translation)
+    q = ", ".join(_num(v) for v in tf.quaternion_xyzw)
+
+    lines = [
+        f"# {title}",
+        f"# translation in metres; rotation as a quaternion, order {QUATERNION_ORDER}; the range",
+        "# model of DESIGN §9: rho = (rho_measured - range_offset) / (1 + range_scale)",
+        "/**:",
+        "  ros__parameters:",
+        "    calstation:",
+        f"      frame_id: {tf.parent}",
+        f"      child_frame_id: {tf.child}",
+        f"      translation: [{tx}, {ty}, {tz}]",
+        f"      rotation_xyzw: [{q}]",
+    ]
+    values = {**(ranges or {}), "encoder_latency_s": encoder_latency_s}
+    for name, v in values.items():
+        lines.append(f"      # {name}: not estimated" if v is None
+                     else f"      {name}: {_num(float(v))}")
+    return "\n".join(lines) + "\n"

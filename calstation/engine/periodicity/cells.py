@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calstation.engine.frames import FloatArray, euler_to_matrix, lidar_to_polar
+from calstation.engine.rangemodel import correct_vector
 from calstation.engine.spinscan import SpinScan
 from calstation.errors import FineTuningError
 
@@ -61,8 +62,9 @@ def _rotation(x6: FloatArray) -> FloatArray:
 def to_dynamic(
     p_L: FloatArray, cos_phi: FloatArray, sin_phi: FloatArray, x6: FloatArray
 ) -> FloatArray:
-    """(N, 3) points in L with their platter angles (as cos, sin) → (N, 3) in D, for H = x6."""
-    q = (p_L - x6[:3]) @ _rotation(x6)
+    """(N, 3) points in L with their platter angles (as cos, sin) → (N, 3) in D, for H = x6
+    (and the range model after H in it, :mod:`calstation.engine.rangemodel`)."""
+    q = (correct_vector(p_L, x6) - x6[:3]) @ _rotation(x6)
     y = cos_phi * q[:, 1] + sin_phi * q[:, 2]
     z = -sin_phi * q[:, 1] + cos_phi * q[:, 2]
     return np.column_stack([q[:, 0], y, z])

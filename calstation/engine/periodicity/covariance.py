@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from calstation.engine.frames import PARAMETER_NAMES, FloatArray
 from calstation.engine.periodicity.cells import _groups
+from calstation.engine.rangemodel import ESTIMATED_NAMES
 
 SIGMA_BLOCK = 0.02
 """Edge (m) of the spatial blocks whose residuals are taken as correlated in the covariance."""
@@ -62,7 +63,7 @@ the turns, a 4-turn scan at 1000 lines/s reported σ_rz 0.001° for an error of 
 
 def model_floor(free: list[int]) -> FloatArray:
     """The (n, n) diagonal covariance of :data:`MODEL_FLOOR_DEG` over the parameters ``free``."""
-    floor = [math.radians(MODEL_FLOOR_DEG.get(PARAMETER_NAMES[i], 0.0)) ** 2 for i in free]
+    floor = [math.radians(MODEL_FLOOR_DEG.get(ESTIMATED_NAMES[i], 0.0)) ** 2 for i in free]
     out: FloatArray = np.diag(floor)
     return out
 
@@ -108,9 +109,9 @@ def parameter_covariance(
 def parameter_sigma(
     res: Any, free: list[int], blocks: NDArray[np.int64] | None = None
 ) -> dict[str, float]:
-    """1σ per parameter (metres / radians, keyed by ``PARAMETER_NAMES``) from
-    :func:`parameter_covariance`; NaN for parameters held fixed, and for all when the
-    covariance cannot be computed."""
+    """1σ per parameter (metres / radians, keyed by ``PARAMETER_NAMES``, and the range terms
+    among ``free``) from :func:`parameter_covariance`; NaN for parameters held fixed, and for
+    all when the covariance cannot be computed."""
     return sigma_from_covariance(parameter_covariance(res, free, blocks), free)
 
 
@@ -118,14 +119,18 @@ def covariance_record(cov: FloatArray | None, free: list[int]) -> dict[str, Any]
     """The covariance as stored with a calibration: parameter names and the matrix (SI)."""
     if cov is None:
         return None
-    return {"parameters": [PARAMETER_NAMES[i] for i in free], "matrix": cov.tolist()}
+    return {"parameters": [ESTIMATED_NAMES[i] for i in free], "matrix": cov.tolist()}
 
 
 def sigma_from_covariance(cov: FloatArray | None, free: list[int]) -> dict[str, float]:
-    """1σ per parameter name from an (n, n) covariance of the parameters ``free``."""
+    """1σ per parameter name from an (n, n) covariance of the parameters ``free`` (indices of
+    :data:`~calstation.engine.rangemodel.ESTIMATED_NAMES`): every one of H's (NaN when held),
+    and the range terms that are free."""
     out = {n: math.nan for n in PARAMETER_NAMES}
+    for i in free:
+        out[ESTIMATED_NAMES[i]] = math.nan
     if cov is None:
         return out
     for k, i in enumerate(free):
-        out[PARAMETER_NAMES[i]] = float(math.sqrt(max(cov[k, k], 0.0)))
+        out[ESTIMATED_NAMES[i]] = float(math.sqrt(max(cov[k, k], 0.0)))
     return out

@@ -3,7 +3,12 @@ of the two half-turns held fixed, H free. Point-to-local-plane residuals (symmet
 stages; one-sided and measured along the point's ray in the last) with the platter residual of
 the ``platter`` gauge (each static return's range error against the plane x_P = 0), their
 closed-form Jacobian, the problem reduced to n + 1 rows for the inner solve, and the bounds of
-the parameters."""
+the parameters.
+
+The estimated vector holds H's six parameters and the lidar's range model (the range offset b
+and scale error k, :mod:`calstation.engine.rangemodel`): every return is moved along its ray to
+its corrected range before it is reconstructed, so b and k are free parameters like H's when the
+recipe's ``calibration.range_model`` estimates them (held at their start otherwise)."""
 
 from __future__ import annotations
 
@@ -14,12 +19,28 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calstation.engine.frames import PARAMETER_NAMES, FloatArray
+from calstation.engine.frames import FloatArray
 from calstation.engine.periodicity.cells import _rotation
 from calstation.engine.periodicity.covariance import SIGMA_BLOCK, block_ids
+from calstation.engine.rangemodel import (
+    ESTIMATED_NAMES,
+    INCIDENCE,
+    OFFSET,
+    SCALE,
+    correct_vector,
+    incidence_shape,
+)
 from calstation.engine.settings import PeriodicitySettings
 
-IDX = {name: i for i, name in enumerate(PARAMETER_NAMES)}
+IDX = {name: i for i, name in enumerate(ESTIMATED_NAMES)}
+
+RANGE_OFFSET_BOUND = 0.05
+"""Half-width (m) of the range offset's bounds around its start: well beyond the ±30 mm
+accuracy of the lidars' datasheets."""
+RANGE_SCALE_BOUND = 0.01
+"""Half-width of the range scale error's bounds around its start (1 %)."""
+INCIDENCE_BOUND = 0.02
+"""Half-width (m) of the incidence bias's bounds around its start (its value at 60°)."""
 
 PLATTER_NOISE_FLOOR = 1e-4
 """Least range noise (m) the platter's weight assumes (:meth:`_Problem._platter_scale`): a
@@ -66,9 +87,14 @@ class _Problem:
         free: list[int],
         x6: FloatArray,
         noise: float = math.nan,
+        platter_level_free: bool = False,
     ) -> None:
         self.m = matched
         self.platter = platter
+        self.platter_level_free = platter_level_free
+        """the platter's range errors taken about their mean: the platter gives the axis's
+        direction and not its origin (with the lidar's range model, a platter of another finish
+        than the fixtures reads at another range)"""
         self.free = free
         self.base = x6.copy()
         self.swa = np.sqrt(matched.wa)
@@ -78,16 +104,29 @@ class _Problem:
         self.point_dir = np.zeros((0, 3))
         if matched.one_sided:
             # each point's ray: its residual is measured along it (see _target_residuals)
-            self.point_dir = matched.pb / np.maximum(
-                np.linalg.norm(matched.pb, axis=1, keepdims=True), 1e-9
-            )
+            self.point_dir = _unit(matched.pb)
+        self.ray_a = _unit(matched.pa)
+        self.ray_b = self.point_dir if matched.one_sided else _unit(matched.pb)
         self.platter_weight = platter_weight
+        self.shape_p = np.zeros(0)
         if platter is not None and platter.shape[0]:
             # each platter return's ray (the lidar sits at the origin of L)
-            self.platter_dir = platter / np.maximum(
-                np.linalg.norm(platter, axis=1, keepdims=True), 1e-9
-            )
+            self.platter_dir = _unit(platter)
+            self.shape_p = incidence_shape(self.platter_dir @ _rotation(x6)[:, 0])
+        self.shape_a, self.shape_b = self._incidence(x6)
+        if platter is not None and platter.shape[0]:
             self.platter_weight = platter_weight * self._platter_scale(x6, noise)
+
+    def _incidence(self, x6: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """The incidence bias's shape (:func:`~calstation.engine.rangemodel.incidence_shape`)
+        of each match's two points under ``x6``: A's point on A's plane, B's on the plane it is
+        measured against (A's when one-sided, else its own). Held through the inner solve: the
+        planes' normals do not move with t, and H turns them by less than a degree."""
+        R = _rotation(x6)
+        aa, ab, _, bb = self._normals_in_q()
+        a = incidence_shape(_rowdot(self.ray_a, aa @ R.T))
+        b = incidence_shape(_rowdot(self.ray_b, (ab if self.m.one_sided else bb) @ R.T))
+        return a, b
 
     def _platter_scale(self, x6: FloatArray, noise: float) -> float:
         """Weight of the platter residuals (range errors, m) relative to the target's: the
@@ -113,7 +152,8 @@ class _Problem:
         assert self.platter is not None
         a = _rotation(x6)[:, 0]
         cos_incidence = _clip_away_from_zero(self.platter_dir @ a, GRAZING_PLATTER)
-        out: FloatArray = ((self.platter - x6[:3]) @ a) / cos_incidence
+        corrected = correct_vector(self.platter, x6, self.shape_p)
+        out: FloatArray = ((corrected - x6[:3]) @ a) / cos_incidence
         return out
 
     def row_blocks(self) -> NDArray[np.int64]:
@@ -162,7 +202,8 @@ class _Problem:
         m = self.m
         R = _rotation(x6)
         aa, ab, ba, bb = self._normals_in_q()
-        ua, ub = m.pa - x6[:3], m.pb - x6[:3]
+        ua = correct_vector(m.pa, x6, self.shape_a) - x6[:3]
+        ub = correct_vector(m.pb, x6, self.shape_b) - x6[:3]
         # point of B against A's local plane, and point of A against B's local plane
         ra = self.swa * (_rowdot(ua, aa @ R.T) - _rowdot(ub, ab @ R.T) + m.oa)
         if m.one_sided:
@@ -184,7 +225,10 @@ class _Problem:
         x6 = self.full(x)
         parts = [self._target_residuals(x6)]
         if self.platter is not None and self.platter.shape[0]:
-            parts.append(self.platter_weight * self._platter_along_rays(x6))
+            along = self._platter_along_rays(x6)
+            if self.platter_level_free:
+                along = along - along.mean()
+            parts.append(self.platter_weight * along)
         return np.concatenate(parts)
 
     def jacobian(self, x: FloatArray) -> FloatArray:
@@ -198,13 +242,36 @@ class _Problem:
         J = np.empty((end + platter, len(self.free)))
         self._target_jacobian(x6, R, J[:end])
         self._platter_jacobian(x6, R, J[end:])
+        if self.platter_level_free and platter:
+            J[end:] -= J[end:].mean(axis=0)
         return J
+
+    def follows(self, x: FloatArray, held: list[int]) -> dict[str, dict[str, float]]:
+        """How the solution ``x`` (of the free parameters) would move per unit of each of the
+        ``held`` parameters (indices of :data:`~calstation.engine.rangemodel.ESTIMATED_NAMES`):
+        dx = −J⁺·J_held, the least-squares response to its column."""
+        if not held:
+            return {}
+        free = self.free
+        J = self.jacobian(x)
+        x_all = self.full(x)
+        try:
+            self.free = list(held)
+            columns = self.jacobian(x_all[held])
+        finally:
+            self.free = free
+        dx = -np.linalg.lstsq(J, columns, rcond=None)[0]
+        return {ESTIMATED_NAMES[h]: {ESTIMATED_NAMES[i]: float(dx[k, j])
+                                     for k, i in enumerate(free)}
+                for j, h in enumerate(held)}
 
     def _target_jacobian(self, x6: FloatArray, R: FloatArray, out: FloatArray) -> None:
         """The target's rows of :meth:`jacobian`, written into ``out``."""
         m = self.m
         aa, ab, ba, bb = self._normals_in_q()
-        ua, ub = m.pa - x6[:3], m.pb - x6[:3]
+        pa = correct_vector(m.pa, x6, self.shape_a)
+        pb = correct_vector(m.pb, x6, self.shape_b)
+        ua, ub = pa - x6[:3], pb - x6[:3]
         n = aa.shape[0]
         # ∂/∂t: the same three columns for every translation
         ta = -self.swa[:, None] * ((aa - ab) @ R.T)
@@ -218,11 +285,26 @@ class _Problem:
             c_turns = c_free == c_pt
             s_pt = np.abs(c_pt)
             ta = ta / s_pt[:, None]
+        # a range term moves each point along its own ray: ∂p/∂b = −ray/(1 + k),
+        # ∂p/∂k = −p/(1 + k), the same chain as −∂t for that point alone
+        scale = 1.0 + (float(x6[SCALE]) if x6.size > SCALE else 0.0)
         for col, i in enumerate(self.free):
             if i < 3:
                 out[:n, col] = ta[:, i]
                 if not m.one_sided:
                     out[n:, col] = tb[:, i]
+                continue
+            if i >= OFFSET:
+                va, vb = {OFFSET: (self.ray_a, self.ray_b), SCALE: (pa, pb),
+                          INCIDENCE: (self.ray_a * self.shape_a[:, None],
+                                      self.ray_b * self.shape_b[:, None])}[i]
+                da = -self.swa * (_rowdot(aa @ R.T, va) - _rowdot(ab @ R.T, vb)) / scale
+                if m.one_sided:
+                    out[:n, col] = da / s_pt
+                else:
+                    out[:n, col] = da
+                    out[n:, col] = -self.swb * (
+                        _rowdot(ba @ R.T, va) - _rowdot(bb @ R.T, vb)) / scale
                 continue
             dR = _rotation_derivative(x6, i)
             va, vb = ua @ dR, ub @ dR
@@ -240,14 +322,21 @@ class _Problem:
         platter = self.platter if self.platter is not None else np.zeros((0, 3))
         w = self.platter_weight
         a = R[:, 0]
-        up = platter - x6[:3]
+        corrected = correct_vector(platter, x6, self.shape_p)
+        up = corrected - x6[:3]
         h = up @ a
         c_free = self.platter_dir @ a
         c = _clip_away_from_zero(c_free, GRAZING_PLATTER)
         turns = c == c_free
+        scale = 1.0 + (float(x6[SCALE]) if x6.size > SCALE else 0.0)
         for col, i in enumerate(self.free):
             if i < 3:
                 out[:, col] = -w * a[i] / c
+                continue
+            if i >= OFFSET:
+                along = {OFFSET: self.platter_dir, SCALE: corrected,
+                         INCIDENCE: self.platter_dir * self.shape_p[:, None]}[i]
+                out[:, col] = -w * (along @ a) / (scale * c)
                 continue
             da = _rotation_derivative(x6, i)[:, 0]
             out[:, col] = w * ((up @ da) * c - h * (self.platter_dir @ da) * turns) / c**2
@@ -286,6 +375,12 @@ def _clip_away_from_zero(c: FloatArray, least: float) -> FloatArray:
     return out
 
 
+def _unit(p: FloatArray) -> FloatArray:
+    """(N, 3) each row's unit vector: the ray of a return in L (the lidar at the origin)."""
+    out: FloatArray = p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-9)
+    return out
+
+
 def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
     out: FloatArray = np.einsum("ij,ij->i", a, b)
     return out
@@ -300,9 +395,11 @@ def _rotation_derivative(x6: FloatArray, i: int, h: float = 1e-6) -> FloatArray:
     return out
 
 
-def _free(gauge_ty: bool) -> list[int]:
+def _free(gauge_ty: bool, range_terms: list[int] | None = None) -> list[int]:
+    """The free parameters' indices: H's (ty held under the ``ty`` gauge), then the range
+    terms estimated (:func:`calstation.engine.rangemodel.estimated_indices`)."""
     names = ["tx", "tz", "ry", "rz"] if gauge_ty else ["tx", "ty", "tz", "ry", "rz"]
-    return [IDX[n] for n in names]
+    return [IDX[n] for n in names] + list(range_terms or [])
 
 
 def _bounds(
@@ -313,11 +410,13 @@ def _bounds(
     ryb = math.radians(settings.ry_bound_deg)
     lo, hi = [], []
     for i in free:
-        if i == IDX["ry"]:
-            # never re-centred: ry is nearly unobservable and would walk to a moving bound
-            centre, half = start6[i], ryb
-            lo.append(centre - half)
-            hi.append(centre + half)
+        if i in (IDX["ry"], OFFSET, SCALE, INCIDENCE):
+            # never re-centred: ry and the range terms are weakly observable and would walk to
+            # a moving bound
+            half = {IDX["ry"]: ryb, OFFSET: RANGE_OFFSET_BOUND, SCALE: RANGE_SCALE_BOUND,
+                    INCIDENCE: INCIDENCE_BOUND}[i]
+            lo.append(start6[i] - half)
+            hi.append(start6[i] + half)
             continue
         half = tb if i < 3 else rb
         lo.append(x6[i] - half)
@@ -334,7 +433,7 @@ def _platter_samples(
     """Static returns that lie on the platter top under H (|x_P| ≤ tolerance, inside radius)."""
     if p_static.shape[0] == 0:
         return p_static
-    q = (p_static - x6[:3]) @ _rotation(x6)
+    q = (correct_vector(p_static, x6) - x6[:3]) @ _rotation(x6)
     r = np.hypot(q[:, 1], q[:, 2])
     keep = (np.abs(q[:, 0]) <= tolerance) & (r <= radius)
     return p_static[keep]

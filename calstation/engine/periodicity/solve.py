@@ -38,6 +38,16 @@ from calstation.engine.periodicity.problem import (
     _Reduced,
 )
 from calstation.engine.periodicity.schedule import Stage, final_cell_size, schedule
+from calstation.engine.rangemodel import (
+    ESTIMATED_NAMES,
+    IDENTITY,
+    OFFSET,
+    SCALE,
+    RangeModel,
+    RangeModelName,
+    estimated_indices,
+    range_result_fields,
+)
 from calstation.engine.result import CalibrationResult
 from calstation.engine.settings import DEFAULT_PLATTER_RADIUS, PeriodicitySettings
 from calstation.engine.spinscan import SpinScan, from_recording, prepare
@@ -56,6 +66,9 @@ def periodicity_fine_tune(
     *,
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
     progress: Progress | None = None,
+    range_model: RangeModelName = "none",
+    start_range: RangeModel = IDENTITY,
+    incidence: bool = False,
 ) -> CalibrationResult:
     """Periodicity fine-tuning on a spin-scan
     :class:`~calstation.engine.scan.Scan`."""
@@ -66,6 +79,9 @@ def periodicity_fine_tune(
             settings,
             platter_radius=platter_radius,
             progress=progress,
+            range_model=range_model,
+            start_range=start_range,
+            incidence=incidence,
         )
     except FineTuningError as exc:
         raise FineTuningError(f"{recording.path}: {exc}") from None
@@ -114,6 +130,9 @@ def periodicity_fine_tune_scan(
     progress: Progress | None = None,
     stages: int | None = None,
     warm: bool = False,
+    range_model: RangeModelName = "none",
+    start_range: RangeModel = IDENTITY,
+    incidence: bool = False,
 ) -> CalibrationResult:
     """Periodicity fine-tuning on a prepared :class:`~calstation.engine.spinscan.SpinScan`: as
     :func:`periodicity_fine_tune_points`, without the per-scan preparation (done as the lines
@@ -122,11 +141,16 @@ def periodicity_fine_tune_scan(
     ``warm``: ``start`` is the result of a fine-tuning on part of this scan (the turns before
     the last): only the last stage runs, from it, with its cells sized for the whole scan (an
     update after each revolution: 0.2–1.2 s at 180–1000 lines/s on one core, within 0.007° in
-    ry of a full run on the simulator)."""
+    ry of a full run on the simulator).
+
+    ``range_model``: the lidar's range terms (``calibration.range_model``; with ``incidence``
+    the incidence bias too) are held at ``start_range`` and every return corrected by them; the
+    result carries them without a σ, and ``diagnostics["follows"]`` says how H would follow each
+    (the QA cube sets them: :func:`calstation.engine.joint.combine_range_with_cube_scan`)."""
     t_start = time.perf_counter()
     timings: dict[str, float] = {f"scan_{k}": v for k, v in scan.timings.items()}
     keep = _whole_revolutions(scan)
-    start6 = start.with_(rx=0.0).as_vector()
+    start6 = np.concatenate([start.with_(rx=0.0).as_vector(), start_range.as_vector()])
     halves, halves_all, p_static = _split(scan, keep, start6, platter_radius)
     noise = scan.noise
     timings["prepare"] = time.perf_counter() - t_start
@@ -137,7 +161,16 @@ def periodicity_fine_tune_scan(
         x6 = start6.copy()
     else:
         x6 = _centred_start(halves, start6, settings, schedule_)
-    run = _Run(start6, p_static, settings, platter_radius, progress, len(schedule_), noise)
+    # the range terms are held and the result says how it follows them
+    # (``diagnostics["follows"]``), for the QA cube to set: a spin scan sees the offset only
+    # through the platter's tilt against the target's axis (σ 0.35 mm at 1000 lines/s, and
+    # biased by an unmodelled incidence bias at that level), cannot see a scale error (a scaled
+    # world turns alike), and reads an incidence bias as an axis offset (its facets are seen at
+    # ~25° from one side and ~65° from the other)
+    terms: list[int] = []
+    model = estimated_indices(range_model, incidence)
+    run = _Run(start6, p_static, settings, platter_radius, progress, len(schedule_), noise,
+               terms, level_free=bool(model))
     x6, stage_timings = _run_stages(run, schedule_, halves, halves_all, x6)
     timings.update(stage_timings)
     timings.update(run.timings)
@@ -145,7 +178,10 @@ def periodicity_fine_tune_scan(
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:
         progress("periodicity done", 1.0)
-    return _result(x6, start6, settings, scan, run, uncertainty, final_voxel, timings)
+    # ty too: the platter gives no origin here, the QA cube's top does
+    held = ([IDX["ty"]] if model else []) + [i for i in model if i not in terms]
+    return _result(x6, start6, settings, scan, run, uncertainty, final_voxel, timings,
+                   model, held)
 
 
 def _final_cell(halves: list[_Half], noise: float) -> float:
@@ -264,14 +300,21 @@ def _result(
     uncertainty: _Uncertainty,
     final_voxel: float,
     timings: dict[str, float],
+    terms: list[int] | None = None,
+    held: list[int] | None = None,
 ) -> CalibrationResult:
-    """The :class:`CalibrationResult` of the run, with its diagnostics."""
+    """The :class:`CalibrationResult` of the run, with its diagnostics; ``terms`` the range
+    terms of the recipe's model, ``held`` those of them held (their start, with no σ; how the
+    estimate follows them in ``diagnostics["follows"]``)."""
     ry_lo = start6[4] - math.radians(settings.ry_bound_deg)
     ry_hi = start6[4] + math.radians(settings.ry_bound_deg)
     at_bound = min(abs(x6[4] - ry_lo), abs(x6[4] - ry_hi)) < math.radians(0.01)
+    sigma = dict(uncertainty.sigma)
+    terms = list(terms or [])
+    ranges = range_result_fields(x6, sigma, terms)
     return CalibrationResult(
-        H=Extrinsics.from_vector(x6),
-        sigma=uncertainty.sigma,
+        H=Extrinsics.from_vector(x6[:6]),
+        sigma=sigma,
         cost=run.cost,
         iterations=run.outer,
         strategy="periodicity",
@@ -298,8 +341,33 @@ def _result(
             "ry_at_bound": bool(at_bound),
             "ry_bound_rad": [ry_lo, ry_hi],
             "rms_m": math.sqrt(run.cost),
+            **({"range_model": [ESTIMATED_NAMES[i] for i in terms],
+                "follows": _follows(run, x6, held or [])} if terms else {}),
         },
-    )
+    ).with_range(ranges)
+
+
+def _follows(run: _Run, x: FloatArray, held: list[int]) -> dict[str, dict[str, float]]:
+    """How the estimate follows each ``held`` range term, per unit of it. The scale error,
+    which a spin scan cannot see, exactly: a world scaled by (1 + ε) turns alike with the
+    translation scaled by (1 + ε), the offset and the rotations unchanged, and the scale error
+    k ← k − ε; so ∂t/∂k = −t. The others from the last stage's least-squares response
+    (:meth:`~calstation.engine.periodicity.problem._Problem.follows`)."""
+    out: dict[str, dict[str, float]] = {}
+    others = [i for i in held if i != SCALE]
+    if others and run.last is not None:
+        x_last, problem = run.last
+        out.update(problem.follows(x_last, others))
+    if SCALE in held:
+        # the scaled world moves ty too, which is held: what the estimate does when ty moves
+        # with it is taken back out (∂/∂k at ty held = −t + ∂/∂ty·ty)
+        by_ty = out.get("ty", {})
+        out["range_scale"] = {
+            name: (-float(x[i]) if i < 3 else 0.0) + by_ty.get(name, 0.0) * float(x[1])
+            for i, name in enumerate(("tx", "ty", "tz", "rx", "ry", "rz"))
+            if name in by_ty or i in (0, 2)
+        }
+    return out
 
 
 class _Run:
@@ -314,7 +382,13 @@ class _Run:
         progress: Progress | None,
         n_stages: int,
         noise: float = math.nan,
+        range_terms: list[int] | None = None,
+        level_free: bool = False,
     ) -> None:
+        self.range_terms = list(range_terms or [])
+        """the range terms the last stage frees (indices after H's)"""
+        self.level_free = level_free
+        """ty held and the platter's level free (:class:`_Problem`'s ``platter_level_free``)"""
         self.noise = noise
         """range noise σ (m) measured on the scan (NaN: unknown)"""
         self.start6 = start6
@@ -335,8 +409,12 @@ class _Run:
     def stage(self, s_i: int, stage: Stage, match: _Matcher, x6: FloatArray) -> FloatArray:
         """Iterate one stage from ``x6``; returns the H (as a vector) it ends on."""
         settings = self.settings
-        gauge_ty = settings.gauge == "ty" or not stage.use_platter
-        free = [i for i in _free(gauge_ty) if not (stage.hold_ry and i == IDX["ry"])]
+        # with the lidar's range model the platter gives the axis's direction, not its origin
+        # (ty is held, and set with the range model by the QA cube's top)
+        gauge_ty = settings.gauge == "ty" or not stage.use_platter or self.level_free
+        # the range offset, as weakly seen as ry, is freed with it in the last stage
+        terms = [] if stage.hold_ry else self.range_terms
+        free = [i for i in _free(gauge_ty, terms) if not (stage.hold_ry and i == IDX["ry"])]
         for outer in range(stage.max_outer):
             if self.progress is not None:
                 self.progress(
@@ -355,7 +433,7 @@ class _Run:
                     f"{stage.match_radius * 1e3:.0f} mm); the start is too far off or the spin "
                     "target is not seen in both half-turns"
                 )
-            problem = _Problem(matched, platter, 1.0, free, x6, self.noise)
+            problem = _Problem(matched, platter, 1.0, free, x6, self.noise, self.level_free)
             lo, hi = _bounds(x6, self.start6, free, settings)
             reduced = _Reduced(problem, x6[free])
             res = least_squares(
@@ -421,6 +499,7 @@ def _converged(history: list[dict[str, Any]], outer: int, step: FloatArray, stag
         step[:3].max() < stage.voxel * 0.02
         and step[5] < math.radians(0.001) * stage.voxel / 0.002
         and step[4] < math.radians(0.002)
+        and (step.size <= OFFSET or step[OFFSET] < stage.voxel * 0.02)
     )
     if not stage.hold_ry:
         return bool(small_step)

@@ -21,7 +21,7 @@ from calstation.recordings.runfolder import second_pass
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome, plain
 from calstation.station.recording_io import record_scan, record_second_pass, spin_acquisition
-from calstation.station.steps.fine_tune import with_stored_time_offset
+from calstation.station.steps.fine_tune import spin_as_fitted, with_stored_time_offset
 from calstation.station.steps.place import place
 from calstation.station.turns import more_cube_turns
 from calstation.storage.db import Calibration
@@ -175,7 +175,11 @@ def _check_cube_joint(
     from calstation.recordings.reader import read_recording
 
     stored = fine.result()
-    cubed = with_cube(ctx.recipe, ctx.strategy(), stored, cube_scan, progress)
+    spin = None
+    if stored.range_offset is not None:  # the spin target may follow the cube's range model
+        prepared = ctx.prepared.get(ctx.artifact_path("spin"))
+        spin = spin_as_fitted(ctx, None if prepared is None else prepared.builder)[1]
+    cubed = with_cube(ctx.recipe, ctx.strategy(), stored, cube_scan, progress, spin=spin)
     if not cubed.combined(stored):
         return cubed.check, None, cubed.ry_failure
     result = cubed.result

@@ -111,6 +111,20 @@ def _fitted(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, float]:
     return result, spin.turns()
 
 
+def spin_as_fitted(
+    ctx: RunContext, builder: SpinScanBuilder | None
+) -> tuple[tuple[int, int | None] | None, Turned]:
+    """The stored spin scan as the run's fine-tuning uses it (its returns as ``builder``
+    prepared them, when this process took it): cut to what a fit within the budget made while
+    scanning saw, as the uninterrupted run, a resumed one and a re-processing cut it. Returns
+    (that fit's turns and lines, or None; the scan)."""
+    from calstation.pipeline import turned
+    from calstation.recordings.reader import read_recording
+
+    met = turns_fitted(passed_result(ctx.db, ctx.run_id, "spin_scan").get("turn_by_turn"))
+    return met, turned(read_recording(ctx.artifact_path("spin")), fitted=met, builder=builder)
+
+
 def _fit(
     ctx: RunContext, strategy: Any, builder: SpinScanBuilder | None
 ) -> tuple[CalibrationResult, Turned]:
@@ -119,12 +133,9 @@ def _fit(
     there is a second pass, and the scan; the strategy's warnings go to the operator. A scan
     that stopped on a fit within the budget, made by another process (a resumed run), is
     fitted again on the lines that fit saw, as the uninterrupted run and a re-processing do."""
-    from calstation.pipeline import turned
     from calstation.pipeline.stages import Start, fine_tune, platter_start
-    from calstation.recordings.reader import read_recording
 
-    met = turns_fitted(passed_result(ctx.db, ctx.run_id, "spin_scan").get("turn_by_turn"))
-    spin = turned(read_recording(ctx.artifact_path("spin")), fitted=met, builder=builder)
+    met, spin = spin_as_fitted(ctx, builder)
     if met is not None:
         ctx.ui.info(f"  the spin scan stopped on a fit within the budget after {met[0]} "
                     f"turn{'s' if met[0] != 1 else ''}: fine-tuning what that fit saw of its "

@@ -250,11 +250,10 @@ def alembic_config(connection: Any = None, url: str | None = None) -> Any:
     return cfg
 
 
-SCHEMA_HEAD = "0011_database_identity"
+SCHEMA_HEAD = "0012_calibration_range_model"
 """The newest migration's revision id, as written in ``migrations/versions`` beside this module
-(a test checks
-that they agree). Opening a database that is at it needs no Alembic, which takes ~0.1 s to
-import; only a new, older or unknown database loads it."""
+(a test checks that they agree). Opening a database that is at it needs no Alembic, which takes
+~0.1 s to import; only a new, older or unknown database loads it."""
 
 
 def head_revision() -> str:

@@ -196,8 +196,9 @@ class Calibration(Base):
     minus lidar time, s) when the spin scan had a second pass, else None.
     ``predicted_error_m``: the reconstruction error the calibration predicts over the recipe's
     work volume (m, at the budget's level; ``diagnostics["predicted_error"]`` has the details),
-    None when it was not predicted. ``accepted`` marks the run's final calibration when the run
-    passed.
+    None when it was not predicted. ``range_offset`` (m), ``range_scale``, ``incidence_bias``
+    (m at 60°) and their ``sigma_*``: the lidar's range model estimated with H (DESIGN §9), None
+    when not estimated. ``accepted`` marks the run's final calibration when the run passed.
     """
 
     __tablename__ = "calibration"
@@ -222,6 +223,12 @@ class Calibration(Base):
     encoder_latency_s: Mapped[float | None] = mapped_column(Float)
     sigma_encoder_latency_s: Mapped[float | None] = mapped_column(Float)
     predicted_error_m: Mapped[float | None] = mapped_column(Float)
+    range_offset: Mapped[float | None] = mapped_column(Float)
+    sigma_range_offset: Mapped[float | None] = mapped_column(Float)
+    range_scale: Mapped[float | None] = mapped_column(Float)
+    sigma_range_scale: Mapped[float | None] = mapped_column(Float)
+    incidence_bias: Mapped[float | None] = mapped_column(Float)
+    sigma_incidence_bias: Mapped[float | None] = mapped_column(Float)
     cost: Mapped[float | None] = mapped_column(Float)
     iterations: Mapped[int | None] = mapped_column(Integer)
     accepted: Mapped[bool] = mapped_column(Boolean, default=False, index=True)
@@ -260,7 +267,13 @@ class Calibration(Base):
             diagnostics=diagnostics,
             encoder_latency_s=self.encoder_latency_s,
             sigma_encoder_latency_s=self.sigma_encoder_latency_s,
-        )
+        ).with_range(self.range_fields())
+
+    def range_fields(self) -> dict[str, float | None]:
+        """The range model as stored (DESIGN §9; None where not estimated)."""
+        from calstation.engine.result import RANGE_FIELDS
+
+        return {name: getattr(self, name) for name in RANGE_FIELDS}
 
 
 class CubeCheckRecord(Base):

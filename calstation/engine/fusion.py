@@ -1,0 +1,158 @@
+"""Two estimates of the calibration combined in information form: the spin target's and the QA
+cube's, each with its covariance over the parameters it estimated.
+
+The spin scan and the cube scan see different things. The spin target's periodicity fixes the
+axis (tx, tz, rz) and, with the platter, the range offset only weakly (about b/(2ρ) of tilt per
+metre of offset, against the platter's own tilt); it cannot see a range scale error at all (a
+world scaled by 1 + ε turns alike, with the translation scaled too), and reads an incidence bias
+as an axis offset (its facets are seen at about 25° from one side and 65° from the other): it
+holds both and reports how it would follow them (``diagnostics["follows"]``). The cube's known
+edge and height and its square faces, seen at every angle as it turns, fix the offset, the scale
+error and the incidence bias, and see ry well. Each estimate is a Gaussian
+over its own parameters; their product is the combined estimate, exact for the linear part and
+the same as a joint fit of both scans once both are near the solution (they are: the cube's fit
+starts from the spin target's result).
+
+The cube's bias bound (what its edge tolerance moves, fully correlated across the parameters) is
+part of its covariance here, as the rank-one term it is, so the combination leans on the cube
+only as far as its tolerance allows.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray
+from calstation.engine.rangemodel import ESTIMATED_NAMES, RangeModel
+
+CONSISTENCY_P = 1e-3
+"""Two estimates whose difference is less likely than this under their combined covariance
+are not combined: one of them is wrong (a misplaced fixture, an error neither models)."""
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """An estimate of some of :data:`~calstation.engine.rangemodel.ESTIMATED_NAMES`.
+
+    ``vector`` (8,) every parameter's value (held ones too); ``names`` and ``covariance`` the
+    estimated ones and their (n, n) covariance (SI). ``follows`` (per name of ``names``): how
+    the estimate moves per unit of a parameter it held (``{"range_scale": {"tx": …}}``).
+    """
+
+    vector: FloatArray
+    names: tuple[str, ...]
+    covariance: FloatArray
+    follows: Mapping[str, Mapping[str, float]]
+
+    @classmethod
+    def of(cls, H: Extrinsics, model: RangeModel, record: Mapping[str, Any],
+           follows: Mapping[str, Mapping[str, float]] | None = None) -> Estimate:
+        """From H, the range model and a stored covariance record (``parameters``,
+        ``matrix``)."""
+        return cls(
+            np.concatenate([H.as_vector(), model.as_vector()]),
+            tuple(str(n) for n in record["parameters"]),
+            np.asarray(record["matrix"], dtype=np.float64),
+            dict(follows or {}),
+        )
+
+
+@dataclass(frozen=True)
+class Fused:
+    """The combined estimate: H, the range model, their covariance (``names``), and how far
+    apart the two were (``disagreement``: the χ² of their difference, ``dof``, its p-value,
+    and the parameters that differ most, in σ)."""
+
+    H: Extrinsics
+    range_model: RangeModel
+    names: tuple[str, ...]
+    covariance: FloatArray
+    disagreement: dict[str, Any]
+
+    @property
+    def sigma(self) -> dict[str, float]:
+        """1σ per estimated parameter (SI)."""
+        return {n: math.sqrt(max(float(self.covariance[k, k]), 0.0))
+                for k, n in enumerate(self.names)}
+
+    def record(self) -> dict[str, Any]:
+        """The covariance as stored with a calibration."""
+        return {"parameters": list(self.names), "matrix": self.covariance.tolist()}
+
+
+def fuse(first: Estimate, second: Estimate) -> Fused:
+    """The product of the two estimates' Gaussians over the union of their parameters (in the
+    order of :data:`ESTIMATED_NAMES`). A parameter that ``first`` held but ``second`` estimates
+    moves ``first``'s constraint along its ``follows`` direction (the range scale error the spin
+    scan cannot see). Parameters neither estimated keep ``first``'s value."""
+    names = tuple(n for n in ESTIMATED_NAMES if n in first.names or n in second.names)
+    info = np.zeros((len(names), len(names)))
+    eta = np.zeros(len(names))
+    for est in (first, second):
+        A, z = _constraint(est, names)
+        inv = np.linalg.inv(0.5 * (est.covariance + est.covariance.T))
+        info += A.T @ inv @ A
+        eta += A.T @ inv @ z
+    cov: FloatArray = np.asarray(np.linalg.inv(info), dtype=np.float64)
+    y = cov @ eta
+    vector = first.vector.copy()
+    for k, n in enumerate(names):
+        vector[ESTIMATED_NAMES.index(n)] = y[k]
+    H = Extrinsics.from_vector(vector[: len(PARAMETER_NAMES)]).with_(rx=0.0)
+    return Fused(H, RangeModel.from_vector(vector), names, cov, _disagreement(first, second))
+
+
+def _constraint(est: Estimate, names: Sequence[str]) -> tuple[FloatArray, FloatArray]:
+    """The linear constraint ``A·y = z`` (with ``est``'s covariance) that ``est`` puts on the
+    combined parameters ``y`` (``names``): its own parameters, moved along ``follows`` for the
+    ones it held."""
+    A = np.zeros((len(est.names), len(names)))
+    z = np.array([est.vector[ESTIMATED_NAMES.index(n)] for n in est.names])
+    for row, n in enumerate(est.names):
+        A[row, names.index(n)] = 1.0
+    for held, direction in est.follows.items():
+        if held not in names or held in est.names:
+            continue
+        col = names.index(held)
+        at = float(est.vector[ESTIMATED_NAMES.index(held)])
+        for row, n in enumerate(est.names):
+            d = float(direction.get(n, 0.0))
+            # y_n − d·(y_held − at) = x_n: the estimate follows the held parameter
+            A[row, col] -= d
+            z[row] -= d * at
+    return A, z
+
+
+def _disagreement(first: Estimate, second: Estimate) -> dict[str, Any]:
+    """How far apart the two estimates are on the parameters both estimated: χ², degrees of
+    freedom, p-value, and each parameter's difference in σ of the difference."""
+    common = [n for n in first.names if n in second.names]
+    if not common:
+        return {"chi2": 0.0, "dof": 0, "p": 1.0, "sigmas": {}}
+    i1 = [first.names.index(n) for n in common]
+    i2 = [second.names.index(n) for n in common]
+    d = np.array([first.vector[ESTIMATED_NAMES.index(n)] - second.vector[ESTIMATED_NAMES.index(n)]
+                  for n in common])
+    # the second estimate's value moved onto the first's held parameters
+    for held, direction in first.follows.items():
+        if held in first.names:
+            continue
+        delta = float(second.vector[ESTIMATED_NAMES.index(held)]
+                      - first.vector[ESTIMATED_NAMES.index(held)])
+        d += np.array([float(direction.get(n, 0.0)) * delta for n in common])
+    C = first.covariance[np.ix_(i1, i1)] + second.covariance[np.ix_(i2, i2)]
+    value = float(d @ np.linalg.solve(C, d))
+    sigmas = {n: float(d[k] / math.sqrt(max(C[k, k], 1e-300))) for k, n in enumerate(common)}
+    return {"chi2": value, "dof": len(common), "p": float(chi2.sf(value, len(common))),
+            "sigmas": sigmas}
+
+
+def consistent(fused: Fused) -> bool:
+    """Whether the two estimates agreed well enough to be combined (:data:`CONSISTENCY_P`)."""
+    return bool(fused.disagreement["p"] >= CONSISTENCY_P)

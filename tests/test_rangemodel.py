@@ -1,0 +1,176 @@
+"""The lidar's range model (DESIGN §9) estimated with H: its arithmetic, the combination of the
+spin target's and the cube's estimates, and a simulated lidar with a known range offset given
+back within its σ and used by the reconstruction."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from calstation.engine.frames import Extrinsics
+from calstation.engine.fusion import Estimate, consistent, fuse
+from calstation.engine.rangemodel import (
+    IDENTITY,
+    RangeModel,
+    correct_points,
+    estimated_indices,
+    incidence_shape,
+)
+from calstation.engine.result import CalibrationResult
+from calstation.errors import CalibrationError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_a_return_is_moved_along_its_ray_to_its_corrected_range() -> None:
+    rays = np.array([[0.0, 1.0, 0.0], [0.6, 0.8, 0.0]])
+    measured = rays * np.array([[1.253], [2.004]])
+    model = RangeModel(offset=0.003, scale=0.002)
+    corrected = model.points(measured)
+    ranges = np.linalg.norm(corrected, axis=1)
+    assert ranges == pytest.approx([(1.253 - 0.003) / 1.002, (2.004 - 0.003) / 1.002])
+    assert np.allclose(corrected / ranges[:, None], rays)
+    assert model.ranges(np.array([1.253])) == pytest.approx([(1.253 - 0.003) / 1.002])
+    assert np.array_equal(IDENTITY.points(measured), measured)
+    # an offset per return (the incidence bias), and no range stays no range
+    each = correct_points(np.vstack([measured, [0.0, 0.0, 0.0]]), np.array([0.001, 0.002, 0.1]),
+                          0.0)
+    assert np.linalg.norm(each, axis=1) == pytest.approx([1.252, 2.002, 0.0])
+
+
+def test_the_incidence_bias_grows_as_one_over_the_cosine() -> None:
+    c60, c0 = math.cos(math.radians(60)), 1.0
+    assert incidence_shape(np.array([c0, c60, -c60])) == pytest.approx([0.0, 1.0, 1.0])
+    # a grazing ray is not extrapolated past 1/0.2 − 1
+    assert incidence_shape(np.array([0.01])) == pytest.approx([4.0])
+    assert estimated_indices("offset") == [6]
+    assert estimated_indices("offset+scale", incidence=True) == [6, 7, 8]
+    assert estimated_indices("none", incidence=True) == []
+    with pytest.raises(CalibrationError, match="range model"):
+        RangeModel(offset=math.nan)
+
+
+def test_a_result_carries_the_range_model_through_every_file_and_summary(tmp_path: Path) -> None:
+    H = Extrinsics(tx=0.01, ty=1.25, tz=-0.002, ry=0.001, rz=-0.78)
+    result = CalibrationResult(H=H, sigma={"tx": 1e-5}, cost=0.0, iterations=1,
+                               strategy="periodicity+cube").with_range({
+        "range_offset": 0.0031, "sigma_range_offset": 0.0001,
+        "incidence_bias": 0.0005, "sigma_incidence_bias": 1e-5})
+    summary = result.summary()
+    assert summary["range_offset"] == 0.0031 and summary["sigma_range_offset"] == 0.0001
+    assert summary["range_scale"] is None and summary["sigma_range_scale"] is None
+    assert summary["incidence_bias"] == 0.0005
+    for name in ("cal.yaml", "cal.json"):
+        result.save(tmp_path / name)
+        back = CalibrationResult.load(tmp_path / name)
+        assert back.range_fields() == result.range_fields()
+        assert back.range_model == RangeModel(0.0031, 0.0, 0.0005)
+    # a file of an earlier version (no range model) reads as one without it
+    old = result.to_dict()
+    for key in result.range_fields():
+        old.pop(key)
+    assert CalibrationResult.from_dict(old).range_model == IDENTITY
+    with pytest.raises(CalibrationError, match="range_offset"):
+        CalibrationResult.from_dict({**result.to_dict(), "range_offset": "long"})
+
+
+def _estimate(x: dict[str, float], names: list[str], sigma: list[float],
+              follows: dict[str, dict[str, float]] | None = None) -> Estimate:
+    vector = np.zeros(9)
+    order = ["tx", "ty", "tz", "rx", "ry", "rz", "range_offset", "range_scale", "incidence_bias"]
+    for k, v in x.items():
+        vector[order.index(k)] = v
+    return Estimate(vector, tuple(names), np.diag(np.square(sigma)), follows or {})
+
+
+def test_two_estimates_combine_as_their_gaussians_and_a_held_term_is_followed() -> None:
+    # the spin scan: tx, ty at b = 0 (held), and it knows ty moves by −1 per metre of offset
+    spin = _estimate({"tx": 0.010, "ty": 1.2530}, ["tx", "ty"], [1e-5, 2e-5],
+                     {"range_offset": {"ty": -1.0}})
+    # the cube: ty and b together, loosely
+    cube = _estimate({"tx": 0.0101, "ty": 1.2500, "range_offset": 0.0030},
+                     ["tx", "ty", "range_offset"], [1e-4, 2e-4, 2e-4])
+    fused = fuse(spin, cube)
+    assert fused.names == ("tx", "ty", "range_offset")
+    # ty − (−1)·b = 1.2530 is the spin target's constraint: the cube's b sets both
+    ty = fused.H.ty
+    assert ty + fused.range_model.offset == pytest.approx(1.2530, abs=2e-5)
+    assert fused.range_model.offset == pytest.approx(0.0030, abs=2e-4)
+    assert fused.H.tx == pytest.approx(0.010, abs=2e-6)  # the spin target's tx dominates
+    assert fused.sigma["tx"] < 1e-5 and consistent(fused)
+    # the same cube, 10 mm of offset away from what the spin target allows: refused
+    far = _estimate({"tx": 0.0101, "ty": 1.2500, "range_offset": 0.013},
+                    ["tx", "ty", "range_offset"], [1e-4, 2e-4, 2e-4])
+    assert not consistent(fuse(spin, far))
+
+
+def _recipe(tmp_path: Path, sensor: dict[str, Any], name: str) -> Path:
+    data = yaml.safe_load((REPO / "recipes/sim-periodicity.yaml").read_text())
+    data["simulation"]["sensor"] = sensor
+    data["fixtures"]["qa_cube"]["edge_tolerance"] = 0.000005
+    data["steps"]["cube_scan"]["revolutions"] = 2.05
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.fixture(scope="module")
+def offset_run(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """A simulated run of a lidar whose ranges read 4 mm long, calibrated as a run does."""
+    from calstation import plugins
+    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.recipes import load_recipe
+    from calstation.recordings.reader import read_recording
+
+    path = _recipe(tmp_path_factory.mktemp("offset"), {"range": {"offset": 0.004}},
+                   "offset.yaml")
+    run = sim_run(recipe=path)
+    recipe = load_recipe(path).recipe
+    scans = Scans(spin=turned(read_recording(run["spin"])),
+                  static=read_recording(run["static"]),
+                  cube=turned(read_recording(run["cube"])))
+    done = calibrate(recipe, scans, plugins.strategy("periodicity"))
+    truth = read_recording(run["cube"]).truth
+    return done, truth, read_recording(run["cube"]), recipe
+
+
+def test_a_known_range_offset_is_given_back_within_its_sigma(offset_run: Any) -> None:
+    from calstation.engine.metrics import axis_errors
+
+    done, truth, _, _ = offset_run
+    result = done.result
+    assert done.refused == []
+    assert result.range_offset is not None and result.sigma_range_offset is not None
+    assert abs(result.range_offset - 0.004) <= 3 * result.sigma_range_offset
+    assert result.sigma_range_offset < 0.0005
+    e = axis_errors(result.H, truth)
+    for name in ("tx", "ty", "tz", "ry", "rz"):
+        assert abs(e[f"{name}_error"]) <= 3 * result.sigma[name], name
+    # the physical H, not one that absorbed the offset (ty would be 4 mm long)
+    assert abs(e["ty_error"]) < 0.001 and e["axis_offset_m"] < 0.3e-3
+    # the spin target alone held the offset and said how it follows it
+    assert done.fine_tuned.sigma_range_offset is not None
+    assert math.isnan(done.fine_tuned.sigma_range_offset)
+    assert "range_offset" in done.fine_tuned.diagnostics["follows"]
+
+
+def test_the_reconstruction_corrects_the_ranges_with_the_estimate(offset_run: Any) -> None:
+    """The cube reconstructed with the calibration and its range model lies where the true H
+    and the true ranges put it; without the range model it does not."""
+    from calstation.engine.reconstruct import reconstruct
+
+    done, truth, cube, _ = offset_run
+    result = done.result
+    true_cloud = reconstruct(cube, truth, range_model=RangeModel(0.004))
+    with_model = reconstruct(cube, result.H, range_model=result.range_model)
+    without = reconstruct(cube, result.H)
+    near = np.linalg.norm(true_cloud[:, 1:], axis=1) < 0.25  # the platter and the cube
+    moved = np.linalg.norm(with_model[near] - true_cloud[near], axis=1)
+    assert np.percentile(moved, 95) < 0.3e-3
+    assert np.median(np.linalg.norm(without[near] - true_cloud[near], axis=1)) > 1.5e-3
+    assert done.cube_check is not None and done.cube_check.passed
