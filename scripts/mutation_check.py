@@ -160,6 +160,22 @@ MUTATIONS = (
         "lines: int = Field(100, le=10_000)",
         ("tests/test_faults_recipes.py",),
     ),
+    Mutation(
+        "range-model-ignored",
+        "the reconstruction reads the ranges as measured, the estimated range model ignored",
+        "calstation/engine/reconstruct.py",
+        "return lidar_points_to_dynamic(range_model.points(p_L), phi, H)",
+        "return lidar_points_to_dynamic(p_L, phi, H)",
+        ("tests/test_rangemodel.py",),
+    ),
+    Mutation(
+        "range-sigma-dropped",
+        "the range terms' σ left out of the predicted error",
+        "calstation/engine/accuracy.py",
+        "out[:, :, k] = -lidar_to_dynamic(along, phi, H.with_(tx=0.0, ty=0.0, tz=0.0))",
+        "out[:, :, k] = 0.0",
+        ("tests/test_rangemodel.py",),
+    ),
 )
 
 

@@ -174,3 +174,21 @@ def test_the_reconstruction_corrects_the_ranges_with_the_estimate(offset_run: An
     assert np.percentile(moved, 95) < 0.3e-3
     assert np.median(np.linalg.norm(without[near] - true_cloud[near], axis=1)) > 1.5e-3
     assert done.cube_check is not None and done.cube_check.passed
+
+
+def test_the_range_terms_sigma_is_part_of_the_predicted_error() -> None:
+    """A range offset known to 1 mm distorts the work volume (each return moved along its own
+    ray is no rigid motion): the prediction carries it; without it the same H's σ predicts far
+    less."""
+    from calstation.engine.accuracy import predicted_error
+
+    H = Extrinsics(0.015, 1.25, 0.0, 0.0, math.radians(35.0), math.radians(-40.0))
+    sigma = {"tx": 1e-5, "ty": 1e-5, "tz": 1e-5, "rx": math.nan, "ry": 1e-5, "rz": 1e-5}
+    names = ["tx", "ty", "tz", "ry", "rz"]
+    without = {"parameters": names, "matrix": np.diag([1e-10] * 5).tolist()}
+    with_offset = {"parameters": [*names, "range_offset"],
+                   "matrix": np.diag([1e-10] * 5 + [1e-6]).tolist()}
+    volume = {"radius": 0.29, "height": 0.15}
+    small = predicted_error(H, sigma, without, **volume).max_m
+    large = predicted_error(H, sigma, with_offset, **volume).max_m
+    assert small < 0.05e-3 and large > 0.2e-3, (small, large)
