@@ -120,7 +120,10 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
     # and how long after the last scan the result was ready, the cube check a part of it
     assert 0 < cube_step["cube_check_s"] < cube_step["after_scan_s"]
     assert "after the scan ended" in proc.stdout
+    # the lidar's range model, estimated with H, told at the end and in the report
+    assert "lidar range model (fine): range offset " in proc.stdout
     run_dir = run_folder(db, run_id)
+    assert 'id="range-model"' in (run_dir / "report.html").read_text()
     assert {a.kind for a in arts} == {"static", "spin", "cube", "report", "calibration"}
     for a in arts:
         assert Path(a.path).parent == run_dir.resolve()
@@ -135,6 +138,8 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
     shown = json.loads(runner.invoke(app, ["show", str(run_id), "--json", "--db", url]).output)
     assert [(c["stage"], c["H"]) for c in shown["calibrations"]] == every
     assert shown["status"] == "passed" and shown["cube_check"]["passed"] is True
+    final = next(c for c in shown["calibrations"] if c["accepted"])
+    assert final["range_offset"] is not None and final["sigma_range_offset"] > 0
     exported = json.loads(
         runner.invoke(app, ["export", str(run_id), "--format", "json", "--db", url]).output
     )

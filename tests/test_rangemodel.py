@@ -192,3 +192,16 @@ def test_the_range_terms_sigma_is_part_of_the_predicted_error() -> None:
     small = predicted_error(H, sigma, without, **volume).max_m
     large = predicted_error(H, sigma, with_offset, **volume).max_m
     assert small < 0.05e-3 and large > 0.2e-3, (small, large)
+
+
+def test_the_range_model_is_described_with_its_sigma_and_only_what_was_estimated() -> None:
+    from calstation.engine.rangemodel import describe
+
+    assert describe({"range_offset": None}) is None
+    assert describe({"range_offset": 0.0031, "sigma_range_offset": 0.0001,
+                     "range_scale": 0.00124, "sigma_range_scale": 7.3e-5,
+                     "incidence_bias": None}) == (
+        "range offset +3.100 ± 0.100 mm, scale error +1240 ± 73 ppm")
+    assert describe({"range_offset": -0.002, "sigma_range_offset": None,
+                     "incidence_bias": 0.0005, "sigma_incidence_bias": 2e-5}) == (
+        "range offset -2.000 mm (σ not estimated), incidence bias +0.500 ± 0.020 mm at 60°")

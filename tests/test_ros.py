@@ -292,5 +292,5 @@ def test_export_carries_the_lidars_range_model(tmp_path: Path) -> None:
     assert "range_scale" not in params and "# range_scale: not estimated" in text
     assert yaml.safe_load(export("--format", "yaml"))["range_offset"] == 0.0031
     tf = export("--format", "tf")
-    assert "lidar range offset b +3.100 ± 0.100 mm" in tf
+    assert "lidar range offset +3.100 ± 0.100 mm, incidence bias +0.400 ± 0.050 mm at 60°" in tf
     assert "rho = (rho_measured - b) / (1 + k) with b = 0.0031 m" in tf

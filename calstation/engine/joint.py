@@ -356,20 +356,9 @@ def joint_summary(combined: CalibrationResult) -> str:
 def range_summary(result: CalibrationResult) -> str:
     """One line of the lidar's range model and ry after the spin target and the cube were
     combined (millimetres, degrees)."""
-    def mm(value: float | None, sigma: float | None) -> str:
-        if value is None:
-            return "not estimated"
-        spread = "" if sigma is None or not math.isfinite(sigma) else f" ± {sigma * 1e3:.3f}"
-        return f"{value * 1e3:+.3f}{spread} mm"
+    from calstation.engine.rangemodel import describe
 
-    parts = [f"range offset {mm(result.range_offset, result.sigma_range_offset)}"]
-    if result.range_scale is not None:
-        sigma = result.sigma_range_scale
-        spread = "" if sigma is None or not math.isfinite(sigma) else f" ± {sigma * 1e6:.0f}"
-        parts.append(f"scale error {result.range_scale * 1e6:+.0f}{spread} ppm")
-    if result.incidence_bias is not None:
-        parts.append(f"incidence bias {mm(result.incidence_bias, result.sigma_incidence_bias)} "
-                     "at 60°")
+    parts = [describe(result.range_fields()) or "no range model"]
     parts.append(f"ry {math.degrees(result.H.ry):.3f}° ± "
                  f"{math.degrees(result.sigma.get('ry', math.nan)):.3f}°")
     return "the spin target and the QA cube combined: " + ", ".join(parts)

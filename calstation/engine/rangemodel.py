@@ -25,6 +25,7 @@ farther away looks the same — so only a known length (the QA cube's edge and h
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Literal
 
@@ -174,3 +175,26 @@ def range_result_fields(
         out[name] = float(x[i])
         out[f"sigma_{name}"] = sigma.pop(name, math.nan)
     return out
+
+
+def describe(fields: Mapping[str, float | None]) -> str | None:
+    """The lidar's range model for people, from a calibration's range fields (SI, None where not
+    estimated; ``sigma_<name>`` beside each): "range offset +3.120 ± 0.100 mm, scale error
+    +1240 ± 73 ppm, incidence bias +0.500 ± 0.020 mm at 60°", the terms not estimated left out;
+    None when the calibration has no range model."""
+    def term(name: str, label: str, unit: float, digits: int, suffix: str) -> str | None:
+        value = fields.get(name)
+        if value is None:
+            return None
+        sigma = fields.get(f"sigma_{name}")
+        text = f"{label} {float(value) * unit:+.{digits}f}"
+        if sigma is None or not math.isfinite(float(sigma)):
+            return f"{text} {suffix} (σ not estimated)"
+        return f"{text} ± {float(sigma) * unit:.{digits}f} {suffix}"
+
+    if fields.get("range_offset") is None:
+        return None
+    parts = [term("range_offset", "range offset", 1e3, 3, "mm"),
+             term("range_scale", "scale error", 1e6, 0, "ppm"),
+             term("incidence_bias", "incidence bias", 1e3, 3, "mm at 60°")]
+    return ", ".join(p for p in parts if p is not None)

@@ -311,6 +311,18 @@ def _print_predicted_error(console: Console, calibrations: list[dict[str, Any]])
                   f"{error * 1e3:.3f} mm{verdict}", highlight=False)
 
 
+def _print_range_model(console: Console, calibrations: list[dict[str, Any]]) -> None:
+    """The lidar's range model of the final calibration, when it has one."""
+    from calstation.engine.rangemodel import describe
+
+    final = next((c for c in calibrations if c["accepted"]), None) or (
+        calibrations[-1] if calibrations else None)
+    text = None if final is None else describe(final)
+    if final is not None and text:
+        console.print(f"lidar range model ({final['stage']}): {text}; every range is corrected "
+                      "by it", highlight=False)
+
+
 def render_summary(console: Console, s: dict[str, Any]) -> None:
     """Print a run summary in display units (mm, deg) with a PASS/FAIL banner."""
     import math
@@ -354,6 +366,7 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
             table.add_row(*srow, style="dim")
     console.print(table)
     _print_predicted_error(console, s["calibrations"])
+    _print_range_model(console, s["calibrations"])
     for c in refused:
         console.print(f"[red]✘[/] calibration {c.get('id', '—')} ({c['stage']}, {c['strategy']}) "
                       f"refused: {escape('; '.join(c['refused']))}", highlight=False)

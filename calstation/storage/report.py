@@ -68,7 +68,9 @@ def refused_reasons(c: Calibration) -> list[str]:
 
 def calibration_dict(c: Calibration) -> dict[str, Any]:
     """A stored calibration: H and sigma (m, rad), the estimated encoder latency and its sigma
-    (s, None when not estimated), the predicted reconstruction error and the budget it was
+    (s, None when not estimated), the lidar's range model (``range_offset``, ``range_scale``,
+    ``incidence_bias`` and their ``sigma_*``; m, dimensionless, m at 60°; None when not
+    estimated), the predicted reconstruction error and the budget it was
     judged against (m, None when not predicted), cost, strategy, accepted, ``refused`` (the
     reasons a re-processing result was refused, else empty), diagnostics."""
     return {
@@ -81,6 +83,7 @@ def calibration_dict(c: Calibration) -> dict[str, Any]:
         "sigma": c.sigmas(),
         "encoder_latency_s": c.encoder_latency_s,
         "sigma_encoder_latency_s": c.sigma_encoder_latency_s,
+        **c.range_fields(),
         "predicted_error_m": c.predicted_error_m,
         "budget_m": ((c.diagnostics or {}).get("predicted_error") or {}).get("budget_m"),
         "cost": c.cost,

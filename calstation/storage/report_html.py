@@ -406,8 +406,11 @@ def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
 
 
 def calibration_rows(calibrations: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Every stored calibration with H and 1σ in display units, and the lidar–encoder time
-    offset (ms) where a second pass estimated it."""
+    """Every stored calibration with H and 1σ in display units, the lidar–encoder time offset
+    (ms) where a second pass estimated it, and the lidar's range model in words where it was
+    estimated (:func:`calstation.engine.rangemodel.describe`)."""
+    from calstation.engine.rangemodel import describe
+
     rows = []
     for c in calibrations:
         rows.append({
@@ -420,6 +423,7 @@ def calibration_rows(calibrations: list[dict[str, Any]]) -> list[dict[str, Any]]
             else 1e3 * float(c["encoder_latency_s"]),
             "latency_sigma_ms": None if c.get("sigma_encoder_latency_s") is None
             else 1e3 * float(c["sigma_encoder_latency_s"]),
+            "range_model": describe(c),
             "timings": (c.get("diagnostics") or {}).get("timings") or {},
         })
     return rows

@@ -250,19 +250,11 @@ def ros2_yaml_export(
 def range_note(model: RangeModel, fields: Mapping[str, float | None]) -> str:
     """One sentence of the lidar's range model (DESIGN §9) for the exports that carry it as a
     comment: its values with their σ, and how to correct a range before using the transform."""
-    def mm(name: str) -> str:
-        value, sigma = fields.get(name), fields.get(f"sigma_{name}")
-        if value is None:
-            return "not estimated"
-        spread = "" if sigma is None else f" ± {float(sigma) * 1e3:.3f}"
-        return f"{float(value) * 1e3:+.3f}{spread} mm"
+    from calstation.engine.rangemodel import describe
 
-    scale = fields.get("range_scale")
-    scale_text = "not estimated" if scale is None else f"{float(scale):+.6g}"
-    return (f"lidar range offset b {mm('range_offset')}, scale error k {scale_text}, "
-            f"incidence bias {mm('incidence_bias')} at 60°: this transform holds for ranges "
-            f"corrected as rho = (rho_measured - b) / (1 + k) with b = {model.offset:.9g} m, "
-            f"k = {model.scale:.9g}")
+    return (f"lidar {describe(fields) or 'range model not estimated'}: this transform holds "
+            "for ranges corrected as rho = (rho_measured - b) / (1 + k) with b = "
+            f"{model.offset:.9g} m, k = {model.scale:.9g}")
 
 
 def ros2_params_export(
