@@ -49,6 +49,9 @@ def test_plan_reports_sigma_predicted_error_and_turns(
         assert all(math.isfinite(row["sigma"][p]) and row["sigma"][p] > 0
                    for p in ("tx", "tz", "ry", "rz"))
         assert 0 < row["with_cube_m"] <= row["predicted_error_m"] * 1.05
+        # the lidar's range offset (the recipe's range model), measured by the QA cube
+        assert row["range_problem"] is None
+        assert 0 < row["range_sigma"]["range_offset"] < 0.5e-3
     assert base["turns_needed"] >= 1
     # the recipe's target stands 60 mm off-centre: the plan tries it centred, and says why a
     # taller one does not fit this frustum

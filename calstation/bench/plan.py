@@ -47,7 +47,9 @@ class Trial:
     change: str
     turns: list[dict[str, Any]] = field(default_factory=list)
     """per number of turns: ``turns``, ``sigma`` (m, rad), ``predicted_error_m``,
-    ``with_cube_m`` (the predicted error with the cube's faces added to ry), ``seconds``"""
+    ``with_cube_m`` (the predicted error with the cube's faces added to ry and the lidar's
+    range model), ``range_sigma`` (the σ of each range term estimated, SI), ``range_problem``
+    (why the range model was not measured, or None), ``seconds``"""
     error: str | None = None
     """why the design could not be simulated (an alternative the geometry does not allow)"""
 
@@ -401,7 +403,24 @@ def _fit(recipe: Any, recordings: dict[str, Any], turns: int) -> dict[str, Any]:
     with_cube = with_prediction(done.result, recipe)[1].max_m if on_target else predicted.max_m
     return {"turns": turns, "sigma": {p: result.sigma.get(p, math.nan) for p in PARAMS},
             "predicted_error_m": predicted.max_m, "with_cube_m": with_cube,
-            "seconds": time.perf_counter() - t0}
+            **_range_terms(recipe, done), "seconds": time.perf_counter() - t0}
+
+
+def _range_terms(recipe: Any, done: Any) -> dict[str, Any]:
+    """The σ of the lidar's range terms the calibration estimated (``range_sigma``, SI; empty
+    without a range model), and why they were not measured (``range_problem``, or None)."""
+    from calstation.engine.rangemodel import RANGE_NAMES
+
+    if recipe.calibration.range_model == "none":
+        return {"range_sigma": {}, "range_problem": None}
+    fields = done.result.range_fields()
+    sigma = {n: (math.nan if fields.get(f"sigma_{n}") is None else float(fields[f"sigma_{n}"]))
+             for n in RANGE_NAMES if fields.get(n) is not None}
+    problem = next((r for r in done.refused if "range" in r or "disagree" in r), None)
+    if done.cube_check is None and problem is None:
+        problem = ("the lidar's range terms come from the QA cube's known-size fit, and this "
+                   "recipe scans no cube")
+    return {"range_sigma": sigma, "range_problem": problem}
 
 
 def _summary(
@@ -419,6 +438,10 @@ def _summary(
                 "sigma": {p: _median([r["sigma"][p] for r in at]) for p in PARAMS},
                 "predicted_error_m": _median([r["predicted_error_m"] for r in at]),
                 "with_cube_m": _median([r["with_cube_m"] for r in at]),
+                "range_sigma": {n: _median([r["range_sigma"].get(n, math.nan) for r in at])
+                                for n in at[0]["range_sigma"]},
+                "range_problem": next((r["range_problem"] for r in at if r["range_problem"]),
+                                      None),
             })
         designs.append({"name": trial.name, "change": trial.change, "by_turns": rows,
                         "turns_needed": _turns_needed(rows, budget) if rows else None,

@@ -117,10 +117,31 @@ def _print(result: dict[str, Any]) -> None:
             table.add_row(str(row["turns"]), _mm(s["tx"]), _mm(s["tz"]), _deg(s["ry"]),
                           _deg(s["rz"]), _mm(row["predicted_error_m"]), _mm(row["with_cube_m"]))
         console.print(table)
+        _print_range(console, design["by_turns"])
         need = design["turns_needed"]
         console.print(f"  turns the budget needs: {'—' if need is None else need}")
     for line in result["recommendations"]:
         console.print(f"[green]→[/] {line}", highlight=False)
+
+
+def _print_range(console: Any, rows: list[dict[str, Any]]) -> None:
+    """The σ of the lidar's range terms (from the QA cube's scan) per number of turns, or why
+    the recipe cannot measure them."""
+    for row in rows:
+        sigma = row.get("range_sigma") or {}
+        if row.get("range_problem"):
+            console.print(f"  [red]lidar range model not measured[/] ({row['turns']} turns): "
+                          f"{row['range_problem']}", highlight=False)
+        elif sigma:
+            parts = [f"σ {name.replace('_', ' ')} "
+                     + (f"{_ppm(v)} ppm" if name == "range_scale" else f"{_mm(v)} mm")
+                     for name, v in sigma.items()]
+            console.print(f"  lidar range model from the QA cube ({row['turns']} turns of the "
+                          f"spin scan): {', '.join(parts)}", highlight=False)
+
+
+def _ppm(v: float | None) -> str:
+    return "—" if v is None or not math.isfinite(v) else f"{v * 1e6:.0f}"
 
 
 def _mm(v: float | None) -> str:
