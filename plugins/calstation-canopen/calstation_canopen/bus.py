@@ -136,7 +136,7 @@ class SharedBus:
     def start_heartbeat(self, master_id: int, period_s: float) -> None:
         """Produce the master's heartbeat (state operational, 0x05) on 0x700 + master_id."""
         if self._heartbeat is None and period_s > 0:
-            self._heartbeat = self.network.send_periodic(0x700 + master_id, [0x05], period_s)
+            self._heartbeat = self.network.send_periodic(0x700 + master_id, bytes([0x05]), period_s)
 
     def stop_heartbeat(self) -> None:
         """Stop the master heartbeat (drives that consume it will fault: use on purpose only)."""
@@ -199,7 +199,10 @@ class BusNodeDriver:
         self.node_id = int(settings["node_id"])
         self.bus = acquire_bus(settings, context)
         self.network = self.bus.network
-        self.node = canopen.RemoteNode(self.node_id, canopen.ObjectDictionary())
+        # canopen's ObjectDictionary has no annotations; an empty one: the driver reads and
+        # writes by index and subindex
+        dictionary = canopen.ObjectDictionary()  # type: ignore[no-untyped-call]
+        self.node = canopen.RemoteNode(self.node_id, dictionary)
         self.network.add_node(self.node)
         self.node.sdo.RESPONSE_TIMEOUT = float(settings["sdo_timeout_s"])
 

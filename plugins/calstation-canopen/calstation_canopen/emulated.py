@@ -7,10 +7,11 @@ from collections.abc import Mapping
 from typing import Any
 
 from calstation.drivers import DriverContext
+from calstation.testing.canbus import EmulatedNode
 
 from .bus import CanopenError
 from .drive import Cia402Turntable
-from .emulator import DriveEmulator, EmulatedNode, EncoderEmulator
+from .emulator import DriveEmulator, EncoderEmulator
 from .encoder import Cia406Encoder
 
 

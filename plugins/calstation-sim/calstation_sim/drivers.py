@@ -305,4 +305,5 @@ def encoder_factory(settings: Mapping[str, Any], context: DriverContext) -> SimE
 
 
 for _factory in (lidar_factory, turntable_factory, encoder_factory):
-    _factory.settings_model = SimSettings  # type: ignore[attr-defined]
+    # the settings model the driver registry checks a recipe's settings with
+    _factory.settings_model = SimSettings  # type: ignore[union-attr]
