@@ -18,6 +18,7 @@ from calstation.recipes import load_recipe
 from calstation.recordings.runfolder import file_sha256
 from calstation.station.runs import create_run, start_run
 from calstation.storage.db import Artifact, Database, Run, open_database
+from calstation.storage.db.database import SCHEMA_HEAD
 
 
 def _artifacts(db: Database, run_id: int) -> dict[str, tuple[str, str]]:
@@ -98,7 +99,7 @@ def test_a_database_made_before_identities_keeps_its_folders_and_gets_one(
             "INSERT INTO run (id, station_id, recipe_name, recipe_text, recipe_sha256, operator, "
             "unattended, data_dir, started_at, status) VALUES (1, 1, 'r', 'x', 'ab', 'ann', 0, "
             f"'{tmp_path / 'runs' / '1'}', '2026-01-01 00:00:00', 'passed')"))
-    assert old.upgrade() == ("0010_station_lock", "0011_database_identity")
+    assert old.upgrade() == ("0010_station_lock", SCHEMA_HEAD)
     old.dispose()
     from calstation.storage.db.models import DatabaseIdentity
 

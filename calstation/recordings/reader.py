@@ -400,6 +400,12 @@ MAX_TURN_RATE = 10.0
 """Turns per second no turntable reaches (600 rpm: five times the fastest a recipe may turn):
 an encoder that jumps faster than this between two readings wrapped, or the data are damaged."""
 
+READING_JITTER_S = 0.02
+"""How late a reading's time stamp may be against its count (a driver's thread or a USB or CAN
+frame delayed on a loaded station PC): two readings 1.7 ms apart by their stamps may hold counts
+taken 20 ms apart. 0.2 turns at :data:`MAX_TURN_RATE`; a wrapped 32-bit counter jumps by far
+more."""
+
 
 def check_timing(p: Path, rec: Recording) -> None:
     """:class:`RecordingError` naming the reading when the lines' times go backwards or the
@@ -419,7 +425,8 @@ def check_timing(p: Path, rec: Recording) -> None:
         return
     dt = np.diff(t).astype(np.float64) * 1e-9
     jump = np.abs(np.diff(c).astype(np.float64))
-    allowed = MAX_TURN_RATE * dt * cpr + max(2.0, cpr / 3600.0)  # and 0.1° of reading noise
+    # and the stamps' jitter, and 0.1° of reading noise
+    allowed = MAX_TURN_RATE * (dt + READING_JITTER_S) * cpr + max(2.0, cpr / 3600.0)
     fast = np.flatnonzero(jump > allowed)
     if fast.size:
         i = int(fast[0]) + 1
