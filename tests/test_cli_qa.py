@@ -7,6 +7,7 @@ import datetime as dt
 import io
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -279,16 +280,17 @@ def test_show_prints_the_limits_on_pass(cli: CliRunner, db_url: str) -> None:
     text = " ".join(res.output.split())  # the console wraps long lines
     assert res.exit_code == 0 and "PASS" in text
     assert "limits: edge error ≤ 1.00 mm, OBB error ≤ 15.00 mm" in text  # the recipe's
-    assert "drift ≤ 2.00 mm / 0.200° (warns)" in text
+    assert "drift ≤ 2.000 mm / 0.2000° (warns)" in text
 
 
 @pytest.mark.parametrize("columns", [80, 100, 200])
-def test_history_fits_the_terminal_wrapping_rather_than_cutting(
+def test_history_fits_the_terminal_without_splitting_a_word(
     cli: CliRunner, db_url: str, columns: int
 ) -> None:
     from rich.console import Console
 
-    from calstation.cli.history import H_PARAMS, _display, print_history
+    from calstation import display
+    from calstation.cli.history import print_history
 
     db = open_database(db_url)
     t0 = dt.datetime(2026, 3, 1, 8, 30, tzinfo=dt.UTC)
@@ -306,33 +308,24 @@ def test_history_fits_the_terminal_wrapping_rather_than_cutting(
     assert max(len(line) for line in lines) <= columns, text
     assert "…" not in text  # nothing is cut
     words = text.split()
-    for h in (H1, {**H1, "ty": -1.25}):  # every value whole: wrapped between values only
-        for p in H_PARAMS:
-            if p != "rx":
-                assert _display(p, h[p]) in words, (p, text)
-    assert "1.23" in words and "interrupted" in words
+    # every name and every value whole, on one line: wrapped between items only
+    for whole in ("station-with-a-long-name", "LIDAR-SERIAL-000123456", "annabelle",
+                  "sim-periodicity", "interrupted", "2026-03-01", "08:30"):
+        assert whole in words, (whole, text)
+    for h in (H1, {**H1, "ty": -1.25}):
+        for p in ("tx", "ty", "tz", "ry", "rz"):
+            shown = display.number(p, h[p], unit=False)
+            assert any(w.removesuffix("°") == shown for w in words), (p, text)
+    assert "1.23" in words
+    # each value is labelled: its parameter's name heads its column or stands beside it
+    for p in ("tx", "ty", "tz", "ry", "rz"):
+        assert re.search(rf"\b{p}\b", text), (p, text)
     if columns >= 200:  # room for everything on one line per run
         row = next(line for line in lines if "LIDAR-SERIAL-000123456" in line)
         assert "station-with-a-long-name" in row and "annabelle" in row
         assert "2026-03-01 08:30" in row
-    else:  # the names wrap within their columns, whole
-        assert _cell(lines, "LIDA") == "LIDAR-SERIAL-000123456"
-        assert _cell(lines, "sta") == "station-with-a-long-name"
-
-
-def _cell(lines: list[str], start: str) -> str:
-    """The text of the table cell of run 1 whose first line begins with ``start``, its wrapped
-    lines joined."""
-    first = next(i for i, line in enumerate(lines) if line.startswith(" 1 "))
-    x0 = lines[first].index(start)
-    width = len(lines[first][x0:].split(" ")[0])
-    pieces = []
-    for line in lines[first:]:
-        piece = line[x0:x0 + width].strip()
-        if not piece:
-            break
-        pieces.append(piece)
-    return "".join(pieces)
+    else:  # one block per run, each value beside its name
+        assert re.search(r"\bty −1250\.000 mm\b", text), text
 
 
 def test_show_names_the_unit_serial_and_the_station(cli: CliRunner, db_url: str) -> None:

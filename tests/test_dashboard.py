@@ -84,10 +84,11 @@ def test_control_charts_flag_the_seeded_drift_and_few_others(
     early = [p for p in tz["points"] if p["run"] not in drifting]
     assert sum(1 for p in early if p["rules"]) < 0.1 * len(early)
     lim = tz["limits"]
+    assert tz["unit"] == "m" and d["charts"][1]["unit"] == "rad"  # as stored, and said so
     assert lim["upper"] == pytest.approx(lim["centre"] + 3 * lim["sigma"])
-    assert 0.05 < lim["sigma"] < 0.3  # mm: the calibration's scatter, not the drift
-    assert lim["limit"] == pytest.approx(2.0)  # the recipe's drift limit, mm
-    assert d["charts"][2]["limits"]["limit"] == pytest.approx(1.0)  # the cube's limit, mm
+    assert 0.05e-3 < lim["sigma"] < 0.3e-3  # m: the calibration's scatter, not the drift
+    assert lim["limit"] == pytest.approx(2.0e-3)  # the recipe's drift limit, m
+    assert d["charts"][2]["limits"]["limit"] == pytest.approx(1.0e-3)  # the cube's limit, m
     compare = {row["param"]: row for row in d["comparison"]}
     flagged = {s["station"]: s["flagged"] for s in compare["tz"]["stations"]}
     assert flagged["bench-b"] > 5 * max(1, flagged["bench-a"])

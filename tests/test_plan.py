@@ -53,6 +53,13 @@ def test_plan_reports_sigma_predicted_error_and_turns(
         assert row["range_problem"] is None
         assert 0 < row["range_sigma"]["range_offset"] < 0.5e-3
     assert base["turns_needed"] >= 1
+    # piped, the plan says what it does, how long it has taken and what is left
+    lines = [line for line in err.splitlines() if line.startswith("planning: ")]
+    assert lines[0].startswith("planning: starting — 0 %, ") and "so far" in lines[0], err
+    assert any(line.startswith("planning: simulating the scans — 0 %") for line in lines)
+    later = [line for line in lines if "centred" in line]
+    assert later and "so far, about " in later[0] and later[0].endswith(" left"), err
+    assert "planned in " in err
     # the recipe's target stands 60 mm off-centre: the plan tries it centred, and says why a
     # taller one does not fit this frustum
     names = {d["name"]: d for d in alternatives}
@@ -132,9 +139,14 @@ def test_the_plan_page_plans_a_recipe_of_the_station(tmp_path: Path) -> None:
             assert r.status_code == 202 and r.json()["status"] == "running"
             assert client.post("/api/plan", json=body, headers=headers).status_code == 409
             deadline = time.monotonic() + 240
-            while client.get("/plan.json").json()["status"] == "running":
+            said = []
+            while (now := client.get("/plan.json").json())["status"] == "running":
                 assert time.monotonic() < deadline
+                said.append(now["progress_text"])
+                if now["left_s"] is not None:  # an estimate once a stage is done
+                    assert now["progress_text"].endswith(" left")
                 time.sleep(0.5)
+            assert said and all(" so far" in text for text in said)
             state = client.get("/plan.json").json()
             assert state["status"] == "done", state
             assert state["plan"]["designs"][0]["by_turns"][0]["turns"] == 1

@@ -126,8 +126,8 @@ def default_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Data
     from calstation_sim import plugin as sim_plugin
 
     from calstation import plugins
+    from calstation.cli._operator import ConsoleOperator
     from calstation.recipes import load_recipe
-    from calstation.station.operator import ConsoleOperator
     from calstation.station.runs import start_run
 
     tmp = tmp_path_factory.mktemp("default-run")
@@ -173,6 +173,52 @@ def test_the_default_runs_report_is_small_and_prints_every_figure(
     images = len(re.findall(rb"/Subtype\s*/Image", pdf))
     print(f"report PDF: {len(pdf) / 1e6:.2f} MB, {images} images for {figures} figures")
     assert images >= figures
+
+
+def test_the_report_prints_as_a_certificate(
+        default_run: tuple[Database, int, Path], browser: Any) -> None:
+    """On paper every page names the station, the run, the unit and the result and counts the
+    pages; no number breaks across lines; no figure takes a page of its own."""
+    import io
+
+    pypdf = pytest.importorskip("pypdf")
+    from calstation.station.runs import run_folder
+
+    db, run_id, _ = default_run
+    report = run_folder(db, run_id) / "report.html"
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        station, status = run.station.name, run.status
+    from calstation.storage.report_html import report_data
+
+    serial = report_data(db, run_id, views=False)["serial"]
+    verdict = {"passed": "PASS", "failed": "FAIL"}.get(status, status.upper())
+    context = browser.new_context(offline=True, viewport={"width": 1100, "height": 900})
+    rp = context.new_page()
+    rp.goto(report.as_uri())
+    rp.wait_for_selector("body[data-print-ready]", timeout=180_000)
+    rp.emulate_media(media="print")
+    # figures sized to the page: each at most a third of an A4 page's height
+    for img in rp.locator("img.print-image").all():
+        box = img.bounding_box()
+        assert box is not None and box["height"] <= 86 / 25.4 * 96 + 1
+    pdf = rp.pdf(format="A4", print_background=True, prefer_css_page_size=True)
+    context.close()
+    pages = [page.extract_text() or "" for page in pypdf.PdfReader(io.BytesIO(pdf)).pages]
+    assert len(pages) >= 2
+    for i, text in enumerate(pages, start=1):
+        flat = " ".join(text.split())
+        assert f"station {station}" in flat, (i, flat[:300])
+        assert f"run {run_id} · unit {serial} · {verdict}" in flat, (i, flat[:300])
+        assert f"page {i} of {len(pages)}" in flat, (i, flat[-300:])
+        # no number broken: no exponent, no ± or minus (calstation writes U+2212) at a line's
+        # end, no exponent's sign (a path may break at its hyphens)
+        assert not re.search(r"\d\.\d+e[-+]?\d", flat), (i, flat)
+        for line in text.splitlines():
+            end = line.rstrip()
+            assert not end.endswith(("±", "−")) or line.strip() in ("±", "−"), (i, line)
+            assert not re.search(r"\de-$", end), (i, line)
 
 
 def test_the_run_page_paints_at_once_and_fetches_its_views(

@@ -45,7 +45,7 @@ def test_a_placement_prompt_moves_nothing_until_continue(tmp_path: Path) -> None
     # next step spins the turntable
     child = _spawn(tmp_path, "run", "recipes/sim-targetless.yaml")
     try:
-        child.expect("Place the heptagonal spin target")
+        child.expect("Place the spin target on the platter, its centre 60 mm from the axis")
         child.expect(PROMPT)
         for answer in ("x", "n", "exit", "stop", ""):
             child.sendline(answer)
@@ -53,6 +53,9 @@ def test_a_placement_prompt_moves_nothing_until_continue(tmp_path: Path) -> None
             child.expect(PROMPT)  # asked again
         assert _spin_recordings(tmp_path) == []
         child.sendline("abort")
+        # the run's report, even of an aborted run, and where it is
+        child.expect("no calibration was stored in this run")
+        child.expect(r"report: \S*runs/\S+/1/report\.html")
         child.expect(pexpect.EOF)
     finally:
         child.close(force=True)
@@ -73,3 +76,23 @@ def test_end_of_input_at_a_prompt_aborts(tmp_path: Path) -> None:
         child.close(force=True)
     assert child.exitstatus == 3
     assert all(name != "spin_scan" for name, _ in _steps(tmp_path))
+
+
+def test_a_steps_progress_bar_counts_its_time_through_all_its_phases() -> None:
+    """A step's phase that reaches 100 % (the platter up to speed) is not the step's end: the
+    bar's clock goes on through the next phase (the scan) instead of showing 0:00:00."""
+    import io
+
+    from rich.console import Console
+
+    from calstation.cli._operator import ConsoleOperator
+
+    now = [1000.0]
+    out = io.StringIO()
+    console = Console(file=out, force_terminal=True, width=100, get_time=lambda: now[0])
+    with ConsoleOperator(console=console).progress("spin scan") as update:
+        update("waiting for speed", 1.0)
+        now[0] += 65.0
+        update("scanning", 0.5)
+        now[0] += 10.0
+    assert "0:01:15" in out.getvalue(), out.getvalue()[-300:]

@@ -259,7 +259,10 @@ def test_station_run_both_ways_stores_and_exports_the_offset(
     code, out, _ = run_cli(["export", str(run_id), "--format", "urdf", "--db", url], capsys)
     assert code == 0 and f"time offset {latency * 1e3:.3f}" in out
     report = (run_folder(db, run_id) / "report.html").read_text()
-    assert "Lidar–encoder time offset" in report and f"{latency * 1e3:.3f} ms" in report
+    from calstation import display
+
+    assert "Lidar–encoder time offset" in report
+    assert display.with_sigma("time_offset", latency, sigma) in report
     cal = tmp_path / "cal.yaml"
     code, out, _ = run_cli(["export", str(run_id), "--format", "yaml", "--db", url], capsys)
     cal.write_text(out)

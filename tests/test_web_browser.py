@@ -124,7 +124,8 @@ def test_a_full_simulated_run_by_clicking_with_a_reload(
         page.reload()
         box = place(page, "spin_target")
         assert classes(page, "static_scan") == ["passed"]
-        assert "heptagonal spin target" in box.inner_text()
+        assert "Place the spin target on the platter, its centre 60 mm from the axis" \
+            in box.inner_text()
         click_answer(page, "continue")
         # the live lidar line is drawn during the spin scan
         page.wait_for_selector("#line-plot[data-drawn]:not([hidden])")
@@ -139,7 +140,7 @@ def test_a_full_simulated_run_by_clicking_with_a_reload(
         run_id = latest_run(db)
         assert run_status(db, run_id) == "passed"
         values = page.inner_text("#result")
-        assert "face-fit edge error" in values and "≤ 1.000 mm" in values
+        assert "face-fit edge error" in values and "≤ 1.00 mm" in values
         shot(page, "end", full=True)
         # the run folder's report.html opens offline with its 3D views drawn
         report = run_folder(db, run_id) / "report.html"

@@ -9,13 +9,13 @@ from __future__ import annotations
 import datetime as dt
 import itertools
 import json
-import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.markup import escape
 
+from calstation import display
 from calstation.cli._console import terminal_safe, wide_console
 
 if TYPE_CHECKING:
@@ -24,19 +24,6 @@ if TYPE_CHECKING:
 H_PARAMS = ("tx", "ty", "tz", "rx", "ry", "rz")
 CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms")
 DB_HELP = "Database URL (default: $CALSTATION_DB_URL or SQLite in $CALSTATION_HOME)."
-
-
-def _display(param: str, value: float | None) -> str:
-    """mm for lengths, degrees for angles."""
-    if value is None:
-        return "—"
-    if param.startswith("r"):
-        return f"{math.degrees(value):.4f}"
-    return f"{value * 1000:.3f}"
-
-
-def _unit(param: str) -> str:
-    return "deg" if param.startswith("r") else "mm"
 
 
 def _parse_since(text: str) -> dt.datetime:
@@ -63,56 +50,85 @@ def failure_reason(run: dict[str, Any]) -> str:
     return ""
 
 
-def _when(iso: str | None) -> str:
-    """A stored time as the operator reads it: ``2026-03-01 08:30:05 UTC`` (— when unset)."""
-    return f"{iso[:19].replace('T', ' ')} UTC" if iso else "—"
+SHOWN = ("tx", "ty", "tz", "ry", "rz")
+"""The parameters the history lists (rx is the gauge, held at 0)."""
+
+
+def _value(r: dict[str, Any], p: str) -> str:
+    """A run's final value of ``p`` as the history shows it (— without a calibration)."""
+    c = r["calibration"]
+    if c is None:
+        return display.MISSING
+    if p in (c.get("not_estimated") or ()):
+        return display.NOT_ESTIMATED
+    return display.number(p, c["H"][p], unit=False)
+
+
+def _edge(r: dict[str, Any]) -> str:
+    cube = r["cube_check"]
+    return display.number("edge_error", cube["edge_error"], unit=False) if cube \
+        else display.MISSING
 
 
 def print_history(rows: list[dict[str, Any]], console: Console) -> None:
-    """The runs (``history --json``'s rows) as a table that fits ``console``, wrapped rather
-    than cut: the names (station, serial, operator, recipe) wrap within their columns, and the
-    calibration's values share one column, aligned when it is wide enough and wrapped between
-    values when not."""
+    """The runs (``history --json``'s rows) as a table with a labelled column per parameter
+    when it fits ``console``; else one block per run, its items (``station sim-01``,
+    ``tx 15.605 mm``) wrapped between items, never within a word or a number."""
     from rich import box
     from rich.table import Table
 
-    shown = [p for p in H_PARAMS if p != "rx"]  # rx is the gauge, held at 0
-    values = [[_display(p, r["calibration"]["H"][p]) if r["calibration"] else "—"
-               for p in shown] for r in rows]
-    widths = [max([len(p), *(len(v[i]) for v in values)]) for i, p in enumerate(shown)]
-    numbers = " ".join(f"{p:>{w}}" for p, w in zip(shown, widths, strict=True))
-    edge_w = max([7, *(len(f"{r['cube_check']['edge_error'] * 1000:.2f}") for r in rows
-                       if r["cube_check"])])
-    fixed = 3 + max([6, *(len(r["status"]) for r in rows)]) + edge_w + 16  # run, status, pads
-    # the values on one line when there is room beside ~7 characters per name column, else
-    # wrapped between values (never within one)
-    room = console.width - fixed - 6 * 7
-    table = Table(title="Runs", caption="t in mm, r in degrees; edge = cube face-fit error",
-                  box=box.SIMPLE_HEAD, pad_edge=False)
+    table = Table(title="Runs", caption="edge: the cube's face-fit edge error",
+                  box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
     for col in ("run", "station", "serial", "started (UTC)", "operator", "recipe", "status"):
-        table.add_column(col, overflow="fold", no_wrap=col in ("run", "status"),
-                         # the date above the time, rather than cut within the date
-                         width=10 if col == "started (UTC)" and 76 <= console.width < 130
-                         else None)
-    table.add_column(numbers, justify="right",
-                     width=max(max(widths), min(len(numbers), room)))
-    table.add_column("edge mm", justify="right", width=edge_w)
-    reasons = []
-    for r, vals in zip(rows, values, strict=True):
-        cube = r["cube_check"]
+        table.add_column(col, no_wrap=True)
+    for p in (*SHOWN, "edge_error"):
+        table.add_column(display.quantity(p).heading.replace("edge error", "edge"),
+                         justify="right", no_wrap=True)
+    for r in rows:
         colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
         table.add_row(
             str(r["id"]), escape(r["station"]), escape(r["unit_serial"] or "—"),
-            (r["started_at"] or "")[:16].replace("T", " "), escape(r["operator"]),
+            display.when(r["started_at"]).removesuffix(" UTC"), escape(r["operator"]),
             escape(r["recipe_name"]), f"[{colour}]{r['status']}[/]",
-            " ".join(f"{v:>{w}}" for v, w in zip(vals, widths, strict=True)),
-            f"{cube['edge_error'] * 1000:.2f}" if cube else "—",
-        )
+            *(_value(r, p) for p in SHOWN), _edge(r))
+    natural = console.measure(table, options=console.options.update_width(10_000)).maximum
+    if natural <= console.width:
+        console.print(table)
+    else:
+        console.print("[bold]Runs[/]")
+        for r in rows:
+            _print_run_block(r, console)
+    for r in rows:
         if r["failure_reason"]:
-            reasons.append(f"run {r['id']} ({r['status']}): {r['failure_reason']}")
-    console.print(table)
-    for line in reasons:
-        console.print(escape(line), highlight=False)
+            console.print(escape(f"run {r['id']} ({r['status']}): {r['failure_reason']}"),
+                          highlight=False)
+
+
+def _print_run_block(r: dict[str, Any], console: Console) -> None:
+    """One run in a few lines of labelled items, wrapped between items."""
+    colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
+    items = [f"run {r['id']}", f"[{colour}]{r['status']}[/]", display.when(r["started_at"]),
+             f"station {escape(r['station'])}", f"serial {escape(r['unit_serial'] or '—')}",
+             f"operator {escape(r['operator'])}", f"recipe {escape(r['recipe_name'])}"]
+    c = r["calibration"]
+    for p in SHOWN:
+        shown = _value(r, p)
+        unit = "" if c is None or shown == display.NOT_ESTIMATED else display.quantity(p).unit
+        items.append(f"{p} {shown}{'' if not unit or unit == '°' else ' '}{unit}")
+    items.append(f"edge {_edge(r)}{' mm' if r['cube_check'] else ''}")
+    from rich.text import Text
+
+    lines: list[str] = []
+    for item in items:
+        width = Text.from_markup(item).cell_len
+        if lines and Text.from_markup(lines[-1]).cell_len + 2 + width <= console.width - 2:
+            lines[-1] += "  " + item
+        else:
+            lines.append(item)
+    for i, line in enumerate(lines):
+        console.print(("" if i == 0 else "  ") + line, highlight=False, no_wrap=True,
+                      overflow="fold", crop=False)
+    console.print()
 
 
 def register(app: typer.Typer) -> None:
@@ -169,7 +185,7 @@ def register(app: typer.Typer) -> None:
         """Everything about one run: steps, calibrations, cube check, recordings."""
         from rich.table import Table
 
-        from calstation.station.operator import render_summary
+        from calstation.cli._operator import render_summary
         from calstation.storage.db import open_database
         from calstation.storage.report import get_run, run_summary
 
@@ -187,7 +203,8 @@ def register(app: typer.Typer) -> None:
             f"{summary['unit_serial'] or '— (not known)'}, recipe {summary['recipe_name']} "
             f"(sha256 {summary['recipe_sha256'][:12]}…), operator {summary['operator']}"
             f"{' (unattended)' if summary['unattended'] else ''}, started "
-            f"{_when(summary['started_at'])}, finished {_when(summary['finished_at'])}"),
+            f"{display.when(summary['started_at'], True)}, finished "
+            f"{display.when(summary['finished_at'], True)}"),
             highlight=False,
         )
         steps = Table(title="Steps")
@@ -206,6 +223,9 @@ def register(app: typer.Typer) -> None:
             arts.add_row(a["kind"], a["path"], str(a["size_bytes"]), a["sha256"][:16] + "…",
                          a.get("status") or "complete")
         console.print(arts)
+        report = Path(summary["data_dir"] or ".") / "report.html"
+        if summary["data_dir"] and report.is_file():
+            console.print(f"report: {escape(str(report))}", highlight=False, soft_wrap=True)
         stop = summary.get("motor_stop")
         if stop:
             console.print(f"motor stopped by {stop['how']} (run {stop['reason']})"
@@ -301,18 +321,17 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(points, indent=2))
         else:
-            unit = "mm" if param in CUBE_PARAMS else _unit(param)
-            table = Table(title=f"{param} of station {station} ({unit})")
+            q = display.quantity(param)
+            table = Table(title=f"{param} of station {station} ({q.unit})")
             for col in ("run", "date (UTC)", "serial", param, "Δ vs previous", "limit", "drift"):
                 table.add_column(col)
             for p in terminal_safe(points):
-                shown = _display("t" if param in CUBE_PARAMS else param, p["value"])
-                delta = ("—" if p["delta"] is None
-                         else _display("t" if param in CUBE_PARAMS else param, p["delta"]))
-                limit = _display("t" if param in CUBE_PARAMS else param, p["limit"])
                 flag = "[bold red]DRIFT[/]" if p["flagged"] else "ok"
-                table.add_row(str(p["run_id"]), p["date"][:19].replace("T", " "),
-                              p["unit_serial"] or "—", shown, delta, limit, flag)
+                table.add_row(
+                    str(p["run_id"]), display.when(p["date"], True).removesuffix(" UTC"),
+                    p["unit_serial"] or "—", display.number(param, p["value"], unit=False),
+                    display.number(param, p["delta"], signed=True, unit=False),
+                    display.number(param, p["limit"], unit=False), flag)
             wide_console().print(table)
         if not points:
             which = f" and unit {serial}" if serial else ""
@@ -364,10 +383,12 @@ def trend_figure(points: list[dict[str, Any]], station: str, param: str) -> Any:
     import matplotlib.dates as mdates
     import matplotlib.pyplot as plt
 
-    def scale(v: float) -> float:
-        return math.degrees(v) if param.startswith("r") else v * 1000.0
+    q = display.quantity(param)
 
-    unit = "deg" if param.startswith("r") else "mm"
+    def scale(v: float) -> float:
+        return q.shown(v)
+
+    unit = q.unit
     xs: list[Any] = [dt.datetime.fromisoformat(p["date"]) for p in points]
     ys = [scale(p["value"]) for p in points]
     fig, ax = plt.subplots(figsize=(8, 4))

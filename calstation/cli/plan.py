@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -46,15 +48,74 @@ def register(app: typer.Typer) -> None:
 
         loaded = _loaded(recipe, overrides)
         console = Console(stderr=True)
-        with console.status("planning") as status, stdout_to_stderr():
+        with PlanProgress(console) as progress, stdout_to_stderr():
             result = plan(loaded, seeds=seeds, turns=turns, alternatives=alternatives,
                           cache=cache_folder() if cache else None,
-                          progress=lambda message, fraction: status.update(
-                              f"planning: {message} ({fraction:.0%})"))
+                          progress=progress)
         if as_json:
             typer.echo(json.dumps(_plain(result), indent=2))
         else:
             _print(result)
+
+
+class PlanProgress:
+    """The plan's progress on standard error, with how long it has taken and an estimate of
+    what is left: a live line on a terminal; piped, a line at each new stage and every
+    :attr:`every_s` seconds between (a plan takes minutes: it never looks hung)."""
+
+    every_s = 30.0
+
+    def __init__(self, console: Any) -> None:
+        self.console = console
+        self.what, self.fraction = "starting", 0.0
+        self._t0 = time.monotonic()
+        self._stop = threading.Event()
+        self._status: Any = None
+
+    def __call__(self, message: str, fraction: float) -> None:
+        """The plan's ``progress`` callback."""
+        changed = message != self.what
+        self.what, self.fraction = message, float(fraction)
+        if self._status is not None:
+            self._status.update(self.text())
+        elif changed:
+            self._say()
+
+    def text(self) -> str:
+        """``planning: simulating as designed, seed 1 — 25 %, 40 s so far, about 2 min left``"""
+        from calstation import display
+
+        return "planning: " + display.progress_text(self.what, self.fraction,
+                                                    time.monotonic() - self._t0)
+
+    def _say(self) -> None:
+        self.console.print(self.text(), highlight=False, soft_wrap=True)
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.every_s):
+            if self._status is not None:
+                self._status.update(self.text())
+            else:
+                self._say()
+
+    def __enter__(self) -> PlanProgress:
+        if self.console.is_terminal:
+            self._status = self.console.status(self.text())
+            self._status.__enter__()
+        else:
+            self._say()
+        threading.Thread(target=self._beat, daemon=True, name="calstation-plan-progress").start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._status is not None:
+            self._status.__exit__(*exc)
+        if exc[0] is None:
+            from calstation import display
+
+            self.console.print(f"planned in {display.duration(time.monotonic() - self._t0)}",
+                               highlight=False)
 
 
 def _loaded(path: Path, overrides: list[str]) -> Any:
@@ -96,13 +157,17 @@ def _print(result: dict[str, Any]) -> None:
     from rich.console import Console
     from rich.table import Table
 
+    from calstation import display
+
     console = Console()
     volume = result["work_volume"]
     console.print(
         f"[bold]plan[/] of {result['recipe']} ({result['strategy']}): budget "
-        f"{result['budget_m'] * 1e3:.3f} mm at {result['level']:.0%} over r "
-        f"{volume['radius_m'] * 1e3:.0f} mm × h {volume['height_m'] * 1e3:.0f} mm; "
-        f"{result['seeds']} simulated stations, {result['seconds']:.0f} s", highlight=False)
+        f"{display.number('predicted_error', result['budget_m'])} at "
+        f"{display.percent(result['level'], 0)} over r "
+        f"{display.number('distance', volume['radius_m'])} × h "
+        f"{display.number('distance', volume['height_m'])}; {result['seeds']} simulated "
+        f"stations, {display.duration(result['seconds'])}", highlight=False)
     for design in result["designs"]:
         if design.get("error"):
             console.print(f"{design['name']} ({design['change']}): not possible with this "
@@ -114,8 +179,10 @@ def _print(result: dict[str, Any]) -> None:
             table.add_column(col, justify="right")
         for row in design["by_turns"]:
             s = row["sigma"]
-            table.add_row(str(row["turns"]), _mm(s["tx"]), _mm(s["tz"]), _deg(s["ry"]),
-                          _deg(s["rz"]), _mm(row["predicted_error_m"]), _mm(row["with_cube_m"]))
+            table.add_row(str(row["turns"]), *(display.number(p, s[p], unit=False)
+                                               for p in ("tx", "tz", "ry", "rz")),
+                          display.number("predicted_error", row["predicted_error_m"], unit=False),
+                          display.number("predicted_error", row["with_cube_m"], unit=False))
         console.print(table)
         _print_range(console, design["by_turns"])
         need = design["turns_needed"]
@@ -147,6 +214,3 @@ def _ppm(v: float | None) -> str:
 def _mm(v: float | None) -> str:
     return "—" if v is None or not math.isfinite(v) else f"{v * 1e3:.3f}"
 
-
-def _deg(v: float | None) -> str:
-    return "—" if v is None or not math.isfinite(v) else f"{math.degrees(v):.4f}"

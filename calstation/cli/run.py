@@ -5,8 +5,12 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
+
+if TYPE_CHECKING:
+    from calstation.storage.db import Database
 
 EXIT_FAILED = 1
 EXIT_ABORTED = 3
@@ -14,6 +18,21 @@ EXIT_ABORTED = 3
 
 def _exit_code(status: str) -> int:
     return {"passed": 0, "failed": EXIT_FAILED}.get(status, EXIT_ABORTED)
+
+
+def _say_report(database: Database, run_id: int) -> None:
+    """Where the run's report is (``report.html`` in its folder), when it was written."""
+    from rich.console import Console
+    from rich.markup import escape
+
+    from calstation.storage.db import Run
+
+    with database.session("reading the run", read_only=True) as s:
+        run = s.get(Run, run_id)
+        folder = Path(run.data_dir) if run is not None else None
+    if folder is not None and (folder / "report.html").is_file():
+        Console().print(f"report: {escape(str(folder / 'report.html'))}", highlight=False,
+                        soft_wrap=True)
 
 
 @contextmanager
@@ -71,8 +90,9 @@ def register(app: typer.Typer) -> None:
         Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted, 4 when another
         run holds the station.
         """
+        from calstation.cli._operator import ConsoleOperator
         from calstation.recipes import load_recipe
-        from calstation.station.operator import ConsoleOperator, default_operator
+        from calstation.station.operator import default_operator
         from calstation.station.runs import start_run
         from calstation.storage.db import open_database
 
@@ -80,10 +100,11 @@ def register(app: typer.Typer) -> None:
         database = open_database(db)
         try:
             with _live_view(foxglove):
-                _, status = start_run(
+                run_id, status = start_run(
                     loaded, database, ConsoleOperator(unattended=yes),
                     operator=operator or default_operator(), data_dir=data_dir, serial=serial,
                 )
+            _say_report(database, run_id)
         finally:
             database.dispose()
         raise typer.Exit(_exit_code(status))
@@ -109,7 +130,7 @@ def register(app: typer.Typer) -> None:
         Exit code 0 when the run passed, 1 when it failed, 3 when it was aborted, 4 when another
         run holds the station.
         """
-        from calstation.station.operator import ConsoleOperator
+        from calstation.cli._operator import ConsoleOperator
         from calstation.station.runs import resume_run
         from calstation.storage.db import open_database
 
@@ -119,6 +140,7 @@ def register(app: typer.Typer) -> None:
                 status = resume_run(
                     run_id, database, ConsoleOperator(unattended=yes), force=force
                 )
+            _say_report(database, run_id)
         finally:
             database.dispose()
         raise typer.Exit(_exit_code(status))

@@ -16,6 +16,7 @@ import math
 from dataclasses import replace
 from typing import Any
 
+from calstation import display
 from calstation.engine.accuracy import PredictedError, contributions, data_factor
 from calstation.engine.observability import accuracy_problem, predict, predicted_volume
 from calstation.engine.result import CalibrationResult
@@ -51,9 +52,10 @@ def describe(predicted: PredictedError, recipe: Recipe) -> str:
     """One line for the operator: the predicted error beside its budget."""
     budget = recipe.calibration.accuracy.max_error
     verdict = "within" if predicted.max_m <= budget else "above"
-    return (f"predicted reconstruction error {predicted.max_m * 1e3:.3f} mm "
-            f"({recipe.calibration.accuracy.level:.0%}, {predicted_volume(predicted)}), "
-            f"{verdict} the budget of {budget * 1e3:.3f} mm")
+    return (f"predicted reconstruction error {display.number('predicted_error', predicted.max_m)} "
+            f"({display.percent(recipe.calibration.accuracy.level, 0)}, "
+            f"{predicted_volume(predicted)}), {verdict} the budget of "
+            f"{display.number('predicted_error', budget)}")
 
 
 def budget_failure(

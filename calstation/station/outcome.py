@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from calstation import display
 from calstation.storage.db import RunStatus
 
 
@@ -57,10 +58,11 @@ def plain(value: Any) -> Any:
     return value
 
 
-def format_h(H: Mapping[str, float]) -> str:
-    """An H for the operator: translations in mm, rotations in degrees."""
-    parts = [
-        f"{k}={v * 1000:.2f} mm" if k.startswith("t") else f"{k}={math.degrees(v):.3f}°"
-        for k, v in H.items()
-    ]
-    return ", ".join(parts)
+def format_h(H: Mapping[str, float], sigma: Mapping[str, float] | None = None) -> str:
+    """An H for the operator: translations in mm, rotations in degrees
+    (:mod:`calstation.display`); with ``sigma``, a parameter held rather than estimated reads
+    ``not estimated``."""
+    return ", ".join(
+        f"{k} {display.NOT_ESTIMATED}" if sigma is not None
+        and display.not_estimated(v, sigma.get(k)) else f"{k} {display.number(k, v)}"
+        for k, v in H.items())

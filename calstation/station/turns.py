@@ -24,6 +24,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
+from calstation import display
 from calstation.engine.accuracy import PredictedError
 from calstation.engine.result import CalibrationResult
 from calstation.engine.spinscan import SpinScan, SpinScanBuilder
@@ -116,9 +117,10 @@ class TurnByTurn:
                 predicted_error_m=fit.predicted.max_m, budget_m=self.budget_m,
                 sigma=dict(fit.result.sigma), fit_s=fit.seconds)
         verdict = "within" if fit.predicted.max_m <= self.budget_m else "above"
-        self.ui.info(f"  after {fit.turns} turn{'s' if fit.turns > 1 else ''}: predicted error "
-                     f"{fit.predicted.max_m * 1e3:.3f} mm, {verdict} the budget of "
-                     f"{self.budget_m * 1e3:.3f} mm ({fit.seconds:.1f} s to fit)")
+        self.ui.info(f"  after {display.count(fit.turns, 'turn')}: predicted error "
+                     f"{display.number('predicted_error', fit.predicted.max_m)}, {verdict} the "
+                     f"budget of {display.number('predicted_error', self.budget_m)} "
+                     f"({display.duration(fit.seconds)} to fit)")
 
     def close(self, whole_turns: int) -> ScanTurns:
         """The scan has ended with ``whole_turns`` whole revolutions. A scan stopped by the

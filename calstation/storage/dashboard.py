@@ -1,8 +1,10 @@
 """The QA dashboard's data: yields, the failure Pareto, cycle times and control charts of every
 station over a period, from the stored runs (the statistics themselves: :mod:`.spc`).
 
-Plain data in display units (mm, degrees, seconds; times as UTC text for people), the JSON twin
-of ``/dashboard``; :mod:`.dashboard_figures` turns it into plotly figures. The queries read
+Plain data in stored units (metres, radians, the cube's angles in degrees, seconds), each chart
+and row saying its ``unit``; times as UTC text for people; the JSON twin of ``/dashboard``.
+:mod:`.dashboard_figures` turns it into plotly figures, in the units shown
+(:mod:`calstation.display`). The queries read
 columns, not ORM objects, so a fleet's eight weeks (9,000 runs) load in a fraction of a second.
 """
 
@@ -21,6 +23,7 @@ from typing import Any, Literal
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from calstation import display
 from calstation.errors import CalstationError
 from calstation.storage.db import Calibration, CubeCheckRecord, Database, Run, Station, Step
 from calstation.storage.spc import (
@@ -38,35 +41,14 @@ CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms", "perpendicularity_deg"
 """The cube check's measures a chart is offered for."""
 CHART_PARAMS = CALIBRATION_PARAMS + CUBE_PARAMS
 
-LABELS: dict[str, str] = {
-    "tx": "tx — translation along x (mm)",
-    "ty": "ty — translation along y (mm)",
-    "tz": "tz — translation along z (mm)",
-    "rx": "rx — rotation about x (°)",
-    "ry": "ry — tilt of the axis, rotation about y (°)",
-    "rz": "rz — rotation about z (°)",
-    "edge_error": "cube edge error, face fit (mm)",
-    "obb_error": "cube edge error, oriented box (mm)",
-    "flatness_rms": "cube face flatness, RMS (mm)",
-    "perpendicularity_deg": "cube perpendicularity (°)",
-    "twist_deg": "cube side-face twist (°)",
-}
+LABELS: dict[str, str] = {p: display.quantity(p).title for p in ("rx", *CHART_PARAMS)}
 """What each parameter is called on the QA pages, with its display unit."""
 
-SHORT: dict[str, str] = {
-    "tx": "tx (mm)", "ty": "ty (mm)", "tz": "tz (mm)", "rx": "rx (°)", "ry": "ry (°)",
-    "rz": "rz (°)", "edge_error": "edge error (mm)", "obb_error": "OBB edge error (mm)",
-    "flatness_rms": "flatness RMS (mm)", "perpendicularity_deg": "perpendicularity (°)",
-    "twist_deg": "twist (°)",
-}
+SHORT: dict[str, str] = {p: display.quantity(p).heading for p in ("rx", *CHART_PARAMS)}
 """The same, short enough for a chart's axis."""
 
-SCALE: dict[str, float] = {
-    "tx": 1e3, "ty": 1e3, "tz": 1e3, "rx": math.degrees(1.0), "ry": math.degrees(1.0),
-    "rz": math.degrees(1.0), "edge_error": 1e3, "obb_error": 1e3, "flatness_rms": 1e3,
-    "perpendicularity_deg": 1.0, "twist_deg": 1.0,
-}
-"""Stored unit → display unit (m → mm, rad → °; the cube's angles are stored in degrees)."""
+UNITS: dict[str, str] = display.units(CHART_PARAMS)
+"""The unit each charted value is given in (the stored one: m, rad, deg)."""
 
 REASONS: tuple[tuple[str, str], ...] = (
     ("face-fit edge error", "cube edge error (face fit)"),
@@ -193,7 +175,7 @@ def _dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
                    "until": (end - dt.timedelta(days=1)).date().isoformat(),
                    "days": q.days, "group": q.group},
         "stations": stations, "station": station, "params": list(q.params),
-        "labels": LABELS, "rules": RULES,
+        "labels": LABELS, "units": UNITS, "rules": RULES,
         "yields": _yields(runs, q.group),
         "pareto": pareto_rows,
     }
@@ -273,7 +255,7 @@ def _pareto(session: Session, runs: list[dict[str, Any]], start: dt.datetime,
 
 
 Series = dict[str, Any]
-"""One parameter of one station: ``run``, ``t`` (text for people) and ``value`` (display units),
+"""One parameter of one station: ``run``, ``t`` (text for people) and ``value`` (stored units),
 oldest first, as parallel lists, and ``limit``: the newest run's recipe limit on it."""
 
 
@@ -296,7 +278,7 @@ def _series(session: Session, start: dt.datetime, end: dt.datetime
                                                   "limit": None}
                 series["run"].append(run_id)
                 series["t"].append(t)
-                series["value"].append(float(v) * SCALE[p])
+                series["value"].append(float(v))
                 series["limit"] = lim.get(p, series["limit"])
 
     head = (Run.id, Station.name, Run.started_at, Run.recipe_sha256)
@@ -318,7 +300,7 @@ def _series(session: Session, start: dt.datetime, end: dt.datetime
 
 def _recipe_limits(session: Session, start: dt.datetime, end: dt.datetime
                    ) -> dict[str, dict[str, float]]:
-    """Each recipe's limits by its sha256 (display units): the drift limit of a calibration
+    """Each recipe's limits by its sha256 (stored units): the drift limit of a calibration
     parameter, the QA limit of a cube measure. A recipe that no longer parses has none."""
     from calstation.recipes import parse_recipe
 
@@ -331,10 +313,10 @@ def _recipe_limits(session: Session, start: dt.datetime, end: dt.datetime
             qa = parse_recipe(text, "recipe stored with the run").qa
         except CalstationError:
             continue
-        t, r = qa.drift_translation * 1e3, qa.drift_rotation_deg
+        t, r = qa.drift_translation, math.radians(qa.drift_rotation_deg)
         out[sha] = {"tx": t, "ty": t, "tz": t, "ry": r, "rz": r,
-                    "edge_error": qa.edge_error * 1e3, "obb_error": qa.obb_edge_error * 1e3,
-                    "flatness_rms": qa.flatness_rms * 1e3,
+                    "edge_error": qa.edge_error, "obb_error": qa.obb_edge_error,
+                    "flatness_rms": qa.flatness_rms,
                     "perpendicularity_deg": qa.perpendicularity_deg, "twist_deg": qa.twist_deg}
     return out
 
@@ -343,7 +325,7 @@ def chart(series: Series | None, station: str, param: str) -> dict[str, Any]:
     """A control chart of ``param`` on ``station``: centre line, ±3σ, the recipe's limit, and
     each point with the Western Electric rules it breaks."""
     base: dict[str, Any] = {"station": station, "param": param, "label": LABELS[param],
-                            "short": SHORT[param],
+                            "short": SHORT[param], "unit": UNITS[param],
                             "kind": "calibration" if param in CALIBRATION_PARAMS else "cube",
                             "points": [], "limits": None, "flagged": 0}
     if not series or not series["value"]:
@@ -352,7 +334,7 @@ def chart(series: Series | None, station: str, param: str) -> dict[str, Any]:
     flags = western_electric(series["value"], lim)
     base["limits"] = {"centre": lim.centre, "sigma": lim.sigma, "upper": lim.upper,
                       "lower": lim.lower, "baseline": lim.baseline, "limit": series["limit"]}
-    base["points"] = [{"run": r, "t": t, "value": round(v, 6), "rules": f} for r, t, v, f in
+    base["points"] = [{"run": r, "t": t, "value": v, "rules": f} for r, t, v, f in
                       zip(series["run"], series["t"], series["value"], flags, strict=True)]
     base["flagged"] = sum(1 for f in flags if f)
     return base
@@ -381,5 +363,6 @@ def _comparison(series: dict[tuple[str, str], Series], stations: list[str]
                          "centre": lim.centre, "sigma": lim.sigma,
                          "flagged": out_of_control(one["value"], lim)})
         if rows:
-            out.append({"param": p, "label": LABELS[p], "short": SHORT[p], "stations": rows})
+            out.append({"param": p, "label": LABELS[p], "short": SHORT[p], "unit": UNITS[p],
+                        "stations": rows})
     return out

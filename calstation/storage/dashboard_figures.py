@@ -9,8 +9,11 @@ from __future__ import annotations
 from typing import Any
 from urllib.parse import urlencode
 
+from calstation import display
+
 COLOURS = ("#0969da", "#bc4c00", "#1a7f37", "#8250df", "#bf3989", "#57606a")
 FLAG = "#cf222e"
+ABORTED = "#9a6700"
 
 
 def history_link(**filters: Any) -> str:
@@ -73,94 +76,129 @@ def cycle_figure(data: dict[str, Any]) -> dict[str, Any]:
 
 
 def pareto_figure(data: dict[str, Any]) -> dict[str, Any]:
-    """Failures by failed step and limit, most frequent first, with the cumulative share
-    (click: the runs that failed so)."""
+    """Failed and aborted runs by step and reason, most frequent first, with the cumulative
+    share (click: the runs behind a bar). A run the operator aborted is no failure of the
+    unit: its bar is the colour of an abort, not of a failure."""
     rows = data["pareto"]
     period = data["period"]
     links = [history_link(status=r["status"], failed_step=r["step"],
                           reason="" if r["limit"] == "aborted" else r["limit"],
                           since=period["since"], until=period["until"]) for r in rows]
-    labels = [f"{r['step']}<br>{r['limit']}" for r in rows]
+    labels = [f"{r['step']}<br>{'aborted' if r['status'] == 'aborted' else r['limit']}"
+              for r in rows]
     return {"data": [
         {"type": "bar", "name": "runs", "x": labels, "y": [r["count"] for r in rows],
-         "customdata": links, "marker": {"color": FLAG},
-         "hovertemplate": "%{x}<br>%{y} runs<extra></extra>"},
+         "customdata": links,
+         "marker": {"color": [ABORTED if r["status"] == "aborted" else FLAG for r in rows]},
+         "text": ["aborted by the operator" if r["status"] == "aborted" else "failed"
+                  for r in rows],
+         "hovertemplate": "%{x}<br>%{y} runs, %{text}<extra></extra>"},
         {"type": "scatter", "mode": "lines+markers", "name": "cumulative %", "x": labels,
          "y": [round(100 * r["cumulative"], 1) for r in rows], "yaxis": "y2",
          "customdata": links, "line": {"color": "#57606a"},
          "hovertemplate": "cumulative %{y:.0f} %<extra></extra>"},
     ], "layout": _layout(
-        "failures by failed step and limit (all stations)", "runs", height=380,
-        margin={"l": 70, "r": 60, "t": 44, "b": 90},
+        "failed (red) and aborted (amber) runs by step and reason, all stations", "runs",
+        height=380, margin={"l": 70, "r": 60, "t": 44, "b": 90},
         xaxis={"type": "category", "tickangle": 0, "automargin": True},
         yaxis2={"overlaying": "y", "side": "right", "range": [0, 101],
-                "title": {"text": "cumulative %"}})}
+                "tickmode": "array", "tickvals": [0, 25, 50, 75, 100], "ticksuffix": " %",
+                "showgrid": False, "title": {"text": "cumulative share"}})}
 
 
 def control_figure(c: dict[str, Any]) -> dict[str, Any]:
     """A control chart: the points (out-of-control ones in red, with their rules), the
-    centre line, ±3σ, and the recipe's limit (click a point: its run)."""
+    centre line, ±3σ, and the recipe's limit (click a point: its run), in the unit shown.
+    The chart is scaled to the points and their control limits: a recipe limit far outside
+    them is named in the title rather than drawn, so the points never collapse into a line."""
     pts, lim = c["points"], c["limits"]
+    q = display.quantity(c["param"])
     if not pts or lim is None:
         return {"data": [], "layout": _layout(f"{c['label']} — no value", c["short"])}
+    k = q.factor
     xs = [p["t"] for p in pts]
-    bad = [p for p in pts if p["rules"]]
+    values = [p["value"] * k for p in pts]
+    bad = [(p, v) for p, v in zip(pts, values, strict=True) if p["rules"]]
+    hover = f"run %{{customdata}}<br>%{{x}}: %{{y:.{q.digits}f}} {q.unit}"
     data: list[dict[str, Any]] = [
         # a line through the points (markers for thousands of points would slow the page)
-        {"type": "scatter", "mode": "lines", "name": "accepted run",
-         "x": xs, "y": [p["value"] for p in pts], "customdata": [f"/runs/{p['run']}" for p in pts],
-         "line": {"color": "#0969da", "width": 1},
-         "hovertemplate": "run %{customdata}<br>%{x}: %{y:.4f}<extra></extra>"},
+        {"type": "scatter", "mode": "lines+markers" if len(pts) <= 60 else "lines",
+         "name": "accepted run", "x": xs, "y": values,
+         "customdata": [f"/runs/{p['run']}" for p in pts],
+         "line": {"color": "#0969da", "width": 1}, "marker": {"size": 5},
+         "hovertemplate": hover + "<extra></extra>"},
         {"type": "scatter", "mode": "markers", "name": "out of control",
-         "x": [p["t"] for p in bad], "y": [p["value"] for p in bad],
-         "customdata": [f"/runs/{p['run']}" for p in bad],
-         "text": [", ".join(f"rule {r}" for r in p["rules"]) for p in bad],
+         "x": [p["t"] for p, _ in bad], "y": [v for _, v in bad],
+         "customdata": [f"/runs/{p['run']}" for p, _ in bad],
+         "text": [", ".join(f"rule {r}" for r in p["rules"]) for p, _ in bad],
          "marker": {"size": 8, "color": FLAG, "symbol": "x"},
-         "hovertemplate": "run %{customdata}<br>%{x}: %{y:.4f}<br>%{text}<extra></extra>"},
+         "hovertemplate": hover + "<br>%{text}<extra></extra>"},
     ]
-    ends = [xs[0], xs[-1]]
+    lo = min(min(values), lim["lower"] * k)
+    hi = max(max(values), lim["upper"] * k)
+    pad = 0.15 * (hi - lo) or 0.5 * 10.0 ** -q.digits
+    window = (lo - pad, hi + pad)
     lines: list[tuple[float, str | None, str, str]] = [
-             (lim["centre"], "centre line", "#1a7f37", "solid"),
-             (lim["upper"], "±3σ control limits", FLAG, "dash"),
-             (lim["lower"], None, FLAG, "dash")]
+        (lim["centre"] * k, "centre line", "#1a7f37", "solid"),
+        (lim["upper"] * k, "±3σ control limits", FLAG, "dash"),
+        (lim["lower"] * k, None, FLAG, "dash")]
+    off_scale = ""
     if lim["limit"] is not None:
         name = "drift limit (centre ± the recipe's drift)" if c["kind"] == "calibration" \
             else "the recipe's QA limit"
         if c["kind"] == "calibration" or c["param"] == "twist_deg":
             centre = lim["centre"] if c["kind"] == "calibration" else 0.0
-            lines += [(centre + lim["limit"], name, "#9a6700", "dot"),
-                      (centre - lim["limit"], None, "#9a6700", "dot")]
+            limits = [(centre + lim["limit"]) * k, (centre - lim["limit"]) * k]
         else:
-            lines.append((lim["limit"], name, "#9a6700", "dot"))
+            limits = [lim["limit"] * k]
+        shown = [y for y in limits if window[0] <= y <= window[1]]
+        for i, y in enumerate(shown):
+            lines.append((y, name if i == 0 else None, "#9a6700", "dot"))
+        if len(shown) < len(limits):
+            spread = "±" if len(limits) == 2 else "≤ "
+            off_scale = (f"; the recipe's limit ({spread}"
+                         f"{display.number(c['param'], lim['limit'])}) is off the scale")
     for y, line_name, colour, dash in lines:
-        data.append({"type": "scatter", "mode": "lines", "x": ends, "y": [y, y],
+        data.append({"type": "scatter", "mode": "lines", "x": [xs[0], xs[-1]], "y": [y, y],
                      "name": line_name or "", "showlegend": line_name is not None,
                      "hoverinfo": "skip",
                      "line": {"color": colour, "dash": dash, "width": 1.5}})
-    title = (f"{c['label']} on {c['station']}: {c['flagged']} of {len(pts)} out of control")
-    return {"data": data, "layout": _layout(title, c["short"], height=300,
-                                            xaxis={"type": "date", "automargin": True})}
+    title = (f"{c['label']} on {c['station']}: {c['flagged']} of {len(pts)} out of control"
+             f"{off_scale}")
+    return {"data": data, "layout": _layout(
+        title, c["short"], height=300, xaxis={"type": "date", "automargin": True},
+        yaxis={"title": {"text": c["short"]}, "automargin": True, "range": list(window),
+               "tickformat": f".{q.digits}f"})}
 
 
 def comparison_figure(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Parameters on every station side by side, one panel each: quartiles, whiskers (click a
-    station's box: its runs). One figure, so the page draws it at once."""
+    """Parameters on every station side by side, one panel each, in the unit shown:
+    quartiles, whiskers (click a station's box: its runs). One figure, so the page draws it
+    at once; each panel's name sits above it, where it cannot run into its neighbour's."""
     data: list[dict[str, Any]] = []
-    layout = _layout("station against station", "", height=300,
-                     grid={"rows": 1, "columns": max(1, len(rows)), "pattern": "independent",
-                           "xgap": 0.25}, showlegend=False, annotations=[])
+    n = max(1, len(rows))
+    layout = _layout("station against station", "", height=320,
+                     grid={"rows": 1, "columns": n, "pattern": "independent", "xgap": 0.35},
+                     showlegend=False, annotations=[],
+                     margin={"l": 50, "r": 20, "t": 70, "b": 60})
     for i, row in enumerate(rows, start=1):
         st = row["stations"]
+        k = display.quantity(row["param"]).factor
         suffix = "" if i == 1 else str(i)
         data.append({
             "type": "box", "name": row["label"], "x": [s["station"] for s in st],
-            "q1": [s["q1"] for s in st], "median": [s["median"] for s in st],
-            "q3": [s["q3"] for s in st], "lowerfence": [s["low"] for s in st],
-            "upperfence": [s["high"] for s in st],
+            "q1": [s["q1"] * k for s in st], "median": [s["median"] * k for s in st],
+            "q3": [s["q3"] * k for s in st], "lowerfence": [s["low"] * k for s in st],
+            "upperfence": [s["high"] * k for s in st],
             "customdata": [history_link(station=s["station"]) for s in st],
             "xaxis": f"x{suffix}", "yaxis": f"y{suffix}", "marker": {"color": "#0969da"}})
-        layout[f"xaxis{suffix}"] = {"type": "category", "automargin": True}
-        layout[f"yaxis{suffix}"] = {"automargin": True, "title": {"text": row["short"]}}
+        layout[f"xaxis{suffix}"] = {"type": "category", "automargin": True,
+                                    "tickfont": {"size": 10}}
+        layout[f"yaxis{suffix}"] = {"automargin": True, "tickfont": {"size": 10}}
+        layout["annotations"].append({
+            "text": row["short"], "showarrow": False, "font": {"size": 12},
+            "xref": f"x{suffix} domain", "yref": "paper", "x": 0.5, "y": 1.02,
+            "xanchor": "center", "yanchor": "bottom"})
     return {"data": data, "layout": layout}
 
 

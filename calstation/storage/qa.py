@@ -15,6 +15,7 @@ from typing import Any
 from sqlalchemy import and_, func, select
 from sqlalchemy.orm import Session
 
+from calstation import display
 from calstation.errors import CalstationError
 from calstation.recipes import parse_recipe
 from calstation.storage.db import PARAMS, Calibration, Run, Station, Step
@@ -130,14 +131,15 @@ def trend(
     session: Session, station: str, param: str, serial: str | None = None
 ) -> dict[str, Any]:
     """One parameter of ``station``'s accepted calibrations (of unit ``serial`` only, when
-    given) by date, with 1σ and drift limits: :func:`trend_points` and how to draw them.
+    given) by date, with 1σ and drift limits: :func:`trend_points` (in ``unit``, the stored
+    one) and how to draw them.
     :class:`QueryError` for a parameter the trend page does not offer."""
     if param not in TREND_PARAMS + CUBE_TREND_PARAMS:
         raise QueryError(
             f"param: {param!r} is not one of {', '.join(TREND_PARAMS + CUBE_TREND_PARAMS)}")
     kind = "cube" if param in CUBE_TREND_PARAMS else "drift"
-    return {"station": station, "param": param, "limit_kind": kind,
-            "points": trend_points(session, station, param, serial)}
+    return {"station": station, "param": param, "unit": display.quantity(param).stored,
+            "limit_kind": kind, "points": trend_points(session, station, param, serial)}
 
 
 def trend_points(
@@ -192,21 +194,11 @@ def trend_points(
     return points
 
 
-def display_scale(param: str) -> tuple[float, str]:
-    """Factor and unit to show a stored value: metres → mm, radians → degrees (the cube's
-    angles are stored in degrees)."""
-    if param.endswith("_deg"):
-        return 1.0, "°"
-    if param.startswith("r"):
-        return math.degrees(1.0), "°"
-    return 1000.0, "mm"
-
-
 def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
     """A plotly figure of a trend: values with 1σ bars by date, the limits drawn."""
     from calstation.storage.dashboard import LABELS, SHORT
 
-    k, _ = display_scale(t["param"])
+    k = display.quantity(t["param"]).factor
     label = LABELS.get(t["param"], t["param"])
     pts = t["points"]
     dates = [(p["date"] or "")[:19].replace("T", " ") for p in pts]  # UTC, to the second
@@ -248,32 +240,40 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
 
 
 def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
-    """Rows of two runs' final calibrations and cube checks side by side (display units)."""
-    from calstation.storage.report_html import display_value
-
+    """Rows of two runs' final calibrations and cube checks side by side, in stored units
+    (``unit``; ``quantity`` names how each is shown). A parameter one of the runs did not
+    estimate has no difference and is never flagged; a difference within 3σ of the two runs
+    is not flagged either (it is not a measured change)."""
     rows: list[dict[str, Any]] = []
     fa, fb = a.get("final"), b.get("final")
     qa_b = b.get("qa") or {}
     for p in PARAMS:
-        va = display_value(p, fa["H"][p]) if fa else None
-        vb = display_value(p, fb["H"][p]) if fb else None
-        sa = display_value(p, fa["sigma"][p]) if fa else None
-        sb = display_value(p, fb["sigma"][p]) if fb else None
+        va, vb = (fa["H"][p] if fa else None), (fb["H"][p] if fb else None)
+        sa, sb = (fa["sigma"][p] if fa else None), (fb["sigma"][p] if fb else None)
+        held_a = fa is not None and display.not_estimated(va, sa)
+        held_b = fb is not None and display.not_estimated(vb, sb)
         # the drift limit of B's recipe: how far a station may move between calibrations
-        limit = (qa_b.get("drift_translation", math.nan) * 1000.0 if p.startswith("t")
-                 else qa_b.get("drift_rotation_deg"))
-        diff = None if va is None or vb is None else vb - va
-        rows.append({"name": p, "unit": "mm" if p.startswith("t") else "°", "a": va, "b": vb,
-                     "sigma_a": sa, "sigma_b": sb, "diff": diff, "limit": limit,
-                     "flagged": diff is not None and limit is not None and abs(diff) > limit})
+        limit = (qa_b.get("drift_translation") if p.startswith("t")
+                 else None if qa_b.get("drift_rotation_deg") is None
+                 else math.radians(qa_b["drift_rotation_deg"]))
+        diff = None if va is None or vb is None or held_a or held_b else vb - va
+        noise = 3.0 * math.hypot(sa or 0.0, sb or 0.0)
+        rows.append({"name": p, "quantity": p, "unit": display.quantity(p).stored,
+                     "a": va, "b": vb, "sigma_a": sa, "sigma_b": sb,
+                     "not_estimated_a": held_a, "not_estimated_b": held_b,
+                     "diff": diff, "limit": limit,
+                     "flagged": diff is not None and limit is not None
+                     and abs(diff) > max(limit, noise)})
     ra = {r["name"]: r for r in a.get("cube_rows") or []}
     rb = {r["name"]: r for r in b.get("cube_rows") or []}
     for name in list(ra) or list(rb):
         x, y = ra.get(name, {}), rb.get(name, {})
         va, vb = x.get("value"), y.get("value")
-        rows.append({"name": name, "unit": x.get("unit") or y.get("unit"), "a": va, "b": vb,
-                     "sigma_a": None, "sigma_b": None,
+        q = x.get("quantity") or y.get("quantity")
+        rows.append({"name": name, "quantity": q, "unit": x.get("unit") or y.get("unit"),
+                     "a": va, "b": vb, "sigma_a": None, "sigma_b": None,
+                     "not_estimated_a": False, "not_estimated_b": False,
                      "diff": None if va is None or vb is None else vb - va,
-                     "limit": x.get("limit") or y.get("limit"),
+                     "limit": y.get("limit") if y else x.get("limit"),
                      "flagged": y.get("ok") is False})
     return rows

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from sqlalchemy import Select, select
 from sqlalchemy.orm import Session, selectinload
 
+from calstation import display
 from calstation.errors import DatabaseError
 from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord, Run
 from calstation.storage.db.models import MAX_ROW_ID
@@ -24,6 +25,12 @@ if TYPE_CHECKING:
     from calstation.storage.ros import Frames
 
 EXPORT_FORMATS = ("yaml", "json", "urdf", "xacro", "csv", "tf", "ros2-yaml", "ros2-params")
+
+CUBE_UNITS: dict[str, str] = {
+    "obb_edges": "m", "obb_error": "m", "face_edges": "m", "edge_error": "m",
+    "flatness_rms": "m", "flatness_excess": "m", "range_noise": "m",
+    "perpendicularity_deg": "deg", "twist_deg": "deg", "twist_sigma_deg": "deg"}
+"""The unit of each value of a stored cube check (:func:`cube_dict`)."""
 
 
 def iso(t: dt.datetime | None) -> str | None:
@@ -67,20 +74,24 @@ def refused_reasons(c: Calibration) -> list[str]:
 
 
 def calibration_dict(c: Calibration) -> dict[str, Any]:
-    """A stored calibration: H and sigma (m, rad), the estimated encoder latency and its sigma
+    """A stored calibration: H and sigma (m, rad: ``units`` says which), the parameters held
+    rather than estimated (``not_estimated``), the estimated encoder latency and its sigma
     (s, None when not estimated), the lidar's range model (``range_offset``, ``range_scale``,
     ``incidence_bias`` and their ``sigma_*``; m, dimensionless, m at 60°; None when not
     estimated), the predicted reconstruction error and the budget it was
     judged against (m, None when not predicted), cost, strategy, accepted, ``refused`` (the
     reasons a re-processing result was refused, else empty), diagnostics."""
+    H, sigma = c.params(), c.sigmas()
     return {
         "id": c.id,
         "stage": c.stage,
         "strategy": c.strategy,
         "accepted": c.accepted,
         "refused": refused_reasons(c),
-        "H": c.params(),
-        "sigma": c.sigmas(),
+        "H": H,
+        "sigma": sigma,
+        "units": display.units(PARAMS),
+        "not_estimated": [p for p in PARAMS if display.not_estimated(H[p], sigma[p])],
         "encoder_latency_s": c.encoder_latency_s,
         "sigma_encoder_latency_s": c.sigma_encoder_latency_s,
         **c.range_fields(),
@@ -112,7 +123,7 @@ def history_item(run: Run) -> dict[str, Any]:
 
 
 def cube_dict(c: CubeCheckRecord) -> dict[str, Any]:
-    """A stored cube check (lengths in metres)."""
+    """A stored cube check (lengths in metres, angles in degrees: ``units`` says which)."""
     return {
         "id": c.id,
         "calibration_id": c.calibration_id,
@@ -126,6 +137,7 @@ def cube_dict(c: CubeCheckRecord) -> dict[str, Any]:
         "perpendicularity_deg": c.perpendicularity_deg,
         "twist_deg": c.twist_deg,
         "twist_sigma_deg": c.twist_sigma_deg,
+        "units": CUBE_UNITS,
         "passed": c.passed,
         "failures": c.failures,
         "created_at": iso(c.created_at),

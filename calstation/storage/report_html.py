@@ -22,16 +22,20 @@ import datetime as dt
 import json
 import math
 from dataclasses import dataclass
-from functools import cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from calstation import display
 from calstation.atomic import write_atomic
 from calstation.errors import CalstationError
 from calstation.storage.db import Database, Run
+from calstation.storage.templating import (
+    plotly_js as plotly_js,
+    plotly_style_ids as plotly_style_ids,
+)
 
 MAX_CLOUD_POINTS = 12_000
 """Points per 3D view (a subsample: the report stays a few MB)."""
@@ -42,24 +46,8 @@ MAX_RESIDUAL_POINTS = 20_000
 SEED = 0
 """The subsample is drawn with this seed: the same run gives the same report."""
 
-PARAM_LABELS: dict[str, str] = {
-    "tx": "tx (mm)", "ty": "ty (mm)", "tz": "tz (mm)",
-    "rx": "rx (°)", "ry": "ry (°)", "rz": "rz (°)",
-}
-
-
-def display_value(param: str, value: float | None) -> float | None:
-    """A stored parameter (m or rad) in display units (mm or degrees)."""
-    if value is None:
-        return None
-    return value * 1000.0 if param.startswith("t") else math.degrees(value)
-
-
-def fmt(value: float | None, digits: int = 3) -> str:
-    """A number for a table; an em dash when absent."""
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "—"
-    return f"{value:.{digits}f}"
+PARAMS = display.H_PARAMS
+"""The calibration's parameters in the order the report lists them."""
 
 
 @dataclass
@@ -157,7 +145,7 @@ def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> di
     pts, fst = points[pick], first[pick]
     residual = half_turn_residuals(pts, fst) if by == "half-turn" else local_plane_residuals(pts)
     show = _subsample(pts.shape[0], MAX_CLOUD_POINTS, rng)
-    finite = residual[np.isfinite(residual)] * 1000.0
+    finite = residual[np.isfinite(residual)]
     cloud = Cloud(
         title=title,
         points_mm=pts[show] * 1000.0,
@@ -165,20 +153,38 @@ def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> di
         color_label="half-turn" if by == "half-turn" else "residual (mm)",
         categorical=by == "half-turn",
     )
+    residuals = {
+        "median": float(np.median(finite)) if finite.size else None,
+        "p95": float(np.percentile(finite, 95)) if finite.size else None,
+        "unit": "m",
+        "values": np.clip(finite, 0, None),
+    }
+    kind = ("distance to the nearest point of the other half-turn" if by == "half-turn"
+            else "distance to the plane through the 20 nearest points")
     return {
         "title": title,
         "points": int(points.shape[0]),
         "shown": int(show.shape[0]),
         "figure": _cloud_figure(cloud),
-        "residual_kind": ("distance to the nearest point of the other half-turn"
-                          if by == "half-turn" else
-                          "distance to the plane through the 20 nearest points"),
-        "residual": {
-            "median_mm": float(np.median(finite)) if finite.size else None,
-            "p95_mm": float(np.percentile(finite, 95)) if finite.size else None,
-            "values_mm": np.clip(finite, 0, None),
-        },
+        "residual_kind": kind,
+        "residual": residuals,
+        "note": residual_note(int(show.shape[0]), int(points.shape[0]), kind, residuals, by),
     }
+
+
+def residual_note(shown: int, points: int, kind: str, residual: dict[str, Any], by: str) -> str:
+    """What a 3D view's residuals are, and what is normal for them: they measure the range
+    noise and the spacing of the points as much as the calibration, whose own share is the
+    predicted reconstruction error."""
+    normal = ("Two half-turns of a well calibrated station see the same surfaces through the "
+              "range noise and between scan lines, so a median of a millimetre or two is "
+              "normal; a wrong H shows as a median well above the range noise and a doubled "
+              "outline." if by == "half-turn" else
+              "On a flat face this is the range noise; mixed pixels at the edges make the tail.")
+    return (f"{shown} of {points} points above the platter; residual ({kind}): median "
+            f"{display.number('residual', residual['median'])}, 95th percentile "
+            f"{display.number('residual', residual['p95'])}. {normal} What the calibration "
+            "itself adds is the predicted reconstruction error above.")
 
 
 def typed(values: Any) -> dict[str, str]:
@@ -233,9 +239,10 @@ def _cloud_figure(c: Cloud) -> dict[str, Any]:
 
 def _histogram_figure(clouds: list[dict[str, Any]]) -> dict[str, Any] | None:
     traces = [
-        {"type": "histogram", "name": c["title"], "x": typed(c["residual"]["values_mm"]),
+        {"type": "histogram", "name": c["title"],
+         "x": typed(display.quantity("residual").factor * c["residual"]["values"]),
          "opacity": 0.6, "xbins": {"start": 0.0, "size": 0.1}}
-        for c in clouds if c.get("residual") and len(c["residual"]["values_mm"])
+        for c in clouds if c.get("residual") and len(c["residual"]["values"])
     ]
     if not traces:
         return None
@@ -245,7 +252,7 @@ def _histogram_figure(clouds: list[dict[str, Any]]) -> dict[str, Any] | None:
             "barmode": "overlay", "height": 300, "margin": {"l": 50, "r": 10, "t": 30, "b": 40},
             "title": {"text": "residuals (see each view for what they measure)"},
             "xaxis": {"title": {"text": "mm"}, "range": [0, max(
-                2.0, *(4.0 * (c["residual"]["median_mm"] or 0)
+                2.0, *(4.0 * (display.shown("residual", c["residual"]["median"]) or 0)
                        for c in clouds if c.get("residual")))]},
             "yaxis": {"title": {"text": "points"}},
         },
@@ -294,8 +301,8 @@ def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
 
 
 def accuracy_of(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
-    """The predicted reconstruction error of ``calibration`` beside its budget (mm), when it
-    was predicted: error, budget, level, work volume, turns, whether it holds."""
+    """The predicted reconstruction error of ``calibration`` beside its budget (metres), when it
+    was predicted: error, budget, level, work volume, turns, the bias bound, whether it holds."""
     if calibration is None:
         return None
     record = (calibration.get("diagnostics") or {}).get("predicted_error")
@@ -304,15 +311,35 @@ def accuracy_of(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
     volume = record.get("work_volume") or {}
     budget = record.get("budget_m")
     return {
-        "error_mm": 1e3 * float(record["max_m"]),
-        "budget_mm": None if budget is None else 1e3 * float(budget),
+        "error_m": float(record["max_m"]),
+        "budget_m": None if budget is None else float(budget),
         "holds": None if budget is None else float(record["max_m"]) <= float(budget),
         "level": record.get("level", 0.95),
-        "radius_mm": None if "radius_m" not in volume else 1e3 * float(volume["radius_m"]),
-        "height_mm": None if "height_m" not in volume else 1e3 * float(volume["height_m"]),
+        "radius_m": None if "radius_m" not in volume else float(volume["radius_m"]),
+        "height_m": None if "height_m" not in volume else float(volume["height_m"]),
         "turns": record.get("turns"),
-        "bias_mm": 1e3 * float(record.get("bias_m") or 0.0),
+        "bias_m": float(record.get("bias_m") or 0.0),
+        "text": accuracy_text(record),
     }
+
+
+def accuracy_text(record: dict[str, Any]) -> str:
+    """The predicted error beside its budget in words: ``0.089 mm at 95 % over r 292 mm ×
+    h 150 mm, after 1 turn, within the budget of 0.300 mm``."""
+    error, budget = record.get("max_m"), record.get("budget_m")
+    volume = record.get("work_volume") or {}
+    text = (f"{display.number('predicted_error', error)} at "
+            f"{display.percent(record.get('level', 0.95), 0)}")
+    if volume:
+        text += (f" over r {display.number('distance', volume.get('radius_m'))} × h "
+                 f"{display.number('distance', volume.get('height_m'))}")
+    turns = record.get("turns")
+    if isinstance(turns, int | float):
+        text += f", after {display.count(turns, 'turn')}"
+    if budget is not None and error is not None:
+        text += (f", {'within' if float(error) <= float(budget) else 'above'} the budget of "
+                 f"{display.number('predicted_error', budget)}")
+    return text
 
 
 def _accuracy_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -367,25 +394,27 @@ def _flatness_rows(cube: dict[str, Any], qa: Any) -> list[tuple[Any, ...]]:
     beside it (a check stored before the excess was measured judged the raw RMS)."""
     limit = getattr(qa, "flatness_rms", None)
     if cube.get("flatness_excess") is None:
-        return [("face flatness (RMS)", cube.get("flatness_rms"), limit, 1e3, "mm")]
-    return [("face flatness beyond the range noise (RMS)", cube.get("flatness_excess"), limit,
-             1e3, "mm"),
-            ("face flatness (RMS, range noise included)", cube.get("flatness_rms"), None, 1e3,
-             "mm")]
+        return [("face flatness (RMS)", "flatness_rms", cube.get("flatness_rms"), limit)]
+    return [("face flatness beyond the range noise (RMS)", "flatness_excess",
+             cube.get("flatness_excess"), limit),
+            ("face flatness (RMS, range noise included)", "flatness_rms",
+             cube.get("flatness_rms"), None)]
 
 
 def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
-    """Each measured cube value beside its limit (display units) and whether it passes."""
+    """Each measured cube value beside its limit and whether it passes: ``name`` (in words),
+    ``quantity`` (:mod:`calstation.display`), ``value`` and ``limit`` in ``unit``, the stored
+    unit (None: a value shown for information, judged by no limit)."""
     if cube is None:
         return []
     rows = [
-        ("face-fit edge error", cube.get("edge_error"), getattr(qa, "edge_error", None), 1e3,
-         "mm"),
-        ("OBB edge error (paper metric)", cube.get("obb_error"),
-         getattr(qa, "obb_edge_error", None), 1e3, "mm"),
+        ("face-fit edge error", "edge_error", cube.get("edge_error"),
+         getattr(qa, "edge_error", None)),
+        ("OBB edge error (paper metric)", "obb_error", cube.get("obb_error"),
+         getattr(qa, "obb_edge_error", None)),
         *_flatness_rows(cube, qa),
-        ("perpendicularity", cube.get("perpendicularity_deg"),
-         getattr(qa, "perpendicularity_deg", None), 1.0, "°"),
+        ("perpendicularity", "perpendicularity_deg", cube.get("perpendicularity_deg"),
+         getattr(qa, "perpendicularity_deg", None)),
     ]
     twist = cube.get("twist_deg")
     if twist is not None:  # checks stored before the twist measure have none
@@ -395,50 +424,47 @@ def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
         sigma = cube.get("twist_sigma_deg")
         if limit is not None and sigma is not None and math.isfinite(float(sigma)):
             limit = max(float(limit), 3.0 * float(sigma))
-        rows.append(("side-face twist |δ| (ry check)", abs(float(twist)), limit, 1.0, "°"))
+        rows.append(("side-face twist |δ| (ry check)", "twist_deg", abs(float(twist)), limit))
     out = []
-    for name, value, limit, scale, unit in rows:
-        v = None if value is None else float(value) * scale
-        lim = None if limit is None else float(limit) * scale
+    for name, q, value, limit in rows:
+        v = None if value is None else float(value)
+        lim = None if limit is None else float(limit)
         ok = None if v is None or lim is None or not math.isfinite(v) else v <= lim
-        out.append({"name": name, "value": v, "limit": lim, "unit": unit, "ok": ok})
+        out.append({"name": name, "quantity": q, "value": v, "limit": lim,
+                    "unit": display.quantity(q).stored, "ok": ok})
     return out
 
 
 def calibration_rows(calibrations: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Every stored calibration with H and 1σ in display units, the lidar–encoder time offset
-    (ms) where a second pass estimated it, and the lidar's range model in words where it was
-    estimated (:func:`calstation.engine.rangemodel.describe`)."""
+    """Every stored calibration: H and 1σ as stored (``units`` says which), the parameters
+    held rather than estimated, the lidar–encoder time offset and its σ (s) where a second
+    pass estimated it, and the lidar's range model in words where it was estimated
+    (:func:`calstation.engine.rangemodel.describe`)."""
     from calstation.engine.rangemodel import describe
 
     rows = []
     for c in calibrations:
         rows.append({
-            "stage": c["stage"], "strategy": c["strategy"], "accepted": c["accepted"],
-            "cost": c.get("cost"), "iterations": c.get("iterations"),
-            "values": {p: display_value(p, v) for p, v in c["H"].items()},
-            "sigma": {p: display_value(p, v) for p, v in c["sigma"].items()},
+            "id": c.get("id"), "stage": c["stage"], "strategy": c["strategy"],
+            "accepted": c["accepted"], "cost": c.get("cost"), "iterations": c.get("iterations"),
+            "values": dict(c["H"]), "sigma": dict(c["sigma"]),
+            "units": display.units(c["H"]),
+            "not_estimated": [p for p in c["H"]
+                              if display.not_estimated(c["H"][p], c["sigma"].get(p))],
             "gauge": (c.get("diagnostics") or {}).get("gauge_note"),
-            "latency_ms": None if c.get("encoder_latency_s") is None
-            else 1e3 * float(c["encoder_latency_s"]),
-            "latency_sigma_ms": None if c.get("sigma_encoder_latency_s") is None
-            else 1e3 * float(c["sigma_encoder_latency_s"]),
+            "time_offset_s": c.get("encoder_latency_s"),
+            "time_offset_sigma_s": c.get("sigma_encoder_latency_s"),
             "range_model": describe(c),
             "timings": (c.get("diagnostics") or {}).get("timings") or {},
         })
     return rows
 
 
-def _duration(start: str | None, end: str | None) -> float | None:
-    if not start or not end:
-        return None
-    return (dt.datetime.fromisoformat(end) - dt.datetime.fromisoformat(start)).total_seconds()
-
-
 def step_rows(steps: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Each step attempt with its duration (s)."""
     return [
-        {**s, "duration_s": _duration(s.get("started_at"), s.get("finished_at"))}
+        {**s, "title": display.step_title(s["name"]),
+         "duration_s": display.seconds_between(s.get("started_at"), s.get("finished_at"))}
         for s in steps
     ]
 
@@ -560,7 +586,7 @@ def views_data(db: Database, run_id: int) -> dict[str, Any]:
 
 
 def _views_of(data: dict[str, Any]) -> dict[str, Any]:
-    views = [{k: ({kk: vv for kk, vv in v.items() if kk != "values_mm"}
+    views = [{k: ({kk: vv for kk, vv in v.items() if kk != "values"}
                   if k == "residual" else v) for k, v in view.items()} for view in data["views"]]
     final = data["final"] or {}
     return {"views": views, "residuals": data["figures"].get("residuals"),
@@ -614,14 +640,6 @@ def _views(artifacts: list[dict[str, Any]], H: Any, radius: float) -> list[dict[
 
 
 # --- rendering -------------------------------------------------------------------------------
-@cache
-def plotly_js() -> str:
-    """plotly.js, minified, from the installed ``plotly`` package (no network)."""
-    from plotly.offline import get_plotlyjs
-
-    return str(get_plotlyjs())
-
-
 PLOTLY_FILE = "plotly-{version}.min.js"
 """plotly.js beside the run folders (``DATA_DIR/runs/``), written once and shared by every
 run's ``report.html`` (``../plotly-….min.js``): a report stays small and opens offline."""
@@ -656,9 +674,7 @@ def render_report(
     template = environment().get_template("report.html")
     return template.render(
         d=data,
-        params=list(PARAM_LABELS),
-        labels=PARAM_LABELS,
-        fmt=fmt,
+        params=list(PARAMS),
         figures_json=figures_json(data),
         nav=nav,
         plotly_inline=None if plotly_src else plotly_js(),

@@ -2,54 +2,68 @@
 
 from __future__ import annotations
 
-import datetime as dt
 import json
 import math
 from functools import cache
 from typing import Any
 
 from jinja2 import Environment, PackageLoader, select_autoescape
+from markupsafe import Markup
+
+from calstation import display
 
 
 def _num(value: Any, digits: int = 3) -> str:
-    if value is None or (isinstance(value, float) and not math.isfinite(value)):
-        return "—"
-    if isinstance(value, int | float):
-        return f"{value:.{digits}f}"
-    return str(value)
+    """A plain count or ratio with ``digits`` decimals (quantities go through ``q``)."""
+    if not isinstance(value, int | float) or isinstance(value, bool) \
+            or not math.isfinite(float(value)):
+        return display.MISSING if value is None or isinstance(value, int | float) else str(value)
+    return display.plain(float(value), digits)
 
 
-def _mm(value: Any, digits: int = 3) -> str:
-    return "—" if value is None else _num(float(value) * 1000.0, digits)
+def _quantity(value: Any, name: str, signed: bool = False, unit: bool = True) -> str:
+    """``value`` (stored unit) of quantity ``name`` as :func:`calstation.display.number`."""
+    return display.number(name, value, signed=signed, unit=unit)
 
 
-def duration(seconds: Any) -> str:
-    """A duration as a person reads it: ``0.4 s``, ``12 s``, ``2 min 05 s``, ``1 h 02 min``."""
-    if seconds is None or not math.isfinite(float(seconds)):
-        return "—"
-    s = float(seconds)
-    if s < 10:
-        return f"{s:.1f} s"
-    whole = round(s)
-    if whole < 60:
-        return f"{whole} s"
-    if whole < 3600:
-        return f"{whole // 60} min {whole % 60:02d} s"
-    return f"{whole // 3600} h {whole % 3600 // 60:02d} min"
+def _with_sigma(value: Any, name: str, sigma: Any, unit: bool = True) -> str:
+    """:func:`calstation.display.with_sigma`."""
+    return display.with_sigma(name, value, sigma, unit=unit)
 
 
-def when(value: Any, seconds: bool = False) -> str:
-    """A stored time (ISO-8601 text or datetime, UTC) for people: ``2026-11-23 14:05 UTC``
-    (``seconds``: ``14:05:09``); an em dash when absent, the text itself when not a time."""
-    if value is None or value == "":
-        return "—"
-    try:
-        t = value if isinstance(value, dt.datetime) else dt.datetime.fromisoformat(str(value))
-    except ValueError:
-        return str(value)
-    if t.tzinfo is not None:
-        t = t.astimezone(dt.UTC)
-    return t.strftime("%Y-%m-%d %H:%M:%S" if seconds else "%Y-%m-%d %H:%M") + " UTC"
+@cache
+def plotly_js() -> str:
+    """plotly.js, minified, from the installed ``plotly`` package (no network)."""
+    from plotly.offline import get_plotlyjs
+
+    return str(get_plotlyjs())
+
+
+@cache
+def plotly_style_ids() -> tuple[str, ...]:
+    """The ids of the ``<style>`` elements plotly.js adds at load time unless an element with
+    that id is there already (its map library's rules). A page that puts an empty one of each
+    in its head, with the policy's nonce, keeps plotly from adding a style the page's
+    Content-Security-Policy would refuse (an error in every page's console); the station draws
+    no maps."""
+    import re
+
+    return tuple(dict.fromkeys(re.findall(
+        r'getElementById\("([0-9a-f]{16,})"\)\)\{var \w+=document\.createElement\("style"\)',
+        plotly_js())))
+
+
+def css_string(text: Any) -> Markup:
+    """``text`` as a CSS string, for a ``content:`` in a ``<style>``: every character but
+    letters, digits and a few marks written as a CSS escape, so no text (a serial, a station's
+    name) can end the string or the style."""
+    safe = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789 .,:_-·—()")
+    body = "".join(c if c in safe else f"\\{ord(c):x} " for c in str(text))
+    return Markup(f'"{body}"')
+
+
+duration = display.duration
+when = display.when
 
 
 @cache
@@ -62,8 +76,18 @@ def environment() -> Environment:
         lstrip_blocks=True,
     )
     env.filters["num"] = _num
-    env.filters["mm"] = _mm
+    env.filters["q"] = _quantity
+    env.filters["qs"] = _with_sigma
+    env.filters["sigma"] = lambda v, name, unit=True: display.sigma_text(name, v, unit)
+    env.filters["sci"] = display.scientific
+    env.filters["percent"] = display.percent
+    env.filters["count"] = display.count
+    env.filters["megabytes"] = display.megabytes
+    env.filters["css_string"] = css_string
     env.filters["duration"] = duration
     env.filters["when"] = when
+    env.globals["quantity"] = display.quantity
+    env.globals["plotly_style_ids"] = plotly_style_ids
+    env.globals["NOT_ESTIMATED"] = display.NOT_ESTIMATED
     env.filters["tojson_compact"] = lambda v: json.dumps(v, separators=(",", ":"))
     return env

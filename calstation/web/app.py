@@ -497,10 +497,8 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
     @app.get("/trends", response_class=HTMLResponse)
     def trends_page(request: Request, t: Trend) -> HTMLResponse:
         """Trend plots of parameters by date, with 1σ bars and the drift or QA limit."""
-        shown = [{**one, "scale": qa.display_scale(one["param"])[0],
-                  "unit": qa.display_scale(one["param"])[1]} for one in t["trends"]]
         return ctx.page(request, "trends.html", {
-            "t": t, "shown": shown, "query": str(request.url.query),
+            "t": t, "shown": t["trends"], "query": str(request.url.query),
             "figures": {f"trend-{one['param']}": qa.trend_figure(one) for one in t["trends"]}})
 
     @app.get("/compare.json")

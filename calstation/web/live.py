@@ -29,16 +29,15 @@ from typing import Any
 import numpy as np
 from rich.text import Text
 
+from calstation import display
+from calstation.display import fixture_name, step_title
 from calstation.errors import AbortRun, CalstationError, StationError
 from calstation.station.lock import Holder, StationHold
 from calstation.station.machine import Station
 from calstation.station.operator import (
-    FIXTURE_PROMPTS,
     STEP_HINTS,
     Decision,
     StationEvent,
-    fixture_name,
-    step_title,
 )
 from calstation.station.runs import create_run, hold_station, resumable_run, resume_run
 from calstation.station.steps import STEPS, run_steps
@@ -110,6 +109,30 @@ def _add_cloud(st: LiveState, d: dict[str, Any]) -> None:
                         "x": [], "y": [], "z": []}
     for axis, key in enumerate(("x", "y", "z")):
         c[key].extend(round(1000.0 * p[axis], 1) for p in d["points"])
+
+
+def _epoch(iso: Any) -> float | None:
+    import datetime as dt
+
+    if not iso:
+        return None
+    t = dt.datetime.fromisoformat(str(iso))
+    return (t if t.tzinfo else t.replace(tzinfo=dt.UTC)).timestamp()
+
+
+def _times_as_stored(st: LiveState, result: dict[str, Any]) -> None:
+    """The run's and its steps' times as the database has them, so that the page's header, its
+    steps and its end screen show one elapsed time each (the live clock started a little
+    after the run's row, and stopped after its report)."""
+    started, finished = _epoch(result.get("started_at")), _epoch(result.get("finished_at"))
+    if started is not None and finished is not None:
+        st.started_at, st.finished_at = started, finished
+    last = {s["name"]: s for s in result.get("steps") or []}
+    for name, step in st.steps.items():
+        stored = last.get(name)
+        if stored is not None and stored.get("seconds") is not None:
+            step.update(seconds=stored["seconds"], status=stored["status"],
+                        attempt=stored["attempt"])
 
 
 class LiveState:
@@ -211,6 +234,8 @@ class LiveState:
                     step["status"] = "aborted" if status == "aborted" else "failed"
                     if step["started_at"] is not None:
                         step["seconds"] = st.finished_at - step["started_at"]
+            if result is not None:
+                _times_as_stored(st, result)
         self.update(end)
 
     # --- prompts ---------------------------------------------------------------------------
@@ -344,10 +369,9 @@ class WebOperator:
         if geometry is not None:
             svg = placement_svg(self.recipe.fixtures.platter.radius, geometry,
                                 f"place the {fixture_name(fixture)}")
-        text = FIXTURE_PROMPTS.get(fixture, f"Place the {fixture_name(fixture)} on the platter.")
         answer = self.live.ask(
-            {"kind": "fixture", "fixture": fixture, "step": self.live.step, "text": text,
-             "detail": description, "svg": svg},
+            {"kind": "fixture", "fixture": fixture, "step": self.live.step,
+             "title": f"Place the {fixture_name(fixture)}", "text": description, "svg": svg},
             ("continue", "abort"),
         )
         return answer == "continue"
@@ -405,7 +429,8 @@ class WebOperator:
                     st.line = st.outline = None
             self._with_outline = False
             self.live.update(started)
-            self.live.add_log("info", f"▶ {d['step']} (attempt {d['attempt']})")
+            self.live.add_log("info", f"▶ {step_title(d['step'])}"
+                              + (f" (attempt {d['attempt']})" if d["attempt"] > 1 else ""))
         elif event.kind == "step_finished":
             def finished(st: LiveState) -> None:
                 step = st.steps[d["step"]]
@@ -427,9 +452,12 @@ class WebOperator:
         elif event.kind == "lidar_line":
             self._preview(d["kind"], d["line"])
         elif event.kind == "accuracy":
-            point = {"scan": d["scan"], "turns": d["turns"],
-                     "predicted_error_mm": 1e3 * float(d["predicted_error_m"]),
-                     "budget_mm": 1e3 * float(d["budget_m"])}
+            error, budget = float(d["predicted_error_m"]), float(d["budget_m"])
+            point = {"scan": d["scan"], "turns": d["turns"], "predicted_error_m": error,
+                     "budget_m": budget, "within": error <= budget,
+                     "budget_text": display.number("predicted_error", budget),
+                     "text": f"{display.count(d['turns'], 'turn')}: "
+                             f"{display.number('predicted_error', error)}"}
 
             def predicted(st: LiveState) -> None:
                 st.accuracy = [a for a in st.accuracy if a["scan"] == point["scan"]] + [point]

@@ -14,6 +14,7 @@ import math
 from html import escape
 from typing import Any
 
+from calstation import display
 from calstation.recipes import frustum_outline
 
 SIZE = 360
@@ -97,7 +98,7 @@ def _offset_dimension(geom: Any, xy: Any) -> tuple[list[str], str | None]:
     tx, ty = mid_x + side * nx / norm * 8, mid_y + side * ny / norm * 8
     anchor = "start" if side * nx / norm > 0.3 else "end" if side * nx / norm < -0.3 else (
         "middle")
-    text = f"{distance * 1000:.0f} mm"
+    text = display.number("distance", distance)
     parts = [
         f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x1:.1f}" y2="{y1:.1f}" stroke="#1b1f24" '
         'stroke-width="1.2" marker-start="url(#arrow)" marker-end="url(#arrow)" '
@@ -108,8 +109,28 @@ def _offset_dimension(geom: Any, xy: Any) -> tuple[list[str], str | None]:
         f'text-anchor="{anchor}" fill="#1b1f24" paint-order="stroke" stroke="#fff" '
         f'stroke-width="3" class="offset-label">{text}</text>',
     ]
-    return parts, (f"centre (+) {text} from the axis (recipe offset y {oy * 1000:+.0f}, "
-                   f"z {oz * 1000:+.0f} mm)")
+    yaw = float(getattr(geom, "yaw_deg", 0.0) or 0.0)
+    return parts, (f"centre (+) {text} from the axis (recipe offset y "
+                   f"{display.number('distance', oy, signed=True)}, z "
+                   f"{display.number('distance', oz, signed=True)})"
+                   + (f", turned {yaw:g}°" if yaw else ""))
+
+
+LEGEND_CHARACTERS = 50
+"""Characters of a legend line at most (12 px text across the drawing's width): longer
+sentences wrap between words rather than run out of the picture."""
+
+
+def _wrapped(line: str) -> list[str]:
+    """``line`` in pieces of at most :data:`LEGEND_CHARACTERS`, cut between words (the
+    continuations indented)."""
+    out: list[str] = []
+    for word in line.split(" "):
+        if out and len(out[-1]) + 1 + len(word) <= LEGEND_CHARACTERS:
+            out[-1] += " " + word
+        else:
+            out.append(("    " if out else "") + word)
+    return out
 
 
 def placement_svg(platter_radius: float, geom: Any, title: str) -> str:
@@ -124,7 +145,8 @@ def placement_svg(platter_radius: float, geom: Any, title: str) -> str:
 
     outlines = fixture_outlines(geom)
     dimension, offset_note = _offset_dimension(geom, xy)
-    legend = [escape(title), f"top view, platter ⌀ {platter_radius * 2000:.0f} mm; "
+    legend = [escape(title),
+              f"top view, platter ⌀ {display.number('distance', 2 * platter_radius)}",
               "dashed red: the scan line"]
     colours = {"base": "#b6e3ff", "wall": "#0969da", "body": "#fff8c5"}
     drawing: list[str] = []
@@ -153,6 +175,7 @@ def placement_svg(platter_radius: float, geom: Any, title: str) -> str:
                        f'fill="#1b1f24" data-label="{label}">{number}</text>')
     if offset_note:
         legend.append(escape(offset_note))
+    legend = [part for line in legend for part in _wrapped(line)]
     height = SIZE + LEGEND_LINE * len(legend) + 6
     parts = [
         f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {SIZE} {height}" '

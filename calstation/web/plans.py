@@ -27,9 +27,20 @@ class Planner:
 
     def snapshot(self) -> dict[str, Any]:
         """The page's JSON twin: ``status`` (idle, running, done, failed), the recipe, the
-        progress, the plan (:func:`calstation.bench.plan.plan`) or the error."""
+        progress (while running: ``elapsed_s``, the estimated ``left_s``, None before the first
+        stage is done, and ``progress_text`` in words), the plan
+        (:func:`calstation.bench.plan.plan`) or the error."""
         with self._lock:
-            return dict(self._state)
+            state = dict(self._state)
+        if state["status"] == "running":
+            from calstation import display
+
+            elapsed = time.time() - state["started"]
+            state["elapsed_s"] = elapsed
+            state["left_s"] = display.time_left(elapsed, state["fraction"])
+            state["progress_text"] = display.progress_text(state["progress"],
+                                                           state["fraction"], elapsed)
+        return state
 
     def start(self, recipe: str, seeds: int, turns: int) -> None:
         """Plan ``recipe`` (a file of the recipes folder) in the background; :class:`Busy`

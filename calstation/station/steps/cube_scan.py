@@ -14,6 +14,7 @@ import math
 import time
 from typing import Any
 
+from calstation import display
 from calstation.engine.result import CalibrationResult
 from calstation.pipeline.judgement import budget_failure, describe, with_prediction
 from calstation.pipeline.scans import Turned
@@ -73,9 +74,11 @@ class CubeScan:
         cube = _cube_measurements(check)
         joint, budget = _budget(ctx, fine, joint, cube_scan)
         ctx.ui.info(
-            f"  cube: edge error {check.edge_error * 1000:.2f} mm, OBB error "
-            f"{check.obb_error * 1000:.2f} mm, side-face twist {check.twist_deg:+.3f}° "
-            f"(±{check.twist_sigma_deg:.3f}°) → {'pass' if check.passed else 'FAIL'}"
+            f"  cube: edge error {display.number('edge_error', check.edge_error)}, OBB error "
+            f"{display.number('obb_error', check.obb_error)}, side-face twist "
+            f"{display.number('twist_deg', check.twist_deg, signed=True)} "
+            f"({display.sigma_text('twist_deg', check.twist_sigma_deg)}) → "
+            f"{'pass' if check.passed else 'FAIL'}"
         )
         failures = list(check.failures) + [f for f in (ry_failure, budget) if f]
         if ry_failure or budget:

@@ -8,10 +8,10 @@ the spin target's placement."""
 
 from __future__ import annotations
 
-import math
 import time
 from typing import Any
 
+from calstation import display
 from calstation.engine.accuracy import PredictedError
 from calstation.engine.observability import check_sigma
 from calstation.engine.result import CalibrationResult
@@ -38,7 +38,7 @@ class FineTune:
         strategy = ctx.strategy()
         result, turns = _fitted(ctx, strategy)
         result, predicted = with_prediction(result, ctx.recipe, turns=turns)
-        ctx.ui.info(f"  {strategy.name}: {format_h(result.H.as_dict())}")
+        ctx.ui.info(f"  {strategy.name}: {format_h(result.H.as_dict(), result.sigma)}")
         ctx.ui.info(f"  {describe(predicted, ctx.recipe)}")
         after_scan = None
         if ctx.scans.scan_ended is not None:
@@ -169,7 +169,7 @@ def with_stored_time_offset(
     out = time_offset(ctx.recipe, result, first, read_recording(ctx.artifact_path(SECOND_PASS)),
                       progress)
     ctx.ui.info(
-        f"  lidar–encoder time offset{under}: {(out.encoder_latency_s or 0.0) * 1e3:.3f} ± "
-        f"{(out.sigma_encoder_latency_s or math.nan) * 1e3:.3f} ms"
+        f"  lidar–encoder time offset{under}: "
+        f"{display.with_sigma('time_offset', out.encoder_latency_s, out.sigma_encoder_latency_s)}"
     )
     return out

@@ -4,12 +4,11 @@ places it (the simulator puts it into its scene)."""
 
 from __future__ import annotations
 
-import math
-
 from calstation import plugins
+from calstation.display import fixture_name
 from calstation.errors import AbortRun
 from calstation.station.context import RunContext
-from calstation.station.operator import fixture_name
+from calstation.station.operator import placement_prompt
 from calstation.station.outcome import StepOutcome
 
 
@@ -17,14 +16,7 @@ def place(ctx: RunContext, fixture: str) -> StepOutcome:
     """Ask the operator to place ``fixture`` (a ``fixtures`` key of the recipe) and tell the
     plugins it is placed; :class:`AbortRun` when the operator aborts instead."""
     geometry = getattr(ctx.recipe.fixtures, fixture)
-    description = f"{geometry.kind}"
-    offset = getattr(geometry, "offset", None)
-    if offset is not None:
-        description += (
-            f", centre {math.hypot(*offset) * 1e3:.0f} mm from the axis "
-            f"(offset y {offset[0] * 1e3:+.0f} mm, z {offset[1] * 1e3:+.0f} mm)"
-        )
-    if not ctx.ui.confirm_fixture(fixture, description):
+    if not ctx.ui.confirm_fixture(fixture, placement_prompt(fixture, geometry)):
         raise AbortRun(f"aborted by the operator while placing the {fixture_name(fixture)}")
     plugins.fixture_placed(ctx.hardware().context, fixture, geometry)
     return StepOutcome({"fixture": fixture, "kind": geometry.kind,

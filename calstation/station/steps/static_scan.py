@@ -26,7 +26,7 @@ class StaticScan:
         with ctx.ui.progress("initial calibration") as progress:
             progress("fitting the L-target", 0.1)
             result = initial(ctx.recipe, recording).result
-        ctx.ui.info(f"  initial: {format_h(result.H.as_dict())}")
+        ctx.ui.info(f"  initial: {format_h(result.H.as_dict(), result.sigma)}")
         return StepOutcome(
             {"recording": str(path), "lines": lines, "H": result.H.as_dict()},
             artifacts=[("static", path)],

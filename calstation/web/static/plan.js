@@ -9,7 +9,7 @@
       .then(function (s) {
         if (s.status !== "running") { clearInterval(timer); window.location.reload(); return; }
         var p = document.getElementById("plan-progress");
-        if (p) { p.textContent = "Planning " + s.recipe + ": " + s.progress + " (" + Math.round(s.fraction * 100) + " %) — this page reloads when it is done."; }
+        if (p) { p.textContent = "Planning " + s.recipe + ": " + s.progress_text + ". This page reloads when it is done."; }
       })
       .catch(function () { /* the next tick tries again */ });
   }, 2000);

@@ -140,12 +140,11 @@
     if (!box) { return; }
     box.hidden = !busy || points.length === 0;
     if (box.hidden) { return; }
+    // the words and numbers are the server's (calstation.display); the page only joins them
     var last = points[points.length - 1];
-    var trail = points.map(function (a) { return a.turns + ": " + a.predicted_error_mm.toFixed(3); });
-    box.textContent = "predicted error after " + last.turns + " turn" + (last.turns > 1 ? "s" : "") +
-      " of the " + last.scan.replace("_", " ") + ": " + last.predicted_error_mm.toFixed(3) +
-      " mm (budget " + last.budget_mm.toFixed(3) + " mm; by turn " + trail.join(", ") + ")";
-    box.className = last.predicted_error_mm <= last.budget_mm ? "ok" : "pending";
+    box.textContent = "predicted error of the " + last.scan.replace("_", " ") + " after " +
+      points.map(function (a) { return a.text; }).join(", ") + " (budget " + last.budget_text + ")";
+    box.className = last.within ? "ok" : "pending";
   }
 
   function renderPrompt(p) {
