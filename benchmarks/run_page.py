@@ -34,8 +34,8 @@ PAINT_MAX_S = 1.0
 
 
 def default_run(folder: Path) -> tuple[Any, int]:
+    from calstation.cli._operator import ConsoleOperator
     from calstation.recipes import load_recipe
-    from calstation.station.operator import ConsoleOperator
     from calstation.station.runs import start_run
     from calstation.storage.db import open_database
 

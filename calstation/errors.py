@@ -8,7 +8,20 @@ from __future__ import annotations
 
 
 class CalstationError(Exception):
-    """Root of every error calstation raises on purpose."""
+    """Root of every error calstation raises on purpose.
+
+    ``option``: the name of the library parameter the error refuses (``accept``, ``force``),
+    when it is about one. The library words its errors without the command line's flags, since
+    the web station calls it too; the command line names its flag (``--accept``) in front of
+    the message.
+    """
+
+    option: str | None = None
+
+    def __init__(self, *args: object, option: str | None = None) -> None:
+        super().__init__(*args)
+        if option is not None:
+            self.option = option
 
 
 class FrameError(CalstationError, ValueError):

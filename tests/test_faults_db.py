@@ -136,6 +136,40 @@ def test_a_lock_past_the_timeout_is_one_sentence_with_details_in_the_log(tmp_pat
     db.dispose()
 
 
+def test_a_runs_database_faults_go_to_its_folder_and_the_servers_pages_to_theirs(
+        tmp_path: Path) -> None:
+    """One database serves every page of a server while a run goes on: what fails in the run's
+    thread is logged in the run's folder and told to its operator; what fails for a page stays
+    in the server's log, not in the run's folder."""
+    import threading
+
+    db = Database(f"sqlite:///{tmp_path / 's.db'}", lock_timeout=0.5, on_wait=lambda m: None)
+    db.log_path = tmp_path / "server" / "database.log"
+    run_log = tmp_path / "runs" / "1" / "database.log"
+    inside, done = threading.Event(), threading.Event()
+    told: list[str] = []
+
+    def run() -> None:
+        with db.run_scope(run_log, told.append):
+            db.error(RuntimeError("the run's write"), "storing the spin scan")
+            inside.set()
+            done.wait(30)
+
+    thread = threading.Thread(target=run)
+    thread.start()
+    assert inside.wait(30)
+    page = db.error(RuntimeError("a page's read"), "reading the runs")  # meanwhile, a page
+    done.set()
+    thread.join(30)
+    assert f"details in {db.log_path}" in str(page)
+    assert "a page's read" in db.log_path.read_text()
+    assert "a page's read" not in run_log.read_text()
+    assert "the run's write" in run_log.read_text()
+    assert "the run's write" not in db.log_path.read_text()
+    assert db.log_path == tmp_path / "server" / "database.log"  # nothing set on the object
+    db.dispose()
+
+
 def test_the_qa_commands_read_while_another_process_holds_the_write_lock(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:

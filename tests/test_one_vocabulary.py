@@ -176,6 +176,23 @@ def test_the_formatter() -> None:
     assert "-" not in display.scientific(-3.93e-8)
 
 
+def test_library_errors_name_no_flag_and_the_command_line_adds_its_own(
+        station: dict[str, Any], capsys: pytest.CaptureFixture[str]) -> None:
+    from clirun import run_cli
+
+    from calstation.errors import CalstationError
+    from calstation.station.reprocess import reprocess_run
+
+    held = station["held"]  # an aborted run: it has no accepted calibration
+    with pytest.raises(CalstationError) as refused:
+        reprocess_run(station["db"], held, None, accept=True)
+    assert "--" not in str(refused.value) and refused.value.option == "accept"
+    code, _, err = run_cli(["calibrate", "--run", str(held), "--accept", "--db",
+                            station["url"]], capsys)
+    assert code == 2
+    assert f"error: --accept: run {held} has status aborted" in " ".join(err.split())
+
+
 def test_the_placement_prompts_say_what_the_recipe_and_its_drawing_say() -> None:
     from calstation.recipes import load_recipe
     from calstation.station.operator import placement_prompt

@@ -229,9 +229,12 @@ def test_run_until_abort_commits_each_step_and_stops_the_motor(
     tmp_path: Path, db: Database, station_plugin: StationTestPlugin
 ) -> None:
     ui = ScriptedOperator(place=_stop_at("qa_cube"))
+    log_path, on_wait = db.log_path, db.on_wait
     run_id, status = start_run(load_recipe(lean_recipe(tmp_path)), db, ui, operator="ann",
                                data_dir=tmp_path / "data")
     assert status == "aborted"
+    # the run's database log and waits were its own, not set on the shared database object
+    assert db.log_path == log_path and db.on_wait is on_wait
     assert _steps(db, run_id) == [
         ("preflight", 1, "passed"), ("place_static_target", 1, "passed"),
         ("static_scan", 1, "passed"), ("place_spin_target", 1, "passed"),
@@ -373,7 +376,7 @@ def test_console_operator_prompts_and_abort(
 
     from rich.console import Console
 
-    from calstation.station.operator import ConsoleOperator
+    from calstation.cli._operator import ConsoleOperator
 
     # the operator continues after the static and spin targets, then types "a" at the cube
     monkeypatch.setattr("sys.stdin", io.StringIO("c\ncontinue\na\n"))

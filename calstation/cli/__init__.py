@@ -125,7 +125,9 @@ def _run(argv: list[str]) -> None:
     except CalstationError as exc:
         from rich.markup import escape
 
-        err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
+        flag = f"--{exc.option.replace('_', '-')}: " if exc.option else ""
+        err.print(f"[bold red]error:[/] {escape(flag + str(exc))}", highlight=False,
+                  soft_wrap=True)
         sys.exit(getattr(exc, "exit_code", 2))
     except KeyboardInterrupt:
         err.print("[bold yellow]interrupted[/]")

@@ -38,7 +38,6 @@ from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 
-from rich.markup import escape
 from transitions import Machine
 
 from calstation.errors import AbortRun, CalstationError, DatabaseError, StationError
@@ -121,8 +120,6 @@ class Station:
             if run is None:
                 raise StationError(f"no run {run_id} in the database")
             run_dir = Path(run.data_dir)
-        db.log_path = run_dir / "database.log"  # SQL of database faults, never the console
-        db.on_wait = lambda message: ui.warn(escape(message))
         self.ctx = RunContext(db, run_id, run_dir, loaded, ui)
         self.db, self.run_id, self.ui = db, run_id, ui
         self.observers = default_observers(db, ui) if observers is None else observers
@@ -163,7 +160,7 @@ class Station:
                 # the database failed (a lock outlasted the wait, or it went away): what could
                 # not be stored is journalled; the run stops as interrupted, to be resumed
                 self.trigger("interrupt")
-                self.ui.warn(escape(str(exc)))
+                self.ui.warn(str(exc))
                 end = _End(RunStatus.INTERRUPTED, str(exc))
             except BaseException as exc:
                 # an unexpected error (not a step failure): the run is failed, never left running
@@ -306,7 +303,7 @@ class Station:
         try:
             summary = persist.end_run(self.ctx, end.status, end.error)
         except DatabaseError as exc:
-            self.ui.warn(escape(str(exc)))
+            self.ui.warn(str(exc))
             return
         tell_observers(self.observers, RunEnded(self.run_id, end.status, end.error, summary),
                        self.ui)

@@ -15,8 +15,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from rich.markup import escape
-
 from calstation import plugins
 from calstation.errors import CalstationError
 from calstation.station.operator import Operator
@@ -104,12 +102,12 @@ def upload_files(db: Database, ui: Operator) -> EndObserver:
             problem = str(exc)
         else:
             if done.ok:
-                ui.info(f"files copied to {escape(store)}: {len(done.sent)} sent, "
+                ui.info(f"files copied to {store}: {len(done.sent)} sent, "
                         f"{len(done.present)} there already")
                 return
             problem = "; ".join(done.failed)
-        ui.warn(f"the run's files were not all copied to {escape(store)}: "
-                f"{escape(problem)}; the run folder keeps them, and `calstation upload "
+        ui.warn(f"the run's files were not all copied to {store}: "
+                f"{problem}; the run folder keeps them, and `calstation upload "
                 f"{ended.run_id}` sends them later")
 
     return upload

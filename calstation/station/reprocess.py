@@ -316,7 +316,7 @@ def reprocess_run(
         if accept and run.status != "passed":
             raise DatabaseError(
                 f"run {run_id} has status {run.status}: only a passed run has an accepted "
-                "calibration, so --accept is refused"
+                "calibration, so the re-processing cannot be accepted", option="accept"
             )
         job = plan_reprocessing(run, strategy_name)
     done = compute_reprocessing(job, progress, status)

@@ -21,7 +21,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from rich.markup import escape
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -68,23 +67,75 @@ def start_run(
 ) -> tuple[int, str]:
     """Create a run of ``loaded`` and execute it; returns (run id, final status).
 
-    The recipe is validated against the installed plugins first. The station's lock is taken
-    first (:class:`~calstation.station.lock.StationBusy` when another run holds it), for
-    ``front_end`` (default: ``calstation run`` in this terminal). The run folder is
-    ``<data_dir>/runs/<database identity>/<run id>/`` (:func:`new_run_folder`). ``serial`` is
-    the unit's serial number when the operator gives it (else the lidar's, read at preflight).
+    :func:`prepare_run`, then :meth:`PreparedRun.execute` in this thread (``front_end``
+    defaults to ``calstation run`` in this terminal).
     """
+    prepared = prepare_run(loaded, db, ui, operator=operator, data_dir=data_dir, serial=serial,
+                           front_end=front_end or terminal_front_end("calstation run"))
+    return prepared.run_id, prepared.execute()
+
+
+def prepare_run(
+    loaded: LoadedRecipe,
+    db: Database,
+    ui: Operator,
+    *,
+    operator: str,
+    front_end: str,
+    data_dir: Path | None = None,
+    serial: str | None = None,
+) -> PreparedRun:
+    """Everything before a new run of ``loaded`` executes: the recipe validated against the
+    installed plugins, the station's lock taken for ``operator`` through ``front_end``
+    (:class:`~calstation.station.lock.StationBusy` when another run holds it), the run created
+    (its folder ``<data_dir>/runs/<database identity>/<run id>/``, :func:`new_run_folder`) and
+    named in the lock. ``serial`` is the unit's serial number when the operator gives it (else
+    the lidar's, read at preflight). The operator's name and the serial are checked as every
+    front end checks them (:mod:`calstation.storage.db.fields`). Execute it with
+    :meth:`PreparedRun.execute`, in any thread (the web station's runs have one each), or give
+    the station back with :meth:`PreparedRun.release`."""
     operator, serial = operator_name(operator), unit_serial(serial)
     check_plugins(loaded)
-    holder = Holder.here(operator, front_end or terminal_front_end("calstation run"))
-    with hold_station(db, loaded.recipe.station.id, holder, ui) as hold:
+    hold = hold_station(db, loaded.recipe.station.id, Holder.here(operator, front_end), ui)
+    try:
         run_id = create_run(loaded, db, operator=operator, unattended=ui.unattended,
                             data_dir=data_dir, serial=serial)
         hold.attach(run_id)
-        ui.info(f"run [bold]{run_id}[/] of recipe {escape(loaded.recipe.name)} on station "
-                f"{loaded.recipe.station.id}; recordings in {escape(str(run_folder(db, run_id)))}")
-        with _signals_abort():
-            return run_id, Station(db, run_id, loaded, ui).run()
+    except BaseException:
+        hold.release()
+        raise
+    return PreparedRun(db, run_id, loaded, ui, hold, run_folder(db, run_id), resumed=False)
+
+
+class PreparedRun:
+    """A run ready to execute (:func:`prepare_run`, :func:`prepare_resume`): the station is
+    held for it. :meth:`execute` runs it once and gives the station back, however it ends;
+    :meth:`release` gives it back without running it."""
+
+    def __init__(self, db: Database, run_id: int, loaded: LoadedRecipe, ui: Operator,
+                 hold: StationHold, run_dir: Path, *, resumed: bool) -> None:
+        self.db, self.run_id, self.loaded, self.ui = db, run_id, loaded, ui
+        self.hold, self.run_dir, self.resumed = hold, run_dir, resumed
+
+    def execute(self) -> str:
+        """Run it (:class:`~calstation.station.machine.Station`); the final status. The
+        database's faults during the run go to the run folder's ``database.log`` and its waits
+        to the run's operator, in this run's thread only."""
+        try:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            verb = "resuming run" if self.resumed else "run"
+            recipe = "" if self.resumed else (f" of recipe {self.loaded.recipe.name} on station "
+                                              f"{self.loaded.recipe.station.id}")
+            self.ui.info(f"{verb} {self.run_id}{recipe}; recordings in {self.run_dir}")
+            with self.db.run_scope(self.run_dir / "database.log", self.ui.warn), \
+                    _signals_abort():
+                return Station(self.db, self.run_id, self.loaded, self.ui).run()
+        finally:
+            self.hold.release()
+
+    def release(self) -> None:
+        """Give the station back without running (idempotent)."""
+        self.hold.release()
 
 
 def hold_station(db: Database, station: str, holder: Holder, ui: Operator,
@@ -93,7 +144,7 @@ def hold_station(db: Database, station: str, holder: Holder, ui: Operator,
     process that ended was cleared."""
     hold = take_station(db, station, holder, force=force)
     if hold.taken_over is not None:
-        ui.warn(escape(taken_over_note(hold.taken_over)))
+        ui.warn(taken_over_note(hold.taken_over))
     return hold
 
 
@@ -193,12 +244,13 @@ def _check_not_running_elsewhere(run: Run, force: bool) -> None:
         if run.pid != os.getpid() and process_alive(run.pid):
             raise StationError(
                 f"run {run.id} is being executed by process {run.pid} on this host; stop it "
-                "first (or pass --force if that process id now belongs to something else)"
+                "first (or force the resumption if that process id now belongs to something "
+                "else)", option="force"
             )
         return
     raise StationError(
         f"run {run.id} was last executed on host {run.host!r} (process {run.pid}); resume it "
-        "there, or pass --force if that process is gone"
+        "there, or force the resumption if that process is gone", option="force"
     )
 
 
@@ -206,31 +258,45 @@ def resume_run(run_id: int, db: Database, ui: Operator, *, force: bool = False,
                hold: StationHold | None = None, front_end: str | None = None) -> str:
     """Continue run ``run_id`` at its first unfinished step; returns the final status.
 
+    :func:`prepare_resume` (``front_end`` defaults to ``calstation resume`` in this terminal;
+    ``hold``: the caller holds the station already), then :meth:`PreparedRun.execute`.
+    """
+    prepared = prepare_resume(run_id, db, ui, force=force, hold=hold,
+                              front_end=front_end or terminal_front_end("calstation resume"))
+    return prepared.execute()
+
+
+def prepare_resume(run_id: int, db: Database, ui: Operator, *, front_end: str,
+                   force: bool = False, hold: StationHold | None = None) -> PreparedRun:
+    """Everything before a stored run continues at its first unfinished step.
+
     The recipe is the one stored with the run (not the file, which may have changed since).
     Recordings of finished steps are re-used after their sha256 is checked. A run still being
-    executed by a live process is refused unless ``force``. The station's lock is taken (for
-    ``front_end``, default ``calstation resume`` in this terminal) unless the caller holds it
-    already (``hold``, which is released at the end either way).
+    executed by a live process is refused unless ``force`` (:func:`resumable_run`). The
+    station's lock is taken for the run's operator through ``front_end`` unless the caller
+    holds it already (``hold``, released with the run either way).
     """
-    for note in journal.recover(db):  # results journalled by an earlier process, first
-        ui.info(escape(note))
-    with db.session() as s:
-        run = resumable_run(s, run_id, force)
-        text, path, operator = run.recipe_text, run.recipe_path, run.operator
-        run_dir = Path(run.data_dir)
-    source = f"recipe of run {run_id}"
-    base_dir = Path(path).parent if path else None
-    loaded = LoadedRecipe(parse_recipe(text, source, base_dir), Path(path) if path else None, text)
-    check_plugins(loaded)
-    if hold is None:
-        holder = Holder.here(operator, front_end or terminal_front_end("calstation resume"))
-        hold = hold_station(db, loaded.recipe.station.id, holder, ui, force=force)
-    with hold:
+    try:
+        for note in journal.recover(db):  # results journalled by an earlier process, first
+            ui.info(note)
+        with db.session() as s:
+            run = resumable_run(s, run_id, force)
+            text, path, operator = run.recipe_text, run.recipe_path, run.operator
+            run_dir = Path(run.data_dir)
+        source = f"recipe of run {run_id}"
+        base_dir = Path(path).parent if path else None
+        loaded = LoadedRecipe(parse_recipe(text, source, base_dir), Path(path) if path else None,
+                              text)
+        check_plugins(loaded)
+        if hold is None:
+            hold = hold_station(db, loaded.recipe.station.id, Holder.here(operator, front_end),
+                                ui, force=force)
         hold.attach(run_id)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        ui.info(f"resuming run [bold]{run_id}[/]; recordings in {escape(str(run_dir))}")
-        with _signals_abort():
-            return Station(db, run_id, loaded, ui).run()
+    except BaseException:
+        if hold is not None:
+            hold.release()
+        raise
+    return PreparedRun(db, run_id, loaded, ui, hold, run_dir, resumed=True)
 
 
 @contextmanager

@@ -27,19 +27,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rich.text import Text
 
 from calstation import display
 from calstation.display import fixture_name, step_title
 from calstation.errors import AbortRun, CalstationError, StationError
-from calstation.station.lock import Holder, StationHold
-from calstation.station.machine import Station
 from calstation.station.operator import (
     STEP_HINTS,
     Decision,
     StationEvent,
 )
-from calstation.station.runs import create_run, hold_station, resumable_run, resume_run
+from calstation.station.runs import PreparedRun, prepare_resume, prepare_run, resumable_run
 from calstation.station.steps import STEPS, run_steps
 from calstation.storage.db import Database
 
@@ -64,13 +61,6 @@ class Busy(CalstationError):
 
 class NoSuchPrompt(CalstationError):
     """An answer to a prompt that is not (or no longer) pending (HTTP 409)."""
-
-
-def _plain_text(markup: str) -> str:
-    try:
-        return Text.from_markup(markup).plain
-    except Exception:
-        return markup
 
 
 def zoom_window(x_mm: Any, y_mm: Any, platter_m: float) -> dict[str, list[float]] | None:
@@ -220,7 +210,7 @@ class LiveState:
     def add_log(self, level: str, message: str) -> None:
         """Append a line to the page's log."""
         def add(st: LiveState) -> None:
-            st.log = [*st.log[-(LOG_LINES - 1):], {"level": level, "text": _plain_text(message)}]
+            st.log = [*st.log[-(LOG_LINES - 1):], {"level": level, "text": message}]
         self.update(add)
 
     def finish(self, status: str, result: dict[str, Any] | None, error: str | None) -> None:
@@ -529,45 +519,39 @@ class Runner:
     # --- runs ------------------------------------------------------------------------------
     def start(self, recipe: str, operator: str, serial: str | None, where: str | None = None
               ) -> int:
-        """Create a run of the recipe file ``recipe`` and execute it in the background.
-        ``where`` is the station's address as the browser used it (named to whoever is refused
-        the station meanwhile). :class:`~calstation.station.lock.StationBusy` when another
-        run, from any front end, holds the station."""
-        from calstation.plugins.recipe_checks import check_plugins
+        """Create a run of the recipe file ``recipe`` and execute it in the background, through
+        the station's own :func:`~calstation.station.runs.prepare_run`. ``where`` is the
+        station's address as the browser used it (named to whoever is refused the station
+        meanwhile). :class:`~calstation.station.lock.StationBusy` when another run, from any
+        front end, holds the station."""
         from calstation.recipes import load_recipe
         from calstation.storage.db.fields import operator_name, unit_serial
         from calstation.web.offer import refuse_unrunnable
 
         operator, serial = operator_name(operator), unit_serial(serial)
         self._take()
-        hold: StationHold | None = None
         try:
             refuse_unrunnable(self.recipe_path(recipe))
             loaded = load_recipe(self.recipe_path(recipe))
-            check_plugins(loaded)
             serial = (serial or "").strip() or None
             ui = WebOperator(self.live, loaded.recipe)
-            hold = hold_station(self.db, loaded.recipe.station.id,
-                                Holder.here(operator.strip(), self._front_end(where)), ui)
-            run_id = create_run(loaded, self.db, operator=operator.strip(), unattended=False,
-                                data_dir=self.data_dir, serial=serial)
-            hold.attach(run_id)
-            self.live.begin(run_id, loaded.recipe.name, operator.strip(), serial,
-                            run_steps(loaded.recipe), station=loaded.recipe.station.id)
-            self._launch(run_id, lambda: Station(self.db, run_id, loaded, ui).run(), hold)
+            prepared = prepare_run(loaded, self.db, ui, operator=operator.strip(),
+                                   front_end=self._front_end(where), data_dir=self.data_dir,
+                                   serial=serial)
         except BaseException:
-            if hold is not None:
-                hold.release()
             self._lock.release()
             raise
-        return run_id
+        self.live.begin(prepared.run_id, loaded.recipe.name, operator.strip(), serial,
+                        run_steps(loaded.recipe), station=loaded.recipe.station.id)
+        self._launch(prepared)
+        return prepared.run_id
 
     def resume(self, run_id: int, force: bool = False, where: str | None = None) -> int:
-        """Continue run ``run_id`` at its first unfinished step (as ``calstation resume``)."""
+        """Continue run ``run_id`` at its first unfinished step (as ``calstation resume``),
+        through the station's own :func:`~calstation.station.runs.prepare_resume`."""
         from calstation.recipes import parse_recipe
 
         self._take()
-        hold: StationHold | None = None
         try:
             with self.db.session() as s:
                 # refused here, with its reason, rather than in the run's thread
@@ -575,18 +559,14 @@ class Runner:
                 recipe = parse_recipe(run.recipe_text, f"recipe of run {run_id}")
                 operator, serial = run.operator, run.unit_serial
             ui = WebOperator(self.live, recipe)
-            hold = hold_station(self.db, recipe.station.id,
-                                Holder.here(operator, self._front_end(where)), ui, force=force)
-            self.live.begin(run_id, recipe.name, operator, serial, run_steps(recipe),
-                            station=recipe.station.id)
-            taken = hold
-            self._launch(run_id, lambda: resume_run(run_id, self.db, ui, force=force,
-                                                    hold=taken), taken)
+            prepared = prepare_resume(run_id, self.db, ui, front_end=self._front_end(where),
+                                      force=force)
         except BaseException:
-            if hold is not None:
-                hold.release()
             self._lock.release()
             raise
+        self.live.begin(run_id, recipe.name, operator, serial, run_steps(recipe),
+                        station=recipe.station.id)
+        self._launch(prepared)
         return run_id
 
     @staticmethod
@@ -619,11 +599,13 @@ class Runner:
                 "abort it first"
             )
 
-    def _launch(self, run_id: int, execute: Callable[[], str], hold: StationHold) -> None:
+    def _launch(self, prepared: PreparedRun) -> None:
+        run_id = prepared.run_id
+
         def main() -> None:
             status, error = "failed", None
             try:
-                status = execute()
+                status = prepared.execute()  # gives the station back, however it ends
             except CalstationError as exc:
                 error = str(exc)
                 self.live.add_log("error", error)
@@ -631,13 +613,18 @@ class Runner:
                 error = f"{type(exc).__name__}: {exc}"
                 self.live.add_log("error", error)
             finally:
-                hold.release()
+                prepared.release()
                 self.live.finish(status, self._end_screen(run_id), error)
                 self._lock.release()
 
-        self._thread = threading.Thread(target=main, name=f"calstation-run-{run_id}",
-                                        daemon=True)
-        self._thread.start()
+        try:
+            self._thread = threading.Thread(target=main, name=f"calstation-run-{run_id}",
+                                            daemon=True)
+            self._thread.start()
+        except BaseException:
+            prepared.release()
+            self._lock.release()
+            raise
 
     def _end_screen(self, run_id: int) -> dict[str, Any] | None:
         from calstation.storage.report_html import report_data

@@ -11,6 +11,8 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -323,6 +325,19 @@ def _readable(url: str) -> tuple[str, bool]:
     return uri.render_as_string(hide_password=False), False
 
 
+@dataclass(frozen=True)
+class _RunScope:
+    """Where a run's database faults are logged and who is told of its waits."""
+
+    db: Database
+    log_path: Path
+    on_wait: Callable[[str], None]
+
+
+_SCOPE: ContextVar[_RunScope | None] = ContextVar("calstation_database_run", default=None)
+"""The run whose thread this is (:meth:`Database.run_scope`), if any."""
+
+
 class Database:
     """An opened run database: an engine plus sessions from a context manager.
 
@@ -372,16 +387,35 @@ class Database:
         return str(self.engine.url.render_as_string(hide_password=True))
 
     # --- faults ------------------------------------------------------------------------------
+    @contextmanager
+    def run_scope(self, log_path: Path, on_wait: Callable[[str], None]) -> Iterator[None]:
+        """Within the block, and in this thread only, this database's faults are logged to
+        ``log_path`` and its waits told to ``on_wait`` (a run's folder and its operator). Other
+        threads keep :attr:`log_path` and :attr:`on_wait`: in ``calstation serve`` one
+        database serves every page while a run goes on."""
+        token = _SCOPE.set(_RunScope(self, log_path, on_wait))
+        try:
+            yield
+        finally:
+            _SCOPE.reset(token)
+
+    def _scope(self) -> _RunScope | None:
+        scope = _SCOPE.get()
+        return scope if scope is not None and scope.db is self else None
+
     def log(self, text: str) -> Path | None:
-        """Append ``text`` (with the time) to :attr:`log_path`; the path, or None if unwritable."""
+        """Append ``text`` (with the time) to the log of this thread's run
+        (:meth:`run_scope`), else :attr:`log_path`; the path, or None if unwritable."""
+        scope = self._scope()
+        path = scope.log_path if scope is not None else self.log_path
         try:
             if not self.read_only:
-                self.log_path.parent.mkdir(parents=True, exist_ok=True)
-            with self.log_path.open("a", encoding="utf-8") as f:
+                path.parent.mkdir(parents=True, exist_ok=True)
+            with path.open("a", encoding="utf-8") as f:
                 f.write(f"{dt.datetime.now(dt.UTC).isoformat()} {self.display_url}\n{text}\n\n")
         except OSError:
             return None
-        return self.log_path
+        return path
 
     def _damaged_sentence(self, exc: BaseException, where: str) -> str:
         """What to say of a file that is not a database or is damaged, and what to do."""
@@ -423,9 +457,11 @@ class Database:
 
     @contextmanager
     def _waiting_notice(self) -> Iterator[None]:
+        scope = self._scope()  # the timer's thread is not this run's: who to tell is taken now
+        notify = scope.on_wait if scope is not None else self.on_wait
         timer = threading.Timer(
             WAIT_NOTICE_S,
-            lambda: self.on_wait(
+            lambda: notify(
                 f"waiting for the database {self.display_url} (locked by another process?); "
                 f"up to {self.lock_timeout:g} s (CALSTATION_DB_LOCK_TIMEOUT)"
             ),
