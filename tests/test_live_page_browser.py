@@ -1,5 +1,6 @@
-"""The operator's and the QA engineer's pages in a real browser: no page breaks its
-Content-Security-Policy, the placement drawings' legends fit their pictures.
+"""The operator's and the QA engineer's pages in a real browser: one duration formatter in the
+pages and on the server, the station's status on every page, no page breaking its
+Content-Security-Policy, the placement drawings' legends fitting their pictures.
 
 Run with ``pytest -m browser`` (``make test`` does).
 """
@@ -14,7 +15,7 @@ import pytest
 from test_web_browser import db, page  # noqa: F401  (the fixtures)
 from webstation import CHROMIUM, copy_recipe, served
 
-from calstation import plugins
+from calstation import display, plugins
 from calstation.storage.db import Database
 from calstation.web.app import create_app
 
@@ -35,6 +36,42 @@ def app(tmp_path: Path, db: Database) -> Iterator[Any]:  # noqa: F811
     recipe = copy_recipe(REPO / "recipes" / "sim-periodicity.yaml", tmp_path / "recipes")
     with plugins.isolated(sim_plugin):
         yield create_app(db, data_dir=tmp_path / "data", recipes_dir=recipe.parent)
+
+
+def test_the_pages_write_durations_as_the_server_does(app: Any, page: Any) -> None:  # noqa: F811
+    samples = [0.0, 0.04, 0.05, 4.25, 9.94, 9.96, 10.4, 10.5, 59.4, 59.6, 61.0, 130.72, 3599.4,
+               3600.0, 3725.0, 86_399.0]
+    with served(app) as url:
+        page.goto(url + "/runs")
+        shown = page.evaluate("(xs) => xs.map(window.calstationStatus.duration)", samples)
+    assert shown == [display.duration(x) for x in samples]
+
+
+def test_every_page_shows_who_holds_the_station(
+        app: Any, page: Any, db: Database) -> None:  # noqa: F811
+    from calstation.station.lock import Holder, take_station
+
+    with served(app) as url:
+        page.goto(url + "/runs")
+        free = page.wait_for_selector('#station-status [data-station="sim-01"]')
+        assert free.get_attribute("data-held") == "no"
+        assert "station sim-01 is free" in free.inner_text()
+        holder = Holder.here("kim", "calstation run in terminal /dev/pts/7")
+        hold = take_station(db, "sim-01", holder)
+        try:
+            # an open page follows by itself
+            held = page.wait_for_selector(
+                '#station-status [data-station="sim-01"][data-held="yes"]', timeout=30_000)
+            text = " ".join(held.inner_text().split())
+            assert "station sim-01 is in use by a run starting (operator kim) from calstation " \
+                   "run in terminal /dev/pts/7" in text and "since 20" in text, text
+            page.goto(url + "/")
+            assert page.is_disabled("#start-button")
+            assert "Start is unavailable: station sim-01 is in use" in page.inner_text(
+                "#start-blocked")
+        finally:
+            hold.release()
+        page.wait_for_selector("#start-button:not([disabled])", timeout=30_000)
 
 
 def test_no_page_breaks_its_content_security_policy(

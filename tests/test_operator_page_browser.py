@@ -83,12 +83,11 @@ def test_a_second_run_shows_nothing_of_the_first(
     shutil.copy(REPO / "recipes" / "real-station-template.yaml", recipes)
     with station(tmp_path, db, recipe) as url:
         page.goto(url + "/")
-        # the start form: the template is listed but cannot be chosen; no operator yet
-        options = page.locator("#recipe option")
-        assert page.locator("#recipe option:not([disabled])").all_inner_texts() == ["lean.yaml"]
-        template = page.locator('#recipe option[value="real-station-template.yaml"]')
-        assert template.is_disabled() and "cannot run: it is a template" in template.inner_text()
-        assert options.count() == 2 and page.input_value("#operator") == ""
+        # the start form: the template is listed apart, with its reason, and cannot be
+        # chosen; no operator yet
+        assert page.locator("#recipe option").all_inner_texts() == ["lean.yaml"]
+        assert "real-station-template.yaml: it is a template" in page.text_content("#unrunnable")
+        assert page.input_value("#operator") == ""
         page.fill("#operator", "ann")
         page.fill("#serial", "SN-1")
         page.click("#start-button")

@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 import yaml
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 
 from calstation import display
 from calstation.storage.db import Calibration, CubeCheckRecord, Database, Run, Step, open_database
@@ -80,6 +81,35 @@ def _recipes(folder: Path) -> Path:
     bad["steps"]["spin_scan"]["rpm"] = "very fast " * 300
     (folder / "broken.yaml").write_text(yaml.safe_dump(bad), encoding="utf-8")
     return folder
+
+
+def test_the_start_form_offers_the_quickest_recipe_described_and_guesses_no_operator(
+        tmp_path: Path, db: Database) -> None:
+    recipes = _recipes(tmp_path / "recipes")
+    _run(db, operator="root", recipe_path=recipes / "hokuyo-canopen-emulated.yaml")
+    with db.session() as s:  # the newest run was started from another folder: not a default
+        run = s.scalars(select(Run)).one()
+        run.recipe_path = str(tmp_path / "elsewhere" / "hokuyo-canopen-emulated.yaml")
+    client = TestClient(create_app(db, data_dir=tmp_path / "data", recipes_dir=recipes),
+                        base_url="http://127.0.0.1")
+    html = client.get("/").text
+    menu = re.search(r"<select name=\"recipe\" id=\"recipe\" required>(.*?)</select>", html, re.S)
+    assert menu is not None
+    options = re.findall(r'<option value="([^"]+)"[^>]*?( selected)?>', menu.group(1))
+    # the simulated station first, the quickest first; the emulated one (real time) last
+    names = [name for name, _ in options]
+    assert names[0] == "sim-periodicity.yaml" and names[-1] == "hokuyo-canopen-emulated.yaml"
+    assert [name for name, chosen in options if chosen] == ["sim-periodicity.yaml"]
+    # recipes that cannot run are not options (a reason hidden in one, a select thousands of
+    # pixels wide), but a list under the form, each with its reason
+    assert "broken.yaml" not in menu.group(1) and "template" not in menu.group(1)
+    unrunnable = re.search(r'<details id="unrunnable">(.*?)</details>', html, re.S)
+    assert unrunnable and "broken.yaml" in unrunnable.group(1)
+    assert "it is a template" in unrunnable.group(1)
+    # each recipe described, with its station and how long it turns
+    assert "Simulated station" in html and "Station sim-01; the platter turns 6.3 s" in html
+    # no operator guessed (the newest run's was a terminal's login name)
+    assert re.search(r'<input name="operator" id="operator" value=""', html)
 
 
 def test_the_end_screen_shows_no_limit_where_there_is_none_and_no_red_on_a_pass(

@@ -93,21 +93,39 @@ def test_a_terminal_run_holds_the_station_against_the_web_station(
     try:
         wait_until(lambda: station_holder(db, "sim-01") is not None
                    and station_holder(db, "sim-01")["run_id"] is not None)
+        run_id = station_holder(db, "sim-01")["run_id"]  # type: ignore[index]
         with station(tmp_path, db, sim_recipe) as url:
+            # every page says who holds the station: run, operator, where from, since when
+            for path in ("/", "/runs", "/dashboard", "/trends", "/plan", f"/runs/{run_id}"):
+                page.goto(url + path)
+                held = page.wait_for_selector('#station-status [data-station="sim-01"]'
+                                              '[data-held="yes"]')
+                text = " ".join(held.inner_text().split())
+                assert f"station sim-01 is in use by run {run_id} (operator kim" in text, \
+                    (path, text)
+                assert "from calstation run" in text and "since 20" in text, (path, text)
+            # the operator page: Start is disabled before it is pressed, with the reason
             page.goto(url + "/")
             page.select_option("#recipe", sim_recipe.name)
             page.fill("#operator", "ann")
-            page.click("#start-button")
-            error = page.wait_for_selector("#start-error:not([hidden])")
-            text = error.inner_text()
-            assert "station sim-01 is in use" in text and "operator kim" in text, text
-            assert f"process {terminal.pid}" in text and "calstation run" in text
+            assert page.is_disabled("#start-button")
+            reason = page.inner_text("#start-blocked")
+            assert "Start is unavailable: station sim-01 is in use" in reason, reason
+            assert "operator kim" in reason and "wait for that run to end" in reason.lower()
             assert page.locator("#run:not([hidden])").count() == 0
             assert _runs(db) == 1
-        assert terminal.poll() is None  # the terminal's run goes on, at its prompt
+            assert terminal.poll() is None  # the terminal's run goes on, at its prompt
+            # the terminal run ends: the open page offers Start again by itself
+            terminal.stdin.write("abort\n")  # type: ignore[union-attr]
+            terminal.stdin.flush()  # type: ignore[union-attr]
+            page.wait_for_selector('#station-status [data-station="sim-01"][data-held="no"]',
+                                   timeout=60_000)
+            page.wait_for_selector("#start-button:not([disabled])")
+            assert page.is_hidden("#start-blocked")
     finally:
-        terminal.stdin.write("a\n")  # type: ignore[union-attr]
-        terminal.stdin.flush()  # type: ignore[union-attr]
+        if terminal.poll() is None:
+            terminal.stdin.write("abort\n")  # type: ignore[union-attr]
+            terminal.stdin.flush()  # type: ignore[union-attr]
         out, err = terminal.communicate(timeout=HANG_S)
     assert terminal.returncode == 3, out + err
     with db.session() as s:

@@ -13,6 +13,7 @@ import base64
 import hashlib
 import logging
 import re
+import time
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -55,10 +56,12 @@ from calstation.web.plans import Planner
 from calstation.web.qa_routes import dashboard_routes, run_page_routes
 from calstation.web.security import AccessError, Guard, client_of
 from calstation.web.settings import MAX_ID, WebLimits
+from calstation.web.status import StationStatus, age, recipe_stations
 from calstation.web.tokens import TokenSource
 
 STATIC = Path(__file__).parent / "static"
-StaticFile = Literal["station.css", "station.js", "plan.js", "figures.js", "plotly.min.js"]
+StaticFile = Literal["station.css", "station.js", "status.js", "plan.js", "figures.js",
+                     "plotly.min.js"]
 
 log = logging.getLogger("calstation.web")
 
@@ -101,7 +104,8 @@ def create_app(
     guard = Guard(source, require_token=source is not None or not is_local_host(host), tls=tls,
                   limits=limits)
     runner = Runner(db, data_dir, recipes_dir)
-    hub = EventHub(runner.live)
+    status = StationStatus(db, lambda: recipe_stations(recipes_dir), runner.live.set_stations)
+    hub = EventHub(runner.live, tick=status.current)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -121,7 +125,8 @@ def create_app(
     app.state.hub = hub
     app.state.slots = StreamSlots(limits)
     app.state.limits = limits
-    ctx = _Pages(db, runner, guard)
+    app.state.status = status
+    ctx = _Pages(db, runner, guard, status)
     app.state.pages = ctx
     _error_handlers(app, ctx)
     _operator_routes(app, ctx)
@@ -197,8 +202,10 @@ def _validated(model: type[M], fields: dict[str, Any], request: Request,
 class _Pages:
     """Rendering helpers shared by the route groups."""
 
-    def __init__(self, db: Database, runner: Runner, guard: Guard) -> None:
-        self.db, self.runner, self.guard = db, runner, guard
+    def __init__(self, db: Database, runner: Runner, guard: Guard,
+                 status: StationStatus) -> None:
+        self.db, self.runner, self.guard, self.status = db, runner, guard, status
+
 
     def page(self, request: Request, template: str, context: dict[str, Any],
              status: int = 200, headers: dict[str, str] | None = None) -> HTMLResponse:
@@ -215,7 +222,8 @@ class _Pages:
         html = environment().get_template(template).render(
             request=request, csrf=session.csrf, nonce=request.scope.get(NONCE_KEY, ""),
             needs_login=not logged_in, logged_in=logged_in and self.guard.require_token,
-            busy=self.runner.busy, **context)
+            busy=self.runner.busy, stations=self.status.current(), station_age=age,
+            station_now=time.time, **context)
         response = HTMLResponse(html, status_code=status, headers=headers)
         if session.new and not cross_site:
             response.set_cookie(self.guard.cookie_name, session.session_id,
@@ -245,20 +253,30 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
     @app.get("/", response_class=HTMLResponse)
     def operator_page(request: Request) -> HTMLResponse:
         """The operator page: start a run, answer its prompts, follow it live."""
-        from calstation.web.offer import judge, start_defaults
+        from calstation.web.offer import judge, offered, start_defaults
 
         choices = [judge(runner.recipes_dir / name) for name in runner.recipes()]
-        runnable = [c.name for c in choices if c.runnable]
+        runnable = offered(choices)
         return ctx.page(request, "operator.html", {
-            "state": runner.live.snapshot(), "choices": choices,
-            "defaults": start_defaults(ctx.db, runner.recipes_dir, runnable),
+            "state": runner.live.snapshot(), "runnable": runnable,
+            "unrunnable": [c for c in choices if not c.runnable],
+            "defaults": start_defaults(ctx.db, runner.recipes_dir, [c.name for c in runnable]),
+            "held": {s["station"]: s for s in ctx.status.current() if s["held"]},
             "resumable": _resumable(ctx.db),
         })
 
     @app.get("/state.json")
     def state_json() -> dict[str, Any]:
         """The operator page's JSON twin: the live state of the current (or last) run."""
+        ctx.status.current()
         return {**runner.live.snapshot(), "recipes": runner.recipes()}
+
+    @app.get("/station.json")
+    def station_json() -> dict[str, Any]:
+        """Who holds each station of this server (every page's status line): ``stations``,
+        each with ``held`` and its ``holder`` (run, operator, where from, since when) and
+        ``text`` in words; ``now``, the server's time (s since the epoch)."""
+        return {"stations": ctx.status.current(), "now": time.time()}
 
     @app.get("/cloud.json")
     def cloud_json(
@@ -553,20 +571,6 @@ def _file_policy(html: str) -> str:
 
 
 # --- campaigns, metrics ----------------------------------------------------------------------
-def recipe_stations(recipes_dir: Path) -> list[str]:
-    """The ``station.id`` of each recipe of the recipes folder (the stations this server runs)."""
-    import yaml
-
-    out: set[str] = set()
-    for path in sorted(recipes_dir.glob("*.yaml")) if recipes_dir.is_dir() else []:
-        try:
-            data = yaml.safe_load(path.read_text(encoding="utf-8"))
-            out.add(str(data["station"]["id"]))
-        except (OSError, yaml.YAMLError, KeyError, TypeError):
-            continue
-    return sorted(out)
-
-
 def _fleet_routes(app: FastAPI, ctx: _Pages, recipes_dir: Path) -> None:
     from calstation.fleet.metrics import StationMetrics
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import asyncio
 import json
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable
 
@@ -28,12 +29,20 @@ from calstation.web.live import LiveState
 from calstation.web.security import AccessError
 from calstation.web.settings import WebLimits
 
+TICK_S = 2.0
+"""How often the state's tick runs (the station's holders read again) while streams wait."""
+
 
 class EventHub:
     """Fans the live state's changes out to the event streams (see the module docstring)."""
 
-    def __init__(self, live: LiveState) -> None:
+    def __init__(self, live: LiveState, tick: Callable[[], object] | None = None) -> None:
         self.live = live
+        self._tick = tick
+        """called (in a thread) every :data:`TICK_S` while a stream waits, by one of them: it
+        may change the state (the station's holders, read again), which the streams send"""
+        self._ticked = -TICK_S
+        self._ticking = False
         self._lock = threading.Lock()
         self._waiters: dict[asyncio.AbstractEventLoop, asyncio.Event] = {}
         self._cache_lock = threading.Lock()
@@ -56,6 +65,17 @@ class EventHub:
             event = self._waiters.pop(loop, None)
         if event is not None:
             event.set()
+
+    async def tick(self) -> None:
+        """Run the tick, if one is given and due and none runs (however many streams ask)."""
+        now = time.monotonic()
+        if self._tick is None or self._ticking or now - self._ticked < TICK_S:
+            return
+        self._ticking, self._ticked = True, now
+        try:
+            await asyncio.to_thread(self._tick)
+        finally:
+            self._ticking = False
 
     def next_change(self) -> asyncio.Event:
         """An event set at the next change of the state (on the running loop). Take it
@@ -156,6 +176,7 @@ class EventStream(Response):
     async def _stream(self, send: Send) -> None:
         limits, hub = self.limits, self.hub
         sent = -1
+        quiet_since = time.monotonic()
 
         async def chunk(body: bytes) -> None:
             await send({"type": "http.response.body", "body": body, "more_body": True})
@@ -165,15 +186,20 @@ class EventStream(Response):
             if hub.live.version != sent:
                 sent, body = hub.message()
                 await chunk(body)
+                quiet_since = time.monotonic()
                 # coalesce bursts (progress, lidar lines): a page needs a few frames a second
                 await asyncio.sleep(limits.event_min_period_s)
                 continue
             try:
-                async with asyncio.timeout(limits.event_keepalive_s):
+                async with asyncio.timeout(min(limits.event_keepalive_s, TICK_S)):
                     await changed.wait()
             except TimeoutError:
+                await hub.tick()
+                if time.monotonic() - quiet_since < limits.event_keepalive_s:
+                    continue
                 if not self.still_allowed():
                     await chunk(b"event: end\ndata: \"session ended: log in again\"\n\n")
                     await send({"type": "http.response.body", "body": b"", "more_body": False})
                     return
                 await chunk(b": keep-alive\n\n")
+                quiet_since = time.monotonic()

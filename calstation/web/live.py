@@ -137,6 +137,9 @@ class LiveState:
         self._ids = itertools.count(1)
         self._listeners: list[Callable[[], None]] = []
         self.version = 0
+        self.stations: list[dict[str, Any]] = []
+        """who holds each station of the server (:mod:`calstation.web.status`), kept across
+        runs"""
         self._reset()
 
     def _reset(self) -> None:
@@ -200,6 +203,12 @@ class LiveState:
             self.started_at = time.time()
             self.status = "running"
             self._changed()
+
+    def set_stations(self, stations: list[dict[str, Any]]) -> None:
+        """Who holds each station now (published when it changed)."""
+        def put(st: LiveState) -> None:
+            st.stations = stations
+        self.update(put)
 
     def update(self, fn: Callable[[LiveState], None]) -> None:
         """Apply ``fn`` to the state under its lock and publish the change."""
@@ -321,6 +330,7 @@ class LiveState:
                 "result": self.result,
                 "error": self.error,
                 "abort_requested": self.abort_requested,
+                "stations": self.stations,
             }
 
 

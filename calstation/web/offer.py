@@ -19,10 +19,16 @@ it runs (``recipes/real-station-template.yaml``)."""
 
 @dataclass(frozen=True)
 class Choice:
-    """One recipe file of the folder: whether it can run, and if not why."""
+    """One recipe file of the folder: whether it can run, and if not why; its station, its
+    description and the seconds its scans turn (what the start form says of it)."""
 
     name: str
     why_not: str | None = None
+    station: str | None = None
+    description: str = ""
+    scan_s: float | None = None
+    simulated: bool = False
+    """every driver is the simulator's"""
 
     @property
     def runnable(self) -> bool:
@@ -64,7 +70,27 @@ def _judge(path: Path) -> Choice:
         return Choice(path.name, f"it does not validate: {said[:300]}")
     if TEMPLATE_WORD in loaded.recipe.name.lower():
         return template
-    return Choice(path.name)
+    r = loaded.recipe
+    drivers = (r.station.lidar.driver, r.station.turntable.driver, r.station.encoder.driver)
+    return Choice(path.name, station=r.station.id, description=" ".join(r.description.split()),
+                  scan_s=scan_seconds(r), simulated=all(d == "sim" for d in drivers))
+
+
+def scan_seconds(recipe: Any) -> float:
+    """How long a run of ``recipe`` turns the platter at the least: the spin and cube scans'
+    turns at their speeds, second passes included (what an operator waits for at best)."""
+    total = 0.0
+    for scan in (recipe.steps.spin_scan, recipe.steps.cube_scan):
+        passes = [scan] + ([scan.second_pass()] if scan.second_pass() is not None else [])
+        total += sum(60.0 * p.revolutions / abs(p.rpm) for p in passes)
+    return total
+
+
+def offered(choices: list[Choice]) -> list[Choice]:
+    """The runnable recipes in the order the start form offers them: simulated stations
+    first, then by how long their scans turn, then by name (the quickest run first)."""
+    return sorted((c for c in choices if c.runnable),
+                  key=lambda c: (not c.simulated, c.scan_s or 0.0, c.name))
 
 
 def refuse_unrunnable(path: Path) -> None:
@@ -75,17 +101,18 @@ def refuse_unrunnable(path: Path) -> None:
 
 
 def start_defaults(db: Database, recipes_dir: Path, runnable: list[str]) -> dict[str, Any]:
-    """The recipe and operator of the newest run started from a recipe of ``recipes_dir``
-    (runnable still), else the first runnable recipe and no operator."""
+    """The recipe of the newest run started from a recipe of ``recipes_dir`` (runnable still),
+    else the first of ``runnable`` (the quickest, :func:`offered`). The operator is left to
+    the browser, which remembers who used it: the newest run's operator may be someone else's
+    name, or a terminal's login name."""
     from sqlalchemy import select
 
-    recipe, operator = (runnable[0] if runnable else None), ""
+    recipe = runnable[0] if runnable else None
     folder = str(recipes_dir.resolve())
     with db.session("reading the runs", read_only=True) as s:
-        rows = s.execute(select(Run.recipe_path, Run.operator).order_by(Run.id.desc())
-                         .limit(50)).all()
-    for path, who in rows:
+        rows = s.execute(select(Run.recipe_path).order_by(Run.id.desc()).limit(50)).all()
+    for (path,) in rows:
         if path and str(Path(path).resolve().parent) == folder and Path(path).name in runnable:
-            recipe, operator = Path(path).name, who
+            recipe = Path(path).name
             break
-    return {"recipe": recipe, "operator": operator[:100]}
+    return {"recipe": recipe}

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -14,6 +15,7 @@ from calstation.storage.db import Run
 from calstation.web.middleware import NONCE_KEY
 from calstation.web.payloads import ParamName, printable
 from calstation.web.settings import MAX_ID
+from calstation.web.status import age
 
 if TYPE_CHECKING:
     from calstation.storage.dashboard import DashboardQuery
@@ -65,7 +67,8 @@ def run_page_routes(app: FastAPI, ctx: Any) -> None:
             nonce=request.scope.get(NONCE_KEY), views_src=f"/runs/{run_id}/views.json",
             csrf=ctx.guard.page_session(request).csrf if logged_in else "",
             needs_login=not logged_in,
-            logged_in=logged_in and ctx.guard.require_token))
+            logged_in=logged_in and ctx.guard.require_token,
+            stations=ctx.status.current(), station_age=age, station_now=time.time))
 
     views_cache: dict[int, dict[str, Any]] = {}
 

@@ -28,16 +28,8 @@
     el.hidden = false;
   }
 
-  // "12 s", "2 min 05 s", as the server's duration filter writes them
-  function duration(seconds) {
-    if (seconds === null || seconds === undefined || !isFinite(seconds)) { return "—"; }
-    if (seconds < 10) { return seconds.toFixed(1) + " s"; }
-    var whole = Math.round(seconds);
-    if (whole < 60) { return whole + " s"; }
-    var pad = function (n) { return (n < 10 ? "0" : "") + n; };
-    if (whole < 3600) { return Math.floor(whole / 60) + " min " + pad(whole % 60) + " s"; }
-    return Math.floor(whole / 3600) + " h " + pad(Math.floor(whole % 3600 / 60)) + " min";
-  }
+  // "12 s", "2 min 05 s": the pages' one copy of calstation.display.duration (status.js)
+  var duration = window.calstationStatus.duration;
 
   // a new run: nothing of the previous one stays on the page (its end screen, log, plot, steps)
   function resetRun(s) {
@@ -91,6 +83,33 @@
     });
   }
 
+  // who holds each station (every page's status line) and whether Start may be pressed
+  var stationsKey = null;
+  function renderStations(stations) {
+    var key = JSON.stringify(stations || []);
+    if (key === stationsKey) { return; }
+    stationsKey = key;
+    if (window.calstationStatus) { window.calstationStatus.render(stations || []); }
+    startAvailability();
+  }
+
+  function startAvailability() {
+    var select = $("recipe"), button = $("start-button"), note = $("start-blocked");
+    if (!select || !button) { return; }
+    var option = select.options[select.selectedIndex];
+    var station = option ? option.getAttribute("data-station") : null;
+    var held = (state.stations || []).filter(function (x) { return x.held && x.station === station; })[0];
+    button.disabled = !option || !!held;
+    note.hidden = !held;
+    note.textContent = held ? "Start is unavailable: " + held.text +
+      ". Wait for that run to end, or abort it where it was started." : "";
+    var d = $("recipe-description");
+    if (d && option) {
+      d.textContent = (option.getAttribute("data-description") || "No description.") + " Station " +
+        station + "; the platter turns " + option.getAttribute("data-scan") + " at the least.";
+    }
+  }
+
   function render(s) {
     var previous = state;
     state = s;
@@ -125,6 +144,7 @@
       $("progress-text").textContent = p.title + (p.phase ? ": " + p.phase : "") + " — " + Math.round(p.fraction * 100) + " %";
       $("progress-bar").value = p.fraction;
     }
+    renderStations(s.stations);
     renderLine(s.line, s.outline, s.busy);
     renderCloud(s.busy ? s.cloud : null);
     renderAccuracy(s.accuracy || [], s.busy);
@@ -271,6 +291,8 @@
       });
   }
 
+  $("recipe").addEventListener("change", startAvailability);
+
   $("start-form").addEventListener("submit", function (ev) {
     ev.preventDefault();
     $("start-error").hidden = true;
@@ -279,7 +301,7 @@
     post("/api/start", {recipe: $("recipe").value, operator: $("operator").value, serial: $("serial").value})
       .then(function (data) { render(data.state); })
       .catch(function (e) { showError(e.message); })
-      .finally(function () { $("start-button").disabled = false; });
+      .finally(function () { startAvailability(); });
   });
 
   document.querySelectorAll("#prompt button[data-answer]").forEach(function (b) {
@@ -320,6 +342,7 @@
   // on a station with a token the stream needs the logged-in session (the page says so)
   if (app.getAttribute("data-live") === "yes") {
     var source = new EventSource("/events");
+    if (window.calstationStatus) { window.calstationStatus.live = true; }
     source.addEventListener("state", function (ev) { render(JSON.parse(ev.data)); });
     source.addEventListener("end", function () {
       source.close();  // the session ended (logged out, expired, new token)
