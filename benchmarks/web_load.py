@@ -126,7 +126,8 @@ async def _first_event(port: int) -> tuple[asyncio.StreamWriter, float]:
         writer.close()
         raise RuntimeError(f"event stream refused: {head.splitlines()[0]!r}")
     data = b""
-    while b"event: state" not in data or not data.rstrip(b"\r\n").endswith(b"}"):
+    # the state event read to its end (a blank line), whatever events follow it (the clock)
+    while (start := data.find(b"event: state")) < 0 or data.find(b"\n\n", start) < 0:
         chunk = await reader.read(65536)
         if not chunk:
             raise RuntimeError("event stream closed before its first event")

@@ -1,12 +1,14 @@
-"""The operator's and the QA engineer's pages in a real browser: one duration formatter in the
-pages and on the server, the station's status on every page, no page breaking its
-Content-Security-Policy, the placement drawings' legends fitting their pictures.
+"""The operator's and the QA engineer's pages in a real browser: live clocks that count from the
+server's time, one duration formatter in the pages and on the server, the station's status on
+every page, a hidden page drawing nothing, no page breaking its Content-Security-Policy, the
+placement drawings' legends fitting their pictures.
 
 Run with ``pytest -m browser`` (``make test`` does).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -36,6 +38,28 @@ def app(tmp_path: Path, db: Database) -> Iterator[Any]:  # noqa: F811
     recipe = copy_recipe(REPO / "recipes" / "sim-periodicity.yaml", tmp_path / "recipes")
     with plugins.isolated(sim_plugin):
         yield create_app(db, data_dir=tmp_path / "data", recipes_dir=recipe.parent)
+
+
+def test_a_page_opened_long_after_the_state_last_changed_counts_from_the_servers_clock(
+        app: Any, page: Any, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: F811
+    live = app.state.runner.live
+    live.begin(7, "sim-periodicity", "ann", None, station="sim-01")
+    live.update(lambda st: setattr(st, "started_at", time.time() - 600.0))
+    app.state.status.current()  # the station's holders read: no change to come from them
+    # the state last changed a minute ago (a run waiting at a prompt): the event stream's
+    # message was made then, and is sent as it was to every page opened since
+    real = time.time
+    monkeypatch.setattr("calstation.web.live.time.time", lambda: real() - 60.0)
+    app.state.hub.message()
+    monkeypatch.setattr("calstation.web.live.time.time", real)
+    with served(app) as url:
+        page.goto(url + "/")
+        page.wait_for_function("() => document.getElementById('app')"
+                               f".getAttribute('data-streamed') === '{live.version}'")
+        # the stream's state has been rendered; the elapsed time is the server's: 10 min
+        page.wait_for_timeout(1200)  # a tick of the page's clock
+        assert page.inner_text("#run-elapsed").startswith("10 min"), \
+            page.inner_text("#run-elapsed")
 
 
 def test_the_pages_write_durations_as_the_server_does(app: Any, page: Any) -> None:  # noqa: F811
@@ -89,6 +113,65 @@ def test_no_page_breaks_its_content_security_policy(
             page.wait_for_load_state("load")
             page.wait_for_timeout(500)
             assert page.evaluate("window.__csp") == [], path
+
+
+def _long_spin_recipe(folder: Path) -> Path:
+    """The simulated recipe with a spin scan of 4 turns, whatever the budget says (time to
+    look at the page while the platter turns)."""
+    import yaml
+
+    data = yaml.safe_load((REPO / "recipes" / "sim-periodicity.yaml").read_text())
+    data["steps"]["spin_scan"].update(revolutions=4.0, max_revolutions=4.0, rpm=10)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "sim-long-spin.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False), encoding="utf-8")
+    return path
+
+
+DRAWS = """() => ["line-plot", "cloud-plot"].reduce(
+  (n, id) => n + Number(document.getElementById(id).getAttribute("data-draws") || 0), 0)"""
+
+
+SET_HIDDEN = """(hidden) => {
+  Object.defineProperty(document, "hidden", {configurable: true, get: () => hidden});
+  Object.defineProperty(document, "visibilityState", {configurable: true,
+                        get: () => hidden ? "hidden" : "visible"});
+  document.dispatchEvent(new Event("visibilitychange"));
+}"""
+
+
+def test_a_hidden_page_draws_nothing_and_catches_up_when_shown(
+        tmp_path: Path, db: Database, page: Any) -> None:  # noqa: F811
+    from test_web_browser import click_answer, place, start
+
+    recipe = _long_spin_recipe(tmp_path / "recipes")
+    with plugins.isolated(sim_plugin):
+        app = create_app(db, data_dir=tmp_path / "data", recipes_dir=recipe.parent)
+        with served(app) as url:
+            start(page, url, recipe.name)
+            place(page, "static_target")
+            click_answer(page, "continue")
+            place(page, "spin_target")
+            click_answer(page, "continue")
+            page.wait_for_selector('#steps li.running[data-step="spin_scan"]')
+            page.wait_for_selector("#cloud-plot[data-points]", timeout=120_000)
+            # the cloud: a picture with its title above it, nothing over it, no WebGL
+            assert page.locator("#cloud-plot canvas").count() == 1
+            assert "reconstructed under" in page.inner_text("#cloud-plot .cloud-title")
+            page.evaluate(SET_HIDDEN, True)
+            drawn = page.evaluate(DRAWS)
+            seen = int(page.get_attribute("#app", "data-streamed") or 0)
+            # the run goes on and its states keep coming: five more, drawn by nobody
+            page.wait_for_function(
+                f"() => Number(document.getElementById('app').getAttribute('data-streamed')) >= "
+                f"{seen + 5}", timeout=60_000)
+            assert page.evaluate(DRAWS) == drawn
+            assert page.get_attribute('#steps li[data-step="spin_scan"]', "class") \
+                .startswith("running")
+            page.evaluate(SET_HIDDEN, False)
+            page.wait_for_function(f"() => ({DRAWS})() > {drawn}", timeout=30_000)
+            page.click("#abort-button")
+            page.wait_for_selector("#verdict")
 
 
 @pytest.mark.parametrize("fixture", ["static_target", "spin_target", "qa_cube"])

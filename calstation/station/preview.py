@@ -40,14 +40,15 @@ from calstation.station.operator import Operator, publish
 from calstation.station.stored import latest_calibration
 from calstation.storage.db import Calibration, Run
 
-OUTLINE_PERIOD_S = 0.2
+OUTLINE_PERIOD_S = 0.5
 """At most this often the outline is published (as often as the web station shows a line)."""
 
-CLOUD_PERIOD_S = 0.5
+CLOUD_PERIOD_S = 1.0
 """At most this often the new cloud points are published."""
 
-CLOUD_POINTS = 20_000
-"""Most cloud points one scan sends."""
+CLOUD_POINTS = 6_000
+"""Most cloud points one scan sends: the live view's 3D plot draws them in a browser that may
+have no graphics processor, while the run goes on (the report shows 12 000 from the file)."""
 
 NO_CALIBRATION = "no calibration known yet: the L-target scan gives the first"
 

@@ -185,7 +185,10 @@ class EventStream(Response):
             changed = hub.next_change()
             if hub.live.version != sent:
                 sent, body = hub.message()
+                # and the server's clock now, not the one cached with the state: the page's
+                # clocks (elapsed, since when) count from it
                 await chunk(body)
+                await chunk(clock_event())
                 quiet_since = time.monotonic()
                 # coalesce bursts (progress, lidar lines): a page needs a few frames a second
                 await asyncio.sleep(limits.event_min_period_s)
@@ -201,5 +204,11 @@ class EventStream(Response):
                     await chunk(b"event: end\ndata: \"session ended: log in again\"\n\n")
                     await send({"type": "http.response.body", "body": b"", "more_body": False})
                     return
-                await chunk(b": keep-alive\n\n")
+                await chunk(b": keep-alive\n\n" + clock_event())
                 quiet_since = time.monotonic()
+
+
+
+def clock_event() -> bytes:
+    """A ``clock`` event: the server's time now, seconds since the epoch."""
+    return f"event: clock\ndata: {time.time():.3f}\n\n".encode()

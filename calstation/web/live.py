@@ -40,11 +40,13 @@ from calstation.station.runs import PreparedRun, prepare_resume, prepare_run, re
 from calstation.station.steps import STEPS, run_steps
 from calstation.storage.db import Database
 
-LINE_PREVIEW_PERIOD_S = 0.2
-"""At most this often the live lidar line is refreshed (the lidar gives ~1000 lines/s)."""
+LINE_PREVIEW_PERIOD_S = 0.5
+"""At most this often the live lidar line is refreshed (the lidar gives ~1000 lines/s): as
+often as the event stream sends a state."""
 
-LINE_PREVIEW_POINTS = 400
-"""Points of the live lidar line (a subsample of the line's valid returns)."""
+LINE_PREVIEW_POINTS = 240
+"""Points of the live lidar line (a subsample of the line's valid returns: the plot is a
+third of the screen wide)."""
 
 PROGRESS_STEP = 0.01
 """Progress is published when its fraction moved by this much (or its phase changed)."""
@@ -427,6 +429,8 @@ class WebOperator:
                 st.progress = None
                 if d["step"] not in ("static_scan", "spin_scan", "cube_scan"):
                     st.line = st.outline = None
+                if d["step"] != "fine_tune":  # the fine-tuning is of the spin scan just shown
+                    st.cloud = None
             self._with_outline = False
             self.live.update(started)
             self.live.add_log("info", f"▶ {step_title(d['step'])}"

@@ -30,8 +30,9 @@ class WebLimits:
     event_keepalive_s: float = 15.0
     """An idle stream gets a comment this often (and its session is checked again)."""
 
-    event_min_period_s: float = 0.2
-    """A stream sends at most one state per this period (bursts are coalesced)."""
+    event_min_period_s: float = 0.5
+    """A stream sends at most one state per this period (bursts are coalesced): two frames a
+    second are what a person follows, and what a page draws without slowing the run."""
 
     session_idle_s: float = 4 * 3600.0
     """A logged-in session unused this long ends."""

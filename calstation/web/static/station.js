@@ -38,7 +38,6 @@
     $("log").innerHTML = "";
     $("accuracy-live").hidden = true;
     var plot = $("line-plot");
-    if (window.Plotly) { Plotly.purge(plot); }
     plot.innerHTML = "";
     plot.hidden = true;
     plot.removeAttribute("data-seq");
@@ -73,7 +72,9 @@
 
   function renderLog(lines) {
     var list = $("log");
-    if (list.children.length === lines.length) { return; }
+    var last = lines.length ? lines[lines.length - 1].text : null;
+    if (list.children.length === lines.length &&
+        (last === null || (list.lastChild && list.lastChild.textContent === last))) { return; }
     list.innerHTML = "";
     lines.forEach(function (l) {
       var li = document.createElement("li");
@@ -113,7 +114,6 @@
   function render(s) {
     var previous = state;
     state = s;
-    if (s.now) { skew = s.now - Date.now() / 1000; }
     if (s.run_id !== previous.run_id || (s.busy && !previous.busy)) { resetRun(s); }
     app.setAttribute("data-status", s.status);
     app.setAttribute("data-version", String(s.version));
@@ -187,34 +187,46 @@
     });
   }
 
+  // the plots are the page's heavy work: none while the page cannot be seen (another tab, a
+  // minimised window) or the plot is scrolled away; the latest state is drawn on return
+  function shown(el) { return !document.hidden && el.getAttribute("data-in-view") !== "no"; }
+  var watcher = window.IntersectionObserver ? new IntersectionObserver(function (entries) {
+    entries.forEach(function (e) {
+      e.target.setAttribute("data-in-view", e.isIntersecting ? "yes" : "no");
+      if (e.isIntersecting) { redraw(); }
+    });
+  }) : null;
+  ["line-plot", "cloud-plot"].forEach(function (id) { if (watcher) { watcher.observe($(id)); } });
+  function redraw() {
+    renderLine(state.line, state.outline, state.busy);
+    renderCloud(state.busy ? state.cloud : null);
+  }
+  document.addEventListener("visibilitychange", function () {
+    document.body.setAttribute("data-visible", document.hidden ? "no" : "yes");
+    if (!document.hidden) { redraw(); }
+  });
+
   function renderLine(line, outline, busy) {
     var el = $("line-plot");
-    if (!line || !busy || !window.Plotly) { el.hidden = !line || !busy; return; }
+    if (!line || !busy) { el.hidden = true; return; }
     el.hidden = false;
+    if (!shown(el)) { return; }
     var key = String(line.seq) + "/" + (outline ? outline.source + "/" + outline.platter_angle_deg + "/" + outline.lines.length : "");
     if (el.getAttribute("data-key") === key) { return; }
     el.setAttribute("data-key", key);
     el.setAttribute("data-seq", String(line.seq));
-    // SVG, not WebGL: plotly's WebGL traces compile code at run time, which the page's
-    // Content-Security-Policy does not allow (no eval)
-    var data = [{x: line.x_mm, y: line.y_mm, mode: "markers", type: "scatter",
-                 marker: {size: 3, color: "#0969da"}, name: "returns"}];
     var title = "live lidar line (" + line.kind + " scan, " + line.points + " returns)";
     var subtitle = "";
-    var notes = [];
+    var plotted = [{name: "returns", x: line.x_mm, y: line.y_mm}];
     if (outline && outline.known) {
       // where the platter and the fixture should appear under the calibration known so far
       var ox = [], oy = [];
       outline.lines.forEach(function (l) { ox = ox.concat(l.x, [null]); oy = oy.concat(l.y, [null]); });
-      data.push({x: ox, y: oy, mode: "lines", type: "scatter", name: "expected outline",
-                 line: {color: "#e36209", width: 2, dash: "dot"}, hoverinfo: "skip"});
-      // a subtitle, not a styled span in the title: plotly would set that span's style
-      // attribute, which the page's policy refuses
+      plotted.push({name: "expected outline", x: ox, y: oy});
       subtitle = "dotted: the " + outline.fixture.replace(/_/g, " ") +
         " and the platter as expected under " + outline.source;
     } else if (outline) {
-      notes.push({text: "no expected outline: " + outline.source, xref: "paper", yref: "paper",
-                  x: 0.5, y: 0.98, showarrow: false, font: {color: "#9a6700"}});
+      subtitle = "no expected outline: " + outline.source;
     }
     // zoomed on what matters: the platter and its fixture where they are expected, else the
     // nearest returns (not the room)
@@ -226,69 +238,222 @@
       win = {x: [Math.min.apply(null, xs) - pad, Math.max.apply(null, xs) + pad],
              y: [Math.min.apply(null, ys) - pad, Math.max.apply(null, ys) + pad]};
     }
-    var layout = {title: {text: title, font: {size: 15},
-                          subtitle: {text: subtitle, font: {size: 12}}},
-                  height: 340, margin: {l: 50, r: 10, t: 55, b: 40},
-                  xaxis: {title: {text: "x_L (mm)"}, range: win ? win.x : undefined},
-                  yaxis: {title: {text: "y_L (mm, boresight)"}, scaleanchor: "x",
-                          range: win ? win.y : undefined},
-                  annotations: notes, showlegend: false};
-    Plotly.react(el, data, layout, {displaylogo: false, responsive: true, staticPlot: false});
+    drawLine(el, title, subtitle, plotted, win, !!(outline && !outline.known));
+    el.plotted = plotted;  // what is drawn, for whoever inspects the page
     el.setAttribute("data-drawn", "1");
+    el.setAttribute("data-draws", String(Number(el.getAttribute("data-draws") || 0) + 1));
     el.setAttribute("data-outline", outline ? (outline.known ? "expected" : "unknown") : "none");
   }
 
+  // a round step for about n ticks over span
+  function tickStep(span, n) {
+    var raw = span / n, mag = Math.pow(10, Math.floor(Math.log10(raw))), f = raw / mag;
+    return mag * (f < 1.5 ? 1 : f < 3.5 ? 2 : f < 7.5 ? 5 : 10);
+  }
+
+  // the live line on a plain canvas (frame L, mm, one scale on both axes): redrawn twice a
+  // second, it costs a few milliseconds where a plotting library's redraw cost tens
+  function drawLine(el, title, subtitle, plotted, win, warn) {
+    var width = Math.max(320, el.clientWidth || 640), height = 340;
+    var head = el.querySelector("p.line-title"), sub = el.querySelector("p.line-subtitle");
+    var canvas = el.querySelector("canvas");
+    if (!canvas) {
+      head = document.createElement("p");
+      head.className = "line-title";
+      sub = document.createElement("p");
+      sub.className = "line-subtitle";
+      canvas = document.createElement("canvas");
+      el.appendChild(head);
+      el.appendChild(sub);
+      el.appendChild(canvas);
+    }
+    head.textContent = title;
+    sub.textContent = subtitle;
+    sub.className = "line-subtitle" + (warn ? " warn" : "");
+    canvas.width = width;
+    canvas.height = height;
+    var ctx = canvas.getContext("2d");
+    ctx.fillStyle = "#ffffff";
+    ctx.fillRect(0, 0, width, height);
+    var left = 58, right = 12, top = 8, bottom = 38;
+    var pts = plotted[0];
+    if (!win) {
+      win = {x: [Math.min.apply(null, pts.x), Math.max.apply(null, pts.x)],
+             y: [Math.min.apply(null, pts.y), Math.max.apply(null, pts.y)]};
+    }
+    // one scale for both axes, the window centred
+    var w = width - left - right, h = height - top - bottom;
+    var sx = w / Math.max(1, win.x[1] - win.x[0]), sy = h / Math.max(1, win.y[1] - win.y[0]);
+    var k = Math.min(sx, sy);
+    var cx = (win.x[0] + win.x[1]) / 2, cy = (win.y[0] + win.y[1]) / 2;
+    var X = function (x) { return left + w / 2 + (x - cx) * k; };
+    var Y = function (y) { return top + h / 2 - (y - cy) * k; };
+    var x0 = cx - w / 2 / k, x1 = cx + w / 2 / k, y0 = cy - h / 2 / k, y1 = cy + h / 2 / k;
+    // grid, ticks and the axes' names
+    ctx.font = "11px system-ui, sans-serif";
+    ctx.strokeStyle = "#eaeef2";
+    ctx.fillStyle = "#57606a";
+    var step = tickStep(Math.max(x1 - x0, y1 - y0), 6), t;
+    for (t = Math.ceil(x0 / step) * step; t <= x1; t += step) {
+      ctx.beginPath(); ctx.moveTo(X(t), top); ctx.lineTo(X(t), top + h); ctx.stroke();
+      ctx.fillText(String(Math.round(t)), X(t) - 12, top + h + 13);
+    }
+    ctx.textAlign = "right";
+    for (t = Math.ceil(y0 / step) * step; t <= y1; t += step) {
+      ctx.beginPath(); ctx.moveTo(left, Y(t)); ctx.lineTo(left + w, Y(t)); ctx.stroke();
+      ctx.fillText(String(Math.round(t)), left - 4, Y(t) + 4);
+    }
+    ctx.textAlign = "left";
+    ctx.strokeStyle = "#8c959f";
+    ctx.strokeRect(left, top, w, h);
+    ctx.fillStyle = "#1b1f24";
+    ctx.fillText("x_L (mm)", left + w / 2 - 20, height - 6);
+    ctx.save();
+    ctx.translate(11, top + h / 2);
+    ctx.rotate(-Math.PI / 2);
+    ctx.textAlign = "center";
+    ctx.fillText("y_L (mm, boresight)", 0, 0);
+    ctx.restore();
+    ctx.save();
+    ctx.beginPath();
+    ctx.rect(left, top, w, h);
+    ctx.clip();
+    ctx.fillStyle = "#0969da";
+    for (var i = 0; i < pts.x.length; i++) { ctx.fillRect(X(pts.x[i]) - 1.5, Y(pts.y[i]) - 1.5, 3, 3); }
+    if (plotted.length > 1) {
+      var o = plotted[1];
+      ctx.strokeStyle = "#e36209";
+      ctx.lineWidth = 2;
+      ctx.setLineDash([3, 4]);
+      ctx.beginPath();
+      var pen = false;
+      for (i = 0; i < o.x.length; i++) {
+        if (o.x[i] === null) { pen = false; continue; }
+        if (pen) { ctx.lineTo(X(o.x[i]), Y(o.y[i])); } else { ctx.moveTo(X(o.x[i]), Y(o.y[i])); pen = true; }
+      }
+      ctx.stroke();
+    }
+    ctx.restore();
+  }
+
   // the scan's cloud under the calibration known so far, growing as the platter turns: only
-  // the new points are fetched
-  var cloud = {id: null, n: 0, fetching: false};
+  // the new points are fetched, at most every CLOUD_PERIOD_MS. It is drawn on a plain canvas,
+  // seen from a fixed angle and coloured by height: a 3D plot's WebGL redraws itself many times
+  // a second while it is shown, which without a graphics processor costs the run more than the
+  // whole page otherwise does (the report has the 3D view to turn)
+  var CLOUD_PERIOD_MS = 3000;
+  var cloud = {id: null, n: 0, shown: 0, title: "", fetching: false, drawn: 0, timer: null,
+               x: [], y: [], z: []};
   function renderCloud(meta) {
     var el = $("cloud-plot");
-    if (!meta || !window.Plotly) { el.hidden = !meta; return; }
+    if (!meta) { el.hidden = true; return; }
     el.hidden = false;
     if (meta.id !== cloud.id) { resetCloud(meta.id); }
-    if (meta.count > cloud.n) { fetchCloud(); }
+    if (!shown(el)) { return; }
+    if (cloud.n > cloud.shown) { drawCloud(el); }  // fetched while it could not be seen
+    if (meta.count <= cloud.n) { return; }
+    var wait = cloud.drawn + CLOUD_PERIOD_MS - Date.now();
+    if (wait <= 0) { fetchCloud(); return; }
+    if (!cloud.timer) {
+      cloud.timer = window.setTimeout(function () {
+        cloud.timer = null;
+        renderCloud(state.busy ? state.cloud : null);
+      }, wait);
+    }
   }
 
   function resetCloud(id) {
     var el = $("cloud-plot");
-    if (window.Plotly) { Plotly.purge(el); }
     el.innerHTML = "";
     el.removeAttribute("data-points");
-    cloud = {id: id, n: 0, fetching: cloud.fetching};
+    if (cloud.timer) { window.clearTimeout(cloud.timer); }
+    cloud = {id: id, n: 0, shown: 0, title: "", fetching: cloud.fetching, drawn: 0, timer: null,
+             x: [], y: [], z: []};
   }
 
   function fetchCloud() {
     if (cloud.fetching) { return; }
     cloud.fetching = true;
+    cloud.drawn = Date.now();
     fetch("/cloud.json?cloud=" + (cloud.id || 0) + "&since=" + cloud.n, {credentials: "same-origin"})
       .then(function (r) { return r.json(); })
       .then(function (c) {
         if (c.id === null) { return; }
         if (c.id !== cloud.id) { resetCloud(c.id); }
         if (c.start !== cloud.n || c.x.length === 0) { return; }
-        var el = $("cloud-plot");
-        // plotly's z is up: (y_D, z_D, x_D) so that the platter lies flat, as in the report
-        if (cloud.n === 0) {
-          Plotly.newPlot(el, [{type: "scatter3d", mode: "markers", x: c.y, y: c.z, z: c.x,
-                               marker: {size: 1.5, color: c.x, colorscale: "Viridis"}, name: "cloud"}],
-            {title: {text: c.scan + " scan reconstructed under " + c.source, font: {size: 15}},
-             height: 400, margin: {l: 0, r: 0, t: 40, b: 0}, showlegend: false,
-             scene: {aspectmode: "data", camera: {eye: {x: 1.3, y: 1.3, z: 1.0}}, xaxis: {title: {text: "y_D (mm)"}},
-                     yaxis: {title: {text: "z_D (mm)"}}, zaxis: {title: {text: "x_D (mm, up)"}}}},
-            {displaylogo: false, responsive: true});
-        } else {
-          Plotly.extendTraces(el, {x: [c.y], y: [c.z], z: [c.x], "marker.color": [c.x]}, [0]);
-        }
+        cloud.x = cloud.x.concat(c.x);
+        cloud.y = cloud.y.concat(c.y);
+        cloud.z = cloud.z.concat(c.z);
         cloud.n += c.x.length;
-        el.setAttribute("data-points", String(cloud.n));
+        cloud.title = c.scan + " scan reconstructed under " + c.source;
+        if (shown($("cloud-plot"))) { drawCloud($("cloud-plot")); }
       })
       .catch(function () { /* the next state retries */ })
       .finally(function () {
         cloud.fetching = false;
-        if (state.cloud && state.cloud.id === cloud.id && state.cloud.count > cloud.n) {
-          window.setTimeout(fetchCloud, 200);
-        }
+        renderCloud(state.busy ? state.cloud : null);  // more came meanwhile: when it is due
       });
+  }
+
+  // viridis, five stops: low (dark blue) to high (yellow)
+  var VIRIDIS = [[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]];
+  function colour(t) {
+    var f = Math.max(0, Math.min(1, t)) * (VIRIDIS.length - 1), i = Math.min(VIRIDIS.length - 2, Math.floor(f));
+    var a = VIRIDIS[i], b = VIRIDIS[i + 1], w = f - i;
+    return "rgb(" + [0, 1, 2].map(function (k) { return Math.round(a[k] + (b[k] - a[k]) * w); }).join(",") + ")";
+  }
+
+  function drawCloud(el) {
+    var title = cloud.title;
+    cloud.shown = cloud.n;
+    var width = Math.max(320, el.clientWidth || 640), height = 380;
+    var heading = el.querySelector("p.cloud-title"), canvas = el.querySelector("canvas");
+    if (!canvas) {
+      heading = document.createElement("p");
+      heading.className = "cloud-title";
+      canvas = document.createElement("canvas");
+      el.appendChild(heading);
+      el.appendChild(canvas);
+    }
+    heading.textContent = title + " (" + cloud.n + " points; seen from above and aside, " +
+      "coloured by height x_D: dark low, yellow high)";
+    canvas.width = width;
+    canvas.height = height;
+    var ctx = canvas.getContext("2d");
+    ctx.fillStyle = "#ffffff";
+    ctx.fillRect(0, 0, width, height);
+    // frame D: x_D up; the platter's plane (y_D, z_D) seen at 30° from above, turned 45°
+    var c45 = Math.SQRT1_2, s30 = 0.5, c30 = Math.sqrt(3) / 2;
+    var u = [], v = [], lo = Infinity, hi = -Infinity, i;
+    for (i = 0; i < cloud.n; i++) {
+      var a = (cloud.y[i] - cloud.z[i]) * c45, d = (cloud.y[i] + cloud.z[i]) * c45;
+      u.push(a);
+      v.push(-cloud.x[i] * c30 + d * s30);
+      lo = Math.min(lo, cloud.x[i]);
+      hi = Math.max(hi, cloud.x[i]);
+    }
+    var umin = Math.min.apply(null, u), umax = Math.max.apply(null, u);
+    var vmin = Math.min.apply(null, v), vmax = Math.max.apply(null, v);
+    var scale = Math.min((width - 60) / Math.max(1, umax - umin), (height - 50) / Math.max(1, vmax - vmin));
+    var ox = (width - (umax - umin) * scale) / 2, oy = (height - (vmax - vmin) * scale) / 2;
+    for (i = 0; i < cloud.n; i++) {
+      ctx.fillStyle = colour((cloud.x[i] - lo) / Math.max(1e-9, hi - lo));
+      ctx.fillRect(ox + (u[i] - umin) * scale, oy + (v[i] - vmin) * scale, 2, 2);
+    }
+    // the axes' directions, bottom left, inside the picture
+    var ax = 52, ay = height - 26;
+    ctx.strokeStyle = "#57606a";
+    ctx.fillStyle = "#1b1f24";
+    ctx.font = "11px system-ui, sans-serif";
+    [["y_D", c45, c45 * s30], ["z_D", -c45, c45 * s30], ["x_D (up)", 0, -c30]].forEach(function (d) {
+      ctx.beginPath();
+      ctx.moveTo(ax, ay);
+      ctx.lineTo(ax + d[1] * 22, ay + d[2] * 22);
+      ctx.stroke();
+      ctx.fillText(d[0], ax + d[1] * 26 - (d[1] < 0 ? 22 : 0), ay + d[2] * 26 + 4);
+    });
+    el.setAttribute("data-points", String(cloud.n));
+    el.setAttribute("data-draws", String(Number(el.getAttribute("data-draws") || 0) + 1));
   }
 
   $("recipe").addEventListener("change", startAvailability);
@@ -335,7 +500,9 @@
     }
   }, 1000);
 
-  // the server renders the first state; prompts shown on reload need their id
+  // the server renders the first state (its clock is the server's at that moment); prompts
+  // shown on reload need their id
+  if (state.now) { skew = state.now - Date.now() / 1000; }
   if (state.prompt) { $("prompt").removeAttribute("data-prompt"); }
   render(state);
 
@@ -343,7 +510,16 @@
   if (app.getAttribute("data-live") === "yes") {
     var source = new EventSource("/events");
     if (window.calstationStatus) { window.calstationStatus.live = true; }
-    source.addEventListener("state", function (ev) { render(JSON.parse(ev.data)); });
+    // the server's clock as each state is sent: a cached state's "now" is the time it changed
+    source.addEventListener("clock", function (ev) {
+      skew = Number(ev.data) - Date.now() / 1000;
+      if (window.calstationStatus) { window.calstationStatus.setSkew(skew); }
+      tickElapsed();
+    });
+    source.addEventListener("state", function (ev) {
+      render(JSON.parse(ev.data));
+      app.setAttribute("data-streamed", String(state.version));  // a state came over the stream
+    });
     source.addEventListener("end", function () {
       source.close();  // the session ended (logged out, expired, new token)
       showError("Your session ended: log in again to follow the run.");
