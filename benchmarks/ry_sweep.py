@@ -109,22 +109,33 @@ class _Quiet:
 
 def station_run(k: int, out: Path, recipe: Path) -> dict[str, Any]:
     """Run ``k`` as a whole simulated station run; its row (SI units)."""
-    from calstation.station.runs import start_run
-    from calstation.storage.db import open_database
-
     cond = _condition(k)
     loaded = sim_recipe(cond["noise"], cond["background"], cond["offset"], cond["line_rate"],
                         cond["scenario"], 100 + k, recipe)
-    folder = out / f"run{k}"
+    row = unattended_run(loaded, out / f"run{k}", _station_row)
+    row.update(k=k, **cond)
+    return row
+
+
+def unattended_run(
+    loaded: LoadedRecipe, folder: Path,
+    row_of: Callable[[Any, int, str, LoadedRecipe], dict[str, Any]],
+) -> dict[str, Any]:
+    """``loaded`` run as the station runs it, unattended, with its own database in ``folder``:
+    ``row_of(db, run_id, status, loaded)`` with the run's wall time (``wall_s``); the
+    recordings are deleted after it (a sweep keeps its rows, not its scans)."""
+    from calstation.station.runs import start_run
+    from calstation.storage.db import open_database
+
     folder.mkdir(parents=True, exist_ok=True)
     db = open_database(f"sqlite:///{folder / 'run.db'}")
     t0 = time.perf_counter()
     try:
         run_id, status = start_run(loaded, db, _Quiet(), operator="sweep", data_dir=folder)
-        row = _station_row(db, run_id, status, loaded)
+        row = row_of(db, run_id, status, loaded)
     finally:
         db.dispose()
-    row.update(k=k, **cond, wall_s=time.perf_counter() - t0)
+    row["wall_s"] = time.perf_counter() - t0
     for path in folder.rglob("*.mcap"):
         path.unlink()
     return row

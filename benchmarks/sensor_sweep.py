@@ -28,7 +28,6 @@ import copy
 import itertools
 import json
 import math
-import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -85,24 +84,11 @@ def sensor_recipe(k: int, recipe: Path, range_model: str | None,
 def station_run(k: int, out: Path, recipe: Path, range_model: str | None,
                 edge_tolerance: float) -> dict[str, Any]:
     """Run ``k`` as a whole simulated station run; its row (SI units)."""
-    from ry_sweep import _Quiet  # the unattended operator of the capability sweep
+    from ry_sweep import unattended_run  # as the capability sweep runs its station runs
 
-    from calstation.station.runs import start_run
-    from calstation.storage.db import open_database
-
-    loaded = sensor_recipe(k, recipe, range_model, edge_tolerance)
-    folder = out / f"run{k}"
-    folder.mkdir(parents=True, exist_ok=True)
-    db = open_database(f"sqlite:///{folder / 'run.db'}")
-    t0 = time.perf_counter()
-    try:
-        run_id, status = start_run(loaded, db, _Quiet(), operator="sweep", data_dir=folder)
-        row = _row(db, run_id, status, loaded)
-    finally:
-        db.dispose()
-    row.update(k=k, **condition(k), wall_s=time.perf_counter() - t0)
-    for path in folder.rglob("*.mcap"):
-        path.unlink()
+    row = unattended_run(sensor_recipe(k, recipe, range_model, edge_tolerance),
+                         out / f"run{k}", _row)
+    row.update(k=k, **condition(k))
     return row
 
 

@@ -6,7 +6,9 @@ import datetime as dt
 import re
 import shlex
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -201,8 +203,9 @@ def test_bad_parent_and_frames() -> None:
         ros.Frames("my lidar")
 
 
-def test_export_cli_formats(tmp_path: Path) -> None:
-    """``calstation export --format tf|urdf|ros2-yaml`` on a stored run, with frame names."""
+def _stored_run(tmp_path: Path, **calibration: Any) -> tuple[str, int]:
+    """A database in ``tmp_path`` with one passed run whose accepted fine calibration is H
+    (and ``calibration``'s fields): its URL and the run's id."""
     url = f"sqlite:///{tmp_path / 'ros.db'}"
     db = open_database(url)
     with db.session() as s:
@@ -212,11 +215,16 @@ def test_export_cli_formats(tmp_path: Path) -> None:
                   started_at=dt.datetime(2026, 3, 1, tzinfo=dt.UTC))
         s.add(run)
         s.flush()
-        s.add(Calibration(run=run, stage="fine", strategy="periodicity", **H.as_dict(),
-                          accepted=True, created_at=dt.datetime(2026, 3, 1, 9, tzinfo=dt.UTC)))
+        s.add(Calibration(run=run, stage="fine", **H.as_dict(), accepted=True,
+                          created_at=dt.datetime(2026, 3, 1, 9, tzinfo=dt.UTC), **calibration))
         s.flush()
         run_id = run.id
     db.dispose()
+    return url, run_id
+
+
+def _exporter(url: str, run_id: int) -> Callable[..., str]:
+    """``calstation export RUN`` of the stored run with more arguments: its output (exit 0)."""
     _build()
     runner = CliRunner()
 
@@ -224,6 +232,15 @@ def test_export_cli_formats(tmp_path: Path) -> None:
         res = runner.invoke(app, ["export", str(run_id), "--db", url, *args])
         assert res.exit_code == 0, res.output
         return res.output
+
+    return export
+
+
+def test_export_cli_formats(tmp_path: Path) -> None:
+    """``calstation export --format tf|urdf|ros2-yaml`` on a stored run, with frame names."""
+    url, run_id = _stored_run(tmp_path, strategy="periodicity")
+    export = _exporter(url, run_id)
+    runner = CliRunner()
 
     tfs = _publishers(export("--format", "tf", "--lidar-frame", "laser",
                              "--platform-frame", "turntable"))
@@ -257,30 +274,11 @@ def test_export_carries_the_lidars_range_model(tmp_path: Path) -> None:
     """A calibration with the lidar's range model: ``ros2-params`` gives the transform, the
     range terms estimated and the time offset as ROS 2 parameters (one not estimated left out,
     named in a comment); yaml carries them as fields; tf says how to correct a range."""
-    url = f"sqlite:///{tmp_path / 'ros.db'}"
-    db = open_database(url)
-    with db.session() as s:
-        run = Run(station=Station(name="st-ros"), recipe_name="r", recipe_path="r.yaml",
-                  recipe_text="name: r\n", recipe_sha256="ab" * 32, operator="qa",
-                  unattended=True, data_dir=str(tmp_path), status="passed",
-                  started_at=dt.datetime(2026, 3, 1, tzinfo=dt.UTC))
-        s.add(run)
-        s.flush()
-        s.add(Calibration(run=run, stage="fine", strategy="periodicity+cube", **H.as_dict(),
-                          accepted=True, range_offset=0.0031, sigma_range_offset=0.0001,
-                          incidence_bias=0.0004, sigma_incidence_bias=0.00005,
-                          encoder_latency_s=0.005, sigma_encoder_latency_s=1e-5,
-                          created_at=dt.datetime(2026, 3, 1, 9, tzinfo=dt.UTC)))
-        s.flush()
-        run_id = run.id
-    db.dispose()
-    _build()
-    runner = CliRunner()
-
-    def export(*args: str) -> str:
-        res = runner.invoke(app, ["export", str(run_id), "--db", url, *args])
-        assert res.exit_code == 0, res.output
-        return res.output
+    url, run_id = _stored_run(
+        tmp_path, strategy="periodicity+cube", range_offset=0.0031, sigma_range_offset=0.0001,
+        incidence_bias=0.0004, sigma_incidence_bias=0.00005, encoder_latency_s=0.005,
+        sigma_encoder_latency_s=1e-5)
+    export = _exporter(url, run_id)
 
     text = export("--format", "ros2-params")
     params = yaml.safe_load(text)["/**"]["ros__parameters"]["calstation"]
