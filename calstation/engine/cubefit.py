@@ -319,26 +319,37 @@ def known_size_fit(
         H = errors.H(res.x)
     cov = _covariance(res, errors, faces, free)
     bias = _bias_bound(res, errors, faces, free, cube.edge_tolerance)
-    random = sigma_from_covariance(cov, free)
-    sigma = {n: math.hypot(v, bias.get(n, 0.0)) if math.isfinite(v) else v
-             for n, v in random.items()}
     return KnownSizeFit(
         H=H,
-        sigma=sigma,
+        sigma=_sigma_with_bias(cov, free, bias),
         covariance=covariance_record(cov, free),
         bias=bias,
-        details={
-            "used": True,
-            "faces": faces.faces,
-            "returns": int(faces.p_L.shape[0]),
-            "range_noise_m": faces.noise,
-            "edge_m": cube.edge,
-            "edge_tolerance_m": cube.edge_tolerance,
-            "rms_range_error_m": float(np.sqrt(np.mean(res.fun**2))),
-            "evaluations": int(res.nfev),
-            "status": str(res.message),
-        },
+        details=_details(res, faces, cube),
     )
+
+
+def _sigma_with_bias(
+    cov: FloatArray | None, free: list[int], bias: dict[str, float]
+) -> dict[str, float]:
+    """1σ per parameter: the covariance's and the bias bound's in quadrature."""
+    random = sigma_from_covariance(cov, free)
+    return {n: math.hypot(v, bias.get(n, 0.0)) if math.isfinite(v) else v
+            for n, v in random.items()}
+
+
+def _details(res: Any, faces: _Faces, cube: CubeGeometry) -> dict[str, Any]:
+    """What a known-size fit reports of itself (``KnownSizeFit.details``)."""
+    return {
+        "used": True,
+        "faces": faces.faces,
+        "returns": int(faces.p_L.shape[0]),
+        "range_noise_m": faces.noise,
+        "edge_m": cube.edge,
+        "edge_tolerance_m": cube.edge_tolerance,
+        "rms_range_error_m": float(np.sqrt(np.mean(res.fun**2))),
+        "evaluations": int(res.nfev),
+        "status": str(res.message),
+    }
 
 
 PLATTER_POINTS = 60_000
@@ -528,25 +539,14 @@ def _range_fit_result(res: Any, errors: _RangeSizeErrors, faces: _Faces, free: l
     n_faces = faces.p_L.shape[0]
     # faces in D (what turns with the cube), the platter in P (what stays with the lidar's rays)
     where = np.vstack([lidar_to_dynamic(model[:n_faces], phi, H), (model[n_faces:] - H.t) @ H.R])
-    full = parameter_covariance(res, list(range(res.x.size)), blocks=block_ids(where, SIGMA_BLOCK))
-    n = len(free)
-    cov = None if full is None else full[:n, :n] * SIGMA_SCALE**2 + model_floor(free)
+    cov = _block_covariance(res, where, free)
     edge = _edge_direction(res, errors, free, cube.edge_tolerance)
     bias = _bias_bound(res, errors, faces, free, cube.edge_tolerance, edge)
-    random = sigma_from_covariance(cov, free)
-    sigma = {k: math.hypot(val, bias.get(k, 0.0)) if math.isfinite(val) else val
-             for k, val in random.items()}
     return KnownSizeFit(
-        H=H, sigma=sigma, covariance=covariance_record(cov, free), bias=bias,
-        edge_direction=edge,
-        details={
-            "used": True, "faces": faces.faces, "returns": int(faces.p_L.shape[0]),
-            "platter_returns": int(platter.shape[0]), "range_noise_m": faces.noise,
-            "edge_m": cube.edge, "edge_tolerance_m": cube.edge_tolerance,
-            "rms_range_error_m": float(np.sqrt(np.mean(res.fun**2))),
-            "evaluations": int(res.nfev), "status": str(res.message),
-            "range_model": [ESTIMATED_NAMES[i] for i in free if i >= OFFSET],
-        },
+        H=H, sigma=_sigma_with_bias(cov, free, bias), covariance=covariance_record(cov, free),
+        bias=bias, edge_direction=edge,
+        details={**_details(res, faces, cube), "platter_returns": int(platter.shape[0]),
+                 "range_model": [ESTIMATED_NAMES[i] for i in free if i >= OFFSET]},
         range_model=RangeModel.from_vector(v),
     )
 
@@ -558,7 +558,14 @@ def _covariance(
     block sandwich × :data:`SIGMA_SCALE` and the model floor."""
     H = errors.H(res.x)
     p_D = lidar_to_dynamic(faces.p_L, np.arctan2(faces.sin, faces.cos), H)
-    full = parameter_covariance(res, list(range(res.x.size)), blocks=block_ids(p_D, SIGMA_BLOCK))
+    return _block_covariance(res, p_D, free)
+
+
+def _block_covariance(res: Any, where: FloatArray, free: list[int]) -> FloatArray | None:
+    """(n, n) covariance of the ``free`` parameters from the fit ``res``, its residuals
+    correlated within the spatial blocks of the points ``where`` (the block sandwich) ×
+    :data:`SIGMA_SCALE`, with the model floor; None when it cannot be computed."""
+    full = parameter_covariance(res, list(range(res.x.size)), blocks=block_ids(where, SIGMA_BLOCK))
     if full is None:
         return None
     n = len(free)
