@@ -190,10 +190,12 @@ def _check_cube_joint(
     ctx.ui.info(f"  {joint_summary(result)}")
     if result.encoder_latency_s is not None:
         # estimated again under the H whose ry the cube changed: the estimate moves a
-        # little with ry (~0.08 ms per 0.1°, docs/algorithms.md)
-        path = ctx.artifact_path("spin")
-        prepared = ctx.prepared.get(path)
-        spin = turned(read_recording(path),
-                      builder=None if prepared is None else prepared.builder)
+        # little with ry (~0.08 ms per 0.1°, docs/algorithms.md); on the whole first pass,
+        # which the spin scan read for the range model keeps beside its cut
+        if spin is None:
+            path = ctx.artifact_path("spin")
+            prepared = ctx.prepared.get(path)
+            spin = turned(read_recording(path),
+                          builder=None if prepared is None else prepared.builder)
         result = with_stored_time_offset(ctx, result, spin, progress, " under the combined H")
     return cubed.check, result, cubed.ry_failure
