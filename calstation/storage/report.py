@@ -264,9 +264,8 @@ def export_calibration(
             f" ± {cal.sigma_encoder_latency_s * 1e3:.3f}")
         title += (f"; lidar–encoder time offset {cal.encoder_latency_s * 1e3:.3f}{sigma_ms} ms "
                   "(encoder time minus lidar time)")
-    ranges = cal.result().range_model if cal.range_offset is not None else None
-    if ranges is not None:
-        title += f"; {ros.range_note(ranges, cal.range_fields())}"
+    if cal.range_offset is not None:
+        title += f"; {ros.range_note(cal.range_fields())}"
     if fmt == "ros2-params":
         return ros.ros2_params_export(H, title, names, parent, cal.range_fields(),
                                       cal.encoder_latency_s)

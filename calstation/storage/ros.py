@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from calstation.engine.frames import Extrinsics, FloatArray
-from calstation.engine.rangemodel import RangeModel
 from calstation.errors import CalstationError
 
 QUATERNION_ORDER = "x y z w (scalar last, as ROS and scipy)"
@@ -247,14 +246,16 @@ def ros2_yaml_export(
     )
 
 
-def range_note(model: RangeModel, fields: Mapping[str, float | None]) -> str:
-    """One sentence of the lidar's range model (DESIGN §9) for the exports that carry it as a
-    comment: its values with their σ, and how to correct a range before using the transform."""
+def range_note(fields: Mapping[str, float | None]) -> str:
+    """One sentence of the lidar's range model (DESIGN §9; a calibration's range fields) for
+    the exports that carry it as a comment: its values with their σ, and how to correct a range
+    before using the transform."""
     from calstation.engine.rangemodel import describe
 
+    offset, scale = fields.get("range_offset") or 0.0, fields.get("range_scale") or 0.0
     return (f"lidar {describe(fields) or 'range model not estimated'}: this transform holds "
             "for ranges corrected as rho = (rho_measured - b) / (1 + k) with b = "
-            f"{model.offset:.9g} m, k = {model.scale:.9g}")
+            f"{float(offset):.9g} m, k = {float(scale):.9g}")
 
 
 def ros2_params_export(
