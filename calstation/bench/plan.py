@@ -410,16 +410,17 @@ def _range_terms(recipe: Any, done: Any) -> dict[str, Any]:
     """The σ of the lidar's range terms the calibration estimated (``range_sigma``, SI; empty
     without a range model), and why they were not measured (``range_problem``, or None)."""
     from calstation.engine.rangemodel import RANGE_NAMES
+    from calstation.pipeline.judgement import range_model_unset
 
     if recipe.calibration.range_model == "none":
         return {"range_sigma": {}, "range_problem": None}
     fields = done.result.range_fields()
     sigma = {n: (math.nan if fields.get(f"sigma_{n}") is None else float(fields[f"sigma_{n}"]))
              for n in RANGE_NAMES if fields.get(n) is not None}
-    problem = next((r for r in done.refused if "range" in r or "disagree" in r), None)
-    if done.cube_check is None and problem is None:
-        problem = ("the lidar's range terms come from the QA cube's known-size fit, and this "
-                   "recipe scans no cube")
+    # not measured: held at the start (no cube scan, or the cube's fit could not be combined,
+    # whose reason the cube stage gives)
+    unset = range_model_unset(done.result)
+    problem = (done.ry_failure or unset) if unset else None
     return {"range_sigma": sigma, "range_problem": problem}
 
 
