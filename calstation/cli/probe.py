@@ -83,7 +83,8 @@ def probe(kind: str, driver_name: str, settings: dict[str, Any],
 
         loaded = load_recipe(recipe)
     context = DriverContext(clock=HostClock(), recipe=loaded)
-    driver = plugins.driver_factory(kind, driver_name)(settings, context)
+    factory = plugins.driver_factory(kind, driver_name)
+    driver: Any = factory(settings, context)  # Any: of the kind the command line names
     try:
         info = _info_of(driver)
         if kind == "lidar":

@@ -12,7 +12,7 @@ time.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from calstation.pipeline.judgement import judge
 from calstation.pipeline.scans import Turned
@@ -22,6 +22,7 @@ from calstation.recipes import Recipe
 if TYPE_CHECKING:
     from calstation.engine.cube import CubeCheck
     from calstation.engine.result import CalibrationResult
+    from calstation.plugins.cost_strategies import Strategy
     from calstation.recordings.recorded import Recording
 
 
@@ -69,7 +70,7 @@ class Calibrated:
 
 
 def calibrate(
-    recipe: Recipe, scans: Scans, strategy: Any, progress: Progress | None = None
+    recipe: Recipe, scans: Scans, strategy: Strategy, progress: Progress | None = None
 ) -> Calibrated:
     """Calibrate from ``scans`` with ``strategy`` and ``recipe``'s settings, as the station
     does (see the module docstring), and judge the result as a run judges it: the

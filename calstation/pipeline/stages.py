@@ -13,11 +13,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from calstation.errors import CalstationError, FineTuningError
 from calstation.pipeline.scans import Turned
-from calstation.plugins.cost_strategies import run_strategy
+from calstation.plugins.cost_strategies import Refits, Strategy, run_strategy
 from calstation.recipes import Recipe
 
 if TYPE_CHECKING:
@@ -90,7 +90,7 @@ class FineTuned:
 
 
 def fine_tune(
-    recipe: Recipe, strategy: Any, begun: Start, spin: Turned, progress: Progress | None = None
+    recipe: Recipe, strategy: Strategy, begun: Start, spin: Turned, progress: Progress | None = None
 ) -> FineTuned:
     """The second stage: ``strategy`` on ``spin`` from ``begun``. From the platter's chord it
     runs from each candidate and keeps the lowest cost (the start, the chord and every
@@ -140,7 +140,7 @@ class CubeChecked:
 
 
 def with_cube(
-    recipe: Recipe, strategy: Any, result: CalibrationResult, cube: Turned,
+    recipe: Recipe, strategy: Strategy, result: CalibrationResult, cube: Turned,
     progress: Progress | None = None, spin: Turned | None = None,
 ) -> CubeChecked:
     """The third stage: the QA cube's scan checked under ``result``; for a spin-target strategy
@@ -161,7 +161,7 @@ def with_cube(
                            range_model=result.range_model)
         return CubeChecked(result, check)
     limit = rc.calibration.max_sigma.ry_deg
-    refit = getattr(strategy, "refit", None)
+    refit = strategy.refit if isinstance(strategy, Refits) else None
     combined, check, failure = combine_with_cube_scan(
         result, cube.recording, rc.fixtures.qa_cube, rc.qa,
         platter_radius=rc.fixtures.platter.radius,

@@ -16,15 +16,31 @@ import importlib
 import os
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Literal, overload
 
 import pluggy
 
 from calstation.errors import PluginError
+from calstation.jsonvalue import JSONObject
 from calstation.plugins import hookspecs
+from calstation.plugins.hookspecs import (
+    DriverFactory,
+    EncoderFactory,
+    LidarFactory,
+    RunBrief,
+    RunSummary,
+    TurntableFactory,
+)
+
+if TYPE_CHECKING:
+    import typer
+
+    from calstation.drivers import DriverContext
+    from calstation.plugins.cost_strategies import Strategy
+    from calstation.plugins.simulation import Simulator
 
 DEFAULT_PLUGINS: tuple[str, ...] = (
     "calstation.plugins.builtin.strategies",
@@ -96,11 +112,16 @@ def load_plugins() -> pluggy.PluginManager:
 
 
 def _enable_tracing(pm: pluggy.PluginManager) -> None:
-    def before(hook_name: str, hook_impls: Any, kwargs: Any) -> None:
+    def before(
+        hook_name: str, hook_impls: Sequence[pluggy.HookImpl], kwargs: Mapping[str, object]
+    ) -> None:
         names = ", ".join(impl.plugin_name for impl in hook_impls)
         print(f"[calstation hook] {hook_name}({', '.join(kwargs)}) → {names}", file=sys.stderr)
 
-    def after(outcome: Any, hook_name: str, hook_impls: Any, kwargs: Any) -> None:
+    def after(
+        outcome: pluggy.Result[object], hook_name: str, hook_impls: Sequence[pluggy.HookImpl],
+        kwargs: Mapping[str, object],
+    ) -> None:
         print(f"[calstation hook] {hook_name} returned {outcome.get_result()!r}", file=sys.stderr)
 
     pm.add_hookcall_monitoring(before, after)
@@ -130,7 +151,7 @@ def isolated(*plugins: object, builtins: bool = True) -> Iterator[pluggy.PluginM
     """
     global _pm, _loaded
     with _lock:
-        saved = (_pm, _loaded, dict(_registry_cache))
+        saved = (_pm, _loaded, _registry_cache.copy())
         pm = pluggy.PluginManager("calstation")
         pm.add_hookspecs(hookspecs)
         _pm, _loaded = pm, True
@@ -149,7 +170,6 @@ def isolated(*plugins: object, builtins: bool = True) -> Iterator[pluggy.PluginM
     finally:
         with _lock:
             _pm, _loaded = saved[0], saved[1]
-            _registry_cache.clear()
             _registry_cache.update(saved[2])
 
 
@@ -191,25 +211,47 @@ class DriverEntry:
 
     kind: str
     name: str
-    factory: Callable[..., Any]
+    factory: DriverFactory
     plugin: str
 
 
-_registry_cache: dict[str, Any] = {}
+@dataclass
+class _Registries:
+    """What the registration hooks gave, built once per plugin manager."""
+
+    drivers: dict[tuple[str, str], DriverEntry] | None = None
+    strategies: dict[str, Strategy] | None = None
+    strategy_plugins: dict[str, str] = field(default_factory=dict)
+    simulators: dict[str, Simulator] | None = None
+
+    def clear(self) -> None:
+        self.drivers = self.strategies = self.simulators = None
+        self.strategy_plugins = {}
+
+    def copy(self) -> _Registries:
+        return _Registries(self.drivers, self.strategies, dict(self.strategy_plugins),
+                           self.simulators)
+
+    def update(self, other: _Registries) -> None:
+        self.drivers, self.strategies = other.drivers, other.strategies
+        self.strategy_plugins, self.simulators = other.strategy_plugins, other.simulators
+
+
+_registry_cache = _Registries()
 
 
 def drivers() -> dict[tuple[str, str], DriverEntry]:
     """Every registered driver, by (kind, name)."""
     with _lock:
-        if "drivers" in _registry_cache:
-            return dict(_registry_cache["drivers"])
+        if _registry_cache.drivers is not None:
+            return dict(_registry_cache.drivers)
         pm = load_plugins()
         found: dict[tuple[str, str], DriverEntry] = {}
         for impl in pm.hook.calstation_register_drivers.get_hookimpls():
             plugin = impl.plugin_name
 
             def register(
-                kind: str, name: str, factory: Callable[..., Any], _plugin: str = plugin
+                kind: str, name: str, factory: DriverFactory, _plugin: str = plugin
             ) -> None:
                 if kind not in DRIVER_KINDS:
                     raise PluginError(
@@ -225,12 +267,29 @@ def drivers() -> dict[tuple[str, str], DriverEntry]:
 
             _trace(f"calstation_register_drivers(register) → {plugin}")
             impl.function(register=register)
-        _registry_cache["drivers"] = found
+        _registry_cache.drivers = found
         return dict(found)
 
 
-def driver_factory(kind: str, name: str) -> Callable[..., Any]:
-    """The factory of driver ``name`` of ``kind``; :class:`PluginError` lists the known ones."""
+@overload
+def driver_factory(kind: Literal["lidar"], name: str) -> LidarFactory: ...
+
+
+@overload
+def driver_factory(kind: Literal["turntable"], name: str) -> TurntableFactory: ...
+
+
+@overload
+def driver_factory(kind: Literal["encoder"], name: str) -> EncoderFactory: ...
+
+
+@overload
+def driver_factory(kind: str, name: str) -> DriverFactory: ...
+
+
+def driver_factory(kind: str, name: str) -> DriverFactory:
+    """The factory of driver ``name`` of ``kind`` (registered under that kind, so typed by it);
+    :class:`PluginError` lists the known ones."""
     entries = drivers()
     if (kind, name) not in entries:
         known = sorted(n for (k, n) in entries if k == kind)
@@ -240,20 +299,20 @@ def driver_factory(kind: str, name: str) -> Callable[..., Any]:
     return entries[(kind, name)].factory
 
 
-def strategies() -> dict[str, Any]:
+def strategies() -> dict[str, Strategy]:
     """Every registered fine-tuning strategy, by name."""
     with _lock:
-        if "strategies" in _registry_cache:
-            return dict(_registry_cache["strategies"])
+        if _registry_cache.strategies is not None:
+            return dict(_registry_cache.strategies)
         from calstation.plugins.cost_strategies import options_model_of
 
         pm = load_plugins()
-        found: dict[str, Any] = {}
+        found: dict[str, Strategy] = {}
         owners: dict[str, str] = {}
         for impl in pm.hook.calstation_register_cost_strategies.get_hookimpls():
             plugin = impl.plugin_name
 
-            def register(strategy: Any, _plugin: str = plugin) -> None:
+            def register(strategy: Strategy, _plugin: str = plugin) -> None:
                 name = getattr(strategy, "name", None)
                 if not isinstance(name, str) or not name:
                     raise PluginError(f"plugin {_plugin} registered a strategy without a name")
@@ -270,8 +329,8 @@ def strategies() -> dict[str, Any]:
 
             _trace(f"calstation_register_cost_strategies(register) → {plugin}")
             impl.function(register=register)
-        _registry_cache["strategies"] = found
-        _registry_cache["strategy_plugins"] = owners
+        _registry_cache.strategies = found
+        _registry_cache.strategy_plugins = owners
         return dict(found)
 
 
@@ -279,11 +338,10 @@ def strategy_plugin(name: str) -> str:
     """The name of the plugin that registered strategy ``name`` (see :func:`strategies`)."""
     strategy(name)
     with _lock:
-        owners: dict[str, str] = _registry_cache.get("strategy_plugins", {})
-        return owners.get(name, "?")
+        return _registry_cache.strategy_plugins.get(name, "?")
 
 
-def strategy(name: str) -> Any:
+def strategy(name: str) -> Strategy:
     """The strategy called ``name``; :class:`PluginError` lists the known ones."""
     found = strategies()
     if name not in found:
@@ -293,18 +351,18 @@ def strategy(name: str) -> Any:
     return found[name]
 
 
-def simulators() -> dict[str, Any]:
+def simulators() -> dict[str, Simulator]:
     """Every registered simulator, by name (see :mod:`calstation.plugins.simulation`)."""
     with _lock:
-        if "simulators" in _registry_cache:
-            return dict(_registry_cache["simulators"])
+        if _registry_cache.simulators is not None:
+            return dict(_registry_cache.simulators)
         pm = load_plugins()
-        found: dict[str, Any] = {}
+        found: dict[str, Simulator] = {}
         owners: dict[str, str] = {}
         for impl in pm.hook.calstation_register_simulators.get_hookimpls():
             plugin = impl.plugin_name
 
-            def register(simulator: Any, _plugin: str = plugin) -> None:
+            def register(simulator: Simulator, _plugin: str = plugin) -> None:
                 name = getattr(simulator, "name", None)
                 if not isinstance(name, str) or not name:
                     raise PluginError(f"plugin {_plugin} registered a simulator without a name")
@@ -317,11 +375,11 @@ def simulators() -> dict[str, Any]:
 
             _trace(f"calstation_register_simulators(register) → {plugin}")
             impl.function(register=register)
-        _registry_cache["simulators"] = found
+        _registry_cache.simulators = found
         return dict(found)
 
 
-def simulator(name: str | None = None) -> Any:
+def simulator(name: str | None = None) -> Simulator:
     """The simulator called ``name`` (default ``sim``, the calstation-sim plugin's);
     :class:`PluginError` says how to install it when there is none."""
     from calstation.plugins.simulation import DEFAULT_SIMULATOR
@@ -337,27 +395,27 @@ def simulator(name: str | None = None) -> Any:
     return found[wanted]
 
 
-def fixture_placed(context: Any, fixture: str, geometry: Any) -> None:
+def fixture_placed(context: DriverContext, fixture: str, geometry: object) -> None:
     """Tell plugins that ``fixture`` is now on the platter."""
     hook = load_plugins().hook
     hook.calstation_fixture_placed(context=context, fixture=fixture, geometry=geometry)
 
 
-def run_started(run: Any) -> None:
+def run_started(run: RunBrief) -> None:
     """Tell observers a run started (or was resumed)."""
     load_plugins().hook.calstation_run_started(run=run)
 
 
-def step_finished(run: Any, step: str, status: str, result: Any) -> None:
+def step_finished(run: RunBrief, step: str, status: str, result: JSONObject) -> None:
     """Tell observers a step finished."""
     load_plugins().hook.calstation_step_finished(run=run, step=step, status=status, result=result)
 
 
-def run_finished(run: Any, status: str, summary: Any) -> None:
+def run_finished(run: RunBrief, status: str, summary: RunSummary) -> None:
     """Tell observers a run ended."""
     load_plugins().hook.calstation_run_finished(run=run, status=status, summary=summary)
 
 
-def register_commands(cli: Any) -> None:
+def register_commands(cli: typer.Typer) -> None:
     """Let plugins add CLI commands."""
     load_plugins().hook.calstation_register_commands(cli=cli)

@@ -16,7 +16,7 @@ import math
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, TypeVar, overload, runtime_checkable
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
@@ -72,6 +72,48 @@ class Strategy(Protocol):
         progress: Progress | None = None,
     ) -> CalibrationResult:
         """Refine ``start`` (frame convention of DESIGN §2) from ``recording``."""
+        ...
+
+
+# The optional capabilities of a strategy, each found with ``isinstance`` (the attribute is
+# there; what it holds is checked where it is used).
+@runtime_checkable
+class HasOptionsModel(Protocol):
+    """A strategy that declares ``options_model``, the pydantic model of its options."""
+
+    options_model: type[BaseModel]
+
+
+@runtime_checkable
+class HasResultBounds(Protocol):
+    """A strategy that declares ``result_bounds``: ``(metres, radians)`` a result may be from
+    its start."""
+
+    result_bounds: tuple[float, float]
+
+
+@runtime_checkable
+class RunsPrepared(Protocol):
+    """A strategy that fine-tunes a :class:`~calstation.engine.spinscan.SpinScan` prepared
+    while it is taken (``run_prepared``): the station may scan until the budget holds."""
+
+    def run_prepared(
+        self, scan: SpinScan, start: Extrinsics, recipe: Recipe, progress: Progress | None = None
+    ) -> CalibrationResult:
+        """:meth:`Strategy.run` on a prepared scan."""
+        ...
+
+
+@runtime_checkable
+class Refits(Protocol):
+    """A spin-target strategy that runs again from a combined estimate holding its range terms
+    (``refit``): the cube step lets the spin target follow the range model the cube set."""
+
+    def refit(
+        self, scan: SpinScan, start: CalibrationResult, recipe: Recipe,
+        progress: Progress | None = None,
+    ) -> CalibrationResult:
+        """The fine-tuning again from ``start``, holding its range terms."""
         ...
 
 
@@ -166,7 +208,7 @@ class ShapeStrategy:
         """See :func:`calstation.engine.shape.shape_fine_tune`."""
         from calstation.engine.shape import shape_fine_tune
 
-        options = strategy_options(self, recipe)
+        options = strategy_options(self, recipe, ShapeOptions)
         return shape_fine_tune(
             recording,
             start,
@@ -188,7 +230,7 @@ class ShapeStrategy:
         """:meth:`run` on a scan prepared while it is taken."""
         from calstation.engine.shape import shape_fine_tune_points
 
-        options = strategy_options(self, recipe)
+        options = strategy_options(self, recipe, ShapeOptions)
         return shape_fine_tune_points(
             scan.p_L, scan.phi, start, recipe.fixtures.qa_cube, recipe.calibration.shape,
             platter_radius=recipe.fixtures.platter.radius, box=options.box,
@@ -210,12 +252,14 @@ OptionProblem = tuple[tuple[int | str, ...], str]
 """A problem in a recipe's strategy options: the field path in the recipe and the message."""
 
 
-def options_model_of(strategy: Any) -> type[BaseModel] | None:
+def options_model_of(strategy: object) -> type[BaseModel] | None:
     """The strategy's ``options_model`` (a pydantic model class), None when it declares none.
 
     Raises :class:`PluginError` when the attribute is there but is not a pydantic model class.
     """
-    model = getattr(strategy, "options_model", None)
+    if not isinstance(strategy, HasOptionsModel):
+        return None
+    model: object = strategy.options_model
     if model is None:
         return None
     if not (isinstance(model, type) and issubclass(model, BaseModel)):
@@ -227,7 +271,7 @@ def options_model_of(strategy: Any) -> type[BaseModel] | None:
 
 
 def option_problems(
-    name: str, model: type[BaseModel] | None, options: Mapping[str, Any]
+    name: str, model: type[BaseModel] | None, options: Mapping[str, object]
 ) -> list[OptionProblem]:
     """Problems of ``calibration.options[name]`` against ``model`` (none when it is None)."""
     if model is None:
@@ -245,14 +289,26 @@ def option_problems(
     return []
 
 
-def strategy_options(strategy: Any, recipe: Recipe, model: type[M] | None = None) -> Any:
+@overload
+def strategy_options(strategy: Strategy, recipe: Recipe, model: type[M]) -> M: ...
+
+
+@overload
+def strategy_options(
+    strategy: Strategy, recipe: Recipe, model: None = None
+) -> BaseModel | dict[str, object]: ...
+
+
+def strategy_options(
+    strategy: Strategy, recipe: Recipe, model: type[M] | None = None
+) -> BaseModel | dict[str, object]:
     """The validated ``calibration.options[strategy.name]`` of ``recipe``.
 
-    An instance of the strategy's ``options_model`` (or of ``model`` when given); the raw
-    mapping when the strategy declares no model. A problem raises
-    :class:`~calstation.errors.FineTuningError` naming the option.
+    An instance of ``model`` when given (the strategy's own ``options_model``, typed), else of
+    the strategy's ``options_model``; the raw mapping when the strategy declares no model. A
+    problem raises :class:`~calstation.errors.FineTuningError` naming the option.
     """
-    raw = dict(recipe.calibration.options.get(strategy.name, {}))
+    raw: dict[str, object] = dict(recipe.calibration.options.get(strategy.name, {}))
     cls = model or options_model_of(strategy)
     if cls is None:
         return raw
@@ -263,7 +319,9 @@ def strategy_options(strategy: Any, recipe: Recipe, model: type[M] | None = None
     return cls.model_validate(raw)
 
 
-def recipe_option_problems(recipe: Recipe, strategies: Mapping[str, Any]) -> list[OptionProblem]:
+def recipe_option_problems(
+    recipe: Recipe, strategies: Mapping[str, Strategy]
+) -> list[OptionProblem]:
     """Every problem of the recipe's ``calibration.options`` against the registered
     ``strategies`` (by name) that declare an ``options_model``; unknown strategy names are left
     to the caller."""
@@ -283,7 +341,7 @@ result that is no calibration of this station (a plugin's ry of 90°, tx of 760 
 
 
 def check_result(
-    strategy: Any, result: Any, start: Extrinsics
+    strategy: Strategy, result: object, start: Extrinsics
 ) -> tuple[CalibrationResult, list[str]]:
     """Validate what a strategy's ``run`` returned; returns (result, warnings).
 
@@ -300,7 +358,8 @@ def check_result(
         raise FineTuningError(
             f"strategy {name!r} returned {type(result).__name__}, not a CalibrationResult"
         )
-    bound_t, bound_r = getattr(strategy, "result_bounds", DEFAULT_RESULT_BOUNDS)
+    bound_t, bound_r = (strategy.result_bounds if isinstance(strategy, HasResultBounds)
+                        else DEFAULT_RESULT_BOUNDS)
     new, old = result.H.as_dict(), start.as_dict()
     warnings: list[str] = []
     for p in PARAMETER_NAMES:
@@ -332,7 +391,7 @@ def _shown(p: str, v: float) -> str:
 
 
 def run_strategy(
-    strategy: Any,
+    strategy: Strategy,
     recording: Recording | None,
     start: Extrinsics,
     recipe: Recipe,
@@ -361,18 +420,18 @@ def run_strategy(
 
 
 def strategy_result(
-    strategy: Any,
+    strategy: Strategy,
     recording: Recording | None,
     start: Extrinsics,
     recipe: Recipe,
     progress: Progress | None = None,
     *,
     prepared: SpinScan | None = None,
-) -> Any:
+) -> CalibrationResult:
     """The strategy's own result, unchecked (the bench measures what a strategy returns): on
     ``prepared`` with ``run_prepared`` when both are there (its errors naming the recording as
     ``run``'s do), else on ``recording``. :func:`run_strategy` checks it."""
-    if prepared is not None and hasattr(strategy, "run_prepared"):
+    if prepared is not None and isinstance(strategy, RunsPrepared):
         try:
             return strategy.run_prepared(prepared, start, recipe, progress)
         except FineTuningError as exc:
@@ -384,4 +443,6 @@ def strategy_result(
             f"strategy {getattr(strategy, 'name', strategy)!r} cannot fine-tune a scan still "
             "being taken (it has no run_prepared)"
         )
-    return strategy.run(recording, start, recipe, progress)
+    # the recording as the caller gave it (a strategy's own test may pass none at all)
+    run: Callable[..., CalibrationResult] = strategy.run
+    return run(recording, start, recipe, progress)

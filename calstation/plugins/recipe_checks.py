@@ -11,9 +11,9 @@ validate`` (unless ``--no-plugins``) and the station, before a run starts or res
 from __future__ import annotations
 
 import importlib
-from typing import Any
+from typing import Protocol, runtime_checkable
 
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from calstation import plugins
 from calstation.errors import PluginError, RecipeError
@@ -23,11 +23,22 @@ from calstation.recipes.recipe import LoadedRecipe, Recipe
 from calstation.yamlsafe import load_yaml
 
 
-def settings_model_of(factory: object) -> Any:
+@runtime_checkable
+class DeclaresSettings(Protocol):
+    """A driver factory that declares ``settings_model``: the pydantic model of its settings,
+    or that model's import path ``"package.module:Class"``."""
+
+    settings_model: type[BaseModel] | str
+
+
+def settings_model_of(factory: object) -> type[BaseModel] | None:
     """The pydantic model a driver factory declares for its ``settings`` (None if none): its
     ``settings_model``, given as the class or, so that registering costs no import, as the
-    class's import path ``"package.module:Class"`` (imported here, when a recipe is checked)."""
-    model = getattr(factory, "settings_model", None)
+    class's import path ``"package.module:Class"`` (imported here, when a recipe is checked).
+    :class:`PluginError` when it cannot be imported or is not a pydantic model class."""
+    if not isinstance(factory, DeclaresSettings):
+        return None
+    model: object = factory.settings_model
     if isinstance(model, str):
         module, _, name = model.partition(":")
         try:
@@ -37,6 +48,13 @@ def settings_model_of(factory: object) -> Any:
                 f"the driver factory {factory!r} declares settings_model {model!r}, which cannot "
                 f"be imported: {exc}"
             ) from exc
+    if model is None:
+        return None
+    if not (isinstance(model, type) and issubclass(model, BaseModel)):
+        raise PluginError(
+            f"the driver factory {factory!r} declares settings_model {model!r}, which is not a "
+            "pydantic model class"
+        )
     return model
 
 

@@ -32,7 +32,7 @@ import threading
 import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -55,6 +55,16 @@ DEFAULT_RECORDINGS: dict[str, str] = {
     "qa_cube": "cube.mcap",
 }
 SETTINGS = ("path", "realtime", "recordings")
+
+
+@runtime_checkable
+class ResolvesPaths(Protocol):
+    """A recipe that resolves the paths it names against its folder (a
+    :class:`~calstation.recipes.LoadedRecipe`, which this layer does not import)."""
+
+    def resolve(self, relative: str) -> Path:
+        """``relative`` against the recipe's folder."""
+        ...
 
 
 class ReplayClock:
@@ -396,7 +406,7 @@ class ReplayEncoder:
 
 
 # --- factories and hooks -------------------------------------------------------------------
-def _session(settings: Mapping[str, Any], context: DriverContext, kind: str) -> ReplaySession:
+def _session(settings: Mapping[str, object], context: DriverContext, kind: str) -> ReplaySession:
     unknown = sorted(set(settings) - set(SETTINGS))
     if unknown:
         raise DriverError(
@@ -417,9 +427,9 @@ def _session(settings: Mapping[str, Any], context: DriverContext, kind: str) -> 
     ):
         raise DriverError(f"replay {kind}: setting 'recordings' must map fixture names to files")
     path = Path(raw)
-    resolve = getattr(context.recipe, "resolve", None)
-    if not path.is_absolute() and callable(resolve):
-        path = Path(resolve(str(path)))
+    recipe = context.recipe
+    if not path.is_absolute() and isinstance(recipe, ResolvesPaths):
+        path = Path(recipe.resolve(str(path)))
     sessions: dict[str, ReplaySession] = context.shared.setdefault("replay", {})
     key = str(path.resolve())
     if key not in sessions:
@@ -427,16 +437,16 @@ def _session(settings: Mapping[str, Any], context: DriverContext, kind: str) -> 
     return sessions[key]
 
 
-def replay_lidar(settings: Mapping[str, Any], context: DriverContext) -> ReplayLidar:
+def replay_lidar(settings: Mapping[str, object], context: DriverContext) -> ReplayLidar:
     """Factory of the ``replay`` lidar."""
     return ReplayLidar(_session(settings, context, "lidar"))
 
 
-def replay_turntable(settings: Mapping[str, Any], context: DriverContext) -> ReplayTurntable:
+def replay_turntable(settings: Mapping[str, object], context: DriverContext) -> ReplayTurntable:
     """Factory of the ``replay`` turntable."""
     return ReplayTurntable(_session(settings, context, "turntable"))
 
 
-def replay_encoder(settings: Mapping[str, Any], context: DriverContext) -> ReplayEncoder:
+def replay_encoder(settings: Mapping[str, object], context: DriverContext) -> ReplayEncoder:
     """Factory of the ``replay`` encoder."""
     return ReplayEncoder(_session(settings, context, "encoder"))

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from calstation import plugins
 from calstation.errors import StationError
@@ -19,6 +19,7 @@ from calstation.storage.db import Calibration, Database
 
 if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
+    from calstation.plugins.cost_strategies import Strategy
 
 
 @dataclass
@@ -81,7 +82,7 @@ class RunContext:
             raise StationError("the drivers are not open")
         return self.drivers
 
-    def strategy(self) -> Any:
+    def strategy(self) -> Strategy:
         """The recipe's fine-tuning strategy (the plugin registry's)."""
         return plugins.strategy(self.recipe.calibration.strategy)
 

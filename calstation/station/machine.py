@@ -36,10 +36,12 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 from transitions import Machine
 
+from calstation import plugins
 from calstation.errors import AbortRun, CalstationError, DatabaseError, StationError
 from calstation.recipes import LoadedRecipe
 from calstation.station import persist, stored
@@ -50,7 +52,6 @@ from calstation.station.observers import (
     RunEnded,
     default_observers,
     notify,
-    run_brief_from,
     tell_observers,
 )
 from calstation.station.operator import Operator, publish
@@ -72,8 +73,7 @@ RETRY_FROM: dict[str, str] = {"fine_tune": "place_spin_target"}
 """Where a retry of a failed step starts: a fine-tuning refused for what its scan could see
 is retried by re-placing the spin target and scanning again, not by re-reading the same scan."""
 
-__all__ = ["RETRY_FROM", "SCAN_PLACEMENT", "STATES", "Station", "next_in_order",
-           "run_brief_from"]
+__all__ = ["RETRY_FROM", "SCAN_PLACEMENT", "STATES", "Station", "next_in_order"]
 
 
 def next_in_order(step: str, steps: tuple[str, ...] = STEPS) -> str:
@@ -177,7 +177,8 @@ class Station:
         first = self._first_step()
         persist.mark_running(self.db, self.run_id)
         preload_engine()
-        notify(self.ui, "run_started", run=stored.brief(self.db, self.run_id))
+        notify(self.ui, "run_started",
+               partial(plugins.run_started, stored.brief(self.db, self.run_id)))
         self.ctx.drivers = open_drivers(self.ctx.loaded)
         self.trigger("begin", first)
 
@@ -261,10 +262,11 @@ class Station:
         )
         failed = {"error": message, **plain(getattr(exc, "details", {}))}
         persist.end_step(self.ctx, step_id, StepStatus.FAILED, failed, message, StepOutcome({}))
-        publish(self.ui, "step_finished", step=step, attempt=attempt, status="failed",
+        publish(self.ui, "step_finished", step=step, attempt=attempt, status=StepStatus.FAILED,
                 result={"error": message}, error=message)
-        notify(self.ui, "step_finished", run=stored.brief(self.db, self.run_id), step=step,
-               status="failed", result={"error": message})
+        notify(self.ui, "step_finished", partial(
+            plugins.step_finished, stored.brief(self.db, self.run_id), step, StepStatus.FAILED,
+            {"error": message}))
         self.trigger("fail")
         return message
 
@@ -274,17 +276,19 @@ class Station:
         assert outcome.failure is not None
         persist.end_step(self.ctx, step_id, StepStatus.FAILED, outcome.result, outcome.failure,
                          outcome)
-        notify(self.ui, "step_finished", run=stored.brief(self.db, self.run_id), step=step,
-               status="failed", result=outcome.result)
+        notify(self.ui, "step_finished", partial(
+            plugins.step_finished, stored.brief(self.db, self.run_id), step, StepStatus.FAILED,
+            outcome.result))
         self.trigger("refuse")
 
     def _step_passed(self, step: str, step_id: int, attempt: int, outcome: StepOutcome) -> None:
         """Store and announce a passed step."""
         persist.end_step(self.ctx, step_id, StepStatus.PASSED, outcome.result, None, outcome)
-        publish(self.ui, "step_finished", step=step, attempt=attempt, status="passed",
+        publish(self.ui, "step_finished", step=step, attempt=attempt, status=StepStatus.PASSED,
                 result=plain(outcome.result), error=None)
-        notify(self.ui, "step_finished", run=stored.brief(self.db, self.run_id), step=step,
-               status="passed", result=outcome.result)
+        notify(self.ui, "step_finished", partial(
+            plugins.step_finished, stored.brief(self.db, self.run_id), step, StepStatus.PASSED,
+            outcome.result))
 
     # --- the end -----------------------------------------------------------------------------
     def _verdict(self, report: StepOutcome | None) -> _End:

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 from calstation import plugins
 from calstation.errors import CalstationError
+from calstation.plugins.hookspecs import run_brief_payload, run_summary_payload
 from calstation.station.operator import Operator
 from calstation.storage.db import Database, RunStatus
 
@@ -30,26 +32,21 @@ class RunEnded:
     run_id: int
     status: RunStatus
     error: str | None
-    summary: dict[str, Any]
+    summary: dict[str, Any]  # Any: storage's run mapping (as the operator's summary takes it)
 
 
 EndObserver = Callable[[RunEnded], None]
 """Told of a run's end once it is stored; what it raises is a warning to the operator."""
 
 
-def notify(ui: Operator, hook: str, **kwargs: Any) -> None:
-    """Call a plugin observer hook (``run_started``, ``step_finished``, ``run_finished``); an
-    observer's exception is a warning, never a failed run."""
+def notify(ui: Operator, hook: str, call: Callable[[], None]) -> None:
+    """Call a plugin observer hook (``call``, the ``hook`` of :mod:`calstation.plugins` with
+    its payload: ``run_started``, ``step_finished``, ``run_finished``); an observer's exception
+    is a warning, never a failed run."""
     try:
-        getattr(plugins, hook)(**kwargs)
+        call()
     except Exception as exc:
         ui.warn(f"a plugin's {hook} observer failed: {type(exc).__name__}: {exc}")
-
-
-def run_brief_from(summary: dict[str, Any]) -> dict[str, Any]:
-    """The brief part of a summary (without steps and results)."""
-    return {k: v for k, v in summary.items()
-            if k not in ("steps", "calibrations", "cube_check", "artifacts")}
 
 
 def report_html(db: Database, ui: Operator) -> EndObserver:
@@ -70,8 +67,9 @@ def plugin_hooks(ui: Operator) -> EndObserver:
     """The plugins' ``run_finished`` hook."""
 
     def tell_plugins(ended: RunEnded) -> None:
-        notify(ui, "run_finished", run=run_brief_from(ended.summary), status=str(ended.status),
-               summary=ended.summary)
+        notify(ui, "run_finished", partial(
+            plugins.run_finished, run_brief_payload(ended.summary), str(ended.status),
+            run_summary_payload(ended.summary)))
 
     return tell_plugins
 

@@ -17,8 +17,9 @@ import getpass
 import math
 import os
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol
+from typing import Any, Literal, Protocol, runtime_checkable
 
 from calstation import display
 from calstation.display import fixture_name
@@ -28,7 +29,7 @@ ProgressCallback = Callable[[str, float], None]
 
 Decision = Literal["retry", "abort"]
 
-def placement_prompt(fixture: str, geometry: Any) -> str:
+def placement_prompt(fixture: str, geometry: object) -> str:
     """What the operator is asked at a placement, in words, from the recipe's ``geometry`` of
     ``fixture`` (a ``fixtures`` key): where its centre goes and how it is turned, as the
     placement drawing shows it."""
@@ -92,19 +93,18 @@ class StationEvent:
     """
 
     kind: str
-    data: dict[str, Any] = field(default_factory=dict)
+    data: dict[str, Any] = field(default_factory=dict)  # Any: each kind's fields, listed above
 
 
-def publish(ui: Operator, kind: str, /, **data: Any) -> None:
+def publish(ui: Operator, kind: str, /, **data: object) -> None:
     """Give ``ui`` the event ``kind`` if it listens (an ``event(StationEvent)`` method).
 
     Listening is optional so that a minimal operator (a script, a test) needs only the
     :class:`Operator` methods. An exception from the listener propagates: that is how a front
     end aborts a run mid-step (it raises ``AbortRun``).
     """
-    listener = getattr(ui, "event", None)
-    if listener is not None:
-        listener(StationEvent(kind, data))
+    if isinstance(ui, ListensToEvents):
+        ui.event(StationEvent(kind, data))
 
 
 class Operator(Protocol):
@@ -130,17 +130,33 @@ class Operator(Protocol):
         """A step failed: retry it, or abort the run."""
         ...
 
-    def progress(self, title: str) -> Any:
+    def progress(self, title: str) -> AbstractContextManager[ProgressCallback]:
         """A context manager yielding a :data:`ProgressCallback` for one long step."""
         ...
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: dict[str, Any]) -> None:  # Any: storage's run mapping
         """Show the run's final PASS/FAIL summary (``summary`` as from ``report.run_summary``)."""
         ...
 
-    # Optional: ``def event(self, event: StationEvent) -> None`` receives every
-    # :class:`StationEvent` (see :func:`publish`); ``previews = True`` asks for the
-    # ``outline`` and ``cloud`` events too.
+    # Optional: :class:`ListensToEvents` and :class:`WantsPreviews`.
+
+
+@runtime_checkable
+class ListensToEvents(Protocol):
+    """An operator that listens to the run's events: ``event`` receives every
+    :class:`StationEvent` (see :func:`publish`)."""
+
+    def event(self, event: StationEvent) -> None:
+        """One event of the run."""
+        ...
+
+
+@runtime_checkable
+class WantsPreviews(Protocol):
+    """An operator whose ``previews`` is True asks for the ``outline`` and ``cloud`` events
+    too."""
+
+    previews: bool
 
 
 def default_operator() -> str:

@@ -12,13 +12,15 @@ from __future__ import annotations
 
 import os
 import socket
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import select
 
+from calstation.jsonvalue import JSONObject
 from calstation.recordings.runfolder import file_sha256
 from calstation.station.context import RunContext
-from calstation.station.outcome import StepOutcome, plain
+from calstation.station.hardware import MotorStop
+from calstation.station.outcome import CubeMeasurements, StepOutcome, plain
 from calstation.station.stored import attempts
 from calstation.storage.db import (
     Calibration,
@@ -32,6 +34,9 @@ from calstation.storage.db import (
     utcnow,
 )
 from calstation.storage.report import run_summary
+
+if TYPE_CHECKING:
+    from calstation.engine.result import CalibrationResult
 
 
 def begin_step(db: Database, run_id: int, step: str) -> tuple[int, int]:
@@ -48,7 +53,7 @@ def end_step(
     ctx: RunContext,
     step_id: int,
     status: StepStatus,
-    result: dict[str, Any],
+    result: JSONObject,
     error: str | None,
     outcome: StepOutcome,
 ) -> None:
@@ -104,7 +109,9 @@ def mark_running(db: Database, run_id: int) -> None:
         run.pid = os.getpid()
 
 
-def end_run(ctx: RunContext, status: RunStatus, error: str | None) -> dict[str, Any]:
+def end_run(
+    ctx: RunContext, status: RunStatus, error: str | None
+) -> dict[str, Any]:  # Any: storage's run mapping (calstation.storage.report.run_summary)
     """Store the run's end (journalled if the database fails: then DatabaseError is raised) and
     read back its summary (:func:`calstation.storage.report.run_summary`)."""
     journal.store(ctx.db, ctx.run_dir, journal.run_end(ctx.run_id, status, error),
@@ -112,23 +119,25 @@ def end_run(ctx: RunContext, status: RunStatus, error: str | None) -> dict[str, 
     with ctx.db.session("reading the run", read_only=True) as s:
         run = s.get(Run, ctx.run_id)
         assert run is not None
-        summary: dict[str, Any] = run_summary(run)
-        return summary
+        return run_summary(run)
 
 
-def store_motor_stop(ctx: RunContext, record: dict[str, Any]) -> None:
+def store_motor_stop(ctx: RunContext, record: MotorStop) -> None:
     """Store how the motor stopped (``run.motor_stop``); journalled (DatabaseError raised) when
     the database fails."""
-    journal.store(ctx.db, ctx.run_dir, journal.motor_stop(ctx.run_id, record),
+    journal.store(ctx.db, ctx.run_dir, journal.motor_stop(ctx.run_id, dict(record)),
                   "how the motor stopped")
 
 
-def calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> Calibration:
+def calibration_row(
+    run_id: int, step_id: int | None, stage: str, res: CalibrationResult
+) -> Calibration:
     """The ``calibration`` row of a result ``res`` (a
     :class:`~calstation.engine.result.CalibrationResult`) of ``stage``, not accepted."""
     H = res.H.as_dict()
     sigma = {k: plain(float(v)) for k, v in res.sigma.items()}
     diagnostics = plain(dict(res.diagnostics))
+    predicted = diagnostics.get("predicted_error")
     if res.timings:
         diagnostics["timings"] = plain(dict(res.timings))
     return Calibration(
@@ -140,9 +149,9 @@ def calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> C
         **{f"sigma_{p}": sigma.get(p) for p in H},
         cost=plain(float(res.cost)),
         iterations=int(res.iterations),
-        encoder_latency_s=plain(getattr(res, "encoder_latency_s", None)),
-        sigma_encoder_latency_s=plain(getattr(res, "sigma_encoder_latency_s", None)),
-        predicted_error_m=plain((diagnostics.get("predicted_error") or {}).get("max_m")),
+        encoder_latency_s=plain(res.encoder_latency_s),
+        sigma_encoder_latency_s=plain(res.sigma_encoder_latency_s),
+        predicted_error_m=plain(predicted.get("max_m")) if isinstance(predicted, dict) else None,
         **{k: plain(v) for k, v in res.range_fields().items()},
         accepted=False,
         diagnostics=diagnostics,
@@ -150,14 +159,14 @@ def calibration_row(run_id: int, step_id: int | None, stage: str, res: Any) -> C
 
 
 def cube_row(
-    run_id: int, step_id: int, cal_id: int | None, c: dict[str, Any]
+    run_id: int, step_id: int, cal_id: int | None, c: CubeMeasurements
 ) -> CubeCheckRecord:
     """The ``cube_check`` row of a cube check ``c`` (as the cube scan's result holds it) made
     with calibration ``cal_id`` (None: the calibration stored with the same step)."""
 
     def number(key: str) -> float:
         v = c.get(key)
-        return float("nan") if v is None else float(v)
+        return float("nan") if not isinstance(v, int | float) else float(v)
 
     return CubeCheckRecord(
         run_id=run_id,

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import NotRequired, TypedDict
 
 from calstation.engine.accuracy import PredictedError
 from calstation.engine.result import CalibrationResult
@@ -32,6 +32,30 @@ class TurnFit:
     """the recording's first lines the fit saw (those prepared when its turn was complete)"""
 
 
+class FitRecord(TypedDict):
+    """One fit of a scan under way, as its summary keeps it (m, s)."""
+
+    turns: int
+    predicted_error_m: float
+    seconds: float
+    lines: NotRequired[int | None]
+    """absent from a summary stored before the fits kept their lines"""
+
+
+class TurnsSummary(TypedDict):
+    """What a scan that went on turn by turn did (:meth:`~calstation.station.turns.TurnByTurn.
+    summary`), stored as the scan step's ``turn_by_turn``: why it stopped (``budget``,
+    ``turns``, ``time``), the budget (m), the most turns, each fit and each failed one, and the
+    whole turns scanned once it ended."""
+
+    stopped: str
+    budget_m: float
+    max_revolutions: float
+    fits: list[FitRecord]
+    failed_fits: list[str]
+    whole_turns: NotRequired[int]
+
+
 @dataclass(frozen=True)
 class ScanTurns:
     """What a scan that went on turn by turn did: the fit that met the budget (None when none
@@ -39,7 +63,7 @@ class ScanTurns:
     :meth:`~calstation.station.turns.TurnByTurn.summary`."""
 
     fit: TurnFit | None
-    summary: dict[str, Any]
+    summary: TurnsSummary
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from sqlalchemy import select
@@ -36,9 +36,12 @@ from calstation.engine.reconstruct import platter_cloud
 from calstation.engine.settings import CubeGeometry, LTargetGeometry
 from calstation.recipes import FrustumGeometry, Recipe, frustum_outline
 from calstation.station.context import RunContext
-from calstation.station.operator import Operator, publish
+from calstation.station.operator import Operator, WantsPreviews, publish
 from calstation.station.stored import latest_calibration
 from calstation.storage.db import Calibration, Run
+
+if TYPE_CHECKING:
+    from calstation.engine.spinscan import SpinScanBuilder
 
 OUTLINE_PERIOD_S = 0.5
 """At most this often the outline is published (as often as the web station shows a line)."""
@@ -57,7 +60,7 @@ STAGE_WORDS = {"initial": "the initial calibration", "fine": "the fine-tuned cal
 
 def wants_previews(ui: Operator) -> bool:
     """Whether ``ui`` shows previews (an operator's optional ``previews`` attribute)."""
-    return bool(getattr(ui, "previews", False))
+    return isinstance(ui, WantsPreviews) and bool(ui.previews)
 
 
 def preview_calibration(ctx: RunContext) -> tuple[Extrinsics | None, str]:
@@ -126,7 +129,9 @@ class ScanPreview:
     ``builder`` is the scan's :class:`~calstation.engine.spinscan.SpinScanBuilder` (platter
     angles and returns), None for a static scan or a second pass."""
 
-    def __init__(self, ctx: RunContext, kind: str, builder: Any, revolutions: float) -> None:
+    def __init__(
+        self, ctx: RunContext, kind: str, builder: SpinScanBuilder | None, revolutions: float
+    ) -> None:
         self.ui, self.kind, self.builder = ctx.ui, kind, builder
         self.H, self.source = preview_calibration(ctx)
         platter = ctx.recipe.fixtures.platter

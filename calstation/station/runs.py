@@ -19,7 +19,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from types import FrameType
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -40,7 +40,9 @@ from calstation.station.operator import Operator
 from calstation.storage.db import (
     Database,
     Run,
+    RunStatus,
     Step,
+    StepStatus,
     calstation_home,
     get_or_create_station,
     journal,
@@ -192,7 +194,7 @@ def create_run(
             unit_serial=serial,
             unattended=unattended,
             data_dir="",
-            status="running",
+            status=RunStatus.RUNNING,
         )
         s.add(run)
         s.flush()
@@ -230,7 +232,7 @@ def resumable_run(session: Session, run_id: int, force: bool) -> Run:
     run = find_run(session, run_id)
     if run is None:
         raise StationError(f"no run {run_id} in the database")
-    if run.status == "passed":
+    if run.status == RunStatus.PASSED:
         raise StationError(f"run {run_id} already passed; nothing to resume")
     _check_not_running_elsewhere(run, force)
     return run
@@ -238,7 +240,7 @@ def resumable_run(session: Session, run_id: int, force: bool) -> Run:
 
 def _check_not_running_elsewhere(run: Run, force: bool) -> None:
     """Refuse to resume a run another live process is executing (two processes, one motor)."""
-    if run.status != "running" or force or run.pid is None:
+    if run.status != RunStatus.RUNNING or force or run.pid is None:
         return
     if run.host == socket.gethostname():
         if run.pid != os.getpid() and process_alive(run.pid):
@@ -303,7 +305,7 @@ def prepare_resume(run_id: int, db: Database, ui: Operator, *, front_end: str,
 def _signals_abort() -> Iterator[None]:
     """SIGTERM aborts the run like Ctrl-C (so the motor is stopped and the run recorded)."""
 
-    def handler(signum: int, frame: Any) -> None:
+    def handler(signum: int, frame: FrameType | None) -> None:
         raise AbortRun(f"aborted by signal {signal.Signals(signum).name}")
 
     try:
@@ -318,7 +320,8 @@ def _signals_abort() -> Iterator[None]:
 
 
 def wait_for_step(
-    db: Database, run_id: int, step: str, timeout_s: float = 60.0, status: str = "running"
+    db: Database, run_id: int, step: str, timeout_s: float = 60.0,
+    status: StepStatus = StepStatus.RUNNING,
 ) -> bool:
     """Poll until ``step`` of ``run_id`` has an attempt with ``status`` (for tests and tools)."""
     deadline = time.monotonic() + timeout_s

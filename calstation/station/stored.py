@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 from sqlalchemy import select
 
 from calstation.errors import CalstationError, StationError
+from calstation.plugins.hookspecs import RunBrief, run_brief_payload
 from calstation.recordings.shared import SharedStorageError, StoredFile, local_copy
 from calstation.storage.db import (
     Artifact,
@@ -142,9 +143,9 @@ def cube_failure(db: Database, run_id: int) -> str | None:
         return "cube check failed: " + "; ".join(str(f) for f in check.failures)
 
 
-def brief(db: Database, run_id: int) -> dict[str, Any]:
+def brief(db: Database, run_id: int) -> RunBrief:
     """The run as the observer hooks see it (:func:`calstation.storage.report.run_brief`)."""
     with db.session() as s:
         run = s.get(Run, run_id)
         assert run is not None
-        return run_brief(run)
+        return run_brief_payload(run_brief(run))

@@ -22,15 +22,15 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any
 
 from calstation import display
 from calstation.engine.accuracy import PredictedError
 from calstation.engine.result import CalibrationResult
 from calstation.engine.spinscan import SpinScan, SpinScanBuilder
+from calstation.plugins.cost_strategies import RunsPrepared
 from calstation.station.context import RunContext
 from calstation.station.operator import Operator, publish
-from calstation.station.prepared import ScanTurns, TurnFit
+from calstation.station.prepared import FitRecord, ScanTurns, TurnFit, TurnsSummary
 
 Fit = Callable[[SpinScan], tuple[CalibrationResult, PredictedError]]
 """``fit(scan so far)``: the calibration from it and its predicted error."""
@@ -138,25 +138,27 @@ class TurnByTurn:
         self._pool.shutdown(wait=True)
         return ScanTurns(self.met, {**self.summary(), "whole_turns": whole_turns})
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> TurnsSummary:
         """What the scan did, for the step's stored result."""
         return {
             "stopped": self.stopped,
             "budget_m": self.budget_m,
             "max_revolutions": self.max_revolutions,
-            "fits": [{"turns": f.turns, "predicted_error_m": f.predicted.max_m,
-                      "seconds": f.seconds, "lines": f.lines} for f in self.fits],
+            "fits": [FitRecord(turns=f.turns, predicted_error_m=f.predicted.max_m,
+                               seconds=f.seconds, lines=f.lines) for f in self.fits],
             "failed_fits": list(self.failures),
         }
 
 
-def turns_fitted(summary: dict[str, Any] | None) -> tuple[int, int | None] | None:
+def turns_fitted(summary: TurnsSummary | None) -> tuple[int, int | None] | None:
     """(the whole turns, the recording's first lines) of the fit a scan stopped on, from its
     stored ``turn_by_turn`` :meth:`TurnByTurn.summary` (its fits end with the one that met the
     budget; the lines are None in a summary stored without them); None when the scan did not
     stop on the budget (every whole turn of its recording counts)."""
-    fits = (summary or {}).get("fits") or []
-    if (summary or {}).get("stopped") != "budget" or not fits:
+    if summary is None:
+        return None
+    fits = summary.get("fits") or []
+    if summary.get("stopped") != "budget" or not fits:
         return None
     lines = fits[-1].get("lines")
     return int(fits[-1]["turns"]), None if lines is None else int(lines)
@@ -172,7 +174,7 @@ def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnBy
     cfg = getattr(ctx.recipe.steps, scan)
     strategy = ctx.strategy()
     most = most_turns(ctx.recipe, scan)
-    if (most <= cfg.revolutions or not hasattr(strategy, "run_prepared")
+    if (most <= cfg.revolutions or not isinstance(strategy, RunsPrepared)
             or ctx.recipe.calibration.start != "l_target"):
         return None
     from calstation.pipeline.judgement import with_prediction

@@ -7,29 +7,33 @@ builds one, so that registering them costs nothing at start-up.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation import hookimpl
 from calstation.plugins.hookspecs import RegisterDriver
 
+if TYPE_CHECKING:
+    from calstation.drivers import DriverContext
+    from calstation.recordings.replay import ReplayEncoder, ReplayLidar, ReplayTurntable
+
 DRIVER_NAME = "replay"
 
 
-def replay_lidar(settings: Mapping[str, Any], context: Any) -> Any:
+def replay_lidar(settings: Mapping[str, object], context: DriverContext) -> ReplayLidar:
     """Factory of the ``replay`` lidar."""
     from calstation.recordings.replay import replay_lidar as make
 
     return make(settings, context)
 
 
-def replay_turntable(settings: Mapping[str, Any], context: Any) -> Any:
+def replay_turntable(settings: Mapping[str, object], context: DriverContext) -> ReplayTurntable:
     """Factory of the ``replay`` turntable."""
     from calstation.recordings.replay import replay_turntable as make
 
     return make(settings, context)
 
 
-def replay_encoder(settings: Mapping[str, Any], context: Any) -> Any:
+def replay_encoder(settings: Mapping[str, object], context: DriverContext) -> ReplayEncoder:
     """Factory of the ``replay`` encoder."""
     from calstation.recordings.replay import replay_encoder as make
 
@@ -45,7 +49,7 @@ def calstation_register_drivers(register: RegisterDriver) -> None:
 
 
 @hookimpl
-def calstation_fixture_placed(context: Any, fixture: str, geometry: Any) -> None:
+def calstation_fixture_placed(context: DriverContext, fixture: str, geometry: object) -> None:
     """A folder replay switches to the recording of the fixture now on the platter."""
     shared = getattr(context, "shared", None)
     if not isinstance(shared, dict):

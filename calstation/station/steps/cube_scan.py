@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 from calstation import display
 from calstation.engine.result import CalibrationResult
@@ -20,12 +21,17 @@ from calstation.pipeline.judgement import budget_failure, describe, with_predict
 from calstation.pipeline.scans import Turned
 from calstation.recordings.runfolder import second_pass
 from calstation.station.context import RunContext
-from calstation.station.outcome import StepOutcome, plain
+from calstation.station.operator import ProgressCallback
+from calstation.station.outcome import CubeMeasurements, StepOutcome, plain
 from calstation.station.recording_io import record_scan, record_second_pass, spin_acquisition
 from calstation.station.steps.fine_tune import spin_as_fitted, with_stored_time_offset
 from calstation.station.steps.place import place
 from calstation.station.turns import more_cube_turns
 from calstation.storage.db import Calibration
+
+if TYPE_CHECKING:
+    from calstation.engine.cube import CubeCheck
+    from calstation.recordings.recorded import Recording
 
 CUBE_SECOND_PASS = second_pass("cube")
 """File stem and artifact kind of the cube scan's second pass, measured together with the first
@@ -87,9 +93,9 @@ class CubeScan:
         return StepOutcome(
             {"recording": str(path), "passed": not failures,
              "edge_error": cube["edge_error"], "obb_error": cube["obb_error"],
-             "points": int(getattr(check, "points", 0)),
+             "points": int(check.points),
              "after_scan_s": time.perf_counter() - scan_ended,
-             "cube_check_s": float(getattr(check, "timings", {}).get("total", math.nan)),
+             "cube_check_s": float(check.timings.get("total", math.nan)),
              "joint_ry": None if joint is None else plain(joint.diagnostics["joint"]),
              **({"turn_by_turn": plain(prepared.turns.summary)}
                 if prepared is not None and prepared.turns is not None else {})},
@@ -117,32 +123,35 @@ def _budget(
     return (final if joint is not None else None), failure
 
 
-def _cube_measurements(check: Any) -> dict[str, Any]:
+def _cube_measurements(check: CubeCheck) -> CubeMeasurements:
     """A cube check as stored (``cube_check`` row, the step's result): JSON-ready."""
-    measurements: dict[str, Any] = plain(
-        {
-            "obb_edges": check.obb_edges,
-            "obb_error": check.obb_error,
-            "obb_excess": check.obb_excess,
-            "face_edges": check.face_edges,
-            "edge_error": check.edge_error,
-            "flatness_rms": check.flatness_rms,
-            "flatness_excess": check.flatness_excess,
-            "range_noise": check.range_noise,
-            "perpendicularity_deg": check.perpendicularity_deg,
-            "perpendicularity_sigma_deg": check.perpendicularity_sigma_deg,
-            "twist_deg": check.twist_deg,
-            "twist_sigma_deg": check.twist_sigma_deg,
-            "passed": check.passed,
-            "failures": check.failures,
-        }
+    return CubeMeasurements(
+        obb_edges=_numbers(check.obb_edges),
+        obb_error=plain(check.obb_error),
+        obb_excess=plain(check.obb_excess),
+        face_edges=_numbers(check.face_edges),
+        edge_error=plain(check.edge_error),
+        flatness_rms=plain(check.flatness_rms),
+        flatness_excess=plain(check.flatness_excess),
+        range_noise=plain(check.range_noise),
+        perpendicularity_deg=plain(check.perpendicularity_deg),
+        perpendicularity_sigma_deg=plain(check.perpendicularity_sigma_deg),
+        twist_deg=plain(check.twist_deg),
+        twist_sigma_deg=plain(check.twist_sigma_deg),
+        passed=bool(check.passed),
+        failures=[str(f) for f in check.failures],
     )
-    return measurements
+
+
+def _numbers(values: Iterable[float]) -> list[float | None]:
+    """Numbers as JSON holds them (NaN and infinities as None)."""
+    return [plain(float(v)) for v in values]
 
 
 def _check_cube_passes(
-    ctx: RunContext, first: Any, second: Any, joint: CalibrationResult | None, fine: Calibration
-) -> Any:
+    ctx: RunContext, first: Recording, second: Recording, joint: CalibrationResult | None,
+    fine: Calibration,
+) -> CubeCheck:
     """The cube check on both cube passes together, under the final H and the estimated
     lidar–encoder time offset (the configured latency when none was estimated)."""
     from calstation.engine.cube import check_cube_passes
@@ -162,8 +171,8 @@ def _check_cube_passes(
 
 
 def _check_cube_joint(
-    ctx: RunContext, cube_scan: Turned, fine: Calibration, progress: Any
-) -> tuple[Any, CalibrationResult | None, str | None]:
+    ctx: RunContext, cube_scan: Turned, fine: Calibration, progress: ProgressCallback
+) -> tuple[CubeCheck, CalibrationResult | None, str | None]:
     """The cube check, with ry combined from the spin target and the cube's side faces (the
     pipeline's cube stage, :func:`calstation.pipeline.stages.with_cube`).
 

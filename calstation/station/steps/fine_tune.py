@@ -9,7 +9,6 @@ the spin target's placement."""
 from __future__ import annotations
 
 import time
-from typing import Any
 
 from calstation import display
 from calstation.engine.accuracy import PredictedError
@@ -19,7 +18,9 @@ from calstation.engine.spinscan import SpinScanBuilder
 from calstation.errors import ObservabilityError
 from calstation.pipeline.judgement import budget_failure, describe, with_prediction
 from calstation.pipeline.scans import Turned
+from calstation.plugins.cost_strategies import Strategy
 from calstation.station.context import RunContext
+from calstation.station.operator import ProgressCallback
 from calstation.station.outcome import StepOutcome, format_h, plain
 from calstation.station.steps.spin_scan import SECOND_PASS
 from calstation.station.stored import passed_result
@@ -53,7 +54,7 @@ class FineTune:
                                        "predicted_error_m": predicted.max_m}}
             raise
         return StepOutcome(
-            {"strategy": strategy.name, "H": result.H.as_dict(), "cost": plain(result.cost),
+            {"strategy": strategy.name, "H": plain(result.H.as_dict()), "cost": plain(result.cost),
              "iterations": result.iterations, "after_scan_s": after_scan,
              "prepared_while_scanning": "scan_during_scan" in result.timings,
              "turns": turns, "predicted_error_m": plain(predicted.max_m),
@@ -63,7 +64,7 @@ class FineTune:
 
 
 def _gate(
-    ctx: RunContext, strategy: Any, result: CalibrationResult, predicted: PredictedError,
+    ctx: RunContext, strategy: Strategy, result: CalibrationResult, predicted: PredictedError,
     turns: float,
 ) -> None:
     """Refuse ``result`` when a ``calibration.max_sigma`` limit or the accuracy budget does not
@@ -87,7 +88,7 @@ def _gate(
                                  f"budget: {failure}")
 
 
-def _fitted(ctx: RunContext, strategy: Any) -> tuple[CalibrationResult, float]:
+def _fitted(ctx: RunContext, strategy: Strategy) -> tuple[CalibrationResult, float]:
     """The fine-tuning and the whole turns it used: the fit made while the spin scan was taken
     when it met the budget (with the time offset added when there is a second pass), else the
     pipeline's start and strategy stages on the stored recording."""
@@ -126,7 +127,7 @@ def spin_as_fitted(
 
 
 def _fit(
-    ctx: RunContext, strategy: Any, builder: SpinScanBuilder | None
+    ctx: RunContext, strategy: Strategy, builder: SpinScanBuilder | None
 ) -> tuple[CalibrationResult, Turned]:
     """The pipeline's start and strategy on the stored spin scan (its returns as ``builder``
     prepared them while it was taken, when this process took it), with the time offset when
@@ -158,7 +159,8 @@ def _fit(
 
 
 def with_stored_time_offset(
-    ctx: RunContext, result: CalibrationResult, first: Turned, progress: Any, under: str
+    ctx: RunContext, result: CalibrationResult, first: Turned, progress: ProgressCallback | None,
+    under: str
 ) -> CalibrationResult:
     """``result`` with the lidar–encoder time offset from the spin scan's ``first`` pass and
     its stored second pass (the pipeline's time-offset stage); ``under`` says which H, for the

@@ -5,7 +5,7 @@ calibration from them (paper §III-A; the pipeline's first stage,
 from __future__ import annotations
 
 from calstation.station.context import RunContext
-from calstation.station.outcome import StepOutcome, format_h
+from calstation.station.outcome import StepOutcome, format_h, plain
 from calstation.station.recording_io import record_scan, static_acquisition
 
 
@@ -28,7 +28,7 @@ class StaticScan:
             result = initial(ctx.recipe, recording).result
         ctx.ui.info(f"  initial: {format_h(result.H.as_dict(), result.sigma)}")
         return StepOutcome(
-            {"recording": str(path), "lines": lines, "H": result.H.as_dict()},
+            {"recording": str(path), "lines": lines, "H": plain(result.H.as_dict())},
             artifacts=[("static", path)],
             calibration=("initial", result),
         )

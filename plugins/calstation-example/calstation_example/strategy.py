@@ -52,7 +52,7 @@ class RyHeldStrategy:
         from calstation.engine.shape import shape_fine_tune
         from calstation.plugins.cost_strategies import strategy_options
 
-        options: RyHeldOptions = strategy_options(self, recipe)
+        options = strategy_options(self, recipe, RyHeldOptions)
         result = shape_fine_tune(
             recording,
             start,
