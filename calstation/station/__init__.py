@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import importlib
 import warnings
-from typing import Any
 
 _MOVED_NAMES = {
     "Station": "calstation.station.machine",
@@ -31,7 +30,7 @@ _MOVED_NAMES = {
 }
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     module = _MOVED_NAMES.get(name)
     if module is None:
         raise AttributeError(f"module 'calstation.station' has no attribute {name!r}")

@@ -7,7 +7,15 @@ the plugin costs nothing at start-up.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the names as mypy sees them; at run time __getattr__ imports them when used
+    from calstation.testing.canbus import EmulatedNode
+
+    from .bus import CanopenError, SharedBus
+    from .drive import Cia402Turntable
+    from .emulator import DriveEmulator, EncoderEmulator, RampPlatter
+    from .encoder import Cia406Encoder, Unwrapper
 
 __all__ = [
     "CanopenError",
@@ -34,7 +42,7 @@ _WHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     """Import the module that defines ``name`` when it is first used."""
     if name not in _WHERE:
         raise AttributeError(f"module 'calstation_canopen' has no attribute {name!r}")

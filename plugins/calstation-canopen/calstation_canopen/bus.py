@@ -16,7 +16,7 @@ import struct
 import threading
 from collections import deque
 from collections.abc import Iterator, Mapping
-from typing import Any
+from typing import Any, Protocol
 
 import can
 import canopen
@@ -43,6 +43,14 @@ MAX_TPDO_DELAY_S = 0.05
 """A synchronous TPDO answering later than this (and than two SYNC periods) counts as lost."""
 
 
+class _Periodic(Protocol):
+    """A message canopen sends periodically (its ``PeriodicMessageTask``)."""
+
+    def stop(self) -> None:
+        """Stop sending it."""
+        ...
+
+
 class SharedBus:
     """A connected ``canopen.Network`` plus a SYNC producer that remembers when it sent SYNCs."""
 
@@ -53,7 +61,7 @@ class SharedBus:
         self.channel = channel
         self.clock: Clock = clock or HostClock()
         self.network = canopen.Network()
-        kwargs: dict[str, Any] = {"interface": interface, "channel": channel}
+        kwargs: dict[str, str | int] = {"interface": interface, "channel": channel}
         if interface not in ("virtual", "udp_multicast"):
             kwargs["bitrate"] = bitrate
         try:
@@ -68,7 +76,7 @@ class SharedBus:
         self._sync_stop = threading.Event()
         self._sync_thread: threading.Thread | None = None
         self.sync_period_s = 0.0
-        self._heartbeat: Any = None
+        self._heartbeat: _Periodic | None = None
 
     # --- SYNC ------------------------------------------------------------------------------
     def start_sync(self, period_s: float) -> None:
@@ -153,7 +161,9 @@ class SharedBus:
             self.network.disconnect()
 
 
-def acquire_bus(settings: Mapping[str, Any], context: DriverContext | None) -> SharedBus:
+def acquire_bus(
+    settings: Mapping[str, Any], context: DriverContext | None  # Any: the recipe's settings
+) -> SharedBus:
     """The run's :class:`SharedBus` for ``settings['interface']``/``['channel']`` (created on
     first use); release it with :func:`release_bus`."""
     interface = str(settings.get("interface", "socketcan"))
@@ -189,7 +199,9 @@ class BusNodeDriver:
     network: canopen.Network
     node: canopen.RemoteNode
 
-    def _attach_node(self, settings: Mapping[str, Any], context: DriverContext | None) -> None:
+    def _attach_node(
+        self, settings: Mapping[str, Any], context: DriverContext | None  # Any: as acquire_bus
+    ) -> None:
         """Take the run's bus (:func:`acquire_bus`; release it with :func:`release_bus`) and add
         the remote node ``settings['node_id']``, awaiting its SDO responses for
         ``settings['sdo_timeout_s']`` (s). Stamps come from ``context.clock`` (the host clock

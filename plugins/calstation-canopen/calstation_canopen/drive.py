@@ -23,6 +23,8 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
+from canopen.network import Callback
+
 from calstation.drivers import DriverContext, TurntableState, TurntableStatus
 
 from . import cia402 as ds
@@ -30,7 +32,7 @@ from .bus import BusNodeDriver, CanopenError, CanopenTimeout, release_bus
 
 log = logging.getLogger(__name__)
 
-SETTINGS_DEFAULTS: dict[str, Any] = {
+SETTINGS_DEFAULTS: dict[str, object] = {
     "interface": "socketcan",
     "channel": None,
     "bitrate": 500_000,
@@ -54,8 +56,8 @@ SETTINGS_DEFAULTS: dict[str, Any] = {
 """Recipe ``settings`` of the ``canopen402`` driver and their defaults (docs/drivers.md)."""
 
 
-def check_settings(name: str, settings: Mapping[str, Any], defaults: Mapping[str, Any]
-                   ) -> dict[str, Any]:
+def check_settings(name: str, settings: Mapping[str, object], defaults: Mapping[str, object]
+                   ) -> dict[str, Any]:  # Any: the recipe's settings, converted where read
     """Settings merged over defaults; unknown keys are a :class:`CanopenError` naming them."""
     unknown = sorted(set(settings) - set(defaults))
     if unknown:
@@ -71,7 +73,9 @@ class Cia402Turntable(BusNodeDriver):
 
     driver_name = "canopen402"
 
-    def __init__(self, settings: Mapping[str, Any], context: DriverContext | None = None) -> None:
+    def __init__(
+        self, settings: Mapping[str, object], context: DriverContext | None = None
+    ) -> None:
         self.settings = check_settings("canopen402", settings, SETTINGS_DEFAULTS)
         self._attach_node(self.settings, context)
         self._lock = threading.RLock()
@@ -88,11 +92,11 @@ class Cia402Turntable(BusNodeDriver):
         self._enabled = False
         self._closed = False
         self._stop = threading.Event()
-        self._subscriptions: list[tuple[int, Any]] = []
+        self._subscriptions: list[tuple[int, Callback]] = []
         self._monitor: threading.Thread | None = None
 
     # --- low level -------------------------------------------------------------------------
-    def _subscribe(self, cob: int, cb: Any) -> None:
+    def _subscribe(self, cob: int, cb: Callback) -> None:
         self.network.subscribe(cob, cb)
         self._subscriptions.append((cob, cb))
 
@@ -248,7 +252,7 @@ class Cia402Turntable(BusNodeDriver):
         with self._lock:
             self.faults = [f for f in self.faults if not f.startswith("EMCY")]
 
-    def info(self) -> dict[str, Any]:
+    def info(self) -> dict[str, str | int]:
         """Identity read by SDO: node id, device type 0x1000, supported drive modes 0x6502."""
         return {
             "protocol": "CANopen CiA 402",

@@ -4,7 +4,7 @@ simulated station (``emulate: true``); registered by :mod:`calstation_canopen.pl
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from calstation.drivers import DriverContext
 from calstation.testing.canbus import EmulatedNode
@@ -14,8 +14,11 @@ from .drive import Cia402Turntable
 from .emulator import DriveEmulator, EncoderEmulator
 from .encoder import Cia406Encoder
 
+if TYPE_CHECKING:
+    from calstation_sim import SimulatedStation
 
-def _simulated_station(context: DriverContext) -> Any:
+
+def _simulated_station(context: DriverContext) -> SimulatedStation:
     """The run's shared simulated station (``calstation_sim.shared_station``), created on the
     host clock when no other driver made it yet, so the emulators run in real time."""
     try:
@@ -41,10 +44,10 @@ def _close_emulator(context: DriverContext | None, kind: str) -> None:
 
 
 def _with_emulator(
-    settings: Mapping[str, Any], context: DriverContext, kind: str
-) -> dict[str, Any]:
+    settings: Mapping[str, object], context: DriverContext, kind: str
+) -> dict[str, object]:
     """Start the emulated device for a driver with ``emulate: true`` (virtual bus by default)."""
-    cfg = dict(settings)
+    cfg: dict[str, Any] = dict(settings)  # Any: the recipe's settings, as the emulators read them
     if not cfg.pop("emulate", False):
         return cfg
     cfg.setdefault("interface", "virtual")
@@ -85,14 +88,14 @@ class EmulatedEncoder(Cia406Encoder):
         _close_emulator(self.context, "encoder")
 
 
-def make_turntable(settings: Mapping[str, Any], context: DriverContext) -> Cia402Turntable:
+def make_turntable(settings: Mapping[str, object], context: DriverContext) -> Cia402Turntable:
     """Factory of ``canopen402`` (``emulate: true`` adds an in-process emulated drive)."""
     if settings.get("emulate"):
         return EmulatedTurntable(_with_emulator(settings, context, "drive"), context)
     return Cia402Turntable(settings, context)
 
 
-def make_encoder(settings: Mapping[str, Any], context: DriverContext) -> Cia406Encoder:
+def make_encoder(settings: Mapping[str, object], context: DriverContext) -> Cia406Encoder:
     """Factory of ``canopen406`` (``emulate: true`` adds an in-process emulated encoder)."""
     if settings.get("emulate"):
         return EmulatedEncoder(_with_emulator(settings, context, "encoder"), context)

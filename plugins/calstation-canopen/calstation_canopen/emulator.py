@@ -15,7 +15,7 @@ import logging
 import math
 import threading
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Protocol
 
 import canopen
 
@@ -39,7 +39,7 @@ log = logging.getLogger(__name__)
 class Platter(Protocol):
     """What a drive emulator turns (SimulatedStation's real-time building blocks)."""
 
-    def set_speed(self, rpm: float, t_ns: int) -> Any:
+    def set_speed(self, rpm: float, t_ns: int) -> object:
         """Command ``rpm`` (signed, + = right-handed about +X_P) at host time ``t_ns``."""
         ...
 

@@ -20,7 +20,6 @@ import logging
 import struct
 import threading
 from collections.abc import Mapping
-from typing import Any
 
 from calstation.drivers import DriverContext, EncoderSample
 
@@ -29,7 +28,7 @@ from .drive import check_settings
 
 log = logging.getLogger(__name__)
 
-SETTINGS_DEFAULTS: dict[str, Any] = {
+SETTINGS_DEFAULTS: dict[str, object] = {
     "interface": "socketcan",
     "channel": None,
     "bitrate": 500_000,
@@ -72,7 +71,9 @@ class Cia406Encoder(BusNodeDriver):
 
     driver_name = "canopen406"
 
-    def __init__(self, settings: Mapping[str, Any], context: DriverContext | None = None) -> None:
+    def __init__(
+        self, settings: Mapping[str, object], context: DriverContext | None = None
+    ) -> None:
         self.settings = check_settings("canopen406", settings, SETTINGS_DEFAULTS)
         if self.settings["mode"] not in ("sync", "cyclic"):
             raise CanopenError(
@@ -141,7 +142,7 @@ class Cia406Encoder(BusNodeDriver):
             self._latest = sample
             self._new.notify_all()
 
-    def info(self) -> dict[str, Any]:
+    def info(self) -> dict[str, str | int]:
         """Identity read by SDO: node id, device type 0x1000, resolution and range."""
         return {
             "protocol": "CANopen CiA 406",

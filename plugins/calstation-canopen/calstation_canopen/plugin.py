@@ -10,7 +10,7 @@ import contextlib
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import typer
 
@@ -19,16 +19,22 @@ from calstation.cli import command_group
 
 if TYPE_CHECKING:
     from calstation.drivers import DriverContext
+    from calstation.plugins.hookspecs import RegisterDriver
+    from calstation.testing.transports import TcpServer
+
+    from .drive import Cia402Turntable
+    from .emulator import DriveEmulator, EncoderEmulator
+    from .encoder import Cia406Encoder
 
 
-def make_turntable(settings: Mapping[str, Any], context: DriverContext) -> Any:
+def make_turntable(settings: Mapping[str, object], context: DriverContext) -> Cia402Turntable:
     """Factory of ``canopen402`` (``emulate: true`` adds an in-process emulated drive)."""
     from .emulated import make_turntable as make
 
     return make(settings, context)
 
 
-def make_encoder(settings: Mapping[str, Any], context: DriverContext) -> Any:
+def make_encoder(settings: Mapping[str, object], context: DriverContext) -> Cia406Encoder:
     """Factory of ``canopen406`` (``emulate: true`` adds an in-process emulated encoder)."""
     from .emulated import make_encoder as make
 
@@ -41,7 +47,7 @@ make_encoder.settings_model = "calstation_canopen.settings:Cia406Settings"  # ty
 
 
 @hookimpl
-def calstation_register_drivers(register: Any) -> None:
+def calstation_register_drivers(register: RegisterDriver) -> None:
     """Turntable ``canopen402`` and encoder ``canopen406``."""
     register("turntable", "canopen402", make_turntable)
     register("encoder", "canopen406", make_encoder)
@@ -51,7 +57,7 @@ _EMULATE_HELP = "Run device emulators that speak the real wire protocols."
 
 
 @hookimpl
-def calstation_register_commands(cli: Any) -> None:
+def calstation_register_commands(cli: typer.Typer) -> None:
     """Add ``calstation emulate canopen``."""
     emulate = command_group(cli, "emulate", _EMULATE_HELP)
 
@@ -81,7 +87,7 @@ def calstation_register_commands(cli: Any) -> None:
         clock = HostClock()
         station = SimulatedStation(load_recipe(recipe), seed=seed, clock=clock)
         station.place(fixture)
-        nodes: list[Any] = [
+        nodes: list[DriveEmulator | EncoderEmulator | TcpServer] = [
             DriveEmulator(station, node_id=drive_node, interface=interface, channel=channel,
                           clock=clock),
             EncoderEmulator(station.encoder_count, station.counts_per_revolution,

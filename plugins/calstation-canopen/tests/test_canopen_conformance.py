@@ -6,7 +6,6 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 from calstation_canopen import (
@@ -18,7 +17,7 @@ from calstation_canopen import (
 )
 
 from calstation.clock import HostClock
-from calstation.drivers import DriverContext
+from calstation.drivers import DriverContext, Encoder
 from calstation.testing.conformance import DriverConformance
 
 _channels = itertools.count()
@@ -44,18 +43,18 @@ class TestCanopenConformance(DriverConformance):
             encoder.close()
             drive.close()
 
-    def make_turntable(self) -> Any:
+    def make_turntable(self) -> Cia402Turntable:
         return Cia402Turntable(
             {"interface": "virtual", "channel": self.channel, "node_id": 5,
              "heartbeat_timeout_s": 0.3},
             DriverContext(clock=self.clock),
         )
 
-    def make_encoder(self) -> Any:
+    def make_encoder(self) -> Cia406Encoder:
         return Cia406Encoder({"interface": "virtual", "channel": self.channel, "node_id": 3,
                               "sync_period_s": 0.005}, DriverContext(clock=self.clock))
 
-    def turn_encoder(self, encoder: Any) -> None:
+    def turn_encoder(self, encoder: Encoder) -> None:
         self.platter.set_speed(60.0, self.clock.now_ns())
         self.clock.sleep(0.3)
         self.platter.set_speed(0.0, self.clock.now_ns())

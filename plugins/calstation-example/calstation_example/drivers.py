@@ -18,7 +18,6 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Iterator, Mapping
-from typing import Any
 
 import numpy as np
 
@@ -36,7 +35,7 @@ from calstation.errors import DriverError
 SHARED_KEY = "calstation-example"
 
 
-def _number(settings: Mapping[str, Any], key: str, default: float, kind: str) -> float:
+def _number(settings: Mapping[str, object], key: str, default: float, kind: str) -> float:
     value = settings.get(key, default)
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise DriverError(f"example {kind} driver: setting {key!r} must be a number, got {value!r}")
@@ -87,7 +86,7 @@ class Motion:
             return self._state(t_ns)
 
 
-def _motion(context: DriverContext, settings: Mapping[str, Any]) -> Motion:
+def _motion(context: DriverContext, settings: Mapping[str, object]) -> Motion:
     shared = context.shared.setdefault(SHARED_KEY, {})
     if "motion" not in shared:
         accel = _number(settings, "acceleration_rpm_s", 120.0, "turntable")
@@ -208,7 +207,7 @@ class ExampleEncoder:
 class ExampleLidar:
     """A line scanner facing a flat wall (the :class:`calstation.drivers.Lidar` protocol)."""
 
-    def __init__(self, clock: Clock, settings: Mapping[str, Any]) -> None:
+    def __init__(self, clock: Clock, settings: Mapping[str, object]) -> None:
         self.clock = clock
         self.wall = _number(settings, "wall_distance_m", 1.0, "lidar")
         self.points = int(_number(settings, "points_per_line", 360, "lidar"))
@@ -259,17 +258,17 @@ class ExampleLidar:
         self._closed = True
 
 
-def turntable_factory(settings: Mapping[str, Any], context: DriverContext) -> ExampleTurntable:
+def turntable_factory(settings: Mapping[str, object], context: DriverContext) -> ExampleTurntable:
     """``station.turntable.driver: example``."""
     return ExampleTurntable(_motion(context, settings))
 
 
-def encoder_factory(settings: Mapping[str, Any], context: DriverContext) -> ExampleEncoder:
+def encoder_factory(settings: Mapping[str, object], context: DriverContext) -> ExampleEncoder:
     """``station.encoder.driver: example``."""
     cpr = int(_number(settings, "counts_per_revolution", 4096, "encoder"))
     return ExampleEncoder(_motion(context, {}), cpr)
 
 
-def lidar_factory(settings: Mapping[str, Any], context: DriverContext) -> ExampleLidar:
+def lidar_factory(settings: Mapping[str, object], context: DriverContext) -> ExampleLidar:
     """``station.lidar.driver: example``."""
     return ExampleLidar(context.clock, settings)

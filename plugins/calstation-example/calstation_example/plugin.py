@@ -14,12 +14,18 @@ import json
 import os
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import typer
 
 from calstation import hookimpl
-from calstation.plugins.hookspecs import RegisterDriver, RegisterStrategy
+from calstation.jsonvalue import JSONObject, JSONValue
+from calstation.plugins.hookspecs import RegisterDriver, RegisterStrategy, RunBrief, RunSummary
+
+if TYPE_CHECKING:
+    from calstation.drivers import DriverContext
+
+    from .drivers import ExampleEncoder, ExampleLidar, ExampleTurntable
 
 ENV = "CALSTATION_EXAMPLE_LOG"
 
@@ -33,21 +39,23 @@ def calstation_register_drivers(register: RegisterDriver) -> None:
 
 
 # the drivers (and NumPy with them) load when a run builds one, not at registration
-def lidar_factory(settings: Mapping[str, Any], context: Any) -> Any:
+def lidar_factory(settings: Mapping[str, object], context: DriverContext) -> ExampleLidar:
     """The ``example`` lidar (:func:`calstation_example.drivers.lidar_factory`)."""
     from .drivers import lidar_factory as make
 
     return make(settings, context)
 
 
-def turntable_factory(settings: Mapping[str, Any], context: Any) -> Any:
+def turntable_factory(
+    settings: Mapping[str, object], context: DriverContext
+) -> ExampleTurntable:
     """The ``example`` turntable (:func:`calstation_example.drivers.turntable_factory`)."""
     from .drivers import turntable_factory as make
 
     return make(settings, context)
 
 
-def encoder_factory(settings: Mapping[str, Any], context: Any) -> Any:
+def encoder_factory(settings: Mapping[str, object], context: DriverContext) -> ExampleEncoder:
     """The ``example`` encoder (:func:`calstation_example.drivers.encoder_factory`)."""
     from .drivers import encoder_factory as make
 
@@ -69,7 +77,7 @@ def log_path() -> Path | None:
     return Path(value).expanduser() if value else None
 
 
-def append_event(event: str, run: Mapping[str, Any], **fields: Any) -> None:
+def append_event(event: str, run: RunBrief, **fields: object) -> None:
     """Append ``{"event", "time", "run_id", "station", ...fields}`` to the log, if switched on."""
     path = log_path()
     if path is None:
@@ -77,8 +85,8 @@ def append_event(event: str, run: Mapping[str, Any], **fields: Any) -> None:
     record = {
         "event": event,
         "time": dt.datetime.now(dt.UTC).isoformat(),
-        "run_id": run.get("id"),
-        "station": run.get("station"),
+        "run_id": run["id"],
+        "station": run["station"],
         **fields,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -87,32 +95,35 @@ def append_event(event: str, run: Mapping[str, Any], **fields: Any) -> None:
         f.flush()
 
 
-def read_events(path: Path) -> list[dict[str, Any]]:
+def read_events(path: Path) -> list[JSONObject]:
     """Every event in a log written by :func:`append_event`."""
+    events: list[JSONObject] = []
     with path.open(encoding="utf-8") as f:
-        return [json.loads(line) for line in f if line.strip()]
+        for line in f:
+            if line.strip():
+                event: JSONValue = json.loads(line)
+                if not isinstance(event, dict):
+                    raise ValueError(f"{path}: a line of the log is not an event: {line[:80]!r}")
+                events.append(event)
+    return events
 
 
 @hookimpl
-def calstation_run_started(run: Mapping[str, Any]) -> None:
+def calstation_run_started(run: RunBrief) -> None:
     """Log the start (or resumption) of a run."""
-    append_event("run_started", run, recipe=run.get("recipe_name"), operator=run.get("operator"))
+    append_event("run_started", run, recipe=run["recipe_name"], operator=run["operator"])
 
 
 @hookimpl
-def calstation_step_finished(
-    run: Mapping[str, Any], step: str, status: str, result: Mapping[str, Any]
-) -> None:
+def calstation_step_finished(run: RunBrief, step: str, status: str, result: JSONObject) -> None:
     """Log a finished step with its result."""
     append_event("step_finished", run, step=step, status=status, result=dict(result or {}))
 
 
 @hookimpl
-def calstation_run_finished(
-    run: Mapping[str, Any], status: str, summary: Mapping[str, Any]
-) -> None:
+def calstation_run_finished(run: RunBrief, status: str, summary: RunSummary) -> None:
     """Log the end of a run with its final calibration, if any."""
-    final = next((c for c in summary.get("calibrations", []) if c.get("accepted")), None)
+    final = next((c for c in summary["calibrations"] if c.get("accepted")), None)
     append_event("run_finished", run, status=status, calibration=final)
 
 
@@ -137,6 +148,7 @@ def calstation_register_commands(cli: typer.Typer) -> None:
             table.add_column(col)
         for e in read_events(path):
             table.add_row(
-                e["time"], e["event"], str(e.get("run_id")), e.get("step", ""), e.get("status", "")
+                str(e["time"]), str(e["event"]), str(e.get("run_id")), str(e.get("step", "")),
+                str(e.get("status", "")),
             )
         Console().print(table)

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Iterator
 
 import pytest
 from calstation_example import drivers, plugin as example
 
 from calstation import plugins
 from calstation.clock import HostClock
-from calstation.drivers import DriverContext
+from calstation.drivers import DriverContext, Encoder, Lidar, LidarInfo, LidarLine, Turntable
 from calstation.testing.conformance import (
     ConformanceError,
     DriverConformance,
@@ -25,21 +25,21 @@ class TestExampleDrivers(DriverConformance):
     def setup_method(self) -> None:
         self.context = DriverContext(clock=HostClock())
 
-    def _make(self, kind: str, settings: dict[str, Any] | None = None) -> Any:
+    def make_lidar(self) -> Lidar:
         with plugins.isolated(example, builtins=False):
-            return plugins.driver_factory(kind, "example")(settings or {}, self.context)
+            return plugins.driver_factory("lidar", "example")({"line_rate_hz": 100}, self.context)
 
-    def make_lidar(self) -> Any:
-        return self._make("lidar", {"line_rate_hz": 100})
+    def make_turntable(self) -> Turntable:
+        with plugins.isolated(example, builtins=False):
+            return plugins.driver_factory("turntable", "example")({}, self.context)
 
-    def make_turntable(self) -> Any:
-        return self._make("turntable")
+    def make_encoder(self) -> Encoder:
+        with plugins.isolated(example, builtins=False):
+            return plugins.driver_factory("encoder", "example")(
+                {"counts_per_revolution": 4096}, self.context)
 
-    def make_encoder(self) -> Any:
-        return self._make("encoder", {"counts_per_revolution": 4096})
-
-    def turn_encoder(self, encoder: Any) -> None:
-        table = self._make("turntable")
+    def turn_encoder(self, encoder: Encoder) -> None:
+        table = self.make_turntable()
         table.enable()
         table.spin(30.0)
         self.context.clock.sleep(0.3)
@@ -51,19 +51,19 @@ def test_the_kit_catches_a_broken_lidar() -> None:
     fails with a message naming the rule."""
 
     class Backwards(drivers.ExampleLidar):
-        def lines(self) -> Any:
+        def lines(self) -> Iterator[LidarLine]:
             for i, line in enumerate(super().lines()):
                 yield type(line)(line.timestamp_ns - i * 10**9, line.azimuth_rad, line.range_m,
                                  line.valid, line.point_period_ns)
 
-    def make() -> Any:
+    def make() -> drivers.ExampleLidar:
         return Backwards(HostClock(), {"line_rate_hz": 200})
 
     with pytest.raises(ConformanceError, match="line timestamps strictly increase"):
         check_lidar(make)
 
     class Wide(drivers.ExampleLidar):
-        def info(self) -> Any:
+        def info(self) -> LidarInfo:
             from dataclasses import replace
 
             return replace(super().info(), fov_rad=self.fov / 2)
@@ -77,7 +77,7 @@ def test_the_kit_catches_a_turntable_that_does_not_stop() -> None:
         def stop(self) -> None:
             pass
 
-    def make() -> Any:
+    def make() -> drivers.ExampleTurntable:
         return NeverStops(drivers.Motion(HostClock()))
 
     with pytest.raises(ConformanceError, match="stop\\(\\) stands the platter"):

@@ -6,7 +6,14 @@ registering the plugin costs nothing at start-up.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the names as mypy sees them; at run time __getattr__ imports them when used
+    from calstation.testing.transports import PtyServer, TcpServer
+
+    from .driver import ClockSync, HokuyoLidar, SensorParameters, StepMapping
+    from .emulator import ScipParameters, ScipSensor, WallScene
+    from .scip import HokuyoError, ScipChecksumError, ScipStatusError, ScipTimeout
 
 __all__ = [
     "ClockSync",
@@ -41,7 +48,7 @@ _WHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     """Import the module that defines ``name`` when it is first used."""
     if name not in _WHERE:
         raise AttributeError(f"module 'calstation_hokuyo' has no attribute {name!r}")

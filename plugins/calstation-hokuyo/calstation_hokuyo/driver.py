@@ -39,7 +39,7 @@ from .scip import HokuyoError, Reply, ScipStatusError, ScipTimeout
 
 log = logging.getLogger(__name__)
 
-SETTINGS_DEFAULTS: dict[str, Any] = {
+SETTINGS_DEFAULTS: dict[str, object] = {
     "port": None,
     "baudrate": 115200,
     "timeout_s": 1.0,
@@ -228,14 +228,14 @@ class HokuyoLidar:
     and release the port.
     """
 
-    def __init__(self, settings: Mapping[str, Any], clock: Clock | None = None) -> None:
+    def __init__(self, settings: Mapping[str, object], clock: Clock | None = None) -> None:
         unknown = sorted(set(settings) - set(SETTINGS_DEFAULTS))
         if unknown:
             raise HokuyoError(
                 f"hokuyo driver: unknown setting(s) {', '.join(unknown)}; known: "
                 f"{', '.join(sorted(SETTINGS_DEFAULTS))}"
             )
-        cfg = {**SETTINGS_DEFAULTS, **settings}
+        cfg: dict[str, Any] = {**SETTINGS_DEFAULTS, **settings}  # Any: converted where read
         if not cfg["port"]:
             raise HokuyoError(
                 "hokuyo driver: settings.port is required (a serial port such as /dev/ttyACM0 or "

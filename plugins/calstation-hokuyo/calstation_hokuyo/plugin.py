@@ -10,7 +10,7 @@ import contextlib
 import time
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import typer
 
@@ -18,10 +18,16 @@ from calstation import hookimpl
 from calstation.cli import command_group
 
 if TYPE_CHECKING:
+    from calstation_sim import SimulatedStation
+
+    from calstation.clock import Clock
     from calstation.drivers import DriverContext
+    from calstation.plugins.hookspecs import RegisterDriver
+
+    from .driver import HokuyoLidar
 
 
-def make_lidar(settings: Mapping[str, Any], context: DriverContext) -> Any:
+def make_lidar(settings: Mapping[str, object], context: DriverContext) -> HokuyoLidar:
     """Factory of the ``hokuyo`` lidar driver (settings: see docs/drivers.md)."""
     from .emulated import make_lidar as make
 
@@ -29,7 +35,7 @@ def make_lidar(settings: Mapping[str, Any], context: DriverContext) -> Any:
 
 
 @hookimpl
-def calstation_register_drivers(register: Any) -> None:
+def calstation_register_drivers(register: RegisterDriver) -> None:
     """Register lidar ``hokuyo``."""
     register("lidar", "hokuyo", make_lidar)
 
@@ -38,7 +44,7 @@ _EMULATE_HELP = "Run device emulators that speak the real wire protocols."
 
 
 @hookimpl
-def calstation_register_commands(cli: Any) -> None:
+def calstation_register_commands(cli: typer.Typer) -> None:
     """Add ``calstation emulate hokuyo``."""
     emulate = command_group(cli, "emulate", _EMULATE_HELP)
 
@@ -68,7 +74,7 @@ def calstation_register_commands(cli: Any) -> None:
         from .scip import HokuyoError
 
         clock = HostClock()
-        station: Any = None
+        station: SimulatedStation | None = None
         if recipe is not None:
             from calstation_sim import SimulatedStation
 
@@ -97,7 +103,7 @@ def calstation_register_commands(cli: Any) -> None:
             server.close()
 
 
-def _console(station: Any, clock: Any) -> None:
+def _console(station: SimulatedStation | None, clock: Clock) -> None:
     """Read 'place FIXTURE' / 'spin RPM' commands from stdin; idle when stdin is closed."""
     while True:
         try:

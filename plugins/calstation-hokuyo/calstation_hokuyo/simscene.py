@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation.drivers import DriverContext
 
 from .scip import HokuyoError
 
+if TYPE_CHECKING:
+    from calstation_sim import SimulatedStation
 
-def simulated_station(context: DriverContext) -> Any:
+
+def simulated_station(context: DriverContext) -> SimulatedStation:
     """The run's shared ``calstation_sim.SimulatedStation`` (``calstation_sim.shared_station``),
     created on the host clock when no other driver made it yet, so the emulators run in real
     time."""

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 from calstation_hokuyo import HokuyoLidar, ScipSensor, TcpServer, WallScene
@@ -18,5 +17,5 @@ class TestHokuyoConformance(DriverConformance):
             self.url = server.url
             yield
 
-    def make_lidar(self) -> Any:
+    def make_lidar(self) -> HokuyoLidar:
         return HokuyoLidar({"port": self.url, "timeout_s": 0.5})

@@ -7,7 +7,12 @@ them, so ``calstation --help`` stays fast.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the names as mypy sees them; at run time __getattr__ imports them when used
+    from .drivers import SimEncoder, SimLidar, SimTurntable
+    from .run import simulate_run
+    from .station import SimulatedStation, shared_station
 
 __all__ = [
     "SimEncoder",
@@ -28,7 +33,7 @@ _WHERE = {
 }
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     """Import the heavy modules (Open3D) only when one of their names is used."""
     if name not in _WHERE:
         raise AttributeError(f"module 'calstation_sim' has no attribute {name!r}")

@@ -264,7 +264,9 @@ class SimEncoder:
 _SETTINGS = {"seed", "range_m", "pitch_deg", "real_time"}
 
 
-def station_from_context(settings: Mapping[str, Any], context: DriverContext) -> SimulatedStation:
+def station_from_context(
+    settings: Mapping[str, Any], context: DriverContext  # Any: the recipe's, checked by SimSettings
+) -> SimulatedStation:
     """The run's :class:`SimulatedStation` from ``context.shared["sim"]``, created on first use
     from ``context.recipe`` and the driver ``settings`` (optional ``seed``, ``range_m``,
     ``pitch_deg``, ``real_time``). The station runs on ``context.clock`` if that is a SimClock,
@@ -289,17 +291,17 @@ def station_from_context(settings: Mapping[str, Any], context: DriverContext) ->
     )
 
 
-def lidar_factory(settings: Mapping[str, Any], context: DriverContext) -> SimLidar:
+def lidar_factory(settings: Mapping[str, object], context: DriverContext) -> SimLidar:
     """Factory of the ``sim`` lidar driver."""
     return SimLidar(station_from_context(settings, context))
 
 
-def turntable_factory(settings: Mapping[str, Any], context: DriverContext) -> SimTurntable:
+def turntable_factory(settings: Mapping[str, object], context: DriverContext) -> SimTurntable:
     """Factory of the ``sim`` turntable driver."""
     return SimTurntable(station_from_context(settings, context))
 
 
-def encoder_factory(settings: Mapping[str, Any], context: DriverContext) -> SimEncoder:
+def encoder_factory(settings: Mapping[str, object], context: DriverContext) -> SimEncoder:
     """Factory of the ``sim`` encoder driver."""
     return SimEncoder(station_from_context(settings, context))
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -36,7 +35,7 @@ PLATTER_SEGMENTS = 512
 """Polygon segments of the platter disk (sagitta ≈ 22 µm on a 585 mm platter)."""
 
 
-def to_mesh(vertices: FloatArray, triangles: NDArray[Any]) -> o3d.geometry.TriangleMesh:
+def to_mesh(vertices: FloatArray, triangles: NDArray[np.integer]) -> o3d.geometry.TriangleMesh:
     """An Open3D mesh from (V, 3) vertices (m) and (F, 3) vertex indices."""
     mesh = o3d.geometry.TriangleMesh()
     mesh.vertices = o3d.utility.Vector3dVector(np.asarray(vertices, dtype=np.float64))

@@ -4,12 +4,21 @@ command."""
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation import hookimpl
-from calstation.plugins.hookspecs import RegisterDriver
+from calstation.plugins.hookspecs import RegisterDriver, RegisterSimulator
+
+if TYPE_CHECKING:
+    import typer
+
+    from calstation.drivers import DriverContext
+    from calstation.engine.frames import Extrinsics
+    from calstation.recipes import LoadedRecipe
+
+    from .drivers import SimEncoder, SimLidar, SimTurntable
 
 
 @hookimpl
@@ -21,27 +30,27 @@ def calstation_register_drivers(register: RegisterDriver) -> None:
     register("encoder", "sim", _encoder)
 
 
-def _lidar(*args: Any, **kwargs: Any) -> Any:
+def _lidar(settings: Mapping[str, object], context: DriverContext) -> SimLidar:
     from .drivers import lidar_factory
 
-    return lidar_factory(*args, **kwargs)
+    return lidar_factory(settings, context)
 
 
-def _turntable(*args: Any, **kwargs: Any) -> Any:
+def _turntable(settings: Mapping[str, object], context: DriverContext) -> SimTurntable:
     from .drivers import turntable_factory
 
-    return turntable_factory(*args, **kwargs)
+    return turntable_factory(settings, context)
 
 
-def _encoder(*args: Any, **kwargs: Any) -> Any:
+def _encoder(settings: Mapping[str, object], context: DriverContext) -> SimEncoder:
     from .drivers import encoder_factory
 
-    return encoder_factory(*args, **kwargs)
+    return encoder_factory(settings, context)
 
 
 for _factory in (_lidar, _turntable, _encoder):
     # named by path: pydantic loads when a recipe is checked, not at registration
-    _factory.settings_model = "calstation_sim.settings:SimSettings"  # type: ignore[attr-defined]
+    _factory.settings_model = "calstation_sim.settings:SimSettings"  # type: ignore[union-attr]
 
 
 class Simulator:
@@ -51,8 +60,8 @@ class Simulator:
     name = "sim"
 
     def simulate_run(
-        self, loaded: Any, out: Path, *, seed: int | None = None, range_m: float | None = None,
-        pitch_deg: float | None = None, progress: bool = True,
+        self, loaded: LoadedRecipe, out: Path, *, seed: int | None = None,
+        range_m: float | None = None, pitch_deg: float | None = None, progress: bool = True,
         only: Collection[str] | None = None,
     ) -> dict[str, Path]:
         """:func:`calstation_sim.run.simulate_run`."""
@@ -62,9 +71,9 @@ class Simulator:
                             progress=progress, only=only)
 
     def truth(
-        self, loaded: Any, *, seed: int | None = None, range_m: float | None = None,
+        self, loaded: LoadedRecipe, *, seed: int | None = None, range_m: float | None = None,
         pitch_deg: float | None = None,
-    ) -> Any:
+    ) -> Extrinsics:
         """:attr:`calstation_sim.station.SimulatedStation.truth`."""
         from .station import SimulatedStation
 
@@ -72,13 +81,13 @@ class Simulator:
 
 
 @hookimpl
-def calstation_register_simulators(register: Any) -> None:
+def calstation_register_simulators(register: RegisterSimulator) -> None:
     """The ray-cast simulated station."""
     register(Simulator())
 
 
 @hookimpl
-def calstation_fixture_placed(context: Any, fixture: str, geometry: Any) -> None:
+def calstation_fixture_placed(context: DriverContext, fixture: str, geometry: object) -> None:
     """Put ``fixture`` into the simulated scene, when this run is simulated."""
     shared = getattr(context, "shared", None)
     station = shared.get("sim") if isinstance(shared, dict) else None
@@ -87,7 +96,7 @@ def calstation_fixture_placed(context: Any, fixture: str, geometry: Any) -> None
 
 
 @hookimpl
-def calstation_register_commands(cli: Any) -> None:
+def calstation_register_commands(cli: typer.Typer) -> None:
     """``calstation simulate``."""
     from .cli import register
 

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
 
 from calstation.atomic import atomic_output, write_atomic
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
@@ -145,6 +144,6 @@ def simulate_run(
     return paths
 
 
-def write_truth(path: Path, truth: dict[str, Any]) -> Path:
+def write_truth(path: Path, truth: Mapping[str, object]) -> Path:
     """Write ``truth`` as indented JSON, whole or not at all; returns ``path``."""
     return write_atomic(path, json.dumps(truth, indent=2, sort_keys=True) + "\n", "truth file")

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TypedDict
 
 import numpy as np
 import open3d as o3d
@@ -24,6 +24,7 @@ from calstation.clock import Clock, SimClock
 from calstation.drivers import DriverContext, LidarInfo, LidarLine
 from calstation.engine.frames import Extrinsics, counts_per_revolution
 from calstation.errors import FrameError, SimulationError
+from calstation.jsonvalue import JSONObject
 from calstation.recipes import LoadedRecipe, Recipe, SimulationConfig
 
 from . import meshes
@@ -44,6 +45,20 @@ _STREAM_TRUTH, _STREAM_PLACEMENT, _STREAM_NOISE = 1, 2, 3
 _FAR = 1.0e3  # stands in for "no return" when comparing neighbouring ranges
 
 
+class PlacementRecord(TypedDict):
+    """A :class:`Placement` as the truth keeps it (metres, radians)."""
+
+    kind: str
+    y: float
+    z: float
+    yaw_rad: float
+    platter_angle_rad: float
+    error_y: float
+    error_z: float
+    error_yaw_rad: float
+    geometry: JSONObject
+
+
 @dataclass(frozen=True)
 class Placement:
     """Where a fixture was put: its reference point (on its local X axis) at (0, y, z) in D,
@@ -58,9 +73,9 @@ class Placement:
     error_y: float
     error_z: float
     error_yaw_rad: float
-    geometry: dict[str, Any]
+    geometry: JSONObject
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> PlacementRecord:
         """A JSON-ready mapping (metres, radians)."""
         return {
             "kind": self.kind,
@@ -155,7 +170,7 @@ class SimulatedStation:
         self._setup_lidar()
         self._setup_turntable_and_encoder()
         self._setup_scenes()
-        self.placements: dict[str, dict[str, Any]] = {}
+        self.placements: dict[str, PlacementRecord] = {}
         self.current_fixture = "none"
         self._placement_count = 0
         self._noise_rng = np.random.default_rng(np.random.SeedSequence([self.seed, _STREAM_NOISE]))
@@ -375,7 +390,7 @@ class SimulatedStation:
             meshes.fixture_mesh(geom, self.recipe, field), p["y"], p["z"], p["yaw_rad"]
         )
 
-    def truth_dict(self) -> dict[str, Any]:
+    def truth_dict(self) -> dict[str, object]:
         """Ground truth for ``truth.json`` and the recordings' ``"truth"`` metadata.
 
         Top level tx, ty, tz (m), rx, ry, rz (rad) (DESIGN §2), the lidar's ``range_offset``

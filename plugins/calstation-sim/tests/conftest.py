@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import pytest
 import yaml
@@ -34,7 +33,7 @@ def make_recipe(tmp_path: Path) -> Callable[..., LoadedRecipe]:
     with values replaced by dotted path, written to a file in ``tmp_path`` and loaded."""
     counter = [0]
 
-    def make(overrides: dict[str, Any] | None = None, *, ideal: bool = False) -> LoadedRecipe:
+    def make(overrides: dict[str, object] | None = None, *, ideal: bool = False) -> LoadedRecipe:
         data = yaml.safe_load(DEFAULT_RECIPE.read_text())
         for dotted, value in {**(IDEAL if ideal else {}), **(overrides or {})}.items():
             node = data

@@ -4,13 +4,13 @@ station's ranges of the same rays, and recorded in the truth."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pytest
 from calstation_sim import SimulatedStation
 
+from calstation.drivers import LidarLine
 from calstation.engine.frames import lidar_to_dynamic, polar_to_lidar
 from calstation.recipes import LoadedRecipe
 
@@ -18,7 +18,7 @@ MakeRecipe = Callable[..., LoadedRecipe]
 
 
 def _lines(recipe: LoadedRecipe, fixture: str = "static_target", n: int = 3,
-           at_s: float = 0.0) -> tuple[SimulatedStation, Any]:
+           at_s: float = 0.0) -> tuple[SimulatedStation, list[LidarLine]]:
     """``n`` lines of ``fixture`` at rest, the first ``at_s`` seconds after the station
     started: (station, lines)."""
     station = SimulatedStation(recipe)
@@ -28,7 +28,7 @@ def _lines(recipe: LoadedRecipe, fixture: str = "static_target", n: int = 3,
     return station, station.scan_lines(times)
 
 
-def _ranges(lines: Any) -> tuple[np.ndarray, np.ndarray]:
+def _ranges(lines: Sequence[LidarLine]) -> tuple[np.ndarray, np.ndarray]:
     return (np.stack([ln.range_m for ln in lines]), np.stack([ln.valid for ln in lines]))
 
 
@@ -119,7 +119,9 @@ def test_encoder_eccentricity_and_second_harmonic(make_recipe: MakeRecipe) -> No
     assert np.abs(expected).max() > 5 * quantum
 
 
-def _platter_points(station: SimulatedStation, lines: Any, phi: float) -> np.ndarray:
+def _platter_points(
+    station: SimulatedStation, lines: Sequence[LidarLine], phi: float
+) -> np.ndarray:
     r, v = _ranges(lines)
     az = np.broadcast_to(station.azimuths, r.shape)
     p_L = polar_to_lidar(r[v], az[v])
