@@ -21,13 +21,16 @@ import itertools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.rangemodel import IDENTITY, RANGE_NAMES, RangeModel, unit_rays
+
+if TYPE_CHECKING:
+    from calstation.engine.periodicity.covariance import CovarianceRecord
 
 RINGS = 24
 """Points around each circle of the work volume."""
@@ -58,7 +61,7 @@ class PredictedError:
     per_point_m: FloatArray
     parameters: tuple[str, ...]
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         """The figures (metres), where the largest point is (frame D, metres), and the map of
         the volume: ``[x, y, z, error]`` per point (metres, to the micrometre)."""
         worst = int(np.argmax(self.per_point_m)) if self.per_point_m.size else 0
@@ -155,7 +158,7 @@ def _without_rigid(J: FloatArray, p_D: FloatArray) -> FloatArray:
 
 
 def _covariance_of(
-    covariance: Mapping[str, Any] | None, sigma: Mapping[str, float]
+    covariance: CovarianceRecord | None, sigma: Mapping[str, float]
 ) -> tuple[tuple[str, ...], FloatArray]:
     """The parameters with an uncertainty and their covariance: the stored covariance record
     (``parameters``, ``matrix``) where there is one, else the σ alone (uncorrelated)."""
@@ -183,7 +186,7 @@ def _covariance_of(
 def predicted_error(
     H: Extrinsics,
     sigma: Mapping[str, float],
-    covariance: Mapping[str, Any] | None = None,
+    covariance: CovarianceRecord | None = None,
     *,
     radius: float,
     height: float,
@@ -281,7 +284,7 @@ def data_factor(predicted: PredictedError, budget_m: float) -> float:
 def contributions(
     H: Extrinsics,
     sigma: Mapping[str, float],
-    covariance: Mapping[str, Any] | None,
+    covariance: CovarianceRecord | None,
     *,
     radius: float,
     height: float,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -103,7 +103,7 @@ class CubeCheck:
     perpendicularity_sigma_deg: float = math.nan
     obb_excess: float = math.nan
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> dict[str, object]:
         """A plain mapping (YAML/JSON ready), metres and degrees."""
         return {
             "edge_m": self.edge,
@@ -277,7 +277,7 @@ def check_cube_points(
     *,
     platter_radius: float = DEFAULT_PLATTER_RADIUS,
     edges_only: bool = False,
-    memo: dict[str, Any] | None = None,
+    memo: dict[str, object] | None = None,
     nearby: bool = False,
 ) -> CubeCheck:
     """Cube check on the returns of the cube's spin scan ((N, 3) in L, (N,) φ) with H.
@@ -341,7 +341,7 @@ def cube_cloud(
     H: Extrinsics,
     s: float,
     platter_radius: float,
-    memo: dict[str, Any] | None,
+    memo: dict[str, object] | None,
     *,
     nearby: bool = False,
 ) -> CubeCloud:
@@ -350,11 +350,12 @@ def cube_cloud(
     kept there."""
     key = (H.as_vector().tobytes(), s, platter_radius)
     found = memo.get("cube_cloud") if memo is not None else None
-    if found is not None and found[0] == key:
-        cloud: CubeCloud = found[1]
-        return cloud
-    if found is not None and nearby and found[0][1:] == key[1:]:
-        cloud = moved_cloud(found[1], p_L, phi, H)
+    kept_key, kept = found if isinstance(found, tuple) else (None, None)
+    if isinstance(kept, CubeCloud) and kept_key == key:
+        return kept
+    if isinstance(kept, CubeCloud) and nearby and isinstance(kept_key, tuple) \
+            and kept_key[1:] == key[1:]:
+        cloud = moved_cloud(kept, p_L, phi, H)
     else:
         cloud = _cube_cloud(p_L, phi, H, s, platter_radius)
     if memo is not None:
@@ -610,14 +611,16 @@ def check_cube(
     from calstation.engine.spinscan import from_recording
 
     scan = prepared if prepared is not None else from_recording(recording)
-    p_L, memo = scan.p_L, scan.memo
+    p_L = scan.p_L
+    memo: dict[str, object] | None = scan.memo
     if not (range_model.is_identity and range_model.incidence == 0.0):
         # the corrected returns have their own segmentation: a memo of their own
         p_L = range_model.points(p_L)
         if range_model.incidence != 0.0:
             p_L = incidence_corrected(p_L, scan.phi, H, range_model.incidence, cube.edge,
                                       platter_radius)
-        memo = scan.memo.setdefault(f"range {range_model.as_vector().tolist()!r}", {})
+        own = scan.memo.setdefault(f"range {range_model.as_vector().tolist()!r}", {})
+        memo = own if isinstance(own, dict) else None
     try:
         return check_cube_points(
             p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=memo,

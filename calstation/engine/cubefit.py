@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +40,7 @@ from calstation.engine.cube import CubeCloud, cube_cloud
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import face_labels, upright_box
 from calstation.engine.periodicity.covariance import (
+    CovarianceRecord,
     block_ids,
     covariance_record,
     model_floor,
@@ -62,6 +63,10 @@ from calstation.engine.settings import CubeGeometry
 from calstation.engine.spinscan import SpinScan
 from calstation.engine.twist import away_from_grazing, face_range_noise, range_twist_bias
 from calstation.errors import FineTuningError
+from calstation.jsonvalue import JSONObject
+
+if TYPE_CHECKING:
+    from scipy.optimize import OptimizeResult
 
 FIT_POINTS = 200_000
 """Labelled returns the fit uses at most (a fixed random subset): 4 turns at 1000 lines/s."""
@@ -248,13 +253,13 @@ class KnownSizeFit:
     sigma: dict[str, float]
     """1σ per parameter (NaN for those held: rx, ty, and ry when it is not estimated; the range
     terms when estimated)"""
-    covariance: dict[str, Any] | None
+    covariance: CovarianceRecord | None
     """the covariance record of the free parameters (:func:`covariance_record`): the part of
     the uncertainty that falls with more data"""
     bias: dict[str, float]
     """per free parameter, a bound on what more data does not remove (m, rad): ``sigma`` holds
     it in quadrature, the accuracy budget adds it at its worst"""
-    details: dict[str, Any]
+    details: JSONObject
     range_model: RangeModel = IDENTITY
     """the range model the fit ended on (its start when not estimated)"""
     edge_direction: dict[str, float] | None = None
@@ -262,7 +267,7 @@ class KnownSizeFit:
     tolerance moves it, with its sign: the bias bound's part that moves every parameter at once
     (None when not computed)"""
 
-    def total_covariance(self) -> dict[str, Any] | None:
+    def total_covariance(self) -> CovarianceRecord | None:
         """The covariance record with the bias bound's parts as the covariance they are: the
         edge tolerance's rank-one term (fully correlated across the parameters) and the
         faces' noise bias in ry. What combining this fit with another estimate weighs it by."""
@@ -306,7 +311,7 @@ def known_size_fit(
     H = start.with_(rx=0.0)
     # the cube's returns are found once: the rounds move H by less than a millimetre
     cloud = cube_cloud(scan.p_L, scan.phi, H, cube.edge, platter_radius, scan.memo)
-    res: Any = None
+    res: OptimizeResult = None
     for _ in range(LABEL_ROUNDS):
         faces = _label(cloud, H)
         base = H.as_vector()
@@ -337,7 +342,7 @@ def _sigma_with_bias(
             for n, v in random.items()}
 
 
-def _details(res: Any, faces: _Faces, cube: CubeGeometry) -> dict[str, Any]:
+def _details(res: OptimizeResult, faces: _Faces, cube: CubeGeometry) -> JSONObject:
     """What a known-size fit reports of itself (``KnownSizeFit.details``)."""
     return {
         "used": True,
@@ -389,7 +394,7 @@ def range_size_fit(
     first = _label(cloud, start.with_(rx=0.0))
     pose, noise = first.pose[:3], first.noise
     near = _near_platter(scan, base, platter_radius)
-    res: Any = None
+    res: OptimizeResult = None
     for _ in range(LABEL_ROUNDS):
         faces, platter = model_labels(scan.p_L[near], scan.phi[near], base, pose, cube.edge,
                                       platter_radius, noise)
@@ -524,7 +529,7 @@ def _scales(free: list[int], pose: int) -> FloatArray:
     return np.array([1e-4 if i == SCALE else 1e-3 for i in free] + [1e-3] * pose)
 
 
-def _range_fit_result(res: Any, errors: _RangeSizeErrors, faces: _Faces, free: list[int],
+def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Faces, free: list[int],
                       cube: CubeGeometry, platter: FloatArray) -> KnownSizeFit:
     """The :class:`KnownSizeFit` of :func:`range_size_fit`: σ from the block sandwich of the
     faces and the platter (× :data:`SIGMA_SCALE`, with the model floor), the bias bound in
@@ -552,7 +557,7 @@ def _range_fit_result(res: Any, errors: _RangeSizeErrors, faces: _Faces, free: l
 
 
 def _covariance(
-    res: Any, errors: _RangeErrors, faces: _Faces, free: list[int]
+    res: OptimizeResult, errors: _RangeErrors, faces: _Faces, free: list[int]
 ) -> FloatArray | None:
     """(n, n) covariance of the free parameters of H, the part that falls with more data: the
     block sandwich × :data:`SIGMA_SCALE` and the model floor."""
@@ -561,7 +566,7 @@ def _covariance(
     return _block_covariance(res, p_D, free)
 
 
-def _block_covariance(res: Any, where: FloatArray, free: list[int]) -> FloatArray | None:
+def _block_covariance(res: OptimizeResult, where: FloatArray, free: list[int]) -> FloatArray | None:
     """(n, n) covariance of the ``free`` parameters from the fit ``res``, its residuals
     correlated within the spatial blocks of the points ``where`` (the block sandwich) ×
     :data:`SIGMA_SCALE`, with the model floor; None when it cannot be computed."""
@@ -574,7 +579,7 @@ def _block_covariance(res: Any, where: FloatArray, free: list[int]) -> FloatArra
 
 
 def _edge_direction(
-    res: Any, errors: _RangeErrors | _RangeSizeErrors, free: list[int], tolerance: float
+    res: OptimizeResult, errors: _RangeErrors | _RangeSizeErrors, free: list[int], tolerance: float
 ) -> dict[str, float]:
     """Per free parameter, the signed move (m, rad) of a cube ``tolerance`` larger than the
     recipe's edge: dx = −J⁺·∂r/∂edge·tolerance."""
@@ -587,7 +592,7 @@ def _edge_direction(
 
 
 def _bias_bound(
-    res: Any, errors: _RangeErrors | _RangeSizeErrors, faces: _Faces, free: list[int],
+    res: OptimizeResult, errors: _RangeErrors | _RangeSizeErrors, faces: _Faces, free: list[int],
     tolerance: float, edge: dict[str, float] | None = None,
 ) -> dict[str, float]:
     """Per parameter, a bound on what more data does not remove (m, rad): the edge tolerance

@@ -13,8 +13,9 @@ All functions are pure, work on arrays, and use metres and radians.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import SupportsFloat
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -68,6 +69,17 @@ def matrix_to_euler(R: ArrayLike) -> tuple[float, float, float]:
 
     rx, ry, rz = Rotation.from_matrix(m).as_euler("xyz")
     return float(rx), float(ry), float(rz)
+
+
+def as_float(value: object) -> float:
+    """``float(value)`` of a value read from a file or a mapping: a number or its text;
+    TypeError (as ``float`` raises it) for anything else, ValueError for text that is no
+    number."""
+    if isinstance(value, str | SupportsFloat):
+        return float(value)
+    raise TypeError(
+        f"float() argument must be a string or a real number, not '{type(value).__name__}'"
+    )
 
 
 @dataclass(frozen=True)
@@ -155,13 +167,13 @@ class Extrinsics:
         return {n: float(getattr(self, n)) for n in PARAMETER_NAMES}
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> Extrinsics:
+    def from_dict(cls, d: Mapping[str, object]) -> Extrinsics:
         """Build from a mapping with keys tx, ty, tz, rx, ry, rz (rx defaults to 0)."""
         missing = [n for n in PARAMETER_NAMES if n not in d and n != "rx"]
         if missing:
             raise FrameError(f"extrinsics is missing {', '.join(missing)}")
         try:
-            return cls(**{n: float(d.get(n, 0.0)) for n in PARAMETER_NAMES})
+            return cls(**{n: as_float(d.get(n, 0.0)) for n in PARAMETER_NAMES})
         except (TypeError, ValueError) as exc:
             raise FrameError(f"extrinsics values must be numbers: {exc}") from exc
 

@@ -23,13 +23,16 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 from scipy.stats import chi2
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray
 from calstation.engine.rangemodel import ESTIMATED_NAMES, RangeModel
+
+if TYPE_CHECKING:
+    from calstation.engine.periodicity.covariance import CovarianceRecord
 
 CONSISTENCY_P = 1e-3
 """Two estimates whose difference is less likely than this under their combined covariance
@@ -51,7 +54,7 @@ class Estimate:
     follows: Mapping[str, Mapping[str, float]]
 
     @classmethod
-    def of(cls, H: Extrinsics, model: RangeModel, record: Mapping[str, Any],
+    def of(cls, H: Extrinsics, model: RangeModel, record: CovarianceRecord,
            follows: Mapping[str, Mapping[str, float]] | None = None) -> Estimate:
         """From H, the range model and a stored covariance record (``parameters``,
         ``matrix``)."""
@@ -61,6 +64,16 @@ class Estimate:
             np.asarray(record["matrix"], dtype=np.float64),
             dict(follows or {}),
         )
+
+
+class Disagreement(TypedDict):
+    """How far apart two estimates are on the parameters both estimated: the χ² of their
+    difference, its degrees of freedom and p-value, and each parameter's difference in σ."""
+
+    chi2: float
+    dof: int
+    p: float
+    sigmas: dict[str, float]
 
 
 @dataclass(frozen=True)
@@ -73,7 +86,7 @@ class Fused:
     range_model: RangeModel
     names: tuple[str, ...]
     covariance: FloatArray
-    disagreement: dict[str, Any]
+    disagreement: Disagreement
 
     @property
     def sigma(self) -> dict[str, float]:
@@ -81,7 +94,7 @@ class Fused:
         return {n: math.sqrt(max(float(self.covariance[k, k]), 0.0))
                 for k, n in enumerate(self.names)}
 
-    def record(self) -> dict[str, Any]:
+    def record(self) -> CovarianceRecord:
         """The covariance as stored with a calibration."""
         return {"parameters": list(self.names), "matrix": self.covariance.tolist()}
 
@@ -129,12 +142,12 @@ def _constraint(est: Estimate, names: Sequence[str]) -> tuple[FloatArray, FloatA
     return A, z
 
 
-def _disagreement(first: Estimate, second: Estimate) -> dict[str, Any]:
+def _disagreement(first: Estimate, second: Estimate) -> Disagreement:
     """How far apart the two estimates are on the parameters both estimated: χ², degrees of
     freedom, p-value, and each parameter's difference in σ of the difference."""
     common = [n for n in first.names if n in second.names]
     if not common:
-        return {"chi2": 0.0, "dof": 0, "p": 1.0, "sigmas": {}}
+        return Disagreement(chi2=0.0, dof=0, p=1.0, sigmas={})
     i1 = [first.names.index(n) for n in common]
     i2 = [second.names.index(n) for n in common]
     d = np.array([first.vector[ESTIMATED_NAMES.index(n)] - second.vector[ESTIMATED_NAMES.index(n)]
@@ -149,8 +162,8 @@ def _disagreement(first: Estimate, second: Estimate) -> dict[str, Any]:
     C = first.covariance[np.ix_(i1, i1)] + second.covariance[np.ix_(i2, i2)]
     value = float(d @ np.linalg.solve(C, d))
     sigmas = {n: float(d[k] / math.sqrt(max(C[k, k], 1e-300))) for k, n in enumerate(common)}
-    return {"chi2": value, "dof": len(common), "p": float(chi2.sf(value, len(common))),
-            "sigmas": sigmas}
+    return Disagreement(chi2=value, dof=len(common), p=float(chi2.sf(value, len(common))),
+                        sigmas=sigmas)
 
 
 def consistent(fused: Fused) -> bool:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,7 +32,8 @@ from calstation.engine.result import CalibrationResult
 if TYPE_CHECKING:
     from calstation.engine.cube import CubeCheck
     from calstation.engine.cubefit import KnownSizeFit
-    from calstation.engine.fusion import Fused
+    from calstation.engine.fusion import Disagreement, Fused
+    from calstation.engine.periodicity.covariance import CovarianceRecord
     from calstation.engine.scan import Scan
     from calstation.engine.settings import CubeGeometry, QALimits
     from calstation.engine.spinscan import SpinScan
@@ -55,7 +56,7 @@ class JointRy:
 
     H: Extrinsics
     sigma: dict[str, float]
-    details: dict[str, Any]
+    details: dict[str, object]
 
 
 def disagreement_sigma(sigma_ry: float, twist: float, twist_sigma: float) -> float:
@@ -65,7 +66,7 @@ def disagreement_sigma(sigma_ry: float, twist: float, twist_sigma: float) -> flo
 
 
 def combine_with_cube(
-    H: Extrinsics, covariance: dict[str, Any] | None, twist: float, twist_sigma: float
+    H: Extrinsics, covariance: CovarianceRecord | None, twist: float, twist_sigma: float
 ) -> JointRy | None:
     """Update H (with its ``covariance`` record: ``parameters`` names and ``matrix``, SI) with
     the cube's ry measurement ``H.ry + twist`` (rad) of 1σ ``twist_sigma`` (rad).
@@ -82,7 +83,7 @@ def combine_with_cube(
     i = names.index("ry")
     var_ry = float(C[i, i])
     z = disagreement_sigma(math.sqrt(max(var_ry, 0.0)), twist, twist_sigma)
-    details: dict[str, Any] = {
+    details: dict[str, object] = {
         "ry_spin_target": H.ry,
         "sigma_ry_spin_target": math.sqrt(max(var_ry, 0.0)),
         "ry_cube": H.ry + twist,
@@ -105,7 +106,7 @@ def combine_with_cube(
 
 def ry_with_cube(
     H: Extrinsics,
-    covariance: dict[str, Any] | None,
+    covariance: CovarianceRecord | None,
     sigma_ry: float,
     twist: float,
     twist_sigma: float,
@@ -272,7 +273,7 @@ def _combine_with_fit(
     return replace(result, diagnostics=diagnostics), range_disagreement(fused.disagreement)
 
 
-def range_disagreement(disagreement: dict[str, Any]) -> str:
+def range_disagreement(disagreement: Disagreement) -> str:
     """The refusal when the spin target and the cube disagree (:mod:`~calstation.engine.
     fusion`), naming what differs most; the lidar's range error when it is the offset or the
     scale."""

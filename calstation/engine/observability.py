@@ -10,7 +10,7 @@ saying what to do, rather than hand the operator a silent guess.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,6 +20,7 @@ from calstation.errors import ObservabilityError
 
 if TYPE_CHECKING:
     from calstation.engine.accuracy import PredictedError
+    from calstation.engine.periodicity.covariance import CovarianceRecord
 
 ADVICE = {
     "spin_target": (
@@ -165,8 +166,8 @@ def predict(
 
 
 def _conditioned(
-    covariance: dict[str, Any] | None, sigma: dict[str, float], name: str
-) -> tuple[dict[str, Any] | None, dict[str, float]]:
+    covariance: CovarianceRecord | None, sigma: dict[str, float], name: str
+) -> tuple[CovarianceRecord | None, dict[str, float]]:
     """The covariance and σ once parameter ``name`` is known exactly (Schur complement)."""
     sigma = {**sigma, name: math.nan}
     if covariance is None or name not in covariance.get("parameters", []):
@@ -179,7 +180,8 @@ def _conditioned(
     keep = [k for k in range(len(names)) if k != i]
     for k in keep:
         sigma[names[k]] = math.sqrt(max(float(C[k, k]), 0.0))
-    reduced = {"parameters": [names[k] for k in keep], "matrix": C[np.ix_(keep, keep)].tolist()}
+    reduced: CovarianceRecord = {"parameters": [names[k] for k in keep],
+                                 "matrix": C[np.ix_(keep, keep)].tolist()}
     return reduced, sigma
 
 

@@ -12,27 +12,38 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 import yaml
 
-from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, as_float
 from calstation.engine.rangemodel import RANGE_NAMES, RangeModel
 from calstation.errors import CalibrationError, FrameError
+from calstation.jsonvalue import JSONObject, JSONValue
 
 RESULT_FORMAT = "calstation-calibration"
 RESULT_VERSION = 1
 
 
-def _plain(value: Any) -> Any:
-    """Numpy scalars/arrays and tuples → plain Python for YAML/JSON; NaN/inf → None."""
+@overload
+def _plain(value: float | np.floating) -> float | None: ...
+
+
+@overload
+def _plain(value: object) -> JSONValue: ...
+
+
+def _plain(value: object) -> JSONValue:
+    """Numpy scalars/arrays and tuples → plain Python for YAML/JSON; NaN/inf → None (and any
+    other object, which YAML and JSON could not hold, its text)."""
     if isinstance(value, dict):
         return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
+        items: list[object] = value.tolist()
+        return _plain(items)
     if isinstance(value, (np.floating, float)):
         f = float(value)
         return f if math.isfinite(f) else None
@@ -40,14 +51,16 @@ def _plain(value: Any) -> Any:
         return int(value)
     if isinstance(value, (np.bool_,)):
         return bool(value)
-    return value
+    if value is None or isinstance(value, str | int):
+        return value
+    return str(value)
 
 
 def _optional(value: float | None) -> float | None:
     return None if value is None else _plain(float(value))
 
 
-def _number(d: dict[str, Any], key: str, unit: str = "") -> float | None:
+def _number(d: Mapping[str, object], key: str, unit: str = "") -> float | None:
     """The optional finite number ``d[key]`` (of ``unit``, for messages), None when absent or
     null."""
     value = d.get(key)
@@ -55,7 +68,7 @@ def _number(d: dict[str, Any], key: str, unit: str = "") -> float | None:
         return None
     what = f"a number of {unit}" if unit else "a number"
     try:
-        out = float(value)
+        out = as_float(value)
     except (TypeError, ValueError):
         raise CalibrationError(
             f"calibration field '{key}': expected {what}, got {value!r}"
@@ -65,7 +78,7 @@ def _number(d: dict[str, Any], key: str, unit: str = "") -> float | None:
     return out
 
 
-def _seconds(d: dict[str, Any], key: str) -> float | None:
+def _seconds(d: Mapping[str, object], key: str) -> float | None:
     """The optional finite number ``d[key]`` (seconds), None when absent or null."""
     return _number(d, key, "seconds")
 
@@ -105,7 +118,7 @@ class CalibrationResult:
     iterations: int
     strategy: str
     timings: dict[str, float] = field(default_factory=dict)
-    diagnostics: dict[str, Any] = field(default_factory=dict)
+    diagnostics: dict[str, Any] = field(default_factory=dict)  # Any: free-form, see above
     encoder_latency_s: float | None = None
     sigma_encoder_latency_s: float | None = None
     range_offset: float | None = None
@@ -127,8 +140,15 @@ class CalibrationResult:
         unknown = set(fields) - set(RANGE_FIELDS)
         if unknown:
             raise CalibrationError(f"not a range model field: {', '.join(sorted(unknown))}")
-        values: dict[str, Any] = dict(fields)
-        return replace(self, **values)
+        return replace(
+            self,
+            range_offset=fields.get("range_offset", self.range_offset),
+            sigma_range_offset=fields.get("sigma_range_offset", self.sigma_range_offset),
+            range_scale=fields.get("range_scale", self.range_scale),
+            sigma_range_scale=fields.get("sigma_range_scale", self.sigma_range_scale),
+            incidence_bias=fields.get("incidence_bias", self.incidence_bias),
+            sigma_incidence_bias=fields.get("sigma_incidence_bias", self.sigma_incidence_bias),
+        )
 
     def range_fields(self) -> dict[str, float | None]:
         """``range_offset``, ``sigma_range_offset`` (m), ``range_scale``, ``sigma_range_scale``,
@@ -137,13 +157,13 @@ class CalibrationResult:
         return {name: _optional(getattr(self, name)) for name in RANGE_FIELDS}
 
     # --- serialisation -----------------------------------------------------------------------
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> JSONObject:
         """A plain mapping (YAML/JSON ready): H and sigma in metres and radians."""
         return {
             "format": RESULT_FORMAT,
             "version": RESULT_VERSION,
             "strategy": self.strategy,
-            "H": self.H.as_dict(),
+            "H": {**self.H.as_dict()},
             "sigma": {n: _plain(float(self.sigma.get(n, math.nan))) for n in PARAMETER_NAMES},
             "cost": _plain(float(self.cost)),
             "iterations": int(self.iterations),
@@ -157,7 +177,7 @@ class CalibrationResult:
         }
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> CalibrationResult:
+    def from_dict(cls, d: object) -> CalibrationResult:
         """Inverse of :meth:`to_dict`; :class:`CalibrationError` names what is missing or wrong."""
         if not isinstance(d, dict):
             raise CalibrationError(f"a calibration must be a mapping, got {type(d).__name__}")
@@ -244,7 +264,7 @@ class CalibrationResult:
         """URDF ``<origin xyz=… rpy=…/>`` of P in L."""
         return self.H.urdf_origin()
 
-    def summary(self) -> dict[str, Any]:
+    def summary(self) -> dict[str, object]:
         """The flat mapping ``calstation calibrate --json`` prints.
 
         tx, ty, tz (m), rx, ry, rz (rad), ``sigma_<name>`` for each, strategy, cost, iterations,
@@ -253,7 +273,7 @@ class CalibrationResult:
         ``sigma_range_scale``, ``incidence_bias`` and ``sigma_incidence_bias`` (m at 60°)
         (DESIGN §9; None when not estimated).
         """
-        out: dict[str, Any] = {n: float(getattr(self.H, n)) for n in PARAMETER_NAMES}
+        out: dict[str, object] = {n: float(getattr(self.H, n)) for n in PARAMETER_NAMES}
         for n in PARAMETER_NAMES:
             out[f"sigma_{n}"] = _plain(float(self.sigma.get(n, math.nan)))
         out["sigma"] = {n: out[f"sigma_{n}"] for n in PARAMETER_NAMES}

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Self
+from typing import Self
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -128,16 +128,16 @@ class Scan:
             return self
         last = max(0, lines)
         end = int(self.line_bounds()[last])
-        cut: dict[str, Any] = {"line_timestamp_ns": self.line_timestamp_ns[:last],
-               "line_index": self.line_index[:end], "t_ns": self.t_ns[:end],
-               "azimuth_rad": self.azimuth_rad[:end], "range_m": self.range_m[:end],
-               "valid": self.valid[:end],
-               "intensity": None if self.intensity is None else self.intensity[:end]}
-        if self.line_point_period_ns is not None:
-            cut["line_point_period_ns"] = self.line_point_period_ns[:last]
-        if self.line_has_offsets is not None:
-            cut["line_has_offsets"] = self.line_has_offsets[:last]
-        return replace(self, **cut)
+        period, offsets = self.line_point_period_ns, self.line_has_offsets
+        return replace(
+            self, line_timestamp_ns=self.line_timestamp_ns[:last],
+            line_index=self.line_index[:end], t_ns=self.t_ns[:end],
+            azimuth_rad=self.azimuth_rad[:end], range_m=self.range_m[:end],
+            valid=self.valid[:end],
+            intensity=None if self.intensity is None else self.intensity[:end],
+            line_point_period_ns=None if period is None else period[:last],
+            line_has_offsets=None if offsets is None else offsets[:last],
+        )
 
     # --- geometry ------------------------------------------------------------------------
     def platter_angle(self, t_ns: ArrayLike) -> NDArray[np.float64]:

@@ -30,9 +30,10 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from calstation.engine.cube import check_cube_points
@@ -59,6 +60,8 @@ from calstation.engine.twist import FaceFlatness, face_range_noise, flatness_ry_
 from calstation.errors import FineTuningError, VerificationError
 
 if TYPE_CHECKING:
+    from scipy.optimize import OptimizeResult
+
     from calstation.engine.scan import Scan
 
 Progress = Callable[[str, float], None]
@@ -129,7 +132,7 @@ def _coarse_alignment(
     *,
     platter_radius: float,
     max_points: int,
-) -> tuple[Extrinsics, dict[str, Any]]:
+) -> tuple[Extrinsics, dict[str, object]]:
     """A far start brought within the box cost's reach, and what was done.
 
     The box cost has no basin wider than the cube: the coarse stages of the periodicity
@@ -242,7 +245,7 @@ def _shape_pass(
     # the platter ring and the background are static in L: they never belong to the cube
     moving = ~scan.static
     p_mov, phi_mov = scan.p_L[moving], scan.phi[moving]
-    coarse_report: dict[str, Any] = {"used": False, "needed": None}
+    coarse_report: dict[str, object] = {"used": False, "needed": None}
     if coarse:
         start, coarse_report = _coarse_alignment(
             scan,
@@ -305,7 +308,7 @@ class _BoxFit:
         self.tb = settings.translation_bound
         self.rb = math.radians(settings.rotation_bound_deg)
 
-    def solve(self, names: tuple[str, ...], nfev: int) -> Any:
+    def solve(self, names: tuple[str, ...], nfev: int) -> OptimizeResult:
         """The box cost over the parameters ``names``, at most ``nfev`` evaluations, within the
         bounds around the start; returns SciPy's last ``least_squares`` result."""
         cost, settings, progress, box, x6 = (
@@ -323,7 +326,7 @@ class _BoxFit:
         half = np.array([self.tb if i < 3 else self.rb for i in idx])
         centre = self.start6[idx]
         used = 0
-        r: Any = None
+        r: OptimizeResult | None = None
         # upright: outer loop re-segmenting between inner solves on a fixed point set;
         # minimal (paper): one solve re-segmenting at every evaluation
         chunk = max(len(idx) + 2, 3 * (len(idx) + 1)) if box == "upright" else nfev
@@ -351,7 +354,9 @@ class _BoxFit:
         cost.freeze(None)
         return r
 
-    def labelled_faces(self, H: Extrinsics) -> tuple[FloatArray, FloatArray, list[Any]]:
+    def labelled_faces(
+        self, H: Extrinsics
+    ) -> tuple[FloatArray, FloatArray, list[NDArray[np.bool_]]]:
         """The returns near the cube's faces under H (in L, their φ) and a mask per face."""
         p_L_near, phi_near = self.p_L_near, self.phi_near
         p_D, mask = self.cost.cloud(H)
@@ -409,7 +414,7 @@ class _BoxFit:
 class _Solved:
     """What the solves of a pass leave for its result."""
 
-    res: Any
+    res: OptimizeResult
     """SciPy's last ``least_squares`` result of the box cost"""
     free: list[int]
     """the indices of the parameters that result solved for"""
@@ -457,7 +462,7 @@ def _pass_result(
     fit: _BoxFit,
     solved: _Solved,
     estimate_ry: bool,
-    coarse_report: dict[str, Any],
+    coarse_report: dict[str, object],
     n_all: int,
 ) -> CalibrationResult:
     """The pass's :class:`CalibrationResult` at ``fit``'s estimate: the cost's terms, σ

@@ -14,7 +14,7 @@ import math
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
+from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,9 +29,12 @@ class LineLike(Protocol):
     """What :class:`SpinScanBuilder` reads of a lidar line (a driver's
     :class:`calstation.drivers.LidarLine` is one): (n,) arrays and each return's time."""
 
-    azimuth_rad: Any
-    range_m: Any
-    valid: Any
+    @property
+    def azimuth_rad(self) -> NDArray[np.float64]: ...
+    @property
+    def range_m(self) -> NDArray[np.float64]: ...
+    @property
+    def valid(self) -> NDArray[np.bool_]: ...
 
     def point_times_ns(self) -> NDArray[np.int64]: ...
 
@@ -227,7 +230,7 @@ class SpinScan:
     """seconds spent preparing, by step"""
     cells: tuple[NDArray[np.int32], NDArray[np.int32]] | None = field(default=None, repr=False)
     """the static test's cells of the returns (:func:`static_cells`), when found while scanning"""
-    memo: dict[str, Any] = field(default_factory=dict, repr=False)
+    memo: dict[str, object] = field(default_factory=dict, repr=False)
     """results derived from the returns that later steps may reuse (the cube check's
     segmentation under the last H: :func:`calstation.engine.cube.check_cube_points`)"""
     _static: NDArray[np.bool_] | None = field(default=None, repr=False)

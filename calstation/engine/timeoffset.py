@@ -25,7 +25,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,6 +35,8 @@ from calstation.engine.rangemodel import IDENTITY, RangeModel
 from calstation.errors import FineTuningError
 
 if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
+
     from calstation.engine.result import CalibrationResult
     from calstation.engine.scan import Scan
     from calstation.engine.spinscan import SpinScan
@@ -102,7 +104,7 @@ class TimeOffset:
         """How much the configured latency was off (s)."""
         return self.latency_s - self.configured_s
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         """Plain mapping (seconds and radians) for diagnostics and reports."""
         return {
             "latency_s": self.latency_s,
@@ -177,7 +179,7 @@ def _turn(p: FloatArray, theta: float) -> FloatArray:
     return out
 
 
-def _coarse(tree: Any, moving: FloatArray, limit: float) -> float:
+def _coarse(tree: cKDTree, moving: FloatArray, limit: float) -> float:
     """The turn in ±``limit`` (rad) with the smallest median distance, on a grid then finer."""
     sample = moving[_every(moving.shape[0], 5_000)]
     centre, half, steps = 0.0, limit, 121
@@ -190,7 +192,7 @@ def _coarse(tree: Any, moving: FloatArray, limit: float) -> float:
 
 
 def _fit(
-    fixed: FloatArray, normals: FloatArray, weights: FloatArray, tree: Any,
+    fixed: FloatArray, normals: FloatArray, weights: FloatArray, tree: cKDTree,
     moving: FloatArray, theta: float, max_distance: float,
 ) -> tuple[float, NDArray[np.intp], FloatArray, FloatArray]:
     """Point-to-plane Gauss–Newton on the turn alone, from ``theta``; returns the turn, the

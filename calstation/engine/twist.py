@@ -15,7 +15,7 @@ angle, so a perpendicular fit traded flatness for noise (docs/algorithms.md, "Th
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +23,9 @@ from scipy.optimize import least_squares
 
 from calstation.engine.frames import Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import fit_plane, line_ids
+
+if TYPE_CHECKING:
+    from scipy.optimize import OptimizeResult
 
 TWIST_BOUND_DEG = 3.0
 """The ry correction the twist fit searches (±, degrees)."""
@@ -182,7 +185,8 @@ def _twist_faces(
     return faces
 
 
-def _fit_twist(flat: FaceFlatness, H: Extrinsics, x0: float, f_scale: float, max_nfev: int) -> Any:
+def _fit_twist(flat: FaceFlatness, H: Extrinsics, x0: float, f_scale: float, max_nfev: int
+                ) -> OptimizeResult:
     """``scipy.optimize.least_squares`` of ``flat`` over the ry correction (rad) from ``x0``,
     within ±:data:`TWIST_BOUND_DEG`, soft-L1 with scale ``f_scale`` (m)."""
     bound = math.radians(TWIST_BOUND_DEG)
@@ -348,7 +352,7 @@ def _line_groups(faces: list[tuple[FloatArray, FloatArray]]) -> list[NDArray[np.
 
 
 def flatness_ry_sigma(
-    res: Any,
+    res: OptimizeResult,
     free: list[int],
     faces_L: list[FloatArray],
     faces_phi: list[FloatArray],

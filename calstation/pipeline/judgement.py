@@ -19,7 +19,6 @@ from calstation import display
 from calstation.engine.accuracy import PredictedError, contributions, data_factor
 from calstation.engine.observability import accuracy_problem, predict, predicted_volume
 from calstation.engine.result import CalibrationResult
-from calstation.jsonvalue import JSONObject
 from calstation.recipes import Recipe
 
 MOST_TURNS = 20.0
@@ -34,7 +33,7 @@ def with_prediction(
     budget, the work volume and the turns it came from beside it), and the prediction."""
     accuracy = recipe.calibration.accuracy
     predicted = predict(result, accuracy, recipe.fixtures.platter, known=known)
-    record: JSONObject = {
+    record: dict[str, object] = {
         **predicted.as_dict(),
         "budget_m": accuracy.max_error,
         "work_volume": {"radius_m": accuracy.work_radius(recipe.fixtures.platter),

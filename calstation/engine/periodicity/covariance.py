@@ -8,7 +8,7 @@ Used by the periodicity fine-tuning, and by the shape strategy and the cube chec
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Protocol, TypedDict
 
 import numpy as np
 from numpy.typing import NDArray
@@ -61,6 +61,29 @@ left +0.013 to +0.027° of ry on a centred target and 0.0006–0.004° of rz; wi
 the turns, a 4-turn scan at 1000 lines/s reported σ_rz 0.001° for an error of 0.0037°."""
 
 
+class LeastSquaresSolution(Protocol):
+    """What the covariance reads of a least-squares solution (``scipy.optimize.least_squares``'s
+    result, or a problem's own :class:`~calstation.engine.periodicity.problem.Solution`): the
+    residuals ``fun`` (m,) and their Jacobian ``jac`` (m, n)."""
+
+    @property
+    def fun(self) -> FloatArray:
+        """The residuals (m,)."""
+        ...
+
+    @property
+    def jac(self) -> FloatArray:
+        """Their Jacobian (m, n)."""
+        ...
+
+
+class CovarianceRecord(TypedDict):
+    """A covariance as stored with a calibration: the parameter names and the matrix (SI)."""
+
+    parameters: list[str]
+    matrix: list[list[float]]
+
+
 def model_floor(free: list[int]) -> FloatArray:
     """The (n, n) diagonal covariance of :data:`MODEL_FLOOR_DEG` over the parameters ``free``."""
     floor = [math.radians(MODEL_FLOOR_DEG.get(ESTIMATED_NAMES[i], 0.0)) ** 2 for i in free]
@@ -69,7 +92,7 @@ def model_floor(free: list[int]) -> FloatArray:
 
 
 def parameter_covariance(
-    res: Any, free: list[int], blocks: NDArray[np.int64] | None = None
+    res: LeastSquaresSolution, free: list[int], blocks: NDArray[np.int64] | None = None
 ) -> FloatArray | None:
     """(n, n) covariance of the n parameters with indices ``free`` at the solution of
     ``scipy.optimize.least_squares`` (``res.jac`` (m, n), ``res.fun`` (m,)); None when m ≤ n
@@ -107,7 +130,7 @@ def parameter_covariance(
 
 
 def parameter_sigma(
-    res: Any, free: list[int], blocks: NDArray[np.int64] | None = None
+    res: LeastSquaresSolution, free: list[int], blocks: NDArray[np.int64] | None = None
 ) -> dict[str, float]:
     """1σ per parameter (metres / radians, keyed by ``PARAMETER_NAMES``, and the range terms
     among ``free``) from :func:`parameter_covariance`; NaN for parameters held fixed, and for
@@ -115,7 +138,7 @@ def parameter_sigma(
     return sigma_from_covariance(parameter_covariance(res, free, blocks), free)
 
 
-def covariance_record(cov: FloatArray | None, free: list[int]) -> dict[str, Any] | None:
+def covariance_record(cov: FloatArray | None, free: list[int]) -> CovarianceRecord | None:
     """The covariance as stored with a calibration: parameter names and the matrix (SI)."""
     if cov is None:
         return None

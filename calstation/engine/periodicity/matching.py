@@ -5,7 +5,7 @@ or every cell against the plane around its nearest cell in the other half (the l
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,6 +25,9 @@ from calstation.engine.periodicity.covariance import SIGMA_BLOCK, block_ids
 from calstation.engine.periodicity.problem import _Matched
 from calstation.engine.periodicity.schedule import Stage
 from calstation.errors import FineTuningError
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 MIN_MATCHES = 50
 """Fewest matched cells between the two half-turns an iteration accepts."""
@@ -48,7 +51,7 @@ class _Matcher:
         self.cs = [(np.cos(h.phi), np.sin(h.phi)) for h in halves]
         self.candidates: list[NDArray[np.int64]] = []
         self.frozen: list[FloatArray] = []
-        self.trees: list[Any] = []
+        self.trees: list[cKDTree] = []
         self.neighbourhoods: list[NDArray[np.int64]] = []
         self.x6: FloatArray | None = None
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -51,6 +50,15 @@ GRAZING_PLATTER = 0.05
 GRAZING_TARGET = 0.2
 """Least |cosine| of a target cell's ray with its matched plane its range error is divided by."""
 
+
+
+@dataclass(frozen=True)
+class Solution:
+    """A solution ``x`` with its residuals ``fun`` and their Jacobian ``jac`` in full."""
+
+    x: FloatArray
+    fun: FloatArray
+    jac: FloatArray
 
 @dataclass
 class _Matched:
@@ -169,12 +177,10 @@ class _Problem:
         x6[self.free] = x
         return x6
 
-    def solution(self, x: FloatArray) -> Any:
+    def solution(self, x: FloatArray) -> Solution:
         """The residuals and the Jacobian at ``x`` in full, as the covariance reads them
         (``fun``, ``jac``, ``x``)."""
-        from types import SimpleNamespace
-
-        return SimpleNamespace(x=x, fun=self.residuals(x), jac=self.jacobian(x))
+        return Solution(x=x, fun=self.residuals(x), jac=self.jacobian(x))
 
     def _normals_in_q(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Each match's normals turned back by its platter angles: with ``q = Rᵀ(p − t)``,

@@ -7,7 +7,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -21,6 +21,7 @@ from calstation.engine.periodicity.cells import (
     to_dynamic,
 )
 from calstation.engine.periodicity.covariance import (
+    CovarianceRecord,
     covariance_record,
     model_floor,
     noise_inflation,
@@ -251,6 +252,19 @@ def _run_stages(
     return x6, timings
 
 
+class Iteration(TypedDict):
+    """One outer iteration of a stage, as ``diagnostics["iterations"]`` keeps it: the stage
+    (from 1), its cell size (m), the points and matches, the platter samples, the mean squared
+    residual and the function evaluations."""
+
+    stage: int
+    voxel_m: float
+    points: int
+    matches: int
+    platter_samples: int
+    cost: float
+    nfev: int
+
 @dataclass(frozen=True)
 class _Uncertainty:
     """σ of the final estimate and how it was obtained (metres / radians, SI)."""
@@ -263,7 +277,7 @@ class _Uncertainty:
     """cluster-robust over spatial blocks of :data:`SIGMA_BLOCK`"""
     inflation: float
     """:func:`noise_inflation` of the scan's range noise (a constant for a noisy scan)"""
-    covariance: dict[str, Any] | None
+    covariance: CovarianceRecord | None
     """the reported covariance as stored (:func:`covariance_record`)"""
 
 
@@ -397,7 +411,7 @@ class _Run:
         self.platter_radius = platter_radius
         self.progress = progress
         self.n_stages = n_stages
-        self.history: list[dict[str, Any]] = []
+        self.history: list[Iteration] = []
         self.last: tuple[FloatArray, _Problem] | None = None
         """the last inner solution and its problem"""
         self.outer = 0
@@ -456,15 +470,15 @@ class _Run:
             self.cost = float(np.mean(problem.residuals(res.x) ** 2))
             self.last = (res.x, problem)
             self.history.append(
-                {
-                    "stage": s_i + 1,
-                    "voxel_m": stage.voxel,
-                    "points": n_pts,
-                    "matches": int(n_matches),
-                    "platter_samples": 0 if platter is None else int(platter.shape[0]),
-                    "cost": self.cost,
-                    "nfev": int(res.nfev),
-                }
+                Iteration(
+                    stage=s_i + 1,
+                    voxel_m=stage.voxel,
+                    points=n_pts,
+                    matches=int(n_matches),
+                    platter_samples=0 if platter is None else int(platter.shape[0]),
+                    cost=self.cost,
+                    nfev=int(res.nfev),
+                )
             )
             if _converged(self.history, outer, step, stage):
                 break
@@ -488,7 +502,7 @@ class _Run:
         return platter
 
 
-def _converged(history: list[dict[str, Any]], outer: int, step: FloatArray, stage: Stage) -> bool:
+def _converged(history: list[Iteration], outer: int, step: FloatArray, stage: Stage) -> bool:
     """Stop the outer loop of a stage?
 
     While ry is held, a stalled cost or a step below the cell's resolution ends the stage. Once
