@@ -42,8 +42,10 @@ class LineLike(Protocol):
 class EncoderReading(Protocol):
     """An encoder reading (a driver's :class:`calstation.drivers.EncoderSample` is one)."""
 
-    timestamp_ns: int
-    count: int
+    @property
+    def timestamp_ns(self) -> int: ...
+    @property
+    def count(self) -> int: ...
 
 
 STATIC_BIN_DEG = 0.1

@@ -15,7 +15,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable
 from contextlib import suppress
-from typing import Any, Protocol
+from typing import Protocol
 
 from calstation.clock import Clock
 from calstation.drivers import Encoder, EncoderSample, Lidar, LidarLine, Turntable, TurntableStatus
@@ -166,7 +166,7 @@ def acquire_spin(
         writer.write_turntable(turntable.status())
 
 
-def _stop_after_fault(turntable: Any, writer: Any, exc: BaseException) -> None:
+def _stop_after_fault(turntable: Turntable, writer: Writer, exc: BaseException) -> None:
     """Stop the platter after ``exc`` (emergency stop if ``stop`` fails) without hiding ``exc``:
     the fault that ended the scan is the one the operator must read."""
     try:

@@ -28,7 +28,7 @@ import threading
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 from sqlalchemy import delete, select, update
 from sqlalchemy.exc import IntegrityError, SQLAlchemyError
@@ -49,12 +49,30 @@ _HELD: set[str] = set()
 left by it earlier, by a run thread that died)."""
 
 
+class LockRecord(TypedDict):
+    """A station's lock as plain data (:func:`describe`): the station, its run, who holds it
+    from where (front end, host, process and when it started), the lock's token, since when
+    and its last heartbeat (UTC ISO-8601)."""
+
+    station: str
+    run_id: int | None
+    operator: str
+    recipe: str | None
+    front_end: str
+    host: str
+    pid: int
+    process_started: str | None
+    token: str
+    since: str
+    heartbeat_at: str
+
+
 class StationBusy(StationError):
     """The station is held by another run (``holder``: who, from where, since when)."""
 
     exit_code = 4
 
-    def __init__(self, message: str, holder: dict[str, Any]) -> None:
+    def __init__(self, message: str, holder: LockRecord) -> None:
         super().__init__(message)
         self.holder = holder
 
@@ -101,20 +119,17 @@ def process_start(pid: int) -> str | None:
     return f"{boot[:8]}:{fields[19]}" if len(fields) > 19 else None
 
 
-def holder_alive(lock: StationLock | dict[str, Any], now: dt.datetime | None = None) -> bool:
-    """Whether the holder of ``lock`` (a row, or :func:`describe`'s mapping) still lives."""
-    def get(key: str) -> Any:
-        return lock[key] if isinstance(lock, dict) else getattr(lock, key)
-
-    if get("host") == socket.gethostname():
-        pid = int(get("pid"))
+def holder_alive(lock: StationLock, now: dt.datetime | None = None) -> bool:
+    """Whether the holder of ``lock`` still lives."""
+    if lock.host == socket.gethostname():
+        pid = int(lock.pid)
         if pid == os.getpid():
-            return get("token") in _HELD
+            return lock.token in _HELD
         if not process_alive(pid):
             return False
-        started, recorded = process_start(pid), get("process_started")
+        started, recorded = process_start(pid), lock.process_started
         return started is None or recorded is None or started == recorded
-    beat = _aware(get("heartbeat_at"))
+    beat = _aware(lock.heartbeat_at)
     return ((now or utcnow()) - beat).total_seconds() < STALE_AFTER_S
 
 
@@ -122,7 +137,7 @@ def _aware(t: dt.datetime) -> dt.datetime:
     return t if t.tzinfo is not None else t.replace(tzinfo=dt.UTC)
 
 
-def describe(lock: StationLock, station: str, run: Run | None) -> dict[str, Any]:
+def describe(lock: StationLock, station: str, run: Run | None) -> LockRecord:
     """The lock as plain data: station, run, operator, recipe, front end, host, pid, since."""
     return {
         "station": station, "run_id": lock.run_id, "operator": lock.operator,
@@ -134,7 +149,7 @@ def describe(lock: StationLock, station: str, run: Run | None) -> dict[str, Any]
     }
 
 
-def busy_message(h: dict[str, Any], now: dt.datetime | None = None) -> str:
+def busy_message(h: LockRecord, now: dt.datetime | None = None) -> str:
     """One sentence: who holds the station, from where, since when, and what to do."""
     since = dt.datetime.fromisoformat(h["since"])
     ago = max(0, int(((now or utcnow()) - since).total_seconds()))
@@ -154,7 +169,7 @@ class StationHold:
     closed (also on leaving a ``with`` block). Renews its heartbeat in a daemon thread."""
 
     def __init__(self, db: Database, station: str, station_id: int, token: str,
-                 taken_over: dict[str, Any] | None) -> None:
+                 taken_over: LockRecord | None) -> None:
         self.db, self.station, self.station_id, self.token = db, station, station_id, token
         self.taken_over = taken_over
         """the stale lock this one replaced (:func:`describe`), None when the station was free"""
@@ -224,7 +239,7 @@ def take_station(db: Database, station: str, holder: Holder, *, force: bool = Fa
 
 
 def _take(db: Database, station: str, station_id: int, holder: Holder, token: str,
-          force: bool) -> dict[str, Any] | None:
+          force: bool) -> LockRecord | None:
     with db.session(f"taking station {station}") as s:
         row = s.scalars(select(StationLock).where(StationLock.station_id == station_id)
                         .with_for_update()).first()
@@ -244,7 +259,9 @@ def _take(db: Database, station: str, station_id: int, holder: Holder, token: st
         return previous
 
 
-def station_holder(db: Database, station: str) -> dict[str, Any] | None:
+def station_holder(
+    db: Database, station: str
+) -> dict[str, Any] | None:  # Any: a LockRecord and ``alive``, as the web's status reads it
     """Who holds ``station`` now (:func:`describe`, with ``alive``), or None when free."""
     from calstation.storage.db import Station
 
@@ -257,7 +274,7 @@ def station_holder(db: Database, station: str) -> dict[str, Any] | None:
                 "alive": holder_alive(row)}
 
 
-def taken_over_note(previous: dict[str, Any]) -> str:
+def taken_over_note(previous: LockRecord) -> str:
     """What the taker of a stale lock is told."""
     run = f"run {previous['run_id']}" if previous["run_id"] else "a run"
     return (f"station {previous['station']} was still marked in use by {run} from "

@@ -14,20 +14,21 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 from sqlalchemy import select
 
-from calstation.drivers import DriverContext
+from calstation.drivers import DriverContext, EncoderSample, LidarLine, TurntableStatus
 from calstation.engine.spinscan import SpinScanBuilder
+from calstation.jsonvalue import JSONObject
 from calstation.recordings.runfolder import RECORDING_OF
-from calstation.station.acquisition import MoreTurns, acquire_spin, acquire_static
+from calstation.station.acquisition import MoreTurns, Writer, acquire_spin, acquire_static
 from calstation.station.context import RunContext
 from calstation.station.hardware import Drivers
-from calstation.station.operator import Operator, publish
+from calstation.station.operator import Operator, ProgressCallback, publish
 from calstation.station.outcome import plain
 from calstation.station.prepared import PreparedScan
 from calstation.station.preview import ScanPreview, wants_previews
@@ -35,7 +36,10 @@ from calstation.station.stored import latest_calibration
 from calstation.station.turns import TurnByTurn
 from calstation.storage.db import Artifact
 
-Acquire = Callable[[Any, Callable[[str, float], None], "MoreTurns | None"], None]
+if TYPE_CHECKING:
+    from calstation.recipes import SpinScanStep
+
+Acquire = Callable[[Writer, ProgressCallback, "MoreTurns | None"], None]
 """``acquire(writer, progress, more)``: takes a scan into ``writer``, reporting its progress,
 turning on while ``more`` asks (a spin scan)."""
 
@@ -47,17 +51,17 @@ not)."""
 def static_acquisition(d: Drivers, lines: int) -> Acquire:
     """A static scan of ``lines`` lines on the drivers ``d``."""
 
-    def acquire(writer: Any, progress: Any, more: MoreTurns | None) -> None:
+    def acquire(writer: Writer, progress: ProgressCallback, more: MoreTurns | None) -> None:
         acquire_static(d.lidar, d.encoder, writer, lines=lines, progress=progress)
 
     return acquire
 
 
-def spin_acquisition(d: Drivers, cfg: Any) -> Acquire:
+def spin_acquisition(d: Drivers, cfg: SpinScanStep) -> Acquire:
     """A spin scan at ``cfg.rpm`` for ``cfg.revolutions`` turns on the drivers ``d``, and on
     while ``more`` asks (:class:`~calstation.station.turns.TurnByTurn`)."""
 
-    def acquire(writer: Any, progress: Any, more: MoreTurns | None) -> None:
+    def acquire(writer: Writer, progress: ProgressCallback, more: MoreTurns | None) -> None:
         acquire_spin(
             d.lidar, d.turntable, d.encoder, writer, rpm=cfg.rpm, revolutions=cfg.revolutions,
             settle_s=cfg.settle_s, clock=d.clock, progress=progress, more=more,
@@ -171,9 +175,9 @@ def _set_aside(ctx: RunContext, path: Path, stem: str) -> None:
 
 def _metadata(
     ctx: RunContext, step: str, step_id: int, context: DriverContext
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, JSONObject]:
     """A recording's run metadata, and the simulated scene's truth when there is one."""
-    metadata: dict[str, dict[str, Any]] = {
+    metadata: dict[str, JSONObject] = {
         "run": {"id": ctx.run_id, "step": step, "step_id": step_id}
     }
     truth = scene_truth(context)
@@ -182,13 +186,20 @@ def _metadata(
     return metadata
 
 
-def scene_truth(context: DriverContext) -> dict[str, Any] | None:
+@runtime_checkable
+class HasTruth(Protocol):
+    """A simulated scene that knows its ground truth (``truth_dict``)."""
+
+    def truth_dict(self) -> Mapping[str, object]:
+        """The scene's truth, as ``truth.json`` holds it."""
+        ...
+
+
+def scene_truth(context: DriverContext) -> JSONObject | None:
     """Ground truth of a simulated scene (an object in ``context.shared`` with ``truth_dict``)."""
     for obj in context.shared.values():
-        truth_dict = getattr(obj, "truth_dict", None)
-        if callable(truth_dict):
-            truth: dict[str, Any] = plain(truth_dict())
-            return truth
+        if isinstance(obj, HasTruth):
+            return plain(obj.truth_dict())
     return None
 
 
@@ -197,12 +208,13 @@ class PublishingWriter:
     and, for a spin scan, hands it to the fine-tuning's preparation (``builder``); ``preview``
     publishes the fixture's expected outline and the cloud so far."""
 
-    def __init__(self, inner: Any, ui: Operator, kind: str, builder: Any = None,
+    def __init__(self, inner: Writer, ui: Operator, kind: str,
+                 builder: SpinScanBuilder | None = None,
                  preview: ScanPreview | None = None) -> None:
         self._inner, self._ui, self._kind, self._builder = inner, ui, kind, builder
         self._preview = preview
 
-    def write_line(self, line: Any) -> None:
+    def write_line(self, line: LidarLine) -> None:
         """Record ``line``, prepare it (spin scans) and publish it (``lidar_line``)."""
         self._inner.write_line(line)
         if self._builder is not None:
@@ -211,12 +223,16 @@ class PublishingWriter:
         if self._preview is not None:
             self._preview.line()
 
-    def write_encoder(self, samples: Any) -> None:
+    def write_encoder(self, samples: Iterable[EncoderSample]) -> None:
         """Record encoder ``samples`` and hand them to the preparation (spin scans)."""
         batch = list(samples)
         self._inner.write_encoder(batch)
         if self._builder is not None:
             self._builder.write_encoder(batch)
 
-    def __getattr__(self, name: str) -> Any:
+    def write_turntable(self, status: TurntableStatus) -> None:
+        """Record a turntable status."""
+        self._inner.write_turntable(status)
+
+    def __getattr__(self, name: str) -> object:
         return getattr(self._inner, name)

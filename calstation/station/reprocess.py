@@ -21,7 +21,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypedDict
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
@@ -36,6 +36,7 @@ from calstation.station.turns import turns_fitted
 from calstation.storage.db import PARAMS, Calibration, Database, Run
 
 if TYPE_CHECKING:
+    from calstation.engine.cube import CubeCheck
     from calstation.pipeline import Scans
     from calstation.recordings.recorded import Recording
 
@@ -180,7 +181,14 @@ def plan_reprocessing(run: Run, strategy_name: str | None = None) -> ReprocessJo
     )
 
 
-def _fitted_cuts(run: Run, own: bool) -> dict[str, Any]:
+class FittedCuts(TypedDict):
+    """A re-processing job's ``turns`` and ``lines`` per scan kind (see :func:`_cut`)."""
+
+    turns: dict[str, float]
+    lines: dict[str, int]
+
+
+def _fitted_cuts(run: Run, own: bool) -> FittedCuts:
     """The job's ``turns`` and ``lines``: the station's own strategy re-processed sees what its
     fits made while scanning saw."""
     fitted = _turns_fitted(run) if own else {}
@@ -220,13 +228,13 @@ class Recomputed:
     recordings: dict[str, str]
     warnings: list[str]
     refused: list[str]
-    cube_check: Any = None
+    cube_check: CubeCheck | None = None
 
 
 def compute_reprocessing(
     job: ReprocessJob,
     progress: Progress | None = None,
-    status: Callable[[str], Any] | None = None,
+    status: Callable[[str], object] | None = None,
 ) -> Recomputed:
     """Calibrate ``job``'s run again from its recordings (each checked against its sha256
     first) with its recipe, as the station did: :func:`calstation.pipeline.calibrate` — the
@@ -269,7 +277,7 @@ def _read_scans(
     loaded: LoadedRecipe,
     paths: dict[str, Path],
     warnings: list[str],
-    say: Callable[[str], Any],
+    say: Callable[[str], object],
 ) -> Scans:
     """The job's recordings read (each cut to what the station's fit saw), as the pipeline
     takes them; every disagreement with the recipe appended to ``warnings``."""
@@ -298,7 +306,7 @@ def reprocess_run(
     *,
     accept: bool = False,
     progress: Progress | None = None,
-    status: Callable[[str], Any] | None = None,
+    status: Callable[[str], object] | None = None,
 ) -> Reprocessing:
     """Calibrate run ``run_id`` again from its recordings and stored recipe; store the result.
 

@@ -99,7 +99,9 @@ def attempts(db: Database, run_id: int, step: str) -> int:
         )
 
 
-def passed_result(db: Database, run_id: int, step: str) -> dict[str, Any]:
+def passed_result(
+    db: Database, run_id: int, step: str
+) -> dict[str, Any]:  # Any: a stored step's JSON column, read key by key
     """The stored result of run ``run_id``'s newest passed ``step`` ({} when none passed)."""
     with db.session() as s:
         result = s.scalars(

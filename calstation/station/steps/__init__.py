@@ -17,8 +17,9 @@ The workflow (DESIGN §1)::
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any, Protocol
+from typing import Protocol
 
+from calstation.recipes import Recipe
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome
 from calstation.station.steps.cube_scan import CubeScan
@@ -67,7 +68,7 @@ REGISTRY: Mapping[str, Step] = {
 """Each step of :data:`STEPS` by its name."""
 
 
-def run_steps(recipe: Any) -> tuple[str, ...]:
+def run_steps(recipe: Recipe) -> tuple[str, ...]:
     """The steps a run of ``recipe`` takes, in order: :data:`STEPS`, without the L-target's
     placement and static scan when the fine-tuning starts from the platter."""
     if recipe.calibration.start == "platter":

@@ -3,8 +3,6 @@ configured direction — checked before the operator places anything."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from calstation.errors import DriverError
@@ -98,7 +96,7 @@ def _count_turning(ctx: RunContext, d: Drivers, rpm: float) -> tuple[int, float,
     return counts, expected, cpr
 
 
-def _check_counts(ctx: RunContext, counts: Any, expected: float, rpm: float, dt_s: float) -> None:
+def _check_counts(ctx: RunContext, counts: int, expected: float, rpm: float, dt_s: float) -> None:
     """The encoder counted, in the configured direction, about as many as the speed implies."""
     direction = ctx.recipe.station.encoder.direction
     if counts == 0:

@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 from calstation.atomic import stage
+from calstation.jsonvalue import JSONObject
+from calstation.recipes import QALimits
 from calstation.station import stored
 from calstation.station.context import RunContext
-from calstation.station.outcome import StepOutcome
+from calstation.station.outcome import StepOutcome, plain
 from calstation.storage.db import Calibration, Run, RunStatus
 from calstation.storage.report import previous_accepted, run_summary
 
@@ -54,9 +57,9 @@ class Report:
             text = export_calibration(run, "yaml") if fine else None
             s.rollback()
         staged = _stage_files(ctx.run_dir, summary, text)
-        result: dict[str, Any] = {"verdict": verdict, "report": str(staged[0][2])}
+        result: JSONObject = {"verdict": verdict, "report": str(staged[0][2])}
         if drift is not None:
-            result["drift"] = drift
+            result["drift"] = plain(drift)
             if drift["flagged"]:
                 ctx.ui.warn(
                     "calibration drifted beyond the recipe's limits since run "
@@ -67,7 +70,7 @@ class Report:
 
 
 def _stage_files(
-    run_dir: Path, summary: dict[str, Any], calibration_yaml: str | None
+    run_dir: Path, summary: Mapping[str, object], calibration_yaml: str | None
 ) -> list[tuple[str, Path, Path]]:
     """report.json (first) and calibration.yaml (when there is a fine calibration), written
     under temporary names: (kind, temporary file, final path)."""
@@ -87,7 +90,16 @@ def _write_staged(final: Path, text: str) -> Path:
     return stage(final, text, final.name)
 
 
-def _drift(current: Calibration, previous: Calibration, qa: Any) -> dict[str, Any]:
+class Drift(TypedDict):
+    """How the calibration moved since the previous accepted one (m, rad) and which parameters
+    moved beyond the recipe's limits."""
+
+    previous_run: int
+    delta: dict[str, float]
+    flagged: list[str]
+
+
+def _drift(current: Calibration, previous: Calibration, qa: QALimits) -> Drift:
     """Differences to the previous accepted calibration and which exceed the recipe's limits."""
     deltas = {p: current.params()[p] - previous.params()[p] for p in current.params()}
     flagged = [
@@ -95,4 +107,4 @@ def _drift(current: Calibration, previous: Calibration, qa: Any) -> dict[str, An
         if (p.startswith("t") and abs(d) > qa.drift_translation)
         or (p.startswith("r") and abs(math.degrees(d)) > qa.drift_rotation_deg)
     ]
-    return {"previous_run": previous.run_id, "delta": deltas, "flagged": flagged}
+    return Drift(previous_run=previous.run_id, delta=deltas, flagged=flagged)

@@ -5,8 +5,7 @@ lidar–encoder time offset."""
 
 from __future__ import annotations
 
-from typing import Any
-
+from calstation.jsonvalue import JSONObject
 from calstation.recordings.runfolder import second_pass
 from calstation.station.context import RunContext
 from calstation.station.outcome import StepOutcome, plain
@@ -28,7 +27,7 @@ class SpinScan:
         cfg = ctx.recipe.steps.spin_scan
         path = record_scan(ctx, self.name, step_id, spin_acquisition(d, cfg),
                            more_turns=more_turns(ctx, "spin_scan"))
-        result: dict[str, Any] = {"recording": str(path), "rpm": cfg.rpm,
+        result: JSONObject = {"recording": str(path), "rpm": cfg.rpm,
                                   "revolutions": cfg.revolutions,
                                   "fixture": ctx.strategy().fixture}
         prepared = ctx.prepared.get(path)
