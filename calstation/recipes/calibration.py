@@ -9,7 +9,7 @@ recipe itself.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import BaseModel, Field, ValidationError
 
@@ -51,7 +51,7 @@ class CalibrationSettings(Model):
     periodicity: PeriodicitySettings = PeriodicitySettings()
     accuracy: AccuracySettings = AccuracySettings()
     max_sigma: SigmaLimits = SigmaLimits()
-    options: dict[str, dict[str, Any]] = Field(
+    options: dict[str, dict[str, object]] = Field(
         default_factory=dict, description="settings of plugin strategies, by strategy name"
     )
 
@@ -69,7 +69,7 @@ BUILTIN_OPTIONS: dict[str, type[BaseModel]] = {
 ``options_model``; see :func:`options_problems`)."""
 
 
-def options_problems(name: str, model: type[BaseModel], options: Any) -> list[Problem]:
+def options_problems(name: str, model: type[BaseModel], options: object) -> list[Problem]:
     """Problems of ``calibration.options.<name>`` against the strategy's options ``model``."""
     try:
         model.model_validate(options if options is not None else {})

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -250,7 +250,7 @@ def mesh_footprint(path: Path) -> float:
     return float(np.hypot(vertices[:, 1], vertices[:, 2]).max())
 
 
-def _footprint_radius(geometry: Any) -> float:
+def _footprint_radius(geometry: object) -> float:
     """Radius (m) of the circle around the fixture's own origin that holds its base outline."""
     if isinstance(geometry, LTargetGeometry):
         return math.hypot(max(geometry.base_length, geometry.wall_thickness),
@@ -267,7 +267,7 @@ def _footprint_radius(geometry: Any) -> float:
 
 
 def fixture_problems(
-    loc: tuple[int | str, ...], geometry: Any, radius: float, base_dir: Path | None
+    loc: tuple[int | str, ...], geometry: object, radius: float, base_dir: Path | None
 ) -> list[Problem]:
     """The problems of one fixture, located under ``loc``: its mesh loads (a relative path from
     ``base_dir``, the recipe's folder; not looked for without one), its shape can be built, and
@@ -309,7 +309,7 @@ def fixture_problems(
     return problems
 
 
-def _size_field(geometry: Any) -> str:
+def _size_field(geometry: object) -> str:
     """The field that sets a fixture's size (named when a centred fixture is too big)."""
     if getattr(geometry, "mesh", None):
         return "mesh"

@@ -7,9 +7,8 @@ with :func:`format_problems`, each as ``file:line: field.path: message``.
 
 from __future__ import annotations
 
-from typing import Any
-
 import yaml
+from pydantic_core import ErrorDetails
 
 Problem = tuple[tuple[int | str, ...], str]
 """A validation problem: the field path in the recipe and what is wrong."""
@@ -52,7 +51,7 @@ def format_loc(loc: tuple[int | str, ...]) -> str:
     return "".join(parts) or "(top level)"
 
 
-def error_message(err: Any) -> str:
+def error_message(err: ErrorDetails) -> str:
     """A pydantic error in the recipe's words (the value it got included where it helps)."""
     if err["type"] == "extra_forbidden":
         return "unknown key"

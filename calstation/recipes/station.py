@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from pydantic import Field
 
@@ -13,7 +13,7 @@ class DriverConfig(Model):
     """A driver by its registered name, with the settings its factory validates."""
 
     driver: str = Field(min_length=1)
-    settings: dict[str, Any] = Field(default_factory=dict)
+    settings: dict[str, object] = Field(default_factory=dict)
 
 
 class EncoderConfig(DriverConfig):

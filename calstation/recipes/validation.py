@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
 from calstation.recipes.calibration import BUILTIN_OPTIONS, options_problems
 from calstation.recipes.fixtures import FrustumGeometry, fixture_problems
@@ -49,7 +48,7 @@ def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[P
     problems: list[Problem] = []
     fixtures = recipe.fixtures
     radius = fixtures.platter.radius
-    named: list[tuple[tuple[int | str, ...], Any]] = [
+    named: list[tuple[tuple[int | str, ...], object]] = [
         (("fixtures", "static_target"), fixtures.static_target),
         (("fixtures", "spin_target"), fixtures.spin_target),
         (("fixtures", "qa_cube"), fixtures.qa_cube),

@@ -8,9 +8,9 @@ them and :mod:`calstation.recordings.reader` reads them (and the version-1 layou
 from __future__ import annotations
 
 import json
-from typing import Any
 
 from calstation.drivers import TurntableState
+from calstation.jsonvalue import JSONObject
 from calstation.recordings import messages as pb
 
 FORMAT_VERSION: int = 2
@@ -28,7 +28,7 @@ RECIPE_ATTACHMENT = "recipe.yaml"
 RESERVED_METADATA = ("calstation", "lidar", "encoder", "calibration")
 """Metadata records the writer writes itself (no caller may add them)."""
 
-TURNTABLE_SCHEMA: dict[str, Any] = {
+TURNTABLE_SCHEMA: JSONObject = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": "calstation.TurntableStatus",
     "description": "A status report of the turntable drive.",

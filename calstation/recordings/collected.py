@@ -29,7 +29,7 @@ class Collected:
     in order when assembling.
     """
 
-    metadata: dict[str, dict[str, Any]] = field(default_factory=dict)
+    metadata: dict[str, dict[str, Any]] = field(default_factory=dict)  # Any: decoded JSON
     attachments: dict[str, bytes] = field(default_factory=dict)
     v2: bool | None = None
     line_ts: list[int] = field(default_factory=list)
@@ -65,4 +65,4 @@ class Lines:
     valid: NDArray[np.bool_]
     offsets: list[Buffer | None]
     intensity: list[Buffer | None]
-    intensity_dtype: np.dtype[Any]
+    intensity_dtype: np.dtype[np.generic]

@@ -13,7 +13,7 @@ import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -169,7 +169,7 @@ def load_range_model(path: str | Path, *, source: str = "calibration") -> RangeM
         raise RecordingError(f"{source} file {p}: {exc}") from None
 
 
-def _finite(value: Any, what: str, unit: str) -> float:
+def _finite(value: object, what: str, unit: str) -> float:
     """``value`` as a float; :class:`RecordingError` (``what`` must be a finite number) if it
     is not one."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
@@ -177,8 +177,8 @@ def _finite(value: Any, what: str, unit: str) -> float:
     return float(value)
 
 
-def _parse_mapping(p: Path, text: str, source: str) -> Mapping[str, Any]:
-    data: Any
+def _parse_mapping(p: Path, text: str, source: str) -> Mapping[str, object]:
+    data: object
     if p.suffix.lower() == ".json":
         try:
             data = json.loads(text)

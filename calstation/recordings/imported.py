@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -27,6 +27,10 @@ from calstation.atomic import atomic_output
 from calstation.clock import SimClock
 from calstation.drivers import EncoderSample, LidarInfo, LidarLine
 from calstation.errors import RecordingImportError
+
+if TYPE_CHECKING:
+    from calstation.recordings.messages import SchemaData
+    from calstation.recordings.writer import RecordingWriter
 
 ANGLE_UNITS = ("deg", "rad", "counts")
 """Units of an imported angle: degrees, radians, or encoder counts (``counts_per_revolution``
@@ -54,7 +58,7 @@ class ImportedScan:
     angle: NDArray[np.float64]
     angle_unit: str
     lidar: LidarInfo
-    source: dict[str, Any]
+    source: Mapping[str, object]
     notes: list[str] = field(default_factory=list)
 
 
@@ -150,7 +154,7 @@ def _refuse_impossible_jumps(steps: NDArray[np.float64], wraps: NDArray[np.float
     )
 
 
-def file_digest(path: Path) -> dict[str, Any]:
+def file_digest(path: Path) -> dict[str, object]:
     """Name, size and sha256 of a source file (or of each file of a bag folder)."""
     files = sorted(q for q in path.rglob("*") if q.is_file()) if path.is_dir() else [path]
     out = []
@@ -232,7 +236,7 @@ def write_imported(
                         notes)
 
 
-def _write_scan(writer: Any, lines: Sequence[LidarLine], enc_t: NDArray[np.int64],
+def _write_scan(writer: RecordingWriter, lines: Sequence[LidarLine], enc_t: NDArray[np.int64],
                 enc_c: NDArray[np.int64], progress: Callable[[int, int], None] | None,
                 ) -> tuple[int, int]:
     """Write ``lines`` and the encoder readings between them in time order; (points, valid)."""
@@ -263,7 +267,7 @@ def _write_scan(writer: Any, lines: Sequence[LidarLine], enc_t: NDArray[np.int64
 class _NoLive:
     """An import is not a live scan: nothing goes to the process's live view."""
 
-    def publish(self, topic: str, schema: Any, data: bytes, log_time_ns: int) -> None:
+    def publish(self, topic: str, schema: SchemaData, data: bytes, log_time_ns: int) -> None:
         """Drop the message."""
 
 

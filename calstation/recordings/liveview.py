@@ -30,10 +30,13 @@ import socket
 import threading
 import time
 import warnings
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation.errors import CalstationError
 from calstation.recordings.messages import SchemaData
+
+if TYPE_CHECKING:
+    import foxglove
 
 DEFAULT_PORT = 8765
 """The Foxglove WebSocket port Foxglove's own tools default to."""
@@ -79,7 +82,7 @@ class LiveView:
         self._bridge.start(int(self._server.port))
         self.host = host
         self._lock = threading.Lock()
-        self._channels: dict[str, Any] = {}
+        self._channels: dict[str, foxglove.Channel] = {}
         self._latched: dict[str, tuple[SchemaData, bytes]] = {}
         self._last_repeat = 0.0
         self._closed = False
@@ -137,7 +140,7 @@ class LiveView:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _channel(self, topic: str, schema: SchemaData) -> Any:
+    def _channel(self, topic: str, schema: SchemaData) -> foxglove.Channel:
         channel = self._channels.get(topic)
         if channel is None:
             fg = self._foxglove

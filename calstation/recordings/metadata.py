@@ -42,7 +42,7 @@ class RecipeInfo(Protocol):
         ...
 
 
-def _json_default(obj: Any) -> Any:
+def _json_default(obj: object) -> object:
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
@@ -56,7 +56,7 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
-def encode_metadata(name: str, data: Mapping[str, Any]) -> dict[str, str]:
+def encode_metadata(name: str, data: Mapping[str, object]) -> dict[str, str]:
     """Record ``name``'s values JSON-encoded (NumPy values, paths, sets and tuples as their JSON
     equivalents); :class:`RecordingError` names the key that cannot be stored."""
     out: dict[str, str] = {}
@@ -77,7 +77,7 @@ def station_records(
     created_ns: int,
     lidar_info: LidarInfo,
     encoder: tuple[int, int, float],
-) -> dict[str, dict[str, Any]]:
+) -> dict[str, dict[str, object]]:
     """The metadata records a writer always writes: ``calstation`` (the scan, its station and
     recipe), ``lidar`` and ``encoder`` (counts per revolution, direction, latency in s)."""
     counts_per_revolution, direction, latency_s = encoder
@@ -99,15 +99,17 @@ def station_records(
     }
 
 
-def calibration_record(H: Extrinsics, source: str) -> dict[str, Any]:
+def calibration_record(H: Extrinsics, source: str) -> dict[str, object]:
     """The ``calibration`` record: H's tx..rz and where it came from (``initial``, ``fine``, …)."""
     return {**H.as_dict(), "source": source}
 
 
-def decode_metadata(p: Path, name: str, raw: Mapping[str, str]) -> dict[str, Any]:
+def decode_metadata(
+    p: Path, name: str, raw: Mapping[str, str]
+) -> dict[str, Any]:  # Any: JSON from the file, read key by key by the reader
     """Record ``name`` of recording ``p`` with its values decoded from JSON (a value that is not
     JSON kept as its string)."""
-    out: dict[str, Any] = {}
+    out: dict[str, Any] = {}  # Any: as returned
     for key, value in raw.items():
         try:
             out[key] = json.loads(value)

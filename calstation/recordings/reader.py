@@ -17,7 +17,7 @@ import struct
 import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,6 +36,8 @@ from calstation.recordings.collected import Buffer, Collected, Lines
 from calstation.recordings.metadata import decode_metadata
 from calstation.recordings.recorded import Recording
 from calstation.recordings.v1 import V1_TIME_OFFSET_DTYPE, collect_message_v1, lines_v1
+
+S = TypeVar("S", bound=np.generic)
 
 
 class RecordingTruncatedWarning(UserWarning):
@@ -142,6 +144,7 @@ def _line_reader(p: Path, col: Collected, topic: str) -> Callable[[Buffer], None
     """The reader of a protobuf ``/lidar/scan`` or ``/lidar/line`` channel: :func:`_message`
     for one topic, its appends bound once (two of these messages per lidar line)."""
     if topic == SCAN_TOPIC:
+        # Any: each part goes to its own list's append, of its own type
         decode: Callable[[Buffer], tuple[Any, ...]] = pb.laser_scan_parts
         appends: list[Callable[[Any], None]] = [
             col.scan_ts.append,
@@ -205,7 +208,7 @@ def _message(p: Path, col: Collected, channel: tuple[str, str], data: Buffer) ->
         raise RecordingError(f"recording {p}: malformed message on {topic}: {exc!r}") from exc
 
 
-def _turntable_status(msg: Mapping[str, Any]) -> TurntableStatus:
+def _turntable_status(msg: Mapping[str, Any]) -> TurntableStatus:  # Any: the message's JSON
     return TurntableStatus(
         timestamp_ns=int(msg["timestamp_ns"]),
         state=TurntableState(msg["state"]),
@@ -265,8 +268,8 @@ def _assemble(p: Path, col: Collected) -> Recording:
 
 
 def _check_metadata(
-    p: Path, meta: dict[str, dict[str, Any]], incomplete: str
-) -> tuple[dict[str, Any], LidarInfo, tuple[int, int, float]]:
+    p: Path, meta: dict[str, dict[str, Any]], incomplete: str  # Any: decoded JSON
+) -> tuple[dict[str, Any], LidarInfo, tuple[int, int, float]]:  # Any: as given
     """The ``calstation`` record, the lidar info and (counts/rev, direction, latency)."""
     if "calstation" not in meta:
         raise RecordingError(
@@ -357,7 +360,7 @@ def _lines_v2(p: Path, col: Collected) -> Lines:
     )
 
 
-def _concat(parts: list[Buffer], dtype: np.dtype[Any]) -> NDArray[Any]:
+def _concat(parts: list[Buffer], dtype: np.dtype[S]) -> NDArray[S]:
     """One writable array of the packed arrays ``parts`` (a single copy)."""
     if not parts:
         return np.zeros(0, dtype=dtype)

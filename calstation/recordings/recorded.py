@@ -33,7 +33,7 @@ class Recording(Scan):
     """
 
     kind: str
-    metadata: dict[str, dict[str, Any]]
+    metadata: dict[str, dict[str, Any]]  # Any: decoded JSON (metadata.decode_metadata)
     lidar_info: LidarInfo
     turntable: list[TurntableStatus]
     truncated: bool

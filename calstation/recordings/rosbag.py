@@ -30,7 +30,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,6 +38,9 @@ from numpy.typing import NDArray
 from calstation.drivers import LidarInfo, LidarLine
 from calstation.errors import RecordingImportError
 from calstation.recordings.imported import ImportedScan, file_digest, line_rate
+
+if TYPE_CHECKING:
+    from rosbags.highlevel import AnyReader
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -73,6 +76,7 @@ class TopicSpec:
         return f"{self.topic}:{self.field}" if self.field else self.topic
 
 
+# Any: rosbags' messages are dataclasses built at run time from the bag's own definitions
 def resolve(msg: Any, path: str, where: str) -> Any:
     """The value at dotted ``path`` in ``msg`` (``a.b``, ``a[2]``, ``position[joint]``);
     ``where`` names the topic and type for errors."""
@@ -119,12 +123,12 @@ def _index(value: Any, key: str, parent: Any, where: str, field: str) -> Any:
     return value[i]
 
 
-def _fields(msg: Any) -> str:
+def _fields(msg: object) -> str:
     names = [f for f in getattr(msg, "__dataclass_fields__", {}) if f != "__msgtype__"]
     return "fields " + ", ".join(names) if names else f"no fields ({type(msg).__name__})"
 
 
-def _msgtype(obj: Any) -> str:
+def _msgtype(obj: object) -> str:
     return str(getattr(obj, "__msgtype__", type(obj).__name__))
 
 
@@ -147,19 +151,19 @@ def _number(value: Any, where: str, field: str) -> float:
     )
 
 
-def _numeric_fields(msg: Any) -> list[str]:
+def _numeric_fields(msg: object) -> list[str]:
     return [f for f in getattr(msg, "__dataclass_fields__", {})
             if f != "__msgtype__" and isinstance(getattr(msg, f), (int, float, np.integer,
                                                                    np.floating))
             and not isinstance(getattr(msg, f), bool)]
 
 
-def _laser_scan_fields(msg: Any) -> list[str]:
+def _laser_scan_fields(msg: object) -> list[str]:
     return [f for f in getattr(msg, "__dataclass_fields__", {})
             if _msgtype(getattr(msg, f)) == LASER_SCAN]
 
 
-def _stamp_ns(msg: Any) -> int | None:
+def _stamp_ns(msg: object) -> int | None:
     """``msg.header.stamp`` in ns, None without a header (or a zero stamp: never set)."""
     header = getattr(msg, "header", None)
     stamp = getattr(header, "stamp", None)
@@ -285,7 +289,7 @@ def _collect(bags: list[Path], scan: TopicSpec, angle: TopicSpec,
         ) from exc
 
 
-def _collect_from(reader: Any, bag: Path, scan: TopicSpec, angle: TopicSpec,
+def _collect_from(reader: AnyReader, bag: Path, scan: TopicSpec, angle: TopicSpec,
                   progress: Callable[[int, int], None] | None) -> _Collected:
     topics = {c.topic: c for c in reader.connections}
     total = sum(c.msgcount for c in reader.connections)
@@ -356,7 +360,7 @@ def _collect_from(reader: Any, bag: Path, scan: TopicSpec, angle: TopicSpec,
     return got
 
 
-def _scan_field(msg: Any, spec: TopicSpec, where: str) -> str:
+def _scan_field(msg: object, spec: TopicSpec, where: str) -> str:
     if spec.field or _msgtype(msg) == LASER_SCAN:
         return spec.field
     fields = _laser_scan_fields(msg)

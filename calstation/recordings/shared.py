@@ -31,10 +31,13 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation.atomic import atomic_output, write_atomic
 from calstation.errors import OutputError, RecordingError
+
+if TYPE_CHECKING:
+    from fsspec import AbstractFileSystem
 
 CHUNK = 8 << 20
 """Bytes per read and write while copying or hashing (8 MiB)."""
@@ -91,7 +94,7 @@ def endpoint(location: str) -> str:
     return f"{scheme}://{host}"
 
 
-def _options(protocol: str, timeout: float) -> dict[str, Any]:
+def _options(protocol: str, timeout: float) -> dict[str, object]:
     """The file system's options that bound its waits, for the protocols that take them."""
     if protocol in ("s3", "s3a"):
         return {"config_kwargs": {"connect_timeout": timeout, "read_timeout": timeout,
@@ -121,7 +124,7 @@ def timed_out(location: str) -> StoreUnanswered:
     )
 
 
-def filesystem(location: str, *, fresh: bool = False) -> tuple[Any, str]:
+def filesystem(location: str, *, fresh: bool = False) -> tuple[AbstractFileSystem, str]:
     """(the fsspec file system, the path within it) of ``location``; a clear error when its
     protocol is unknown or its package is missing (``s3fs`` for ``s3://``). Connections and
     reads wait at most :func:`transfer_timeout_s` (S3: one retry). ``fresh``: a file system
@@ -148,7 +151,7 @@ def join(base: str, *parts: str) -> str:
     return "/".join([base.rstrip("/"), *(p.strip("/") for p in parts)])
 
 
-def sha256_of(fs: Any, path: str) -> str:
+def sha256_of(fs: AbstractFileSystem, path: str) -> str:
     """sha256 (hex) of the bytes of ``path`` on ``fs``."""
     h = hashlib.sha256()
     with fs.open(path, "rb") as f:
@@ -182,7 +185,7 @@ class Uploaded:
     resumed_from: int = 0
 
 
-def _appendable(fs: Any) -> bool:
+def _appendable(fs: AbstractFileSystem) -> bool:
     """Whether ``fs`` can append to a file (so an interrupted copy can be continued)."""
     protocols = fs.protocol if isinstance(fs.protocol, tuple | list) else (fs.protocol,)
     return bool({"file", "local", "memory"} & set(protocols))
@@ -255,7 +258,7 @@ def _read_back(location: str, size: int) -> str | None:
     return sha256_of(fs, path) if found == size else None
 
 
-def _resumable_part(fs: Any, partial: str, source: Path, size: int) -> int:
+def _resumable_part(fs: AbstractFileSystem, partial: str, source: Path, size: int) -> int:
     """How many bytes of an earlier ``.partial`` copy can be kept: all of them when the file
     system appends and they are the source's first bytes, else none (it is removed)."""
     if not fs.exists(partial):

@@ -27,7 +27,9 @@ V1_INTENSITY_DTYPE = np.dtype("<f4")
 V1_TIME_OFFSET_DTYPE = np.dtype("<i8")
 
 
-def collect_message_v1(p: Path, col: Collected, topic: str, msg: dict[str, Any]) -> None:
+def collect_message_v1(
+    p: Path, col: Collected, topic: str, msg: dict[str, Any]  # Any: the message's JSON
+) -> None:
     """Add a version-1 JSON message (base64 arrays) of ``/lidar/line`` or ``/encoder/count`` to
     ``col``; :class:`RecordingError` names the file ``p`` when its arrays do not fit."""
     if topic == ENCODER_TOPIC:
@@ -46,7 +48,7 @@ def collect_message_v1(p: Path, col: Collected, topic: str, msg: dict[str, Any])
     col.line_ts.append(int(msg["timestamp_ns"]))
     col.line_period.append(float(msg["point_period_ns"]))
     col.line_count.append(n)
-    arrays: dict[str, np.dtype[Any]] = {
+    arrays: dict[str, np.dtype[np.generic]] = {
         "azimuth_rad": V1_AZIMUTH_DTYPE,
         "range_m": V1_RANGE_DTYPE,
         "valid": V1_VALID_DTYPE,

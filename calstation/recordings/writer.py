@@ -19,7 +19,7 @@ import warnings
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any, Protocol
+from typing import IO, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -130,7 +130,7 @@ class RecordingWriter:
         encoder_latency_s: float = 0.0,
         station_id: str = "",
         recipe: RecipeInfo | None = None,
-        metadata: Mapping[str, Mapping[str, Any]] | None = None,
+        metadata: Mapping[str, Mapping[str, object]] | None = None,
         calibration: Extrinsics | None = None,
         calibration_source: str = "",
         live: LiveSink | None = None,
@@ -143,7 +143,7 @@ class RecordingWriter:
 
         _check_station(kind, counts_per_revolution, encoder_direction, encoder_latency_s, metadata)
         created_ns = int((clock if clock is not None else HostClock()).now_ns())
-        records: dict[str, Mapping[str, Any]] = {
+        records: dict[str, Mapping[str, object]] = {
             **station_records(
                 kind, station_id, recipe, created_ns, lidar_info,
                 (counts_per_revolution, encoder_direction, encoder_latency_s),
@@ -236,7 +236,7 @@ class RecordingWriter:
             data = pb.point_cloud(timestamp_ns, frame_id, points)
             self._add(CLOUD_TOPIC, int(timestamp_ns), data)
 
-    def add_metadata(self, name: str, data: Mapping[str, Any]) -> None:
+    def add_metadata(self, name: str, data: Mapping[str, object]) -> None:
         """Add a metadata record (e.g. ``"truth"``); values must be JSON-serialisable.
 
         A later record of the same name replaces an earlier one when the file is read.
@@ -316,7 +316,7 @@ class RecordingWriter:
         if self._closed:
             raise RecordingError(f"recording {self.path} is already closed")
 
-    def _write_metadata(self, name: str, data: Mapping[str, Any]) -> None:
+    def _write_metadata(self, name: str, data: Mapping[str, object]) -> None:
         self._writer.add_metadata(name, encode_metadata(name, data))
 
     def _register_channels(self) -> None:
@@ -387,7 +387,7 @@ def _check_station(
     counts_per_revolution: int,
     encoder_direction: int,
     encoder_latency_s: float,
-    metadata: Mapping[str, Mapping[str, Any]] | None,
+    metadata: Mapping[str, Mapping[str, object]] | None,
 ) -> None:
     if not kind:
         raise RecordingError("recording kind must not be empty")
