@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 import pluggy
 
 from calstation import _compat
@@ -14,7 +12,7 @@ hookimpl = pluggy.HookimplMarker("calstation")
 _compat.install()
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> str:
     """``__version__``: the installed distribution's version (from the git tag it was built
     from: setuptools-scm), read when first asked for; ``0+unknown`` when calstation runs from
     files that were never installed."""

@@ -19,8 +19,9 @@ from __future__ import annotations
 
 import datetime as dt
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import TypeGuard
 
 NOT_ESTIMATED = "not estimated"
 """What is shown for a parameter the run held instead of estimating (rx, the turntable's gauge;
@@ -116,7 +117,7 @@ def quantity(name: str) -> Quantity:
                        f"({', '.join(QUANTITIES)})") from None
 
 
-def units(names: Any) -> dict[str, str]:
+def units(names: Iterable[str]) -> dict[str, str]:
     """The stored unit of each of ``names``: what a JSON twin says beside its values."""
     return {n: quantity(n).stored for n in names}
 
@@ -126,7 +127,7 @@ def shown(name: str, value: float | None) -> float | None:
     return None if value is None else quantity(name).shown(value)
 
 
-def _finite(value: Any) -> bool:
+def _finite(value: object) -> TypeGuard[int | float]:
     return isinstance(value, int | float) and not isinstance(value, bool) \
         and math.isfinite(float(value))
 
@@ -139,7 +140,7 @@ def plain(value: float, digits: int, signed: bool = False) -> str:
     return text.replace("-", MINUS)
 
 
-def number(name: str, value: Any, *, signed: bool = False, unit: bool = True,
+def number(name: str, value: object, *, signed: bool = False, unit: bool = True,
            digits: int | None = None) -> str:
     """``value`` (stored unit) of quantity ``name`` for people: ``15.605 mm``, ``0.3464°``;
     :data:`MISSING` when there is none. ``signed``: ``+``/``−`` always; ``unit=False`` leaves
@@ -155,7 +156,7 @@ def _unit(q: Quantity) -> str:
     return q.unit if q.unit == "°" else f" {q.unit}"
 
 
-def not_estimated(value: Any, sigma: Any) -> bool:
+def not_estimated(value: object, sigma: object) -> bool:
     """Whether a calibration's parameter was held rather than estimated: it has no σ (None,
     or NaN from a stage that states none) and is zero (rx, the gauge, held at 0; the initial
     calibration's ry)."""
@@ -163,14 +164,14 @@ def not_estimated(value: Any, sigma: Any) -> bool:
     return no_sigma and (value is None or value == 0.0)
 
 
-def sigma_text(name: str, sigma: Any, unit: bool = True) -> str:
+def sigma_text(name: str, sigma: object, unit: bool = True) -> str:
     """A 1σ as shown beside its value: ``± 0.019 mm``; empty without one."""
     if not _finite(sigma):
         return ""
     return f"± {number(name, sigma, unit=unit)}"
 
 
-def with_sigma(name: str, value: Any, sigma: Any, *, unit: bool = True) -> str:
+def with_sigma(name: str, value: object, sigma: object, *, unit: bool = True) -> str:
     """``15.605 ± 0.019 mm``; ``15.605 mm`` without σ; :data:`NOT_ESTIMATED` for a parameter
     held rather than estimated."""
     if not_estimated(value, sigma):
@@ -182,7 +183,7 @@ def with_sigma(name: str, value: Any, sigma: Any, *, unit: bool = True) -> str:
             f"{_unit(q) if unit else ''}")
 
 
-def duration(seconds: Any) -> str:
+def duration(seconds: object) -> str:
     """A duration as a person reads it: ``0.4 s``, ``12 s``, ``2 min 05 s``, ``1 h 02 min``;
     :data:`MISSING` without one."""
     if not _finite(seconds):
@@ -200,7 +201,7 @@ def duration(seconds: Any) -> str:
     return f"{whole // 3600} h {whole % 3600 // 60:02d} min"
 
 
-def seconds_between(start: Any, end: Any) -> float | None:
+def seconds_between(start: object, end: object) -> float | None:
     """Seconds from ``start`` to ``end`` (datetimes or ISO-8601 texts); None without both."""
     if not start or not end:
         return None
@@ -211,7 +212,7 @@ def seconds_between(start: Any, end: Any) -> float | None:
     return (b - a).total_seconds()
 
 
-def when(value: Any, seconds: bool = False) -> str:
+def when(value: object, seconds: bool = False) -> str:
     """A stored time (ISO-8601 text or datetime, UTC) for people: ``2026-11-23 14:05 UTC``
     (``seconds``: ``14:05:09``); :data:`MISSING` when absent, the text itself when not a time."""
     if value is None or value == "":
@@ -234,7 +235,7 @@ def count(n: int | float, noun: str, plural: str | None = None) -> str:
 _SUPERSCRIPT = str.maketrans("0123456789-", "⁰¹²³⁴⁵⁶⁷⁸⁹⁻")
 
 
-def scientific(value: Any, digits: int = 3) -> str:
+def scientific(value: object, digits: int = 3) -> str:
     """A number of any size in ``digits`` significant figures: ``0.0123``, ``3.93 × 10⁻⁸``
     (no ``e-08`` a line could break in); :data:`MISSING` without one."""
     if not _finite(value):
@@ -246,14 +247,14 @@ def scientific(value: Any, digits: int = 3) -> str:
     return f"{mantissa.replace('-', MINUS)} × 10{str(int(exponent)).translate(_SUPERSCRIPT)}"
 
 
-def percent(fraction: Any, digits: int = 1) -> str:
+def percent(fraction: object, digits: int = 1) -> str:
     """``97.5 %`` of a fraction (0..1); :data:`MISSING` without one."""
     if not _finite(fraction):
         return MISSING
     return f"{100.0 * float(fraction):.{digits}f} %"
 
 
-def megabytes(size_bytes: Any) -> str:
+def megabytes(size_bytes: object) -> str:
     """A file's size: ``4.2 MB``, ``0.3 MB``; :data:`MISSING` without one."""
     if not _finite(size_bytes):
         return MISSING

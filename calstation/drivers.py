@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from calstation.clock import Clock
 from calstation.errors import DriverError
+from calstation.jsonvalue import JSONObject
 
 DriverKind = Literal["lidar", "turntable", "encoder"]
 
@@ -43,9 +44,9 @@ class LidarInfo:
     line_rate_hz: float
     range_min_m: float
     range_max_m: float
-    extra: Mapping[str, Any] = field(default_factory=dict)
+    extra: Mapping[str, object] = field(default_factory=dict)
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         """A JSON-ready mapping."""
         return {
             "vendor": self.vendor,
@@ -60,7 +61,7 @@ class LidarInfo:
         }
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> LidarInfo:
+    def from_dict(cls, d: Mapping[str, Any]) -> LidarInfo:  # Any: a recording's parsed JSON
         """Inverse of :meth:`as_dict`."""
         return cls(
             vendor=str(d["vendor"]),
@@ -150,7 +151,7 @@ class TurntableStatus:
     position_rad: float | None = None
     faults: tuple[str, ...] = ()
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> JSONObject:
         """A JSON-ready mapping."""
         return {
             "timestamp_ns": self.timestamp_ns,
@@ -177,8 +178,8 @@ class DriverContext:
     """
 
     clock: Clock
-    recipe: Any = None
-    shared: dict[str, Any] = field(default_factory=dict)
+    recipe: Any = None  # Any: a LoadedRecipe, whose type lives in a layer above
+    shared: dict[str, Any] = field(default_factory=dict)  # Any: each plugin's own objects
 
 
 # --- protocols -----------------------------------------------------------------------------

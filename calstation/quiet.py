@@ -14,7 +14,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, redirect_stdout, suppress
-from typing import Any
+from types import ModuleType
 
 
 def _flush_c_stdout() -> None:
@@ -53,7 +53,7 @@ OPEN3D_ATTEMPTS = 20
 """Times the first import of Open3D is tried while other threads keep importing."""
 
 
-def import_open3d() -> Any:
+def import_open3d() -> ModuleType:
     """The ``open3d`` module, imported safely while other threads import modules.
 
     The last step of ``open3d/__init__.py`` walks ``sys.modules`` itself; another thread
@@ -76,7 +76,7 @@ def import_open3d() -> Any:
 
 
 @contextmanager
-def quiet_open3d() -> Iterator[Any]:
+def quiet_open3d() -> Iterator[ModuleType]:
     """Open3D, imported, with its messages limited to errors and kept off standard output."""
     with stdout_to_stderr():
         o3d = import_open3d()

@@ -114,7 +114,7 @@ def _check_depth(text: str) -> None:
         _check_events(text, yaml.SafeLoader)
 
 
-def _check_events(text: str, loader: Any) -> None:
+def _check_events(text: str, loader: type[yaml.SafeLoader]) -> None:
     depth = values = 0
     for event in yaml.parse(text, Loader=loader):
         if isinstance(event, yaml.MappingStartEvent | yaml.SequenceStartEvent):
@@ -187,7 +187,7 @@ def _check_tree(root: yaml.Node) -> None:
     walk(root, ())
 
 
-def load_yaml(text: str) -> tuple[Any, yaml.Node | None]:
+def load_yaml(text: str) -> tuple[Any, yaml.Node | None]:  # Any: yaml's data, untyped
     """Parse ``text``: (the data, its composed node tree for line look-ups).
 
     Raises :class:`YamlProblem` for text nested deeper than :data:`MAX_DEPTH`, holding a key

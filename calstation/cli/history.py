@@ -167,7 +167,7 @@ def register(app: typer.Typer) -> None:
             if since:
                 stmt = stmt.where(Run.started_at >= _parse_since(since))
             for run in s.scalars(stmt):
-                item = history_item(run)
+                item: dict[str, Any] = dict(history_item(run))
                 item["failure_reason"] = failure_reason(item) or None
                 rows.append(item)
         database.dispose()
@@ -357,7 +357,7 @@ def trend_points(
             points = query(s, station, param, serial)
     finally:
         database.dispose()
-    return points
+    return [dict(p) for p in points]
 
 
 def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Path) -> None:

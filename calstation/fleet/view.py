@@ -26,8 +26,8 @@ HISTOGRAM_BINS = 20
 def _serial(run: Run) -> str | None:
     from calstation.storage.report_html import unit_serial
 
-    return unit_serial({"unit_serial": run.unit_serial, "data_dir": None, "steps": [
-        {"name": s.name, "status": s.status, "result": s.result} for s in run.steps]})
+    return unit_serial(run.unit_serial, None, [
+        {"name": s.name, "status": s.status, "result": s.result} for s in run.steps])
 
 
 def run_item(row: CampaignRun, run: Run) -> dict[str, Any]:

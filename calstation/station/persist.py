@@ -119,7 +119,7 @@ def end_run(
     with ctx.db.session("reading the run", read_only=True) as s:
         run = s.get(Run, ctx.run_id)
         assert run is not None
-        return run_summary(run)
+        return dict(run_summary(run))
 
 
 def store_motor_stop(ctx: RunContext, record: MotorStop) -> None:

@@ -10,16 +10,20 @@ import datetime as dt
 import itertools
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
-from sqlalchemy import and_, func, select
+from sqlalchemy import Select, and_, func, select
 from sqlalchemy.orm import Session
 
 from calstation import display
 from calstation.errors import CalstationError
 from calstation.recipes import parse_recipe
 from calstation.storage.db import PARAMS, Calibration, Run, Station, Step
-from calstation.storage.report import history_item, iso, with_results
+from calstation.storage.report import HistoryItem, history_item, iso, json_float, with_results
+
+if TYPE_CHECKING:
+    from calstation.recipes import QALimits
+    from calstation.storage.report_types import ReportData
 
 STATUSES = ("running", "passed", "failed", "aborted")
 STEP_NAMES = ("preflight", "place", "static_scan", "spin_scan", "fine_tune", "cube_scan",
@@ -28,6 +32,46 @@ STEP_NAMES = ("preflight", "place", "static_scan", "spin_scan", "fine_tune", "cu
 TREND_PARAMS = tuple(p for p in PARAMS if p != "rx")  # rx is the gauge, held at 0
 CUBE_TREND_PARAMS = ("edge_error", "obb_error", "flatness_rms", "perpendicularity_deg",
                      "twist_deg")
+
+
+class TrendPoint(TypedDict):
+    """One accepted calibration of a trend (:func:`trend_points`; stored units)."""
+
+    run_id: int
+    date: str | None
+    unit_serial: str | None
+    value: float
+    sigma: float | None
+    delta: float | None
+    limit: float
+    flagged: bool
+
+
+class Trend(TypedDict):
+    """One parameter of a station over time (:func:`trend`)."""
+
+    station: str
+    param: str
+    unit: str
+    limit_kind: str
+    points: list[TrendPoint]
+
+
+class CompareRow(TypedDict):
+    """One value of two runs side by side (:func:`compare`; stored units)."""
+
+    name: str
+    quantity: str | None
+    unit: str | None
+    a: float | None
+    b: float | None
+    sigma_a: float | None
+    sigma_b: float | None
+    not_estimated_a: bool
+    not_estimated_b: bool
+    diff: float | None
+    limit: float | None
+    flagged: bool
 
 
 class QueryError(CalstationError):
@@ -49,7 +93,7 @@ class HistoryFilter:
     reason: str | None = None
     limit: int = 200
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, str | int]:
         """The filters as given (for the page and its JSON twin)."""
         return {k: v for k, v in vars(self).items() if v not in (None, "")}
 
@@ -67,7 +111,13 @@ def parse_date(text: str, field: str, end: bool = False) -> dt.datetime:
     return value
 
 
-def history(session: Session, f: HistoryFilter) -> list[dict[str, Any]]:
+class HistoryRow(HistoryItem):
+    """A run as the web's history lists it: with its unit's serial."""
+
+    serial: str | None
+
+
+def history(session: Session, f: HistoryFilter) -> list[HistoryRow]:
     """Runs, newest first, each with its final calibration and cube check."""
     from calstation.storage.report_html import unit_serial
 
@@ -88,20 +138,20 @@ def history(session: Session, f: HistoryFilter) -> list[dict[str, Any]]:
         stmt = stmt.where(func.lower(Run.unit_serial).contains(f.serial.lower(),
                                                                autoescape=True))
     stmt = _failure_filters(stmt, f)
-    rows: list[dict[str, Any]] = []
+    rows: list[HistoryRow] = []
     for run in session.scalars(stmt.limit(max(1, min(f.limit, 5000)) * (4 if f.serial else 1))):
         item = history_item(run)
-        item["serial"] = unit_serial({**item, "steps": [
-            {"name": s.name, "status": s.status, "result": s.result} for s in run.steps]})
-        if f.serial and f.serial.lower() not in (item["serial"] or "").lower():
+        serial = unit_serial(item["unit_serial"], item["data_dir"], [
+            {"name": s.name, "status": s.status, "result": s.result} for s in run.steps])
+        if f.serial and f.serial.lower() not in (serial or "").lower():
             continue
-        rows.append(item)
+        rows.append({**item, "serial": serial})
         if len(rows) >= f.limit:
             break
     return rows
 
 
-def _failure_filters(stmt: Any, f: HistoryFilter) -> Any:
+def _failure_filters(stmt: Select[Run], f: HistoryFilter) -> Select[Run]:
     """Runs with a step that failed (or was aborted) as ``f.failed_step``, and whose error
     names ``f.reason`` (a limit as the dashboard's Pareto names it, or words of the error)."""
     from calstation.storage.dashboard import reason_text
@@ -129,7 +179,7 @@ def choices(session: Session) -> dict[str, list[str]]:
 
 def trend(
     session: Session, station: str, param: str, serial: str | None = None
-) -> dict[str, Any]:
+) -> Trend:
     """One parameter of ``station``'s accepted calibrations (of unit ``serial`` only, when
     given) by date, with 1σ and drift limits: :func:`trend_points` (in ``unit``, the stored
     one) and how to draw them.
@@ -144,7 +194,7 @@ def trend(
 
 def trend_points(
     session: Session, station: str, param: str, serial: str | None = None
-) -> list[dict[str, Any]]:
+) -> list[TrendPoint]:
     """``param`` (a calibration parameter, or a cube figure of :data:`CUBE_TREND_PARAMS`) of
     ``station``'s accepted calibrations, of unit ``serial`` only when given, by the run's
     start date.
@@ -162,9 +212,9 @@ def trend_points(
     )
     if serial:
         stmt = stmt.where(Run.unit_serial == serial)
-    points: list[dict[str, Any]] = []
+    points: list[TrendPoint] = []
     previous: float | None = None
-    recipes: dict[str, Any] = {}
+    recipes: dict[str, QALimits] = {}
     for run, cal in session.execute(stmt).all():
         qa = recipes.get(run.recipe_sha256)
         if qa is None:
@@ -194,7 +244,7 @@ def trend_points(
     return points
 
 
-def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
+def trend_figure(t: Trend) -> dict[str, object]:
     """A plotly figure of a trend: values with 1σ bars by date, the limits drawn."""
     from calstation.storage.dashboard import LABELS, SHORT
 
@@ -203,7 +253,7 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
     pts = t["points"]
     dates = [(p["date"] or "")[:19].replace("T", " ") for p in pts]  # UTC, to the second
     values = [p["value"] * k for p in pts]
-    data: list[dict[str, Any]] = [{
+    data: list[dict[str, object]] = [{
         "type": "scatter", "mode": "lines+markers", "name": label, "x": dates, "y": values,
         "text": [f"run {p['run_id']}" for p in pts],
         "customdata": [f"/runs/{p['run_id']}" for p in pts],
@@ -214,8 +264,8 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
     if t["limit_kind"] == "drift" and len(pts) > 1:
         # the allowed band of each run: the previous value ± the drift limit
         for sign, name in ((1.0, "drift limit"), (-1.0, None)):
-            xs: list[Any] = []
-            ys: list[Any] = []
+            xs: list[str | None] = []
+            ys: list[float | None] = []
             for (a, b), (da, db) in zip(itertools.pairwise(pts), itertools.pairwise(dates),
                                         strict=True):
                 level = (a["value"] + sign * b["limit"]) * k
@@ -239,23 +289,24 @@ def trend_figure(t: dict[str, Any]) -> dict[str, Any]:
     }}
 
 
-def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
+def compare(a: ReportData, b: ReportData) -> list[CompareRow]:
     """Rows of two runs' final calibrations and cube checks side by side, in stored units
     (``unit``; ``quantity`` names how each is shown). A parameter one of the runs did not
     estimate has no difference and is never flagged; a difference within 3σ of the two runs
     is not flagged either (it is not a measured change)."""
-    rows: list[dict[str, Any]] = []
-    fa, fb = a.get("final"), b.get("final")
-    qa_b = b.get("qa") or {}
+    rows: list[CompareRow] = []
+    fa, fb = a["final"], b["final"]
+    qa_b = b["qa"] or {}
+    drift_t, drift_r = qa_b.get("drift_translation"), qa_b.get("drift_rotation_deg")
     for p in PARAMS:
         va, vb = (fa["H"][p] if fa else None), (fb["H"][p] if fb else None)
         sa, sb = (fa["sigma"][p] if fa else None), (fb["sigma"][p] if fb else None)
         held_a = fa is not None and display.not_estimated(va, sa)
         held_b = fb is not None and display.not_estimated(vb, sb)
         # the drift limit of B's recipe: how far a station may move between calibrations
-        limit = (qa_b.get("drift_translation") if p.startswith("t")
-                 else None if qa_b.get("drift_rotation_deg") is None
-                 else math.radians(qa_b["drift_rotation_deg"]))
+        limit = ((None if drift_t is None else json_float(drift_t)) if p.startswith("t")
+                 else None if drift_r is None
+                 else math.radians(json_float(drift_r)))
         diff = None if va is None or vb is None or held_a or held_b else vb - va
         noise = 3.0 * math.hypot(sa or 0.0, sb or 0.0)
         rows.append({"name": p, "quantity": p, "unit": display.quantity(p).stored,
@@ -264,16 +315,17 @@ def compare(a: dict[str, Any], b: dict[str, Any]) -> list[dict[str, Any]]:
                      "diff": diff, "limit": limit,
                      "flagged": diff is not None and limit is not None
                      and abs(diff) > max(limit, noise)})
-    ra = {r["name"]: r for r in a.get("cube_rows") or []}
-    rb = {r["name"]: r for r in b.get("cube_rows") or []}
+    ra = {r["name"]: r for r in a["cube_rows"]}
+    rb = {r["name"]: r for r in b["cube_rows"]}
     for name in list(ra) or list(rb):
-        x, y = ra.get(name, {}), rb.get(name, {})
-        va, vb = x.get("value"), y.get("value")
-        q = x.get("quantity") or y.get("quantity")
-        rows.append({"name": name, "quantity": q, "unit": x.get("unit") or y.get("unit"),
+        x, y = ra.get(name), rb.get(name)
+        va, vb = (x["value"] if x else None), (y["value"] if y else None)
+        q = (x["quantity"] if x else None) or (y["quantity"] if y else None)
+        rows.append({"name": name, "quantity": q,
+                     "unit": (x["unit"] if x else None) or (y["unit"] if y else None),
                      "a": va, "b": vb, "sigma_a": None, "sigma_b": None,
                      "not_estimated_a": False, "not_estimated_b": False,
                      "diff": None if va is None or vb is None else vb - va,
-                     "limit": y.get("limit") if y else x.get("limit"),
-                     "flagged": y.get("ok") is False})
+                     "limit": y["limit"] if y else x["limit"] if x else None,
+                     "flagged": y is not None and y["ok"] is False})
     return rows

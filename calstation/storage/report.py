@@ -11,13 +11,14 @@ import csv
 import datetime as dt
 import io
 import json
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, TypedDict
 
 from sqlalchemy import Select, select
 from sqlalchemy.orm import Session, selectinload
 
 from calstation import display
 from calstation.errors import DatabaseError
+from calstation.jsonvalue import JSONObject, JSONValue
 from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord, Run
 from calstation.storage.db.models import MAX_ROW_ID
 
@@ -33,6 +34,116 @@ CUBE_UNITS: dict[str, str] = {
 """The unit of each value of a stored cube check (:func:`cube_dict`)."""
 
 
+class RunBrief(TypedDict):
+    """A run's own fields (:func:`run_brief`)."""
+
+    id: int
+    station: str
+    recipe_name: str
+    recipe_path: str | None
+    recipe_sha256: str
+    operator: str
+    unit_serial: str | None
+    unattended: bool
+    status: str
+    started_at: str | None
+    finished_at: str | None
+    data_dir: str
+    error: str | None
+    host: str | None
+    pid: int | None
+    motor_stop: JSONObject | None
+
+
+class CalibrationRecord(TypedDict):
+    """A stored calibration (:func:`calibration_dict`)."""
+
+    id: int
+    stage: str
+    strategy: str
+    accepted: bool
+    refused: list[str]
+    H: dict[str, float]
+    sigma: dict[str, float | None]
+    units: dict[str, str]
+    not_estimated: list[str]
+    encoder_latency_s: float | None
+    sigma_encoder_latency_s: float | None
+    range_offset: float | None
+    sigma_range_offset: float | None
+    range_scale: float | None
+    sigma_range_scale: float | None
+    incidence_bias: float | None
+    sigma_incidence_bias: float | None
+    predicted_error_m: float | None
+    budget_m: float | None
+    cost: float | None
+    iterations: int | None
+    diagnostics: JSONObject | None
+    created_at: str | None
+
+
+class CubeRecord(TypedDict):
+    """A stored cube check (:func:`cube_dict`)."""
+
+    id: int
+    calibration_id: int | None
+    obb_edges: list[float]
+    obb_error: float
+    face_edges: list[float]
+    edge_error: float
+    flatness_rms: float
+    flatness_excess: float | None
+    range_noise: float | None
+    perpendicularity_deg: float
+    twist_deg: float | None
+    twist_sigma_deg: float | None
+    units: dict[str, str]
+    passed: bool
+    failures: list[str]
+    created_at: str | None
+
+
+class StepRecord(TypedDict):
+    """One step attempt of :func:`run_summary`."""
+
+    name: str
+    attempt: int
+    status: str
+    started_at: str | None
+    finished_at: str | None
+    result: JSONObject | None
+    error: str | None
+
+
+class ArtifactRecord(TypedDict):
+    """One recording or file of :func:`run_summary`."""
+
+    kind: str
+    step: str | None
+    path: str
+    size_bytes: int
+    sha256: str
+    status: str
+
+
+class HistoryItem(RunBrief):
+    """A run as the history lists it (:func:`history_item`)."""
+
+    calibration: CalibrationRecord | None
+    cube_check: CubeRecord | None
+
+
+class RunSummary(RunBrief):
+    """Everything stored about a run (:func:`run_summary`)."""
+
+    steps: list[StepRecord]
+    calibrations: list[CalibrationRecord]
+    cube_check: CubeRecord | None
+    qa_limits: JSONObject | None
+    artifacts: list[ArtifactRecord]
+
+
 def iso(t: dt.datetime | None) -> str | None:
     """UTC ISO-8601 text of a stored time (SQLite returns naive UTC)."""
     if t is None:
@@ -42,7 +153,15 @@ def iso(t: dt.datetime | None) -> str | None:
     return t.astimezone(dt.UTC).isoformat()
 
 
-def run_brief(run: Run) -> dict[str, Any]:
+def json_float(value: JSONValue) -> float:
+    """A number read from stored JSON as a float: ``float()`` of it, a TypeError for a value
+    that is not a number or text."""
+    if isinstance(value, str | int | float):
+        return float(value)
+    raise TypeError(f"not a number: {value!r}")
+
+
+def run_brief(run: Run) -> RunBrief:
     """The run's own fields (no steps or results)."""
     return {
         "id": run.id,
@@ -73,7 +192,7 @@ def refused_reasons(c: Calibration) -> list[str]:
     return [str(r) for r in reprocess.get("refused") or []]
 
 
-def calibration_dict(c: Calibration) -> dict[str, Any]:
+def calibration_dict(c: Calibration) -> CalibrationRecord:
     """A stored calibration: H and sigma (m, rad: ``units`` says which), the parameters held
     rather than estimated (``not_estimated``), the estimated encoder latency and its sigma
     (s, None when not estimated), the lidar's range model (``range_offset``, ``range_scale``,
@@ -94,7 +213,12 @@ def calibration_dict(c: Calibration) -> dict[str, Any]:
         "not_estimated": [p for p in PARAMS if display.not_estimated(H[p], sigma[p])],
         "encoder_latency_s": c.encoder_latency_s,
         "sigma_encoder_latency_s": c.sigma_encoder_latency_s,
-        **c.range_fields(),
+        "range_offset": c.range_offset,
+        "sigma_range_offset": c.sigma_range_offset,
+        "range_scale": c.range_scale,
+        "sigma_range_scale": c.sigma_range_scale,
+        "incidence_bias": c.incidence_bias,
+        "sigma_incidence_bias": c.sigma_incidence_bias,
         "predicted_error_m": c.predicted_error_m,
         "budget_m": ((c.diagnostics or {}).get("predicted_error") or {}).get("budget_m"),
         "cost": c.cost,
@@ -111,18 +235,19 @@ def with_results(stmt: Select[Run], *, steps: bool = False) -> Select[Run]:
     return stmt.options(selectinload(Run.steps)) if steps else stmt
 
 
-def history_item(run: Run) -> dict[str, Any]:
+def history_item(run: Run) -> HistoryItem:
     """A run as the history lists it: :func:`run_brief`, its final calibration (the accepted
     one, else the last fine-tuning, else the last) and its last cube check."""
-    item = run_brief(run)
     fine = [c for c in run.calibrations if c.stage == "fine"]
     picks = [c for c in run.calibrations if c.accepted] or fine or run.calibrations
-    item["calibration"] = calibration_dict(picks[-1]) if picks else None
-    item["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
-    return item
+    return {
+        **run_brief(run),
+        "calibration": calibration_dict(picks[-1]) if picks else None,
+        "cube_check": cube_dict(run.cube_checks[-1]) if run.cube_checks else None,
+    }
 
 
-def cube_dict(c: CubeCheckRecord) -> dict[str, Any]:
+def cube_dict(c: CubeCheckRecord) -> CubeRecord:
     """A stored cube check (lengths in metres, angles in degrees: ``units`` says which)."""
     return {
         "id": c.id,
@@ -144,40 +269,41 @@ def cube_dict(c: CubeCheckRecord) -> dict[str, Any]:
     }
 
 
-def run_summary(run: Run) -> dict[str, Any]:
+def run_summary(run: Run) -> RunSummary:
     """Everything stored about a run: brief, steps, calibrations, cube check, artifacts."""
     steps = {s.id: s.name for s in run.steps}
-    out = run_brief(run)
-    out["steps"] = [
-        {
-            "name": s.name,
-            "attempt": s.attempt,
-            "status": s.status,
-            "started_at": iso(s.started_at),
-            "finished_at": iso(s.finished_at),
-            "result": s.result,
-            "error": s.error,
-        }
-        for s in run.steps
-    ]
-    out["calibrations"] = [calibration_dict(c) for c in run.calibrations]
-    out["cube_check"] = cube_dict(run.cube_checks[-1]) if run.cube_checks else None
-    out["qa_limits"] = qa_limits(run.recipe_text)
-    out["artifacts"] = [
-        {
-            "kind": a.kind,
-            "step": steps.get(a.step_id) if a.step_id is not None else None,
-            "path": a.path,
-            "size_bytes": a.size_bytes,
-            "sha256": a.sha256,
-            "status": a.status,
-        }
-        for a in run.artifacts
-    ]
-    return out
+    return {
+        **run_brief(run),
+        "steps": [
+            {
+                "name": s.name,
+                "attempt": s.attempt,
+                "status": s.status,
+                "started_at": iso(s.started_at),
+                "finished_at": iso(s.finished_at),
+                "result": s.result,
+                "error": s.error,
+            }
+            for s in run.steps
+        ],
+        "calibrations": [calibration_dict(c) for c in run.calibrations],
+        "cube_check": cube_dict(run.cube_checks[-1]) if run.cube_checks else None,
+        "qa_limits": qa_limits(run.recipe_text),
+        "artifacts": [
+            {
+                "kind": a.kind,
+                "step": steps.get(a.step_id) if a.step_id is not None else None,
+                "path": a.path,
+                "size_bytes": a.size_bytes,
+                "sha256": a.sha256,
+                "status": a.status,
+            }
+            for a in run.artifacts
+        ],
+    }
 
 
-def qa_limits(recipe_text: str) -> dict[str, Any] | None:
+def qa_limits(recipe_text: str) -> JSONObject | None:
     """The pass/fail and drift limits of a stored recipe (metres, degrees; ``qa`` section with its
     defaults), None when the text is not a recipe mapping."""
     import yaml
@@ -287,7 +413,7 @@ def export_calibration(
         header += ["encoder_latency_s", "sigma_encoder_latency_s"]
         header += list(cal.range_fields())
         header += ["qx", "qy", "qz", "qw"]  # rotation of P in L, quaternion order x y z w
-        row: list[Any] = [run.id, run.station.name, cal.stage, cal.strategy,
+        row: list[object] = [run.id, run.station.name, cal.stage, cal.strategy,
                           "true" if cal.accepted else "false"]
         row += [repr(v) for v in cal.params().values()]
         row += ["" if s is None else repr(s) for s in cal.sigmas().values()]

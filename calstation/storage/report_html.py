@@ -21,17 +21,39 @@ import base64
 import datetime as dt
 import json
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from calstation import display
 from calstation.atomic import write_atomic
 from calstation.errors import CalstationError
-from calstation.storage.db import Database, Run
+from calstation.jsonvalue import JSONObject, JSONValue
+from calstation.storage.db import Database, Run, RunStatus, StepStatus
+from calstation.storage.report import (
+    ArtifactRecord,
+    CalibrationRecord,
+    CubeRecord,
+    RunSummary,
+    StepRecord,
+    json_float,
+)
+from calstation.storage.report_types import (
+    Accuracy,
+    CalibrationRow,
+    CubeRow,
+    Figure,
+    ReportData,
+    Residuals,
+    SerialStep,
+    StepRow,
+    View,
+    ViewsData,
+)
 from calstation.storage.templating import (
     plotly_js as plotly_js,
     plotly_style_ids as plotly_style_ids,
@@ -48,6 +70,10 @@ SEED = 0
 
 PARAMS = display.H_PARAMS
 """The calibration's parameters in the order the report lists them."""
+
+if TYPE_CHECKING:
+    from calstation.engine.frames import Extrinsics
+    from calstation.recipes import QALimits, Recipe
 
 
 @dataclass
@@ -72,7 +98,7 @@ def _subsample(n: int, k: int, rng: np.random.Generator) -> NDArray[np.int64]:
 
 
 def reconstructed_object(
-    path: Path, H: Any, platter_radius: float
+    path: Path, H: Extrinsics, platter_radius: float
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """The object on the platter from a spin recording: (N, 3) points in D (metres) above the
     platter top and inside its radius, and (N,) True for the first half-turn (φ mod 2π < π)."""
@@ -131,7 +157,7 @@ def local_plane_residuals(points: NDArray[np.float64], k: int = 20) -> NDArray[n
     return out
 
 
-def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> dict[str, Any]:
+def _cloud(path: Path, H: Extrinsics, platter_radius: float, title: str, by: str) -> View:
     """One 3D view and its residual statistics, as plain data for the template.
 
     ``by``: ``"half-turn"`` (colour by half-turn; residual = distance to the other half-turn)
@@ -153,7 +179,7 @@ def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> di
         color_label="half-turn" if by == "half-turn" else "residual (mm)",
         categorical=by == "half-turn",
     )
-    residuals = {
+    residuals: Residuals = {
         "median": float(np.median(finite)) if finite.size else None,
         "p95": float(np.percentile(finite, 95)) if finite.size else None,
         "unit": "m",
@@ -172,7 +198,7 @@ def _cloud(path: Path, H: Any, platter_radius: float, title: str, by: str) -> di
     }
 
 
-def residual_note(shown: int, points: int, kind: str, residual: dict[str, Any], by: str) -> str:
+def residual_note(shown: int, points: int, kind: str, residual: Residuals, by: str) -> str:
     """What a 3D view's residuals are, and what is normal for them: they measure the range
     noise and the spacing of the points as much as the calibration, whose own share is the
     predicted reconstruction error."""
@@ -187,20 +213,20 @@ def residual_note(shown: int, points: int, kind: str, residual: dict[str, Any], 
             "itself adds is the predicted reconstruction error above.")
 
 
-def typed(values: Any) -> dict[str, str]:
+def typed(values: ArrayLike) -> dict[str, str]:
     """An array as plotly.js reads it in binary: float32, base64 (a quarter of the text of
     JSON numbers; plotly's own ``{dtype, bdata}`` typed-array form)."""
     data = np.ascontiguousarray(np.asarray(values, dtype="<f4"))
     return {"dtype": "f4", "bdata": base64.b64encode(data.tobytes()).decode("ascii")}
 
 
-def _cloud_figure(c: Cloud) -> dict[str, Any]:
+def _cloud_figure(c: Cloud) -> Figure:
     """A plotly ``scatter3d`` figure (plain JSON, the points in binary): x_D is up."""
     p = c.points_mm
     # plotly's z is up: show (y_D, z_D, x_D) so the platter lies flat
     xyz = {"x": typed(p[:, 1]), "y": typed(p[:, 2]), "z": typed(p[:, 0])}
-    marker: dict[str, Any] = {"size": 1.6}
-    traces: list[dict[str, Any]]
+    marker: dict[str, object] = {"size": 1.6}
+    traces: list[dict[str, object]]
     if c.categorical:
         traces = []
         for value, name, colour in ((1.0, "first half-turn", "#1f77b4"),
@@ -237,8 +263,8 @@ def _cloud_figure(c: Cloud) -> dict[str, Any]:
     return {"data": traces, "layout": layout}
 
 
-def _histogram_figure(clouds: list[dict[str, Any]]) -> dict[str, Any] | None:
-    traces = [
+def _histogram_figure(clouds: list[View]) -> Figure | None:
+    traces: list[dict[str, object]] = [
         {"type": "histogram", "name": c["title"],
          "x": typed(display.quantity("residual").factor * c["residual"]["values"]),
          "opacity": 0.6, "xbins": {"start": 0.0, "size": 0.1}}
@@ -259,30 +285,36 @@ def _histogram_figure(clouds: list[dict[str, Any]]) -> dict[str, Any] | None:
     }
 
 
-def _iterated(calibrations: list[dict[str, Any]], final: dict[str, Any] | None
-              ) -> dict[str, Any] | None:
+def _diagnostic(calibration: CalibrationRecord | None, key: str) -> JSONValue:
+    """``key`` of the calibration's stored diagnostics; None when absent."""
+    diagnostics = calibration["diagnostics"] if calibration is not None else None
+    return (diagnostics or {}).get(key)
+
+
+def _iterated(calibrations: list[CalibrationRecord], final: CalibrationRecord | None
+              ) -> CalibrationRecord | None:
     """The calibration whose solver reported its iterations: the final one, else the newest
     that did (the fine-tuning under a combined ``periodicity+cube`` calibration)."""
     for c in ([final] if final else []) + list(reversed(calibrations)):
-        if isinstance((c.get("diagnostics") or {}).get("iterations"), list):
-            found: dict[str, Any] = c
-            return found
+        if isinstance(_diagnostic(c, "iterations"), list):
+            return c
     return None
 
 
-def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+def _cost_figure(calibration: CalibrationRecord | None) -> Figure | None:
     """Cost per outer iteration (periodicity's ``diagnostics.iterations``), when reported."""
     if calibration is None:
         return None
-    history = (calibration.get("diagnostics") or {}).get("iterations")
+    history = _diagnostic(calibration, "iterations")
     if not isinstance(history, list) or not history:
         return None
     costs = [h.get("cost") for h in history if isinstance(h, dict)]
     if not costs or any(c is None for c in costs):
         return None
-    rms = [math.sqrt(float(c)) * 1000.0 for c in costs if c is not None]
+    rms = [math.sqrt(json_float(c)) * 1000.0 for c in costs if c is not None]
     labels = [
-        f"stage {h.get('stage', '?')}, {h.get('matches', '?')} matches" for h in history
+        f"stage {h.get('stage', '?')}, {h.get('matches', '?')} matches"
+        for h in history if isinstance(h, dict)
     ]
     return {
         "data": [
@@ -300,34 +332,39 @@ def _cost_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
     }
 
 
-def accuracy_of(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+def accuracy_of(calibration: CalibrationRecord | None) -> Accuracy | None:
     """The predicted reconstruction error of ``calibration`` beside its budget (metres), when it
     was predicted: error, budget, level, work volume, turns, the bias bound, whether it holds."""
     if calibration is None:
         return None
-    record = (calibration.get("diagnostics") or {}).get("predicted_error")
+    record = _diagnostic(calibration, "predicted_error")
     if not isinstance(record, dict) or record.get("max_m") is None:
         return None
-    volume = record.get("work_volume") or {}
+    volume = _mapping(record.get("work_volume"))
     budget = record.get("budget_m")
     return {
-        "error_m": float(record["max_m"]),
-        "budget_m": None if budget is None else float(budget),
-        "holds": None if budget is None else float(record["max_m"]) <= float(budget),
+        "error_m": json_float(record["max_m"]),
+        "budget_m": None if budget is None else json_float(budget),
+        "holds": None if budget is None else json_float(record["max_m"]) <= json_float(budget),
         "level": record.get("level", 0.95),
-        "radius_m": None if "radius_m" not in volume else float(volume["radius_m"]),
-        "height_m": None if "height_m" not in volume else float(volume["height_m"]),
+        "radius_m": None if "radius_m" not in volume else json_float(volume["radius_m"]),
+        "height_m": None if "height_m" not in volume else json_float(volume["height_m"]),
         "turns": record.get("turns"),
-        "bias_m": float(record.get("bias_m") or 0.0),
+        "bias_m": json_float(record.get("bias_m") or 0.0),
         "text": accuracy_text(record),
     }
 
 
-def accuracy_text(record: dict[str, Any]) -> str:
+def _mapping(value: JSONValue) -> JSONObject:
+    """``value`` when it is a mapping, else an empty one (absent, None)."""
+    return value if isinstance(value, dict) else {}
+
+
+def accuracy_text(record: JSONObject) -> str:
     """The predicted error beside its budget in words: ``0.089 mm at 95 % over r 292 mm ×
     h 150 mm, after 1 turn, within the budget of 0.300 mm``."""
     error, budget = record.get("max_m"), record.get("budget_m")
-    volume = record.get("work_volume") or {}
+    volume = _mapping(record.get("work_volume"))
     text = (f"{display.number('predicted_error', error)} at "
             f"{display.percent(record.get('level', 0.95), 0)}")
     if volume:
@@ -337,15 +374,15 @@ def accuracy_text(record: dict[str, Any]) -> str:
     if isinstance(turns, int | float):
         text += f", after {display.count(turns, 'turn')}"
     if budget is not None and error is not None:
-        text += (f", {'within' if float(error) <= float(budget) else 'above'} the budget of "
-                 f"{display.number('predicted_error', budget)}")
+        text += (f", {'within' if json_float(error) <= json_float(budget) else 'above'} the budget "
+                 f"of {display.number('predicted_error', budget)}")
     return text
 
 
-def _accuracy_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+def _accuracy_figure(calibration: CalibrationRecord | None) -> Figure | None:
     """Where in the work volume the predicted error is largest: each point's error over the
     volume, seen from above (y_D, z_D) and from the side (distance from the axis, height)."""
-    record = ((calibration or {}).get("diagnostics") or {}).get("predicted_error") or {}
+    record = _mapping(_diagnostic(calibration, "predicted_error"))
     points = record.get("map")
     if not points:
         return None
@@ -380,7 +417,7 @@ def _accuracy_figure(calibration: dict[str, Any] | None) -> dict[str, Any] | Non
 
 
 # --- gathering -------------------------------------------------------------------------------
-def _limits(recipe_text: str) -> Any | None:
+def _limits(recipe_text: str) -> Recipe | None:
     from calstation.recipes import parse_recipe
 
     try:
@@ -389,7 +426,8 @@ def _limits(recipe_text: str) -> Any | None:
         return None
 
 
-def _flatness_rows(cube: dict[str, Any], qa: Any) -> list[tuple[Any, ...]]:
+def _flatness_rows(cube: CubeRecord, qa: QALimits | None
+                   ) -> list[tuple[str, str, float | None, float | None]]:
     """The faces' flatness: the RMS beyond the range noise against the limit, with the raw RMS
     beside it (a check stored before the excess was measured judged the raw RMS)."""
     limit = getattr(qa, "flatness_rms", None)
@@ -401,13 +439,13 @@ def _flatness_rows(cube: dict[str, Any], qa: Any) -> list[tuple[Any, ...]]:
              cube.get("flatness_rms"), None)]
 
 
-def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
+def cube_rows(cube: CubeRecord | None, qa: QALimits | None) -> list[CubeRow]:
     """Each measured cube value beside its limit and whether it passes: ``name`` (in words),
     ``quantity`` (:mod:`calstation.display`), ``value`` and ``limit`` in ``unit``, the stored
     unit (None: a value shown for information, judged by no limit)."""
     if cube is None:
         return []
-    rows = [
+    rows: list[tuple[str, str, float | None, float | None]] = [
         ("face-fit edge error", "edge_error", cube.get("edge_error"),
          getattr(qa, "edge_error", None)),
         ("OBB edge error (paper metric)", "obb_error", cube.get("obb_error"),
@@ -425,7 +463,7 @@ def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
         if limit is not None and sigma is not None and math.isfinite(float(sigma)):
             limit = max(float(limit), 3.0 * float(sigma))
         rows.append(("side-face twist |δ| (ry check)", "twist_deg", abs(float(twist)), limit))
-    out = []
+    out: list[CubeRow] = []
     for name, q, value, limit in rows:
         v = None if value is None else float(value)
         lim = None if limit is None else float(limit)
@@ -435,95 +473,105 @@ def cube_rows(cube: dict[str, Any] | None, qa: Any) -> list[dict[str, Any]]:
     return out
 
 
-def calibration_rows(calibrations: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def calibration_rows(calibrations: list[CalibrationRecord]) -> list[CalibrationRow]:
     """Every stored calibration: H and 1σ as stored (``units`` says which), the parameters
     held rather than estimated, the lidar–encoder time offset and its σ (s) where a second
     pass estimated it, and the lidar's range model in words where it was estimated
     (:func:`calstation.engine.rangemodel.describe`)."""
     from calstation.engine.rangemodel import describe
 
-    rows = []
+    rows: list[CalibrationRow] = []
     for c in calibrations:
         rows.append({
-            "id": c.get("id"), "stage": c["stage"], "strategy": c["strategy"],
-            "accepted": c["accepted"], "cost": c.get("cost"), "iterations": c.get("iterations"),
+            "id": c["id"], "stage": c["stage"], "strategy": c["strategy"],
+            "accepted": c["accepted"], "cost": c["cost"], "iterations": c["iterations"],
             "values": dict(c["H"]), "sigma": dict(c["sigma"]),
             "units": display.units(c["H"]),
             "not_estimated": [p for p in c["H"]
                               if display.not_estimated(c["H"][p], c["sigma"].get(p))],
-            "gauge": (c.get("diagnostics") or {}).get("gauge_note"),
-            "time_offset_s": c.get("encoder_latency_s"),
-            "time_offset_sigma_s": c.get("sigma_encoder_latency_s"),
-            "range_model": describe(c),
-            "timings": (c.get("diagnostics") or {}).get("timings") or {},
+            "gauge": _diagnostic(c, "gauge_note"),
+            "time_offset_s": c["encoder_latency_s"],
+            "time_offset_sigma_s": c["sigma_encoder_latency_s"],
+            "range_model": describe(range_fields(c)),
+            "timings": _diagnostic(c, "timings") or {},
         })
     return rows
 
 
-def step_rows(steps: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def range_fields(c: CalibrationRecord) -> dict[str, float | None]:
+    """The lidar's range model of a stored calibration (DESIGN §9; None where not estimated)."""
+    return {"range_offset": c["range_offset"], "sigma_range_offset": c["sigma_range_offset"],
+            "range_scale": c["range_scale"], "sigma_range_scale": c["sigma_range_scale"],
+            "incidence_bias": c["incidence_bias"],
+            "sigma_incidence_bias": c["sigma_incidence_bias"]}
+
+
+def step_rows(steps: list[StepRecord]) -> list[StepRow]:
     """Each step attempt with its duration (s)."""
     return [
         {**s, "title": display.step_title(s["name"]),
-         "duration_s": display.seconds_between(s.get("started_at"), s.get("finished_at"))}
+         "duration_s": display.seconds_between(s["started_at"], s["finished_at"])}
         for s in steps
     ]
 
 
-def final_calibration_dict(summary: dict[str, Any]) -> dict[str, Any] | None:
+def final_calibration_dict(calibrations: list[CalibrationRecord]) -> CalibrationRecord | None:
     """The run's final calibration (accepted, else newest fine, else initial), as stored."""
-    cals = summary["calibrations"]
+    cals = calibrations
     for pick in ([c for c in cals if c["accepted"]], [c for c in cals if c["stage"] == "fine"],
                  list(cals)):
         if pick:
-            final: dict[str, Any] = pick[-1]
-            return final
+            return pick[-1]
     return None
 
 
-def unit_serial(summary: dict[str, Any]) -> str | None:
-    """The unit's serial: the run's own column when the database has one, else ``unit.json`` in
-    the run folder (written by the web station), else the serial the lidar reported in
-    preflight."""
-    for key in ("unit_serial", "serial"):
-        if summary.get(key):
-            return str(summary[key])
-    unit = Path(summary.get("data_dir") or ".") / "unit.json"
-    if summary.get("data_dir") and unit.is_file():
+def unit_serial(unit: str | None, data_dir: str | None, steps: Iterable[SerialStep]
+                ) -> str | None:
+    """The unit's serial: the run's own column (``unit``) when the database has one, else
+    ``unit.json`` in the run folder (written by the web station), else the serial the lidar
+    reported in preflight."""
+    if unit:
+        return str(unit)
+    path = Path(data_dir or ".") / "unit.json"
+    if data_dir and path.is_file():
         try:
-            serial = json.loads(unit.read_text(encoding="utf-8")).get("serial")
+            serial = json.loads(path.read_text(encoding="utf-8")).get("serial")
         except (OSError, ValueError):
             serial = None
         if serial:
             return str(serial)
-    for s in summary["steps"]:
-        if s["name"] == "preflight" and s["status"] == "passed":
-            lidar = (s.get("result") or {}).get("lidar") or {}
+    for s in steps:
+        if s["name"] == "preflight" and s["status"] == StepStatus.PASSED:
+            lidar = _mapping((s["result"] or {}).get("lidar"))
             if lidar.get("serial"):
                 return str(lidar["serial"])
     return None
 
 
-def report_data(db: Database, run_id: int, *, views: bool = True) -> dict[str, Any]:
+VERDICTS: dict[str, str] = {RunStatus.PASSED: "PASS", RunStatus.FAILED: "FAIL"}
+"""The verdict the report shows for a run's status (others: the status in capitals)."""
+
+
+def report_data(db: Database, run_id: int, *, views: bool = True) -> ReportData:
     """Everything the report shows, as plain data (also the web run page's JSON twin).
 
     ``views=False`` leaves out the 3D views (no recordings read).
     """
     from calstation.engine.frames import Extrinsics
-    from calstation.storage.report import get_run, run_summary
+    from calstation.storage.report import get_run, run_brief, run_summary
 
     with db.session("reading the run", read_only=True) as s:
         run: Run = get_run(s, run_id)
         summary = run_summary(run)
+        brief = run_brief(run)
         recipe_text = run.recipe_text
     recipe = _limits(recipe_text)
     qa = recipe.qa if recipe is not None else None
-    final = final_calibration_dict(summary)
-    data: dict[str, Any] = {
-        "run": {k: v for k, v in summary.items()
-                if k not in ("steps", "calibrations", "cube_check", "artifacts")},
-        "serial": unit_serial(summary),
-        "verdict": {"passed": "PASS", "failed": "FAIL"}.get(summary["status"],
-                                                             summary["status"].upper()),
+    final = final_calibration_dict(summary["calibrations"])
+    data: ReportData = {
+        "run": {**brief, "qa_limits": summary["qa_limits"]},
+        "serial": unit_serial(summary["unit_serial"], summary["data_dir"], summary["steps"]),
+        "verdict": VERDICTS.get(summary["status"], summary["status"].upper()),
         "final": final,
         "calibrations": calibration_rows(summary["calibrations"]),
         "cube": summary["cube_check"],
@@ -555,15 +603,15 @@ def report_data(db: Database, run_id: int, *, views: bool = True) -> dict[str, A
     return data
 
 
-def partial_note(summary: dict[str, Any], final: dict[str, Any] | None) -> str | None:
+def partial_note(summary: RunSummary, final: CalibrationRecord | None) -> str | None:
     """What the figures of a run that did not pass show (None for a passed run): which
     calibration they are drawn with, that it is not accepted, and which recordings are
     incomplete."""
-    if summary["status"] == "passed" or final is None:
+    if summary["status"] == RunStatus.PASSED or final is None:
         return None
-    verdict = {"failed": "failed", "aborted": "was aborted"}.get(summary["status"],
-                                                                "has not finished")
-    partial = [a["kind"] for a in summary["artifacts"] if a.get("status") != "complete"]
+    ended: dict[str, str] = {RunStatus.FAILED: "failed", RunStatus.ABORTED: "was aborted"}
+    verdict = ended.get(summary["status"], "has not finished")
+    partial = [a["kind"] for a in summary["artifacts"] if a["status"] != "complete"]
     scans = {a["kind"] for a in summary["artifacts"]}
     missing = [k for k in ("spin", "cube") if k not in scans]
     text = (f"This run {verdict}: no calibration was accepted. Its figures are drawn with its "
@@ -577,7 +625,7 @@ def partial_note(summary: dict[str, Any], final: dict[str, Any] | None) -> str |
     return text
 
 
-def views_data(db: Database, run_id: int) -> dict[str, Any]:
+def views_data(db: Database, run_id: int) -> ViewsData:
     """The run's 3D views and residual histogram (what the web run page fetches after it
     painted): ``views`` (each with its figure, points and residual statistics), ``residuals``
     (the histogram figure or None), ``key`` (the final calibration and the run's status:
@@ -585,19 +633,21 @@ def views_data(db: Database, run_id: int) -> dict[str, Any]:
     return _views_of(report_data(db, run_id))
 
 
-def _views_of(data: dict[str, Any]) -> dict[str, Any]:
-    views = [{k: ({kk: vv for kk, vv in v.items() if kk != "values"}
-                  if k == "residual" else v) for k, v in view.items()} for view in data["views"]]
-    final = data["final"] or {}
+def _views_of(data: ReportData) -> ViewsData:
+    views: list[dict[str, object]] = [
+        {k: ({kk: vv for kk, vv in v.items() if kk != "values"}
+             if k == "residual" and isinstance(v, dict) else v) for k, v in view.items()}
+        for view in data["views"]]
+    final = data["final"]
     return {"views": views, "residuals": data["figures"].get("residuals"),
-            "key": [final.get("id"), data["run"]["status"]]}
+            "key": [final["id"] if final else None, data["run"]["status"]]}
 
 
 VIEWS_FILE = "views.json"
 """The 3D views as the web run page fetches them, kept in the run folder with report.html."""
 
 
-def stored_views(folder: Path, key: list[Any]) -> str | None:
+def stored_views(folder: Path, key: list[object]) -> str | None:
     """The run folder's :data:`VIEWS_FILE` as JSON text when it was written for ``key`` (the
     final calibration's id and the run's status), else None."""
     path = folder / VIEWS_FILE
@@ -609,17 +659,17 @@ def stored_views(folder: Path, key: list[Any]) -> str | None:
     return text if head == key else None
 
 
-def _drift_of(summary: dict[str, Any]) -> dict[str, Any] | None:
+def _drift_of(summary: RunSummary) -> JSONObject | None:
     for s in reversed(summary["steps"]):
-        if s["name"] == "report" and s["status"] == "passed":
-            drift = (s.get("result") or {}).get("drift")
+        if s["name"] == "report" and s["status"] == StepStatus.PASSED:
+            drift = (s["result"] or {}).get("drift")
             return drift if isinstance(drift, dict) else None
     return None
 
 
-def _views(artifacts: list[dict[str, Any]], H: Any, radius: float) -> list[dict[str, Any]]:
+def _views(artifacts: list[ArtifactRecord], H: Extrinsics, radius: float) -> list[View]:
     newest = {a["kind"]: a for a in artifacts}
-    views = []
+    views: list[View] = []
     for kind, title, by in (("spin", "spin target (coloured by half-turn)", "half-turn"),
                             ("cube", "QA cube (coloured by residual to the local plane)",
                              "plane")):
@@ -630,7 +680,7 @@ def _views(artifacts: list[dict[str, Any]], H: Any, radius: float) -> list[dict[
         if not path.is_file():
             views.append({"title": title, "error": f"recording missing: {path}"})
             continue
-        if art.get("status") not in (None, "complete"):
+        if art["status"] not in (None, "complete"):
             title += " — PARTIAL recording: the scan stopped early"
         try:
             views.append(_cloud(path, H, radius, title, by))
@@ -651,7 +701,7 @@ def plotly_file_name() -> str:
     return PLOTLY_FILE.format(version=__version__)
 
 
-def figures_json(data: dict[str, Any]) -> str:
+def figures_json(data: ReportData) -> str:
     """The report's figures as JSON for a ``<script type="application/json">`` block."""
     return json.dumps(
         {"views": [v.get("figure") for v in data["views"]], **data["figures"]},
@@ -660,8 +710,8 @@ def figures_json(data: dict[str, Any]) -> str:
 
 
 def render_report(
-    data: dict[str, Any], *, plotly_src: str | None = None, nav: bool = False,
-    nonce: str | None = None, views_src: str | None = None, **page: Any,
+    data: ReportData, *, plotly_src: str | None = None, nav: bool = False,
+    nonce: str | None = None, views_src: str | None = None, **page: object,
 ) -> str:
     """The report as HTML. ``plotly_src`` is a URL of plotly.js; None inlines it. ``nav`` adds
     the web station's navigation bar and export links; ``nonce`` is put on its scripts and

@@ -475,7 +475,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
         from calstation.storage.report_html import report_data
 
         ctx.require_run(run_id)
-        return report_data(ctx.db, run_id, views=False)
+        return dict(report_data(ctx.db, run_id, views=False))
 
     @app.get("/runs/{run_id}/report.html", response_model=None)
     def run_report_file(run_id: RunId) -> Response:

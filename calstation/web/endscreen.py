@@ -8,55 +8,65 @@ Values stay in their stored units; the page formats them (:mod:`calstation.displ
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation import display
+from calstation.jsonvalue import JSONObject
+from calstation.storage.report import json_float
+
+if TYPE_CHECKING:
+    from calstation.storage.report_types import CalibrationRow, ReportData
 
 STAGES = {"initial": "initial, from the L-target", "fine": "fine-tuned",
           "reprocess": "re-processed"}
 """How the calibrations' stages read on the end screen."""
 
 
-def end_screen(data: dict[str, Any]) -> dict[str, Any]:
+def end_screen(data: ReportData) -> dict[str, object]:
     """The end screen's data from ``report_data(…, views=False)``."""
     run = data["run"]
     return {
-        **{k: data[k] for k in ("verdict", "cube_rows", "serial", "accuracy")},
+        "verdict": data["verdict"], "cube_rows": data["cube_rows"], "serial": data["serial"],
+        "accuracy": data["accuracy"],
         "error": run["error"], "status": run["status"],
         "calibrations": [_calibration(c) for c in data["calibrations"]],
-        "drift": _drift(data.get("drift"), data.get("qa")),
+        "drift": _drift(data["drift"], data["qa"]),
         "steps": [{"name": s["name"], "title": display.step_title(s["name"]),
                    "attempt": s["attempt"], "status": s["status"],
-                   "seconds": s.get("duration_s")}
+                   "seconds": s["duration_s"]}
                   for s in data["steps"]],
-        "started_at": run.get("started_at"), "finished_at": run.get("finished_at"),
-        "elapsed_s": display.seconds_between(run.get("started_at"), run.get("finished_at")),
+        "started_at": run["started_at"], "finished_at": run["finished_at"],
+        "elapsed_s": display.seconds_between(run["started_at"], run["finished_at"]),
     }
 
 
-def _calibration(c: dict[str, Any]) -> dict[str, Any]:
+def _calibration(c: CalibrationRow) -> dict[str, object]:
     """A calibration row with its label."""
     label = STAGES.get(c["stage"], c["stage"])
-    if c.get("strategy") and c["stage"] != "initial":
+    if c["strategy"] and c["stage"] != "initial":
         label += f" ({c['strategy']})"
     return {**c, "label": label}
 
 
-def _drift(drift: dict[str, Any] | None, qa: dict[str, Any] | None) -> dict[str, Any] | None:
+def _drift(drift: JSONObject | None, qa: JSONObject | None) -> dict[str, object] | None:
     """Each parameter's change since the previous accepted calibration, beside its limit
     (stored units: m, rad)."""
     if not drift or not qa:
         return None
     import math
 
+    delta_of = drift.get("delta") or {}
+    flagged = drift.get("flagged", [])
+    if not isinstance(delta_of, dict) or not isinstance(flagged, list):
+        raise TypeError(f"not a stored drift: {drift!r}")
     rows = []
-    for p, delta in (drift.get("delta") or {}).items():
+    for p, delta in delta_of.items():
         if delta is None:
             continue
-        limit = (float(qa["drift_translation"]) if p.startswith("t")
-                 else math.radians(float(qa["drift_rotation_deg"])))
-        rows.append({"name": p, "value": float(delta), "limit": limit,
+        limit = (json_float(qa["drift_translation"]) if p.startswith("t")
+                 else math.radians(json_float(qa["drift_rotation_deg"])))
+        rows.append({"name": p, "value": json_float(delta), "limit": limit,
                      "unit": display.quantity(p).stored,
-                     "ok": p not in drift.get("flagged", [])})
+                     "ok": p not in flagged})
     return {"previous_run": drift.get("previous_run"), "rows": rows,
-            "flagged": list(drift.get("flagged", [])), "fails": bool(qa.get("drift_fails"))}
+            "flagged": list(flagged), "fails": bool(qa.get("drift_fails"))}

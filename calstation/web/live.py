@@ -640,7 +640,7 @@ class Runner:
             self._lock.release()
             raise
 
-    def _end_screen(self, run_id: int) -> dict[str, Any] | None:
+    def _end_screen(self, run_id: int) -> dict[str, object] | None:
         from calstation.storage.report_html import report_data
 
         try:

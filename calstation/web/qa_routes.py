@@ -19,6 +19,7 @@ from calstation.web.status import age
 
 if TYPE_CHECKING:
     from calstation.storage.dashboard import DashboardQuery
+    from calstation.storage.report_types import ViewsData
 
 FAVICON = (
     '<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 32 32">'
@@ -70,10 +71,10 @@ def run_page_routes(app: FastAPI, ctx: Any) -> None:
             logged_in=logged_in and ctx.guard.require_token,
             stations=ctx.status.current(), station_age=age, station_now=time.time))
 
-    views_cache: dict[int, dict[str, Any]] = {}
+    views_cache: dict[int, ViewsData] = {}
 
     @app.get("/runs/{run_id}/views.json", response_model=None)
-    def run_views(run_id: RunId) -> dict[str, Any] | Response:
+    def run_views(run_id: RunId) -> ViewsData | Response:
         """The run's 3D views (plotly figures, points in binary) and residual histogram: those
         the report step kept in the run folder, else reconstructed from the recordings."""
         from calstation.storage.report import final_calibration
