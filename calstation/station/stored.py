@@ -26,7 +26,7 @@ from calstation.storage.db import (
     Step,
     StepStatus,
 )
-from calstation.storage.report import RunBrief, run_brief
+from calstation.storage.report import run_brief
 
 if TYPE_CHECKING:
     from calstation.engine.frames import Extrinsics

@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session, selectinload
 from calstation import display
 from calstation.errors import DatabaseError
 from calstation.jsonvalue import JSONObject, JSONValue
+from calstation.plugins.hookspecs import ArtifactRecord, RunBrief, StepRecord
 from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord, Run
 from calstation.storage.db.models import MAX_ROW_ID
 
@@ -32,27 +33,6 @@ CUBE_UNITS: dict[str, str] = {
     "flatness_rms": "m", "flatness_excess": "m", "range_noise": "m",
     "perpendicularity_deg": "deg", "twist_deg": "deg", "twist_sigma_deg": "deg"}
 """The unit of each value of a stored cube check (:func:`cube_dict`)."""
-
-
-class RunBrief(TypedDict):
-    """A run's own fields (:func:`run_brief`)."""
-
-    id: int
-    station: str
-    recipe_name: str
-    recipe_path: str | None
-    recipe_sha256: str
-    operator: str
-    unit_serial: str | None
-    unattended: bool
-    status: str
-    started_at: str | None
-    finished_at: str | None
-    data_dir: str
-    error: str | None
-    host: str | None
-    pid: int | None
-    motor_stop: JSONObject | None
 
 
 class CalibrationRecord(TypedDict):
@@ -104,29 +84,6 @@ class CubeRecord(TypedDict):
     created_at: str | None
 
 
-class StepRecord(TypedDict):
-    """One step attempt of :func:`run_summary`."""
-
-    name: str
-    attempt: int
-    status: str
-    started_at: str | None
-    finished_at: str | None
-    result: JSONObject | None
-    error: str | None
-
-
-class ArtifactRecord(TypedDict):
-    """One recording or file of :func:`run_summary`."""
-
-    kind: str
-    step: str | None
-    path: str
-    size_bytes: int
-    sha256: str
-    status: str
-
-
 class HistoryItem(RunBrief):
     """A run as the history lists it (:func:`history_item`)."""
 
@@ -135,7 +92,9 @@ class HistoryItem(RunBrief):
 
 
 class RunSummary(RunBrief):
-    """Everything stored about a run (:func:`run_summary`)."""
+    """Everything stored about a run (:func:`run_summary`): the observer hooks' summary
+    (:class:`calstation.plugins.hookspecs.RunSummary`) with its calibrations and cube check
+    typed."""
 
     steps: list[StepRecord]
     calibrations: list[CalibrationRecord]

@@ -33,13 +33,12 @@ from calstation import display
 from calstation.atomic import write_atomic
 from calstation.errors import CalstationError
 from calstation.jsonvalue import JSONObject, JSONValue
+from calstation.plugins.hookspecs import ArtifactRecord, StepRecord
 from calstation.storage.db import Database, Run, RunStatus, StepStatus
 from calstation.storage.report import (
-    ArtifactRecord,
     CalibrationRecord,
     CubeRecord,
     RunSummary,
-    StepRecord,
     json_float,
 )
 from calstation.storage.report_types import (

@@ -9,13 +9,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calstation.jsonvalue import JSONObject, JSONValue
-from calstation.storage.report import (
-    ArtifactRecord,
-    CalibrationRecord,
-    CubeRecord,
-    RunBrief,
-    StepRecord,
-)
+from calstation.plugins.hookspecs import ArtifactRecord, RunBrief, StepRecord
+from calstation.storage.report import CalibrationRecord, CubeRecord
 
 Figure = dict[str, object]
 """A plotly figure (``data`` and ``layout``), only ever written out as JSON."""
