@@ -15,13 +15,17 @@ import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 
 from calstation.atomic import write_atomic
+from calstation.bench.records import BenchRecord
 from calstation.bench.tasks import Task
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 PARAMS = ("tx", "tz", "ry", "rz")
 TRANSLATIONS_M = (0.005, 0.020, 0.050, 0.100, 0.200, 0.300, 0.500)
@@ -38,10 +42,19 @@ def _offset(param: str, level: int) -> float:
     return math.radians(ROTATIONS_DEG[level])
 
 
-def basin_starts(truth: Extrinsics, starts: int, seed: int = BASIN_SEED) -> list[dict[str, Any]]:
+class BasinStart(TypedDict):
+    """One start of the basin: its group (a parameter or "joint"), level, index and H."""
+
+    group: str
+    level: int
+    index: int
+    start: tuple[float, ...]
+
+
+def basin_starts(truth: Extrinsics, starts: int, seed: int = BASIN_SEED) -> list[BasinStart]:
     """Every start: ``{"group": param or "joint", "level": i, "index": j, "start": (6,)}``."""
     rng = np.random.default_rng(seed)
-    out: list[dict[str, Any]] = []
+    out: list[BasinStart] = []
     base = truth.with_(rx=0.0).as_vector()
     for group in (*PARAMS, "joint"):
         for level in range(len(TRANSLATIONS_M)):
@@ -77,7 +90,7 @@ def basin_tasks(
     return tasks
 
 
-def _fractions(records: Sequence[dict[str, Any]], method: str, group: str) -> list[float]:
+def _fractions(records: Sequence[BenchRecord], method: str, group: str) -> list[float]:
     out = []
     for level in range(len(TRANSLATIONS_M)):
         sel = [r for r in records
@@ -86,7 +99,7 @@ def _fractions(records: Sequence[dict[str, Any]], method: str, group: str) -> li
     return out
 
 
-def silently_wrong(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+def silently_wrong(records: Sequence[BenchRecord]) -> list[BenchRecord]:
     """The estimates that missed the thresholds yet whose σ a station with the default
     accuracy budget (``calibration.accuracy``, over the default platter) would accept: the ones
     a user could not tell from good ones."""
@@ -96,7 +109,7 @@ def silently_wrong(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
     budget, platter = AccuracySettings(), PlatterGeometry()
 
-    def accepted(r: dict[str, Any]) -> bool:
+    def accepted(r: BenchRecord) -> bool:
         result = CalibrationResult(Extrinsics.from_dict(r["H"]), dict(r.get("sigma", {})), 0.0,
                                    0, r["method"])
         return accuracy_problem(predict(result, budget, platter), budget) is None
@@ -113,7 +126,20 @@ def _level_label(group: str, level: int) -> str:
     return f"{TRANSLATIONS_M[level] * 1e3:g} mm / {ROTATIONS_DEG[level]:g}°"
 
 
-def basin_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> str:
+class BasinMeta(TypedDict):
+    """How a basin run was made (``basin.json``)."""
+
+    command: str
+    git_commit: str
+    wall_s: float
+    ry_bound_deg: float
+    workers: int
+    scenario: str
+    starts: int
+    methods: list[str]
+
+
+def basin_markdown(records: Sequence[BenchRecord], meta: BasinMeta) -> str:
     """The section for results.md: how it was made, a table per method, the figure."""
     methods = [m for m in meta["methods"] if any(r["method"] == m for r in records)]
     failed = sum(r.get("status") != "ok" for r in records)
@@ -162,12 +188,14 @@ def basin_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
     return "\n".join(lines)
 
 
-def basin_figure(records: Sequence[dict[str, Any]], methods: Sequence[str], path: Path) -> None:
+def basin_figure(records: Sequence[BenchRecord], methods: Sequence[str], path: Path) -> None:
     """One panel per parameter and one for the joint starts: converged fraction against the
     start's distance, a line per method."""
-    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _plt, save_figure
+    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _agg, save_figure
 
-    plt = _plt()
+    _agg()
+    import matplotlib.pyplot as plt
+
     groups = (*PARAMS, "joint")
     fig, axes = plt.subplots(1, len(groups), figsize=(3.2 * len(groups), 3.0), sharey=True)
     for ax, group in zip(axes, groups, strict=True):
@@ -191,7 +219,7 @@ def basin_figure(records: Sequence[dict[str, Any]], methods: Sequence[str], path
 
 def run_basin(
     recipe: Path, out: Path, report_dir: Path, scenario_name: str, methods: Sequence[str],
-    starts: int, workers: int, command: str, console: Any,
+    starts: int, workers: int, command: str, console: Console,
 ) -> Path:
     """Simulate the scenario (or reuse it), run every start, write ``basin.md`` and
     ``results/basin.png`` to ``report_dir``; returns the path of ``basin.md``."""
@@ -211,10 +239,11 @@ def run_basin(
     ids = {t.id for t in tasks}
     records = [r for r in store.records.values() if r["id"] in ids]
     ry_bound = load_recipe(recipe).recipe.calibration.periodicity.ry_bound_deg
-    meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
-            "ry_bound_deg": ry_bound,
-            "workers": workers, "scenario": f"{scenario.name} ({scenario.range_m:.2f} m, "
-            f"{scenario.pitch_deg:.0f}°)", "starts": starts, "methods": list(methods)}
+    meta: BasinMeta = {
+        "command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
+        "ry_bound_deg": ry_bound,
+        "workers": workers, "scenario": f"{scenario.name} ({scenario.range_m:.2f} m, "
+        f"{scenario.pitch_deg:.0f}°)", "starts": starts, "methods": list(methods)}
     write_atomic(out / "basin.json", json.dumps(meta, indent=2), "records")
     basin_figure(records, methods, report_dir / "results" / "basin.png")
     path = report_dir / "basin.md"

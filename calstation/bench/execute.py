@@ -13,12 +13,18 @@ import os
 import subprocess
 import time
 from collections.abc import Callable, Iterator, Sequence
+from multiprocessing.pool import Pool
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, cast
 
 from calstation.atomic import write_atomic
-from calstation.bench.tasks import Task
+from calstation.bench.records import BenchRecord
+from calstation.bench.tasks import RunMeta, Task
 from calstation.bench.worker import _init_worker, run_task
+
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.progress import Progress as RichProgress, TaskID
 
 
 def _thread_env(threads: int) -> dict[str, str]:
@@ -39,12 +45,13 @@ class RecordStore:
 
     def __init__(self, path: Path, resume: bool) -> None:
         self.path = path
-        self.records: dict[str, dict[str, Any]] = {}
+        self.records: dict[str, BenchRecord] = {}
         if resume and path.is_file():
             for line in path.read_text().splitlines():
                 if line.strip():
                     try:
-                        rec = json.loads(line)
+                        # cast: json.loads is untyped; the file holds this store's records
+                        rec = cast("BenchRecord", json.loads(line))
                     except ValueError:
                         continue  # a line cut short by a kill
                     self.records[rec["id"]] = rec
@@ -55,13 +62,13 @@ class RecordStore:
         else:
             write_atomic(path, "", "records", make_parents=True)
 
-    def add(self, record: dict[str, Any]) -> None:
+    def add(self, record: BenchRecord) -> None:
         """Keep ``record`` and append it to the file."""
         self.records[record["id"]] = record
         with self.path.open("a") as fh:
             fh.write(json.dumps(record) + "\n")
 
-    def of_kind(self, kind: str) -> list[dict[str, Any]]:
+    def of_kind(self, kind: str) -> list[BenchRecord]:
         """Every record of ``kind``."""
         return [r for r in self.records.values() if r["kind"] == kind]
 
@@ -72,7 +79,7 @@ ProgressFactory = Callable[[str, int], "Progress"]
 class Progress:
     """A rich progress bar on a terminal; a log line every 20 s (and at the end) otherwise."""
 
-    def __init__(self, console: Any, description: str, total: int) -> None:
+    def __init__(self, console: Console, description: str, total: int) -> None:
         self.console = console
         self.description = description
         self.total = total
@@ -80,8 +87,8 @@ class Progress:
         self.failed = 0
         self.t0 = time.monotonic()
         self.last_log = self.t0
-        self._bar: Any = None
-        self._task: Any = None
+        self._bar: RichProgress | None = None
+        self._task: TaskID | None = None
 
     def __enter__(self) -> Progress:
         if self.console.is_terminal:
@@ -113,7 +120,7 @@ class Progress:
         """One task finished (``ok`` False if it failed)."""
         self.done += 1
         self.failed += 0 if ok else 1
-        if self._bar is not None:
+        if self._bar is not None and self._task is not None:
             self._bar.update(self._task, advance=1, failed=self.failed)
             return
         now = time.monotonic()
@@ -137,7 +144,7 @@ class Executor:
     def __init__(self, recipe: Path, workers: int) -> None:
         self.recipe = recipe
         self.workers = max(1, workers)
-        self._pool: Any = None
+        self._pool: Pool | None = None
 
     def __enter__(self) -> Executor:
         if self.workers > 1:
@@ -159,7 +166,7 @@ class Executor:
             _init_worker(str(self.recipe))
         return self
 
-    def map(self, tasks: Sequence[Task]) -> Iterator[dict[str, Any]]:
+    def map(self, tasks: Sequence[Task]) -> Iterator[BenchRecord]:
         """Results as they finish (any order)."""
         if self._pool is None:
             for t in tasks:
@@ -181,7 +188,7 @@ def _run_phase(
     store: RecordStore,
     tasks: Sequence[Task],
     description: str,
-    console: Any,
+    console: Console,
     deadline: float | None = None,
 ) -> int:
     """Run the tasks not yet recorded; returns how many ran. Raises :class:`DeadlineReached`
@@ -238,9 +245,10 @@ def _load() -> float | None:
         return None
 
 
-def _previous_meta(out: Path) -> dict[str, Any] | None:
+def _previous_meta(out: Path) -> RunMeta | None:
     path = out / "run.json"
     try:
-        return dict(json.loads(path.read_text())) if path.is_file() else None
+        # cast: json.loads is untyped; run.json is a run's metadata
+        return cast("RunMeta", dict(json.loads(path.read_text()))) if path.is_file() else None
     except ValueError:
         return None

@@ -6,9 +6,15 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from calstation.bench.records import BenchRecord, LandscapeGrid
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 METHOD_LABELS = {
     "initial": "initial",
@@ -27,7 +33,7 @@ PARAMS_BOX: tuple[tuple[str, str, float, float], ...] = (
 
 
 
-def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
+def save_figure(fig: Figure, path: Path, dpi: int = 110) -> None:
     """Write the matplotlib figure ``fig`` to ``path`` (its format from the suffix), whole or not
     at all (:func:`calstation.atomic.atomic_output`; a missing folder is made)."""
     from calstation.atomic import atomic_output
@@ -35,17 +41,15 @@ def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
     with atomic_output(path, "figure", make_parents=True) as tmp:
         fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
 
-def _plt() -> Any:
+def _agg() -> None:
+    """Draw without a display (matplotlib's Agg backend), before pyplot is used."""
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def deviations_from_mean(
-    records: Sequence[dict[str, Any]], method: str, start_set: str, param: str
+    records: Sequence[BenchRecord], method: str, start_set: str, param: str
 ) -> np.ndarray:
     """Deviation of the estimated ``param`` (SI units) from its mean over the starts of
     ``start_set``, the mean taken per scenario (as the paper's box plots), pooled over scenarios.
@@ -65,12 +69,14 @@ def deviations_from_mean(
 
 
 def param_boxplots(
-    records: Sequence[dict[str, Any]], path: Path, methods: Sequence[str], log: bool = True
+    records: Sequence[BenchRecord], path: Path, methods: Sequence[str], log: bool = True
 ) -> None:
     """Box plots of the deviation from the mean of tx, tz (mm), ry, rz (°) per method, for set A
     (left) and set B (right). ``log``: symmetric-log y axes so sub-millimetre spreads and far
     outliers both show; otherwise linear (for one method's own scale)."""
-    plt = _plt()
+    _agg()
+    import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(4, 2, figsize=(8.5, 11), constrained_layout=True)
     for row, (param, unit, scale, linthresh) in enumerate(PARAMS_BOX):
         for col, start_set in enumerate(("A", "B")):
@@ -89,7 +95,7 @@ def param_boxplots(
     plt.close(fig)
 
 
-def _boxes(ax: Any, data: Sequence[np.ndarray], methods: Sequence[str]) -> None:
+def _boxes(ax: Axes, data: Sequence[np.ndarray], methods: Sequence[str]) -> None:
     positions = list(range(1, len(methods) + 1))
     nonempty = [d if len(d) else np.array([np.nan]) for d in data]
     bp = ax.boxplot(
@@ -112,7 +118,7 @@ def _boxes(ax: Any, data: Sequence[np.ndarray], methods: Sequence[str]) -> None:
 
 
 def cube_error_values(
-    records: Sequence[dict[str, Any]], method: str, start_set: str, key: str = "obb_error_m"
+    records: Sequence[BenchRecord], method: str, start_set: str, key: str = "obb_error_m"
 ) -> np.ndarray:
     """The cube edge error ``key`` (mm) of every record of ``method`` and ``start_set``
     (``"init"`` for the initial calibration itself; method ``"truth"``: the cube checked with
@@ -128,17 +134,19 @@ def cube_error_values(
             ok = r["kind"] == "finetune" and r["method"] == method and r["set"] == start_set
         if not ok:
             continue
-        cube = r.get("truth_cube" if method == "truth" else "cube", {})
+        cube = r.get("truth_cube", {}) if method == "truth" else r.get("cube", {})
         v = cube.get(key) if r.get("status") == "ok" or method == "truth" else None
         vals.append(float(v) * 1e3 if isinstance(v, int | float) else math.inf)
     return np.asarray(vals, dtype=float)
 
 
-def cube_boxplots(records: Sequence[dict[str, Any]], path: Path, methods: Sequence[str]) -> None:
+def cube_boxplots(records: Sequence[BenchRecord], path: Path, methods: Sequence[str]) -> None:
     """Box plots of the paper's cube edge error e = max_i(ŝ_i − s) (OBB of the unsmoothed
     cloud, mm) for the initial calibration and each method, for sets A and B; the face-fit edge
     error below."""
-    plt = _plt()
+    _agg()
+    import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(2, 2, figsize=(9, 7), constrained_layout=True)
     all_methods = ["initial", *methods]
     panels = (
@@ -167,12 +175,14 @@ def cube_boxplots(records: Sequence[dict[str, Any]], path: Path, methods: Sequen
 
 
 def landscape_figure(
-    grids: dict[str, dict[str, Any]], path: Path, pair: tuple[str, str], title: str
+    grids: dict[str, LandscapeGrid], path: Path, pair: tuple[str, str], title: str
 ) -> None:
     """Filled contours of each method's cost over ``pair`` (deviation from its converged value,
     mm or °), one panel per method in ``grids`` (method → {"u", "v", "cost", "truth"}). Costs are
     shown as log10 of cost/min so the basin's shape is visible across decades."""
-    plt = _plt()
+    _agg()
+    import matplotlib.pyplot as plt
+
     methods = list(grids)
     fig, axes = plt.subplots(
         1, max(1, len(methods)), figsize=(5.2 * max(1, len(methods)), 4.6),
@@ -190,8 +200,9 @@ def landscape_figure(
             ax.contour(u, v, z.T, levels=10, colors="w", linewidths=0.4, alpha=0.6)
             fig.colorbar(cs, ax=ax, label="log10(cost / min cost)")
         ax.plot([0], [0], "r+", ms=12, mew=2, label="converged")
-        if g.get("truth") is not None:
-            ax.plot([g["truth"][0]], [g["truth"][1]], "wx", ms=9, mew=2, label="true H")
+        truth = g["truth"]
+        if truth is not None:
+            ax.plot([truth[0]], [truth[1]], "wx", ms=9, mew=2, label="true H")
         ax.set_xlabel(f"Δ{pair[0]} ({units[pair[0]]})")
         ax.set_ylabel(f"Δ{pair[1]} ({units[pair[1]]})")
         ax.set_title(f"{METHOD_LABELS.get(m, m)} cost", fontsize=10)
@@ -205,7 +216,9 @@ def ablation_figure(
     data: dict[str, np.ndarray], path: Path, limit_mm: float, title: str
 ) -> None:
     """Box plots of the axis offset (mm) per ablation variant, with the convergence limit."""
-    plt = _plt()
+    _agg()
+    import matplotlib.pyplot as plt
+
     names = list(data)
     fig, ax = plt.subplots(figsize=(max(6.0, 1.9 * len(names)), 4.2), constrained_layout=True)
     vals = [data[n] if len(data[n]) else np.array([np.nan]) for n in names]

@@ -9,20 +9,35 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from calstation.bench import BenchError
-from calstation.bench.tasks import Task, scenario_dir
+from calstation.bench.records import BenchRecord
+from calstation.bench.tasks import BenchConfig, Task, scenario_dir
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
+
+if TYPE_CHECKING:
+    from calstation.recipes import Recipe
+    from calstation.recordings.recorded import Recording
+
+class _Recorded(Protocol):
+    """The records finished so far, by task id (the bench's record store)."""
+
+    @property
+    def records(self) -> Mapping[str, BenchRecord]: ...
+
+
+Cost = tuple[Callable[[Extrinsics], float], str]
+"""A function H → scalar cost, and the engine functions behind it."""
 
 PAIRS: dict[str, tuple[str, str]] = {"translation": ("tx", "tz"), "rotation": ("ry", "rz")}
 """The two landscapes: over two translations (ty is the gauge/fixed one) and over ry × rz."""
 
 
-def landscape_tasks(config: Any, store: Any) -> list[Any]:
+def landscape_tasks(config: BenchConfig, store: _Recorded) -> list[Task]:
     """One task per (method, pair, grid row) for ``config.landscape_scenario``, centred on each
     method's result from the initial calibration (skipped if that run failed)."""
     scen = next((s for s in config.scenarios if s.name == config.landscape_scenario), None)
@@ -71,8 +86,8 @@ def _display(param: str, value: float) -> float:
 
 
 def run_landscape_row(
-    task: Any, recording: Callable[[str, str], Any], recipe: Any
-) -> dict[str, Any]:
+    task: Task, recording: Callable[[str, str], Recording], recipe: Recipe
+) -> BenchRecord:
     """Evaluate one grid row: the first parameter of the pair fixed at ``offsets[row]``, the
     second swept over ``offsets``. Returns ``{"landscape": {...}}`` with the costs (None where
     the cost could not be evaluated) and the axes in display units."""
@@ -119,13 +134,13 @@ def run_landscape_row(
     }
 
 
-_PREPARED: dict[tuple[str, str], Any] = {}
+_PREPARED: dict[tuple[str, str], Cost] = {}
 """Per worker: the prepared cost of (recording path, method), reused by every row."""
 
 
 def cost_evaluator(
-    method: str, recording: Any, recipe: Any, centre: Extrinsics
-) -> tuple[Callable[[Extrinsics], float], str]:
+    method: str, recording: Recording, recipe: Recipe, centre: Extrinsics
+) -> Cost:
     """A function H → scalar cost of ``method`` on ``recording``, and a description of the
     engine functions behind it. Prepared once per worker and recording, then reused."""
     key = (str(recording.path), method)
@@ -138,7 +153,7 @@ def cost_evaluator(
             _PREPARED[key] = _shape_cost(recording, recipe, centre)
         else:
             raise BenchError(f"no cost landscape for strategy {method!r}")
-    return _PREPARED[key]  # type: ignore[no-any-return]
+    return _PREPARED[key]
 
 
 LANDSCAPE_CELL_M = 0.005
@@ -146,8 +161,8 @@ LANDSCAPE_CELL_M = 0.005
 
 
 def _periodicity_cost(
-    recording: Any, recipe: Any, centre: Extrinsics
-) -> tuple[Callable[[Extrinsics], float], str]:
+    recording: Recording, recipe: Recipe, centre: Extrinsics
+) -> Cost:
     """The paper's periodicity cost, re-matched at every H (as the optimiser's outer loop sees
     it), built from the public helpers of :mod:`calstation.engine.periodicity`.
 
@@ -202,8 +217,8 @@ def _periodicity_cost(
 
 
 def _shape_cost(
-    recording: Any, recipe: Any, centre: Extrinsics
-) -> tuple[Callable[[Extrinsics], float], str]:
+    recording: Recording, recipe: Recipe, centre: Extrinsics
+) -> Cost:
     """The shape-constrained cost C1 + C2 of :class:`calstation.engine.shape.ShapeCost` (the
     engine's
     public cost object), on the returns the strategy itself would use: moving returns

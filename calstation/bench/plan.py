@@ -22,13 +22,20 @@ import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict, TypeVar
 
 from calstation.bench import BenchError
 from calstation.errors import CalstationError
+from calstation.jsonvalue import JSONObject
+
+if TYPE_CHECKING:
+    from calstation.pipeline import Calibrated
+    from calstation.recipes import LoadedRecipe, Recipe
+    from calstation.recordings.recorded import Recording
 
 PARAMS = ("tx", "tz", "ry", "rz")
 OFF_CENTRE_M = 0.06
@@ -37,6 +44,71 @@ TALLER = 1.5
 """How much taller the spin target the plan tries is."""
 
 Progress = Callable[[str, float], None]
+_T = TypeVar("_T")
+
+
+class RangeTerms(TypedDict):
+    """The σ of the range terms a fit estimated (SI), and why they were not measured."""
+
+    range_sigma: dict[str, float]
+    range_problem: str | None
+
+
+class Fit(TypedDict):
+    """One fine-tuning of a simulated run on its first ``turns`` turns (:func:`_fit`)."""
+
+    turns: int
+    sigma: dict[str, float]
+    predicted_error_m: float
+    with_cube_m: float
+    range_sigma: dict[str, float]
+    range_problem: str | None
+    seconds: float
+
+
+class ByTurns(TypedDict):
+    """A design's fits on one number of turns, the median over the seeds."""
+
+    turns: int
+    sigma: dict[str, float]
+    predicted_error_m: float
+    with_cube_m: float
+    range_sigma: dict[str, float]
+    range_problem: str | None
+
+
+class Design(TypedDict):
+    """One design of the plan: its fits by turns, the turns the budget needs, or its error."""
+
+    name: str
+    change: str
+    by_turns: list[ByTurns]
+    turns_needed: int | None
+    error: str | None
+
+
+class WorkVolume(TypedDict):
+    radius_m: float
+    height_m: float
+
+
+class Plan(TypedDict):
+    """The plan as plain data (:func:`plan`)."""
+
+    recipe: str
+    budget_m: float
+    work_volume: WorkVolume
+    level: float
+    strategy: str
+    seeds: int
+    turns_simulated: int
+    designs: list[Design]
+    recommendations: list[str]
+    seconds: float
+
+
+Made = tuple["Recipe", dict[str, Path]]
+"""A simulated run: the recipe as simulated and its recordings by name."""
 
 
 @dataclass
@@ -45,7 +117,7 @@ class Trial:
 
     name: str
     change: str
-    turns: list[dict[str, Any]] = field(default_factory=list)
+    turns: list[Fit] = field(default_factory=list)
     """per number of turns: ``turns``, ``sigma`` (m, rad), ``predicted_error_m``,
     ``with_cube_m`` (the predicted error with the cube's faces added to ry and the lidar's
     range model), ``range_sigma`` (the σ of each range term estimated, SI), ``range_problem``
@@ -55,7 +127,7 @@ class Trial:
 
 
 def plan(
-    loaded: Any,
+    loaded: LoadedRecipe,
     *,
     seeds: int = 1,
     turns: int = 2,
@@ -63,7 +135,7 @@ def plan(
     progress: Progress | None = None,
     out_dir: Path | None = None,
     cache: Path | None = None,
-) -> dict[str, Any]:
+) -> Plan:
     """Simulate the recipe ``loaded`` (:class:`~calstation.recipes.LoadedRecipe`, with a
     ``simulation`` section) and return the plan as plain data (see the module docstring).
 
@@ -97,19 +169,19 @@ class _Run:
 
     name: str
     change: str
-    patch: dict[str, Any]
+    patch: JSONObject
     seed: int
     turns: int
 
 
 def _plan(
-    loaded: Any, seeds: int, turns: int, alternatives: bool, say: Progress, work: Path,
+    loaded: LoadedRecipe, seeds: int, turns: int, alternatives: bool, say: Progress, work: Path,
     cache: Path | None,
-) -> dict[str, Any]:
+) -> Plan:
     """:func:`plan` with its folder for the simulated recordings: every run simulated, then
     every fit, each on :data:`PLAN_WORKERS` processes."""
     recipe = loaded.recipe
-    designs: list[tuple[str, str, dict[str, Any]]] = [("as designed", "the recipe", {})]
+    designs: list[tuple[str, str, JSONObject]] = [("as designed", "the recipe", {})]
     if alternatives:
         designs += _alternatives(recipe)
     t0 = time.perf_counter()
@@ -121,7 +193,7 @@ def _plan(
     # each fine-tuning on 1 … turns turns with the cube
     work_share = _Shares(say, sum(r.turns + (2 if not r.patch else 0) for r in runs)
                          + sum(n + 1 for r in runs for n in range(1, r.turns + 1)))
-    made: dict[int, tuple[Any, dict[str, Path]]] = {}
+    made: dict[int, Made] = {}
     try:
         with _pool() as pool:
             made = _simulate_all(pool, loaded, runs, work, cache, trials, work_share)
@@ -146,19 +218,18 @@ class _Shares:
         self.say(message, min(1.0, self.done / self.total))
 
 
-def _pool() -> Any:
+def _pool() -> ProcessPoolExecutor:
     """The plan's worker processes (spawned: the plan may run on a web server's thread)."""
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
 
     return ProcessPoolExecutor(max_workers=max(1, min(PLAN_WORKERS, os.cpu_count() or 1)),
                                mp_context=multiprocessing.get_context("spawn"))
 
 
 def _simulate_all(
-    pool: Any, loaded: Any, runs: list[_Run], work: Path, cache: Path | None,
-    trials: dict[str, Trial], share: _Shares,
-) -> dict[int, tuple[Any, dict[str, Path]]]:
+    pool: ProcessPoolExecutor, loaded: LoadedRecipe, runs: list[_Run], work: Path,
+    cache: Path | None, trials: dict[str, Trial], share: _Shares,
+) -> dict[int, Made]:
     """Every run simulated (or taken from ``cache``) at once: {run's index: (the recipe as
     simulated, its recordings)}. An alternative changes the spin target only
     (:func:`_alternatives`): its spin scan is simulated and the static and cube scans are the
@@ -168,7 +239,7 @@ def _simulate_all(
     futures = {pool.submit(_simulate_job, loaded, r.patch, r.seed, r.turns, work / f"{k}",
                            cache, ("spin",) if r.patch else None): k
                for k, r in enumerate(runs)}
-    made: dict[int, tuple[Any, dict[str, Path]]] = {}
+    made: dict[int, Made] = {}
     for future in _as_completed(futures):
         k = futures[future]
         run = runs[k]
@@ -196,7 +267,7 @@ def _simulate_all(
 
 
 def _fit_all(
-    pool: Any, runs: list[_Run], made: dict[int, tuple[Any, dict[str, Path]]],
+    pool: ProcessPoolExecutor, runs: list[_Run], made: dict[int, Made],
     trials: dict[str, Trial], share: _Shares,
 ) -> None:
     """Every run's fine-tunings on 1 … its turns at once, into ``trials`` (an alternative's
@@ -204,7 +275,7 @@ def _fit_all(
     share("fine-tuning")
     futures = {pool.submit(_fit_job, made[k][0], made[k][1], n): (k, n)
                for k in made for n in range(1, runs[k].turns + 1)}
-    found: dict[tuple[int, int], dict[str, Any]] = {}
+    found: dict[tuple[int, int], Fit] = {}
     for future in _as_completed(futures):
         k, n = futures[future]
         run = runs[k]
@@ -220,29 +291,29 @@ def _fit_all(
         trials[runs[k].name].turns.append(row)
 
 
-def _as_completed(futures: dict[Any, Any]) -> Any:
+def _as_completed(futures: Iterable[Future[_T]]) -> Iterator[Future[_T]]:
     from concurrent.futures import as_completed
 
     return as_completed(futures)
 
 
-def _truth(files: dict[str, Path]) -> list[Any]:
+def _truth(files: dict[str, Path]) -> list[object]:
     """The true H of a simulated run (its ``truth.json``)."""
     truth = json.loads(files["truth"].read_text())
     return [truth.get(k) for k in PARAMETERS]
 
 
 def _simulate_job(
-    loaded: Any, patch: dict[str, Any], seed: int, turns: int, out: Path, cache: Path | None,
-    only: tuple[str, ...] | None,
-) -> tuple[Any, dict[str, Path]]:
+    loaded: LoadedRecipe, patch: Mapping[str, object], seed: int, turns: int, out: Path,
+    cache: Path | None, only: tuple[str, ...] | None,
+) -> Made:
     """In a worker: the (patched) recipe as simulated and its run's recordings (``only``: the
     scans to simulate)."""
     recipe = _patched(loaded, patch, seed, turns)
     return recipe, simulated(recipe, out, cache, only=only)
 
 
-def _fit_job(recipe: Any, files: dict[str, Path], turns: int) -> dict[str, Any]:
+def _fit_job(recipe: Recipe, files: dict[str, Path], turns: int) -> Fit:
     """In a worker: :func:`_fit` on the recordings ``files``."""
     from calstation.recordings.reader import read_recording
 
@@ -250,7 +321,7 @@ def _fit_job(recipe: Any, files: dict[str, Path], turns: int) -> dict[str, Any]:
                 turns)
 
 
-def _alternatives(recipe: Any) -> list[tuple[str, str, dict[str, Any]]]:
+def _alternatives(recipe: Recipe) -> list[tuple[str, str, JSONObject]]:
     """The spin target's placement and height, tried where the strategy scans it."""
     from calstation import plugins
 
@@ -258,7 +329,7 @@ def _alternatives(recipe: Any) -> list[tuple[str, str, dict[str, Any]]]:
         return []
     target = recipe.fixtures.spin_target
     offset = tuple(getattr(target, "offset", (0.0, 0.0)))
-    out = []
+    out: list[tuple[str, str, JSONObject]] = []
     if math.hypot(*offset) < 0.03:
         out.append(("off-centre", f"spin target {OFF_CENTRE_M * 1e3:.0f} mm off the axis",
                     {"fixtures": {"spin_target": {"offset": [OFF_CENTRE_M, 0.0]}}}))
@@ -272,7 +343,8 @@ def _alternatives(recipe: Any) -> list[tuple[str, str, dict[str, Any]]]:
     return out
 
 
-def _patched(loaded: Any, patch: dict[str, Any], seed: int = 1, turns: int = 1) -> Any:
+def _patched(loaded: LoadedRecipe, patch: Mapping[str, object], seed: int = 1,
+             turns: int = 1) -> Recipe:
     """The recipe as the plan simulates it: ``patch`` applied, ``turns`` turns of the
     strategy's own scan (the cube's for shape) and one of the other, no second passes, the
     simulation's ``seed``."""
@@ -301,7 +373,7 @@ lines/s is ~90 MB)."""
 
 
 def simulated(
-    recipe: Any, out: Path, cache: Path | None, only: tuple[str, ...] | None = None
+    recipe: Recipe, out: Path, cache: Path | None, only: tuple[str, ...] | None = None
 ) -> dict[str, Path]:
     """The recordings of one simulated run of ``recipe`` (``{"static", "spin", "cube",
     "truth"}`` → paths): from ``cache`` (a folder per simulated run, named by the hash of the
@@ -345,7 +417,7 @@ def simulated(
     return {k: folder / Path(v).name for k, v in made.items()}
 
 
-def _cache_key(text: str, simulator: Any) -> str:
+def _cache_key(text: str, simulator: object) -> str:
     """The cache's name for a simulated run of the recipe ``text``: its hash with calstation's
     version and the source files of ``simulator``'s package (their names, sizes and times), so
     that a changed simulator simulates again."""
@@ -379,7 +451,7 @@ def cache_folder() -> Path:
     return calstation_home() / "plan-cache"
 
 
-def _fit(recipe: Any, recordings: dict[str, Any], turns: int) -> dict[str, Any]:
+def _fit(recipe: Recipe, recordings: dict[str, Recording], turns: int) -> Fit:
     """The station's calibration (:func:`calstation.pipeline.calibrate`) on the first
     ``turns`` turns of the strategy's scan (``recordings``: the simulated run's, read once for
     all its fits): σ and the predicted error of the fine-tuning, and (for a spin-target
@@ -406,7 +478,7 @@ def _fit(recipe: Any, recordings: dict[str, Any], turns: int) -> dict[str, Any]:
             **_range_terms(recipe, done), "seconds": time.perf_counter() - t0}
 
 
-def _range_terms(recipe: Any, done: Any) -> dict[str, Any]:
+def _range_terms(recipe: Recipe, done: Calibrated) -> RangeTerms:
     """The σ of the lidar's range terms the calibration estimated (``range_sigma``, SI; empty
     without a range model), and why they were not measured (``range_problem``, or None)."""
     from calstation.engine.rangemodel import RANGE_NAMES
@@ -415,8 +487,8 @@ def _range_terms(recipe: Any, done: Any) -> dict[str, Any]:
     if recipe.calibration.range_model == "none":
         return {"range_sigma": {}, "range_problem": None}
     fields = done.result.range_fields()
-    sigma = {n: (math.nan if fields.get(f"sigma_{n}") is None else float(fields[f"sigma_{n}"]))
-             for n in RANGE_NAMES if fields.get(n) is not None}
+    sigma = {n: _or_nan(fields.get(f"sigma_{n}")) for n in RANGE_NAMES
+             if fields.get(n) is not None}
     # not measured: held at the start (no cube scan, or the cube's fit could not be combined,
     # whose reason the cube stage gives)
     unset = range_model_unset(done.result)
@@ -424,14 +496,18 @@ def _range_terms(recipe: Any, done: Any) -> dict[str, Any]:
     return {"range_sigma": sigma, "range_problem": problem}
 
 
+def _or_nan(value: float | None) -> float:
+    return math.nan if value is None else float(value)
+
+
 def _summary(
-    recipe: Any, trials: dict[str, Trial], turns: int, seeds: int, seconds: float
-) -> dict[str, Any]:
+    recipe: Recipe, trials: dict[str, Trial], turns: int, seeds: int, seconds: float
+) -> Plan:
     """The plan as plain data, with the turns the budget needs and what to change."""
     budget = recipe.calibration.accuracy.max_error
-    designs = []
+    designs: list[Design] = []
     for trial in trials.values():
-        rows = []
+        rows: list[ByTurns] = []
         for k in sorted({r["turns"] for r in trial.turns}):
             at = [r for r in trial.turns if r["turns"] == k]
             rows.append({
@@ -467,7 +543,7 @@ def _median(values: list[float]) -> float:
     return statistics.median(finite) if finite else math.nan
 
 
-def _turns_needed(rows: list[dict[str, Any]], budget: float) -> int | None:
+def _turns_needed(rows: list[ByTurns], budget: float) -> int | None:
     """The turns that bring the predicted error (with the cube) within ``budget``: the first
     simulated number of turns that does, else the last one's error extrapolated as 1/√turns."""
     for row in rows:
@@ -480,7 +556,7 @@ def _turns_needed(rows: list[dict[str, Any]], budget: float) -> int | None:
     return needed
 
 
-def _recommend(designs: list[dict[str, Any]], budget: float) -> list[str]:
+def _recommend(designs: list[Design], budget: float) -> list[str]:
     """What the designer should do, from the trials: the recipe as it is, or a change that
     brings the budget within fewer turns."""
     base = designs[0]

@@ -9,7 +9,6 @@ import math
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -21,7 +20,7 @@ from calstation.bench.figures import (
     landscape_figure,
     param_boxplots,
 )
-from calstation.bench.records import CONVERGENCE
+from calstation.bench.records import CONVERGENCE, BenchRecord, LandscapeGrid
 from calstation.bench.scenarios import PERTURBATION_SEED, SCENARIO_SEED_BASE
 from calstation.bench.tables import (
     DEG,
@@ -38,10 +37,10 @@ from calstation.bench.tables import (
     table_spread,
     table_timing,
 )
-from calstation.bench.tasks import ABLATION_VARIANTS, ABLATIONS, FINE_TUNING_METHODS
+from calstation.bench.tasks import ABLATION_VARIANTS, ABLATIONS, FINE_TUNING_METHODS, RunMeta
 
 
-def load_records(out: Path) -> list[dict[str, Any]]:
+def load_records(out: Path) -> list[BenchRecord]:
     """Every record in ``out/records.jsonl`` (torn last lines skipped)."""
     path = out / "records.jsonl"
     if not path.is_file():
@@ -55,7 +54,7 @@ def load_records(out: Path) -> list[dict[str, Any]]:
     return recs
 
 
-def _load_note(meta: dict[str, Any]) -> str:
+def _load_note(meta: RunMeta) -> str:
     """What the machine's load was during the run, as far as the metadata says."""
     start, end = meta.get("load_start"), meta.get("load_end")
     if start is None or end is None:
@@ -64,7 +63,7 @@ def _load_note(meta: dict[str, Any]) -> str:
             "machine are longer")
 
 
-def main_records(records: Sequence[dict[str, Any]], starts: int) -> list[dict[str, Any]]:
+def main_records(records: Sequence[BenchRecord], starts: int) -> list[BenchRecord]:
     """The records of the main protocol: everything except ablation variants, and set-A/B
     starts numbered ``starts`` or more (rounds the run did not complete for every scenario)."""
     out = []
@@ -90,10 +89,10 @@ def _criterion_text() -> str:
     )
 
 
-def _landscape_grids(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, dict[str, Any]]]:
+def _landscape_grids(records: Sequence[BenchRecord]) -> dict[str, dict[str, LandscapeGrid]]:
     """pair name → method → {"u", "v", "cost", "truth", "scenario"} from landscape rows."""
     rows = [r for r in records if r["kind"] == "landscape" and r.get("status") == "ok"]
-    out: dict[str, dict[str, dict[str, Any]]] = {}
+    out: dict[str, dict[str, LandscapeGrid]] = {}
     for r in rows:
         ls = r["landscape"]
         g = out.setdefault(ls["pair_name"], {}).setdefault(
@@ -110,7 +109,7 @@ def _landscape_grids(records: Sequence[dict[str, Any]]) -> dict[str, dict[str, d
 def write_report(
     out: Path,
     report_dir: Path,
-    meta: dict[str, Any] | None = None,
+    meta: RunMeta | None = None,
     label: str | None = None,
 ) -> Path:
     """Write ``report_dir/results.md`` and ``report_dir/results/*.png`` from the records in
@@ -142,7 +141,7 @@ def write_report(
     return path
 
 
-def _spread_figures(records: Sequence[dict[str, Any]], methods: Sequence[str],
+def _spread_figures(records: Sequence[BenchRecord], methods: Sequence[str],
                     fig_dir: Path) -> None:
     """The parameters' box plots (all methods, and periodicity alone) and the cube errors'."""
     param_boxplots(records, fig_dir / "param_spread.png", methods)
@@ -151,7 +150,7 @@ def _spread_figures(records: Sequence[dict[str, Any]], methods: Sequence[str],
     cube_boxplots(records, fig_dir / "cube_error.png", methods)
 
 
-def _landscape_figures(records: Sequence[dict[str, Any]], methods: Sequence[str],
+def _landscape_figures(records: Sequence[BenchRecord], methods: Sequence[str],
                        fig_dir: Path) -> list[str]:
     """A figure per sampled landscape (translation, rotation); the lines of results.md that
     show them and name the cost functions (none without a landscape)."""
@@ -184,7 +183,7 @@ def _landscape_figures(records: Sequence[dict[str, Any]], methods: Sequence[str]
     return landscape_md
 
 
-def _ablation_figures(every: Sequence[dict[str, Any]], abl_sc: Sequence[str], n_abl: int,
+def _ablation_figures(every: Sequence[BenchRecord], abl_sc: Sequence[str], n_abl: int,
                       fig_dir: Path) -> None:
     """The axis offsets of each ablation variant: periodicity's, and shape's when it has
     variants besides the default."""
@@ -230,9 +229,9 @@ def variants_section(report_dir: Path) -> str:
 
 
 def _compose(
-    records: Sequence[dict[str, Any]],
-    every: Sequence[dict[str, Any]],
-    meta: dict[str, Any],
+    records: Sequence[BenchRecord],
+    every: Sequence[BenchRecord],
+    meta: RunMeta,
     methods: Sequence[str],
     abl_sc: Sequence[str],
     landscape_md: Sequence[str],
@@ -260,14 +259,14 @@ def _compose(
     return "\n".join(parts)
 
 
-def _starts(meta: dict[str, Any]) -> Any:
+def _starts(meta: RunMeta) -> int | str:
     """Perturbed starts per set the run completed (its configuration's, or "?")."""
     return meta.get("starts_completed", meta.get("config", {}).get("starts_per_set", "?"))
 
 
 def _title(
-    every: Sequence[dict[str, Any]],
-    meta: dict[str, Any],
+    every: Sequence[BenchRecord],
+    meta: RunMeta,
     methods: Sequence[str],
     label: str | None,
 ) -> list[str]:
@@ -312,7 +311,7 @@ def _title(
 
 
 def _provenance(
-    records: Sequence[dict[str, Any]], every: Sequence[dict[str, Any]], meta: dict[str, Any]
+    records: Sequence[BenchRecord], every: Sequence[BenchRecord], meta: RunMeta
 ) -> list[str]:
     """How the run was made: command, commit, times, machine, recipe, scenarios, seeds, starts."""
     cfg = meta.get("config", {})
@@ -348,7 +347,7 @@ def _provenance(
     ]
 
 
-def _against_the_paper(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> list[str]:
+def _against_the_paper(records: Sequence[BenchRecord], methods: Sequence[str]) -> list[str]:
     """The summary against the paper and its two cube-error tables (paper Tables II, III)."""
     return [
         "## Against the paper, in short",
@@ -376,7 +375,7 @@ def _against_the_paper(records: Sequence[dict[str, Any]], methods: Sequence[str]
     ]
 
 
-def _against_the_truth(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> list[str]:
+def _against_the_truth(records: Sequence[BenchRecord], methods: Sequence[str]) -> list[str]:
     """The errors against the true H, the spread over the perturbed starts (the paper's box
     plots) and the table per scenario."""
     return [
@@ -421,7 +420,7 @@ def _against_the_truth(records: Sequence[dict[str, Any]], methods: Sequence[str]
 
 
 def _ablation(
-    every: Sequence[dict[str, Any]], meta: dict[str, Any], abl_sc: Sequence[str]
+    every: Sequence[BenchRecord], meta: RunMeta, abl_sc: Sequence[str]
 ) -> list[str]:
     """The ablation of calstation's robustness features: periodicity's variants, and shape's
     when the run had any besides the default."""
@@ -465,7 +464,7 @@ def _ablation(
     return parts
 
 
-def _failures(failed: Sequence[dict[str, Any]]) -> list[str]:
+def _failures(failed: Sequence[BenchRecord]) -> list[str]:
     """The runs that raised an error, grouped by message (digits and file paths removed);
     nothing when there are none."""
     if not failed:

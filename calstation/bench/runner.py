@@ -15,7 +15,7 @@ import platform
 import sys
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation.atomic import write_atomic
 from calstation.bench import BenchError
@@ -32,6 +32,7 @@ from calstation.bench.landscape import landscape_tasks
 from calstation.bench.scenarios import is_simulated
 from calstation.bench.tasks import (
     BenchConfig,
+    RunMeta,
     Task,
     ablation_tasks,
     finetune_tasks,
@@ -40,8 +41,11 @@ from calstation.bench.tasks import (
 )
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 
+if TYPE_CHECKING:
+    from rich.console import Console
 
-def run_bench(config: BenchConfig, console: Any, resume: bool = False) -> dict[str, Any]:
+
+def run_bench(config: BenchConfig, console: Console, resume: bool = False) -> RunMeta:
     """Run every phase of the bench; return the run's metadata (also written to ``run.json``).
 
     Phases: simulate; initial calibration; both fine-tunings from the initial calibration with
@@ -76,12 +80,12 @@ class _BenchRun:
     """One run of :func:`run_bench`: its phases, its record store and its metadata, saved to
     ``run.json`` after every phase."""
 
-    def __init__(self, config: BenchConfig, console: Any, resume: bool) -> None:
+    def __init__(self, config: BenchConfig, console: Console, resume: bool) -> None:
         self.config = config
         self.console = console
         self.store = RecordStore(config.out / "records.jsonl", resume)
         previous = _previous_meta(config.out) if resume else None
-        self.meta: dict[str, Any] = {
+        self.meta: RunMeta = {
             "config": config.to_dict(),
             "command": config.command,
             "git_commit": git_commit(),
@@ -97,7 +101,7 @@ class _BenchRun:
         if previous is not None:
             self.meta["previous_runs"] = [*previous.pop("previous_runs", []), previous]
         self.t_start = time.monotonic()
-        self.phases: dict[str, float] = self.meta["phases_s"]
+        self.phases = self.meta["phases_s"]
 
     def save(self) -> None:
         """Write the metadata as it stands to ``run.json``."""
@@ -193,7 +197,7 @@ class _BenchRun:
         return min(nxt, done + fit)
 
 
-def _simulate(config: BenchConfig, ex: Executor, store: RecordStore, console: Any) -> None:
+def _simulate(config: BenchConfig, ex: Executor, store: RecordStore, console: Console) -> None:
     from calstation.recipes import load_recipe
 
     sha = load_recipe(config.recipe).sha256

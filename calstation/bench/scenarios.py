@@ -10,7 +10,6 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -127,7 +126,7 @@ class ScenarioData:
 STAMP = "scenario.json"
 
 
-def _stamp(scenario: Scenario, recipe_sha256: str) -> dict[str, Any]:
+def _stamp(scenario: Scenario, recipe_sha256: str) -> dict[str, str | float]:
     return {
         "name": scenario.name,
         "range_m": scenario.range_m,

@@ -14,10 +14,15 @@ import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 from calstation.atomic import write_atomic
 from calstation.engine.frames import PARAMETER_NAMES
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from calstation.bench.scenarios import Scenario
 
 
 def speed_recipe(recipe: Path, rpm: float, out: Path) -> tuple[Path, int]:
@@ -45,8 +50,37 @@ def speed_recipe(recipe: Path, rpm: float, out: Path) -> tuple[Path, int]:
     return out, ppl
 
 
-def run_speed_case(recipe: Path, scenario: Any, rpm: float, out: Path,
-                   methods: Sequence[str]) -> list[dict[str, Any]]:
+class SpeedRecord(TypedDict, total=False):
+    """One fine-tuning at one platter speed (``records.json``)."""
+
+    rpm: float
+    method: str
+    points: int
+    lines: int
+    points_per_line: int
+    simulate_s: float
+    status: str  # "ok" | "failed"
+    message: str
+    axis_offset_m: float
+    axis_angle_rad: float
+    rz_error_rad: float
+    sigma: dict[str, float]
+    H: dict[str, float]
+    stage_s: float
+
+
+class SpeedMeta(TypedDict):
+    """How a speed sweep was made."""
+
+    command: str
+    git_commit: str
+    wall_s: float
+    scenario: str
+    line_rate_hz: float
+
+
+def run_speed_case(recipe: Path, scenario: Scenario, rpm: float, out: Path,
+                   methods: Sequence[str]) -> list[SpeedRecord]:
     """Simulate ``scenario`` at ``rpm``, calibrate, fine-tune with each method from the initial
     calibration; one record per method (a refused fine-tuning is a record with its message)."""
     from calstation import plugins
@@ -65,35 +99,35 @@ def run_speed_case(recipe: Path, scenario: Any, rpm: float, out: Path,
     truth = load_truth(data.directory / "truth.json")
     initial = initial_calibration(read_recording(data.static), rc.fixtures.static_target,
                                   rc.calibration.initial)
-    records = []
+    records: list[SpeedRecord] = []
     for method in methods:
         strategy = plugins.strategy(method)
         rec = read_recording(getattr(data, scan_of(strategy)))
-        record: dict[str, Any] = {"rpm": rpm, "method": method, "points": rec.n_points,
+        record: SpeedRecord = {"rpm": rpm, "method": method, "points": rec.n_points,
                                   "lines": rec.n_lines, "points_per_line": ppl,
                                   "simulate_s": simulate_s}
         t1 = time.perf_counter()
         try:
             result = strategy.run(rec, initial.H, rc)
         except Exception as exc:  # a refusal is a result of the sweep, recorded with its reason
-            record.update(status="failed", message=f"{type(exc).__name__}: {exc}")
+            record.update({"status": "failed", "message": f"{type(exc).__name__}: {exc}"})
         else:
             e = axis_errors(result.H, truth)
-            record.update(
-                status="ok",
-                axis_offset_m=float(e["axis_offset_m"]),
-                axis_angle_rad=float(e["axis_angle_rad"]),
-                rz_error_rad=float(e["rz_error"]),
-                sigma={k: float(v) for k, v in dict(result.sigma).items()},
-                H={n: float(getattr(result.H, n)) for n in PARAMETER_NAMES},
-            )
+            record.update({
+                "status": "ok",
+                "axis_offset_m": float(e["axis_offset_m"]),
+                "axis_angle_rad": float(e["axis_angle_rad"]),
+                "rz_error_rad": float(e["rz_error"]),
+                "sigma": {k: float(v) for k, v in dict(result.sigma).items()},
+                "H": {n: float(getattr(result.H, n)) for n in PARAMETER_NAMES},
+            })
         record["stage_s"] = time.perf_counter() - t1
         records.append(record)
         del rec
     return records
 
 
-def speed_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> str:
+def speed_markdown(records: Sequence[SpeedRecord], meta: SpeedMeta) -> str:
     """The section for results.md."""
     lines = [
         "## Accuracy against platter speed",
@@ -124,11 +158,13 @@ def speed_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> s
     return "\n".join(lines)
 
 
-def speed_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
+def speed_figure(records: Sequence[SpeedRecord], path: Path) -> None:
     """Axis offset and direction error against platter speed, a line per method."""
-    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _plt, save_figure
+    from calstation.bench.figures import METHOD_COLOURS, METHOD_LABELS, _agg, save_figure
 
-    plt = _plt()
+    _agg()
+    import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(1, 2, figsize=(8.0, 3.0))
     for method in sorted({r["method"] for r in records}):
         ok = sorted((r for r in records if r["method"] == method and r["status"] == "ok"),
@@ -151,7 +187,7 @@ def speed_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
 
 def run_speed(recipe: Path, out: Path, report_dir: Path, scenario_name: str,
               methods: Sequence[str], speeds: Sequence[float], command: str,
-              console: Any) -> Path:
+              console: Console) -> Path:
     """Every speed in turn (one at a time: a slow turn holds up to 25 M returns); writes
     ``speed.md`` and ``results/speed.png`` to ``report_dir``; returns the path of speed.md."""
     from calstation import plugins
@@ -163,15 +199,16 @@ def run_speed(recipe: Path, out: Path, report_dir: Path, scenario_name: str,
     (scenario,) = select_scenarios([scenario_name])
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
-    records: list[dict[str, Any]] = []
+    records: list[SpeedRecord] = []
     for rpm in speeds:
         console.print(f"platter speed {rpm:g} rpm …")
         records += run_speed_case(recipe, scenario, rpm, out, methods)
         write_atomic(out / "records.json", json.dumps(records, indent=2), "records")
     rate = load_recipe(recipe).recipe.simulation
-    meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
-            "scenario": f"{scenario.name} ({scenario.range_m:.2f} m, {scenario.pitch_deg:.0f}°)",
-            "line_rate_hz": float(rate.lidar.line_rate_hz) if rate is not None else math.nan}
+    meta: SpeedMeta = {
+        "command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
+        "scenario": f"{scenario.name} ({scenario.range_m:.2f} m, {scenario.pitch_deg:.0f}°)",
+        "line_rate_hz": float(rate.lidar.line_rate_hz) if rate is not None else math.nan}
     speed_figure(records, report_dir / "results" / "speed.png")
     path = report_dir / "speed.md"
     write_atomic(path, speed_markdown(records, meta), "bench report")

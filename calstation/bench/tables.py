@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from typing import Any
 
 import numpy as np
 
 from calstation.bench.figures import METHOD_LABELS, cube_error_values, deviations_from_mean
+from calstation.bench.records import BenchRecord
 from calstation.bench.scenarios import paper_scenarios
-from calstation.bench.tasks import ABLATIONS
+from calstation.bench.tasks import ABLATIONS, RunMeta
 
 PAPER_TABLE_I = {"initial": 5.1, "shape": 3.2, "periodicity": 2.7}
 """Paper Table II (first): median cube edge error (mm), fine-tuning from the initial calibration."""
@@ -39,12 +39,12 @@ MM, DEG = 1e3, 180.0 / math.pi
 
 # --- selection and statistics --------------------------------------------------------------
 def _select(
-    records: Sequence[dict[str, Any]],
+    records: Sequence[BenchRecord],
     method: str,
     start_set: str,
     variant: str = "default",
     ok_only: bool = True,
-) -> list[dict[str, Any]]:
+) -> list[BenchRecord]:
     out = []
     for r in records:
         if r.get("variant", "default") != variant:
@@ -78,7 +78,7 @@ def _fmt(x: float, digits: int = 2) -> str:
     return f"{x:.{digits}f}"
 
 
-def _values(recs: Sequence[dict[str, Any]], getter: Callable[[dict[str, Any]], Any]) -> np.ndarray:
+def _values(recs: Sequence[BenchRecord], getter: Callable[[BenchRecord], object]) -> np.ndarray:
     vals = []
     for r in recs:
         try:
@@ -107,7 +107,7 @@ def _e_cell(e: np.ndarray, digits: int = 1) -> str:
     return text + (f" ({lost}/{e.size} n/m)" if lost else "")
 
 
-def table_from_initial(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
+def table_from_initial(records: Sequence[BenchRecord], methods: Sequence[str]) -> str:
     """Paper Table II: median OBB cube edge error, fine-tuning from the initial calibration; the
     true H's row is the metric's floor on this simulated sensor."""
     rows = []
@@ -132,7 +132,7 @@ def table_from_initial(records: Sequence[dict[str, Any]], methods: Sequence[str]
     )
 
 
-def table_sets(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
+def table_sets(records: Sequence[BenchRecord], methods: Sequence[str]) -> str:
     """Paper Table III: median OBB cube edge error over the perturbed starts of sets A and B
     (a run whose cube could not be measured counts as +inf: "n/m")."""
     rows = []
@@ -149,7 +149,7 @@ def table_sets(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str
     )
 
 
-def table_ground_truth(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
+def table_ground_truth(records: Sequence[BenchRecord], methods: Sequence[str]) -> str:
     """Per method and start set: convergence, axis errors, per-parameter errors, distortion."""
     rows = []
     combos = [("initial", "init")] + [(m, s) for m in methods for s in ("init", "A", "B")]
@@ -185,7 +185,7 @@ def table_ground_truth(records: Sequence[dict[str, Any]], methods: Sequence[str]
     )
 
 
-def table_spread(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
+def table_spread(records: Sequence[BenchRecord], methods: Sequence[str]) -> str:
     """The paper's box-plot statistics: deviation of tx, tz, ry, rz from their per-scenario mean
     over the perturbed starts; IQR and the largest |deviation| per method and set."""
     rows = []
@@ -211,7 +211,7 @@ def table_spread(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> s
     )
 
 
-def table_per_scenario(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
+def table_per_scenario(records: Sequence[BenchRecord], methods: Sequence[str]) -> str:
     """Per scenario: the OBB cube error of each method from the initial calibration, the
     periodicity axis offset from it, and each method's convergence rate over every start."""
     names = sorted({r["scenario"] for r in records if r["kind"] == "initial"},
@@ -239,8 +239,8 @@ def table_per_scenario(records: Sequence[dict[str, Any]], methods: Sequence[str]
     return _table(header, rows)
 
 
-def table_timing(records: Sequence[dict[str, Any]], methods: Sequence[str],
-                 meta: dict[str, Any]) -> str:
+def table_timing(records: Sequence[BenchRecord], methods: Sequence[str],
+                 meta: RunMeta) -> str:
     """Seconds per stage (median / p90 / max) as measured inside the workers."""
     rows = []
     sims = [r for r in records if r["kind"] == "simulate" and r.get("status") == "ok"]
@@ -267,16 +267,16 @@ def table_timing(records: Sequence[dict[str, Any]], methods: Sequence[str],
 
 
 def _ablation_records(
-    records: Sequence[dict[str, Any]], variant: str, scenarios: Sequence[str], n_starts: int,
+    records: Sequence[BenchRecord], variant: str, scenarios: Sequence[str], n_starts: int,
     method: str = "periodicity",
-) -> list[dict[str, Any]]:
+) -> list[BenchRecord]:
     return [
         r for s in ("init", "B") for r in _select(records, method, s, variant, False)
         if r["scenario"] in scenarios and (s == "init" or r["index"] < n_starts)
     ]
 
 
-def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
+def table_ablation(records: Sequence[BenchRecord], scenarios: Sequence[str],
                    n_starts: int, method: str = "periodicity") -> str:
     """``method`` with each robustness feature off, on the ablation subset (init + the first
     ``n_starts`` set-B starts)."""
@@ -306,7 +306,7 @@ def table_ablation(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
     )
 
 
-def _ablation_offsets(records: Sequence[dict[str, Any]], scenarios: Sequence[str],
+def _ablation_offsets(records: Sequence[BenchRecord], scenarios: Sequence[str],
                       n_starts: int, method: str = "periodicity") -> dict[str, np.ndarray]:
     out = {}
     for variant in ABLATIONS[method]:
@@ -317,7 +317,7 @@ def _ablation_offsets(records: Sequence[dict[str, Any]], scenarios: Sequence[str
     return out
 
 
-def summary_against_paper(records: Sequence[dict[str, Any]], methods: Sequence[str]) -> str:
+def summary_against_paper(records: Sequence[BenchRecord], methods: Sequence[str]) -> str:
     """Bullet points: where calstation beats or trails each number the paper prints, computed
     from the records (median cube error e, its sets A/B, the tx spread for set A), with the
     ground truth the paper could not measure."""

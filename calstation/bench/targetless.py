@@ -14,10 +14,15 @@ import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 from calstation.atomic import write_atomic
+from calstation.bench.records import Measured
 from calstation.bench.scenarios import Scenario
+from calstation.engine.frames import Extrinsics
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 EXTRA_SCENARIOS: tuple[tuple[str, float, float], ...] = (
     ("E1", 0.9, 40.0),
@@ -45,17 +50,83 @@ def targetless_scenarios() -> list[Scenario]:
     return [*paper_scenarios(), *(Scenario(n, r, p, 0) for n, r, p in EXTRA_SCENARIOS)]
 
 
-def _errors(H: Any, truth: Any, method: str) -> dict[str, Any]:
+class Errors(TypedDict):
+    """An estimate against the truth (:func:`_errors`)."""
+
+    axis: Measured
+    error: dict[str, float]
+    converged: bool
+
+
+class StartFit(TypedDict, total=False):
+    """One fine-tuning of a station's scan from one start: its errors, or why it failed."""
+
+    status: str  # "ok" | "failed"
+    message: str
+    axis: Measured
+    error: dict[str, float]
+    converged: bool
+    start: Errors
+    tz_from_chord_m: float
+    candidates: object
+    time_s: float
+
+
+class TargetlessRecord(TypedDict):
+    """One simulated station: its fine-tuning from the platter's chord and from the L-target."""
+
+    scenario: str
+    range_m: float
+    pitch_deg: float
+    seed: int
+    method: str
+    truth: dict[str, float]
+    targetless: StartFit
+    l_target: StartFit
+
+
+class GeometryRow(TypedDict, total=False):
+    """One station whose true tz or ry breaks the targetless start's assumptions."""
+
+    param: str
+    value: float
+    scenario: str
+    seed: int
+    truth: dict[str, float]
+    status: str  # "ok" | "failed" | "station"
+    message: str
+    same: bool
+    tz_from_chord_m: float
+    start_axis_offset_m: float
+    from_truth_offset_m: float
+    from_truth_angle_rad: float
+    axis_offset_m: float
+    axis_angle_rad: float
+
+
+class TargetlessMeta(TypedDict):
+    """How a targetless sweep was made."""
+
+    command: str
+    git_commit: str
+    wall_s: float
+    method: str
+    seeds: str
+    geometry: list[GeometryRow]
+
+
+def _errors(H: Extrinsics, truth: Extrinsics, method: str) -> Errors:
     """An estimate against the truth, and whether it meets the bench's thresholds for
     ``method`` (:func:`calstation.bench.records.converged`)."""
     from calstation.bench.records import against_truth, converged
 
-    e = {"status": "ok", **against_truth(H, truth)}
+    e = against_truth(H, truth)
+    e["status"] = "ok"
     return {"axis": e["axis"], "error": e["error"], "converged": converged(method, e)}
 
 
 def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
-             ) -> dict[str, Any]:
+             ) -> TargetlessRecord:
     """Simulate one station, fine-tune its scan from both starts; its record."""
     from calstation import plugins
     from calstation.pipeline import Scans, calibrate, turned
@@ -72,33 +143,38 @@ def run_case(recipe: Path, scenario: Scenario, seed: int, out: Path, method: str
     truth = recording.truth
     assert truth is not None
     spin = turned(recording)
-    record: dict[str, Any] = {"scenario": scenario.name, "range_m": scenario.range_m,
-                              "pitch_deg": scenario.pitch_deg, "seed": seed, "method": method,
-                              "truth": {"tz": truth.tz, "ry": truth.ry}}
     t0 = time.perf_counter()
+    targetless: StartFit
     try:
         done = calibrate(rc, Scans(spin=spin), strategy)
         result, start = done.result, done.start
     except Exception as exc:  # a failure is a result of the sweep, kept with its reason
-        record["targetless"] = {"status": "failed", "message": f"{type(exc).__name__}: {exc}",
-                                "converged": False}
+        targetless = {"status": "failed", "message": f"{type(exc).__name__}: {exc}",
+                      "converged": False}
     else:
-        record["targetless"] = {"status": "ok", **_errors(result.H, truth, method),
-                                "start": _errors(start.H, truth, method),
-                                "tz_from_chord_m": start.diagnostics["tz_from_chord_m"],
-                                "candidates": result.diagnostics["start"]["candidates"]}
-    record["targetless"]["time_s"] = time.perf_counter() - t0
+        e = _errors(result.H, truth, method)
+        targetless = {"status": "ok", "axis": e["axis"], "error": e["error"],
+                      "converged": e["converged"], "start": _errors(start.H, truth, method),
+                      "tz_from_chord_m": start.diagnostics["tz_from_chord_m"],
+                      "candidates": result.diagnostics["start"]["candidates"]}
+    targetless["time_s"] = time.perf_counter() - t0
     t1 = time.perf_counter()
+    l_target: StartFit
     try:
         from_l = calibrate(rc, Scans(spin=spin, static=read_recording(files["static"])),
                            strategy).result
     except Exception as exc:
-        record["l_target"] = {"status": "failed", "message": f"{type(exc).__name__}: {exc}",
-                              "converged": False}
+        l_target = {"status": "failed", "message": f"{type(exc).__name__}: {exc}",
+                    "converged": False}
     else:
-        record["l_target"] = {"status": "ok", **_errors(from_l.H, truth, method)}
-    record["l_target"]["time_s"] = time.perf_counter() - t1
-    return record
+        e = _errors(from_l.H, truth, method)
+        l_target = {"status": "ok", "axis": e["axis"], "error": e["error"],
+                    "converged": e["converged"]}
+    l_target["time_s"] = time.perf_counter() - t1
+    return {"scenario": scenario.name, "range_m": scenario.range_m,
+            "pitch_deg": scenario.pitch_deg, "seed": seed, "method": method,
+            "truth": {"tz": truth.tz, "ry": truth.ry},
+            "targetless": targetless, "l_target": l_target}
 
 
 SAME_M = 1e-4
@@ -108,7 +184,7 @@ ry is flat to within a few hundredths of a degree, so two starts may leave it th
 
 
 def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, value: float,
-                      out: Path, method: str) -> dict[str, Any]:
+                      out: Path, method: str) -> GeometryRow:
     """One station whose true tz is ``value`` mm (``param`` ``tz_mm``) or whose true ry is
     moved by ``value`` degrees (``ry_deg``); the fine-tuning from the platter's chord against
     the one from the true H on the same scan (the start is in the basin when both land in the
@@ -138,33 +214,36 @@ def run_geometry_case(recipe: Path, scenario: Scenario, seed: int, param: str, v
     strategy = plugins.strategy(method)
     spin = turned(read_recording(files["spin" if strategy.fixture == "spin_target"
                                          else "cube"]))
-    record: dict[str, Any] = {"param": param, "value": value, "scenario": scenario.name,
+    record: GeometryRow = {"param": param, "value": value, "scenario": scenario.name,
                               "seed": seed, "truth": H.as_dict()}
     try:
         from_truth, _ = run_strategy(strategy, spin.recording, H, loaded.recipe,
                                      prepared=spin.prepared)
     except Exception as exc:  # the station itself is beyond the strategy: not the start's doing
-        record.update(status="station", message=f"even from the true H: {exc}", same=False)
+        record.update({"status": "station", "message": f"even from the true H: {exc}",
+                       "same": False})
         return record
     try:
         done = calibrate(loaded.recipe, Scans(spin=spin), strategy)
         result, start = done.result, done.start
     except Exception as exc:  # a failure is a result of the sweep, kept with its reason
-        record.update(status="failed", message=f"{type(exc).__name__}: {exc}", same=False)
+        record.update({"status": "failed", "message": f"{type(exc).__name__}: {exc}",
+                       "same": False})
         return record
     same = axis_errors(result.H, from_truth.H)
     truth = axis_errors(result.H, H)
-    record.update(
-        status="ok", tz_from_chord_m=start.diagnostics["tz_from_chord_m"],
-        start_axis_offset_m=axis_errors(start.H, H)["axis_offset_m"],
-        same=bool(same["axis_offset_m"] <= SAME_M and same["axis_angle_rad"] <= SAME_RAD),
-        from_truth_offset_m=same["axis_offset_m"], from_truth_angle_rad=same["axis_angle_rad"],
-        axis_offset_m=truth["axis_offset_m"],
-        axis_angle_rad=truth["axis_angle_rad"])
+    record.update({
+        "status": "ok", "tz_from_chord_m": start.diagnostics["tz_from_chord_m"],
+        "start_axis_offset_m": axis_errors(start.H, H)["axis_offset_m"],
+        "same": bool(same["axis_offset_m"] <= SAME_M and same["axis_angle_rad"] <= SAME_RAD),
+        "from_truth_offset_m": same["axis_offset_m"],
+        "from_truth_angle_rad": same["axis_angle_rad"],
+        "axis_offset_m": truth["axis_offset_m"],
+        "axis_angle_rad": truth["axis_angle_rad"]})
     return record
 
 
-def geometry_markdown(rows: Sequence[dict[str, Any]]) -> list[str]:
+def geometry_markdown(rows: Sequence[GeometryRow]) -> list[str]:
     """The table of the start's assumptions broken on purpose."""
     if not rows:
         return []
@@ -195,7 +274,7 @@ def geometry_markdown(rows: Sequence[dict[str, Any]]) -> list[str]:
     return lines
 
 
-def targetless_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any]) -> str:
+def targetless_markdown(records: Sequence[TargetlessRecord], meta: TargetlessMeta) -> str:
     """The section for results.md."""
     n = len(records)
     conv_t = sum(r["targetless"]["converged"] for r in records)
@@ -221,9 +300,9 @@ def targetless_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any])
     for name in dict.fromkeys(r["scenario"] for r in records):
         sel = [r for r in records if r["scenario"] == name]
         ok = [r["targetless"] for r in sel if r["targetless"]["status"] == "ok"]
-        starts = sorted(t["start"]["axis"].get("axis_offset_m", math.nan) * 1e3 for t in ok)
+        starts = sorted(float(t["start"]["axis"].get("axis_offset_m", math.nan)) * 1e3 for t in ok)
         rz = [abs(math.degrees(t["start"]["error"]["rz"])) for t in ok]
-        final = [t["axis"].get("axis_offset_m", math.nan) * 1e3 for t in ok]
+        final = [float(t["axis"].get("axis_offset_m", math.nan)) * 1e3 for t in ok]
         r0 = sel[0]
         lines.append(
             f"| {name} ({r0['range_m']:.2f} m, {r0['pitch_deg']:.0f}°) | {len(sel)} | "
@@ -238,27 +317,29 @@ def targetless_markdown(records: Sequence[dict[str, Any]], meta: dict[str, Any])
             t = r["targetless"]
             axis = t.get("axis", {})
             why = t.get("message") or (
-                f"axis offset {axis['axis_offset_m'] * 1e3:.2f} mm, "
-                f"direction {math.degrees(axis['axis_angle_rad']):.3f}°")
+                f"axis offset {float(axis['axis_offset_m']) * 1e3:.2f} mm, "
+                f"direction {math.degrees(float(axis['axis_angle_rad'])):.3f}°")
             lines.append(f"- {r['scenario']} seed {r['seed']}: {why[:300]}")
     lines += geometry_markdown(meta.get("geometry", []))
     lines += ["", "![targetless start](results/targetless.png)", ""]
     return "\n".join(lines)
 
 
-def targetless_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
+def targetless_figure(records: Sequence[TargetlessRecord], path: Path) -> None:
     """The start's distance from the truth against the final one (the targetless start's basin:
     how far from the truth its starts land, and whether they converge)."""
-    from calstation.bench.figures import _plt, save_figure
+    from calstation.bench.figures import _agg, save_figure
 
-    plt = _plt()
+    _agg()
+    import matplotlib.pyplot as plt
+
     fig, ax = plt.subplots(figsize=(5.0, 3.4))
     for converged, colour, label in ((True, "tab:green", "converged"),
                                      (False, "tab:red", "not converged")):
         sel = [r["targetless"] for r in records if r["targetless"]["status"] == "ok"
                and r["targetless"]["converged"] is converged]
-        ax.scatter([t["start"]["axis"]["axis_offset_m"] * 1e3 for t in sel],
-                   [max(t["axis"]["axis_offset_m"] * 1e3, 1e-4) for t in sel],
+        ax.scatter([float(t["start"]["axis"]["axis_offset_m"]) * 1e3 for t in sel],
+                   [max(float(t["axis"]["axis_offset_m"]) * 1e3, 1e-4) for t in sel],
                    s=14, color=colour, label=f"{label} ({len(sel)})")
     ax.set_xlabel("start's axis offset from the truth (mm)")
     ax.set_ylabel("fine-tuned axis offset (mm)")
@@ -271,7 +352,7 @@ def targetless_figure(records: Sequence[dict[str, Any]], path: Path) -> None:
 
 
 def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds: int,
-                   scenario_names: Sequence[str] | None, command: str, console: Any,
+                   scenario_names: Sequence[str] | None, command: str, console: Console,
                    geometry: bool = True) -> Path:
     """Every scenario × seed in turn, then (with ``geometry``) the :data:`GEOMETRY` stations on
     D5; writes ``targetless.md`` and ``results/targetless.png`` to ``report_dir`` and the records
@@ -288,7 +369,7 @@ def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds
         chosen = [s for s in chosen if s.name in wanted]
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
-    records: list[dict[str, Any]] = []
+    records: list[TargetlessRecord] = []
     for i, scenario in enumerate(chosen):
         for k in range(seeds):
             seed = SEED_BASE + 100 * k + i
@@ -300,7 +381,7 @@ def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds
                           + f" from the platter, {t['time_s']:.1f} s")
             shutil.rmtree(out / f"{scenario.name}-s{seed}", ignore_errors=True)
             write_atomic(out / "records.json", json.dumps(records, indent=2), "records")
-    rows: list[dict[str, Any]] = []
+    rows: list[GeometryRow] = []
     if geometry:
         d5 = next(s for s in targetless_scenarios() if s.name == "D5")
         for param, values in GEOMETRY.items():
@@ -311,9 +392,10 @@ def run_targetless(recipe: Path, out: Path, report_dir: Path, method: str, seeds
                               + ("same as from the truth" if row["same"] else "NOT the same"))
                 shutil.rmtree(out / f"D5-{param}{value:+g}", ignore_errors=True)
                 write_atomic(out / "geometry.json", json.dumps(rows, indent=2), "records")
-    meta = {"command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
-            "method": method, "seeds": f"{SEED_BASE} + 100·k + scenario index, k < {seeds}",
-            "geometry": rows}
+    meta: TargetlessMeta = {
+        "command": command, "git_commit": git_commit(), "wall_s": time.monotonic() - t0,
+        "method": method, "seeds": f"{SEED_BASE} + 100·k + scenario index, k < {seeds}",
+        "geometry": rows}
     targetless_figure(records, report_dir / "results" / "targetless.png")
     path = report_dir / "targetless.md"
     write_atomic(path, targetless_markdown(records, meta), "bench report")

@@ -9,11 +9,12 @@ recordings once (:mod:`calstation.bench.worker`).
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
+from calstation.bench.records import LandscapeSpec
 from calstation.bench.scenarios import (
     PERTURBATION_SEED,
     PERTURBATION_SETS,
@@ -22,12 +23,13 @@ from calstation.bench.scenarios import (
     sample_starts,
 )
 from calstation.engine.frames import Extrinsics
+from calstation.jsonvalue import JSONObject
 
 FINE_TUNING_METHODS: tuple[str, ...] = ("shape", "periodicity")
 """The paper's two fine-tuning strategies, run by name through the plugin registry."""
 
 
-ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
+ABLATION_VARIANTS: dict[str, JSONObject] = {
     "default": {},
     "no coarse-to-fine": {"calibration": {"periodicity": {"coarse_to_fine": False}}},
     "gauge ty (paper)": {"calibration": {"periodicity": {"gauge": "ty"}}},
@@ -37,7 +39,7 @@ ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
 }
 """Recipe overrides of the periodicity robustness features compared in the ablation."""
 
-SHAPE_ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
+SHAPE_ABLATION_VARIANTS: dict[str, JSONObject] = {
     "default": {},
     "no coarse alignment": {"calibration": {"options": {"shape": {"coarse": False}}}},
     "ry held (no face flatness)": {"calibration": {"options": {"shape": {"estimate_ry": False}}}},
@@ -53,12 +55,70 @@ SHAPE_ABLATION_VARIANTS: dict[str, dict[str, Any]] = {
 }
 """Recipe overrides of the shape strategy's robustness features compared in the ablation."""
 
-ABLATIONS: dict[str, dict[str, dict[str, Any]]] = {
+ABLATIONS: dict[str, dict[str, JSONObject]] = {
     "periodicity": ABLATION_VARIANTS,
     "shape": SHAPE_ABLATION_VARIANTS,
 }
 """Ablation variants per fine-tuning method (variant names are unique across methods, apart
 from ``default``, which is the main run)."""
+
+
+class ScenarioMeta(TypedDict):
+    """A scenario in a run's metadata (:class:`~calstation.bench.scenarios.Scenario`'s fields)."""
+
+    name: str
+    range_m: float
+    pitch_deg: float
+    seed: int
+
+
+class ConfigMeta(TypedDict, total=False):
+    """A :class:`BenchConfig` as ``run.json`` keeps it (paths as strings; every key is there in a
+    run's own metadata, an older ``run.json`` may lack some)."""
+
+    recipe: str
+    out: str
+    scenarios: list[ScenarioMeta]
+    starts_per_set: int
+    workers: int
+    methods: list[str]
+    landscape_scenario: str | None
+    landscape_grid: int
+    landscape_translation_m: float
+    landscape_rotation_deg: float
+    ablation_scenarios: list[str]
+    ablation_starts: int
+    ablation_variants: list[str]
+    shape_ablation_variants: list[str]
+    sets: list[str]
+    perturbed_methods: list[str] | None
+    seed: int
+    round_starts: int
+    deadline: float | None
+    quick: bool
+    command: str
+
+
+class RunMeta(TypedDict, total=False):
+    """A bench run's metadata, ``run.json`` (:func:`calstation.bench.runner.run_bench`)."""
+
+    config: ConfigMeta
+    command: str
+    git_commit: str
+    python: str
+    platform: str
+    cpu_count: int | None
+    started_utc: str
+    finished_utc: str
+    phases_s: dict[str, float]
+    starts_completed: int
+    cut_by_deadline: bool
+    load_start: float | None
+    load_end: float | None
+    previous_runs: list[RunMeta]
+    wall_s: float
+    wall_s_total: float
+    records: int
 
 
 @dataclass(frozen=True)
@@ -124,12 +184,33 @@ class BenchConfig:
             command=command,
         )
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> ConfigMeta:
         """JSON-ready description (paths as strings, scenarios as dicts)."""
-        d = asdict(self)
-        d["recipe"] = str(self.recipe)
-        d["out"] = str(self.out)
-        return d
+        return {
+            "recipe": str(self.recipe),
+            "out": str(self.out),
+            "scenarios": [{"name": s.name, "range_m": s.range_m, "pitch_deg": s.pitch_deg,
+                           "seed": s.seed} for s in self.scenarios],
+            "starts_per_set": self.starts_per_set,
+            "workers": self.workers,
+            "methods": list(self.methods),
+            "landscape_scenario": self.landscape_scenario,
+            "landscape_grid": self.landscape_grid,
+            "landscape_translation_m": self.landscape_translation_m,
+            "landscape_rotation_deg": self.landscape_rotation_deg,
+            "ablation_scenarios": list(self.ablation_scenarios),
+            "ablation_starts": self.ablation_starts,
+            "ablation_variants": list(self.ablation_variants),
+            "shape_ablation_variants": list(self.shape_ablation_variants),
+            "sets": list(self.sets),
+            "perturbed_methods": (None if self.perturbed_methods is None
+                                  else list(self.perturbed_methods)),
+            "seed": self.seed,
+            "round_starts": self.round_starts,
+            "deadline": self.deadline,
+            "quick": self.quick,
+            "command": self.command,
+        }
 
 
 @dataclass(frozen=True)
@@ -146,7 +227,7 @@ class Task:
     start: tuple[float, ...] | None = None
     variant: str = "default"
     overrides: str = "{}"  # JSON recipe overrides
-    landscape: dict[str, Any] = field(default_factory=dict)
+    landscape: LandscapeSpec = field(default_factory=LandscapeSpec)
 
 
 def scenario_dir(config: BenchConfig, scenario: Scenario) -> Path:
@@ -170,7 +251,7 @@ def finetune_tasks(
     indices: range,
     include_init: bool = True,
     variant: str = "default",
-    overrides: dict[str, Any] | None = None,
+    overrides: Mapping[str, object] | None = None,
     sets: Sequence[str] = ("A", "B"),
 ) -> list[Task]:
     """Fine-tuning tasks, ordered by scenario so each worker reads a scenario once: from the

@@ -14,12 +14,16 @@ import os
 import time
 import traceback
 import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, cast
 
 from calstation.bench import BenchError
 from calstation.bench.landscape import run_landscape_row
 from calstation.bench.records import (
+    BenchRecord,
+    Measured,
     _h_dict,
     _jsonable,
     against_truth,
@@ -30,9 +34,37 @@ from calstation.bench.records import (
 from calstation.bench.scenarios import load_truth, paper_scenarios, simulate_scenario
 from calstation.bench.tasks import Task
 from calstation.engine.frames import Extrinsics
+from calstation.jsonvalue import JSONObject
 from calstation.plugins.cost_strategies import strategy_result
 
-_WORKER: dict[str, Any] = {}
+if TYPE_CHECKING:
+    from calstation.pipeline import Turned
+    from calstation.recipes import LoadedRecipe, Recipe
+    from calstation.recordings.recorded import Recording
+
+
+@dataclass
+class _Worker:
+    """What a worker process keeps between tasks: the recipe, its overridden copies, and the
+    current scenario's recordings, truth and prepared scans."""
+
+    recipe_path: Path
+    loaded: LoadedRecipe
+    recipes: dict[str, Recipe] = field(default_factory=dict)
+    directory: str | None = None
+    recordings: dict[str, Recording] = field(default_factory=dict)
+    truth: Extrinsics | None = None
+    prepared: dict[str, Turned] = field(default_factory=dict)
+
+    def scenario(self, directory: str) -> None:
+        """Forget the previous scenario's data when a task of another one arrives."""
+        if self.directory != directory:
+            self.recordings, self.truth, self.prepared = {}, None, {}
+            self.directory = directory
+
+
+_STATE: list[_Worker] = []
+"""This worker's state (one element once :func:`_init_worker` ran)."""
 
 
 def _init_worker(recipe_path: str) -> None:
@@ -42,65 +74,72 @@ def _init_worker(recipe_path: str) -> None:
     from calstation import plugins
     from calstation.recipes import load_recipe
 
-    _WORKER.clear()
-    _WORKER["recipe_path"] = Path(recipe_path)
-    _WORKER["loaded"] = load_recipe(recipe_path)
-    _WORKER["cache_dir"] = None
-    _WORKER["cache"] = {}
+    _STATE[:] = [_Worker(Path(recipe_path), load_recipe(recipe_path))]
     plugins.load_plugins()
 
 
-def _recording(directory: str, which: str) -> Any:
+def _worker() -> _Worker:
+    if not _STATE:
+        raise BenchError("the bench worker was not initialised")
+    return _STATE[0]
+
+
+def _recording(directory: str, which: str) -> Recording:
     """The scenario's ``which`` recording ("static" | "spin" | "cube"), read once per worker and
     kept until a task of another scenario arrives."""
     from calstation.recordings.reader import read_recording
 
-    if _WORKER["cache_dir"] != directory:
-        _WORKER["cache"] = {}
-        _WORKER["cache_dir"] = directory
-    cache: dict[str, Any] = _WORKER["cache"]
-    if which not in cache:
-        if which == "truth":
-            cache[which] = load_truth(Path(directory) / "truth.json")
-        else:
-            cache[which] = read_recording(Path(directory) / f"{which}.mcap")
-    return cache[which]
+    state = _worker()
+    state.scenario(directory)
+    if which not in state.recordings:
+        state.recordings[which] = read_recording(Path(directory) / f"{which}.mcap")
+    return state.recordings[which]
 
 
-def _prepared(directory: str, which: str) -> Any:
+def _truth(directory: str) -> Extrinsics:
+    """The scenario's true H (its ``truth.json``), read once per worker like the recordings."""
+    state = _worker()
+    state.scenario(directory)
+    if state.truth is None:
+        state.truth = load_truth(Path(directory) / "truth.json")
+    return state.truth
+
+
+def _prepared(directory: str, which: str) -> Turned:
     """The scenario's ``which`` spin scan ("spin" | "cube") with its returns prepared
-    (:func:`calstation.pipeline.turned`), made once per worker and kept with the recordings."""
+    (:func:`calstation.pipeline.turned`, of the whole recording: its ``recording`` is set), made
+    once per worker and kept with the recordings."""
     from calstation.pipeline import turned
 
-    _recording(directory, which)  # a new scenario empties the cache first
-    cache: dict[str, Any] = _WORKER["cache"]
-    key = f"prepared:{which}"
-    if key not in cache:
-        cache[key] = turned(_recording(directory, which))
-    return cache[key]
+    recording = _recording(directory, which)  # a new scenario empties the cache first
+    state = _worker()
+    if which not in state.prepared:
+        state.prepared[which] = turned(recording)
+    return state.prepared[which]
 
 
-def _recipe(overrides: str) -> Any:
+def _recipe(overrides: str) -> Recipe:
     """The recipe model, with JSON ``overrides`` deep-merged in and validated."""
-    base = _WORKER["loaded"].recipe
+    state = _worker()
+    base = state.loaded.recipe
     patch = json.loads(overrides)
     if not patch:
         return base
-    key = f"recipe:{overrides}"
-    if key not in _WORKER:
-        _WORKER[key] = apply_overrides(base, patch)
-    return _WORKER[key]
+    if overrides not in state.recipes:
+        state.recipes[overrides] = apply_overrides(base, patch)
+    return state.recipes[overrides]
 
 
-def apply_overrides(recipe: Any, patch: dict[str, Any]) -> Any:
+def apply_overrides(recipe: Recipe, patch: Mapping[str, object]) -> Recipe:
     """A copy of the recipe model with ``patch`` (nested mapping) deep-merged in, re-validated
     (so a misspelled setting is an error, not silently ignored)."""
     from calstation.recipes import Recipe
 
-    def merge(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    def merge(a: Mapping[str, object], b: Mapping[str, object]) -> dict[str, object]:
         out = dict(a)
         for k, v in b.items():
-            out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+            below = out.get(k)
+            out[k] = merge(below, v) if isinstance(v, dict) and isinstance(below, dict) else v
         return out
 
     try:
@@ -109,10 +148,10 @@ def apply_overrides(recipe: Any, patch: dict[str, Any]) -> Any:
         raise BenchError(f"recipe override {patch!r} is invalid: {exc}") from None
 
 
-def run_task(task: Task) -> dict[str, Any]:
+def run_task(task: Task) -> BenchRecord:
     """Run one task in a worker; never raises: a failure becomes a record with status "failed"
     and the error message."""
-    record: dict[str, Any] = {
+    record: BenchRecord = {
         "id": task.id,
         "kind": task.kind,
         "scenario": task.scenario,
@@ -122,7 +161,7 @@ def run_task(task: Task) -> dict[str, Any]:
         "variant": task.variant,
     }
     if task.kind == "basin":  # kept with a refused start too: it counts as not converged
-        record.update(group=task.landscape["group"], level=task.landscape["level"])
+        record["group"], record["level"] = task.landscape["group"], task.landscape["level"]
     t0 = time.perf_counter()
     try:
         if task.kind == "simulate":
@@ -148,15 +187,16 @@ def run_task(task: Task) -> dict[str, Any]:
     record["wall_s"] = time.perf_counter() - t0
     if task.kind in ("initial", "finetune", "basin"):
         record["converged"] = converged(task.method, record)
-    return _jsonable(record)  # type: ignore[no-any-return]
+    # cast: _jsonable keeps the record's keys and shapes, it only makes its numbers JSON-safe
+    return cast("BenchRecord", _jsonable(record))
 
 
-def _run_simulate(task: Task, record: dict[str, Any]) -> None:
+def _run_simulate(task: Task, record: BenchRecord) -> None:
     scenario = next(s for s in paper_scenarios() if s.name == task.scenario)
-    simulate_scenario(_WORKER["recipe_path"], scenario, Path(task.directory))
+    simulate_scenario(_worker().recipe_path, scenario, Path(task.directory))
 
 
-def _run_initial(task: Task, record: dict[str, Any]) -> None:
+def _run_initial(task: Task, record: BenchRecord) -> None:
     from calstation.engine.initial import initial_calibration
 
     recipe = _recipe(task.overrides)
@@ -167,11 +207,11 @@ def _run_initial(task: Task, record: dict[str, Any]) -> None:
     record.update(result_fields(result))
     record.update(_evaluate(task.directory, result.H, recipe))
     # the cube checked with the true H: the floor of the paper's metric on this sensor
-    truth = _recording(task.directory, "truth")
+    truth = _truth(task.directory)
     record["truth_cube"] = _cube_check(task.directory, truth, recipe)
 
 
-def _run_finetune(task: Task, record: dict[str, Any]) -> None:
+def _run_finetune(task: Task, record: BenchRecord) -> None:
     from calstation import plugins
 
     recipe = _recipe(task.overrides)
@@ -187,7 +227,7 @@ def _run_finetune(task: Task, record: dict[str, Any]) -> None:
     record.update(_evaluate(task.directory, result.H, recipe))
 
 
-def _run_basin(task: Task, record: dict[str, Any]) -> None:
+def _run_basin(task: Task, record: BenchRecord) -> None:
     """Fine-tune from the task's start (:mod:`calstation.bench.basin`); the estimate, its σ and
     its errors against the truth."""
     from calstation import plugins
@@ -200,44 +240,50 @@ def _run_basin(task: Task, record: dict[str, Any]) -> None:
     result = strategy_result(strategy, scan.recording, Extrinsics(*task.start), recipe,
                              prepared=scan.prepared)
     record.update({"stage_s": time.perf_counter() - t0, **result_fields(result)})
-    record.update(against_truth(result.H, _recording(task.directory, "truth")))
+    record.update(against_truth(result.H, _truth(task.directory)))
 
 
-def _evaluate(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
+def _evaluate(directory: str, H: Extrinsics, recipe: Recipe) -> BenchRecord:
     """Everything measured about an estimate ``H``: errors against the truth, axis errors, the
     paper's cube check on the QA-cube scan, and the reconstruction distortion of that scan. A
     measurement that fails is recorded as ``{"failed": message}``; the estimate stays valid."""
-    truth: Extrinsics = _recording(directory, "truth")
+    truth = _truth(directory)
     cube = _prepared(directory, "cube")
-    out = against_truth(H, truth)
+    against = against_truth(H, truth)
     t0 = time.perf_counter()
-    out["cube"] = _cube_check(directory, H, recipe)
+    cube_check = _cube_check(directory, H, recipe)
     t1 = time.perf_counter()
+    distortion: Measured
     try:
         from calstation.engine.metrics import reconstruction_distortion
 
-        out["distortion"] = {
+        assert cube.recording is not None  # a whole recording, prepared
+        distortion = {
             k: float(v) for k, v in reconstruction_distortion(
                 cube.recording, H, truth, prepared=cube.prepared).items()
         }
     except Exception as exc:
-        out["distortion"] = {"failed": f"{type(exc).__name__}: {exc}"}
+        distortion = {"failed": f"{type(exc).__name__}: {exc}"}
     t2 = time.perf_counter()
-    out["eval_timings"] = {"cube_check_s": t1 - t0, "distortion_s": t2 - t1}
-    return out
+    against["cube"], against["distortion"] = cube_check, distortion
+    against["eval_timings"] = {"cube_check_s": t1 - t0, "distortion_s": t2 - t1}
+    return against
 
 
-def _cube_check(directory: str, H: Extrinsics, recipe: Any) -> dict[str, Any]:
+def _cube_check(directory: str, H: Extrinsics, recipe: Recipe) -> JSONObject:
     """The engine's cube check of the scenario's QA-cube scan with ``H``, as a plain mapping
     (``{"failed": message}`` if the cube could not be measured)."""
     try:
         from calstation.engine.cube import check_cube
 
         cube = _prepared(directory, "cube")
+        assert cube.recording is not None  # a whole recording, prepared
         check = check_cube(
             cube.recording, H, recipe.fixtures.qa_cube, recipe.qa,
             platter_radius=recipe.fixtures.platter.radius, prepared=cube.prepared,
         )
-        return _jsonable(check.to_dict())  # type: ignore[no-any-return]
+        plain = _jsonable(check.to_dict())
+        assert isinstance(plain, dict)  # the check's fields by name
+        return plain
     except Exception as exc:
         return {"failed": f"{type(exc).__name__}: {exc}"}

@@ -7,9 +7,20 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import typer
+
+from calstation.jsonvalue import JSONValue
+
+if TYPE_CHECKING:
+    from types import TracebackType
+
+    from rich.console import Console
+    from rich.status import Status
+
+    from calstation.bench.plan import ByTurns, Plan
+    from calstation.recipes import LoadedRecipe
 
 
 def register(app: typer.Typer) -> None:
@@ -65,12 +76,12 @@ class PlanProgress:
 
     every_s = 30.0
 
-    def __init__(self, console: Any) -> None:
+    def __init__(self, console: Console) -> None:
         self.console = console
         self.what, self.fraction = "starting", 0.0
         self._t0 = time.monotonic()
         self._stop = threading.Event()
-        self._status: Any = None
+        self._status: Status | None = None
 
     def __call__(self, message: str, fraction: float) -> None:
         """The plan's ``progress`` callback."""
@@ -107,18 +118,19 @@ class PlanProgress:
         threading.Thread(target=self._beat, daemon=True, name="calstation-plan-progress").start()
         return self
 
-    def __exit__(self, *exc: object) -> None:
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
         self._stop.set()
         if self._status is not None:
-            self._status.__exit__(*exc)
-        if exc[0] is None:
+            self._status.__exit__(kind, exc, tb)
+        if kind is None:
             from calstation import display
 
             self.console.print(f"planned in {display.duration(time.monotonic() - self._t0)}",
                                highlight=False)
 
 
-def _loaded(path: Path, overrides: list[str]) -> Any:
+def _loaded(path: Path, overrides: list[str]) -> LoadedRecipe:
     """The recipe with ``--set`` overrides applied (validated as a recipe)."""
     import yaml
 
@@ -143,17 +155,19 @@ def _loaded(path: Path, overrides: list[str]) -> Any:
     return LoadedRecipe(parse_recipe(text, f"{path} with --set", path.parent), path, text)
 
 
-def _plain(value: Any) -> Any:
+def _plain(value: object) -> JSONValue:
+    """The plan as JSON: a number that is not finite is null."""
     if isinstance(value, dict):
         return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, list):
         return [_plain(v) for v in value]
     if isinstance(value, float) and not math.isfinite(value):
         return None
+    assert isinstance(value, str | int | float | bool) or value is None  # the plan's leaves
     return value
 
 
-def _print(result: dict[str, Any]) -> None:
+def _print(result: Plan) -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -191,7 +205,7 @@ def _print(result: dict[str, Any]) -> None:
         console.print(f"[green]→[/] {line}", highlight=False)
 
 
-def _print_range(console: Any, rows: list[dict[str, Any]]) -> None:
+def _print_range(console: Console, rows: list[ByTurns]) -> None:
     """The σ of the lidar's range terms (from the QA cube's scan) per number of turns, or why
     the recipe cannot measure them."""
     for row in rows:
