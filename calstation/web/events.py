@@ -190,6 +190,8 @@ class EventStream(Response):
                 await chunk(body)
                 await chunk(clock_event())
                 quiet_since = time.monotonic()
+                # the station's holders, read again while the run keeps the stream busy too
+                await hub.tick()
                 # coalesce bursts (progress, lidar lines): a page needs a few frames a second
                 await asyncio.sleep(limits.event_min_period_s)
                 continue
