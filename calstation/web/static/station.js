@@ -31,6 +31,12 @@
   // "12 s", "2 min 05 s": the pages' one copy of calstation.display.duration (status.js)
   var duration = window.calstationStatus.duration;
 
+  // writes only where something changed: a text, class or flag written again unchanged still
+  // costs the browser a style pass, a layout and a paint, a few times a second for the run
+  function setText(el, text) { if (el.textContent !== text) { el.textContent = text; } }
+  function setHidden(el, hidden) { if (el.hidden !== hidden) { el.hidden = hidden; } }
+  function setClass(el, cls) { if (el.className !== cls) { el.className = cls; } }
+
   // a new run: nothing of the previous one stays on the page (its end screen, log, plot, steps)
   function resetRun(s) {
     $("result").hidden = true;
@@ -65,9 +71,19 @@
   var skew = 0;
   function tickElapsed() {
     var el = $("run-elapsed");
-    if (!state.started_at) { el.textContent = "—"; return; }
+    if (!state.started_at) { setText(el, "—"); return; }
     var end = state.finished_at || (Date.now() / 1000 + skew);
-    el.textContent = duration(end - state.started_at);
+    setText(el, duration(end - state.started_at));
+  }
+
+  // every clock of the page (elapsed, the running step's time, how long the station has been
+  // held) in one pass, so that a second's change of them all is one frame
+  function tickClocks() {
+    tickElapsed();
+    var running = document.querySelector("#steps li.running .seconds");
+    var st = state.steps.filter(function (x) { return x.status === "running"; })[0];
+    if (running && st && st.started_at) { setText(running, " " + duration(Date.now() / 1000 + skew - st.started_at)); }
+    if (window.calstationStatus) { window.calstationStatus.tick(); }
   }
 
   function renderLog(lines) {
@@ -117,32 +133,32 @@
     if (s.run_id !== previous.run_id || (s.busy && !previous.busy)) { resetRun(s); }
     app.setAttribute("data-status", s.status);
     app.setAttribute("data-version", String(s.version));
-    $("start").hidden = s.busy;
-    $("run").hidden = s.status === "idle";
-    $("run-id").textContent = s.run_id || "";
-    $("run-status").textContent = s.status;
-    $("run-status").className = "status " + s.status;
-    $("run-recipe").textContent = s.recipe || "";
-    $("run-operator").textContent = s.operator || "";
-    $("run-serial").textContent = s.serial || "from the lidar";
+    setHidden($("start"), s.busy);
+    setHidden($("run"), s.status === "idle");
+    setText($("run-id"), String(s.run_id || ""));
+    setText($("run-status"), s.status);
+    setClass($("run-status"), "status " + s.status);
+    setText($("run-recipe"), s.recipe || "");
+    setText($("run-operator"), s.operator || "");
+    setText($("run-serial"), s.serial || "from the lidar");
     tickElapsed();
     renderLog(s.log || []);
     s.steps.forEach(function (st) {
       var li = document.querySelector('#steps li[data-step="' + st.name + '"]');
       if (!li) { return; }
-      li.className = st.status + (st.name === s.step && s.busy ? " current" : "");
-      li.querySelector(".attempt").textContent = st.attempt > 1 ? " (attempt " + st.attempt + ")" : "";
+      setClass(li, st.status + (st.name === s.step && s.busy ? " current" : ""));
+      setText(li.querySelector(".attempt"), st.attempt > 1 ? " (attempt " + st.attempt + ")" : "");
       var secs = st.seconds;
       if (st.status === "running" && st.started_at) { secs = Date.now() / 1000 + skew - st.started_at; }
-      li.querySelector(".seconds").textContent = secs === null || secs === undefined ? "" : " " + duration(secs);
+      setText(li.querySelector(".seconds"), secs === null || secs === undefined ? "" : " " + duration(secs));
     });
-    $("abort-button").hidden = !s.busy;
+    setHidden($("abort-button"), !s.busy);
     renderPrompt(s.prompt);
     var p = s.progress;
-    $("progress").hidden = !p || !s.busy || !!s.prompt;
+    setHidden($("progress"), !p || !s.busy || !!s.prompt);
     if (p) {
-      $("progress-text").textContent = p.title + (p.phase ? ": " + p.phase : "") + " — " + Math.round(p.fraction * 100) + " %";
-      $("progress-bar").value = p.fraction;
+      setText($("progress-text"), p.title + (p.phase ? ": " + p.phase : "") + " — " + Math.round(p.fraction * 100) + " %");
+      if ($("progress-bar").value !== p.fraction) { $("progress-bar").value = p.fraction; }
     }
     renderStations(s.stations);
     renderLine(s.line, s.outline, s.busy);
@@ -158,19 +174,19 @@
   function renderAccuracy(points, busy) {
     var box = $("accuracy-live");
     if (!box) { return; }
-    box.hidden = !busy || points.length === 0;
+    setHidden(box, !busy || points.length === 0);
     if (box.hidden) { return; }
     // the words and numbers are the server's (calstation.display); the page only joins them
     var last = points[points.length - 1];
-    box.textContent = "predicted error of the " + last.scan.replace("_", " ") + " after " +
-      points.map(function (a) { return a.text; }).join(", ") + " (budget " + last.budget_text + ")";
-    box.className = last.within ? "ok" : "pending";
+    setText(box, "predicted error of the " + last.scan.replace("_", " ") + " after " +
+      points.map(function (a) { return a.text; }).join(", ") + " (budget " + last.budget_text + ")");
+    setClass(box, last.within ? "ok" : "pending");
   }
 
   function renderPrompt(p) {
     var box = $("prompt");
-    if (!p) { box.hidden = true; box.removeAttribute("data-prompt"); return; }
-    box.hidden = false;
+    if (!p) { setHidden(box, true); box.removeAttribute("data-prompt"); return; }
+    setHidden(box, false);
     if (box.getAttribute("data-prompt") === String(p.id)) { return; }
     box.setAttribute("data-prompt", String(p.id));
     box.setAttribute("data-kind", p.kind);
@@ -208,8 +224,8 @@
 
   function renderLine(line, outline, busy) {
     var el = $("line-plot");
-    if (!line || !busy) { el.hidden = true; return; }
-    el.hidden = false;
+    if (!line || !busy) { setHidden(el, true); return; }
+    setHidden(el, false);
     if (!shown(el)) { return; }
     var key = String(line.seq) + "/" + (outline ? outline.source + "/" + outline.platter_angle_deg + "/" + outline.lines.length : "");
     if (el.getAttribute("data-key") === key) { return; }
@@ -267,12 +283,14 @@
       el.appendChild(sub);
       el.appendChild(canvas);
     }
-    head.textContent = title;
-    sub.textContent = subtitle;
-    sub.className = "line-subtitle" + (warn ? " warn" : "");
-    canvas.width = width;
-    canvas.height = height;
+    setText(head, title);
+    setText(sub, subtitle);
+    setClass(sub, "line-subtitle" + (warn ? " warn" : ""));
+    // a new size only when the plot's width changed (a new size is a new bitmap)
+    if (canvas.width !== width) { canvas.width = width; }
+    if (canvas.height !== height) { canvas.height = height; }
     var ctx = canvas.getContext("2d");
+    ctx.save();
     ctx.fillStyle = "#ffffff";
     ctx.fillRect(0, 0, width, height);
     var left = 58, right = 12, top = 8, bottom = 38;
@@ -334,6 +352,7 @@
       ctx.stroke();
     }
     ctx.restore();
+    ctx.restore();
   }
 
   // the scan's cloud under the calibration known so far, growing as the platter turns: only
@@ -342,12 +361,13 @@
   // a second while it is shown, which without a graphics processor costs the run more than the
   // whole page otherwise does (the report has the 3D view to turn)
   var CLOUD_PERIOD_MS = 3000;
+  var CLOUD_SHADES = 24;  // colours of the height scale
   var cloud = {id: null, n: 0, shown: 0, title: "", fetching: false, drawn: 0, timer: null,
                x: [], y: [], z: []};
   function renderCloud(meta) {
     var el = $("cloud-plot");
-    if (!meta) { el.hidden = true; return; }
-    el.hidden = false;
+    if (!meta) { setHidden(el, true); return; }
+    setHidden(el, false);
     if (meta.id !== cloud.id) { resetCloud(meta.id); }
     if (!shown(el)) { return; }
     if (cloud.n > cloud.shown) { drawCloud(el); }  // fetched while it could not be seen
@@ -436,10 +456,20 @@
     var vmin = Math.min.apply(null, v), vmax = Math.max.apply(null, v);
     var scale = Math.min((width - 60) / Math.max(1, umax - umin), (height - 50) / Math.max(1, vmax - vmin));
     var ox = (width - (umax - umin) * scale) / 2, oy = (height - (vmax - vmin) * scale) / 2;
+    // the points by height in CLOUD_SHADES bands, each band drawn in one colour at once
+    var bands = [];
+    for (i = 0; i < CLOUD_SHADES; i++) { bands.push([]); }
     for (i = 0; i < cloud.n; i++) {
-      ctx.fillStyle = colour((cloud.x[i] - lo) / Math.max(1e-9, hi - lo));
-      ctx.fillRect(ox + (u[i] - umin) * scale, oy + (v[i] - vmin) * scale, 2, 2);
+      var t = (cloud.x[i] - lo) / Math.max(1e-9, hi - lo);
+      bands[Math.min(CLOUD_SHADES - 1, Math.floor(t * CLOUD_SHADES))].push(i);
     }
+    bands.forEach(function (band, k) {
+      if (!band.length) { return; }
+      ctx.fillStyle = colour((k + 0.5) / CLOUD_SHADES);
+      ctx.beginPath();
+      band.forEach(function (j) { ctx.rect(ox + (u[j] - umin) * scale, oy + (v[j] - vmin) * scale, 2, 2); });
+      ctx.fill();
+    });
     // the axes' directions, bottom left, inside the picture
     var ax = 52, ay = height - 26;
     ctx.strokeStyle = "#57606a";
@@ -492,12 +522,7 @@
     if (remembered && !$("operator").value) { $("operator").value = remembered; }
   } catch (e) { /* private mode */ }
   window.setInterval(function () {
-    if (state.busy) {
-      tickElapsed();
-      var running = document.querySelector("#steps li.running .seconds");
-      var st = state.steps.filter(function (x) { return x.status === "running"; })[0];
-      if (running && st && st.started_at) { running.textContent = " " + duration(Date.now() / 1000 + skew - st.started_at); }
-    }
+    if (!document.hidden) { tickClocks(); }
   }, 1000);
 
   // the server renders the first state (its clock is the server's at that moment); prompts

@@ -24,7 +24,8 @@
   function tick() {
     if (!box) { return; }
     box.querySelectorAll(".age[data-since]").forEach(function (el) {
-      el.textContent = "(" + duration(Date.now() / 1000 + skew - Number(el.getAttribute("data-since"))) + ")";
+      var text = "(" + duration(Date.now() / 1000 + skew - Number(el.getAttribute("data-since"))) + ")";
+      if (el.textContent !== text) { el.textContent = text; }  // unchanged: no layout, no paint
     });
   }
 
@@ -55,8 +56,9 @@
     document.dispatchEvent(new CustomEvent("calstation:stations", {detail: shown}));
   }
 
+  // on the operator page (``live``) station.js ticks these clocks with its own, in one pass
   window.calstationStatus = {render: render, duration: duration, stations: function () { return shown; },
-                             setSkew: function (s) { skew = s; tick(); }};
+                             setSkew: function (s) { skew = s; tick(); }, tick: tick};
 
   if (!box) { return; }
   function poll() {
@@ -67,6 +69,6 @@
       .catch(function () { /* the next tick tries again */ });
   }
   window.setInterval(poll, 5000);
-  window.setInterval(function () { if (!document.hidden) { tick(); } }, 1000);
+  window.setInterval(function () { if (!document.hidden && !window.calstationStatus.live) { tick(); } }, 1000);
   document.addEventListener("visibilitychange", function () { if (!document.hidden) { poll(); } });
 })();
