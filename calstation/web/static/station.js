@@ -86,6 +86,19 @@
     if (window.calstationStatus) { window.calstationStatus.tick(); }
   }
 
+  // the clocks tick a second after they were last drawn: a running scan's states (twice a
+  // second) carry them along in their own frames, and only a quiet page (a prompt) draws a
+  // frame a second for its clocks alone
+  var clockTimer = null;
+  function armClocks() {
+    if (clockTimer) { window.clearTimeout(clockTimer); }
+    clockTimer = window.setTimeout(function () {
+      clockTimer = null;
+      if (!document.hidden) { tickClocks(); }
+      armClocks();
+    }, 1000);
+  }
+
   function renderLog(lines) {
     var list = $("log");
     var last = lines.length ? lines[lines.length - 1].text : null;
@@ -141,7 +154,6 @@
     setText($("run-recipe"), s.recipe || "");
     setText($("run-operator"), s.operator || "");
     setText($("run-serial"), s.serial || "from the lidar");
-    tickElapsed();
     renderLog(s.log || []);
     s.steps.forEach(function (st) {
       var li = document.querySelector('#steps li[data-step="' + st.name + '"]');
@@ -164,6 +176,8 @@
     renderLine(s.line, s.outline, s.busy);
     renderCloud(s.busy ? s.cloud : null);
     renderAccuracy(s.accuracy || [], s.busy);
+    tickClocks();
+    armClocks();
     if (previous.busy && !s.busy) {
       // the run ended: the end screen (values beside their limits) is rendered by the server
       window.location.reload();
@@ -521,10 +535,6 @@
     var remembered = window.localStorage.getItem("calstation-operator");
     if (remembered && !$("operator").value) { $("operator").value = remembered; }
   } catch (e) { /* private mode */ }
-  window.setInterval(function () {
-    if (!document.hidden) { tickClocks(); }
-  }, 1000);
-
   // the server renders the first state (its clock is the server's at that moment); prompts
   // shown on reload need their id
   if (state.now) { skew = state.now - Date.now() / 1000; }
