@@ -34,7 +34,14 @@ class Mutation:
     old: str
     new: str
     tests: tuple[str, ...]
+    browser: bool = False
+    """the tests drive chromium (run with ``-m browser``)"""
 
+
+PAGES = "tests/test_page_defects.py"
+VOCABULARY = "tests/test_one_vocabulary.py"
+PROMPTS = "tests/test_terminal_prompts.py"
+LIVE_PAGE = "tests/test_live_page_browser.py"
 
 MUTATIONS = (
     Mutation(
@@ -176,6 +183,168 @@ MUTATIONS = (
         "out[:, :, k] = 0.0",
         ("tests/test_rangemodel.py",),
     ),
+    # the operator's and the QA engineer's pages, the terminal's prompts
+    Mutation(
+        "prompt-any-answer",
+        "the terminal's placement prompt takes an unlisted answer (x, exit) as continue",
+        "calstation/cli/_operator.py",
+        '            shown = f"“{escape(typed.strip()[:40])}”" if typed.strip() else '
+        '"An empty line"\n',
+        "            return go\n",
+        (f"{PROMPTS}::test_a_placement_prompt_moves_nothing_until_continue",),
+    ),
+    Mutation(
+        "prompt-eof-goes-on",
+        "the end of the input at a placement prompt taken as continue",
+        "calstation/cli/_operator.py",
+        '            except EOFError:\n                return "abort"\n',
+        "            except EOFError:\n                return go\n",
+        (f"{PROMPTS}::test_end_of_input_at_a_prompt_aborts",),
+    ),
+    Mutation(
+        "progress-clock-stops",
+        "a step's progress bar completed by its first phase (its clock stops at 0:00:00)",
+        "calstation/cli/_operator.py",
+        "completed=max(0.0, min(UNFINISHED, float(fraction))),",
+        "completed=max(0.0, min(1.0, float(fraction))),",
+        (f"{PROMPTS}::test_a_steps_progress_bar_counts_its_time_through_all_its_phases",),
+    ),
+    Mutation(
+        "trends-unit",
+        "/trends.json labels its values (metres) with the unit shown (mm)",
+        "calstation/storage/qa.py",
+        'return {"station": station, "param": param, "unit": display.quantity(param).stored,',
+        'return {"station": station, "param": param, "unit": display.quantity(param).unit,',
+        (f"{VOCABULARY}::test_one_parameter_of_one_run_is_one_value_in_one_unit_everywhere",),
+    ),
+    Mutation(
+        "compare-held",
+        "/compare computes a difference for a parameter one run did not estimate",
+        "calstation/storage/qa.py",
+        "diff = None if va is None or vb is None or held_a or held_b else vb - va",
+        "diff = None if va is None or vb is None else vb - va",
+        (f"{VOCABULARY}::test_a_parameter_not_estimated_reads_so_everywhere_and_is_never_flagged",),
+    ),
+    Mutation(
+        "compare-noise",
+        "/compare flags a difference within the two runs' 3σ",
+        "calstation/storage/qa.py",
+        "and abs(diff) > max(limit, noise)})",
+        "and abs(diff) > limit})",
+        (f"{VOCABULARY}::test_a_parameter_not_estimated_reads_so_everywhere_and_is_never_flagged",),
+    ),
+    Mutation(
+        "not-estimated",
+        "a held parameter (no σ, zero) read as estimated: 0.0000 instead of not estimated",
+        "calstation/display.py",
+        "return no_sigma and (value is None or value == 0.0)",
+        "return False",
+        (f"{VOCABULARY}::test_a_parameter_not_estimated_reads_so_everywhere_and_is_never_flagged",
+         f"{PAGES}::test_the_terminal_summary_says_1_turn_and_not_estimated"),
+    ),
+    Mutation(
+        "duration-raw",
+        "durations of a minute or more shown as raw seconds (130.72)",
+        "calstation/display.py",
+        'return f"{whole // 60} min {whole % 60:02d} s"',
+        'return f"{s:.2f}"',
+        (f"{VOCABULARY}::test_the_formatter",
+         f"{PAGES}::test_the_run_page_names_steps_in_words_and_times_for_people"),
+    ),
+    Mutation(
+        "count-plural",
+        "counts always plural (1 turns)",
+        "calstation/display.py",
+        'word = noun if n == 1 else (plural or f"{noun}s")',
+        'word = plural or f"{noun}s"',
+        (f"{PAGES}::test_the_terminal_summary_says_1_turn_and_not_estimated",),
+    ),
+    Mutation(
+        "placement-60mm",
+        "the spin target's placement prompt says 60 mm whatever the recipe says",
+        "calstation/station/operator.py",
+        "where = (f\"its centre {display.number('distance', math.hypot(*offset))} from the axis \"",
+        "where = (f\"its centre about 60 mm from the axis \"",
+        (f"{VOCABULARY}::test_the_placement_prompts_say_what_the_recipe_and_its_drawing_say",),
+    ),
+    Mutation(
+        "pareto-abort-red",
+        "an operator's abort drawn as a failure in the Pareto",
+        "calstation/storage/dashboard_figures.py",
+        '"marker": {"color": [ABORTED if r["status"] == "aborted" else FLAG for r in rows]},',
+        '"marker": {"color": [FLAG for r in rows]},',
+        (f"{PAGES}::test_an_abort_is_not_a_failure_in_the_pareto_and_its_ticks_are_round",),
+    ),
+    Mutation(
+        "chart-drift-scale",
+        "a control chart scaled to the drift limit (its points collapse into one line)",
+        "calstation/storage/dashboard_figures.py",
+        "    window = (lo - pad, hi + pad)\n",
+        '    window = (min(lo, (lim["centre"] - (lim["limit"] or 0.0)) * k) - pad,\n'
+        '              max(hi, (lim["centre"] + (lim["limit"] or 0.0)) * k) + pad)\n',
+        (f"{PAGES}::test_a_control_chart_is_scaled_to_its_points_not_to_the_drift_limit",),
+    ),
+    Mutation(
+        "live-times",
+        "the live header and steps keep their own clock at the run's end, not the database's",
+        "calstation/web/live.py",
+        "                _times_as_stored(st, result)\n",
+        "                pass\n",
+        (f"{PAGES}::test_the_live_header_steps_and_end_screen_agree_on_the_times",),
+    ),
+    Mutation(
+        "log-raw-step",
+        "the page log names a step by its key (place_qa_cube)",
+        "calstation/web/live.py",
+        "self.live.add_log(\"info\", f\"▶ {step_title(d['step'])}\"",
+        "self.live.add_log(\"info\", f\"▶ {d['step']}\"",
+        (f"{PAGES}::test_the_page_log_names_steps_in_words",),
+    ),
+    Mutation(
+        "end-screen-no-limit",
+        "the end screen writes ≤ — for a cube figure without a limit",
+        "calstation/web/templates/result.html",
+        "{% if c.limit is not none %}",
+        "{% if true %}",
+        (f"{PAGES}::test_the_end_screen_shows_no_limit_where_there_is_none_and_no_red_on_a_pass",),
+    ),
+    Mutation(
+        "stream-no-tick",
+        "the event stream reads the station locks only in a quiet moment (never during a scan)",
+        "calstation/web/events.py",
+        "                await hub.tick()\n                # coalesce bursts",
+        "                # coalesce bursts",
+        ("tests/test_live_stream.py",),
+    ),
+    Mutation(
+        "page-clock-cached",
+        "the operator page counts its clocks from a cached state's time, not the server's now",
+        "calstation/web/static/station.js",
+        "skew = Number(ev.data) - Date.now() / 1000;",
+        "skew = state.now - Date.now() / 1000;",
+        (f"{LIVE_PAGE}::test_a_page_opened_long_after_the_state_last_changed_counts_from_the_"
+         "servers_clock",),
+        browser=True,
+    ),
+    Mutation(
+        "start-while-held",
+        "Start offered while another run holds the chosen recipe's station",
+        "calstation/web/static/station.js",
+        "button.disabled = !option || !!held;",
+        "button.disabled = !option;",
+        (f"{LIVE_PAGE}::test_every_page_shows_who_holds_the_station",),
+        browser=True,
+    ),
+    Mutation(
+        "hidden-page-draws",
+        "the operator page draws its plots while it cannot be seen",
+        "calstation/web/static/station.js",
+        'function shown(el) { return !document.hidden && el.getAttribute("data-in-view") !== '
+        '"no"; }',
+        "function shown(el) { return true; }",
+        (f"{LIVE_PAGE}::test_a_hidden_page_draws_nothing_and_catches_up_when_shown",),
+        browser=True,
+    ),
 )
 
 
@@ -196,13 +365,15 @@ def _apply(root: Path, m: Mutation) -> None:
     path.write_text(text.replace(m.old, m.new))
 
 
-def _run_tests(root: Path, tests: tuple[str, ...]) -> tuple[bool, float, str]:
+def _run_tests(root: Path, tests: tuple[str, ...], browser: bool = False
+               ) -> tuple[bool, float, str]:
     plugins = sorted(str(p.parent) for p in (root / "plugins").glob("*/pyproject.toml"))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), *plugins]),
            "OMP_NUM_THREADS": "1"}
     t0 = time.perf_counter()
+    marker = ["-m", "browser"] if browser else []
     proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider",
-                           *tests], cwd=root, env=env, capture_output=True, text=True)
+                           *marker, *tests], cwd=root, env=env, capture_output=True, text=True)
     return proc.returncode == 0, time.perf_counter() - t0, proc.stdout[-4000:]
 
 
@@ -215,18 +386,22 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="calstation-mutation-") as tmp:
         clean = Path(tmp) / "clean"
         _tree(clean)
-        passed, seconds, said = _run_tests(clean,
-                                           tuple(sorted({t for m in chosen for t in m.tests})))
-        print(f"unmutated tree: tests {'pass' if passed else 'FAIL'} ({seconds:.0f} s)")
-        if not passed:
-            print(said)
-            print("the unmutated tree must pass first")
-            return 1
+        for browser in (False, True):
+            tests = tuple(sorted({t for m in chosen if m.browser == browser for t in m.tests}))
+            if not tests:
+                continue
+            passed, seconds, said = _run_tests(clean, tests, browser)
+            print(f"unmutated tree: {'browser ' if browser else ''}tests "
+                  f"{'pass' if passed else 'FAIL'} ({seconds:.0f} s)")
+            if not passed:
+                print(said)
+                print("the unmutated tree must pass first")
+                return 1
         for m in chosen:
             root = Path(tmp) / m.name
             _tree(root)
             _apply(root, m)
-            passed, seconds, _ = _run_tests(root, m.tests)
+            passed, seconds, _ = _run_tests(root, m.tests, m.browser)
             missed += passed
             print(f"{'MISSED' if passed else 'caught'}  {m.name:15} {m.what} "
                   f"({', '.join(m.tests)}; {seconds:.0f} s)", flush=True)
