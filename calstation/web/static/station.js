@@ -481,7 +481,8 @@
       if (!band.length) { return; }
       ctx.fillStyle = colour((k + 0.5) / CLOUD_SHADES);
       ctx.beginPath();
-      band.forEach(function (j) { ctx.rect(ox + (u[j] - umin) * scale, oy + (v[j] - vmin) * scale, 2, 2); });
+      // on whole pixels: crisp dots, no colour blended from a neighbour's edge
+      band.forEach(function (j) { ctx.rect(Math.round(ox + (u[j] - umin) * scale), Math.round(oy + (v[j] - vmin) * scale), 2, 2); });
       ctx.fill();
     });
     // the axes' directions, bottom left, inside the picture
