@@ -317,6 +317,15 @@ MUTATIONS = (
         ("tests/test_live_stream.py",),
     ),
     Mutation(
+        "status-stale-at-end",
+        "the end screen shows the station still held by the run that just gave it back",
+        "calstation/web/app.py",
+        "    runner.released = status.refresh\n",
+        "",
+        ("tests/test_web_browser.py::test_a_full_simulated_run_by_clicking_with_a_reload",),
+        browser=True,
+    ),
+    Mutation(
         "page-clock-cached",
         "the operator page counts its clocks from a cached state's time, not the server's now",
         "calstation/web/static/station.js",

@@ -141,6 +141,9 @@ def test_a_full_simulated_run_by_clicking_with_a_reload(
         assert run_status(db, run_id) == "passed"
         values = page.inner_text("#result")
         assert "face-fit edge error" in values and "≤ 1.00 mm" in values
+        # the run gave the station back: the end screen says so and offers Start at once
+        assert page.get_attribute('#station-status [data-station="sim-01"]', "data-held") == "no"
+        assert page.is_enabled("#start-button")
         shot(page, "end", full=True)
         # the run folder's report.html opens offline with its 3D views drawn
         report = run_folder(db, run_id) / "report.html"

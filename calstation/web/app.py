@@ -105,6 +105,7 @@ def create_app(
                   limits=limits)
     runner = Runner(db, data_dir, recipes_dir)
     status = StationStatus(db, lambda: recipe_stations(recipes_dir), runner.live.set_stations)
+    runner.released = status.refresh
     hub = EventHub(runner.live, tick=status.current)
 
     @asynccontextmanager

@@ -513,6 +513,9 @@ class Runner:
         self.live = LiveState()
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
+        self.released: Callable[[], None] | None = None
+        """called when a run has given its station back, before its end is published (the
+        server reads the station locks again, so the end screen offers Start at once)"""
 
     # --- recipes ---------------------------------------------------------------------------
     def recipes(self) -> list[str]:
@@ -628,6 +631,9 @@ class Runner:
                 self.live.add_log("error", error)
             finally:
                 prepared.release()
+                if self.released is not None:
+                    with contextlib.suppress(Exception):  # the status line must not stop the end
+                        self.released()
                 self.live.finish(status, self._end_screen(run_id), error)
                 self._lock.release()
 

@@ -84,6 +84,13 @@ class StationStatus:
             self.publish(fresh)
         return fresh
 
+    def refresh(self) -> None:
+        """Read the locks again now (a run of this server has just given its station back):
+        the pages show it free at once, not up to :data:`REFRESH_S` later."""
+        with self._lock:
+            self._read_at = -1e9
+        self.current()
+
     def held(self, station: str) -> dict[str, Any] | None:
         """The entry of ``station`` when it is held, else None."""
         return next((s for s in self.current() if s["station"] == station and s["held"]),
