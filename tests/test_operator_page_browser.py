@@ -216,7 +216,7 @@ def test_the_live_plots_show_the_expected_outline_and_the_cloud_as_it_grows(
         assert page.locator("#cloud-plot canvas").count() == 1
         assert "initial calibration" in page.inner_text("#cloud-plot")
         time.sleep(1.0)  # a few more turns of the cloud for the picture
-        shot(page, "live", full=True)
+        shot(page, "live", full=True, octree=True)  # the cloud's yellow kept yellow
         place(page, "qa_cube")
         # the spin scan's cloud is gone at the next placement: no stale view beside the prompt
         wait_until(lambda: page.locator("#cloud-plot").is_hidden(), timeout=30)

@@ -114,10 +114,12 @@ def copy_recipe(src: Path, folder: Path, name: str | None = None) -> Path:
 
 
 def shot(page: Any, name: str, full: bool = False, *, colours: int = 96,
-         max_width: int | None = None) -> None:
+         max_width: int | None = None, octree: bool = False) -> None:
     """A picture for docs/station.md, ``docs/station/<name>.png`` (only with
     ``CALSTATION_DOCS_SCREENSHOTS=1``), reduced to a palette of ``colours`` and, when wider,
-    scaled to ``max_width`` pixels so the repository stays small."""
+    scaled to ``max_width`` pixels so the repository stays small. ``octree``: the palette by
+    octree, which keeps the colour of a few pixels (a cloud's highest points) where the median
+    cut merges it into a frequent one."""
     if os.environ.get("CALSTATION_DOCS_SCREENSHOTS") != "1":
         return
     from PIL import Image
@@ -126,7 +128,8 @@ def shot(page: Any, name: str, full: bool = False, *, colours: int = 96,
     path = DOCS_SHOTS / f"{name}.png"
     page.screenshot(path=str(path), full_page=full)
     with Image.open(path) as image:
-        small = image.convert("RGB").quantize(colors=colours)
+        method = Image.Quantize.FASTOCTREE if octree else None
+        small = image.convert("RGB").quantize(colors=colours, method=method)
         if max_width is not None and small.width > max_width:
             small = small.resize((max_width, round(small.height * max_width / small.width)))
     small.save(path, optimize=True)
