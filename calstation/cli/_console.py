@@ -19,6 +19,7 @@ def wide_console() -> Console:
 _UNSAFE = {"Cc", "Cf", "Cs", "Co", "Zl", "Zp"}
 
 
+# Any: the data comes back in its own shape (a str, or lists and mappings of stored values)
 def terminal_safe(data: Any) -> Any:
     """``data`` (strings, and lists and mappings of them) with every control or format
     character (ESC, a line break, a bidirectional override) shown as its escape (``\\x1b``):

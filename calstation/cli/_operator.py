@@ -36,6 +36,11 @@ from calstation.station.operator import (
     ProgressCallback,
     StationEvent,
 )
+from calstation.storage.db.models import RunStatus
+
+# Any: a run summary and its parts (calibrations, cube check, QA limits) are
+# calstation.storage.report's run_summary, plain dicts of stored values there
+Stored = dict[str, Any]
 
 PLACEMENT_ANSWERS: dict[str, tuple[str, ...]] = {"continue": ("continue", "c"),
                                                  "abort": ("abort", "a")}
@@ -149,12 +154,12 @@ class ConsoleOperator:
             yield update
             bar.update(task, completed=1.0, description=title)
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: Stored) -> None:
         """The final verdict: PASS/FAIL banner, calibration (mm, deg) and cube check."""
         render_summary(self.console, summary)
 
 
-def _print_predicted_error(console: Console, calibrations: list[dict[str, Any]]) -> None:
+def _print_predicted_error(console: Console, calibrations: list[Stored]) -> None:
     """The predicted reconstruction error of the final calibration beside its budget."""
     final = next((c for c in calibrations if c["accepted"]), None) or next(
         (c for c in reversed(calibrations) if c.get("predicted_error_m") is not None), None)
@@ -178,7 +183,7 @@ def _print_predicted_error(console: Console, calibrations: list[dict[str, Any]])
                   f"{display.number('predicted_error', error)}{verdict}", highlight=False)
 
 
-def _print_range_model(console: Console, calibrations: list[dict[str, Any]]) -> None:
+def _print_range_model(console: Console, calibrations: list[Stored]) -> None:
     """The lidar's range model of the final calibration, when it has one."""
     from calstation.engine.rangemodel import describe
 
@@ -190,13 +195,17 @@ def _print_range_model(console: Console, calibrations: list[dict[str, Any]]) -> 
                       "by it", highlight=False)
 
 
-def render_summary(console: Console, s: dict[str, Any]) -> None:
+_BANNER: dict[str, tuple[str, str]] = {
+    RunStatus.PASSED: ("PASS", "bold white on green"),
+    RunStatus.FAILED: ("FAIL", "bold white on red"),
+}
+"""The verdict's banner and its style by the run's status (any other: its name, yellow)."""
+
+
+def render_summary(console: Console, s: Stored) -> None:
     """Print a run summary in display units (mm, deg) with a PASS/FAIL banner."""
     status = s["status"]
-    style = {"passed": "bold white on green", "failed": "bold white on red"}.get(
-        status, "bold black on yellow"
-    )
-    verdict = {"passed": "PASS", "failed": "FAIL"}.get(status, status.upper())
+    verdict, style = _BANNER.get(status, (status.upper(), "bold black on yellow"))
     _calibration_table(console, s)
     _print_predicted_error(console, s["calibrations"])
     _print_range_model(console, s["calibrations"])
@@ -216,7 +225,7 @@ def render_summary(console: Console, s: dict[str, Any]) -> None:
     console.print(Panel(f"{verdict}", style=style, expand=False))
 
 
-def _calibration_table(console: Console, s: dict[str, Any]) -> None:
+def _calibration_table(console: Console, s: Stored) -> None:
     """The run's calibrations, each with its ±1σ row; "not estimated" for a held parameter.
     Nothing when the run stored none (aborted before its first scan)."""
     if not s["calibrations"]:
@@ -245,7 +254,7 @@ def _calibration_table(console: Console, s: dict[str, Any]) -> None:
     console.print(table)
 
 
-def _print_cube(console: Console, cube: dict[str, Any]) -> None:
+def _print_cube(console: Console, cube: Stored) -> None:
     edges = ", ".join(display.number("edge", e, unit=False) for e in cube["face_edges"])
     excess = cube.get("flatness_excess")
     beyond = ("" if excess is None or excess != excess
@@ -267,7 +276,7 @@ def _print_cube(console: Console, cube: dict[str, Any]) -> None:
         console.print(f"  [red]✘[/] {escape(str(f))}")
 
 
-def _print_limits(console: Console, limits: dict[str, Any]) -> None:
+def _print_limits(console: Console, limits: Stored) -> None:
     twist = (f", side-face twist ≤ {display.number('twist_deg', limits['twist_deg'])}"
              if "twist_deg" in limits else "")
     console.print(

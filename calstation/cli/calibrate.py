@@ -5,12 +5,24 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import typer
 
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.progress import Progress
 
-def _progress_bar(console: Any) -> Any:
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.result import CalibrationResult
+    from calstation.pipeline import Calibrated, Scans
+    from calstation.plugins.cost_strategies import Strategy
+    from calstation.recipes import LoadedRecipe
+    from calstation.recordings.recorded import Recording
+    from calstation.station.reprocess import Reprocessing
+
+
+def _progress_bar(console: Console) -> Progress:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     return Progress(
@@ -191,7 +203,7 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(1)
 
 
-def _warn(console: Any, warnings: list[str]) -> None:
+def _warn(console: Console, warnings: list[str]) -> None:
     from rich.markup import escape
 
     for w in warnings:
@@ -264,14 +276,14 @@ def _calibrate_files(
 
 
 def _read_files(
-    console: Any, files: dict[str, Path | None], strat: Any, loaded: Any
-) -> tuple[dict[str, Any], list[str]]:
+    console: Console, files: dict[str, Path | None], strat: Strategy, loaded: LoadedRecipe
+) -> tuple[dict[str, Recording], list[str]]:
     """The recordings named on the command line, each checked to be the scan it is given as;
     (kind → recording, every disagreement between a recording and the recipe)."""
     from calstation.errors import CalibrationError
     from calstation.pipeline import recording_disagreements
 
-    read: dict[str, Any] = {}
+    read: dict[str, Recording] = {}
     if files["static"] is not None:
         read["static"] = _read_any(console, files["static"])
         if read["static"].kind in ("spin", "cube"):
@@ -298,7 +310,7 @@ def _read_files(
     return read, warnings
 
 
-def _scans(read: dict[str, Any]) -> Any:
+def _scans(read: dict[str, Recording]) -> Scans:
     """The recordings as the pipeline takes them (each spin scan's returns prepared once)."""
     from calstation.pipeline import Scans, turned
 
@@ -307,13 +319,15 @@ def _scans(read: dict[str, Any]) -> Any:
                  cube=turned(read["cube"]) if "cube" in read else None)
 
 
-def _print_cube(console: Any, done: Any) -> None:
+def _print_cube(console: Console, done: Calibrated) -> None:
     """The cube's figures under the result (and the ry combination, when there was one)."""
     from rich.markup import escape
 
     from calstation.engine.joint import joint_summary
 
     check = done.cube_check
+    if check is None:
+        return
     line = (f"cube: side-face twist {check.twist_deg:+.3f}° ± {check.twist_sigma_deg:.3f}°, "
             f"edge error {check.edge_error * 1e3:.2f} mm")
     if "joint" in done.result.diagnostics:
@@ -321,7 +335,7 @@ def _print_cube(console: Any, done: Any) -> None:
     console.print(escape(line), highlight=False)
 
 
-def _read_any(console: Any, path: Path) -> Any:
+def _read_any(console: Console, path: Path) -> Recording:
     """The recording at ``path``."""
     from calstation.recordings.reader import read_recording
 
@@ -329,14 +343,14 @@ def _read_any(console: Any, path: Path) -> Any:
         return read_recording(path)
 
 
-def _read_cube(console: Any, path: Path, error: type[Exception], need: str) -> Any:
+def _read_cube(console: Console, path: Path, error: type[Exception], need: str) -> Recording:
     """The recording at ``path``, which must be a scan of the QA cube (else ``error``)."""
     return _read_kind(console, path, "cube", error, need, "cube.mcap")
 
 
 def _read_kind(
-    console: Any, path: Path, kind: str, error: type[Exception], need: str, file: str
-) -> Any:
+    console: Console, path: Path, kind: str, error: type[Exception], need: str, file: str
+) -> Recording:
     """The recording at ``path``, which must be of ``kind`` (else ``error`` saying ``need`` and
     which ``file`` of a run that is)."""
     from calstation.recordings.reader import read_recording
@@ -364,13 +378,13 @@ def _refuse(refused: list[str]) -> None:
     raise typer.Exit(3)
 
 
-def _timing_line(result: Any) -> str:
+def _timing_line(result: CalibrationResult) -> str:
     total = result.timings.get("total")
     took = f"{total:.2f} s" if isinstance(total, float | int) and math.isfinite(total) else "—"
     return f"cost {result.cost:.4g}, {result.iterations} iterations, {took}"
 
 
-def _print_result(initial: Any, result: Any) -> None:
+def _print_result(initial: Extrinsics, result: CalibrationResult) -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -475,7 +489,7 @@ def _reprocess(
     _refuse_reprocessing(console, done, accept)
 
 
-def _refuse_reprocessing(console: Any, done: Any, accept: bool) -> None:
+def _refuse_reprocessing(console: Console, done: Reprocessing, accept: bool) -> None:
     """A re-processing over ``calibration.max_sigma``: say why (it is stored, not accepted)
     and exit 3."""
     from rich.markup import escape

@@ -19,7 +19,13 @@ from calstation import display
 from calstation.cli._console import terminal_safe, wide_console
 
 if TYPE_CHECKING:
+    from matplotlib.figure import Figure
     from rich.console import Console
+
+# Any: a history row and a trend point are calstation.storage's (report.history_item,
+# qa.trend_points), plain dicts of stored values there
+HistoryRow = dict[str, Any]
+TrendPoint = dict[str, Any]
 
 H_PARAMS = ("tx", "ty", "tz", "rx", "ry", "rz")
 CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms")
@@ -38,9 +44,19 @@ def _parse_since(text: str) -> dt.datetime:
     return t if t.tzinfo else t.replace(tzinfo=dt.UTC)
 
 
-def failure_reason(run: dict[str, Any]) -> str:
+def _colour(status: str) -> str:
+    """A run's or a step's status as the tables colour it."""
+    from calstation.storage.db.models import RunStatus  # not at start-up: SQLAlchemy's
+
+    colours: dict[str, str] = {RunStatus.PASSED: "green", RunStatus.FAILED: "red"}
+    return colours.get(status, "yellow")
+
+
+def failure_reason(run: HistoryRow) -> str:
     """Why a run did not pass, in one line: its error, else the cube check's failures."""
-    if run["status"] == "passed":
+    from calstation.storage.db.models import RunStatus
+
+    if run["status"] == RunStatus.PASSED:
         return ""
     if run.get("error"):
         return str(run["error"]).splitlines()[0]
@@ -54,7 +70,7 @@ SHOWN = ("tx", "ty", "tz", "ry", "rz")
 """The parameters the history lists (rx is the gauge, held at 0)."""
 
 
-def _value(r: dict[str, Any], p: str) -> str:
+def _value(r: HistoryRow, p: str) -> str:
     """A run's final value of ``p`` as the history shows it (— without a calibration)."""
     c = r["calibration"]
     if c is None:
@@ -64,13 +80,13 @@ def _value(r: dict[str, Any], p: str) -> str:
     return display.number(p, c["H"][p], unit=False)
 
 
-def _edge(r: dict[str, Any]) -> str:
+def _edge(r: HistoryRow) -> str:
     cube = r["cube_check"]
     return display.number("edge_error", cube["edge_error"], unit=False) if cube \
         else display.MISSING
 
 
-def print_history(rows: list[dict[str, Any]], console: Console) -> None:
+def print_history(rows: list[HistoryRow], console: Console) -> None:
     """The runs (``history --json``'s rows) as a table with a labelled column per parameter
     when it fits ``console``; else one block per run, its items (``station sim-01``,
     ``tx 15.605 mm``) wrapped between items, never within a word or a number."""
@@ -85,7 +101,7 @@ def print_history(rows: list[dict[str, Any]], console: Console) -> None:
         table.add_column(display.quantity(p).heading.replace("edge error", "edge"),
                          justify="right", no_wrap=True)
     for r in rows:
-        colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
+        colour = _colour(r["status"])
         table.add_row(
             str(r["id"]), escape(r["station"]), escape(r["unit_serial"] or "—"),
             display.when(r["started_at"]).removesuffix(" UTC"), escape(r["operator"]),
@@ -104,9 +120,9 @@ def print_history(rows: list[dict[str, Any]], console: Console) -> None:
                           highlight=False)
 
 
-def _print_run_block(r: dict[str, Any], console: Console) -> None:
+def _print_run_block(r: HistoryRow, console: Console) -> None:
     """One run in a few lines of labelled items, wrapped between items."""
-    colour = {"passed": "green", "failed": "red"}.get(r["status"], "yellow")
+    colour = _colour(r["status"])
     items = [f"run {r['id']}", f"[{colour}]{r['status']}[/]", display.when(r["started_at"]),
              f"station {escape(r['station'])}", f"serial {escape(r['unit_serial'] or '—')}",
              f"operator {escape(r['operator'])}", f"recipe {escape(r['recipe_name'])}"]
@@ -155,7 +171,7 @@ def register(app: typer.Typer) -> None:
         from calstation.storage.report import history_item, with_results
 
         database = open_database(db, read_only=True)
-        rows: list[dict[str, Any]] = []
+        rows: list[HistoryRow] = []
         with database.session("reading the runs", read_only=True) as s:
             stmt = with_results(select(Run).join(Station).order_by(Run.id.desc()).limit(limit))
             if station:
@@ -211,7 +227,7 @@ def register(app: typer.Typer) -> None:
         for col in ("step", "attempt", "status", "started", "finished", "error"):
             steps.add_column(col)
         for st in summary["steps"]:
-            colour = {"passed": "green", "failed": "red"}.get(st["status"], "yellow")
+            colour = _colour(st["status"])
             steps.add_row(st["name"], str(st["attempt"]), f"[{colour}]{st['status']}[/]",
                           (st["started_at"] or "")[11:19], (st["finished_at"] or "")[11:19],
                           st["error"] or "")
@@ -344,7 +360,7 @@ def register(app: typer.Typer) -> None:
 
 def trend_points(
     station: str, param: str, db: str | None, serial: str | None = None
-) -> list[dict[str, Any]]:
+) -> list[TrendPoint]:
     """The accepted calibrations of ``station`` (of unit ``serial`` only, when given), oldest
     first, with drift vs the previous one: :func:`calstation.storage.qa.trend_points`, as the web
     station's trend page shows them."""
@@ -360,7 +376,7 @@ def trend_points(
     return [dict(p) for p in points]
 
 
-def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Path) -> None:
+def plot_trend(points: list[TrendPoint], station: str, param: str, path: Path) -> None:
     """PNG: the parameter over time (x = the run's start date, UTC; mm or deg), drifted runs in
     red, the allowed band around each previous value shaded."""
     import matplotlib.pyplot as plt
@@ -375,7 +391,7 @@ def plot_trend(points: list[dict[str, Any]], station: str, param: str, path: Pat
         plt.close(fig)
 
 
-def trend_figure(points: list[dict[str, Any]], station: str, param: str) -> Any:
+def trend_figure(points: list[TrendPoint], station: str, param: str) -> Figure:
     """The matplotlib figure of :func:`plot_trend` (x axis: dates)."""
     import matplotlib
 
@@ -389,6 +405,7 @@ def trend_figure(points: list[dict[str, Any]], station: str, param: str) -> Any:
         return q.shown(v)
 
     unit = q.unit
+    # Any: matplotlib's stubs take no datetimes, which it plots on a date axis
     xs: list[Any] = [dt.datetime.fromisoformat(p["date"]) for p in points]
     ys = [scale(p["value"]) for p in points]
     fig, ax = plt.subplots(figsize=(8, 4))

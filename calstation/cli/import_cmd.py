@@ -8,10 +8,14 @@ imported and what had to be decided.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import typer
+
+if TYPE_CHECKING:
+    from calstation.recordings.imported import ImportedScan
 
 ANGLE_HELP = ("Unit of the angle as stored: deg, rad or counts (encoder counts: give "
               "--counts-per-rev).")
@@ -133,7 +137,7 @@ def register(app: typer.Typer) -> None:
         _write(imported, out, kind, counts_per_rev, direction, station, counts_bits)
 
 
-def _write(imported: Any, out: Path, kind: str, counts_per_rev: int | None, direction: int,
+def _write(imported: ImportedScan, out: Path, kind: str, counts_per_rev: int | None, direction: int,
            station: str, counts_bits: int | None) -> None:
     from rich.console import Console
 
@@ -165,7 +169,7 @@ class _progress:
                              TimeElapsedColumn(), console=Console(stderr=True), transient=True)
         self._task = self._bar.add_task(title, total=None)
 
-    def __enter__(self) -> Any:
+    def __enter__(self) -> Callable[[int, int], None]:
         self._bar.start()
 
         def step(done: int, total: int) -> None:

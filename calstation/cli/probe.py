@@ -14,18 +14,41 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import typer
 
 from calstation.errors import DriverError
 
+if TYPE_CHECKING:
+    from calstation.drivers import Lidar, LidarLine
 
-def _parse_sets(items: list[str]) -> dict[str, Any]:
+
+class ProbeScan(TypedDict):
+    timestamp_ns: int
+    azimuth_rad: list[float]
+    range_m: list[float | None]
+
+
+class ProbeSample(TypedDict):
+    timestamp_ns: int
+    count: int
+
+
+class ProbeResult(TypedDict, total=False):
+    """What ``probe`` prints: the device's identity and one sample of its kind."""
+
+    info: dict[str, object]
+    scan: ProbeScan
+    status: dict[str, Any]  # Any: TurntableStatus.as_dict's (calstation.drivers)
+    sample: ProbeSample
+
+
+def _parse_sets(items: list[str]) -> dict[str, object]:
     """``KEY=VALUE`` options; values are read as YAML scalars (numbers, true/false, text)."""
     import yaml
 
-    out: dict[str, Any] = {}
+    out: dict[str, object] = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key:
@@ -35,8 +58,8 @@ def _parse_sets(items: list[str]) -> dict[str, Any]:
 
 
 def _settings(kind: str, port: str | None, channel: str | None, interface: str | None,
-              node_id: int | None, sets: list[str]) -> dict[str, Any]:
-    settings: dict[str, Any] = {}
+              node_id: int | None, sets: list[str]) -> dict[str, object]:
+    settings: dict[str, object] = {}
     if port is not None:
         settings["port"] = port
     if channel is not None:
@@ -49,7 +72,7 @@ def _settings(kind: str, port: str | None, channel: str | None, interface: str |
     return settings
 
 
-def _info_of(driver: Any) -> dict[str, Any]:
+def _info_of(driver: object) -> dict[str, object]:
     info = getattr(driver, "info", None)
     if info is None:
         return {}
@@ -59,7 +82,7 @@ def _info_of(driver: Any) -> dict[str, Any]:
     return dict(value)
 
 
-def _first_line(driver: Any) -> Any:
+def _first_line(driver: Lidar) -> LidarLine:
     driver.start()
     try:
         for line in driver.lines():
@@ -69,8 +92,8 @@ def _first_line(driver: Any) -> Any:
     raise DriverError("probe: the lidar stopped before sending a line")
 
 
-def probe(kind: str, driver_name: str, settings: dict[str, Any],
-          recipe: Path | None = None) -> dict[str, Any]:
+def probe(kind: str, driver_name: str, settings: dict[str, object],
+          recipe: Path | None = None) -> ProbeResult:
     """Open driver ``driver_name`` of ``kind`` with ``settings``; return its identity and one
     sample as a JSON-ready mapping. The driver is always closed."""
     from calstation import plugins
@@ -110,7 +133,7 @@ def probe(kind: str, driver_name: str, settings: dict[str, Any],
         driver.close()
 
 
-def _print_human(kind: str, result: dict[str, Any]) -> None:
+def _print_human(kind: str, result: ProbeResult) -> None:
     from rich.console import Console
     from rich.table import Table
 

@@ -9,11 +9,25 @@ from __future__ import annotations
 import json
 import math
 import uuid
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
+
+if TYPE_CHECKING:
+    from types import TracebackType
+
+    from rich.console import Console
+    from rich.progress import TaskID
+
+    from calstation.fleet.campaign import Tally
+    from calstation.fleet.selection import Selection
+    from calstation.fleet.tolerance import Tolerance
+
+# Any: the campaign's data is calstation.fleet.view.campaign_data's, a dict[str, Any] there
+CampaignData = dict[str, Any]
 
 DB_HELP = "Database URL (default: $CALSTATION_DB_URL or SQLite in $CALSTATION_HOME)."
 
@@ -95,8 +109,8 @@ def _check_cluster_options(scheduler: str | None, workers: int | None) -> None:
         raise FleetError(f"--workers {workers}: expected 1 or more")
 
 
-def _run(db_url: str | None, sel: Any, tol: Any, scheduler: str | None, workers: int | None,
-         new: bool) -> tuple[dict[str, Any], Any]:
+def _run(db_url: str | None, sel: Selection, tol: Tolerance | None, scheduler: str | None,
+         workers: int | None, new: bool) -> tuple[CampaignData, Tally]:
     """Run the campaign on the cluster with a progress line on standard error; (its data for
     the selected runs, what this invocation did)."""
     from rich.console import Console
@@ -134,36 +148,38 @@ class _progress:
     """The campaign's progress on standard error: a bar of the selected runs with done,
     failed, skipped and left, and the throughput."""
 
-    def __init__(self, console: Any, workers: int) -> None:
+    def __init__(self, console: Console, workers: int) -> None:
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         self.bar = Progress(TextColumn("{task.description}"), BarColumn(bar_width=12),
                             TextColumn("{task.fields[counts]}"), TimeElapsedColumn(),
                             console=console, transient=False)
         self.workers = workers
-        self.task: Any = None
+        self.task: TaskID | None = None
 
-    def __enter__(self) -> Any:
+    def __enter__(self) -> Callable[[Tally], None]:
         self.bar.__enter__()
         self.task = self.bar.add_task(f"{self.workers} workers", total=None, counts="")
         return self.show
 
-    def __exit__(self, *exc: Any) -> None:
-        self.bar.__exit__(*exc)
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.bar.__exit__(kind, exc, tb)
 
-    def show(self, t: Any) -> None:
+    def show(self, t: Tally) -> None:
+        assert self.task is not None  # shown inside the with block
         counts = (f"{t.stored_before + t.done}/{t.selected} done, {t.failed} failed, "
                   f"{t.skipped} skipped, {t.left} left, {t.runs_per_minute():.1f} runs/min")
         self.bar.update(self.task, total=max(t.selected, 1), completed=t.stored_before + t.done,
                         counts=counts)
 
 
-def _plain(value: Any) -> Any:
+def _plain(value: object) -> str:
     """JSON for values json does not know (NaN is written as null by the view already)."""
     return str(value)
 
 
-def _json(data: dict[str, Any], tally: Any) -> dict[str, Any]:
+def _json(data: CampaignData, tally: Tally) -> dict[str, object]:
     """``--json``: the campaign, ``runs`` (each with ``resumed``: stored by an earlier
     invocation), ``totals`` and this invocation's throughput."""
     elapsed = max(1e-9, tally.seconds())
@@ -179,7 +195,7 @@ def _json(data: dict[str, Any], tally: Any) -> dict[str, Any]:
     }
 
 
-def _print(data: dict[str, Any], tally: Any, report: Path | None) -> None:
+def _print(data: CampaignData, tally: Tally, report: Path | None) -> None:
     """The totals, the flagged units by serial, and where the report went."""
     from rich.console import Console
     from rich.markup import escape

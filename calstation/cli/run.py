@@ -17,7 +17,10 @@ EXIT_ABORTED = 3
 
 
 def _exit_code(status: str) -> int:
-    return {"passed": 0, "failed": EXIT_FAILED}.get(status, EXIT_ABORTED)
+    from calstation.storage.db.models import RunStatus
+
+    codes: dict[str, int] = {RunStatus.PASSED: 0, RunStatus.FAILED: EXIT_FAILED}
+    return codes.get(status, EXIT_ABORTED)
 
 
 def _say_report(database: Database, run_id: int) -> None:
