@@ -21,7 +21,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from calstation.engine.frames import Extrinsics
 from calstation.errors import PluginError
@@ -94,7 +93,7 @@ def simulate_scans(
         if not path.is_file() and (SHIPPED_RECIPES / path).is_file():
             path = SHIPPED_RECIPES / path
         loaded = load_recipe(path)
-    files: dict[str, Any] = simulator.simulate_run(
+    files = simulator.simulate_run(
         loaded, Path(out_dir), seed=seed, range_m=range_m, pitch_deg=pitch_deg, progress=False
     )
     from calstation.recordings.reader import read_recording

@@ -24,7 +24,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TypeVar
 
 import numpy as np
 
@@ -40,8 +40,10 @@ from calstation.drivers import (
     TurntableStatus,
 )
 
-DriverFactory = Callable[[], Any]
-"""A callable returning a fresh, ready driver."""
+_D = TypeVar("_D", Lidar, Turntable, Encoder)
+DriverFactory = Callable[[], _D]
+"""A callable returning a fresh, ready driver (of the kind checked: whether it really is one is
+the check's first rule)."""
 
 
 class ConformanceError(AssertionError):
@@ -54,7 +56,7 @@ class ConformanceReport:
 
     driver: str
     passed: list[str] = field(default_factory=list)
-    measured: dict[str, Any] = field(default_factory=dict)
+    measured: dict[str, object] = field(default_factory=dict)
 
 
 def _require(ok: bool, report: ConformanceReport, rule: str, detail: str = "") -> None:
@@ -63,12 +65,12 @@ def _require(ok: bool, report: ConformanceReport, rule: str, detail: str = "") -
     report.passed.append(rule)
 
 
-def _clock_of(driver: Any) -> Clock:
+def _clock_of(driver: object) -> Clock:
     clock = getattr(driver, "clock", None)
     return clock if clock is not None else HostClock()
 
 
-def _closes_twice(driver: Any, report: ConformanceReport) -> None:
+def _closes_twice(driver: Lidar | Turntable | Encoder, report: ConformanceReport) -> None:
     try:
         driver.close()
         driver.close()
@@ -79,7 +81,7 @@ def _closes_twice(driver: Any, report: ConformanceReport) -> None:
 
 # --- lidar ---------------------------------------------------------------------------------------
 def check_lidar(
-    make: DriverFactory, *, lines: int = 5, timeout_s: float = 10.0
+    make: DriverFactory[Lidar], *, lines: int = 5, timeout_s: float = 10.0
 ) -> ConformanceReport:
     """Check a :class:`~calstation.drivers.Lidar`: identity, ``lines()`` data, start/stop/close.
 
@@ -111,7 +113,7 @@ def check_lidar(
     return report
 
 
-def _check_info(info: Any, report: ConformanceReport) -> None:
+def _check_info(info: LidarInfo, report: ConformanceReport) -> None:
     _require(isinstance(info, LidarInfo), report, "info() returns a LidarInfo",
              type(info).__name__)
     _require(math.isfinite(info.fov_rad) and 0 < info.fov_rad <= 2 * math.pi, report,
@@ -125,8 +127,10 @@ def _check_info(info: Any, report: ConformanceReport) -> None:
     report.measured["serial"] = info.serial
 
 
-def _take_lines(driver: Any, n: int, timeout_s: float, report: ConformanceReport) -> list[Any]:
-    got: list[Any] = []
+def _take_lines(
+    driver: Lidar, n: int, timeout_s: float, report: ConformanceReport
+) -> list[LidarLine]:
+    got: list[LidarLine] = []
     deadline = time.monotonic() + timeout_s
     for line in driver.lines():
         got.append(line)
@@ -139,7 +143,7 @@ def _take_lines(driver: Any, n: int, timeout_s: float, report: ConformanceReport
     return got
 
 
-def _check_lines(got: list[Any], info: LidarInfo, report: ConformanceReport) -> None:
+def _check_lines(got: list[LidarLine], info: LidarInfo, report: ConformanceReport) -> None:
     half = 0.5 * info.fov_rad * 1.02
     previous: int | None = None
     valid_total = 0
@@ -176,7 +180,7 @@ def _check_lines(got: list[Any], info: LidarInfo, report: ConformanceReport) -> 
 
 # --- turntable -----------------------------------------------------------------------------------
 def check_turntable(
-    make: DriverFactory, *, rpm: float = 10.0, spin_s: float = 3.0
+    make: DriverFactory[Turntable], *, rpm: float = 10.0, spin_s: float = 3.0
 ) -> ConformanceReport:
     """Check a :class:`~calstation.drivers.Turntable`: enable, spin, status, stop, e-stop, close.
 
@@ -238,7 +242,8 @@ def check_turntable(
 
 # --- encoder -------------------------------------------------------------------------------------
 def check_encoder(
-    make: DriverFactory, *, turn: Callable[[Any], Any] | None = None, reads: int = 20
+    make: DriverFactory[Encoder], *, turn: Callable[[Encoder], object] | None = None,
+    reads: int = 20,
 ) -> ConformanceReport:
     """Check an :class:`~calstation.drivers.Encoder`: counts per revolution, read, samples, close.
 
@@ -296,44 +301,47 @@ class DriverConformance:
 
     turntable_rpm = 10.0
 
-    def make_lidar(self) -> Any:
+    def make_lidar(self) -> Lidar | None:
         """A fresh lidar driver (None: the plugin has none)."""
         return None
 
-    def make_turntable(self) -> Any:
+    def make_turntable(self) -> Turntable | None:
         """A fresh turntable driver (None: the plugin has none)."""
         return None
 
-    def make_encoder(self) -> Any:
+    def make_encoder(self) -> Encoder | None:
         """A fresh encoder driver (None: the plugin has none)."""
         return None
 
-    def turn_encoder(self, encoder: Any) -> None:
+    def turn_encoder(self, encoder: Encoder) -> None:
         """Make the platter under ``encoder`` move (default: nothing, the check is skipped)."""
 
-    def _factory(self, name: str) -> DriverFactory:
+    def _factory(self, make: Callable[[], _D | None], name: str) -> DriverFactory[_D]:
         import pytest
 
-        probe = getattr(self, f"make_{name}")()
+        probe = make()
         if probe is None:
             pytest.skip(f"the plugin provides no {name} driver")
         made = [probe]
 
-        def factory() -> Any:
-            return made.pop() if made else getattr(self, f"make_{name}")()
+        def factory() -> _D:
+            driver = made.pop() if made else make()
+            if driver is None:
+                raise ConformanceError(f"make_{name}() gave a driver once, then None")
+            return driver
 
         return factory
 
     def test_lidar_conforms(self) -> None:
         """The lidar follows the Lidar protocol."""
-        check_lidar(self._factory("lidar"))
+        check_lidar(self._factory(self.make_lidar, "lidar"))
 
     def test_turntable_conforms(self) -> None:
         """The turntable follows the Turntable protocol."""
-        check_turntable(self._factory("turntable"), rpm=self.turntable_rpm)
+        check_turntable(self._factory(self.make_turntable, "turntable"), rpm=self.turntable_rpm)
 
     def test_encoder_conforms(self) -> None:
         """The encoder follows the Encoder protocol."""
         turn = self.turn_encoder if type(self).turn_encoder is not DriverConformance.turn_encoder \
             else None
-        check_encoder(self._factory("encoder"), turn=turn)
+        check_encoder(self._factory(self.make_encoder, "encoder"), turn=turn)

@@ -13,10 +13,10 @@ tolerance.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from calstation.recipes import LoadedRecipe, load_recipe
 from calstation.recordings.runfolder import file_sha256
@@ -26,9 +26,14 @@ from calstation.storage.db import (
     Calibration,
     Database,
     Run,
+    RunStatus,
     Step,
+    StepStatus,
     get_or_create_station,
 )
+
+if TYPE_CHECKING:
+    from calstation.engine.result import CalibrationResult
 
 SCANS = (("static_scan", "static"), ("spin_scan", "spin"), ("cube_scan", "cube"))
 """The scan steps of a periodicity run and the kind of their recording."""
@@ -71,9 +76,9 @@ def _run_rows(loaded: LoadedRecipe, files: dict[str, Path], hashes: dict[Path, s
     run = Run(id=run_id, station_id=station_id, recipe_name=loaded.recipe.name,
               recipe_path=str(loaded.path) if loaded.path else None, recipe_text=loaded.text,
               recipe_sha256=loaded.sha256, operator="fleet", unattended=True,
-              data_dir=str(files["spin"].parent), status="passed")
+              data_dir=str(files["spin"].parent), status=RunStatus.PASSED)
     for name, kind in SCANS:
-        step = Step(name=name, status="passed",
+        step = Step(name=name, status=StepStatus.PASSED,
                     result={"recording": str(files[kind]), "fixture": "spin_target"})
         run.steps.append(step)
         art = Artifact(kind=kind, path=str(files[kind]), size_bytes=files[kind].stat().st_size,
@@ -162,7 +167,11 @@ def seed_runs(
     return ids
 
 
-def _add_calibrations(run: Run, done: Recomputed, change: dict[str, float], row: Any) -> None:
+def _add_calibrations(
+    run: Run, done: Recomputed, change: dict[str, float],
+    # Any: the rows' run_id (an int column) is cleared below, for the relationship to set
+    row: Callable[[int, int | None, str, CalibrationResult], Any],
+) -> None:
     """The run's initial calibration and its accepted fine one (today's H + ``change``)."""
     from dataclasses import replace
 

@@ -17,7 +17,7 @@ import datetime as dt
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from sqlalchemy import insert
@@ -27,9 +27,14 @@ from calstation.storage.db import (
     CubeCheckRecord,
     Database,
     Run,
+    RunStatus,
     Step,
+    StepStatus,
     get_or_create_station,
 )
+
+if TYPE_CHECKING:
+    from calstation.recipes import LoadedRecipe
 
 SIGMA = {"tx": 0.00012, "ty": 0.00010, "tz": 0.00012, "ry": math.radians(0.01),
          "rz": math.radians(0.008)}
@@ -63,6 +68,22 @@ class Drift:
     param: str = "tz"
     per_day: float = 0.00012
     start_day: int = 42
+
+
+Row = dict[str, object]
+"""One table row, by column, for a bulk insert."""
+
+
+@dataclass
+class _Rows:
+    """One station's rows by table, the ids of its runs, and the runs that drift."""
+
+    run: list[Row] = field(default_factory=list)
+    step: list[Row] = field(default_factory=list)
+    calibration: list[Row] = field(default_factory=list)
+    cube: list[Row] = field(default_factory=list)
+    run_ids: list[int] = field(default_factory=list)
+    drifting: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -109,14 +130,14 @@ def seed_history(db: Database, stations: Sequence[str], days: int, runs_per_day:
     for name, truth in zip(stations, truths, strict=True):
         rows = _station_rows(name, ids[name], truth, start, days, runs_per_day, rng, drift,
                              next_id, loaded)
-        next_id += len(rows["run"])
-        history.runs[name] = [r["id"] for r in rows["run"]]
-        history.drifting += rows["drifting"]
+        next_id += len(rows.run)
+        history.runs[name] = list(rows.run_ids)
+        history.drifting += rows.drifting
         with db.session("seeding the QA history") as s:
-            for model, key in ((Run, "run"), (Step, "step"), (Calibration, "calibration"),
-                               (CubeCheckRecord, "cube")):
-                if rows[key]:
-                    s.execute(insert(model), rows[key])
+            for model, batch in ((Run, rows.run), (Step, rows.step),
+                                 (Calibration, rows.calibration), (CubeCheckRecord, rows.cube)):
+                if batch:
+                    s.execute(insert(model), batch)
     return history
 
 
@@ -129,11 +150,10 @@ def _max_run_id(db: Database) -> int:
 
 def _station_rows(name: str, station_id: int, truth: dict[str, float], start: dt.datetime,
                   days: int, per_day: int, rng: np.random.Generator, drift: Drift | None,
-                  first_id: int, loaded: Any) -> dict[str, list[Any]]:
+                  first_id: int, loaded: LoadedRecipe) -> _Rows:
     """The rows of one station's runs (run, step, calibration, cube), spread over each day's
     shifts (06:00–22:00 UTC)."""
-    rows: dict[str, list[Any]] = {"run": [], "step": [], "calibration": [], "cube": [],
-                                  "drifting": []}
+    rows = _Rows()
     run_id = first_id
     for day in range(days):
         times = np.sort(rng.uniform(6 * 3600, 22 * 3600, per_day))
@@ -142,59 +162,62 @@ def _station_rows(name: str, station_id: int, truth: dict[str, float], start: dt
             offset = 0.0
             if drift is not None and drift.station == name and day >= drift.start_day:
                 offset = drift.per_day * (day - drift.start_day + (sec / 86400.0))
-                rows["drifting"].append(run_id)
+                rows.drifting.append(run_id)
             _one_run(rows, run_id, station_id, t0, truth, rng, offset,
                      drift.param if drift else "tz", f"{name}-U{day:03d}{k:03d}", loaded)
             run_id += 1
     return rows
 
 
-def _fate(rng: np.random.Generator) -> tuple[str, str | None, str | None]:
+def _fate(rng: np.random.Generator) -> tuple[RunStatus, str | None, str | None]:
     """(status, failed step, error) of one run."""
     u = float(rng.uniform())
     for rate, step, error in FAILURES:
         if u < rate:
-            return "failed", step, error
+            return RunStatus.FAILED, step, error
         u -= rate
     if u < ABORT_RATE:
-        return "aborted", STEPS[int(rng.integers(1, 5))], "aborted by the operator"
-    return "passed", None, None
+        return RunStatus.ABORTED, STEPS[int(rng.integers(1, 5))], "aborted by the operator"
+    return RunStatus.PASSED, None, None
 
 
-def _one_run(rows: dict[str, list[Any]], run_id: int, station_id: int, t0: dt.datetime,
+def _one_run(rows: _Rows, run_id: int, station_id: int, t0: dt.datetime,
              truth: dict[str, float], rng: np.random.Generator, offset: float, param: str,
-             serial: str, loaded: Any) -> None:
+             serial: str, loaded: LoadedRecipe) -> None:
     status, failed, error = _fate(rng)
-    retried = status == "passed" and float(rng.uniform()) < RETRY_RATE
+    retried = status == RunStatus.PASSED and float(rng.uniform()) < RETRY_RATE
     t = t0
     for name in STEPS:
         attempts = 2 if retried and name == "spin_scan" else 1
         for attempt in range(1, attempts + 1):
             secs = STEP_SECONDS[name] * float(rng.uniform(0.85, 1.3))
-            st = ("failed" if (name == failed and status == "failed") or attempt < attempts
-                  else "aborted" if name == failed else "passed")
-            rows["step"].append({"run_id": run_id, "name": name, "attempt": attempt,
+            st = (StepStatus.FAILED if (name == failed and status == RunStatus.FAILED)
+                  or attempt < attempts
+                  else StepStatus.ABORTED if name == failed else StepStatus.PASSED)
+            rows.step.append({"run_id": run_id, "name": name, "attempt": attempt,
                                  "status": st, "started_at": t,
                                  "finished_at": t + dt.timedelta(seconds=secs),
                                  "error": error if name == failed else
-                                 ("encoder: no sample for 0.5 s" if st == "failed" else None)})
+                                 ("encoder: no sample for 0.5 s" if st == StepStatus.FAILED
+                                  else None)})
             t += dt.timedelta(seconds=secs)
         if name == failed:
             break
-    rows["run"].append({"id": run_id, "station_id": station_id, "recipe_name": "sim-periodicity",
+    rows.run_ids.append(run_id)
+    rows.run.append({"id": run_id, "station_id": station_id, "recipe_name": "sim-periodicity",
                         "recipe_path": str(loaded.path), "recipe_text": loaded.text,
                         "recipe_sha256": loaded.sha256, "operator": "qa-seed",
                         "unattended": False, "data_dir": f"/nonexistent/runs/{run_id}",
                         "started_at": t0, "finished_at": t, "status": status, "error": error,
                         "unit_serial": serial})
-    if status == "aborted" or failed in ("preflight", "static_scan", "spin_scan"):
+    if status == RunStatus.ABORTED or failed in ("preflight", "static_scan", "spin_scan"):
         return
     H = {p: truth[p] + (float(rng.normal(0.0, SIGMA[p])) if p in SIGMA else 0.0)
          for p in ("tx", "ty", "tz", "rx", "ry", "rz")}
     H[param] += offset
-    rows["calibration"].append({
+    rows.calibration.append({
         "run_id": run_id, "stage": "fine", "strategy": "periodicity+cube",
-        "accepted": status == "passed", "created_at": t,
+        "accepted": status == RunStatus.PASSED, "created_at": t,
         **H, **{f"sigma_{p}": SIGMA.get(p) for p in H}})
     if failed == "fine_tune":
         return
@@ -204,6 +227,6 @@ def _one_run(rows: dict[str, list[Any]], run_id: int, station_id: int, t0: dt.da
         cube["edge_error"] = 0.00131
     if error and "flatness" in error:
         cube["flatness_rms"] = 0.00162
-    rows["cube"].append({"run_id": run_id, "obb_edges": [0.1] * 3, "face_edges": [0.1] * 3,
-                         **cube, "passed": status == "passed",
+    rows.cube.append({"run_id": run_id, "obb_edges": [0.1] * 3, "face_edges": [0.1] * 3,
+                         **cube, "passed": status == RunStatus.PASSED,
                          "failures": [error] if error else [], "created_at": t})
