@@ -18,7 +18,7 @@ import socket
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
@@ -39,10 +39,15 @@ from calstation.storage.db import (
     utcnow,
 )
 
+if TYPE_CHECKING:
+    from calstation.fleet.cluster import DaskClient
+    from calstation.station.reprocess import ReprocessJob
+
 PLAN_BATCH = 200
 """Runs read from the database at a time while planning."""
 
-Execute = Callable[[list[CampaignJob]], Iterator[tuple[CampaignJob, Any, BaseException | None]]]
+Execute = Callable[[list[CampaignJob]],
+                   Iterator[tuple[CampaignJob, JobResult | None, BaseException | None]]]
 """Runs the jobs somewhere (the Dask cluster) and yields ``(job, result, error)`` as each ends."""
 
 
@@ -142,7 +147,7 @@ def plan_tasks(
                 yield _campaign_job(run, job)
 
 
-def _campaign_job(run: Run, job: Any) -> CampaignJob:
+def _campaign_job(run: Run, job: ReprocessJob) -> CampaignJob:
     """``job`` with what the comparison needs: the stored calibration (accepted, else the
     newest fine-tuned, else the initial), the stored cube figures, the cube recordings."""
     from calstation.station.reprocess import newest_recording
@@ -263,14 +268,14 @@ def _keep(db: Database, campaign_id: int, tol: Tolerance, result: JobResult,
         tally.before_runs.add(result.run_id)
 
 
-def dask_execute(client: Any, campaign_tag: str) -> Execute:
+def dask_execute(client: DaskClient, campaign_tag: str) -> Execute:
     """:data:`Execute` on the Dask ``client``: each job is :func:`calstation.fleet.jobs.run_job`
     under the key ``reprocess-<tag>-<run id>``."""
     from calstation.fleet.cluster import completed
     from calstation.fleet.jobs import run_job
 
     def execute(jobs: Iterable[CampaignJob]) -> Iterator[
-            tuple[CampaignJob, Any, BaseException | None]]:
+            tuple[CampaignJob, JobResult | None, BaseException | None]]:
         return completed(client, run_job, jobs,
                          key=lambda job: f"reprocess-{campaign_tag}-{job.run_id}")
 

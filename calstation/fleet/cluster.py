@@ -15,9 +15,10 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sized
 from contextlib import contextmanager
-from typing import Any
+from types import ModuleType
+from typing import Protocol, TypeVar, cast
 
 from calstation.errors import FleetError
 
@@ -27,6 +28,32 @@ STALL_TIMEOUT_S = 900.0
 
 CONNECT_TIMEOUT_S = 30.0
 """Longest wait for an existing cluster's scheduler to answer (s)."""
+
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+
+class DaskFuture(Protocol):
+    """What :func:`completed` uses of a ``distributed.Future``."""
+
+    def exception(self) -> BaseException | None: ...
+
+    def result(self) -> object: ...
+
+    def release(self) -> None: ...
+
+
+class DaskClient(Protocol):
+    """What a campaign uses of a ``distributed.Client``."""
+
+    def submit(self, fn: Callable[[T], R], task: T, *, key: str, pure: bool) -> DaskFuture: ...
+
+    def scheduler_info(self, *, n_workers: int) -> Mapping[str, object]: ...
+
+    def cancel(self, futures: list[DaskFuture]) -> None: ...
+
+    def close(self) -> None: ...
 
 
 def stall_timeout_s() -> float:
@@ -39,13 +66,14 @@ def stall_timeout_s() -> float:
 
 
 @contextmanager
-def dask_client(workers: int | None = None, scheduler: str | None = None) -> Iterator[Any]:
+def dask_client(workers: int | None = None, scheduler: str | None = None
+                ) -> Iterator[DaskClient]:
     """A ``distributed.Client`` on a new local cluster of ``workers`` processes (default: one
     per core), or on the cluster whose scheduler is at ``scheduler``; closed (and the local
     cluster stopped) on leaving."""
     import distributed
 
-    dist: Any = distributed  # untyped library
+    dist: ModuleType = distributed  # untyped: its attributes are not checked
     if scheduler is not None and workers is not None:
         raise FleetError("--scheduler and --workers: give one (--workers starts a local cluster)")
     if workers is not None and workers < 1:
@@ -74,31 +102,32 @@ def dask_client(workers: int | None = None, scheduler: str | None = None) -> Ite
         cluster.close()
 
 
-def worker_count(client: Any) -> int:
+def worker_count(client: DaskClient) -> int:
     """How many workers the cluster has now."""
-    return len(client.scheduler_info(n_workers=-1).get("workers", {}))
+    workers = client.scheduler_info(n_workers=-1).get("workers", {})
+    return len(workers) if isinstance(workers, Sized) else 0
 
 
 def completed(
-    client: Any,
-    fn: Callable[[Any], Any],
-    tasks: Iterable[Any],
-    key: Callable[[Any], str],
+    client: DaskClient,
+    fn: Callable[[T], R],
+    tasks: Iterable[T],
+    key: Callable[[T], str],
     stall_s: float | None = None,
-) -> Iterator[tuple[Any, Any, BaseException | None]]:
+) -> Iterator[tuple[T, R | None, BaseException | None]]:
     """Submit ``fn(task)`` for each task (Dask key ``key(task)``) and yield ``(task, result,
     None)`` or ``(task, None, error)`` as each finishes, in finishing order. Raises
     :class:`FleetError` when nothing finished for ``stall_s`` seconds (default
     :func:`stall_timeout_s`); the futures left are cancelled on any exit."""
     import distributed
 
-    wait: Any = distributed.wait  # untyped library
+    dist: ModuleType = distributed  # untyped: its attributes are not checked
     stall = stall_timeout_s() if stall_s is None else stall_s
     pending = {client.submit(fn, task, key=key(task), pure=False): task for task in tasks}
     try:
         while pending:
             try:
-                done, _ = wait(list(pending), timeout=stall, return_when="FIRST_COMPLETED")
+                done, _ = dist.wait(list(pending), timeout=stall, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 done = set()
             if not done:
@@ -110,7 +139,8 @@ def completed(
             for future in done:
                 task = pending.pop(future)
                 error = future.exception()
-                yield task, None if error is not None else future.result(), error
+                # what fn returned, sent back by the worker (distributed's results are untyped)
+                yield task, None if error is not None else cast(R, future.result()), error
                 future.release()
     finally:
         if pending:

@@ -17,11 +17,13 @@ where a figure does not exist (a σ that was not estimated, a run without a cube
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Iterable, Mapping
+from typing import SupportsFloat, TypedDict
 
 from calstation.engine.accuracy import true_distortion
 from calstation.engine.frames import Extrinsics
 from calstation.engine.result import CalibrationResult
+from calstation.jsonvalue import JSONValue
 from calstation.recipes import Recipe
 from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord
 
@@ -36,11 +38,44 @@ def work_volume(recipe: Recipe) -> tuple[float, float]:
     return accuracy.work_radius(recipe.fixtures.platter), accuracy.height
 
 
-def _finite(value: Any) -> float | None:
-    return float(value) if value is not None and math.isfinite(float(value)) else None
+class StoredCalibration(TypedDict, total=False):
+    """A stored calibration as :func:`compare` takes it (empty for a run without one)."""
+
+    calibration_id: int
+    stage: str
+    strategy: str
+    gauge: JSONValue
+    H: dict[str, float]
+    sigma: dict[str, float | None]
+    result: CalibrationResult
 
 
-def stored_calibration(c: Calibration) -> dict[str, Any]:
+class CubeFigures(TypedDict):
+    """The figures of a cube check (:func:`cube_figures`; metres, the angles in degrees)."""
+
+    edge_error: float | None
+    obb_error: float | None
+    flatness_rms: float | None
+    perpendicularity_deg: float | None
+    twist_deg: float | None
+    passed: bool
+    failures: list[str]
+
+
+def _finite(value: object) -> float | None:
+    if value is None:
+        return None
+    if not isinstance(value, SupportsFloat | str):
+        raise TypeError(f"not a number: {value!r}")
+    return float(value) if math.isfinite(float(value)) else None
+
+
+def _field(check: object, key: str) -> object:
+    """``key`` of a mapping, else the attribute ``key`` (None when it has none)."""
+    return check.get(key) if isinstance(check, dict) else getattr(check, key, None)
+
+
+def stored_calibration(c: Calibration) -> StoredCalibration:
     """A stored calibration as :func:`compare` takes it: id, stage, strategy, gauge, H, σ (None
     where not estimated), and the whole of it as the engine's result (``result``)."""
     diagnostics = c.diagnostics or {}
@@ -49,16 +84,22 @@ def stored_calibration(c: Calibration) -> dict[str, Any]:
             "result": c.result()}
 
 
-def cube_figures(check: CubeCheckRecord | dict[str, Any] | Any | None) -> dict[str, Any] | None:
+def cube_figures(check: CubeCheckRecord | Mapping[str, object] | object | None
+                 ) -> CubeFigures | None:
     """The figures of a cube check (a stored row, a mapping, or the engine's check), with
     ``passed`` and ``failures``; None without a check."""
     if check is None:
         return None
-    get = check.get if isinstance(check, dict) else (lambda k: getattr(check, k, None))
-    out: dict[str, Any] = {k: _finite(get(k)) for k in CUBE_FIGURES}
-    out["passed"] = bool(get("passed"))
-    out["failures"] = [str(f) for f in (get("failures") or [])]
-    return out
+    failures = _field(check, "failures") or []
+    if not isinstance(failures, Iterable):
+        raise TypeError(f"not a list of failures: {failures!r}")
+    return {"edge_error": _finite(_field(check, "edge_error")),
+            "obb_error": _finite(_field(check, "obb_error")),
+            "flatness_rms": _finite(_field(check, "flatness_rms")),
+            "perpendicularity_deg": _finite(_field(check, "perpendicularity_deg")),
+            "twist_deg": _finite(_field(check, "twist_deg")),
+            "passed": bool(_field(check, "passed")),
+            "failures": [str(f) for f in failures]}
 
 
 def predicted(result: CalibrationResult | None, recipe: Recipe) -> float | None:
@@ -72,14 +113,24 @@ def predicted(result: CalibrationResult | None, recipe: Recipe) -> float | None:
     return _finite(predict(result, recipe.calibration.accuracy, recipe.fixtures.platter).max_m)
 
 
+def _values(figures: CubeFigures | None) -> dict[str, float | None]:
+    """The figures of :data:`CUBE_FIGURES` of a cube check; none without one."""
+    if figures is None:
+        return {}
+    return {"edge_error": figures["edge_error"], "obb_error": figures["obb_error"],
+            "flatness_rms": figures["flatness_rms"],
+            "perpendicularity_deg": figures["perpendicularity_deg"],
+            "twist_deg": figures["twist_deg"]}
+
+
 def compare(
-    stored: dict[str, Any],
+    stored: StoredCalibration,
     new: CalibrationResult,
     refused: list[str],
     recipe: Recipe,
-    stored_cube: dict[str, Any] | None = None,
-    new_cube: dict[str, Any] | None = None,
-) -> dict[str, Any]:
+    stored_cube: CubeFigures | None = None,
+    new_cube: CubeFigures | None = None,
+) -> dict[str, object]:
     """The stored calibration (:func:`stored_calibration`) against ``new`` (today's result,
     refused for ``refused``); the run's stored cube figures against those re-measured under the
     new H (:func:`cube_figures`). See the module docstring."""
@@ -93,9 +144,9 @@ def compare(
     gauge = new.diagnostics.get("gauge")
     cube = None
     if stored_cube is not None or new_cube is not None:
-        change = {k: (None if stored_cube is None or new_cube is None
-                      or stored_cube.get(k) is None or new_cube.get(k) is None
-                      else new_cube[k] - stored_cube[k]) for k in CUBE_FIGURES}
+        was, now = _values(stored_cube), _values(new_cube)
+        change = {k: (None if (x := was.get(k)) is None or (y := now.get(k)) is None
+                      else y - x) for k in CUBE_FIGURES}
         cube = {"stored": stored_cube, "new": new_cube, "change": change}
     return {
         "stored": {k: stored.get(k) for k in ("calibration_id", "stage", "strategy", "gauge",

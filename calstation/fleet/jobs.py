@@ -13,7 +13,7 @@ import os
 import socket
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation.errors import CalstationError, RecordingUnavailable
 from calstation.recordings.runfolder import second_pass
@@ -24,6 +24,11 @@ from calstation.station.reprocess import (
     compute_reprocessing,
     job_recipe,
 )
+
+if TYPE_CHECKING:
+    from calstation.engine.cube import CubeCheck
+    from calstation.fleet.compare import CubeFigures, StoredCalibration
+    from calstation.recipes import Recipe
 
 OUTCOMES = ("reprocessed", "skipped", "failed")
 """A run's outcome in a campaign: re-processed; skipped (its recordings are missing or changed);
@@ -37,8 +42,8 @@ class CampaignJob:
     run's stored cube figures, and its cube recordings (to measure the cube under the new H)."""
 
     job: ReprocessJob
-    stored: dict[str, Any]
-    stored_cube: dict[str, Any] | None
+    stored: StoredCalibration
+    stored_cube: CubeFigures | None
     cube: StoredFile | None
     cube_pass2: StoredFile | None = None
 
@@ -57,7 +62,7 @@ class JobResult:
     run_id: int
     outcome: str
     recomputed: Recomputed | None = None
-    comparison: dict[str, Any] | None = None
+    comparison: dict[str, object] | None = None
     error: str | None = None
     seconds: float = 0.0
     worker: str = ""
@@ -91,7 +96,7 @@ def _ended(task: CampaignJob, outcome: str, error: str, start: float) -> JobResu
                      worker=worker_name())
 
 
-def _compare(task: CampaignJob, done: Recomputed) -> dict[str, Any]:
+def _compare(task: CampaignJob, done: Recomputed) -> dict[str, object]:
     """The comparison of ``done`` with the stored calibration, the cube re-measured."""
     from calstation.fleet.compare import compare, cube_figures
 
@@ -101,7 +106,7 @@ def _compare(task: CampaignJob, done: Recomputed) -> dict[str, Any]:
                    new_cube)
 
 
-def remeasure_cube(task: CampaignJob, done: Recomputed, recipe: Any) -> Any:
+def remeasure_cube(task: CampaignJob, done: Recomputed, recipe: Recipe) -> CubeCheck | None:
     """The cube check under the new H as the station's cube step does it: on both passes with
     the time offset when the cube scan had a second pass, else the check the ry combination
     measured under that H, else a check of the cube scan; None without a usable cube scan."""
@@ -124,6 +129,7 @@ def remeasure_cube(task: CampaignJob, done: Recomputed, recipe: Any) -> Any:
         return check_cube_passes([read_recording(path), read_recording(path2)], result.H,
                                  cube, qa, encoder_latency_s=result.encoder_latency_s,
                                  platter_radius=radius)
-    if done.cube_check is not None:
-        return done.cube_check
+    measured: CubeCheck | None = done.cube_check
+    if measured is not None:
+        return measured
     return check_cube(read_recording(path), result.H, cube, qa, platter_radius=radius)

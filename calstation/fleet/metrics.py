@@ -27,11 +27,29 @@ import math
 import threading
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING
 
 from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
-from calstation.storage.db import PARAMS, Calibration, Database, Run, Station, Step
+from calstation.storage.db import (
+    PARAMS,
+    Calibration,
+    Database,
+    Run,
+    RunStatus,
+    Station,
+    Step,
+    StepStatus,
+)
+
+if TYPE_CHECKING:
+    from prometheus_client.core import GaugeMetricFamily
+    from prometheus_client.metrics_core import Metric
+    from sqlalchemy import Row
+
+    # (id, label, status, started, finished) of a step or a run
+    StatusRow = Row[int, str, str, dt.datetime, dt.datetime | None]
 
 STEP_BUCKETS = (0.5, 1, 2, 5, 10, 20, 30, 60, 120, 300, 600, 1800)
 """Upper bounds of the step-duration histogram (s)."""
@@ -39,7 +57,7 @@ STEP_BUCKETS = (0.5, 1, 2, 5, 10, 20, 30, 60, 120, 300, 600, 1800)
 CYCLE_BUCKETS = (30, 60, 120, 180, 300, 450, 600, 900, 1200, 1800, 3600)
 """Upper bounds of the cycle-time histogram (s)."""
 
-FINISHED = ("passed", "failed", "aborted")
+FINISHED = (RunStatus.PASSED, RunStatus.FAILED, RunStatus.ABORTED)
 """The statuses of a finished step or run (``interrupted`` ones may still be resumed)."""
 
 
@@ -76,11 +94,11 @@ class _Accumulator:
         self.watermark: dict[str, int] = {}
         self.histograms: dict[tuple[str, str], _Histogram] = {}
 
-    def fold(self, station: str, rows: Iterable[Any]) -> None:
+    def fold(self, station: str, rows: Iterable[StatusRow]) -> None:
         """``rows`` (id, label, status, started, finished) of ``station`` above its watermark,
         in id order."""
         for row_id, label, status, started, finished in rows:
-            if status == "running":
+            if status == RunStatus.RUNNING:  # a step's RUNNING is the same word
                 break
             self.watermark[station] = row_id
             if status in FINISHED and started is not None and finished is not None:
@@ -112,12 +130,12 @@ class StationMetrics:
             return bytes(generate_latest(registry))
 
     # --- the reads, at each scrape -----------------------------------------------------------
-    def _names(self, s: Any) -> list[str]:
+    def _names(self, s: Session) -> list[str]:
         wanted = self.stations()
         known = list(s.scalars(select(Station.name).order_by(Station.name)))
         return [n for n in known if n in wanted] if wanted else known
 
-    def families(self) -> Iterator[Any]:
+    def families(self) -> Iterator[Metric]:
         """Every metric family (see the module docstring)."""
         from prometheus_client.core import GaugeMetricFamily
 
@@ -132,7 +150,7 @@ class StationMetrics:
         busy.add_metric([], 1.0 if self.busy() else 0.0)
         yield busy
 
-    def _runs(self, s: Any, names: list[str]) -> Any:
+    def _runs(self, s: Session, names: list[str]) -> Metric:
         from prometheus_client.core import GaugeMetricFamily
 
         family = GaugeMetricFamily("calstation_runs", "Runs by status", labels=["station",
@@ -144,7 +162,7 @@ class StationMetrics:
             family.add_metric([station, status], float(n))
         return family
 
-    def _fold(self, s: Any, names: list[str]) -> None:
+    def _fold(self, s: Session, names: list[str]) -> None:
         for station in names:
             steps = (select(Step.id, Step.name, Step.status, Step.started_at, Step.finished_at)
                      .join(Run, Step.run_id == Run.id).join(Station, Run.station_id == Station.id)
@@ -159,7 +177,7 @@ class StationMetrics:
                     .order_by(Run.id))
             self.cycles.fold(station, s.execute(runs).all())
 
-    def _histograms(self) -> Iterator[Any]:
+    def _histograms(self) -> Iterator[Metric]:
         from prometheus_client.core import HistogramMetricFamily
 
         for name, label, acc, text in (
@@ -173,10 +191,11 @@ class StationMetrics:
                 family.add_metric([station, value], h.buckets(), sum_value=h.total)
             yield family
 
-    def _accepted(self, s: Any, names: list[str]) -> Iterator[Any]:
+    def _accepted(self, s: Session, names: list[str]) -> Iterator[Metric]:
         from prometheus_client.core import GaugeMetricFamily
 
-        def gauge(name: str, text: str, labels: tuple[str, ...] = ("station", "param")) -> Any:
+        def gauge(name: str, text: str, labels: tuple[str, ...] = ("station", "param")
+                  ) -> GaugeMetricFamily:
             return GaugeMetricFamily(name, text, labels=list(labels))
 
         t, r = (gauge("calstation_accepted_translation_metres", "Latest accepted tx, ty, tz"),
@@ -202,9 +221,9 @@ class StationMetrics:
             cal, done = found
             for p, v in cal.params().items():
                 (t if p.startswith("t") else r).add_metric([station, p], v)
-            for p, v in cal.sigmas().items():
-                if v is not None and math.isfinite(v):
-                    (st if p.startswith("t") else sr).add_metric([station, p], v)
+            for p, sigma in cal.sigmas().items():
+                if sigma is not None and math.isfinite(sigma):
+                    (st if p.startswith("t") else sr).add_metric([station, p], sigma)
             for p, v in self._predicted_of(cal, done).items():
                 pe.add_metric([station, p], v)
             run.add_metric([station], float(done.id))
@@ -220,7 +239,7 @@ class StationMetrics:
             self._predicted[cal.id] = predicted_errors(cal, run)
         return self._predicted[cal.id]
 
-    def _drift(self, s: Any, names: list[str]) -> Any:
+    def _drift(self, s: Session, names: list[str]) -> Metric:
         from prometheus_client.core import GaugeMetricFamily
 
         family = GaugeMetricFamily("calstation_drift", "1 when the latest report flagged the "
@@ -230,7 +249,7 @@ class StationMetrics:
             step = s.scalars(select(Step).join(Run, Step.run_id == Run.id)
                              .join(Station, Run.station_id == Station.id)
                              .where(Station.name == station, Step.name == "report",
-                                    Step.status == "passed")
+                                    Step.status == StepStatus.PASSED)
                              .order_by(Step.id.desc()).limit(1)).first()
             drift = ((step.result or {}).get("drift") if step is not None else None) or {}
             if step is None:
@@ -273,5 +292,5 @@ class _Collector:
     def __init__(self, metrics: StationMetrics) -> None:
         self.metrics = metrics
 
-    def collect(self) -> Iterator[Any]:
+    def collect(self) -> Iterator[Metric]:
         return self.metrics.families()

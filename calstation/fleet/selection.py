@@ -5,18 +5,18 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import asdict, dataclass
-from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from calstation.errors import FleetError
-from calstation.storage.db import Run, Station
+from calstation.storage.db import Run, RunStatus, Station
 
-RUN_STATUSES = ("passed", "failed", "aborted", "interrupted", "running")
+RUN_STATUSES = (RunStatus.PASSED, RunStatus.FAILED, RunStatus.ABORTED, RunStatus.INTERRUPTED,
+                RunStatus.RUNNING)
 """The statuses a run can have; ``--status`` takes these."""
 
-DEFAULT_STATUSES = ("passed", "failed", "aborted", "interrupted")
+DEFAULT_STATUSES = (RunStatus.PASSED, RunStatus.FAILED, RunStatus.ABORTED, RunStatus.INTERRUPTED)
 """Without ``--status``: every run but those still running."""
 
 
@@ -34,9 +34,9 @@ class Selection:
     strategy: str | None = None
     limit: int | None = None
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, object]:
         """The selection as stored with the campaign (sorted, so equal selections are equal)."""
-        data = asdict(self)
+        data: dict[str, object] = asdict(self)
         data["stations"] = sorted(self.stations)
         data["statuses"] = sorted(self.statuses)
         return data

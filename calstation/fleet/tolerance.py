@@ -19,10 +19,11 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
 
 from calstation.errors import FleetError
+from calstation.storage.report import json_float
 
 COMPARED = ("tx", "ty", "tz", "ry", "rz")
 """The parameters a tolerance applies to (rx is held at 0)."""
@@ -46,17 +47,20 @@ class Tolerance:
         """Whether the recipes' drift limits apply (no tolerance was given)."""
         return self.volume_m is None and not self.parameters
 
-    def as_dict(self) -> dict[str, Any]:
+    def as_dict(self) -> dict[str, float | dict[str, float] | None]:
         """As stored with the campaign (SI)."""
         return {"volume_m": self.volume_m, "parameters": dict(sorted(self.parameters.items()))}
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any] | None) -> Tolerance:
+    def from_dict(cls, data: Mapping[str, object] | None) -> Tolerance:
         """The tolerance :meth:`as_dict` stored."""
         data = data or {}
         volume = data.get("volume_m")
-        return cls(None if volume is None else float(volume),
-                   {str(k): float(v) for k, v in (data.get("parameters") or {}).items()})
+        parameters = data.get("parameters") or {}
+        if not isinstance(parameters, Mapping):
+            raise TypeError(f"not a stored tolerance: {data!r}")
+        return cls(None if volume is None else json_float(volume),
+                   {str(k): json_float(v) for k, v in parameters.items()})
 
     def describe(self) -> str:
         """In display units: ``work volume 0.50 mm, tx 0.200 mm, ry 0.0100°``."""
@@ -98,14 +102,22 @@ def parse_tolerance(specs: list[str] | tuple[str, ...]) -> Tolerance:
     return Tolerance(volume, parameters)
 
 
-def flags(comparison: dict[str, Any], tolerance: Tolerance) -> list[str]:
+def _numbers(value: object) -> dict[str, float | None]:
+    """A stored mapping of numbers (None kept); empty when there is none."""
+    if not isinstance(value, Mapping):
+        return {}
+    return {str(k): None if v is None else json_float(v) for k, v in value.items()}
+
+
+def flags(comparison: Mapping[str, object], tolerance: Tolerance) -> list[str]:
     """Why ``comparison`` (:func:`calstation.fleet.compare.compare`) exceeds ``tolerance``, one
     sentence per exceeded limit (display units); empty when within."""
     out: list[str] = []
-    diff = comparison.get("difference") or {}
+    diff = _numbers(comparison.get("difference"))
     skip_ty = bool(comparison.get("gauges_differ"))
+    per: dict[str, float | None]
     if tolerance.recipe_limits:
-        limits = comparison.get("drift_limits") or {}
+        limits = _numbers(comparison.get("drift_limits"))
         per = {p: (limits.get("translation_m") if p.startswith("t")
                    else math.radians(limits.get("rotation_deg") or math.nan))
                for p in COMPARED}
@@ -122,7 +134,8 @@ def flags(comparison: dict[str, Any], tolerance: Tolerance) -> list[str]:
                        if p.startswith("t") else
                        f"{p} changed by {math.degrees(d):+.4f}° ({source} "
                        f"{math.degrees(limit):.4f}°)")
-    moved = comparison.get("change_in_work_volume_m")
+    volume_change = comparison.get("change_in_work_volume_m")
+    moved = None if volume_change is None else json_float(volume_change)
     if tolerance.volume_m is not None and moved is not None and moved > tolerance.volume_m:
         out.append(f"the work volume moves by {moved * 1e3:.3f} mm (tolerance "
                    f"{tolerance.volume_m * 1e3:.3f} mm)")

@@ -9,7 +9,6 @@ reads the same under the web station's content policy.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session, selectinload
@@ -17,7 +16,7 @@ from sqlalchemy.orm import Session, selectinload
 from calstation.errors import FleetError
 from calstation.fleet.tolerance import Tolerance
 from calstation.storage.db import Campaign, CampaignRun, Run
-from calstation.storage.report import iso
+from calstation.storage.report import iso, json_float
 
 HISTOGRAM_BINS = 20
 """Bars of the histogram of changes in the work volume."""
@@ -30,13 +29,13 @@ def _serial(run: Run) -> str | None:
         {"name": s.name, "status": s.status, "result": s.result} for s in run.steps])
 
 
-def run_item(row: CampaignRun, run: Run) -> dict[str, Any]:
+def run_item(row: CampaignRun, run: Run, serial: str | None) -> dict[str, object]:
     """One run of a campaign: its run (serial, station, status), outcome, flags and every field
     of its comparison (:func:`calstation.fleet.compare.compare`); a run skipped or failed has
-    no comparison: its fields are then None (``refused`` empty)."""
+    no comparison: its fields are then None (``refused`` empty). ``serial``: the unit's."""
     comparison = dict(row.comparison or {})
     return {
-        "run_id": row.run_id, "serial": _serial(run), "station": run.station.name,
+        "run_id": row.run_id, "serial": serial, "station": run.station.name,
         "status": run.status, "started_at": iso(run.started_at), "outcome": row.outcome,
         "flagged": row.flagged, "flags": comparison.pop("flags", []),
         "calibration_id": row.calibration_id, "error": row.error, "seconds": row.seconds,
@@ -46,7 +45,7 @@ def run_item(row: CampaignRun, run: Run) -> dict[str, Any]:
     }
 
 
-def campaign_brief(c: Campaign) -> dict[str, Any]:
+def campaign_brief(c: Campaign) -> dict[str, object]:
     """The campaign's own fields."""
     return {"id": c.id, "key": c.key, "selection": c.selection, "strategy": c.strategy,
             "tolerance": c.tolerance, "tolerance_text": Tolerance.from_dict(c.tolerance).describe(),
@@ -56,7 +55,7 @@ def campaign_brief(c: Campaign) -> dict[str, Any]:
 
 def campaign_data(
     session: Session, campaign_id: int, run_ids: list[int] | None = None
-) -> dict[str, Any]:
+) -> dict[str, object]:
     """The campaign ``campaign_id``: ``campaign`` (its fields), ``runs`` (one item per row, of
     ``run_ids`` only when given, in run order), ``totals``, ``histogram`` (of the change in the
     work volume), and the ``flagged`` units by serial. :class:`FleetError` when there is none."""
@@ -68,27 +67,31 @@ def campaign_data(
             .options(selectinload(Run.steps), selectinload(Run.station)))
     if run_ids is not None:
         stmt = stmt.where(CampaignRun.run_id.in_(run_ids))
-    runs = [run_item(row, run) for row, run in session.execute(stmt).all()]
+    rows = [(row, _serial(run), run) for row, run in session.execute(stmt).all()]
+    runs = [run_item(row, run, serial) for row, serial, run in rows]
     selected = len(run_ids) if run_ids is not None else max(campaign.selected, len(runs))
     tolerance = Tolerance.from_dict(campaign.tolerance)
+    flagged = sorted(((row.run_id, serial, item) for (row, serial, _), item
+                      in zip(rows, runs, strict=True) if row.flagged),
+                     key=lambda f: (f[1] or "", f[0]))
     return {
         "campaign": campaign_brief(campaign),
         "totals": totals(runs, selected),
         "runs": runs,
-        "histogram": histogram([r["change_in_work_volume_m"] for r in runs
+        "histogram": histogram([json_float(r["change_in_work_volume_m"]) for r in runs
                                 if r.get("change_in_work_volume_m") is not None],
                                tolerance.volume_m),
-        "flagged": sorted((r for r in runs if r["flagged"]),
-                          key=lambda r: (r["serial"] or "", r["run_id"])),
+        "flagged": [item for _, _, item in flagged],
     }
 
 
-def totals(runs: list[dict[str, Any]], selected: int) -> dict[str, int]:
+def totals(runs: list[dict[str, object]], selected: int) -> dict[str, int]:
     """Counts: selected, each outcome, flagged, refused by today's engine, and left (selected
     runs without a row)."""
     out = {"selected": selected, "reprocessed": 0, "skipped": 0, "failed": 0}
     for r in runs:
-        out[r["outcome"]] = out.get(r["outcome"], 0) + 1
+        outcome = str(r["outcome"])
+        out[outcome] = out.get(outcome, 0) + 1
     out["flagged"] = sum(1 for r in runs if r["flagged"])
     out["refused"] = sum(1 for r in runs if r.get("refused"))
     out["left"] = max(0, selected - len(runs))
@@ -102,7 +105,7 @@ def _nice_width(span: float, bins: int) -> float:
     return float(next(k * power for k in (1, 2, 5, 10) if k * power >= raw))
 
 
-def histogram(values_m: list[float], tolerance_m: float | None = None) -> dict[str, Any]:
+def histogram(values_m: list[float], tolerance_m: float | None = None) -> dict[str, object]:
     """Bars of the changes in the work volume (mm): ``bars`` (``x0``, ``x1`` mm, ``count``, and
     where to draw them in a 600 × 200 plot: ``x``, ``y``, ``w``, ``h``), ``ticks`` and the
     tolerance's position when given."""
@@ -127,7 +130,7 @@ def histogram(values_m: list[float], tolerance_m: float | None = None) -> dict[s
             "tolerance_mm": None if tolerance_m is None else tolerance_m * 1e3}
 
 
-def render_report(data: dict[str, Any], link_base: str | None = None) -> str:
+def render_report(data: dict[str, object], link_base: str | None = None) -> str:
     """The self-contained HTML report of :func:`campaign_data`; each run links to
     ``<link_base>/runs/N`` (its page on ``calstation serve``) when ``link_base`` is given."""
     from calstation.storage.templating import environment
@@ -136,7 +139,7 @@ def render_report(data: dict[str, Any], link_base: str | None = None) -> str:
         data=data, link_base=None if link_base is None else link_base.rstrip("/"))
 
 
-def campaign_list(session: Session, limit: int = 100) -> list[dict[str, Any]]:
+def campaign_list(session: Session, limit: int = 100) -> list[dict[str, object]]:
     """The newest campaigns, each with its rows and flagged units counted."""
     from sqlalchemy import func
 

@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session, selectinload
 
 from calstation import display
 from calstation.errors import DatabaseError
-from calstation.jsonvalue import JSONObject, JSONValue
+from calstation.jsonvalue import JSONObject
 from calstation.plugins.hookspecs import ArtifactRecord, RunBrief, StepRecord
 from calstation.storage.db import PARAMS, Calibration, CubeCheckRecord, Run
 from calstation.storage.db.models import MAX_ROW_ID
@@ -112,7 +112,7 @@ def iso(t: dt.datetime | None) -> str | None:
     return t.astimezone(dt.UTC).isoformat()
 
 
-def json_float(value: JSONValue) -> float:
+def json_float(value: object) -> float:
     """A number read from stored JSON as a float: ``float()`` of it, a TypeError for a value
     that is not a number or text."""
     if isinstance(value, str | int | float):
