@@ -47,7 +47,7 @@ class Tolerance:
         """Whether the recipes' drift limits apply (no tolerance was given)."""
         return self.volume_m is None and not self.parameters
 
-    def as_dict(self) -> dict[str, float | dict[str, float] | None]:
+    def as_dict(self) -> dict[str, object]:
         """As stored with the campaign (SI)."""
         return {"volume_m": self.volume_m, "parameters": dict(sorted(self.parameters.items()))}
 

@@ -15,17 +15,36 @@ import gc
 import math
 import re
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from calstation import display
 from calstation.errors import CalstationError
-from calstation.storage.db import Calibration, CubeCheckRecord, Database, Run, Station, Step
+from calstation.storage.dashboard_types import (
+    Chart,
+    ComparisonRow,
+    DashboardData,
+    DashboardRun,
+    ParetoRow,
+    Series,
+    StationSpread,
+    YieldRow,
+)
+from calstation.storage.db import (
+    Calibration,
+    CubeCheckRecord,
+    Database,
+    Run,
+    RunStatus,
+    Station,
+    Step,
+    StepStatus,
+)
 from calstation.storage.spc import (
     RULES,
     Yield,
@@ -65,6 +84,10 @@ REASONS: tuple[tuple[str, str], ...] = (
 
 DEFAULT_DAYS = 56
 MAX_DAYS = 366
+
+
+ENDED_BADLY = (RunStatus.FAILED, RunStatus.ABORTED)
+"""The statuses of the runs the failure Pareto counts."""
 
 
 class DashboardError(CalstationError):
@@ -152,14 +175,14 @@ def _without_gc_pauses() -> Iterator[None]:
             gc.enable()
 
 
-def dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
+def dashboard(db: Database, q: DashboardQuery) -> DashboardData:
     """Everything the dashboard page draws (see the module's docstring). The database is read
     in one short read-only session; the statistics are computed after it."""
     with _without_gc_pauses():
         return _dashboard(db, q)
 
 
-def _dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
+def _dashboard(db: Database, q: DashboardQuery) -> DashboardData:
     start, end = q.window()
     with db.session("reading the runs for the dashboard", read_only=True) as session:
         stations = list(session.scalars(select(Station.name).order_by(Station.name)))
@@ -170,7 +193,7 @@ def _dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
         runs = _runs(session, start, end)
         pareto_rows = _pareto(session, runs, start, end)
         series = _series(session, start, end)
-    out: dict[str, Any] = {
+    return {
         "period": {"since": start.date().isoformat(),
                    "until": (end - dt.timedelta(days=1)).date().isoformat(),
                    "days": q.days, "group": q.group},
@@ -178,14 +201,13 @@ def _dashboard(db: Database, q: DashboardQuery) -> dict[str, Any]:
         "labels": LABELS, "units": UNITS, "rules": RULES,
         "yields": _yields(runs, q.group),
         "pareto": pareto_rows,
+        "charts": [chart(series.get((station, p)), station, p)
+                   for p in q.params] if station else [],
+        "comparison": _comparison(series, stations),
     }
-    out["charts"] = [chart(series.get((station, p)), station, p)
-                     for p in q.params] if station else []
-    out["comparison"] = _comparison(series, stations)
-    return out
 
 
-def _runs(session: Session, start: dt.datetime, end: dt.datetime) -> list[dict[str, Any]]:
+def _runs(session: Session, start: dt.datetime, end: dt.datetime) -> list[DashboardRun]:
     """The period's runs: station, times, status, serial, whether a step was repeated, and
     whether an earlier run had the same serial."""
     retried = set(session.scalars(select(Step.run_id).where(Step.attempt > 1)))
@@ -196,7 +218,7 @@ def _runs(session: Session, start: dt.datetime, end: dt.datetime) -> list[dict[s
         select(Run.id, Station.name, Run.started_at, Run.finished_at, Run.status,
                Run.unit_serial).join(Station, Run.station_id == Station.id)
         .where(Run.started_at >= start, Run.started_at < end).order_by(Run.started_at)).all()
-    out = []
+    out: list[DashboardRun] = []
     for run_id, station, started, finished, status, serial in rows:
         s, f = utc(started), utc(finished)
         out.append({
@@ -208,43 +230,49 @@ def _runs(session: Session, start: dt.datetime, end: dt.datetime) -> list[dict[s
     return out
 
 
-def _yields(runs: list[dict[str, Any]], group: str) -> list[dict[str, Any]]:
+def _yields(runs: list[DashboardRun], group: str) -> list[YieldRow]:
     """Per station and period: runs, yield, first-pass yield, median cycle time; and the
     station's whole period (``period`` "all")."""
     groups: dict[tuple[str, str], Yield] = defaultdict(Yield)
     spans: dict[str, tuple[dt.date | None, dt.date | None]] = {}
     for r in runs:
-        label, first, last = period_of(r["started"], group)
+        started = r["started"]
+        assert started is not None  # a run's start is never empty
+        label, first, last = period_of(started, group)
         spans[label] = (first, last)
         for key in ((r["station"], label), (r["station"], "all")):
             groups[key].add(r["status"], r["first_pass"], r["cycle_s"])
-    out = []
+    out: list[YieldRow] = []
     for (station, label), y in sorted(groups.items()):
         since, until = spans.get(label, (None, None))
         out.append({"station": station, "period": label,
                     "since": since.isoformat() if since else None,
-                    "until": until.isoformat() if until else None, **y.as_dict()})
+                    "until": until.isoformat() if until else None,
+                    "runs": y.runs, "finished": y.finished, "passed": y.passed,
+                    "first_pass": y.first_pass, "yield": y.yield_,
+                    "first_pass_yield": y.first_pass_yield,
+                    "median_cycle_s": y.median_cycle_s})
     return out
 
 
-def _pareto(session: Session, runs: list[dict[str, Any]], start: dt.datetime,
-            end: dt.datetime) -> list[dict[str, Any]]:
+def _pareto(session: Session, runs: list[DashboardRun], start: dt.datetime,
+            end: dt.datetime) -> list[ParetoRow]:
     """Failed runs by (failed step, limit), most frequent first; aborted runs by the step
     they stopped in."""
-    ended = {r["id"]: r for r in runs if r["status"] in ("failed", "aborted")}
+    ended = {r["id"]: r for r in runs if r["status"] in ENDED_BADLY}
     last_failed: dict[int, tuple[str | None, str | None]] = {}
     for run_id, failed_step, failed_error in session.execute(
             select(Step.run_id, Step.name, Step.error).join(Run, Step.run_id == Run.id)
             .where(Run.started_at >= start, Run.started_at < end,
-                   Run.status.in_(("failed", "aborted")),
-                   Step.status.in_(("failed", "aborted")))
+                   Run.status.in_(ENDED_BADLY),
+                   Step.status.in_((StepStatus.FAILED, StepStatus.ABORTED)))
             .order_by(Step.run_id, Step.id)).all():
         last_failed[run_id] = (failed_step, failed_error)
     reasons: list[str] = []
     keys: dict[str, tuple[str, str, str]] = {}
     for run_id, r in ended.items():
         step_name, error = last_failed.get(run_id, (None, None))
-        step, limit = (failure_reason(step_name, error) if r["status"] == "failed"
+        step, limit = (failure_reason(step_name, error) if r["status"] == RunStatus.FAILED
                        else (step_name or "run", "aborted"))
         key = f"{step}: {limit}"
         reasons.append(key)
@@ -254,24 +282,22 @@ def _pareto(session: Session, runs: list[dict[str, Any]], start: dt.datetime,
             for key, n, share in pareto(reasons)]
 
 
-Series = dict[str, Any]
-"""One parameter of one station: ``run``, ``t`` (text for people) and ``value`` (stored units),
-oldest first, as parallel lists, and ``limit``: the newest run's recipe limit on it."""
-
-
 def _series(session: Session, start: dt.datetime, end: dt.datetime
             ) -> dict[tuple[str, str], Series]:
     """Every charted value of the period by (station, parameter)."""
     limits = _recipe_limits(session, start, end)
     out: dict[tuple[str, str], Series] = {}
 
-    def add(params: tuple[str, ...], rows: Any) -> None:
-        for run_id, station, started, sha, *values in rows:
+    def add(params: tuple[str, ...], rows: Iterable[Sequence[object]]) -> None:
+        for row in rows:  # (run id, station, started, recipe sha256, *values)
+            run_id, station, started, sha = row[0], str(row[1]), row[2], str(row[3])
+            assert isinstance(run_id, int) and isinstance(started, dt.datetime | None)
             t = when(started)
             lim = limits.get(sha, {})
-            for p, v in zip(params, values, strict=True):
+            for p, v in zip(params, row[4:], strict=True):
                 if v is None:
                     continue
+                assert isinstance(v, float | int)
                 series = out.get((station, p))
                 if series is None:
                     series = out[(station, p)] = {"run": [], "t": [], "value": [],
@@ -321,10 +347,10 @@ def _recipe_limits(session: Session, start: dt.datetime, end: dt.datetime
     return out
 
 
-def chart(series: Series | None, station: str, param: str) -> dict[str, Any]:
+def chart(series: Series | None, station: str, param: str) -> Chart:
     """A control chart of ``param`` on ``station``: centre line, ±3σ, the recipe's limit, and
     each point with the Western Electric rules it breaks."""
-    base: dict[str, Any] = {"station": station, "param": param, "label": LABELS[param],
+    base: Chart = {"station": station, "param": param, "label": LABELS[param],
                             "short": SHORT[param], "unit": UNITS[param],
                             "kind": "calibration" if param in CALIBRATION_PARAMS else "cube",
                             "points": [], "limits": None, "flagged": 0}
@@ -341,14 +367,14 @@ def chart(series: Series | None, station: str, param: str) -> dict[str, Any]:
 
 
 def _comparison(series: dict[tuple[str, str], Series], stations: list[str]
-                ) -> list[dict[str, Any]]:
+                ) -> list[ComparisonRow]:
     """Station against station: for every parameter, each station's spread (quartiles, the
     whiskers at 1.5 IQR) and its points out of control."""
     import numpy as np
 
-    out = []
+    out: list[ComparisonRow] = []
     for p in CHART_PARAMS:
-        rows = []
+        rows: list[StationSpread] = []
         for s in stations:
             one = series.get((s, p))
             if not one or not one["value"]:

@@ -6,22 +6,29 @@ history filtered to the runs behind it); the page's script follows it on a click
 
 from __future__ import annotations
 
-from typing import Any
 from urllib.parse import urlencode
 
 from calstation import display
+from calstation.storage.dashboard_types import (
+    Chart,
+    ComparisonRow,
+    DashboardData,
+    Figure,
+    YieldRow,
+)
+from calstation.storage.db import RunStatus
 
 COLOURS = ("#0969da", "#bc4c00", "#1a7f37", "#8250df", "#bf3989", "#57606a")
 FLAG = "#cf222e"
 ABORTED = "#9a6700"
 
 
-def history_link(**filters: Any) -> str:
+def history_link(**filters: str | None) -> str:
     """The history page filtered by ``filters`` (empty ones left out)."""
     return "/runs?" + urlencode({k: v for k, v in filters.items() if v not in (None, "")})
 
 
-def _layout(title: str, y: str, height: int = 320, **extra: Any) -> dict[str, Any]:
+def _layout(title: str, y: str, height: int = 320, **extra: object) -> dict[str, object]:
     return {"title": {"text": title, "x": 0.01, "font": {"size": 15}}, "height": height,
             "margin": {"l": 70, "r": 20, "t": 44, "b": 70},
             "yaxis": {"title": {"text": y}, "automargin": True},
@@ -29,10 +36,10 @@ def _layout(title: str, y: str, height: int = 320, **extra: Any) -> dict[str, An
             "hovermode": "closest", **extra}
 
 
-def yield_figure(data: dict[str, Any]) -> dict[str, Any]:
+def yield_figure(data: DashboardData) -> Figure:
     """Yield and first-pass yield per station and period (click: that period's runs)."""
     traces = []
-    by_station: dict[str, list[dict[str, Any]]] = {}
+    by_station: dict[str, list[YieldRow]] = {}
     for row in data["yields"]:
         if row["period"] != "all":
             by_station.setdefault(row["station"], []).append(row)
@@ -40,12 +47,13 @@ def yield_figure(data: dict[str, Any]) -> dict[str, Any]:
         colour = COLOURS[i % len(COLOURS)]
         links = [history_link(station=station, since=r["since"], until=r["until"])
                  for r in rows]
-        for key, name, dash in (("yield", "yield", "solid"),
-                                ("first_pass_yield", "first-pass yield", "dot")):
+        for share, name, dash in (([r["yield"] for r in rows], "yield", "solid"),
+                                  ([r["first_pass_yield"] for r in rows], "first-pass yield",
+                                   "dot")):
             traces.append({
                 "type": "scatter", "mode": "lines+markers", "name": f"{station} {name}",
                 "x": [r["period"] for r in rows],
-                "y": [None if r[key] is None else round(100 * r[key], 2) for r in rows],
+                "y": [None if y is None else round(100 * y, 2) for y in share],
                 "customdata": links, "line": {"color": colour, "dash": dash},
                 "hovertemplate": f"{station} {name} %{{x}}: %{{y:.1f}} %<extra></extra>"})
     return {"data": traces, "layout": _layout(
@@ -54,10 +62,10 @@ def yield_figure(data: dict[str, Any]) -> dict[str, Any]:
         xaxis={"type": "category", "title": {"text": data["period"]["group"]}})}
 
 
-def cycle_figure(data: dict[str, Any]) -> dict[str, Any]:
+def cycle_figure(data: DashboardData) -> Figure:
     """Median cycle time per station and period (click: that period's runs)."""
     traces = []
-    by_station: dict[str, list[dict[str, Any]]] = {}
+    by_station: dict[str, list[YieldRow]] = {}
     for row in data["yields"]:
         if row["period"] != "all":
             by_station.setdefault(row["station"], []).append(row)
@@ -75,7 +83,7 @@ def cycle_figure(data: dict[str, Any]) -> dict[str, Any]:
         xaxis={"type": "category", "title": {"text": data["period"]["group"]}})}
 
 
-def pareto_figure(data: dict[str, Any]) -> dict[str, Any]:
+def pareto_figure(data: DashboardData) -> Figure:
     """Failed and aborted runs by step and reason, most frequent first, with the cumulative
     share (click: the runs behind a bar). A run the operator aborted is no failure of the
     unit: its bar is the colour of an abort, not of a failure."""
@@ -84,13 +92,14 @@ def pareto_figure(data: dict[str, Any]) -> dict[str, Any]:
     links = [history_link(status=r["status"], failed_step=r["step"],
                           reason="" if r["limit"] == "aborted" else r["limit"],
                           since=period["since"], until=period["until"]) for r in rows]
-    labels = [f"{r['step']}<br>{'aborted' if r['status'] == 'aborted' else r['limit']}"
+    labels = [f"{r['step']}<br>{'aborted' if r['status'] == RunStatus.ABORTED else r['limit']}"
               for r in rows]
     return {"data": [
         {"type": "bar", "name": "runs", "x": labels, "y": [r["count"] for r in rows],
          "customdata": links,
-         "marker": {"color": [ABORTED if r["status"] == "aborted" else FLAG for r in rows]},
-         "text": ["aborted by the operator" if r["status"] == "aborted" else "failed"
+         "marker": {"color": [ABORTED if r["status"] == RunStatus.ABORTED else FLAG
+                              for r in rows]},
+         "text": ["aborted by the operator" if r["status"] == RunStatus.ABORTED else "failed"
                   for r in rows],
          "hovertemplate": "%{x}<br>%{y} runs, %{text}<extra></extra>"},
         {"type": "scatter", "mode": "lines+markers", "name": "cumulative %", "x": labels,
@@ -106,7 +115,7 @@ def pareto_figure(data: dict[str, Any]) -> dict[str, Any]:
                 "showgrid": False, "title": {"text": "cumulative share"}})}
 
 
-def control_figure(c: dict[str, Any]) -> dict[str, Any]:
+def control_figure(c: Chart) -> Figure:
     """A control chart: the points (out-of-control ones in red, with their rules), the
     centre line, ±3σ, and the recipe's limit (click a point: its run), in the unit shown.
     The chart is scaled to the points and their control limits: a recipe limit far outside
@@ -120,7 +129,7 @@ def control_figure(c: dict[str, Any]) -> dict[str, Any]:
     values = [p["value"] * k for p in pts]
     bad = [(p, v) for p, v in zip(pts, values, strict=True) if p["rules"]]
     hover = f"run %{{customdata}}<br>%{{x}}: %{{y:.{q.digits}f}} {q.unit}"
-    data: list[dict[str, Any]] = [
+    data: list[dict[str, object]] = [
         # a line through the points (markers for thousands of points would slow the page)
         {"type": "scatter", "mode": "lines+markers" if len(pts) <= 60 else "lines",
          "name": "accepted run", "x": xs, "y": values,
@@ -171,15 +180,16 @@ def control_figure(c: dict[str, Any]) -> dict[str, Any]:
                "tickformat": f".{q.digits}f"})}
 
 
-def comparison_figure(rows: list[dict[str, Any]]) -> dict[str, Any]:
+def comparison_figure(rows: list[ComparisonRow]) -> Figure:
     """Parameters on every station side by side, one panel each, in the unit shown:
     quartiles, whiskers (click a station's box: its runs). One figure, so the page draws it
     at once; each panel's name sits above it, where it cannot run into its neighbour's."""
-    data: list[dict[str, Any]] = []
+    data: list[dict[str, object]] = []
     n = max(1, len(rows))
+    annotations: list[dict[str, object]] = []
     layout = _layout("station against station", "", height=320,
                      grid={"rows": 1, "columns": n, "pattern": "independent", "xgap": 0.35},
-                     showlegend=False, annotations=[],
+                     showlegend=False, annotations=annotations,
                      margin={"l": 50, "r": 20, "t": 70, "b": 60})
     for i, row in enumerate(rows, start=1):
         st = row["stations"]
@@ -195,14 +205,14 @@ def comparison_figure(rows: list[dict[str, Any]]) -> dict[str, Any]:
         layout[f"xaxis{suffix}"] = {"type": "category", "automargin": True,
                                     "tickfont": {"size": 10}}
         layout[f"yaxis{suffix}"] = {"automargin": True, "tickfont": {"size": 10}}
-        layout["annotations"].append({
+        annotations.append({
             "text": row["short"], "showarrow": False, "font": {"size": 12},
             "xref": f"x{suffix} domain", "yref": "paper", "x": 0.5, "y": 1.02,
             "xanchor": "center", "yanchor": "bottom"})
     return {"data": data, "layout": layout}
 
 
-def figures(data: dict[str, Any]) -> dict[str, Any]:
+def figures(data: DashboardData) -> dict[str, Figure]:
     """Every figure of the dashboard by the id of its element."""
     out = {"yield": yield_figure(data), "cycle": cycle_figure(data),
            "pareto": pareto_figure(data)}

@@ -18,14 +18,14 @@ from sqlalchemy.orm import Session
 from calstation import display
 from calstation.errors import CalstationError
 from calstation.recipes import parse_recipe
-from calstation.storage.db import PARAMS, Calibration, Run, Station, Step
+from calstation.storage.db import PARAMS, Calibration, Run, RunStatus, Station, Step, StepStatus
 from calstation.storage.report import HistoryItem, history_item, iso, json_float, with_results
 
 if TYPE_CHECKING:
     from calstation.recipes import QALimits
     from calstation.storage.report_types import ReportData
 
-STATUSES = ("running", "passed", "failed", "aborted")
+STATUSES = (RunStatus.RUNNING, RunStatus.PASSED, RunStatus.FAILED, RunStatus.ABORTED)
 STEP_NAMES = ("preflight", "place", "static_scan", "spin_scan", "fine_tune", "cube_scan",
               "report")
 """The steps a run may fail in (the history's ``failed_step`` filter offers them)."""
@@ -162,8 +162,8 @@ def _failure_filters(stmt: Select[Run], f: HistoryFilter) -> Select[Run]:
     if f.reason:
         conditions.append(Step.error.contains(reason_text(f.reason), autoescape=True))
     if conditions:
-        stmt = stmt.where(Run.steps.any(and_(Step.status.in_(("failed", "aborted")),
-                                             *conditions)))
+        ended = Step.status.in_((StepStatus.FAILED, StepStatus.ABORTED))
+        stmt = stmt.where(Run.steps.any(and_(ended, *conditions)))
     return stmt
 
 

@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from calstation.storage.db.models import RunStatus
+
 D2 = 1.128
 """Moving range of two points: E[|x_i − x_{i−1}|] = d2·σ for normal data."""
 
@@ -145,9 +147,9 @@ class Yield:
         """Count one run: ``status`` as stored; ``first_pass`` when it passed with no step
         repeated on a unit never run before; ``cycle_s`` its duration when it finished."""
         self.runs += 1
-        if status in ("passed", "failed", "aborted"):
+        if status in (RunStatus.PASSED, RunStatus.FAILED, RunStatus.ABORTED):
             self.finished += 1
-        if status == "passed":
+        if status == RunStatus.PASSED:
             self.passed += 1
             if first_pass:
                 self.first_pass += 1

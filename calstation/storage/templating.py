@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 from functools import cache
-from typing import Any
 
 from jinja2 import Environment, PackageLoader, select_autoescape
 from markupsafe import Markup
@@ -13,7 +12,7 @@ from markupsafe import Markup
 from calstation import display
 
 
-def _num(value: Any, digits: int = 3) -> str:
+def _num(value: object, digits: int = 3) -> str:
     """A plain count or ratio with ``digits`` decimals (quantities go through ``q``)."""
     if not isinstance(value, int | float) or isinstance(value, bool) \
             or not math.isfinite(float(value)):
@@ -21,12 +20,12 @@ def _num(value: Any, digits: int = 3) -> str:
     return display.plain(float(value), digits)
 
 
-def _quantity(value: Any, name: str, signed: bool = False, unit: bool = True) -> str:
+def _quantity(value: object, name: str, signed: bool = False, unit: bool = True) -> str:
     """``value`` (stored unit) of quantity ``name`` as :func:`calstation.display.number`."""
     return display.number(name, value, signed=signed, unit=unit)
 
 
-def _with_sigma(value: Any, name: str, sigma: Any, unit: bool = True) -> str:
+def _with_sigma(value: object, name: str, sigma: object, unit: bool = True) -> str:
     """:func:`calstation.display.with_sigma`."""
     return display.with_sigma(name, value, sigma, unit=unit)
 
@@ -53,7 +52,7 @@ def plotly_style_ids() -> tuple[str, ...]:
         plotly_js())))
 
 
-def css_string(text: Any) -> Markup:
+def css_string(text: object) -> Markup:
     """``text`` as a CSS string, for a ``content:`` in a ``<style>``: every character but
     letters, digits and a few marks written as a CSS escape, so no text (a serial, a station's
     name) can end the string or the style."""

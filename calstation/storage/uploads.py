@@ -29,7 +29,7 @@ from calstation.recordings.shared import (
     join,
     upload,
 )
-from calstation.storage.db import Artifact, Database, Run
+from calstation.storage.db import Artifact, Database, Run, RunStatus
 from calstation.storage.report import find_run
 
 STORE_ENV = "CALSTATION_RECORDINGS_URL"
@@ -144,7 +144,7 @@ def runs_to_upload(db: Database, station: str | None = None, limit: int = 1000) 
     from calstation.storage.db import Station
 
     stmt = (select(Run.id).join(Artifact, Artifact.run_id == Run.id)
-            .where(Artifact.location.is_(None), Run.status != "running")
+            .where(Artifact.location.is_(None), Run.status != RunStatus.RUNNING)
             .distinct().order_by(Run.id).limit(limit))
     if station is not None:
         stmt = stmt.join(Station, Run.station_id == Station.id).where(Station.name == station)

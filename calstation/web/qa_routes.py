@@ -19,6 +19,7 @@ from calstation.web.status import age
 
 if TYPE_CHECKING:
     from calstation.storage.dashboard import DashboardQuery
+    from calstation.storage.dashboard_types import DashboardData
     from calstation.storage.report_types import ViewsData
 
 FAVICON = (
@@ -105,16 +106,15 @@ def dashboard_routes(app: FastAPI, ctx: Any) -> None:
     """``/dashboard``, ``/dashboard.json`` and ``/favicon.ico`` on ``app`` (``ctx``: the
     pages' rendering helpers of :mod:`.app`)."""
 
-    def data(q: DashboardQuery) -> dict[str, Any]:
+    def data(q: DashboardQuery) -> DashboardData:
         from calstation.storage.dashboard import dashboard
 
-        result: dict[str, Any] = dashboard(ctx.db, q)
-        return result
+        return dashboard(ctx.db, q)
 
     @app.get("/dashboard.json")
-    def dashboard_json(q: Q) -> dict[str, Any]:
+    def dashboard_json(q: Q) -> dict[str, Any]:  # Any: FastAPI's response model, as is
         """The dashboard's data: yields, the failure Pareto, control charts, comparison."""
-        return data(q)
+        return dict(data(q))
 
     @app.get("/dashboard", response_class=HTMLResponse)
     def dashboard_page(request: Request, q: Q) -> HTMLResponse:

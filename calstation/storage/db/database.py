@@ -9,18 +9,23 @@ import sqlite3
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
-from sqlalchemy import Engine, create_engine, event, inspect
+from sqlalchemy import Connection, Engine, create_engine, event, inspect
 from sqlalchemy.exc import IntegrityError, OperationalError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
 from calstation.errors import DamagedDatabase, DatabaseError
+
+if TYPE_CHECKING:
+    from alembic.config import Config
+    from sqlalchemy.engine import URL
+    from sqlalchemy.engine.interfaces import DBAPIConnection
 from calstation.storage.db.models import (
     PARAMS,
     Artifact,
@@ -112,7 +117,7 @@ class ReadingSession(Session):
     """The session of :meth:`Database.session` ``(read_only=True)``: it refuses to write, since
     its transaction holds no lock to write with."""
 
-    def flush(self, objects: Any = None) -> None:
+    def flush(self, objects: Sequence[object] | None = None) -> None:
         """Refuse pending changes (an error in calstation, not in the database)."""
         if self.new or self.dirty or self.deleted:
             raise DatabaseError(
@@ -142,7 +147,7 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
         if database and database != ":memory:" and not database.startswith("file:"):
             Path(database).expanduser().parent.mkdir(parents=True, exist_ok=True)
 
-        def connect(dbapi_connection: Any, _record: Any) -> None:
+        def connect(dbapi_connection: sqlite3.Connection, _record: object) -> None:
             dbapi_connection.isolation_level = None  # transactions are begun below
             cursor = dbapi_connection.cursor()
             cursor.execute(f"PRAGMA busy_timeout={int(timeout * 1000)}")
@@ -154,7 +159,7 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
             cursor.execute("PRAGMA foreign_keys=ON")
             cursor.close()
 
-        def begin(conn: Any) -> None:
+        def begin(conn: Connection) -> None:
             read_only = conn.get_execution_options().get(READ_ONLY, False)
             conn.exec_driver_sql("BEGIN" if read_only else "BEGIN IMMEDIATE")
 
@@ -162,7 +167,7 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
         event.listen(engine, "begin", begin)
     elif engine.dialect.name == "postgresql":
 
-        def pg_connect(dbapi_connection: Any, _record: Any) -> None:
+        def pg_connect(dbapi_connection: DBAPIConnection, _record: object) -> None:
             cursor = dbapi_connection.cursor()
             cursor.execute(f"SET lock_timeout = {int(timeout * 1000)}")
             cursor.close()
@@ -172,7 +177,7 @@ def make_engine(url: str, lock_timeout: float | None = None) -> Engine:
     return engine
 
 
-def _retry_locked(statement: Callable[[], Any], timeout: float) -> None:
+def _retry_locked(statement: Callable[[], object], timeout: float) -> None:
     """Run ``statement`` until SQLite stops answering "database is locked", for up to
     ``timeout`` seconds. Switching a fresh database to WAL needs an exclusive lock; when two
     processes open it together each may hold a read lock the other's switch waits for, and
@@ -190,7 +195,7 @@ def _retry_locked(statement: Callable[[], Any], timeout: float) -> None:
 
 
 @contextmanager
-def foreign_keys_off(connection: Any) -> Iterator[None]:
+def foreign_keys_off(connection: Connection) -> Iterator[None]:
     """SQLite: foreign keys off while migrating (before any transaction begins).
 
     A batch migration rebuilds a table (copy, drop, rename); with foreign keys on, dropping the
@@ -199,11 +204,13 @@ def foreign_keys_off(connection: Any) -> Iterator[None]:
         yield
         return
     raw = connection.connection.dbapi_connection
-    raw.execute("PRAGMA foreign_keys=OFF")
+    if raw is None:
+        raise DatabaseError("the database connection was closed before migrating")
+    raw.cursor().execute("PRAGMA foreign_keys=OFF")
     try:
         yield
     finally:
-        raw.execute("PRAGMA foreign_keys=ON")
+        raw.cursor().execute("PRAGMA foreign_keys=ON")
 
 
 def _is_lock(exc: BaseException) -> bool:
@@ -238,7 +245,7 @@ def _driver_message(exc: BaseException) -> str:
     return first if len(first) <= 200 else first[:200] + "…"
 
 
-def alembic_config(connection: Any = None, url: str | None = None) -> Any:
+def alembic_config(connection: Connection | None = None, url: str | None = None) -> Config:
     """An Alembic ``Config`` for the migrations (:func:`migrations_dir`), optionally bound to an
     open ``connection``."""
     from alembic.config import Config
@@ -282,7 +289,7 @@ def _say_waiting(message: str) -> None:
 _MIGRATION_LOCK_KEY = 0x63616C73  # "cals": PostgreSQL advisory lock held while migrating
 
 
-def _existing(url: str) -> tuple[Any, Path] | None:
+def _existing(url: str) -> tuple[URL, Path] | None:
     """(the parsed URL, the file) of a SQLite file URL, which must exist (a mistyped path is a
     :class:`DatabaseError`, and nothing is made); None for any other URL."""
     from sqlalchemy.engine import make_url

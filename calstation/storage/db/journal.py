@@ -18,7 +18,7 @@ import datetime as dt
 import json
 import os
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,14 +29,24 @@ from calstation.atomic import commit
 from calstation.errors import DatabaseError, ResultJournalled
 from calstation.recordings.runfolder import SCAN_RECORDINGS, file_sha256
 from calstation.storage.db.database import Database
-from calstation.storage.db.models import Artifact, Calibration, CubeCheckRecord, Run, Step, utcnow
+from calstation.storage.db.models import (
+    Artifact,
+    Base,
+    Calibration,
+    CubeCheckRecord,
+    Run,
+    RunStatus,
+    Step,
+    StepStatus,
+    utcnow,
+)
 
 JOURNAL = "journal.jsonl"
 """The journal's file name in the run folder."""
 APPLIED = "journal.applied.jsonl"
 """Where applied journal entries are kept (appended), for the record."""
 
-Payload = dict[str, Any]
+Payload = dict[str, Any]  # Any: an entry read back from JSON, applied field by field
 
 
 def _iso(t: dt.datetime | None = None) -> str:
@@ -47,7 +57,7 @@ def _time(text: str | None) -> dt.datetime | None:
     return dt.datetime.fromisoformat(text) if text else None
 
 
-def columns(row: Any, skip: tuple[str, ...] = ("id", "created_at")) -> dict[str, Any]:
+def columns(row: Base, skip: tuple[str, ...] = ("id", "created_at")) -> dict[str, object]:
     """The column values of an ORM row not yet stored (for a journal entry)."""
     return {
         attr.key: getattr(row, attr.key)
@@ -61,12 +71,12 @@ def step_end(
     run_id: int,
     step_id: int,
     status: str,
-    result: dict[str, Any],
+    result: Mapping[str, object],
     error: str | None,
     *,
-    artifacts: list[dict[str, Any]] | None = None,
-    calibration: dict[str, Any] | None = None,
-    cube: dict[str, Any] | None = None,
+    artifacts: Sequence[Mapping[str, object]] | None = None,
+    calibration: Mapping[str, object] | None = None,
+    cube: Mapping[str, object] | None = None,
     run_status: str | None = None,
     accept_calibration: int | None = None,
     staged: list[tuple[Path, Path]] | None = None,
@@ -98,7 +108,7 @@ def run_end(run_id: int, status: str, error: str | None) -> Payload:
             "finished_at": _iso()}
 
 
-def motor_stop(run_id: int, record: dict[str, Any]) -> Payload:
+def motor_stop(run_id: int, record: Mapping[str, object]) -> Payload:
     """How the turntable was stopped when the run's drivers closed."""
     return {"op": "motor_stop", "run_id": run_id, "motor_stop": record}
 
@@ -145,15 +155,17 @@ def _apply_run_end(s: Session, p: Payload) -> None:
     run = s.get(Run, p["run_id"])
     if run is None:
         raise DatabaseError(f"run {p['run_id']} is not in the database")
-    reported = any(st.name == "report" and st.status == "passed" for st in run.steps)
-    if not (p["status"] == "interrupted" and reported):
+    reported = any(st.name == "report" and st.status == StepStatus.PASSED for st in run.steps)
+    if not (p["status"] == RunStatus.INTERRUPTED and reported):
         # (a run whose report is stored has finished with its verdict, even if the process
         # could not store its end)
         run.status = p["status"]
         run.error = p["error"]
     run.finished_at = _time(p["finished_at"])
-    for row in s.scalars(select(Step).where(Step.run_id == run.id, Step.status == "running")):
-        row.status = "interrupted" if p["status"] == "interrupted" else p["status"]
+    for row in s.scalars(select(Step).where(Step.run_id == run.id,
+                                            Step.status == StepStatus.RUNNING)):
+        row.status = (StepStatus.INTERRUPTED if p["status"] == RunStatus.INTERRUPTED
+                      else p["status"])
         row.error = row.error or p["error"]
         row.finished_at = row.finished_at or run.finished_at
 
@@ -245,7 +257,8 @@ def process_alive(pid: int) -> bool:
 def _register_partial_recordings(s: Session, run_id: int, run_dir: Path) -> list[str]:
     """Store the recordings of scans a dead process left running as ``partial`` artifacts."""
     kept = []
-    for step in s.scalars(select(Step).where(Step.run_id == run_id, Step.status == "running")):
+    for step in s.scalars(select(Step).where(Step.run_id == run_id,
+                                             Step.status == StepStatus.RUNNING)):
         stems = SCAN_RECORDINGS.get(step.name, ())
         paths = [(kind, run_dir / f"{kind}.mcap") for kind in stems]
         present = [(kind, path) for kind, path in paths if path.is_file()]
@@ -271,7 +284,7 @@ def recover(db: Database) -> list[str]:
     notes: list[str] = []
     with db.session("reading the runs", read_only=True) as s:
         rows = s.execute(
-            select(Run.id, Run.data_dir, Run.host, Run.pid).where(Run.status == "running")
+            select(Run.id, Run.data_dir, Run.host, Run.pid).where(Run.status == RunStatus.RUNNING)
         ).all()
     for run_id, data_dir, host, pid in rows:
         alive = _owner_alive(host, pid)
@@ -293,7 +306,8 @@ def recover(db: Database) -> list[str]:
             with db.session(f"marking run {run_id} interrupted") as s:
                 kept = _register_partial_recordings(s, run_id, Path(data_dir))
                 _apply_run_end(s, run_end(
-                    run_id, "interrupted", f"process {pid} ended before the run finished"))
+                    run_id, RunStatus.INTERRUPTED,
+                    f"process {pid} ended before the run finished"))
             if kept:
                 notes.append(f"run {run_id}: kept {', '.join(kept)} as partial recording(s)")
             notes.append(f"run {run_id} was left running by process {pid}, which has ended: "

@@ -27,6 +27,8 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship, validates
 
+from calstation.jsonvalue import JSONObject
+
 if TYPE_CHECKING:
     from calstation.engine.result import CalibrationResult
 
@@ -136,7 +138,7 @@ class Run(Base):
     host: Mapped[str | None] = mapped_column(String(255))
     pid: Mapped[int | None] = mapped_column(Integer)
     unit_serial: Mapped[str | None] = mapped_column(String(100), index=True)
-    motor_stop: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    motor_stop: Mapped[JSONObject | None] = mapped_column(JSON)
 
     station: Mapped[Station] = relationship(back_populates="runs")
     steps: Mapped[list[Step]] = relationship(
@@ -176,7 +178,7 @@ class Step(Base):
     status: Mapped[str] = mapped_column(String(16), default=StepStatus.RUNNING.value)
     started_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
     finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime(timezone=True))
-    result: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    result: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # Any: JSON, read by key
     error: Mapped[str | None] = mapped_column(Text)
 
     @validates("status")
@@ -232,7 +234,7 @@ class Calibration(Base):
     cost: Mapped[float | None] = mapped_column(Float)
     iterations: Mapped[int | None] = mapped_column(Integer)
     accepted: Mapped[bool] = mapped_column(Boolean, default=False, index=True)
-    diagnostics: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    diagnostics: Mapped[dict[str, Any] | None] = mapped_column(JSON)  # Any: JSON, read by key
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
     run: Mapped[Run] = relationship(back_populates="calibrations")
@@ -287,9 +289,9 @@ class CubeCheckRecord(Base):
     calibration_id: Mapped[int | None] = mapped_column(
         ForeignKey("calibration.id", ondelete="SET NULL")
     )
-    obb_edges: Mapped[list[Any]] = mapped_column(JSON)
+    obb_edges: Mapped[list[float]] = mapped_column(JSON)
     obb_error: Mapped[float] = mapped_column(Float)
-    face_edges: Mapped[list[Any]] = mapped_column(JSON)
+    face_edges: Mapped[list[float]] = mapped_column(JSON)
     edge_error: Mapped[float] = mapped_column(Float)
     flatness_rms: Mapped[float] = mapped_column(Float)
     perpendicularity_deg: Mapped[float] = mapped_column(Float)
@@ -302,7 +304,7 @@ class CubeCheckRecord(Base):
     range_noise: Mapped[float | None] = mapped_column(Float)
     """the range noise measured on the faces (m, 1σ along the rays)"""
     passed: Mapped[bool] = mapped_column(Boolean)
-    failures: Mapped[list[Any]] = mapped_column(JSON)
+    failures: Mapped[list[str]] = mapped_column(JSON)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
 
     run: Mapped[Run] = relationship(back_populates="cube_checks")
@@ -349,9 +351,9 @@ class Campaign(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     key: Mapped[str] = mapped_column(String(64), index=True)
-    selection: Mapped[dict[str, Any]] = mapped_column(JSON)
+    selection: Mapped[dict[str, object]] = mapped_column(JSON)
     strategy: Mapped[str | None] = mapped_column(String(50))
-    tolerance: Mapped[dict[str, Any]] = mapped_column(JSON)
+    tolerance: Mapped[dict[str, object]] = mapped_column(JSON)
     engine: Mapped[str] = mapped_column(String(100))
     host: Mapped[str | None] = mapped_column(String(255))
     selected: Mapped[int] = mapped_column(Integer, default=0)
@@ -389,7 +391,7 @@ class CampaignRun(Base):
     outcome: Mapped[str] = mapped_column(String(16))
     flagged: Mapped[bool] = mapped_column(Boolean, default=False, index=True)
     refused: Mapped[bool] = mapped_column(Boolean, default=False)
-    comparison: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    comparison: Mapped[dict[str, object] | None] = mapped_column(JSON)
     error: Mapped[str | None] = mapped_column(Text)
     seconds: Mapped[float | None] = mapped_column(Float)
     worker: Mapped[str | None] = mapped_column(String(255))

@@ -16,7 +16,6 @@ Create Date: 2026-11-23 18:30:00
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import sqlalchemy as sa
 from alembic import op
@@ -34,7 +33,7 @@ _step = sa.table(
 )
 
 
-def _serial_in(result: Any) -> str | None:
+def _serial_in(result: object) -> str | None:
     if not isinstance(result, dict):
         return None
     value = result.get('unit_serial')
