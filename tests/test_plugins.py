@@ -237,3 +237,33 @@ def test_the_simulator_is_reached_through_its_hook_and_missing_it_says_how_to_in
         PluginError, match="simulator 'sim' registered twice"
     ):
         plugins.simulators()
+
+
+def test_the_observer_payloads_carry_every_field_of_the_stored_run() -> None:
+    """RunBrief and RunSummary (the TypedDicts the observer hooks declare) name exactly the
+    keys storage gives a run, and the payloads built from them keep every value."""
+    import datetime as dt
+
+    from calstation.storage.db import Artifact, Run, Station, Step
+    from calstation.storage.report import run_brief, run_summary
+
+    t0 = dt.datetime(2026, 1, 2, 3, 4, 5, tzinfo=dt.UTC)
+    run = Run(id=3, station=Station(name="st-1"), recipe_name="r", recipe_path=None,
+              recipe_text="name: r", recipe_sha256="ab", operator="ann", unattended=True,
+              data_dir="/runs/3", started_at=t0, finished_at=t0, status="passed", error="e",
+              host="h", pid=1234, unit_serial="u", motor_stop={"ok": True})
+    run.steps.append(Step(name="preflight", attempt=1, status="passed", started_at=t0,
+                          result={"lines": 4}))
+    run.artifacts.append(Artifact(kind="spin", path="/runs/3/spin.mcap", size_bytes=9,
+                                  sha256="cd", status="complete"))
+    brief, summary = run_brief(run), run_summary(run)
+
+    def keys(typed: Any) -> set[str]:
+        return set(typed.__required_keys__ | typed.__optional_keys__)
+
+    assert set(brief) == keys(hookspecs.RunBrief)
+    assert set(summary) == keys(hookspecs.RunSummary)
+    assert set(summary["steps"][0]) == keys(hookspecs.StepRecord)
+    assert set(summary["artifacts"][0]) == keys(hookspecs.ArtifactRecord)
+    assert hookspecs.run_brief_payload(summary) == brief
+    assert hookspecs.run_summary_payload(summary) == summary

@@ -33,7 +33,7 @@ from calstation.recipes import LoadedRecipe, parse_recipe
 from calstation.recordings.runfolder import second_pass
 from calstation.recordings.shared import StoredFile
 from calstation.station.turns import turns_fitted
-from calstation.storage.db import PARAMS, Calibration, Database, Run
+from calstation.storage.db import PARAMS, Calibration, Database, Run, RunStatus, StepStatus
 
 if TYPE_CHECKING:
     from calstation.engine.cube import CubeCheck
@@ -107,7 +107,7 @@ def _spin_fixture(run: Run, loaded: LoadedRecipe) -> str:
     from calstation import plugins
 
     for step in reversed(run.steps):
-        if step.name == "spin_scan" and step.status == "passed" and step.result:
+        if step.name == "spin_scan" and step.status == StepStatus.PASSED and step.result:
             fixture = step.result.get("fixture")
             if isinstance(fixture, str):
                 return fixture
@@ -321,7 +321,7 @@ def reprocess_run(
         run = s.get(Run, run_id)
         if run is None:
             raise DatabaseError(f"no run with id {run_id} in the database")
-        if accept and run.status != "passed":
+        if accept and run.status != RunStatus.PASSED:
             raise DatabaseError(
                 f"run {run_id} has status {run.status}: only a passed run has an accepted "
                 "calibration, so the re-processing cannot be accepted", option="accept"
