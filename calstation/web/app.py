@@ -14,10 +14,10 @@ import hashlib
 import logging
 import re
 import time
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Mapping, Sequence
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Literal, TypedDict, TypeVar
 
 from fastapi import Depends, FastAPI, Path as PathParam, Query, Request
 from fastapi.exceptions import RequestValidationError
@@ -28,12 +28,13 @@ from fastapi.responses import (
     Response,
 )
 from pydantic import AfterValidator, BaseModel, ValidationError
+from pydantic_core import ErrorDetails
 from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp
 
 from calstation.errors import CalstationError
 from calstation.station.lock import StationBusy
-from calstation.storage.db import Database, Run
+from calstation.storage.db import Database, Run, RunStatus
 from calstation.storage.templating import environment
 from calstation.web.events import EventHub, EventStream, StreamSlots
 from calstation.web.hosts import HostPolicy, is_local_host
@@ -42,6 +43,7 @@ from calstation.web.middleware import NONCE_KEY, FrontDoor, refused
 from calstation.web.payloads import (
     AnswerRequest,
     EmptyRequest,
+    JSONPage,
     LoginRequest,
     ParamName,
     PlanRequest,
@@ -59,6 +61,9 @@ from calstation.web.settings import MAX_ID, WebLimits
 from calstation.web.status import StationStatus, age, recipe_stations
 from calstation.web.tokens import TokenSource
 
+if TYPE_CHECKING:
+    from calstation.storage.qa import HistoryFilter
+
 STATIC = Path(__file__).parent / "static"
 StaticFile = Literal["station.css", "station.js", "status.js", "plan.js", "figures.js",
                      "plotly.min.js"]
@@ -72,10 +77,18 @@ class NotFound(CalstationError):
     """No such run (HTTP 404)."""
 
 
+class FrontDoorSettings(TypedDict):
+    """The front door's settings (:class:`~calstation.web.middleware.FrontDoor`)."""
+
+    hosts: HostPolicy
+    max_body_bytes: int
+    tls: bool
+
+
 class _StationApp(FastAPI):
     """FastAPI with the front door around its whole stack, error pages included."""
 
-    front_door: dict[str, Any] | None = None
+    front_door: FrontDoorSettings | None = None
 
     def build_middleware_stack(self) -> ASGIApp:
         app = super().build_middleware_stack()
@@ -180,7 +193,7 @@ def _error_handlers(app: FastAPI, ctx: _Pages) -> None:
                             status_code=500)
 
 
-def _describe_errors(errors: Sequence[Any]) -> str:
+def _describe_errors(errors: Sequence[ErrorDetails]) -> str:
     parts = []
     for e in list(errors)[:5]:
         loc = ".".join(str(p) for p in e.get("loc", ()) if p not in ("body", "query", "path"))
@@ -188,7 +201,7 @@ def _describe_errors(errors: Sequence[Any]) -> str:
     return "; ".join(parts)[:500] or "invalid request"
 
 
-def _validated(model: type[M], fields: dict[str, Any], request: Request,
+def _validated(model: type[M], fields: Mapping[str, object], request: Request,
                ints: tuple[str, ...] = ()) -> M:
     """``fields`` as ``model`` (strict; a form's digit fields become numbers first); 422."""
     if media_type(request)[0] == "application/x-www-form-urlencoded":
@@ -208,7 +221,7 @@ class _Pages:
         self.db, self.runner, self.guard, self.status = db, runner, guard, status
 
 
-    def page(self, request: Request, template: str, context: dict[str, Any],
+    def page(self, request: Request, template: str, context: Mapping[str, object],
              status: int = 200, headers: dict[str, str] | None = None) -> HTMLResponse:
         """``template`` rendered for ``request``'s session (a new one set when it has none)."""
         session = self.guard.page_session(request)
@@ -267,13 +280,13 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
         })
 
     @app.get("/state.json")
-    def state_json() -> dict[str, Any]:
+    def state_json() -> JSONPage:
         """The operator page's JSON twin: the live state of the current (or last) run."""
         ctx.status.current()
         return {**runner.live.snapshot(), "recipes": runner.recipes()}
 
     @app.get("/station.json")
-    def station_json() -> dict[str, Any]:
+    def station_json() -> JSONPage:
         """Who holds each station of this server (every page's status line): ``stations``,
         each with ``held`` and its ``holder`` (run, operator, where from, since when) and
         ``text`` in words; ``now``, the server's time (s since the epoch)."""
@@ -283,7 +296,7 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
     def cloud_json(
         cloud: Annotated[int, Query(ge=0, le=MAX_ID, description="the cloud the page has")] = 0,
         since: Annotated[int, Query(ge=0, le=10_000_000, description="points it has")] = 0,
-    ) -> dict[str, Any]:
+    ) -> JSONPage:
         """The scan's cloud so far under the current calibration (mm, frame D): the points
         from the ``since``-th of cloud ``cloud`` on (all of them after a new scan began)."""
         return runner.live.cloud_since(cloud, since)
@@ -359,7 +372,7 @@ def _operator_routes(app: FastAPI, ctx: _Pages) -> None:
                         headers={"Cache-Control": "no-cache"})
 
 
-def _resumable(db: Database) -> list[dict[str, Any]]:
+def _resumable(db: Database) -> list[dict[str, object]]:
     """Runs left ``running`` by a process that is gone (a killed server), newest first."""
     import os
     import socket
@@ -368,10 +381,10 @@ def _resumable(db: Database) -> list[dict[str, Any]]:
 
     from calstation.station.lock import process_alive
 
-    out = []
+    out: list[dict[str, object]] = []
     with db.session("reading the runs", read_only=True) as s:
-        for run in s.scalars(select(Run).where(Run.status == "running").order_by(Run.id.desc())
-                             .limit(20)):
+        for run in s.scalars(select(Run).where(Run.status == RunStatus.RUNNING)
+                             .order_by(Run.id.desc()).limit(20)):
             if run.host == socket.gethostname() and run.pid is not None and (
                     run.pid == os.getpid() or process_alive(run.pid)):
                 continue
@@ -391,7 +404,7 @@ def _history_filter(
     failed_step: Annotated[OptionalText, Query(max_length=50)] = None,
     reason: Annotated[OptionalText, Query(max_length=100)] = None,
     limit: Annotated[int, Query(ge=1, le=5000)] = 200,
-) -> Any:
+) -> HistoryFilter:
     from calstation.storage import qa
 
     # an empty field of the filter form is no filter
@@ -402,14 +415,14 @@ def _history_filter(
                             limit=limit)
 
 
-Filter = Annotated[Any, Depends(_history_filter)]
+Filter = Annotated[Any, Depends(_history_filter)]  # Any: a HistoryFilter, imported when asked
 
 
 def _trend_data(
     request: Request,
     station: Annotated[OptionalText, Query(max_length=100)] = None,
     param: Annotated[list[ParamName] | None, Query()] = None,
-) -> dict[str, Any]:
+) -> JSONPage:
     """The trends of one or more parameters (``param`` repeated); the first one's fields at
     the top (as before several could be asked for), all of them under ``trends``."""
     from calstation.storage import qa
@@ -430,12 +443,12 @@ def _trend_data(
             "labels": {p: LABELS.get(p, p) for p in offered}}
 
 
-Trend = Annotated[dict[str, Any], Depends(_trend_data)]
+Trend = Annotated[JSONPage, Depends(_trend_data)]
 RunQuery = Annotated[int | None, Query(ge=1, le=MAX_ID)]
 
 
 def _compare_data(request: Request, a: RunQuery = None, b: RunQuery = None
-                  ) -> dict[str, Any] | None:
+                  ) -> JSONPage | None:
     from calstation.storage import qa
     from calstation.storage.report_html import report_data
 
@@ -450,14 +463,14 @@ def _compare_data(request: Request, a: RunQuery = None, b: RunQuery = None
     return {"a": da, "b": db_, "rows": qa.compare(da, db_)}
 
 
-Compared = Annotated[dict[str, Any] | None, Depends(_compare_data)]
+Compared = Annotated[JSONPage | None, Depends(_compare_data)]
 
 
 def _run_routes(app: FastAPI, ctx: _Pages) -> None:
     from calstation.storage import qa
 
     @app.get("/runs.json")
-    def runs_json(f: Filter) -> dict[str, Any]:
+    def runs_json(f: Filter) -> JSONPage:
         """History as JSON (stored units)."""
         with ctx.db.session("reading the runs", read_only=True) as s:
             return {"filters": f.as_dict(), "runs": qa.history(s, f)}
@@ -471,7 +484,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
                                                   "query": str(request.url.query)})
 
     @app.get("/runs/{run_id}.json")
-    def run_json(run_id: RunId) -> dict[str, Any]:
+    def run_json(run_id: RunId) -> JSONPage:
         """One run as JSON: what its page shows, without the 3D point clouds."""
         from calstation.storage.report_html import report_data
 
@@ -509,7 +522,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
                 f'attachment; filename="run-{run_id}-calibration{mark}.{fmt}"'})
 
     @app.get("/trends.json")
-    def trends_json(t: Trend) -> dict[str, Any]:
+    def trends_json(t: Trend) -> JSONPage:
         """Parameters' trends as JSON (stored units)."""
         return t
 
@@ -521,7 +534,7 @@ def _run_routes(app: FastAPI, ctx: _Pages) -> None:
             "figures": {f"trend-{one['param']}": qa.trend_figure(one) for one in t["trends"]}})
 
     @app.get("/compare.json")
-    def compare_json(c: Compared) -> dict[str, Any]:
+    def compare_json(c: Compared) -> JSONPage:
         """Two runs side by side as JSON."""
         if c is None:
             raise qa.QueryError("compare needs two run ids: ?a=RUN&b=RUN")
@@ -585,14 +598,14 @@ def _fleet_routes(app: FastAPI, ctx: _Pages, recipes_dir: Path) -> None:
 
         return Response(metrics.render(), media_type=CONTENT_TYPE_LATEST)
 
-    def campaigns() -> list[dict[str, Any]]:
+    def campaigns() -> list[dict[str, object]]:
         from calstation.fleet.view import campaign_list
 
         with ctx.db.session("reading the campaigns", read_only=True) as s:
             return campaign_list(s)
 
     @app.get("/campaigns.json")
-    def campaigns_json() -> dict[str, Any]:
+    def campaigns_json() -> JSONPage:
         """The re-processing campaigns, newest first."""
         return {"campaigns": campaigns()}
 
@@ -601,7 +614,7 @@ def _fleet_routes(app: FastAPI, ctx: _Pages, recipes_dir: Path) -> None:
         """The re-processing campaigns (``calstation reprocess``), newest first."""
         return ctx.page(request, "campaigns.html", {"campaigns": campaigns()})
 
-    def campaign(campaign_id: int) -> dict[str, Any]:
+    def campaign(campaign_id: int) -> dict[str, object]:
         from calstation.fleet.view import campaign_data
         from calstation.storage.db import Campaign
 
@@ -611,7 +624,7 @@ def _fleet_routes(app: FastAPI, ctx: _Pages, recipes_dir: Path) -> None:
             return campaign_data(s, campaign_id)
 
     @app.get("/campaigns/{campaign_id}.json")
-    def campaign_json(campaign_id: CampaignId) -> dict[str, Any]:
+    def campaign_json(campaign_id: CampaignId) -> JSONPage:
         """One campaign as JSON: what ``calstation reprocess --json`` prints."""
         return campaign(campaign_id)
 
@@ -623,7 +636,8 @@ def _fleet_routes(app: FastAPI, ctx: _Pages, recipes_dir: Path) -> None:
 
 
 # --- api (state-changing) --------------------------------------------------------------------
-async def _authorized(request: Request, guard: Guard, *, login: bool = False) -> dict[str, Any]:
+async def _authorized(request: Request, guard: Guard, *, login: bool = False
+                      ) -> dict[str, object]:
     """The request's fields, once its body is well-formed (400, 415) and the guard lets it
     through (401, 403, 429; ``login``: no logged-in session needed)."""
     fields = await read_fields(request)
@@ -636,7 +650,7 @@ def _address(request: Request) -> str:
     return f"{request.url.scheme}://{request.url.netloc}/"[:200]
 
 
-def _done(request: Request, body: dict[str, Any], status: int = 200) -> Response:
+def _done(request: Request, body: Mapping[str, object], status: int = 200) -> Response:
     """JSON for scripts, a redirect back to the operator page for a plain form post."""
     if media_type(request)[0] == "application/x-www-form-urlencoded":
         return RedirectResponse("/", status_code=303)
@@ -653,9 +667,9 @@ def _plan_routes(app: FastAPI, ctx: _Pages, planner: Planner) -> None:
                                                "state": planner.snapshot()})
 
     @app.get("/plan.json")
-    def plan_json() -> dict[str, Any]:
+    def plan_json() -> JSONPage:
         """The plan page's JSON twin: the plan under way or the last one."""
-        return planner.snapshot()
+        return dict(planner.snapshot())
 
     @app.post("/api/plan", response_model=None, openapi_extra=schema_of(PlanRequest))
     async def start_plan(request: Request) -> Response:

@@ -8,21 +8,48 @@ Values stay in their stored units; the page formats them (:mod:`calstation.displ
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypedDict
 
 from calstation import display
 from calstation.jsonvalue import JSONObject
 from calstation.storage.report import json_float
 
 if TYPE_CHECKING:
-    from calstation.storage.report_types import CalibrationRow, ReportData
+    from calstation.storage.report_types import Accuracy, CalibrationRow, CubeRow, ReportData
 
 STAGES = {"initial": "initial, from the L-target", "fine": "fine-tuned",
           "reprocess": "re-processed"}
 """How the calibrations' stages read on the end screen."""
 
 
-def end_screen(data: ReportData) -> dict[str, object]:
+class EndStep(TypedDict):
+    """A step attempt as the end screen lists it."""
+
+    name: str
+    title: str
+    attempt: int
+    status: str
+    seconds: float | None
+
+
+class EndScreen(TypedDict):
+    """What the operator page's end screen shows (:func:`end_screen`)."""
+
+    verdict: str
+    cube_rows: list[CubeRow]
+    serial: str | None
+    accuracy: Accuracy | None
+    error: str | None
+    status: str
+    calibrations: list[dict[str, object]]
+    drift: dict[str, object] | None
+    steps: list[EndStep]
+    started_at: str | None
+    finished_at: str | None
+    elapsed_s: float | None
+
+
+def end_screen(data: ReportData) -> EndScreen:
     """The end screen's data from ``report_data(…, views=False)``."""
     run = data["run"]
     return {

@@ -21,12 +21,14 @@ import itertools
 import math
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from calstation import display
 from calstation.display import fixture_name, step_title
@@ -38,7 +40,13 @@ from calstation.station.operator import (
 )
 from calstation.station.runs import PreparedRun, prepare_resume, prepare_run, resumable_run
 from calstation.station.steps import STEPS, run_steps
-from calstation.storage.db import Database
+from calstation.storage.db import Database, RunStatus, StepStatus
+
+if TYPE_CHECKING:
+    from calstation.drivers import LidarLine
+    from calstation.recipes import Recipe
+    from calstation.web.endscreen import EndScreen
+    from calstation.web.status import StationEntry
 
 LINE_PREVIEW_PERIOD_S = 0.5
 """At most this often the live lidar line is refreshed (the lidar gives ~1000 lines/s): as
@@ -65,7 +73,70 @@ class NoSuchPrompt(CalstationError):
     """An answer to a prompt that is not (or no longer) pending (HTTP 409)."""
 
 
-def zoom_window(x_mm: Any, y_mm: Any, platter_m: float) -> dict[str, list[float]] | None:
+class StepState(TypedDict):
+    """A step as the operator page shows it."""
+
+    name: str
+    title: str
+    status: str
+    attempt: int
+    error: str | None
+    started_at: float | None
+    seconds: float | None
+
+
+class CloudState(TypedDict):
+    """The scan's cloud so far: one ``id`` per scan, its points in mm (frame D)."""
+
+    id: int
+    scan: str
+    source: str
+    x: list[float]
+    y: list[float]
+    z: list[float]
+
+
+class LiveSnapshot(TypedDict):
+    """The operator page's state as JSON-ready data (:meth:`LiveState.snapshot`)."""
+
+    version: int
+    busy: bool
+    run_id: int | None
+    station: str | None
+    recipe: str | None
+    operator: str | None
+    serial: str | None
+    started_at: float | None
+    finished_at: float | None
+    now: float
+    status: str
+    step: str | None
+    attempt: int
+    steps: list[StepState]
+    progress: dict[str, object] | None
+    prompt: dict[str, object] | None
+    line: dict[str, object] | None
+    outline: dict[str, object] | None
+    cloud: dict[str, object] | None
+    accuracy: list[dict[str, object]]
+    log: list[dict[str, str]]
+    result: EndScreen | None
+    error: str | None
+    abort_requested: str | None
+    stations: list[StationEntry]
+
+
+@dataclass
+class _Shown:
+    """The progress a page was last sent."""
+
+    phase: str | None = None
+    fraction: float = -1.0
+    at: float = 0.0
+
+
+def zoom_window(x_mm: ArrayLike, y_mm: ArrayLike, platter_m: float
+                ) -> dict[str, list[float]] | None:
     """The part of a lidar line that matters: the nearest returns (the platter and what stands
     on it, in front of the floor and walls), within one platter diameter plus 10 cm in range of
     the nearest, with a margin; ``{"x": [lo, hi], "y": [lo, hi]}`` in mm, None without returns."""
@@ -80,9 +151,10 @@ def zoom_window(x_mm: Any, y_mm: Any, platter_m: float) -> dict[str, list[float]
             "y": [float(ys.min() - pad), float(ys.max() + pad)]}
 
 
-def _outline_mm(d: dict[str, Any]) -> dict[str, Any]:
+def _outline_mm(event: StationEvent) -> dict[str, object]:
     """An ``outline`` event as the live line plot draws it: each polyline as x and y lists in
     mm."""
+    d = event.data
     lines = [{"x": [round(1000.0 * p[0], 1) for p in line],
               "y": [round(1000.0 * p[1], 1) for p in line]} for line in d["lines"]]
     return {"scan": d["scan"], "fixture": d["fixture"], "source": d["source"],
@@ -93,17 +165,18 @@ def _outline_mm(d: dict[str, Any]) -> dict[str, Any]:
 _cloud_ids = itertools.count(1)
 
 
-def _add_cloud(st: LiveState, d: dict[str, Any]) -> None:
+def _add_cloud(st: LiveState, event: StationEvent) -> None:
     """Append a ``cloud`` event's new points (a new scan's first starts a new cloud)."""
+    d = event.data
     c = st.cloud
     if c is None or d["start"] == 0 or c["scan"] != d["scan"] or len(c["x"]) != d["start"]:
         c = st.cloud = {"id": next(_cloud_ids), "scan": d["scan"], "source": d["source"],
                         "x": [], "y": [], "z": []}
-    for axis, key in enumerate(("x", "y", "z")):
-        c[key].extend(round(1000.0 * p[axis], 1) for p in d["points"])
+    for axis, values in enumerate((c["x"], c["y"], c["z"])):
+        values.extend(round(1000.0 * p[axis], 1) for p in d["points"])
 
 
-def _epoch(iso: Any) -> float | None:
+def _epoch(iso: object) -> float | None:
     import datetime as dt
 
     if not iso:
@@ -112,19 +185,20 @@ def _epoch(iso: Any) -> float | None:
     return (t if t.tzinfo else t.replace(tzinfo=dt.UTC)).timestamp()
 
 
-def _times_as_stored(st: LiveState, result: dict[str, Any]) -> None:
+def _times_as_stored(st: LiveState, result: EndScreen) -> None:
     """The run's and its steps' times as the database has them, so that the page's header, its
     steps and its end screen show one elapsed time each (the live clock started a little
     after the run's row, and stopped after its report)."""
-    started, finished = _epoch(result.get("started_at")), _epoch(result.get("finished_at"))
+    started, finished = _epoch(result["started_at"]), _epoch(result["finished_at"])
     if started is not None and finished is not None:
         st.started_at, st.finished_at = started, finished
-    last = {s["name"]: s for s in result.get("steps") or []}
+    last = {s["name"]: s for s in result["steps"]}
     for name, step in st.steps.items():
         stored = last.get(name)
-        if stored is not None and stored.get("seconds") is not None:
-            step.update(seconds=stored["seconds"], status=stored["status"],
-                        attempt=stored["attempt"])
+        if stored is not None and stored["seconds"] is not None:
+            step["seconds"] = stored["seconds"]
+            step["status"] = stored["status"]
+            step["attempt"] = stored["attempt"]
 
 
 class LiveState:
@@ -139,7 +213,7 @@ class LiveState:
         self._ids = itertools.count(1)
         self._listeners: list[Callable[[], None]] = []
         self.version = 0
-        self.stations: list[dict[str, Any]] = []
+        self.stations: list[StationEntry] = []
         """who holds each station of the server (:mod:`calstation.web.status`), kept across
         runs"""
         self._reset()
@@ -153,26 +227,26 @@ class LiveState:
         self.started_at: float | None = None
         """when the run (or its resumption) started, seconds since the epoch"""
         self.finished_at: float | None = None
-        self.outline: dict[str, Any] | None = None
+        self.outline: dict[str, object] | None = None
         """where the platter and the fixture being scanned should appear in the live line plot
         (the ``outline`` event, in mm)"""
-        self.cloud: dict[str, Any] | None = None
+        self.cloud: CloudState | None = None
         """the scan's cloud so far (the ``cloud`` events): ``id`` (one per scan), ``scan``,
         ``source`` and the points' ``x``, ``y``, ``z`` lists (mm, frame D)"""
         self.status = "idle"
         self.step: str | None = None
         self.attempt = 0
-        self.steps: dict[str, dict[str, Any]] = {
+        self.steps: dict[str, StepState] = {
             s: {"name": s, "title": step_title(s), "status": "pending", "attempt": 0,
                 "error": None, "started_at": None, "seconds": None} for s in STEPS
         }
-        self.progress: dict[str, Any] | None = None
-        self.prompt: dict[str, Any] | None = None
-        self.line: dict[str, Any] | None = None
-        self.accuracy: list[dict[str, Any]] = []
+        self.progress: dict[str, object] | None = None
+        self.prompt: dict[str, object] | None = None
+        self.line: dict[str, object] | None = None
+        self.accuracy: list[dict[str, object]] = []
         """the predicted error after each turn of the scan under way (the ``accuracy`` event)"""
         self.log: list[dict[str, str]] = []
-        self.result: dict[str, Any] | None = None
+        self.result: EndScreen | None = None
         self.error: str | None = None
         self.abort_requested: str | None = None
         self._answer: tuple[int, str] | None = None
@@ -203,10 +277,10 @@ class LiveState:
             self.run_id, self.recipe, self.operator, self.serial = run_id, recipe, operator, serial
             self.station = station
             self.started_at = time.time()
-            self.status = "running"
+            self.status = RunStatus.RUNNING
             self._changed()
 
-    def set_stations(self, stations: list[dict[str, Any]]) -> None:
+    def set_stations(self, stations: list[StationEntry]) -> None:
         """Who holds each station now (published when it changed)."""
         def put(st: LiveState) -> None:
             st.stations = stations
@@ -224,15 +298,16 @@ class LiveState:
             st.log = [*st.log[-(LOG_LINES - 1):], {"level": level, "text": message}]
         self.update(add)
 
-    def finish(self, status: str, result: dict[str, Any] | None, error: str | None) -> None:
+    def finish(self, status: str, result: EndScreen | None, error: str | None) -> None:
         """The run ended (``result`` is the end screen's data: verdict, values and limits)."""
         def end(st: LiveState) -> None:
             st.status, st.result, st.error = status, result, error
             st.prompt = st.progress = None
             st.finished_at = time.time()
             for step in st.steps.values():
-                if step["status"] == "running":  # the step the run was aborted (or died) in
-                    step["status"] = "aborted" if status == "aborted" else "failed"
+                if step["status"] == StepStatus.RUNNING:  # the step it was aborted (or died) in
+                    step["status"] = (StepStatus.ABORTED if status == RunStatus.ABORTED
+                                      else StepStatus.FAILED)
                     if step["started_at"] is not None:
                         step["seconds"] = st.finished_at - step["started_at"]
             if result is not None:
@@ -240,7 +315,7 @@ class LiveState:
         self.update(end)
 
     # --- prompts ---------------------------------------------------------------------------
-    def ask(self, prompt: dict[str, Any], allowed: tuple[str, ...]) -> str:
+    def ask(self, prompt: dict[str, object], allowed: tuple[str, ...]) -> str:
         """Show ``prompt`` and block until a page answers one of ``allowed`` (or abort)."""
         with self._cond:
             pid = next(self._ids)
@@ -265,15 +340,16 @@ class LiveState:
         is not one it offers."""
         with self._cond:
             p = self.prompt
-            if p is None or p["id"] != prompt_id:
+            answers = p["answers"] if p is not None else None
+            if p is None or p["id"] != prompt_id or not isinstance(answers, list):
                 raise NoSuchPrompt(
                     f"prompt {prompt_id} is not pending (it was answered, or the run moved on); "
                     "reload the page"
                 )
-            if answer not in p["answers"]:
+            if answer not in answers:
                 raise NoSuchPrompt(
                     f"{answer!r} is not an answer to this prompt; use one of "
-                    f"{', '.join(p['answers'])}"
+                    f"{', '.join(str(a) for a in answers)}"
                 )
             self._answer = (prompt_id, answer)
             # answered: no longer pending for any page, before the run's thread wakes to it
@@ -283,14 +359,14 @@ class LiveState:
     def request_abort(self, reason: str) -> bool:
         """Ask the running run to abort; False if no run is running."""
         with self._cond:
-            if self.status != "running":
+            if self.status != RunStatus.RUNNING:
                 return False
             self.abort_requested = reason
             self._changed()
             return True
 
     # --- reading ---------------------------------------------------------------------------
-    def cloud_since(self, cloud_id: int, start: int) -> dict[str, Any]:
+    def cloud_since(self, cloud_id: int, start: int) -> dict[str, object]:
         """The points of cloud ``cloud_id`` from the ``start``-th on (all of the current cloud
         when ``cloud_id`` is not it: the page then starts again)."""
         with self._cond:
@@ -301,12 +377,12 @@ class LiveState:
             return {"id": c["id"], "scan": c["scan"], "source": c["source"], "start": first,
                     "x": c["x"][first:], "y": c["y"][first:], "z": c["z"][first:]}
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(self) -> LiveSnapshot:
         """The state as JSON-ready data (the operator page's JSON twin)."""
         with self._cond:
             return {
                 "version": self.version,
-                "busy": self.status == "running",
+                "busy": self.status == RunStatus.RUNNING,
                 "run_id": self.run_id,
                 "station": self.station,
                 "recipe": self.recipe,
@@ -318,15 +394,15 @@ class LiveState:
                 "status": self.status,
                 "step": self.step,
                 "attempt": self.attempt,
-                "steps": [dict(s) for s in self.steps.values()],
+                "steps": [s.copy() for s in self.steps.values()],
                 "progress": None if self.progress is None else dict(self.progress),
                 "prompt": None if self.prompt is None else dict(self.prompt),
                 "line": self.line,
                 "outline": self.outline,
                 # the points are fetched apart, only the new ones (cloud_since)
                 "cloud": None if self.cloud is None else {
-                    k: self.cloud[k] for k in ("id", "scan", "source")
-                } | {"count": len(self.cloud["x"])},
+                    "id": self.cloud["id"], "scan": self.cloud["scan"],
+                    "source": self.cloud["source"], "count": len(self.cloud["x"])},
                 "accuracy": [dict(a) for a in self.accuracy],
                 "log": list(self.log),
                 "result": self.result,
@@ -343,7 +419,7 @@ class WebOperator:
     previews = True
     """the station publishes the fixture's expected outline and the scan's cloud"""
 
-    def __init__(self, live: LiveState, recipe: Any) -> None:
+    def __init__(self, live: LiveState, recipe: Recipe) -> None:
         self.live = live
         self.recipe = recipe
         self._last_line = 0.0
@@ -395,17 +471,17 @@ class WebOperator:
     @contextmanager
     def progress(self, title: str) -> Iterator[Callable[[str, float], None]]:
         """Progress of one long step, in words and a fraction; checks for an abort."""
-        shown: dict[str, Any] = {"phase": None, "fraction": -1.0, "at": 0.0}
+        shown = _Shown()
 
         def update(phase: str, fraction: float) -> None:
             self._check_abort()
             frac = max(0.0, min(1.0, float(fraction))) if math.isfinite(fraction) else 0.0
             now = time.monotonic()
             # steps report progress per line: publish only what a person can see change
-            if (phase == shown["phase"] and abs(frac - shown["fraction"]) < PROGRESS_STEP
-                    and now - shown["at"] < LINE_PREVIEW_PERIOD_S):
+            if (phase == shown.phase and abs(frac - shown.fraction) < PROGRESS_STEP
+                    and now - shown.at < LINE_PREVIEW_PERIOD_S):
                 return
-            shown.update(phase=phase, fraction=frac, at=now)
+            shown.phase, shown.fraction, shown.at = phase, frac, now
             self.live.update(lambda st: setattr(
                 st, "progress", {"title": title, "phase": phase, "fraction": frac}))
 
@@ -414,7 +490,7 @@ class WebOperator:
         self.live.update(lambda st: setattr(
             st, "progress", {"title": title, "phase": "done", "fraction": 1.0}))
 
-    def summary(self, summary: dict[str, Any]) -> None:
+    def summary(self, summary: Mapping[str, object]) -> None:
         """The run's final summary; the runner builds the end screen from the database."""
         self.live.add_log("info", f"run {summary['id']} {summary['status']}")
 
@@ -424,8 +500,10 @@ class WebOperator:
         if event.kind == "step_started":
             def started(st: LiveState) -> None:
                 st.step, st.attempt = d["step"], d["attempt"]
-                st.steps[d["step"]].update(status="running", attempt=d["attempt"], error=None,
-                                           started_at=time.time(), seconds=None)
+                step = st.steps[d["step"]]
+                step["status"], step["attempt"], step["error"] = (StepStatus.RUNNING,
+                                                                  d["attempt"], None)
+                step["started_at"], step["seconds"] = time.time(), None
                 st.progress = None
                 if d["step"] not in ("static_scan", "spin_scan", "cube_scan"):
                     st.line = st.outline = None
@@ -438,9 +516,10 @@ class WebOperator:
         elif event.kind == "step_finished":
             def finished(st: LiveState) -> None:
                 step = st.steps[d["step"]]
-                step.update(status=d["status"], attempt=d["attempt"], error=d.get("error"),
-                            seconds=None if step["started_at"] is None
-                            else time.time() - step["started_at"])
+                step["status"], step["attempt"], step["error"] = (d["status"], d["attempt"],
+                                                                  d.get("error"))
+                step["seconds"] = (None if step["started_at"] is None
+                                   else time.time() - step["started_at"])
                 st.progress = None
                 if d["step"] == "preflight" and not st.serial:
                     # the lidar's serial, when the operator gave none
@@ -450,9 +529,9 @@ class WebOperator:
             # the next line is shown with it: the line and the outline at one platter angle
             self._with_outline = True
             self._line_due = True
-            self.live.update(lambda st: setattr(st, "outline", _outline_mm(d)))
+            self.live.update(lambda st: setattr(st, "outline", _outline_mm(event)))
         elif event.kind == "cloud":
-            self.live.update(lambda st: _add_cloud(st, d))
+            self.live.update(lambda st: _add_cloud(st, event))
         elif event.kind == "lidar_line":
             self._preview(d["kind"], d["line"])
         elif event.kind == "accuracy":
@@ -474,7 +553,7 @@ class WebOperator:
         if reason:
             raise AbortRun(reason)
 
-    def _preview(self, kind: str, line: Any) -> None:
+    def _preview(self, kind: str, line: LidarLine) -> None:
         now = time.monotonic()
         if self._with_outline and not self._line_due and now - self._last_line < 1.0:
             return
@@ -620,7 +699,8 @@ class Runner:
         run_id = prepared.run_id
 
         def main() -> None:
-            status, error = "failed", None
+            status: str = RunStatus.FAILED
+            error: str | None = None
             try:
                 status = prepared.execute()  # gives the station back, however it ends
             except CalstationError as exc:
@@ -646,7 +726,7 @@ class Runner:
             self._lock.release()
             raise
 
-    def _end_screen(self, run_id: int) -> dict[str, object] | None:
+    def _end_screen(self, run_id: int) -> EndScreen | None:
         from calstation.storage.report_html import report_data
 
         try:

@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import logging
 import secrets
-from collections.abc import MutableMapping
-from typing import Any
 
 from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException
@@ -143,7 +141,7 @@ class FrontDoor:
         if self.tls:
             extra["strict-transport-security"] = "max-age=31536000"
 
-        async def send_with_headers(message: MutableMapping[str, Any]) -> None:
+        async def send_with_headers(message: Message) -> None:
             if message["type"] == "http.response.start":
                 raw = [(k, v) for k, v in message.get("headers", []) if k.lower() != b"server"]
                 present = {k.lower() for k, _ in raw}

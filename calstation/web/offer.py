@@ -7,10 +7,13 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from calstation.errors import CalstationError, StationError
 from calstation.storage.db import Database, Run
+
+if TYPE_CHECKING:
+    from calstation.recipes import Recipe
 
 TEMPLATE_WORD = "template"
 """A recipe whose name (or file name) says so is a template, to be copied and filled in before
@@ -76,12 +79,13 @@ def _judge(path: Path) -> Choice:
                   scan_s=scan_seconds(r), simulated=all(d == "sim" for d in drivers))
 
 
-def scan_seconds(recipe: Any) -> float:
+def scan_seconds(recipe: Recipe) -> float:
     """How long a run of ``recipe`` turns the platter at the least: the spin and cube scans'
     turns at their speeds, second passes included (what an operator waits for at best)."""
     total = 0.0
     for scan in (recipe.steps.spin_scan, recipe.steps.cube_scan):
-        passes = [scan] + ([scan.second_pass()] if scan.second_pass() is not None else [])
+        second = scan.second_pass()
+        passes = [scan] + ([second] if second is not None else [])
         total += sum(60.0 * p.revolutions / abs(p.rpm) for p in passes)
     return total
 
@@ -100,7 +104,8 @@ def refuse_unrunnable(path: Path) -> None:
         raise StationError(f"recipe {choice.name} cannot run: {choice.why_not}")
 
 
-def start_defaults(db: Database, recipes_dir: Path, runnable: list[str]) -> dict[str, Any]:
+def start_defaults(db: Database, recipes_dir: Path, runnable: list[str]
+                   ) -> dict[str, str | None]:
     """The recipe of the newest run started from a recipe of ``recipes_dir`` (runnable still),
     else the first of ``runnable`` (the quickest, :func:`offered`). The operator is left to
     the browser, which remembers who used it: the newest run's operator may be someone else's

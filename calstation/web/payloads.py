@@ -13,7 +13,8 @@ stores: operator and serial by the one check every front end uses
 from __future__ import annotations
 
 import json
-from typing import Annotated, Any, Literal
+from collections.abc import Iterable, Mapping
+from typing import Annotated, Any, Literal, NoReturn, TypeAlias
 from urllib.parse import parse_qsl
 
 from fastapi import Request
@@ -83,16 +84,21 @@ class LoginRequest(_Strict):
     token: Annotated[str, StringConstraints(min_length=1, max_length=TOKEN_MAX_LENGTH)]
 
 
+JSONPage: TypeAlias = dict[str, Any]  # Any: FastAPI's response model of a JSON page: as is
+"""What a JSON page returns. FastAPI validates a return value against its annotation; this one
+passes any mapping through unchanged (the pages' JSON is typed where it is built)."""
+
+
 class BadBody(HTTPException):
     """A body that is not what its content type says (400) or of a type not taken (415)."""
 
 
-def _no_constants(name: str) -> Any:
+def _no_constants(name: str) -> NoReturn:
     raise ValueError(f"{name} is not JSON")
 
 
-def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
+def _no_duplicates(pairs: Iterable[tuple[str, object]]) -> dict[str, object]:
+    out: dict[str, object] = {}
     for key, value in pairs:
         if key in out:
             raise ValueError(f"key {key!r} given twice")
@@ -110,7 +116,7 @@ def media_type(request: Request) -> tuple[str, dict[str, str]]:
     return media.strip().lower(), out
 
 
-async def read_fields(request: Request) -> dict[str, Any]:
+async def read_fields(request: Request) -> dict[str, object]:
     """The body's fields (JSON object or form), without the form's ``csrf`` field, which is
     kept in ``request.state.form_csrf``. Cached on the request."""
     cached = getattr(request.state, "fields", None)
@@ -119,7 +125,7 @@ async def read_fields(request: Request) -> dict[str, Any]:
     media, params = media_type(request)
     body = await request.body()  # bounded by the front door's limit
     form_csrf: str | None = None
-    fields: dict[str, Any]
+    fields: dict[str, object]
     if not body and media in ("", "application/json", "application/x-www-form-urlencoded"):
         fields = {}
     elif media == "application/json":
@@ -150,7 +156,7 @@ async def read_fields(request: Request) -> dict[str, Any]:
     return dict(fields)
 
 
-def form_to_typed(fields: dict[str, Any], ints: tuple[str, ...]) -> dict[str, Any]:
+def form_to_typed(fields: Mapping[str, object], ints: tuple[str, ...]) -> dict[str, object]:
     """A form's fields with the named ones as integers (a form has only text; digits only,
     so ``1.5`` or ``true`` stay text and are refused by the strict model)."""
     out = dict(fields)
@@ -161,7 +167,7 @@ def form_to_typed(fields: dict[str, Any], ints: tuple[str, ...]) -> dict[str, An
     return out
 
 
-def schema_of(model: type[BaseModel]) -> dict[str, Any]:
+def schema_of(model: type[BaseModel]) -> dict[str, object]:
     """The OpenAPI ``requestBody`` of a route that takes ``model`` as JSON or as a form."""
     schema = model.model_json_schema()
     form = {**schema, "properties": {**schema.get("properties", {}),

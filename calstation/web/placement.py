@@ -11,11 +11,15 @@ places meshes the same way), the L-target's tall end at z = −width/2.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from html import escape
-from typing import Any
+from typing import TYPE_CHECKING, TypedDict
 
 from calstation import display
 from calstation.recipes import frustum_outline
+
+if TYPE_CHECKING:
+    from calstation.recipes import FixtureGeometry
 
 SIZE = 360
 """Width and height of the picture (px)."""
@@ -23,7 +27,15 @@ SIZE = 360
 MARGIN = 34
 
 
-def _place(points: list[tuple[float, float]], offset: Any, yaw_deg: float
+class Outline(TypedDict):
+    """One outline of a fixture in P (y, z metres), its role and its legend's words."""
+
+    points: list[tuple[float, float]]
+    role: str
+    label: str
+
+
+def _place(points: list[tuple[float, float]], offset: tuple[float, float] | None, yaw_deg: float
            ) -> list[tuple[float, float]]:
     c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
     oy, oz = (float(offset[0]), float(offset[1])) if offset is not None else (0.0, 0.0)
@@ -34,12 +46,11 @@ def _rect(y0: float, y1: float, z0: float, z1: float) -> list[tuple[float, float
     return [(y0, z0), (y1, z0), (y1, z1), (y0, z1)]
 
 
-def fixture_outlines(geom: Any) -> list[dict[str, Any]]:
+def fixture_outlines(geom: FixtureGeometry) -> list[Outline]:
     """Outlines of one fixture in P (y, z metres): ``[{"points", "label", "role"}]``."""
-    kind = getattr(geom, "kind", "")
     yaw = float(getattr(geom, "yaw_deg", 0.0))
     offset = getattr(geom, "offset", (0.0, 0.0))
-    if kind == "l_target":
+    if geom.kind == "l_target":
         w, bl, wt = geom.width, geom.base_length, geom.wall_thickness
         return [
             {"points": _place(_rect(-bl, wt, -w / 2, w / 2), offset, 0.0), "role": "base",
@@ -51,22 +62,22 @@ def fixture_outlines(geom: Any) -> list[dict[str, Any]]:
             {"points": _place([(0.0, w / 2)], offset, 0.0), "role": "mark",
              "label": f"short end {geom.h_short * 1000:.0f} mm"},
         ]
-    if kind == "frustum":
+    if geom.kind == "frustum":
         poly = frustum_outline(geom)
         return [
             {"points": _place(poly, offset, yaw), "role": "body",
              "label": f"spin target (height {geom.height * 1000:.0f} mm)"},
             {"points": _place([poly[0]], offset, yaw), "role": "mark", "label": "notch"},
         ]
-    if kind == "cube":
+    if geom.kind == "cube":
         h = geom.edge / 2
         return [{"points": _place(_rect(-h, h, -h, h), offset, yaw), "role": "body",
                  "label": f"cube {geom.edge * 1000:.0f} mm, yaw {yaw:g}°"}]
-    if kind == "pyramid":
+    if geom.kind == "pyramid":
         h = geom.base / 2
         return [{"points": _place(_rect(-h, h, -h, h), offset, yaw), "role": "body",
                  "label": "pyramid"}]
-    if kind == "prism":
+    if geom.kind == "prism":
         return [{"points": _place(_rect(-geom.edge / 2, geom.edge / 2, -geom.depth / 2,
                                         geom.depth / 2), offset, yaw),
                  "role": "body", "label": "prism"}]
@@ -79,7 +90,8 @@ LEGEND_LINE = 17
 """Height of one line of the legend under the platter (px)."""
 
 
-def _offset_dimension(geom: Any, xy: Any) -> tuple[list[str], str | None]:
+def _offset_dimension(geom: FixtureGeometry, xy: Callable[[float, float], tuple[float, float]]
+                      ) -> tuple[list[str], str | None]:
     """The fixture's offset from the axis drawn as a dimension line (centre to the fixture's
     centre, arrowheads, its length), and the legend's sentence for it; nothing when centred."""
     offset = getattr(geom, "offset", None)
@@ -133,7 +145,7 @@ def _wrapped(line: str) -> list[str]:
     return out
 
 
-def placement_svg(platter_radius: float, geom: Any, title: str) -> str:
+def placement_svg(platter_radius: float, geom: FixtureGeometry, title: str) -> str:
     """The top view (SVG text) of ``geom`` on a platter of ``platter_radius`` metres, its offset
     from the axis dimensioned; every label sits in a numbered legend under the platter, so that
     none covers the drawing or another label."""

@@ -11,10 +11,32 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, TypedDict
 
 from calstation.errors import CalstationError
 from calstation.web.live import Busy, Runner
+
+if TYPE_CHECKING:
+    from calstation.bench.plan import Plan
+
+
+class PlanState(TypedDict, total=False):
+    """A plan's state for the page (:meth:`Planner.snapshot`)."""
+
+    status: str
+    recipe: str
+    seeds: int
+    turns: int
+    progress: str
+    fraction: float
+    started: float
+    finished: float
+    elapsed_s: float
+    left_s: float | None
+    progress_text: str
+    plan: Plan
+    error: str
 
 
 class Planner:
@@ -23,15 +45,15 @@ class Planner:
     def __init__(self, runner: Runner) -> None:
         self.runner = runner
         self._lock = threading.Lock()
-        self._state: dict[str, Any] = {"status": "idle"}
+        self._state: PlanState = {"status": "idle"}
 
-    def snapshot(self) -> dict[str, Any]:
+    def snapshot(self) -> PlanState:
         """The page's JSON twin: ``status`` (idle, running, done, failed), the recipe, the
         progress (while running: ``elapsed_s``, the estimated ``left_s``, None before the first
         stage is done, and ``progress_text`` in words), the plan
         (:func:`calstation.bench.plan.plan`) or the error."""
         with self._lock:
-            state = dict(self._state)
+            state = self._state.copy()
         if state["status"] == "running":
             from calstation import display
 
@@ -56,21 +78,22 @@ class Planner:
         threading.Thread(target=self._plan, args=(path, seeds, turns), daemon=True,
                          name="calstation-plan").start()
 
-    def _plan(self, path: Any, seeds: int, turns: int) -> None:
+    def _plan(self, path: Path, seeds: int, turns: int) -> None:
         from calstation.bench.plan import plan
         from calstation.recipes import load_recipe
 
         def progress(message: str, fraction: float) -> None:
             with self._lock:
-                self._state.update(progress=message, fraction=fraction)
+                self._state["progress"], self._state["fraction"] = message, fraction
 
         try:
             result = plan(load_recipe(path), seeds=seeds, turns=turns, progress=progress)
         except CalstationError as exc:
-            update: dict[str, Any] = {"status": "failed", "error": str(exc)}
+            update: PlanState = {"status": "failed", "error": str(exc)}
         except Exception as exc:  # a fault in the plan must not take the server down
             update = {"status": "failed", "error": f"{type(exc).__name__}: {exc}"}
         else:
             update = {"status": "done", "plan": result}
         with self._lock:
-            self._state.update(update, finished=time.time())
+            self._state.update(update)
+            self._state["finished"] = time.time()

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol
 
 from fastapi import Depends, FastAPI, Path as PathParam, Query, Request
 from fastapi.responses import HTMLResponse, Response
@@ -13,14 +13,19 @@ from pydantic import AfterValidator
 
 from calstation.storage.db import Run
 from calstation.web.middleware import NONCE_KEY
-from calstation.web.payloads import ParamName, printable
+from calstation.web.payloads import JSONPage, ParamName, printable
 from calstation.web.settings import MAX_ID
 from calstation.web.status import age
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
     from calstation.storage.dashboard import DashboardQuery
     from calstation.storage.dashboard_types import DashboardData
+    from calstation.storage.db import Database
     from calstation.storage.report_types import ViewsData
+    from calstation.web.security import Guard
+    from calstation.web.status import StationStatus
 
 FAVICON = (
     '<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 32 32">'
@@ -49,10 +54,23 @@ def _query(
     return q
 
 
-Q = Annotated[Any, Depends(_query)]
+Q = Annotated[Any, Depends(_query)]  # Any: a DashboardQuery, imported when asked
 
 
-def run_page_routes(app: FastAPI, ctx: Any) -> None:
+class Pages(Protocol):
+    """What the QA routes use of the web station's page helpers (``app._Pages``)."""
+
+    db: Database
+    guard: Guard
+    status: StationStatus
+
+    def page(self, request: Request, template: str, context: Mapping[str, object],
+             status: int = 200, headers: dict[str, str] | None = None) -> HTMLResponse: ...
+
+    def require_run(self, run_id: int) -> None: ...
+
+
+def run_page_routes(app: FastAPI, ctx: Pages) -> None:
     """``/runs/N`` (the run's report under the station's bar) and ``/runs/N/views.json`` (its
     3D views, fetched once the page is shown)."""
     @app.get("/runs/{run_id}", response_class=HTMLResponse)
@@ -102,7 +120,7 @@ def run_page_routes(app: FastAPI, ctx: Any) -> None:
 
 
 
-def dashboard_routes(app: FastAPI, ctx: Any) -> None:
+def dashboard_routes(app: FastAPI, ctx: Pages) -> None:
     """``/dashboard``, ``/dashboard.json`` and ``/favicon.ico`` on ``app`` (``ctx``: the
     pages' rendering helpers of :mod:`.app`)."""
 
@@ -112,7 +130,7 @@ def dashboard_routes(app: FastAPI, ctx: Any) -> None:
         return dashboard(ctx.db, q)
 
     @app.get("/dashboard.json")
-    def dashboard_json(q: Q) -> dict[str, Any]:  # Any: FastAPI's response model, as is
+    def dashboard_json(q: Q) -> JSONPage:
         """The dashboard's data: yields, the failure Pareto, control charts, comparison."""
         return dict(data(q))
 

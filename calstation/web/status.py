@@ -13,7 +13,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 from calstation import display
 from calstation.errors import CalstationError
@@ -21,6 +21,28 @@ from calstation.storage.db import Database
 
 REFRESH_S = 2.0
 """The locks are read again when the last reading is older than this."""
+
+
+class Holder(TypedDict):
+    """Who holds a station: the run (None while it starts), operator, recipe, front end, host
+    and since when (UTC ISO-8601, and in seconds since the epoch)."""
+
+    run_id: int | None
+    operator: str
+    recipe: str | None
+    front_end: str
+    host: str
+    since: str
+    since_epoch: float
+
+
+class StationEntry(TypedDict):
+    """A station of this server: whether it is held, by whom, in words."""
+
+    station: str
+    held: bool
+    holder: Holder | None
+    text: str
 
 
 def recipe_stations(recipes_dir: Path) -> list[str]:
@@ -37,22 +59,22 @@ def recipe_stations(recipes_dir: Path) -> list[str]:
     return sorted(out)
 
 
-def holder_text(station: str, h: dict[str, Any] | None) -> str:
+def holder_text(station: str, h: Holder | None) -> str:
     """The station's state in words: ``station sim-01 is free``, or who holds it: ``station
     sim-01 is in use by run 12 (operator alice, recipe sim-periodicity) from calstation run in
     terminal /dev/pts/3 on host bench-3, since 2026-05-04 09:00 UTC`` (how long ago is shown
     beside it, ticking)."""
     if h is None:
         return f"station {station} is free"
-    run = f"run {h['run_id']}" if h.get("run_id") else "a run starting"
-    recipe = f", recipe {h['recipe']}" if h.get("recipe") else ""
+    run = f"run {h['run_id']}" if h["run_id"] else "a run starting"
+    recipe = f", recipe {h['recipe']}" if h["recipe"] else ""
     return (f"station {station} is in use by {run} (operator {h['operator']}{recipe}) from "
             f"{h['front_end']} on host {h['host']}, since {display.when(h['since'])}")
 
 
-def age(entry: dict[str, Any], now: float | None = None) -> str:
+def age(entry: StationEntry, now: float | None = None) -> str:
     """How long the station of ``entry`` has been held: ``3 min 05 s``; empty when free."""
-    h = entry.get("holder")
+    h = entry["holder"]
     if not h:
         return ""
     return display.duration((now or time.time()) - h["since_epoch"])
@@ -62,13 +84,13 @@ class StationStatus:
     """The holders of the stations of ``stations()`` (see the module docstring)."""
 
     def __init__(self, db: Database, stations: Callable[[], list[str]],
-                 publish: Callable[[list[dict[str, Any]]], None]) -> None:
+                 publish: Callable[[list[StationEntry]], None]) -> None:
         self.db, self.stations, self.publish = db, stations, publish
         self._lock = threading.Lock()
         self._read_at = -1e9
-        self._current: list[dict[str, Any]] = []
+        self._current: list[StationEntry] = []
 
-    def current(self) -> list[dict[str, Any]]:
+    def current(self) -> list[StationEntry]:
         """Each station with ``held`` and, when held, its ``holder`` (run_id, operator,
         front_end, host, since, recipe) and ``text`` in words; read again when older than
         :data:`REFRESH_S`."""
@@ -91,32 +113,34 @@ class StationStatus:
             self._read_at = -1e9
         self.current()
 
-    def held(self, station: str) -> dict[str, Any] | None:
+    def held(self, station: str) -> StationEntry | None:
         """The entry of ``station`` when it is held, else None."""
         return next((s for s in self.current() if s["station"] == station and s["held"]),
                     None)
 
-    def _read(self) -> list[dict[str, Any]]:
+    def _read(self) -> list[StationEntry]:
         import datetime as dt
 
         from calstation.station.lock import station_holder
 
-        out = []
+        out: list[StationEntry] = []
         for station in self.stations():
             try:
-                h = station_holder(self.db, station)
+                found = station_holder(self.db, station)
             except CalstationError:  # the database is away: say nothing rather than fail
-                h = None
-            if h is not None and not h.get("alive", True):
-                h = None  # a lock left by a process that has ended: the next start clears it
-            if h is not None:
-                h = {k: h[k] for k in ("run_id", "operator", "recipe", "front_end", "host",
-                                       "since")}
-                h["since_epoch"] = dt.datetime.fromisoformat(h["since"]).timestamp()
+                found = None
+            if found is not None and not found.get("alive", True):
+                found = None  # a lock left by a process that has ended: the next start clears it
+            h: Holder | None = None
+            if found is not None:
+                h = {"run_id": found["run_id"], "operator": found["operator"],
+                     "recipe": found["recipe"], "front_end": found["front_end"],
+                     "host": found["host"], "since": found["since"],
+                     "since_epoch": dt.datetime.fromisoformat(found["since"]).timestamp()}
             out.append({"station": station, "held": h is not None, "holder": h,
                         "text": holder_text(station, h)})
         return out
 
 
-def _key(entries: list[dict[str, Any]]) -> list[Any]:
+def _key(entries: list[StationEntry]) -> list[tuple[str, Holder | None]]:
     return [(e["station"], e["holder"]) for e in entries]
