@@ -11,7 +11,7 @@ from fastapi import Depends, FastAPI, Path as PathParam, Query, Request
 from fastapi.responses import HTMLResponse, Response
 from pydantic import AfterValidator
 
-from calstation.storage.db import Run
+from calstation.storage.db import Run, RunStatus
 from calstation.web.middleware import NONCE_KEY
 from calstation.web.payloads import JSONPage, ParamName, printable
 from calstation.web.settings import MAX_ID
@@ -110,7 +110,7 @@ def run_page_routes(app: FastAPI, ctx: Pages) -> None:
         if stored is not None:
             return Response(stored, media_type="application/json")
         cached = views_cache.get(run_id)
-        if cached is not None and cached["key"] == [final, status] and status != "running":
+        if cached is not None and cached["key"] == [final, status] and status != RunStatus.RUNNING:
             return cached
         got = views_data(ctx.db, run_id)
         if len(views_cache) >= 8:
