@@ -65,8 +65,8 @@ MUTATIONS = (
         "tz-bias",
         "a 0.4 mm bias in the periodicity tz",
         "calstation/engine/periodicity/solve.py",
-        "H=Extrinsics.from_vector(x6),",
-        "H=Extrinsics.from_vector(x6 + [0, 0, 0.0004, 0, 0, 0]),",
+        "H=Extrinsics.from_vector(x6[:6]),",
+        "H=Extrinsics.from_vector(x6[:6] + [0, 0, 0.0004, 0, 0, 0]),",
         ("tests/test_trust.py", "tests/test_periodicity.py"),
     ),
     Mutation(
@@ -113,8 +113,8 @@ MUTATIONS = (
         "cube-tolerance",
         "the known-size cube fit's σ without the edge tolerance",
         "calstation/engine/cubefit.py",
-        "    if tolerance > 0:\n",
-        "    if False:\n",
+        "    if tolerance <= 0:\n",
+        "    if True:\n",
         ("tests/test_cubefit.py",),
     ),
     Mutation(
@@ -271,8 +271,8 @@ MUTATIONS = (
         "pareto-abort-red",
         "an operator's abort drawn as a failure in the Pareto",
         "calstation/storage/dashboard_figures.py",
-        '"marker": {"color": [ABORTED if r["status"] == "aborted" else FLAG for r in rows]},',
-        '"marker": {"color": [FLAG for r in rows]},',
+        '"marker": {"color": [ABORTED if r["status"] == RunStatus.ABORTED else FLAG\n',
+        '"marker": {"color": [FLAG  # every bar a failure\n',
         (f"{PAGES}::test_an_abort_is_not_a_failure_in_the_pareto_and_its_ticks_are_round",),
     ),
     Mutation(
