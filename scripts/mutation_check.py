@@ -354,6 +354,22 @@ MUTATIONS = (
         (f"{LIVE_PAGE}::test_a_hidden_page_draws_nothing_and_catches_up_when_shown",),
         browser=True,
     ),
+    Mutation(
+        "unmeasured-scale-ignored",
+        "the stated uncertainty of a scale error the recipe does not measure left out",
+        "calstation/pipeline/judgement.py",
+        "    result = with_scale_uncertainty(result, recipe)\n",
+        "",
+        ("tests/test_rangemodel.py",),
+    ),
+    Mutation(
+        "unmeasured-scale-uncorrelated",
+        "the scale's correlation with the translation it moved dropped",
+        "calstation/engine/rangemodel.py",
+        "out[n, i] = out[i, n] = -s2 * float(t[axis])",
+        "out[n, i] = out[i, n] = 0.0",
+        ("tests/test_rangemodel.py",),
+    ),
 )
 
 

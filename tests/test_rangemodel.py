@@ -205,3 +205,63 @@ def test_the_range_model_is_described_with_its_sigma_and_only_what_was_estimated
     assert describe({"range_offset": -0.002, "sigma_range_offset": None,
                      "incidence_bias": 0.0005, "sigma_incidence_bias": 2e-5}) == (
         "range offset -2.000 mm (σ not estimated), incidence bias +0.500 ± 0.020 mm at 60°")
+
+
+def test_an_unmeasured_scale_error_is_predicted_as_the_scaled_world_it_is() -> None:
+    """A scale error k held at 0 scales the world about the lidar: the translation found is
+    t·(1 + k), and the reconstruction is the work volume scaled by 1 + k. The σ and covariance
+    that carry the stated uncertainty of k predict that distortion (at 95 %: about 1.96 times
+    the true one at 1σ), not the much larger one of a translation error alone."""
+    from calstation.engine.accuracy import predicted_error, true_distortion
+    from calstation.engine.rangemodel import with_unmeasured_scale
+
+    truth = Extrinsics(-0.016, 1.25, 0.0125, 0.0, 0.0018, -0.79)
+    k = 1e-3
+    found = truth.with_(tx=truth.tx * (1 + k), ty=truth.ty * (1 + k), tz=truth.tz * (1 + k))
+    volume = {"radius": 0.2925, "height": 0.15}
+    true = true_distortion(found, truth, truth_range=RangeModel(0.0, k), **volume)["max_m"]
+    names = ["tx", "ty", "tz", "ry", "rz"]
+    sigma = {**{n: 1e-7 for n in names}, "rx": math.nan}
+    covariance = {"parameters": names, "matrix": (np.eye(5) * 1e-14).tolist()}
+    widened, record = with_unmeasured_scale(found.t, sigma, covariance, k)
+    assert abs(widened["ty"] - k * found.ty) < 1e-6  # σ_ty carries the stand-off's scale
+    assert record is not None and record["parameters"][-1] == "range_scale"
+    predicted = predicted_error(found, widened, record, **volume).max_m
+    assert 1.5 * true < predicted < 2.5 * true, (predicted, true)
+    # held exactly, the same estimate predicts nothing of it
+    assert predicted_error(found, sigma, covariance, **volume).max_m < 0.1 * true
+
+
+def test_a_scale_error_the_recipe_does_not_measure_is_in_sigma_and_refused_with_why(
+    sim_run: Any, tmp_path: Path
+) -> None:
+    """A lidar reading 0.1 % long, calibrated with range_model: offset. The stand-off it
+    cannot tell from the scale (ty, 1.25 mm) is within 3σ once the recipe states the scale's
+    uncertainty (calibration.range_scale_sigma), and the run is refused for the scale, with
+    what would help; stated as exact (0), ty is off by far more than its σ."""
+    from calstation import plugins
+    from calstation.engine.metrics import axis_errors
+    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.recipes import load_recipe
+    from calstation.recordings.reader import read_recording
+
+    path = _recipe(tmp_path, {"range": {"scale": 0.001}}, "scale.yaml")
+    run = sim_run(recipe=path)
+    scans = Scans(spin=turned(read_recording(run["spin"])),
+                  static=read_recording(run["static"]),
+                  cube=turned(read_recording(run["cube"])))
+    truth = read_recording(run["cube"]).truth
+    for stated in (0.001, 0.0):
+        data = yaml.safe_load(path.read_text())
+        data["calibration"]["range_scale_sigma"] = stated
+        variant = tmp_path / f"stated-{stated:g}.yaml"
+        variant.write_text(yaml.safe_dump(data))
+        done = calibrate(load_recipe(variant).recipe, scans, plugins.strategy("periodicity"))
+        ty_error = axis_errors(done.result.H, truth)["ty_error"]
+        assert abs(ty_error) > 0.8e-3  # the scale moved where the lidar seems to stand
+        if stated:
+            assert abs(ty_error) <= 3 * done.result.sigma["ty"]
+            assert any("range scale error, not measured" in r for r in done.refused)
+            assert "range_scale_sigma" in " ".join(done.refused)
+        else:
+            assert abs(ty_error) > 5 * done.result.sigma["ty"]

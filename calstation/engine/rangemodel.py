@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -198,3 +198,48 @@ def describe(fields: Mapping[str, float | None]) -> str | None:
              term("range_scale", "scale error", 1e6, 0, "ppm"),
              term("incidence_bias", "incidence bias", 1e3, 3, "mm at 60°")]
     return ", ".join(p for p in parts if p is not None)
+
+
+def with_unmeasured_scale(
+    t: FloatArray, sigma: Mapping[str, float], covariance: Mapping[str, object] | None,
+    sigma_scale: float,
+) -> tuple[dict[str, float], dict[str, object] | None]:
+    """The σ and covariance of an estimate that did not measure the lidar's scale error, with
+    the uncertainty that error leaves in it.
+
+    A scale error k is a scaled world about the lidar (module docstring): a fit that holds k at
+    0 finds the same rotation and the translation ``t·(1 + k)`` (``t`` the estimate's, metres),
+    and every reconstruction with it is the world scaled by 1 + k. So with k of standard
+    deviation ``sigma_scale`` (the lidar's stated scale uncertainty), the translation's error
+    gains ``σ_k²·t·tᵀ``, the range correction's error in k is ``−k`` (variance σ_k²), and the
+    two are correlated by ``−σ_k²·t``: the accuracy budget then predicts the scaled world's
+    distortion, not the much larger one of a translation error alone. Returns ``sigma`` with
+    tx, ty, tz widened, and the covariance record (``parameters``, ``matrix``) with
+    ``range_scale`` appended (None stays None: a σ-only estimate gets no covariance).
+    """
+    s2 = float(sigma_scale) ** 2
+    t = np.asarray(t, dtype=np.float64)
+    widened = dict(sigma)
+    for name, value in zip(("tx", "ty", "tz"), t, strict=True):
+        if math.isfinite(widened.get(name, math.nan)):
+            widened[name] = math.sqrt(widened[name] ** 2 + s2 * float(value) ** 2)
+    if covariance is None or s2 == 0.0:
+        return widened, None if covariance is None else dict(covariance)
+    names = [str(n) for n in cast(list[object], covariance.get("parameters") or [])]
+    if not names or "range_scale" in names:
+        return widened, dict(covariance)
+    C = np.asarray(covariance["matrix"], dtype=np.float64)
+    n = len(names)
+    out: FloatArray = np.zeros((n + 1, n + 1))
+    out[:n, :n] = C
+    out[n, n] = s2
+    for axis, name in enumerate(("tx", "ty", "tz")):
+        if name not in names:
+            continue
+        i = names.index(name)
+        out[n, i] = out[i, n] = -s2 * float(t[axis])
+        for other_axis, other in enumerate(("tx", "ty", "tz")):
+            if other in names:
+                out[i, names.index(other)] += s2 * float(t[axis]) * float(t[other_axis])
+    return widened, {**covariance, "parameters": [*names, "range_scale"],
+                     "matrix": out.tolist()}

@@ -18,6 +18,7 @@ from dataclasses import replace
 from calstation import display
 from calstation.engine.accuracy import PredictedError, contributions, data_factor
 from calstation.engine.observability import accuracy_problem, predict, predicted_volume
+from calstation.engine.rangemodel import with_unmeasured_scale
 from calstation.engine.result import CalibrationResult
 from calstation.recipes import Recipe
 
@@ -65,7 +66,33 @@ def budget_failure(
     problem = accuracy_problem(predicted, recipe.calibration.accuracy)
     if problem is None:
         return None
+    scale = _scale_advice(result, predicted, recipe)
+    if scale is not None:
+        return f"{problem}. {scale}"
     return f"{problem}. {advice(result, predicted, recipe, scan=scan, turns=turns)}"
+
+
+def _scale_advice(
+    result: CalibrationResult, predicted: PredictedError, recipe: Recipe
+) -> str | None:
+    """When the lidar's scale error the recipe does not measure is what puts ``predicted``
+    over the budget (it would be within with the scale known), what would help: more data of
+    the same kind cannot."""
+    sigma_scale = result.diagnostics.get("unmeasured_scale_sigma")
+    if not sigma_scale:
+        return None
+    accuracy = recipe.calibration.accuracy
+    known = predict(result, accuracy, recipe.fixtures.platter, known=("range_scale",))
+    if not known.max_m <= accuracy.max_error:
+        return None
+    return (f"The lidar's range scale error, not measured, is what limits it: with it known the "
+            f"predicted error would be {display.number('predicted_error', known.max_m)}; its "
+            f"stated uncertainty of {float(sigma_scale) * 1e6:.0f} ppm "
+            "(calibration.range_scale_sigma) moves where the lidar seems to stand by that "
+            "fraction of its distance, and more turns do not reduce it. What would help (each "
+            "alone): the lidar's scale from its calibration certificate, as a smaller "
+            "calibration.range_scale_sigma; or measure it with H (calibration.range_model: "
+            "offset+scale, from the QA cube's known size)")
 
 
 def advice(
@@ -176,6 +203,7 @@ def judge(
     refused exactly as a run would."""
     from calstation.engine.observability import problems_with_cube
 
+    result = with_scale_uncertainty(result, recipe)
     refused = problems_with_cube(result, recipe.calibration.max_sigma, ry_failure)
     unset = range_model_unset(result)
     if unset:
@@ -184,6 +212,24 @@ def judge(
     budget = budget_failure(result, predicted, recipe, scan="spin_scan",
                             turns=1.0 if turns is None else turns)
     return result, [*refused, *([budget] if budget else [])]
+
+
+def with_scale_uncertainty(result: CalibrationResult, recipe: Recipe) -> CalibrationResult:
+    """``result`` with the uncertainty of the lidar's scale error it did not measure
+    (``calibration.range_model: offset``; ``calibration.range_scale_sigma``) in its σ and
+    covariance (:func:`calstation.engine.rangemodel.with_unmeasured_scale`), recorded as
+    ``diagnostics["unmeasured_scale_sigma"]``; once only, and only for a result with a range
+    offset and no scale of its own."""
+    sigma_scale = recipe.calibration.range_scale_sigma
+    if (result.range_offset is None or result.range_scale is not None or sigma_scale <= 0
+            or "unmeasured_scale_sigma" in result.diagnostics):
+        return result
+    sigma, covariance = with_unmeasured_scale(
+        result.H.t, result.sigma, result.diagnostics.get("covariance"), sigma_scale)
+    diagnostics = {**result.diagnostics, "unmeasured_scale_sigma": sigma_scale}
+    if covariance is not None:
+        diagnostics["covariance"] = covariance
+    return replace(result, sigma=sigma, diagnostics=diagnostics)
 
 
 def range_model_unset(result: CalibrationResult) -> str | None:

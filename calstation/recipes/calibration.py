@@ -46,6 +46,14 @@ class CalibrationSettings(Model):
         "between its rays and the surface, c·(1/cos θ − 1), where the fits know the surfaces "
         "(docs/algorithms.md)",
     )
+    range_scale_sigma: float = Field(
+        1e-4, ge=0.0, le=0.01,
+        description="with range_model: offset, the lidar's range scale error it does not "
+        "measure, as a standard deviation (dimensionless; 1e-4 is 100 ppm, a time-of-flight "
+        "lidar's clock with margin): H's σ and the predicted error carry it (a scale error "
+        "moves where the lidar seems to stand by that fraction of its distance). 0 for a "
+        "lidar whose scale is known exactly",
+    )
     initial: InitialSettings = InitialSettings()
     shape: ShapeSettings = ShapeSettings()
     periodicity: PeriodicitySettings = PeriodicitySettings()
