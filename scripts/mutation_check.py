@@ -355,6 +355,14 @@ MUTATIONS = (
         browser=True,
     ),
     Mutation(
+        "range-fit-in-corrected-units",
+        "the cube's range fit on corrected returns, whose noise shrinks as k grows",
+        "calstation/engine/cubefit.py",
+        "            out *= 1.0 + float(v[SCALE])\n",
+        "",
+        ("tests/test_rangemodel.py",),
+    ),
+    Mutation(
         "unmeasured-scale-ignored",
         "the stated uncertainty of a scale error the recipe does not measure left out",
         "calstation/pipeline/judgement.py",

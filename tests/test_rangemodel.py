@@ -265,3 +265,34 @@ def test_a_scale_error_the_recipe_does_not_measure_is_in_sigma_and_refused_with_
             assert "range_scale_sigma" in " ".join(done.refused)
         else:
             assert abs(ty_error) > 5 * done.result.sigma["ty"]
+
+
+def test_the_scale_error_is_not_leaned_on_by_the_range_noise(sim_run: Any, tmp_path: Path) -> None:
+    """An ideal lidar with 1 mm of range noise, calibrated with range_model: offset+scale: the
+    cube's fit in the lidar's own units gives b and k back within 3σ of 0. (Fitted on
+    corrected returns, whose noise shrinks as 1/(1 + k), it leaned k up by about 2000 ppm and b
+    down by 3 mm on this scan, and the axis moved 0.6 mm.)"""
+    from calstation import plugins
+    from calstation.engine.metrics import axis_errors
+    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.recipes import load_recipe
+    from calstation.recordings.reader import read_recording
+
+    path = _recipe(tmp_path, {}, "noisy.yaml")
+    data = yaml.safe_load(path.read_text())
+    data["simulation"]["seed"] = 600
+    data["simulation"]["lidar"].update(range_noise=0.001, line_rate_hz=180.0)
+    data["steps"]["cube_scan"]["revolutions"] = 1.05
+    data["calibration"]["range_model"] = "offset+scale"
+    path.write_text(yaml.safe_dump(data))
+    run = sim_run(recipe=path)
+    scans = Scans(spin=turned(read_recording(run["spin"])),
+                  static=read_recording(run["static"]),
+                  cube=turned(read_recording(run["cube"])))
+    done = calibrate(load_recipe(path).recipe, scans, plugins.strategy("periodicity"))
+    result = done.result
+    assert result.range_scale is not None and result.sigma_range_scale is not None
+    assert result.range_offset is not None and result.sigma_range_offset is not None
+    assert abs(result.range_scale) <= 3 * result.sigma_range_scale, result.range_scale
+    assert abs(result.range_offset) <= 3 * result.sigma_range_offset, result.range_offset
+    assert axis_errors(result.H, read_recording(run["cube"]).truth)["axis_offset_m"] < 0.3e-3

@@ -236,6 +236,12 @@ class _RangeSizeErrors:
             # top, at its edge above the origin, gives the origin)
             platter = platter - platter.mean()
         out: FloatArray = np.concatenate([dist / away_from_grazing(cosine), platter])
+        if not self.level_free:
+            # in the lidar's own units: a corrected return is its measured range over 1 + k,
+            # so residuals of corrected returns would shrink the range noise as k grows, and
+            # least squares would lean k up by about (noise / the fixtures' depth)² — 400 ppm
+            # at 1 mm of noise; times 1 + k, the noise's share no longer depends on k
+            out *= 1.0 + float(v[SCALE])
         return out
 
 
