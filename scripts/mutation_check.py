@@ -366,8 +366,8 @@ MUTATIONS = (
         "unmeasured-scale-ignored",
         "the stated uncertainty of a scale error the recipe does not measure left out",
         "calstation/pipeline/judgement.py",
-        "    result = with_scale_uncertainty(result, recipe)\n",
-        "",
+        "    result = with_scale_uncertainty(result, recipe)\n    predicted = predict(",
+        "    predicted = predict(",
         ("tests/test_rangemodel.py",),
     ),
     Mutation(

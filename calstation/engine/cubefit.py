@@ -29,7 +29,7 @@ than the recipe says reads as an axis about 0.04 mm off.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -59,6 +59,7 @@ from calstation.engine.rangemodel import (
     incidence_shape,
     unit_rays,
 )
+from calstation.engine.residuals import TrendRecord, residual_trends
 from calstation.engine.settings import CubeGeometry
 from calstation.engine.spinscan import SpinScan
 from calstation.engine.twist import away_from_grazing, face_range_noise, range_twist_bias
@@ -213,17 +214,30 @@ class _RangeSizeErrors:
     def H(self, x: FloatArray) -> Extrinsics:
         return Extrinsics.from_vector(self.vector(x)[: len(PARAMETER_NAMES)])
 
+    def _normals(self, x: FloatArray, H: Extrinsics) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The side faces' normals (y, z in D) under the pose of ``x``, and each face return's
+        cosine with its surface's normal."""
+        f = self.f
+        r = _turned(f.rays, H, f.cos, f.sin)
+        yaw = float(x[len(self.free) + 2])
+        c, s = math.cos(yaw), math.sin(yaw)
+        ny = np.where(f.across_u, c, -s) * f.sign
+        nz = np.where(f.across_u, s, c) * f.sign
+        return ny, nz, np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
+
+    def cosines(self, x: FloatArray) -> FloatArray:
+        """(N,) each return's cosine with its surface's normal: the faces', then the
+        platter's."""
+        H = self.H(x)
+        return np.concatenate([self._normals(x, H)[2], self.platter_rays @ H.R[:, 0]])
+
     def __call__(self, x: FloatArray, edge: float | None = None) -> FloatArray:
         f = self.f
         v = self.vector(x)
         H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
         size = self.edge if edge is None else edge
-        r = _turned(f.rays, H, f.cos, f.sin)
-        cy, cz, yaw = x[len(self.free):]
-        c, s = math.cos(yaw), math.sin(yaw)
-        ny = np.where(f.across_u, c, -s) * f.sign
-        nz = np.where(f.across_u, s, c) * f.sign
-        cosine = np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
+        cy, cz = x[len(self.free):len(self.free) + 2]
+        ny, nz, cosine = self._normals(x, H)
         q = _turned(correct_vector(f.p_L, v, incidence_shape(cosine)) - H.t, H, f.cos, f.sin)
         dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - 0.5 * size,
                         q[:, 0] - size)
@@ -272,6 +286,10 @@ class KnownSizeFit:
     """per free parameter, how far (m, rad) a cube larger than the recipe's edge by its
     tolerance moves it, with its sign: the bias bound's part that moves every parameter at once
     (None when not computed)"""
+    residuals: dict[str, TrendRecord] = field(default_factory=dict)
+    """the range fit's residuals on the faces against range, incidence angle and azimuth
+    (:func:`calstation.engine.residuals.residual_trends`; empty for a fit without the range
+    model)"""
 
     def total_covariance(self) -> CovarianceRecord | None:
         """The covariance record with the bias bound's parts as the covariance they are: the
@@ -558,8 +576,26 @@ def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Fac
         bias=bias, edge_direction=edge,
         details={**_details(res, faces, cube), "platter_returns": int(platter.shape[0]),
                  "range_model": [ESTIMATED_NAMES[i] for i in free if i >= OFFSET]},
-        range_model=RangeModel.from_vector(v),
+        range_model=RangeModel.from_vector(v), residuals=_residuals(res, errors, faces.p_L),
     )
+
+
+def _residuals(
+    res: OptimizeResult, errors: _RangeSizeErrors, p_L: FloatArray
+) -> dict[str, TrendRecord]:
+    """The range fit's residuals on the cube's faces as range errors (m, positive: the return
+    reads long) against each return's range, incidence angle and azimuth
+    (:mod:`calstation.engine.residuals`). The platter's are left out: about their own mean
+    when its level is free, they would put a step between the angles the platter is seen at
+    and the faces'; and the faces, turning, are seen at every angle."""
+    k = 0.0 if errors.level_free else float(errors.vector(res.x)[SCALE])
+    n = errors.f.p_L.shape[0]
+    error = np.asarray(res.fun, dtype=np.float64)[:n] / (1.0 + k)
+    incidence = np.arccos(np.clip(np.abs(errors.cosines(res.x)[:n]), 0.0, 1.0))
+    p_L = p_L[:n]
+    return residual_trends(error, {
+        "range": np.linalg.norm(p_L, axis=1), "incidence": incidence,
+        "azimuth": np.arctan2(p_L[:, 0], p_L[:, 1])})
 
 
 def _covariance(

@@ -14,7 +14,7 @@ one of them is wrong, and the cube check's twist limit reports it.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -27,6 +27,7 @@ from calstation.engine.rangemodel import (
     RangeModelName,
     range_result_fields,
 )
+from calstation.engine.residuals import TrendRecord, unmodelled
 from calstation.engine.result import CalibrationResult
 
 if TYPE_CHECKING:
@@ -238,6 +239,12 @@ def combine_range_with_cube_scan(
         progress("measuring the cube", 0.8)
     check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared, range_model=combined.range_model)
+    if not check.passed and failure is None:
+        seen = unmodelled(combined.diagnostics.get("joint", {}).get("cube", {})
+                          .get("residuals") or {})
+        if seen:  # not the cube's shape alone: say what the lidar's ranges do
+            failure = ("the lidar's range error is not what its range model says, and may be "
+                       f"what the cube check sees — on the cube's faces, {'; '.join(seen)}")
     return combined, check, failure
 
 
@@ -270,19 +277,27 @@ def _combine_with_fit(
     if consistent(fused):
         return combined, None
     diagnostics = {**result.diagnostics, "joint": combined.diagnostics["joint"]}
-    return replace(result, diagnostics=diagnostics), range_disagreement(fused.disagreement)
+    return replace(result, diagnostics=diagnostics), range_disagreement(
+        fused.disagreement, fit.residuals)
 
 
-def range_disagreement(disagreement: Disagreement) -> str:
+def range_disagreement(
+    disagreement: Disagreement, residuals: Mapping[str, TrendRecord] | None = None
+) -> str:
     """The refusal when the spin target and the cube disagree (:mod:`~calstation.engine.
-    fusion`), naming what differs most; the lidar's range error when it is the offset or the
-    scale."""
+    fusion`), naming what differs most; the lidar's range error when the cube's residuals show
+    one the range model does not hold (:func:`calstation.engine.residuals.unmodelled`), or when
+    the offset or the scale is what differs."""
     sigmas = disagreement["sigmas"]
     worst = sorted(sigmas, key=lambda n: -abs(sigmas[n]))[:2]
     said = ", ".join(f"{n} by {sigmas[n]:+.1f} σ" for n in worst)
     head = (f"the spin target and the QA cube disagree on the calibration (χ² "
             f"{disagreement['chi2']:.1f} on {disagreement['dof']} parameters, p = "
             f"{disagreement['p']:.1e}; most on {said})")
+    seen = unmodelled(residuals or {})
+    if seen:
+        return (f"{head}: the lidar's range error is not what its range model says — on the "
+                f"cube's faces, {'; '.join(seen)}")
     if worst and worst[0] in ("range_offset", "range_scale"):
         return (f"{head}: the lidar's range error is not what its range model says — a bias "
                 "that depends on the surface (its reflectivity or the angle the rays meet it) "
@@ -304,7 +319,8 @@ def _combined(result: CalibrationResult, fit: KnownSizeFit, fused: Fused) -> Cal
         "cube": {"H": fit.H.as_dict(), "range_offset": fit.range_model.offset,
                  "range_scale": fit.range_model.scale,
                  "incidence_bias": fit.range_model.incidence, "sigma": fit.sigma,
-                 "bias_bound": fit.bias, "known_size": fit.details},
+                 "bias_bound": fit.bias, "known_size": fit.details,
+                 "residuals": fit.residuals},
         "disagreement": fused.disagreement,
     }
     diagnostics = {**result.diagnostics, "joint": details, "covariance": fused.record(),

@@ -33,6 +33,7 @@ def with_prediction(
     """``result`` with its predicted error in ``diagnostics["predicted_error"]`` (metres; the
     budget, the work volume and the turns it came from beside it), and the prediction."""
     accuracy = recipe.calibration.accuracy
+    result = with_scale_uncertainty(result, recipe)
     predicted = predict(result, accuracy, recipe.fixtures.platter, known=known)
     record: dict[str, object] = {
         **predicted.as_dict(),
@@ -203,7 +204,6 @@ def judge(
     refused exactly as a run would."""
     from calstation.engine.observability import problems_with_cube
 
-    result = with_scale_uncertainty(result, recipe)
     refused = problems_with_cube(result, recipe.calibration.max_sigma, ry_failure)
     unset = range_model_unset(result)
     if unset:
@@ -218,10 +218,13 @@ def with_scale_uncertainty(result: CalibrationResult, recipe: Recipe) -> Calibra
     """``result`` with the uncertainty of the lidar's scale error it did not measure
     (``calibration.range_model: offset``; ``calibration.range_scale_sigma``) in its σ and
     covariance (:func:`calstation.engine.rangemodel.with_unmeasured_scale`), recorded as
-    ``diagnostics["unmeasured_scale_sigma"]``; once only, and only for a result with a range
-    offset and no scale of its own."""
+    ``diagnostics["unmeasured_scale_sigma"]``; once only, and only for a result whose range
+    offset was measured (a spin target's alone, which holds it, is not judged on the range
+    model) and which has no scale of its own."""
     sigma_scale = recipe.calibration.range_scale_sigma
+    offset_sigma = result.sigma_range_offset
     if (result.range_offset is None or result.range_scale is not None or sigma_scale <= 0
+            or offset_sigma is None or not math.isfinite(offset_sigma)
             or "unmeasured_scale_sigma" in result.diagnostics):
         return result
     sigma, covariance = with_unmeasured_scale(
@@ -241,8 +244,8 @@ def range_model_unset(result: CalibrationResult) -> str | None:
         ("range scale error", result.range_scale, result.sigma_range_scale),
         ("incidence bias", result.incidence_bias, result.sigma_incidence_bias),
     ) if value is not None and not (sigma is not None and math.isfinite(sigma))]
-    if not unset:
-        return None
+    if not unset or "disagreement" in result.diagnostics.get("joint", {}):
+        return None  # the cube was scanned, and why it could not set them is said
     return (f"the lidar's {' and '.join(unset)} (calibration.range_model) were not measured: "
             "the spin target alone cannot tell them from where the lidar stands, so H would "
             "hold them. Scan the QA cube too (its known size and square faces set them), or set "
