@@ -65,6 +65,17 @@ class Estimate:
             dict(follows or {}),
         )
 
+    def with_model_error(self, held: str, size: float) -> Estimate:
+        """The estimate with the error of how it corrects for a parameter it ``held`` (its
+        ``follows`` direction, times ``size`` in that parameter's unit) added to its covariance
+        as the rank-one term it is: a correction whose shape is only a model moves the estimate
+        along the direction it follows the parameter by."""
+        direction = self.follows.get(held)
+        if not direction or size == 0.0:
+            return self
+        v = np.array([float(direction.get(n, 0.0)) * size for n in self.names])
+        return Estimate(self.vector, self.names, self.covariance + np.outer(v, v), self.follows)
+
 
 class Disagreement(TypedDict):
     """How far apart two estimates are on the parameters both estimated: the χ² of their
