@@ -125,7 +125,11 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
     # the lidar's range model, estimated with H, told at the end and in the report
     assert "lidar range model (fine): range offset " in proc.stdout
     run_dir = run_folder(db, run_id)
-    assert 'id="range-model"' in (run_dir / "report.html").read_text()
+    report = (run_dir / "report.html").read_text()
+    assert 'id="range-model"' in report
+    # and what the cube's residuals say of errors the range model does not hold, drawn
+    assert 'id="range-residuals"' in report and 'data-figure="range_residuals"' in report
+    assert "show no range error the lidar&#39;s range model does not hold" in report
     assert {a.kind for a in arts} == {"static", "spin", "cube", "report", "calibration"}
     for a in arts:
         assert Path(a.path).parent == run_dir.resolve()
