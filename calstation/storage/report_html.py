@@ -24,13 +24,14 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calstation import display
 from calstation.atomic import write_atomic
+from calstation.engine.residuals import TrendRecord
 from calstation.errors import CalstationError
 from calstation.jsonvalue import JSONObject, JSONValue
 from calstation.plugins.hookspecs import ArtifactRecord, StepRecord
@@ -420,15 +421,20 @@ RESIDUAL_AXES = (("range", "range (m)"), ("incidence", "incidence angle (°)"),
 """The quantities the cube's range residuals are shown against, with their axis titles."""
 
 
-def range_residuals_of(calibration: dict[str, Any] | None) -> dict[str, Any] | None:
+def range_residuals_of(calibration: CalibrationRecord | None) -> dict[str, TrendRecord] | None:
     """The cube's range-fit residual trends a calibration carries
     (:func:`calstation.engine.residuals.residual_trends`), or None."""
-    joint = ((calibration or {}).get("diagnostics") or {}).get("joint") or {}
-    residuals = (joint.get("cube") or {}).get("residuals")
-    return residuals or None
+    cube = _mapping(_mapping(_diagnostic(calibration, "joint")).get("cube"))
+    residuals = _mapping(cube.get("residuals"))
+    keys = set(TrendRecord.__annotations__)
+    if not residuals or not all(isinstance(t, dict) and keys <= set(t)
+                                for t in residuals.values()):
+        return None
+    # stored by the engine as residual_trends gave it, every key checked above
+    return cast("dict[str, TrendRecord]", residuals)
 
 
-def range_residuals_text(residuals: dict[str, Any]) -> str:
+def range_residuals_text(residuals: dict[str, TrendRecord]) -> str:
     """What the cube's range residuals say, in words: the errors the lidar's range model does
     not hold, or that they show none."""
     from calstation.engine.residuals import unmodelled
@@ -441,10 +447,11 @@ def range_residuals_text(residuals: dict[str, Any]) -> str:
             + "; ".join(seen) + ".")
 
 
-def _range_residuals_figure(residuals: dict[str, Any]) -> dict[str, Any]:
+def _range_residuals_figure(residuals: dict[str, TrendRecord]) -> Figure:
     """The cube's range residuals (median of each bin and its σ, mm; positive reads long)
     against range, incidence angle and azimuth, side by side."""
-    traces, layout = [], {}
+    traces: list[JSONObject] = []
+    layout: JSONObject = {}
     shown = [(name, title) for name, title in RESIDUAL_AXES if name in residuals]
     for k, (name, title) in enumerate(shown, start=1):
         t = residuals[name]
@@ -460,15 +467,13 @@ def _range_residuals_figure(residuals: dict[str, Any]) -> dict[str, Any]:
         })
         layout[f"xaxis{axis}"] = {"title": {"text": title}}
         layout[f"yaxis{axis}"] = {"title": {"text": "range error (mm)" if k == 1 else ""}}
-    return {
-        "data": traces,
-        "layout": {
-            **layout, "height": 300, "showlegend": False,
-            "margin": {"l": 60, "r": 20, "t": 40, "b": 50},
-            "title": {"text": "the cube's range residuals (median ± 3σ; positive reads long)"},
-            "grid": {"rows": 1, "columns": len(shown), "pattern": "independent"},
-        },
-    }
+    grid: JSONObject = {"rows": 1, "columns": len(shown), "pattern": "independent"}
+    layout.update({
+        "height": 300, "showlegend": False, "margin": {"l": 60, "r": 20, "t": 40, "b": 50},
+        "title": {"text": "the cube's range residuals (median ± 3σ; positive reads long)"},
+        "grid": grid,
+    })
+    return {"data": traces, "layout": layout}
 
 
 # --- gathering -------------------------------------------------------------------------------

@@ -115,6 +115,8 @@ class ReportData(TypedDict):
     accuracy: Accuracy | None
     generated_at: str
     partial: NotRequired[str | None]
+    range_residuals: NotRequired[str]
+    """what the cube's range residuals say (:func:`range_residuals_text`), when it has them"""
 
 
 class ViewsData(TypedDict):
