@@ -38,8 +38,8 @@ from calstation.station.operator import (
 )
 from calstation.storage.db.models import RunStatus
 
-# Any: a run summary and its parts (calibrations, cube check, QA limits) are
-# calstation.storage.report's run_summary, plain dicts of stored values there
+# Any: the run summary as the station's Operator protocol passes it (storage's run mapping),
+# and its parts (calibrations, cube check, QA limits) read from it
 Stored = dict[str, Any]
 
 PLACEMENT_ANSWERS: dict[str, tuple[str, ...]] = {"continue": ("continue", "c"),

@@ -22,10 +22,13 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
     from rich.console import Console
 
-# Any: a history row and a trend point are calstation.storage's (report.history_item,
-# qa.trend_points), plain dicts of stored values there
-HistoryRow = dict[str, Any]
-TrendPoint = dict[str, Any]
+    from calstation.storage.qa import TrendPoint
+    from calstation.storage.report import HistoryItem
+
+    class Listed(HistoryItem):
+        """A run as ``history`` lists it: with why it did not pass (None when it did)."""
+
+        failure_reason: str | None
 
 H_PARAMS = ("tx", "ty", "tz", "rx", "ry", "rz")
 CUBE_PARAMS = ("edge_error", "obb_error", "flatness_rms")
@@ -52,7 +55,7 @@ def _colour(status: str) -> str:
     return colours.get(status, "yellow")
 
 
-def failure_reason(run: HistoryRow) -> str:
+def failure_reason(run: HistoryItem) -> str:
     """Why a run did not pass, in one line: its error, else the cube check's failures."""
     from calstation.storage.db.models import RunStatus
 
@@ -70,7 +73,7 @@ SHOWN = ("tx", "ty", "tz", "ry", "rz")
 """The parameters the history lists (rx is the gauge, held at 0)."""
 
 
-def _value(r: HistoryRow, p: str) -> str:
+def _value(r: HistoryItem, p: str) -> str:
     """A run's final value of ``p`` as the history shows it (— without a calibration)."""
     c = r["calibration"]
     if c is None:
@@ -80,13 +83,13 @@ def _value(r: HistoryRow, p: str) -> str:
     return display.number(p, c["H"][p], unit=False)
 
 
-def _edge(r: HistoryRow) -> str:
+def _edge(r: HistoryItem) -> str:
     cube = r["cube_check"]
     return display.number("edge_error", cube["edge_error"], unit=False) if cube \
         else display.MISSING
 
 
-def print_history(rows: list[HistoryRow], console: Console) -> None:
+def print_history(rows: list[Listed], console: Console) -> None:
     """The runs (``history --json``'s rows) as a table with a labelled column per parameter
     when it fits ``console``; else one block per run, its items (``station sim-01``,
     ``tx 15.605 mm``) wrapped between items, never within a word or a number."""
@@ -120,7 +123,7 @@ def print_history(rows: list[HistoryRow], console: Console) -> None:
                           highlight=False)
 
 
-def _print_run_block(r: HistoryRow, console: Console) -> None:
+def _print_run_block(r: HistoryItem, console: Console) -> None:
     """One run in a few lines of labelled items, wrapped between items."""
     colour = _colour(r["status"])
     items = [f"run {r['id']}", f"[{colour}]{r['status']}[/]", display.when(r["started_at"]),
@@ -171,7 +174,7 @@ def register(app: typer.Typer) -> None:
         from calstation.storage.report import history_item, with_results
 
         database = open_database(db, read_only=True)
-        rows: list[HistoryRow] = []
+        rows: list[Listed] = []
         with database.session("reading the runs", read_only=True) as s:
             stmt = with_results(select(Run).join(Station).order_by(Run.id.desc()).limit(limit))
             if station:
@@ -183,7 +186,7 @@ def register(app: typer.Typer) -> None:
             if since:
                 stmt = stmt.where(Run.started_at >= _parse_since(since))
             for run in s.scalars(stmt):
-                item: dict[str, Any] = dict(history_item(run))
+                item: Listed = {**history_item(run), "failure_reason": None}
                 item["failure_reason"] = failure_reason(item) or None
                 rows.append(item)
         database.dispose()
@@ -373,7 +376,7 @@ def trend_points(
             points = query(s, station, param, serial)
     finally:
         database.dispose()
-    return [dict(p) for p in points]
+    return points
 
 
 def plot_trend(points: list[TrendPoint], station: str, param: str, path: Path) -> None:
@@ -391,6 +394,13 @@ def plot_trend(points: list[TrendPoint], station: str, param: str, path: Path) -
         plt.close(fig)
 
 
+def _date(point: TrendPoint) -> dt.datetime:
+    """When the run of a trend's point started (a stored run always has its start)."""
+    if point["date"] is None:
+        raise ValueError(f"run {point['run_id']} has no start time")
+    return dt.datetime.fromisoformat(point["date"])
+
+
 def trend_figure(points: list[TrendPoint], station: str, param: str) -> Figure:
     """The matplotlib figure of :func:`plot_trend` (x axis: dates)."""
     import matplotlib
@@ -406,7 +416,7 @@ def trend_figure(points: list[TrendPoint], station: str, param: str) -> Figure:
 
     unit = q.unit
     # Any: matplotlib's stubs take no datetimes, which it plots on a date axis
-    xs: list[Any] = [dt.datetime.fromisoformat(p["date"]) for p in points]
+    xs: list[Any] = [_date(p) for p in points]
     ys = [scale(p["value"]) for p in points]
     fig, ax = plt.subplots(figsize=(8, 4))
     ax.plot(xs, ys, "-o", color="tab:blue", label=param)
