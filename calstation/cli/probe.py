@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, TypedDict
 import typer
 
 from calstation.errors import DriverError
+from calstation.jsonvalue import JSONObject
 
 if TYPE_CHECKING:
     from calstation.drivers import Lidar, LidarLine
@@ -40,7 +41,7 @@ class ProbeResult(TypedDict, total=False):
 
     info: dict[str, object]
     scan: ProbeScan
-    status: dict[str, Any]  # Any: TurntableStatus.as_dict's (calstation.drivers)
+    status: JSONObject
     sample: ProbeSample
 
 
@@ -153,11 +154,14 @@ def _print_human(kind: str, result: ProbeResult) -> None:
         )
     elif kind == "turntable":
         st = result["status"]
-        pos = st["position_rad"]
+        pos, speed, faults = st["position_rad"], st["speed_rpm"], st["faults"]
+        # as TurntableStatus.as_dict writes them
+        assert isinstance(speed, float | int) and isinstance(faults, list)
+        assert pos is None or isinstance(pos, float | int)
         console.print(
-            f"status: {st['state']}, {st['speed_rpm']:.3f} rpm, position "
+            f"status: {st['state']}, {speed:.3f} rpm, position "
             + ("unknown" if pos is None else f"{math.degrees(pos):.3f}°")
-            + (f", faults: {', '.join(st['faults'])}" if st["faults"] else ", no faults")
+            + (f", faults: {', '.join(str(f) for f in faults)}" if faults else ", no faults")
         )
     else:
         s = result["sample"]
