@@ -1,7 +1,7 @@
 """The web station under load: idle event streams and a huge request body.
 
 Prints figures; the same measurements, with limits, are tests
-(``tests/test_web_security_server.py``). Starts ``calstation serve`` on 127.0.0.1 (a free port,
+(``tests/web/test_web_security_server.py``). Starts ``calstation serve`` on 127.0.0.1 (a free port,
 a temporary database and home) and then:
 
 1. opens ``--streams`` idle event streams (default 500), each read up to its first event, and

@@ -38,10 +38,10 @@ class Mutation:
     """the tests drive chromium (run with ``-m browser``)"""
 
 
-PAGES = "tests/test_page_defects.py"
-VOCABULARY = "tests/test_one_vocabulary.py"
-PROMPTS = "tests/test_terminal_prompts.py"
-LIVE_PAGE = "tests/test_live_page_browser.py"
+PAGES = "tests/web/test_page_defects.py"
+VOCABULARY = "tests/system/test_one_vocabulary.py"
+PROMPTS = "tests/cli/test_terminal_prompts.py"
+LIVE_PAGE = "tests/web/test_live_page_browser.py"
 
 MUTATIONS = (
     Mutation(
@@ -51,7 +51,7 @@ MUTATIONS = (
         "sigma = sigma_from_covariance(reported_cov, problem.free)",
         "sigma = {k: v * (1e-3 if k in ('tx', 'tz', 'rz') else 1.0)"
         " for k, v in sigma_from_covariance(reported_cov, problem.free).items()}",
-        ("tests/test_trust.py", "tests/test_periodicity.py"),
+        ("tests/engine/test_trust.py", "tests/engine/test_periodicity.py"),
     ),
     Mutation(
         "sigma-scale",
@@ -59,7 +59,7 @@ MUTATIONS = (
         "calstation/engine/periodicity/covariance.py",
         "SIGMA_SCALE = 1.3",
         "SIGMA_SCALE = 0.3",
-        ("tests/test_trust.py", "tests/test_periodicity.py"),
+        ("tests/engine/test_trust.py", "tests/engine/test_periodicity.py"),
     ),
     Mutation(
         "tz-bias",
@@ -67,7 +67,7 @@ MUTATIONS = (
         "calstation/engine/periodicity/solve.py",
         "H=Extrinsics.from_vector(x6[:6]),",
         "H=Extrinsics.from_vector(x6[:6] + [0, 0, 0.0004, 0, 0, 0]),",
-        ("tests/test_trust.py", "tests/test_periodicity.py"),
+        ("tests/engine/test_trust.py", "tests/engine/test_periodicity.py"),
     ),
     Mutation(
         "mutual-swapped",
@@ -75,7 +75,7 @@ MUTATIONS = (
         "calstation/engine/neighbours.py",
         "_, back = ta.query(b[cand], distance_upper_bound=radius, workers=WORKERS)",
         "_, back = tb.query(b[cand], distance_upper_bound=radius, workers=WORKERS)",
-        ("tests/test_neighbours.py",),
+        ("tests/engine/test_neighbours.py",),
     ),
     Mutation(
         "mutual-first",
@@ -83,7 +83,7 @@ MUTATIONS = (
         "calstation/engine/neighbours.py",
         "return i[mutual].astype(np.int64), j[mutual].astype(np.int64)",
         "return i[mutual][:1].astype(np.int64), j[mutual][:1].astype(np.int64)",
-        ("tests/test_neighbours.py",),
+        ("tests/engine/test_neighbours.py",),
     ),
     Mutation(
         "twist-bias",
@@ -91,7 +91,7 @@ MUTATIONS = (
         "calstation/engine/twist.py",
         "return twist, float(math.hypot(spread, range_twist_bias(noise)))",
         "return twist, float(range_twist_bias(noise))",
-        ("tests/test_trust.py", "tests/test_calibrate_cli.py"),
+        ("tests/engine/test_trust.py", "tests/cli/test_calibrate_cli.py"),
     ),
     Mutation(
         "twist-sign",
@@ -99,7 +99,7 @@ MUTATIONS = (
         "calstation/engine/twist.py",
         "    twist = float(res.x[0])\n",
         "    twist = -float(res.x[0])\n",
-        ("tests/test_trust.py",),
+        ("tests/engine/test_trust.py",),
     ),
     Mutation(
         "cube-edge",
@@ -107,7 +107,7 @@ MUTATIONS = (
         "calstation/engine/cubefit.py",
         "half = 0.5 * (self.edge if edge is None else edge)",
         "half = 0.5 * ((self.edge if edge is None else edge) - 0.0004)",
-        ("tests/test_cubefit.py", "tests/test_shape.py"),
+        ("tests/engine/test_cubefit.py", "tests/engine/test_shape.py"),
     ),
     Mutation(
         "cube-tolerance",
@@ -115,7 +115,7 @@ MUTATIONS = (
         "calstation/engine/cubefit.py",
         "    if tolerance <= 0:\n",
         "    if True:\n",
-        ("tests/test_cubefit.py",),
+        ("tests/engine/test_cubefit.py",),
     ),
     Mutation(
         "reconstruct-latency",
@@ -123,7 +123,7 @@ MUTATIONS = (
         "calstation/engine/reconstruct.py",
         "        recording = recording.with_encoder_latency(encoder_latency_s)\n",
         "        pass\n",
-        ("tests/test_reconstruct.py",),
+        ("tests/recordings/test_reconstruct.py",),
     ),
     Mutation(
         "csv-sigma-swap",
@@ -132,7 +132,7 @@ MUTATIONS = (
         'row += ["" if s is None else repr(s) for s in cal.sigmas().values()]',
         'row += ["" if s is None else repr(s) for s in (lambda v: [*v[:4], v[5], v[4]])('
         "list(cal.sigmas().values()))]",
-        ("tests/test_cli_qa.py",),
+        ("tests/cli/test_cli_qa.py",),
     ),
     Mutation(
         "journal-fsync",
@@ -140,7 +140,7 @@ MUTATIONS = (
         "calstation/storage/db/journal.py",
         "        os.fsync(f.fileno())\n",
         "",
-        ("tests/test_faults_db.py::test_a_journalled_result_is_on_the_disk_before_the_run_goes_on",),
+        ("tests/storage/test_faults_db.py::test_a_journalled_result_is_on_the_disk_before_the_run_goes_on",),
     ),
     Mutation(
         "half-turn-shift",
@@ -149,7 +149,7 @@ MUTATIONS = (
         "    halves = [half(first & moving), half(~first & moving)]\n",
         "    halves = [half(first & moving), half(~first & moving)]\n"
         "    halves[1].phi = halves[1].phi + 1e-3\n",
-        ("tests/test_periodicity.py",),
+        ("tests/engine/test_periodicity.py",),
     ),
     Mutation(
         "targetless-sign",
@@ -157,7 +157,7 @@ MUTATIONS = (
         "calstation/engine/targetless.py",
         "candidates = [0.0, tz, -tz] if tz >= TZ_SIGN_MIN_M else [0.0]",
         "candidates = [0.0, tz, tz] if tz >= TZ_SIGN_MIN_M else [0.0]",
-        ("tests/test_targetless.py",),
+        ("tests/engine/test_targetless.py",),
     ),
     Mutation(
         "static-lines-bound",
@@ -165,7 +165,7 @@ MUTATIONS = (
         "calstation/recipes/steps.py",
         "lines: int = Field(100, ge=1, le=10_000)",
         "lines: int = Field(100, le=10_000)",
-        ("tests/test_faults_recipes.py",),
+        ("tests/recipes/test_faults_recipes.py",),
     ),
     Mutation(
         "range-model-ignored",
@@ -173,7 +173,7 @@ MUTATIONS = (
         "calstation/engine/reconstruct.py",
         "return lidar_points_to_dynamic(range_model.points(p_L), phi, H)",
         "return lidar_points_to_dynamic(p_L, phi, H)",
-        ("tests/test_rangemodel.py",),
+        ("tests/engine/test_rangemodel.py",),
     ),
     Mutation(
         "range-sigma-dropped",
@@ -181,7 +181,7 @@ MUTATIONS = (
         "calstation/engine/accuracy.py",
         "out[:, :, k] = -lidar_to_dynamic(along, phi, H.with_(tx=0.0, ty=0.0, tz=0.0))",
         "out[:, :, k] = 0.0",
-        ("tests/test_rangemodel.py",),
+        ("tests/engine/test_rangemodel.py",),
     ),
     # the operator's and the QA engineer's pages, the terminal's prompts
     Mutation(
@@ -314,7 +314,7 @@ MUTATIONS = (
         "calstation/web/events.py",
         "                await hub.tick()\n                # coalesce bursts",
         "                # coalesce bursts",
-        ("tests/test_live_stream.py",),
+        ("tests/web/test_live_stream.py",),
     ),
     Mutation(
         "status-stale-at-end",
@@ -322,7 +322,7 @@ MUTATIONS = (
         "calstation/web/app.py",
         "    runner.released = status.refresh\n",
         "",
-        ("tests/test_web_browser.py::test_a_full_simulated_run_by_clicking_with_a_reload",),
+        ("tests/web/test_web_browser.py::test_a_full_simulated_run_by_clicking_with_a_reload",),
         browser=True,
     ),
     Mutation(
@@ -360,7 +360,7 @@ MUTATIONS = (
         "calstation/engine/cubefit.py",
         "            out *= 1.0 + float(v[SCALE])\n",
         "",
-        ("tests/test_rangemodel.py",),
+        ("tests/engine/test_rangemodel.py",),
     ),
     Mutation(
         "unmeasured-scale-ignored",
@@ -368,7 +368,7 @@ MUTATIONS = (
         "calstation/pipeline/judgement.py",
         "    result = with_scale_uncertainty(result, recipe)\n    predicted = predict(",
         "    predicted = predict(",
-        ("tests/test_rangemodel.py",),
+        ("tests/engine/test_rangemodel.py",),
     ),
     Mutation(
         "unmeasured-scale-uncorrelated",
@@ -376,7 +376,7 @@ MUTATIONS = (
         "calstation/engine/rangemodel.py",
         "out[n, i] = out[i, n] = -s2 * float(t[axis])",
         "out[n, i] = out[i, n] = 0.0",
-        ("tests/test_rangemodel.py",),
+        ("tests/engine/test_rangemodel.py",),
     ),
 )
 

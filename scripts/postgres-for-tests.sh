@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Installs Debian's PostgreSQL server binaries for the test suite (tests/pgserver.py starts a
-# private, throw-away server from them). Does nothing when they are already installed.
+# Installs Debian's PostgreSQL server binaries for the test suite (the postgres_url fixture of
+# tests/conftest.py starts a private, throw-away server from them). Does nothing when they are
+# already installed.
 set -euo pipefail
 ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 && exit 0
 command -v apt-get >/dev/null 2>&1 || { echo "calstation: no apt-get to install PostgreSQL" >&2; exit 1; }

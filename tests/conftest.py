@@ -1,14 +1,22 @@
-"""Shared fixtures."""
+"""The fixtures every layer's tests share (a layer's own are in its folder's conftest.py; the
+helpers the tests import are in tests/support/)."""
 
 from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
 from hypothesis import HealthCheck, settings
+
+from tests.support.paths import REPO
+
+if TYPE_CHECKING:
+    from calstation.storage.db import Database
+    from tests.support.station import StationTestPlugin
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -22,8 +30,6 @@ settings.register_profile("default", **UNTIMED)  # type: ignore[arg-type]
 settings.register_profile("ci", derandomize=True, print_blob=True,
                           **UNTIMED)  # type: ignore[arg-type]
 settings.load_profile(os.environ.get("CALSTATION_HYPOTHESIS_PROFILE", "default"))
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="session")
@@ -79,9 +85,49 @@ def browser() -> Iterator[Any]:
     """Debian's chromium under Playwright, one per test module (a module that needs other
     launch options defines its own)."""
     playwright_api = pytest.importorskip("playwright.sync_api")
-    from webstation import CHROMIUM, CHROMIUM_ARGS
+    from tests.support.webstation import CHROMIUM, CHROMIUM_ARGS
 
     with playwright_api.sync_playwright() as p:
         b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         yield b
         b.close()
+
+
+@pytest.fixture
+def db(tmp_path: Path) -> Iterator[Database]:
+    """A new SQLite run database in the test's folder."""
+    from calstation.storage.db import open_database
+
+    database = open_database(f"sqlite:///{tmp_path / 'test.db'}")
+    yield database
+    database.dispose()
+
+
+@pytest.fixture
+def station_plugin() -> Iterator[StationTestPlugin]:
+    """The simulator and :class:`tests.support.station.StationTestPlugin` (spy drivers, the toy
+    strategy, an observer) as the only plugins while the test runs."""
+    from calstation import plugins
+
+    sim_plugin = pytest.importorskip("calstation_sim.plugin")
+    from tests.support.station import StationTestPlugin
+
+    plugin = StationTestPlugin()
+    with plugins.isolated(sim_plugin, plugin):
+        yield plugin
+
+
+@pytest.fixture(scope="module")
+def postgres_url() -> Iterator[str]:
+    """A throw-away PostgreSQL server (Debian's postgresql package) in a temporary folder, one
+    per test module; skips the test when psycopg is missing or no server can be started (as
+    root, the server runs as user ``postgres``; ``calstation.testing.postgres``)."""
+    pytest.importorskip("psycopg")
+    from calstation.testing.postgres import NoPostgres, throwaway_postgres
+
+    with ExitStack() as stack:
+        try:
+            url = stack.enter_context(throwaway_postgres())
+        except NoPostgres as exc:
+            pytest.skip(str(exc))
+        yield url

@@ -1,6 +1,7 @@
 """A throw-away PostgreSQL server from Debian's ``postgresql`` binaries (installed by
 ``scripts/postgres-for-tests.sh``), in a temporary folder, listening on 127.0.0.1 only: for the
-database tests (``tests/pgserver.py``) and the fleet benchmark."""
+database tests (the ``postgres_url`` fixture of ``tests/conftest.py``) and the fleet
+benchmark."""
 
 from __future__ import annotations
 

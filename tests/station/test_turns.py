@@ -1,0 +1,147 @@
+"""Scanning until the accuracy budget holds (calstation.station.turns), on the simulated
+station: the spin scan goes on turn by turn while the predicted error is above the budget, the
+fine-tuning takes or redoes the fit, and a refusal says what would help."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from calstation.recipes import load_recipe
+from calstation.station.reprocess import compute_reprocessing, plan_reprocessing
+from calstation.station.runs import start_run
+from calstation.storage.db import Calibration, Database, Run
+from tests.support.station import UnattendedOperator, last_step, whole_turns
+
+pytest.importorskip("calstation_sim")
+
+RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+
+
+def _recipe(tmp_path: Path, budget: float, range_model: str = "offset", **spin: Any) -> Path:
+    """The simulated station made quick: 500 points per line at 60 rpm."""
+    data = yaml.safe_load((RECIPES / "sim-periodicity.yaml").read_text())
+    data["simulation"]["lidar"]["points_per_line"] = 500
+    data["simulation"]["seed"] = 3
+    data["steps"] = {"static_scan": {"lines": 40},
+                     "spin_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1, **spin},
+                     "cube_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1,
+                                   "max_revolutions": 1.02}}
+    data["calibration"] = {"accuracy": {"max_error": budget}, "range_model": range_model}
+    path = tmp_path / "turns.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def test_a_generous_budget_ends_the_spin_scan_after_its_first_fit(
+    tmp_path: Path, db: Database
+) -> None:
+    ui = UnattendedOperator()
+    run_id, status = start_run(load_recipe(_recipe(tmp_path, 0.005)), db, ui,
+                               operator="t", data_dir=tmp_path)
+    assert status == "passed", ui.failures
+    spin = last_step(db, run_id, "spin_scan").result
+    summary = spin["turn_by_turn"]
+    # the first fit (one turn) met the budget and ended the scan, well before its 8 turns
+    assert summary["stopped"] == "budget"
+    assert summary["fits"][0]["turns"] == 1
+    assert summary["fits"][-1]["predicted_error_m"] <= 0.005
+    assert whole_turns(spin["recording"]) < 8
+    accuracy = [e for e in ui.events if e.kind == "accuracy"]
+    assert accuracy and accuracy[0].data["turns"] == 1 and accuracy[0].data["budget_m"] == 0.005
+    fine = last_step(db, run_id, "fine_tune").result
+    assert fine["predicted_error_m"] <= fine["budget_m"] == 0.005
+    with db.session() as s:
+        accepted = s.query(Calibration).filter_by(run_id=run_id, accepted=True).one()
+        assert accepted.predicted_error_m is not None and accepted.predicted_error_m <= 0.005
+        assert accepted.diagnostics["predicted_error"]["budget_m"] == 0.005
+        stored = accepted.params()
+        run = s.get(Run, run_id)
+        assert run is not None
+        job = plan_reprocessing(run)
+    # re-processed, the run gives what the station stored: the fit on the turns that met the
+    # budget, not on the turns scanned while it was computed
+    assert job.turns == {"spin": 1.0}
+    again = compute_reprocessing(job).result.H.as_dict()
+    for name, value in stored.items():
+        assert again[name] == pytest.approx(value, abs=1e-9), (name, again, stored)
+
+
+@pytest.mark.parametrize("range_model", ["none", "offset"])
+def test_an_unreachable_budget_turns_to_the_maximum_and_is_refused_with_what_would_help(
+    tmp_path: Path, db: Database, range_model: str
+) -> None:
+    ui = UnattendedOperator()
+    run_id, status = start_run(
+        load_recipe(_recipe(tmp_path, 0.00005, range_model, max_revolutions=3)), db, ui,
+        operator="t", data_dir=tmp_path,
+    )
+    assert status == "failed"
+    spin = last_step(db, run_id, "spin_scan").result
+    summary = spin["turn_by_turn"]
+    assert summary["stopped"] == "turns" and summary["max_revolutions"] == 3
+    assert whole_turns(spin["recording"]) == 3  # the recording holds every turn
+    assert [f["turns"] for f in summary["fits"]] == sorted({f["turns"] for f in summary["fits"]})
+    (step, error), = ui.failures
+    assert "calibration.accuracy.max_error" in error and "What would help" in error
+    # with the range model too: the spin target's own σ (its range terms and ty held for the
+    # cube) is over the budget, and the spin scan is told what would help
+    assert step == "fine_tune", error
+    # every suggestion is computed from this scan: more turns (how many), a slower platter, a
+    # faster line rate, each with its number
+    assert "turns (steps.spin_scan.max_revolutions:" in error and "this scan took 3" in error
+    assert "rpm instead of 60" in error and "lines/s instead of 1000" in error
+    refused = json.loads(json.dumps(last_step(db, run_id, "fine_tune").result))
+    assert refused["refused"]["predicted_error_m"] > 0.00005
+
+
+def test_exactly_the_asked_turns_without_turn_by_turn(tmp_path: Path, db: Database) -> None:
+    ui = UnattendedOperator()
+    run_id, status = start_run(
+        load_recipe(_recipe(tmp_path, 1e-6, max_revolutions=1.02)), db, ui, operator="t",
+        data_dir=tmp_path,
+    )
+    spin = last_step(db, run_id, "spin_scan").result
+    assert "turn_by_turn" not in spin and whole_turns(spin["recording"]) == 1
+    assert not [e for e in ui.events if e.kind == "accuracy"]
+    assert status == "failed"
+
+
+def test_a_cube_fits_noise_bias_over_the_budget_is_told_what_would_help() -> None:
+    """At 2 mm of range noise the cube faces' bias in ry (0.08°, which the shape strategy's
+    known-size fit declares) alone exceeds a 0.1 mm budget: more turns cannot help, and the
+    advice is about the cube's sensor and strategy, not the spin target the recipe never
+    scans."""
+    import math
+
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.result import CalibrationResult
+    from calstation.pipeline.judgement import budget_failure, with_prediction
+
+    recipe = load_recipe(RECIPES / "sim-shape.yaml").recipe
+    recipe = recipe.model_copy(update={"calibration": recipe.calibration.model_copy(
+        update={"accuracy": recipe.calibration.accuracy.model_copy(update={"max_error": 1e-4})})})
+    H = Extrinsics(0.0, 1.5, 0.0, 0.0, 0.0, math.radians(-30.0))
+    sigma = {"tx": 2e-5, "ty": math.nan, "tz": 2e-5, "rx": math.nan,
+             "ry": math.radians(0.081), "rz": math.radians(0.004)}
+    result = CalibrationResult(H=H, sigma=sigma, cost=0.0, iterations=1, strategy="shape",
+                               timings={}, diagnostics={"bias_bound": {"ry": math.radians(0.08)},
+                                                        "range_noise_m": 0.002})
+    result, predicted = with_prediction(result, recipe, turns=1)
+    assert predicted.bias_m > 1e-4
+    error = budget_failure(result, predicted, recipe, scan="spin_scan", turns=1)
+    assert error is not None and "more data cannot help" in error
+    assert "about 1.0 mm of range noise instead of 2.0 mm" in error
+    assert "the spin target with the periodicity strategy" in error
+    assert "taller" not in error and "off-centre" not in error
+    # the same for a periodicity recipe speaks of its spin target
+    spin = load_recipe(RECIPES / "sim-periodicity.yaml").recipe
+    spin = spin.model_copy(update={"calibration": spin.calibration.model_copy(
+        update={"accuracy": spin.calibration.accuracy.model_copy(update={"max_error": 1e-4})})})
+    result, predicted = with_prediction(result, spin, turns=1)
+    error = budget_failure(result, predicted, spin, scan="spin_scan", turns=1)
+    assert error is not None and "taller, off-centre" in error
