@@ -182,7 +182,8 @@ def _shares_wrongly(module: str) -> bool:
 def test_no_test_module_imports_another() -> None:
     """Test modules share helpers only through ``tests/support/`` and fixtures only through
     conftest files: no test module, conftest or helper imports a test module (nor a conftest,
-    nor another layer's folder), and no module of ``tests/support/`` defines a fixture."""
+    nor another layer's folder), no module of ``tests/support/`` defines a fixture, and every
+    test module is in a layer's folder."""
     files = sorted(p for p in TESTS.rglob("*.py") if "__pycache__" not in p.parts)
     wrong = [f"{p.relative_to(TESTS.parent)}:{line} imports {module}" for p in files
              for line, module in _imported(ast.parse(p.read_text())) if _shares_wrongly(module)]
@@ -192,6 +193,8 @@ def test_no_test_module_imports_another() -> None:
                 for node in ast.walk(ast.parse(p.read_text()))
                 if isinstance(node, ast.Attribute) and node.attr == "fixture"]
     assert fixtures == []
+    flat = sorted(p.name for p in TESTS.glob("test_*.py"))
+    assert flat == [], "a test module goes in the folder of the layer it tests (tests/<layer>/)"
     # the measure sees a test module imported, flat or from its layer's folder
     assert _shares_wrongly("test_station") and _shares_wrongly("tests.station.test_station")
     assert not _shares_wrongly("tests.support.station")
