@@ -24,14 +24,13 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, cast
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from calstation import display
 from calstation.atomic import write_atomic
-from calstation.engine.residuals import TrendRecord
 from calstation.errors import CalstationError
 from calstation.jsonvalue import JSONObject, JSONValue
 from calstation.plugins.hookspecs import ArtifactRecord, StepRecord
@@ -41,6 +40,11 @@ from calstation.storage.report import (
     CubeRecord,
     RunSummary,
     json_float,
+)
+from calstation.storage.report_residuals import (
+    range_residuals_figure,
+    range_residuals_of,
+    range_residuals_text,
 )
 from calstation.storage.report_types import (
     Accuracy,
@@ -416,66 +420,6 @@ def _accuracy_figure(calibration: CalibrationRecord | None) -> Figure | None:
     }
 
 
-RESIDUAL_AXES = (("range", "range (m)"), ("incidence", "incidence angle (°)"),
-                 ("azimuth", "azimuth (°)"))
-"""The quantities the cube's range residuals are shown against, with their axis titles."""
-
-
-def range_residuals_of(calibration: CalibrationRecord | None) -> dict[str, TrendRecord] | None:
-    """The cube's range-fit residual trends a calibration carries
-    (:func:`calstation.engine.residuals.residual_trends`), or None."""
-    cube = _mapping(_mapping(_diagnostic(calibration, "joint")).get("cube"))
-    residuals = _mapping(cube.get("residuals"))
-    keys = set(TrendRecord.__annotations__)
-    if not residuals or not all(isinstance(t, dict) and keys <= set(t)
-                                for t in residuals.values()):
-        return None
-    # stored by the engine as residual_trends gave it, every key checked above
-    return cast("dict[str, TrendRecord]", residuals)
-
-
-def range_residuals_text(residuals: dict[str, TrendRecord]) -> str:
-    """What the cube's range residuals say, in words: the errors the lidar's range model does
-    not hold, or that they show none."""
-    from calstation.engine.residuals import unmodelled
-
-    seen = unmodelled(residuals)
-    if not seen:
-        return ("The cube's faces show no range error the lidar's range model does not hold: "
-                "their residuals are level against range, incidence angle and azimuth.")
-    return ("The cube's faces show a range error the lidar's range model does not hold: "
-            + "; ".join(seen) + ".")
-
-
-def _range_residuals_figure(residuals: dict[str, TrendRecord]) -> Figure:
-    """The cube's range residuals (median of each bin and its σ, mm; positive reads long)
-    against range, incidence angle and azimuth, side by side."""
-    traces: list[JSONObject] = []
-    layout: JSONObject = {}
-    shown = [(name, title) for name, title in RESIDUAL_AXES if name in residuals]
-    for k, (name, title) in enumerate(shown, start=1):
-        t = residuals[name]
-        axis = "" if k == 1 else str(k)
-        traces.append({
-            "type": "scatter", "mode": "markers+lines", "name": name,
-            "x": [round(float(c), 4) for c in t["centre"]],
-            "y": [round(float(m) * 1e3, 4) for m in t["median_m"]],
-            "error_y": {"type": "data", "array": [round(3 * float(e) * 1e3, 4)
-                                                  for e in t["sigma_m"]]},
-            "marker": {"color": "#c0392b" if t.get("significant") else "#2c3e50"},
-            "xaxis": f"x{axis}", "yaxis": f"y{axis}",
-        })
-        layout[f"xaxis{axis}"] = {"title": {"text": title}}
-        layout[f"yaxis{axis}"] = {"title": {"text": "range error (mm)" if k == 1 else ""}}
-    grid: JSONObject = {"rows": 1, "columns": len(shown), "pattern": "independent"}
-    layout.update({
-        "height": 300, "showlegend": False, "margin": {"l": 60, "r": 20, "t": 40, "b": 50},
-        "title": {"text": "the cube's range residuals (median ± 3σ; positive reads long)"},
-        "grid": grid,
-    })
-    return {"data": traces, "layout": layout}
-
-
 # --- gathering -------------------------------------------------------------------------------
 def _limits(recipe_text: str) -> Recipe | None:
     from calstation.recipes import parse_recipe
@@ -653,9 +597,9 @@ def report_data(db: Database, run_id: int, *, views: bool = True) -> ReportData:
         where = _accuracy_figure(final)
         if where is not None:
             data["figures"]["accuracy"] = where
-        residuals = range_residuals_of(final)
+        residuals = range_residuals_of(_diagnostic(final, "joint"))
         if residuals is not None:
-            data["figures"]["range_residuals"] = _range_residuals_figure(residuals)
+            data["figures"]["range_residuals"] = range_residuals_figure(residuals)
             data["range_residuals"] = range_residuals_text(residuals)
     if views and final is not None and recipe is not None:
         H = Extrinsics.from_dict(final["H"])
