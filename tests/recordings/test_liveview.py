@@ -210,13 +210,13 @@ def test_clients_of_either_subprotocol_are_served(offered: list[str]) -> None:
 
 
 def test_a_client_of_another_protocol_is_refused() -> None:
-    import websockets
+    from websockets.exceptions import InvalidStatus
 
     from calstation.recordings.liveview import start_live_view
 
     view = start_live_view(port=0)
     try:
-        with pytest.raises(websockets.exceptions.InvalidStatus, match="400"):
+        with pytest.raises(InvalidStatus, match="400"):
             asyncio.run(_connect(view.url, ["something.else.v1"], 5))
     finally:
         view.close()
