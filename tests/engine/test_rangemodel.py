@@ -119,11 +119,32 @@ def _recipe(tmp_path: Path, sensor: dict[str, Any], name: str) -> Path:
     return path
 
 
+def _scans(run: dict[str, Path]) -> Any:
+    """The static, spin and cube scans of a simulated run, as the pipeline takes them."""
+    from calstation.pipeline import Scans, turned
+    from calstation.recordings.reader import read_recording
+
+    return Scans(spin=turned(read_recording(run["spin"])),
+                 static=read_recording(run["static"]),
+                 cube=turned(read_recording(run["cube"])))
+
+
+def _one_cube_turn(path: Path, seed: int, noise: float, **calibration: str) -> None:
+    """``path``'s recipe at ``seed``, ``noise`` metres of range noise and 180 lines/s, its cube
+    scanned for one turn, with the ``calibration`` settings given."""
+    data = yaml.safe_load(path.read_text())
+    data["simulation"]["seed"] = seed
+    data["simulation"]["lidar"].update(range_noise=noise, line_rate_hz=180.0)
+    data["steps"]["cube_scan"]["revolutions"] = 1.05
+    data["calibration"].update(calibration)
+    path.write_text(yaml.safe_dump(data))
+
+
 @pytest.fixture(scope="module")
 def offset_run(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
     """A simulated run of a lidar whose ranges read 4 mm long, calibrated as a run does."""
     from calstation import plugins
-    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.pipeline import calibrate
     from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
@@ -131,9 +152,7 @@ def offset_run(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
                    "offset.yaml")
     run = sim_run(recipe=path)
     recipe = load_recipe(path).recipe
-    scans = Scans(spin=turned(read_recording(run["spin"])),
-                  static=read_recording(run["static"]),
-                  cube=turned(read_recording(run["cube"])))
+    scans = _scans(run)
     done = calibrate(recipe, scans, plugins.strategy("periodicity"))
     truth = read_recording(run["cube"]).truth
     return done, truth, read_recording(run["cube"]), recipe
@@ -241,15 +260,13 @@ def test_a_scale_error_the_recipe_does_not_measure_is_in_sigma_and_refused_with_
     what would help; stated as exact (0), ty is off by far more than its σ."""
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
-    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.pipeline import calibrate
     from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
     path = _recipe(tmp_path, {"range": {"scale": 0.001}}, "scale.yaml")
     run = sim_run(recipe=path)
-    scans = Scans(spin=turned(read_recording(run["spin"])),
-                  static=read_recording(run["static"]),
-                  cube=turned(read_recording(run["cube"])))
+    scans = _scans(run)
     truth = read_recording(run["cube"]).truth
     for stated in (0.001, 0.0):
         data = yaml.safe_load(path.read_text())
@@ -274,21 +291,14 @@ def test_the_scale_error_is_not_leaned_on_by_the_range_noise(sim_run: Any, tmp_p
     down by 3 mm on this scan, and the axis moved 0.6 mm.)"""
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
-    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.pipeline import calibrate
     from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
     path = _recipe(tmp_path, {}, "noisy.yaml")
-    data = yaml.safe_load(path.read_text())
-    data["simulation"]["seed"] = 600
-    data["simulation"]["lidar"].update(range_noise=0.001, line_rate_hz=180.0)
-    data["steps"]["cube_scan"]["revolutions"] = 1.05
-    data["calibration"]["range_model"] = "offset+scale"
-    path.write_text(yaml.safe_dump(data))
+    _one_cube_turn(path, 600, 0.001, range_model="offset+scale")
     run = sim_run(recipe=path)
-    scans = Scans(spin=turned(read_recording(run["spin"])),
-                  static=read_recording(run["static"]),
-                  cube=turned(read_recording(run["cube"])))
+    scans = _scans(run)
     done = calibrate(load_recipe(path).recipe, scans, plugins.strategy("periodicity"))
     result = done.result
     assert result.range_scale is not None and result.sigma_range_scale is not None
@@ -326,21 +336,13 @@ def test_a_disagreement_from_an_unmodelled_incidence_bias_is_named(
     incidence bias: the spin target and the cube disagree, and the refusal names the lidar's
     bias with the incidence angle from the cube's residuals, not the fixtures' placement."""
     from calstation import plugins
-    from calstation.pipeline import Scans, calibrate, turned
+    from calstation.pipeline import calibrate
     from calstation.recipes import load_recipe
-    from calstation.recordings.reader import read_recording
 
     path = _recipe(tmp_path, {"range": {"offset": 0.002, "incidence_bias": 0.001}}, "inc.yaml")
-    data = yaml.safe_load(path.read_text())
-    data["simulation"]["seed"] = 601
-    data["simulation"]["lidar"].update(range_noise=0.0005, line_rate_hz=180.0)
-    data["steps"]["cube_scan"]["revolutions"] = 1.05
-    data["calibration"]["incidence_bias"] = "none"
-    path.write_text(yaml.safe_dump(data))
+    _one_cube_turn(path, 601, 0.0005, incidence_bias="none")
     run = sim_run(recipe=path)
-    scans = Scans(spin=turned(read_recording(run["spin"])),
-                  static=read_recording(run["static"]),
-                  cube=turned(read_recording(run["cube"])))
+    scans = _scans(run)
     done = calibrate(load_recipe(path).recipe, scans, plugins.strategy("periodicity"))
     said = " ".join(done.refused)
     assert "disagree" in said
