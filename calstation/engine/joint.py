@@ -225,6 +225,7 @@ def combine_range_with_cube_scan(
         progress("fitting the cube with the lidar's range model", 0.2)
     failure: str | None = None
     combined = result
+    residuals: Mapping[str, TrendRecord] = {}
     try:
         scan = prepared if prepared is not None else from_recording(cube)
         fit = known_size_fit(scan, result.H, geometry,
@@ -235,13 +236,13 @@ def combine_range_with_cube_scan(
         failure = f"the cube could not add to the range model: {exc}"
     else:
         combined, failure = _combine_with_fit(result, fit, refit, progress)
+        residuals = fit.residuals
     if progress is not None:
         progress("measuring the cube", 0.8)
     check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared, range_model=combined.range_model)
     if not check.passed and failure is None:
-        seen = unmodelled(combined.diagnostics.get("joint", {}).get("cube", {})
-                          .get("residuals") or {})
+        seen = unmodelled(residuals)
         if seen:  # not the cube's shape alone: say what the lidar's ranges do
             failure = ("the lidar's range error is not what its range model says, and may be "
                        f"what the cube check sees — on the cube's faces, {'; '.join(seen)}")
