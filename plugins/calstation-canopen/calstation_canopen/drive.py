@@ -6,7 +6,9 @@ if this master goes silent); PDO mapping — RPDO1 = controlword 0x6040 + target
 TPDO1 = statusword 0x6041 + position actual 0x6064, TPDO2 = velocity actual 0x606C, both on every
 SYNC; NMT start; fault reset if needed; then the enable sequence 0x06 → 0x07 → 0x0F, each step
 confirmed by the statusword. Every later command goes by RPDO1 only (never an SDO write of the
-controlword or target velocity: the next RPDO would overwrite it).
+controlword or target velocity: the next RPDO would overwrite it). A status is stamped with the
+host time of the SYNC its TPDO1 answers (the drive latches its position there), as the
+``canopen406`` encoder stamps its samples.
 
 EMCY frames are recorded as faults; when the drive's heartbeat stops for ``heartbeat_timeout_s``
 the driver reports a fault, sends a quick stop and refuses to spin until re-enabled.
@@ -83,6 +85,7 @@ class Cia402Turntable(BusNodeDriver):
         self._position: int | None = None
         self._velocity: int | None = None
         self._pdo_time_ns = 0
+        self._last_sync_ns = 0
         self._position_unwrapped: int | None = None
         self._heartbeat_ns: int | None = None
         self.heartbeat_lost = False
@@ -122,6 +125,10 @@ class Cia402Turntable(BusNodeDriver):
         if len(data) < 6:
             return
         sw, pos = struct.unpack_from("<Hi", data)
+        # the drive latched its position at the SYNC this TPDO answers: stamped with that SYNC's
+        # send time, not this callback's (a busy host runs it milliseconds later)
+        now = self.clock.now_ns()
+        t_sync = self.bus.pair_sync(self._last_sync_ns, now)
         with self._lock:
             self._statusword = sw
             if self._position is not None and self._position_unwrapped is not None:
@@ -130,7 +137,9 @@ class Cia402Turntable(BusNodeDriver):
             else:
                 self._position_unwrapped = pos
             self._position = pos
-            self._pdo_time_ns = self.clock.now_ns()
+            if t_sync is not None:
+                self._last_sync_ns = t_sync
+            self._pdo_time_ns = now if t_sync is None else t_sync
 
     def _on_tpdo2(self, can_id: int, data: bytearray, timestamp: float) -> None:
         if len(data) >= 4:
@@ -222,6 +231,8 @@ class Cia402Turntable(BusNodeDriver):
         self._configure_pdo(0x1800, 0x1A00, 0x180 + n, [0x60410010, 0x60640020], 0x01)
         self._configure_pdo(0x1801, 0x1A01, 0x280 + n, [0x606C0020], 0x01)
         self.bus.start_sync(float(s["sync_period_s"]))
+        # SYNCs sent before the drive is operational are never answered
+        self._last_sync_ns = self.clock.now_ns()
         self.node.nmt.state = "OPERATIONAL"
         with self._lock:
             self.heartbeat_lost = False
@@ -366,9 +377,10 @@ class Cia402Turntable(BusNodeDriver):
 
     def status(self) -> TurntableStatus:
         """State, speed, position and faults from the latest TPDOs."""
-        with self._lock:
+        with self._lock:  # the time and the position of one TPDO
             sw = self._statusword
             t = self._pdo_time_ns or self.clock.now_ns()
+            position = self.position_rad()
             faults = tuple(self.faults)
             lost = self.heartbeat_lost
         if sw is None:
@@ -388,7 +400,6 @@ class Cia402Turntable(BusNodeDriver):
             ts = TurntableState.MOVING if moving else TurntableState.ENABLED
         else:
             ts = TurntableState.DISABLED
-        position = self.position_rad()
         if position is None:  # no TPDO yet (not enabled): ask by SDO
             with contextlib.suppress(CanopenError):
                 counts = self.sdo_read(ds.POSITION_ACTUAL, 0, "<i")

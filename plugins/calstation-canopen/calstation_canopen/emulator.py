@@ -194,8 +194,8 @@ class DriveEmulator(EmulatedNode):
             self._apply_motion()
 
     def on_read(self, index: int, subindex: int) -> int | None:
-        """Statusword, position and velocity are live."""
-        now = self.clock.now_ns()
+        """Statusword, position and velocity are live, latched at the SYNC being answered."""
+        now = self.sample_time_ns()
         if index == ds.STATUSWORD:
             return self.statusword()
         if index == ds.POSITION_ACTUAL:
