@@ -227,20 +227,21 @@ def test_the_run_page_paints_at_once_and_fetches_its_views(
     app = create_app(db, data_dir=tmp / "data", recipes_dir=tmp / "recipes")
     with served(app) as url:
         page.goto(url + "/static/plotly.min.js")
-        t0 = time.perf_counter()
-        page.goto(url + f"/runs/{run_id}", wait_until="commit")
+        fetched: list[str] = []
+        page.on("request", lambda r: fetched.append(r.url))
+        response = page.goto(url + f"/runs/{run_id}", wait_until="commit")
+        # at once: the verdict is in the page's own HTML, drawn before any script runs, and
+        # the reconstructed 3D views are not (their time is benchmarks/run_page.py's)
+        html = response.text()
+        assert 'id="verdict"' in html and "views.json" in html
+        assert len(html) < 400_000, len(html)
         page.wait_for_selector("#verdict")
-        first = time.perf_counter() - t0
-        paint = page.evaluate(
-            "performance.getEntriesByName('first-contentful-paint')[0]?.startTime ?? null")
-        print(f"/runs/{run_id}: verdict shown {first:.2f} s after the request "
-              f"(first contentful paint {paint} ms)")
-        assert first < 1.0
         assert page.locator("#exports a").count() == 4
         assert page.locator("nav.top a[href='/runs']").count() == 1
         assert "." not in page.inner_text("header dl").split("started")[1].split("\n")[1][-4:]
         page.wait_for_selector("body[data-report-ready]")
         assert page.locator(".view3d[data-drawn]").count() == 2
+        assert f"{url}/runs/{run_id}/views.json" in fetched  # fetched after the page
         shot(page, "run", full=True)
     with db.session() as s:
         run = s.get(Run, run_id)
