@@ -33,6 +33,7 @@ The turntable is always stopped when the run ends, however it ends: ``stop()``, 
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from contextlib import suppress
 from dataclasses import dataclass
@@ -68,6 +69,12 @@ SCAN_PLACEMENT: dict[str, str] = {
     "cube_scan": "place_qa_cube",
 }
 """The placement step each scan needs (re-confirmed when a run resumes at the scan)."""
+
+WITHOUT_ENGINE = frozenset({"preflight", *SCAN_PLACEMENT.values()})
+"""The steps that run beside the engine's import in the background (:func:`preload_engine`):
+every other step waits for it to end first. Two threads importing one module (scipy's, say)
+can take its import locks in opposite orders, and Python then fails one of the imports with a
+deadlock error: a loaded machine's run failed its spin scan so while the import still ran."""
 
 RETRY_FROM: dict[str, str] = {"fine_tune": "place_spin_target"}
 """Where a retry of a failed step starts: a fine-tuning refused for what its scan could see
@@ -125,6 +132,7 @@ class Station:
         self.observers = default_observers(db, ui) if observers is None else observers
         self.steps = run_steps(loaded.recipe)
         self.machine = self._build_machine()
+        self._preload: threading.Thread | None = None
 
     def _build_machine(self) -> Machine:
         """The states and transitions: ``begin`` at a step, ``advance`` through the run's steps
@@ -176,10 +184,11 @@ class Station:
         """Claim the run, open the drivers, enter the first step still to do."""
         first = self._first_step()
         persist.mark_running(self.db, self.run_id)
-        preload_engine()
         notify(self.ui, "run_started",
                partial(plugins.run_started, stored.brief(self.db, self.run_id)))
         self.ctx.drivers = open_drivers(self.ctx.loaded)
+        # after the drivers' own imports; the operator's placements overlap it
+        self._preload = preload_engine()
         self.trigger("begin", first)
 
     def _walk(self) -> _End:
@@ -234,6 +243,8 @@ class Station:
         A step whose outcome is a failed QA verdict (``outcome.failure``) keeps its recordings and
         results and fails like any step, so the operator may retry it.
         """
+        if step not in WITHOUT_ENGINE and self._preload is not None:
+            self._preload.join()  # no import of this thread's beside the preload's
         step_id, attempt = persist.begin_step(self.db, self.run_id, step)
         self.ctx.scans.take()
         self.ctx.retrying = retrying

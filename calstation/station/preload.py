@@ -22,9 +22,11 @@ def preload_engine() -> threading.Thread:
     import (~1.5 s together, Open3D ~0.8 s of it; it is imported once per process).
 
     Open3D first, in the caller's thread and before the engine's imports begin: its import
-    fails when another thread imports meanwhile, and the drivers the run opens next (the
-    simulator's) import it too (:func:`calstation.quiet.import_open3d`). A module that fails to
-    import is left to fail with a clear error in the step that needs it."""
+    fails when another thread imports meanwhile (:func:`calstation.quiet.import_open3d`). The
+    caller imports nothing else until the thread ends (the station's steps that compute join it
+    first: ``calstation.station.machine.WITHOUT_ENGINE``): two threads importing one module can
+    deadlock in Python's import locks. A module that fails to import is left to fail with a
+    clear error in the step that needs it."""
     from calstation.quiet import import_open3d
 
     with suppress(ImportError):

@@ -8,6 +8,7 @@ the optimiser (tests/system/test_e2e.py runs the real engine end to end).
 from __future__ import annotations
 
 import json
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,12 @@ from calstation.station.machine import next_in_order
 from calstation.station.runs import resume_run, start_run
 from calstation.station.steps import REGISTRY, STEPS
 from calstation.storage.db import Artifact, Calibration, Database, Run, Step, open_database
-from tests.support.station import ScriptedOperator, StationTestPlugin, toy_recipe
+from tests.support.station import (
+    ScriptedOperator,
+    StationTestPlugin,
+    UnattendedOperator,
+    toy_recipe,
+)
 
 calstation_sim = pytest.importorskip("calstation_sim")
 from calstation_sim import plugin as sim_plugin  # noqa: E402
@@ -492,3 +498,39 @@ def test_the_runs_end_is_stored_then_told_to_each_observer_in_turn(
     # only the observers given were told: no summary printed, no plugin hook
     assert ui.summaries == [] and ("run", "aborted") not in station_plugin.events
     assert station_plugin.motor_calls[-2:] == ["emergency_stop", "stop"]
+
+
+def test_no_step_that_computes_begins_while_the_engine_is_still_being_imported(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Two threads importing one module can deadlock in Python's import locks (a loaded
+    machine's run failed its spin scan on scipy.spatial so): the placements run beside the
+    engine's import in the background, the scans and the fitting after it."""
+    order: list[str] = []
+    scanning = threading.Event()
+
+    class Ui(UnattendedOperator):
+        def event(self, event: Any) -> None:
+            super().event(event)
+            if event.kind == "step_started":
+                order.append(event.data["step"])
+                if event.data["step"] == "static_scan":
+                    scanning.set()
+
+    def slow_preload() -> threading.Thread:
+        def load() -> None:
+            scanning.wait(timeout=2.0)  # a loaded machine: still importing when a scan could
+            order.append("preload done")
+
+        thread = threading.Thread(target=load, daemon=True)
+        thread.start()
+        return thread
+
+    monkeypatch.setattr("calstation.station.machine.preload_engine", slow_preload)
+    run_id, status = start_run(load_recipe(toy_recipe(tmp_path)), db, Ui(), operator="ann",
+                               data_dir=tmp_path / "data")
+    assert status == "passed", _steps(db, run_id)
+    done = order.index("preload done")
+    assert order[:done] == ["preflight", "place_static_target"], order
+    assert order[done + 1] == "static_scan", order
