@@ -10,6 +10,7 @@ is :mod:`calstation.station.stored`.
 
 from __future__ import annotations
 
+import math
 import os
 import socket
 from typing import TYPE_CHECKING, Any
@@ -164,9 +165,10 @@ def cube_row(
     """The ``cube_check`` row of a cube check ``c`` (as the cube scan's result holds it) made
     with calibration ``cal_id`` (None: the calibration stored with the same step)."""
 
-    def number(key: str) -> float:
+    def number(key: str) -> float | None:
+        # not measured: NULL (SQLite would store a NaN as NULL, PostgreSQL as NaN)
         v = c.get(key)
-        return float("nan") if not isinstance(v, int | float) else float(v)
+        return float(v) if isinstance(v, int | float) and math.isfinite(v) else None
 
     return CubeCheckRecord(
         run_id=run_id,

@@ -69,13 +69,13 @@ class CubeRecord(TypedDict):
     id: int
     calibration_id: int | None
     obb_edges: list[float]
-    obb_error: float
+    obb_error: float | None
     face_edges: list[float]
-    edge_error: float
-    flatness_rms: float
+    edge_error: float | None
+    flatness_rms: float | None
     flatness_excess: float | None
     range_noise: float | None
-    perpendicularity_deg: float
+    perpendicularity_deg: float | None
     twist_deg: float | None
     twist_sigma_deg: float | None
     units: dict[str, str]

@@ -534,3 +534,27 @@ def test_no_step_that_computes_begins_while_the_engine_is_still_being_imported(
     done = order.index("preload done")
     assert order[:done] == ["preflight", "place_static_target"], order
     assert order[done + 1] == "static_scan", order
+
+
+def test_a_cube_check_that_could_not_measure_the_perpendicularity_is_stored_as_not_measured(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A cube scan that saw no two adjacent side faces has no perpendicularity: the check's end
+    is stored with it NULL (the column refused it, and the run was interrupted), and the report
+    and the history say it was not measured."""
+    import math
+
+    from calstation.storage.report import run_summary
+
+    monkeypatch.setattr("calstation.engine.cube._perpendicularity",
+                        lambda faces, pts: (math.nan, math.nan))
+    run_id, status = start_run(load_recipe(toy_recipe(tmp_path)), db, UnattendedOperator(),
+                               operator="ann", data_dir=tmp_path / "data")
+    assert status == "passed", _steps(db, run_id)
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        assert run is not None
+        cube = run_summary(run)["cube_check"]
+    assert cube is not None and cube["perpendicularity_deg"] is None
+    assert cube["edge_error"] is not None and math.isfinite(cube["edge_error"])

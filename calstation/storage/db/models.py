@@ -279,7 +279,8 @@ class Calibration(Base):
 
 
 class CubeCheckRecord(Base):
-    """The QA cube check of a run (lengths in metres, perpendicularity in degrees)."""
+    """The QA cube check of a run (lengths in metres, perpendicularity in degrees; NULL: a
+    measure the check could not make, e.g. no two adjacent side faces seen)."""
 
     __tablename__ = "cube_check"
 
@@ -290,11 +291,11 @@ class CubeCheckRecord(Base):
         ForeignKey("calibration.id", ondelete="SET NULL")
     )
     obb_edges: Mapped[list[float]] = mapped_column(JSON)
-    obb_error: Mapped[float] = mapped_column(Float)
+    obb_error: Mapped[float | None] = mapped_column(Float)
     face_edges: Mapped[list[float]] = mapped_column(JSON)
-    edge_error: Mapped[float] = mapped_column(Float)
-    flatness_rms: Mapped[float] = mapped_column(Float)
-    perpendicularity_deg: Mapped[float] = mapped_column(Float)
+    edge_error: Mapped[float | None] = mapped_column(Float)
+    flatness_rms: Mapped[float | None] = mapped_column(Float)
+    perpendicularity_deg: Mapped[float | None] = mapped_column(Float)
     twist_deg: Mapped[float | None] = mapped_column(Float)
     """the ry correction the side faces ask for (degrees; NULL before it was measured)"""
     twist_sigma_deg: Mapped[float | None] = mapped_column(Float)
