@@ -30,6 +30,7 @@ import threading
 import time
 from collections.abc import Callable
 
+import can
 import canopen
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, datatypes
 
@@ -98,6 +99,33 @@ def add_pdo_objects(od: canopen.ObjectDictionary, node_id: int, rpdos: list[list
         od[0x1A00 + k][0].default = len(mapping)
 
 
+ANSWER_S = 0.0002
+"""How long after a SYNC an emulated device's answer is on the wire: a device answers within a
+fraction of a millisecond, whenever the host gets round to running its emulator."""
+
+
+class _StampedNetwork(canopen.Network):
+    """An emulated device's network: every frame carries its time on the wire, set by the
+    sender (a virtual bus keeps it: ``preserve_timestamps``), and a SYNC's answers the SYNC's
+    own time plus :data:`ANSWER_S` (``answering``), as a device's would."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.answering = threading.local()
+
+    def send_message(self, can_id: int, data: bytes, remote: bool = False) -> None:
+        """Send a frame stamped with its time on the wire."""
+        if not self.bus:
+            raise RuntimeError("Not connected to CAN bus")
+        stamp = getattr(self.answering, "t", None)
+        msg = can.Message(is_extended_id=can_id > 0x7FF, arbitration_id=can_id, data=data,
+                          is_remote_frame=remote,
+                          timestamp=time.time() if stamp is None else stamp)
+        with self.send_lock:
+            self.bus.send(msg)
+        self.check()
+
+
 class EmulatedNode:
     """A ``canopen.LocalNode`` on its own network, with working PDOs and heartbeat consumer.
 
@@ -116,8 +144,10 @@ class EmulatedNode:
         add_record(od, "consumer heartbeat time", CONSUMER_HEARTBEAT, [("consumer 1", U32, 0)],
                    array=True)
         self.build_od(od)
-        self.network = canopen.Network()
-        self.network.connect(interface=interface, channel=channel)
+        self.network = _StampedNetwork()
+        # a virtual bus stamps a frame when it is sent, unless told to keep the sender's stamp
+        self.network.connect(interface=interface, channel=channel,
+                             **({"preserve_timestamps": True} if interface == "virtual" else {}))
         self.node = canopen.LocalNode(node_id, od)
         self.node.add_write_callback(self._write_cb)
         self.node.add_read_callback(self._read_cb)
@@ -280,6 +310,7 @@ class EmulatedNode:
         # the frame's age on the wall clock, carried over to this node's clock
         age_ns = max(0.0, time.time() - timestamp) * 1e9 if timestamp else 0.0
         self._sample_ns.t = self.clock.now_ns() - int(age_ns)
+        self.network.answering.t = timestamp + ANSWER_S if timestamp else None
         try:
             for k in self._tpdos():
                 kind = self.value(0x1800 + k, 2)
@@ -287,6 +318,7 @@ class EmulatedNode:
                     self.send_tpdo(k)
         finally:
             self._sample_ns.t = None
+            self.network.answering.t = None
 
     def _on_master_heartbeat(self, can_id: int, data: bytearray, timestamp: float) -> None:
         with self._consumer_lock:

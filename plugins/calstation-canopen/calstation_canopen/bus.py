@@ -14,6 +14,7 @@ import contextlib
 import logging
 import struct
 import threading
+import time
 from collections import deque
 from collections.abc import Iterator, Mapping
 from typing import Any, Protocol
@@ -41,6 +42,10 @@ class CanopenTimeout(CanopenError, DeviceTimeout):
 
 MAX_TPDO_DELAY_S = 0.05
 """A synchronous TPDO answering later than this (and than two SYNC periods) counts as lost."""
+
+MAX_FRAME_AGE_S = 10.0
+"""A received frame's timestamp older than this (or in the future) is not on the wall clock:
+the interface's timestamps are not used."""
 
 
 class _Periodic(Protocol):
@@ -124,15 +129,38 @@ class SharedBus:
         if thread is not None:
             thread.join(timeout=2)
 
-    def pair_sync(self, after_ns: int, now_ns: int) -> int | None:
-        """The host time of the SYNC a synchronous TPDO received at ``now_ns`` answers: the oldest
-        SYNC sent after ``after_ns`` (the previous pairing) — devices answer SYNCs in order —
-        unless it is older than :data:`MAX_TPDO_DELAY_S` or two periods, whichever is longer
-        (its TPDO was lost): then the newest. None if no SYNC was sent after ``after_ns``.
-        The floor keeps pairing in order on a busy host, where an answer can lag by several
-        SYNC periods without being lost."""
+    @staticmethod
+    def wire_ns(timestamp: float, now_ns: int) -> int | None:
+        """A frame's time on the wire, in the host clock of ``now_ns`` (when it is handled):
+        python-can's ``timestamp`` (seconds since the epoch: the kernel's time of reception on
+        socketcan, the sender's on a virtual bus) carried over by the frame's age. None when
+        the interface gives no timestamp on the wall clock (:data:`MAX_FRAME_AGE_S`)."""
+        if not timestamp or timestamp <= 0:
+            return None
+        age = time.time() - timestamp
+        if not -0.001 <= age <= MAX_FRAME_AGE_S:
+            return None
+        return now_ns - round(max(age, 0.0) * 1e9)
+
+    def pair_sync(self, after_ns: int, now_ns: int, wire_ns: int | None = None) -> int | None:
+        """The host time of the SYNC a synchronous TPDO handled at ``now_ns`` answers.
+
+        With the frame's time on the wire (``wire_ns``, :meth:`wire_ns`): the last SYNC sent
+        before it, when that is after ``after_ns`` (the previous pairing). A device answers a
+        SYNC within a fraction of its period, so this holds however late the host handles the
+        frame, and a lost answer shifts nothing after it.
+
+        Else, by order: the oldest SYNC sent after ``after_ns`` — devices answer SYNCs in
+        order — unless it is older than :data:`MAX_TPDO_DELAY_S` or two periods, whichever is
+        longer (its TPDO was lost): then the newest. None if no SYNC was sent after
+        ``after_ns``. The floor keeps pairing in order on a busy host, where an answer can lag
+        by several SYNC periods without being lost."""
         with self._sync_lock:
             times = list(self._sync_times)
+        if wire_ns is not None:
+            i = bisect.bisect_right(times, wire_ns)
+            if i and times[i - 1] > after_ns:
+                return times[i - 1]
         pending = times[bisect.bisect_right(times, after_ns) : bisect.bisect_right(times, now_ns)]
         if not pending:
             return None

@@ -128,7 +128,7 @@ class Cia402Turntable(BusNodeDriver):
         # the drive latched its position at the SYNC this TPDO answers: stamped with that SYNC's
         # send time, not this callback's (a busy host runs it milliseconds later)
         now = self.clock.now_ns()
-        t_sync = self.bus.pair_sync(self._last_sync_ns, now)
+        t_sync = self.bus.pair_sync(self._last_sync_ns, now, self.bus.wire_ns(timestamp, now))
         with self._lock:
             self._statusword = sw
             if self._position is not None and self._position_unwrapped is not None:

@@ -6,8 +6,10 @@ transmission type 0x01 (sampled at every SYNC, ``mode: sync``) or 0xFE with cycl
 (``mode: cyclic``); NMT start. Each TPDO becomes an :class:`~calstation.drivers.EncoderSample`:
 
 - ``mode: sync``: stamped with the host time at which the driver sent the SYNC that sampled it
-  (the encoder latches its position at the SYNC);
-- ``mode: cyclic``: stamped with the host time of reception.
+  (the encoder latches its position at the SYNC; paired by the frame's time on the wire when
+  the interface gives it, :meth:`~calstation_canopen.bus.SharedBus.pair_sync`);
+- ``mode: cyclic``: stamped with the host time of reception (on the wire, when the interface
+  gives it).
 
 ``latency_s`` is subtracted from every stamp. The raw position is unwrapped into a signed count
 (steps of more than half the measuring range are taken as a wrap).
@@ -130,9 +132,10 @@ class Cia406Encoder(BusNodeDriver):
             return
         now = self.clock.now_ns()
         raw = struct.unpack_from("<I", data)[0]
-        t = now
+        wire = self.bus.wire_ns(timestamp, now)
+        t = now if wire is None else wire
         if self.settings["mode"] == "sync":
-            t_sync = self.bus.pair_sync(self._last_sync_ns, now)
+            t_sync = self.bus.pair_sync(self._last_sync_ns, now, wire)
             if t_sync is not None:
                 t = self._last_sync_ns = t_sync
         t -= round(float(self.settings["latency_s"]) * 1e9)

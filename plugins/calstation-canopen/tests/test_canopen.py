@@ -356,3 +356,37 @@ def test_drive_emulator_in_another_process_over_udp_multicast() -> None:
             proc.wait(timeout=5)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+def test_a_tpdo_is_paired_with_the_sync_before_it_on_the_wire_however_late_it_is_handled(
+    channel: str,
+) -> None:
+    """A busy host handles a TPDO hundreds of milliseconds late, or loses the answer to one
+    SYNC: the frame's time on the wire still names the SYNC it answers (the order and the
+    lateness do not)."""
+    from calstation_canopen.bus import SharedBus
+
+    from calstation.clock import SimClock
+
+    clock = SimClock(0)
+    bus = SharedBus("virtual", channel, clock=clock)
+    try:
+        syncs = []
+        for t in (0, 2_000_000, 4_000_000, 6_000_000):
+            clock.advance_to(t)
+            syncs.append(bus.send_sync())
+        late = 300_000_000
+        # the answer to the 2 ms SYNC, handled 298 ms later
+        assert bus.pair_sync(syncs[0], late, 2_200_000) == syncs[1]
+        # the answer to the 2 ms SYNC was lost: the next one answers the 4 ms SYNC
+        assert bus.pair_sync(syncs[0], late, 4_200_000) == syncs[2]
+        # without the wire's time, in order when on time
+        assert bus.pair_sync(syncs[0], 3_000_000) == syncs[1]
+        # a frame's time on the wire, from python-can's wall-clock stamp
+        now = 10_000_000_000
+        assert bus.wire_ns(time.time() - 0.25, now) == pytest.approx(now - 250_000_000,
+                                                                     abs=50_000_000)
+        assert bus.wire_ns(0.0, now) is None  # an interface without timestamps
+        assert bus.wire_ns(time.time() - 3600.0, now) is None  # not on the wall clock
+    finally:
+        bus.close()
