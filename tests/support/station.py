@@ -135,6 +135,10 @@ class ToyStrategy:
                                  diagnostics={"note": "toy"})
 
 
+def _paced(settings: Any) -> dict[str, Any]:
+    return {"real_time": True} if settings.get("real_time") else {}
+
+
 class StationTestPlugin:
     """Spy drivers around the simulator, the toy strategy, an observer."""
 
@@ -147,12 +151,13 @@ class StationTestPlugin:
 
     @hookimpl
     def calstation_register_drivers(self, register: Any) -> None:
-        register("lidar", "spy", lambda s, c: sim_drivers.lidar_factory({}, c))
+        # ``real_time: true`` in a spy driver's settings runs the simulator on the host's clock
+        register("lidar", "spy", lambda s, c: sim_drivers.lidar_factory(_paced(s), c))
         register("turntable", "spy", lambda s, c: SpyTurntable(
-            sim_drivers.turntable_factory({}, c), self.motor_calls))
+            sim_drivers.turntable_factory(_paced(s), c), self.motor_calls))
         register("encoder", "spy", lambda s, c: (
-            ReversedEncoder(sim_drivers.encoder_factory({}, c)) if s.get("reversed")
-            else sim_drivers.encoder_factory({}, c)))
+            ReversedEncoder(sim_drivers.encoder_factory(_paced(s), c)) if s.get("reversed")
+            else sim_drivers.encoder_factory(_paced(s), c)))
 
     @hookimpl
     def calstation_register_cost_strategies(self, register: Any) -> None:
