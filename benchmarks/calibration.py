@@ -26,8 +26,8 @@ the median and p95 of the fine calibration ready after the spin scan, of the res
 the last (cube) scan, and of the cube check's time. ``--scaling`` adds spin scans of about
 0.5, 1, 2 and 4 M points (line rate 159–635 Hz, and 15.75 rpm for 4 M). ``--compare REV`` measures
 another git revision side by side (a temporary worktree, the same recordings, runs alternated
-A, B, A, B) and prints both with their ratio. The load average is printed at the start and end:
-figures taken on a busy machine are pessimistic.
+A, B, A, B) and prints both with their ratio, and whether their estimates are identical. The
+load average is printed at the start and end: figures taken on a busy machine are pessimistic.
 """
 
 from __future__ import annotations
@@ -394,6 +394,27 @@ def compare(args: argparse.Namespace, out: Path) -> None:
     for name in a:
         if name in b and a[name] > 0:
             print(f"{name:<26} {a[name]:9.3f} {b[name]:9.3f}  {b[name] / a[name]:6.2f}")
+    _same_estimates(mine, theirs, rev)
+
+
+def _same_estimates(mine: list[dict[str, Any]], theirs: list[dict[str, Any]], rev: str) -> None:
+    """Whether the two revisions' estimates are the same, to the last bit of every accuracy
+    figure (each H's axis offset, direction and ry against the truth) and of the cube's edge
+    error, round by round."""
+    print(f"\nestimates, this revision against {rev} (every round, every stage):")
+    for name in mine[0]["accuracy"]:
+        diffs = [max(abs(m["accuracy"][name][k] - t["accuracy"][name][k]) for k in
+                     ("offset_mm", "direction_deg", "ry_deg"))
+                 for m, t in zip(mine, theirs, strict=True) if name in t["accuracy"]]
+        if not diffs:
+            print(f"  {name:<22} not measured by {rev}")
+            continue
+        print(f"  {name:<22} " + ("identical" if max(diffs) == 0 else
+                                  f"differ: up to {max(diffs):.3g} (mm or °)"))
+    edge = max(abs(m["edge_error_mm"] - t["edge_error_mm"])
+               for m, t in zip(mine, theirs, strict=True))
+    print(f"  {'cube edge error':<22} " + ("identical" if edge == 0 else
+                                          f"differs: up to {edge:.3g} mm"))
 
 
 def scaling(args: argparse.Namespace, base: Path) -> None:
