@@ -26,7 +26,8 @@ the median and p95 of the fine calibration ready after the spin scan, of the res
 the last (cube) scan, and of the cube check's time. ``--scaling`` adds spin scans of about
 0.5, 1, 2 and 4 M points (line rate 159–635 Hz, and 15.75 rpm for 4 M). ``--compare REV`` measures
 another git revision side by side (a temporary worktree, the same recordings, runs alternated
-A, B, A, B) and prints both with their ratio, and whether their estimates are identical. The
+A, B, A, B) and prints both with their ratio, and whether their estimates are identical
+(``--their-recipe``: the recipe REV reads, when its schema lacks settings of this revision's). The
 load average is printed at the start and end: figures taken on a busy machine are pessimistic.
 """
 
@@ -294,9 +295,10 @@ def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[st
         env["PYTHONPATH"] = os.pathsep.join([str(rev_dir), *plugins, env.get("PYTHONPATH", "")])
         script = rev_dir / "benchmarks" / "calibration.py"
     found: dict[str, Any] = {}
+    recipe = args.recipe if rev_dir is None else (args.their_recipe or args.recipe)
     for mode in ("--json", "--json-station"):
         cmd = [sys.executable, str(script), mode, "--out", str(out),
-               "--recipe", str(args.recipe)] + ([] if args.shape else ["--no-shape"])
+               "--recipe", str(recipe)] + ([] if args.shape else ["--no-shape"])
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=rev_dir or REPO)
         if proc.returncode != 0:
             raise SystemExit(f"measurement failed ({rev_dir or 'this revision'}):\n"
@@ -321,8 +323,9 @@ def _large_cube(env: dict[str, str], rev_dir: Path | None, args: argparse.Namesp
     its own, with the engine of this revision or of the one in ``rev_dir`` (this script's
     measurement: the check's interface is the same)."""
     large = out.parent / f"{out.name}-large-cube"
+    recipe = args.recipe if rev_dir is None else (args.their_recipe or args.recipe)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--json-large", "--out", str(large),
-           "--recipe", str(args.recipe)]
+           "--recipe", str(recipe)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=rev_dir or REPO)
     if proc.returncode != 0:
         raise SystemExit(f"large-cube measurement failed ({rev_dir or 'this revision'}):\n"
@@ -457,6 +460,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="folder for (or with) the recordings")
     ap.add_argument("--scaling", action="store_true", help="also 0.5, 1, 2 and 4 M points")
     ap.add_argument("--compare", metavar="REV", help="measure this git revision side by side")
+    ap.add_argument("--their-recipe", type=Path, default=None, metavar="R",
+                    help="with --compare: the recipe REV reads, where its schema differs "
+                         "(the same scene and settings in REV's words); default --recipe")
     ap.add_argument("--no-shape", dest="shape", action="store_false", help="skip shape")
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--json-station", action="store_true", help=argparse.SUPPRESS)
@@ -467,6 +473,8 @@ def main() -> None:
     # absolute: the measurements of another revision run in its own worktree
     out = (args.out or Path(tempfile.mkdtemp(prefix="calstation-bench-"))).resolve()
     args.recipe = args.recipe.resolve()
+    if args.their_recipe is not None:
+        args.their_recipe = args.their_recipe.resolve()
     if args.json:  # one measurement for a parent process
         print(json.dumps(measure(args.recipe, out, args.shape)))
         return
