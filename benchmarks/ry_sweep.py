@@ -147,6 +147,7 @@ def _station_row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dic
     from calstation.engine.accuracy import true_distortion
     from calstation.engine.frames import Extrinsics
     from calstation.engine.metrics import axis_errors
+    from calstation.engine.rangemodel import RangeModel
     from calstation.recordings.reader import read_recording
     from calstation.storage.db import Artifact, Calibration, Step
 
@@ -155,13 +156,18 @@ def _station_row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dic
         steps = {st.name: st for st in s.query(Step).filter_by(run_id=run_id).order_by(Step.id)}
         cals = s.query(Calibration).filter_by(run_id=run_id).order_by(Calibration.id).all()
         spin = s.query(Artifact).filter_by(run_id=run_id, kind="spin").first()
-        truth = read_recording(spin.path).truth if spin is not None else None
+        recording = read_recording(spin.path) if spin is not None else None
+        truth = recording.truth if recording is not None else None
+        meta = recording.metadata.get("truth", {}) if recording is not None else {}
         final = next((c for c in cals if c.accepted), None) or next(
             (c for c in reversed(cals) if c.stage == "fine"), None)
         estimate = None
         if final is not None:
             estimate = {"H": final.params(), "sigma": final.sigmas(),
-                        "predicted_error_m": final.predicted_error_m, "strategy": final.strategy}
+                        "predicted_error_m": final.predicted_error_m, "strategy": final.strategy,
+                        "range_offset": final.range_offset,
+                        "sigma_range_offset": final.sigma_range_offset,
+                        "range_scale": final.range_scale}
         elif "fine_tune" in steps and (steps["fine_tune"].result or {}).get("refused"):
             refused = steps["fine_tune"].result["refused"]
             estimate = {"H": refused["H"], "sigma": refused["sigma"],
@@ -183,9 +189,15 @@ def _station_row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dic
         accuracy = recipe.calibration.accuracy
         row["estimate"] = estimate
         row["err"] = axis_errors(H, truth)
+        # the lidar as simulated, and as the estimate reconstructs with it (its range model)
+        truth_range = RangeModel(float(meta.get("range_offset", 0.0)),
+                                 float(meta.get("range_scale", 0.0)))
+        row["true_range_offset"] = truth_range.offset
         row["true_distortion_m"] = true_distortion(
             H, truth, radius=accuracy.work_radius(recipe.fixtures.platter),
-            height=accuracy.height)["max_m"]
+            height=accuracy.height, estimate_range=RangeModel(
+                estimate.get("range_offset") or 0.0, estimate.get("range_scale") or 0.0),
+            truth_range=truth_range)["max_m"]
     return row
 
 
@@ -301,10 +313,16 @@ def station_table(rows: list[dict[str, Any]]) -> None:
                   f"{np.percentile(ready, 95) if ready else math.nan:.2f} s, max "
                   f"{max(ready) if ready else math.nan:.2f} s")
         cover = []
-        for p in PARAMS:
+        for p in ("tx", "ty", "tz", "ry", "rz"):  # ty: estimated with a range model only
             flags = [_covered(r["estimate"] | {"err": r["err"]}, p) for r in with_est]
             flags = [f for f in flags if f is not None]
-            cover.append(f"{p} {sum(flags)}/{len(flags)}")
+            if flags:
+                cover.append(f"{p} {sum(flags)}/{len(flags)}")
+        offsets_b = [r for r in with_est if r["estimate"].get("sigma_range_offset")]
+        if offsets_b:  # the lidar's range offset against the simulated one
+            held = sum(abs(r["estimate"]["range_offset"] - r.get("true_range_offset", 0.0))
+                       <= 3 * r["estimate"]["sigma_range_offset"] for r in offsets_b)
+            cover.append(f"range offset {held}/{len(offsets_b)}")
         predicted = [(r["true_distortion_m"], r["estimate"]["predicted_error_m"])
                      for r in with_est if r["estimate"].get("predicted_error_m") is not None]
         print(f"  |error| ≤ 3σ (accepted and refused): {', '.join(cover)}; predicted error ≥ "
