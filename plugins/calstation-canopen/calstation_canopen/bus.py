@@ -43,6 +43,9 @@ class CanopenTimeout(CanopenError, DeviceTimeout):
 MAX_TPDO_DELAY_S = 0.05
 """A synchronous TPDO answering later than this (and than two SYNC periods) counts as lost."""
 
+WALL_CLOCK_STAMPS = frozenset({"socketcan", "virtual"})
+"""The python-can interfaces whose frame timestamps are the host's wall clock."""
+
 MAX_FRAME_AGE_S = 10.0
 """A received frame's timestamp older than this (or in the future) is not on the wall clock:
 the interface's timestamps are not used."""
@@ -129,13 +132,14 @@ class SharedBus:
         if thread is not None:
             thread.join(timeout=2)
 
-    @staticmethod
-    def wire_ns(timestamp: float, now_ns: int) -> int | None:
+    def wire_ns(self, timestamp: float, now_ns: int) -> int | None:
         """A frame's time on the wire, in the host clock of ``now_ns`` (when it is handled):
         python-can's ``timestamp`` (seconds since the epoch: the kernel's time of reception on
-        socketcan, the sender's on a virtual bus) carried over by the frame's age. None when
-        the interface gives no timestamp on the wall clock (:data:`MAX_FRAME_AGE_S`)."""
-        if not timestamp or timestamp <= 0:
+        socketcan, the sender's on a virtual bus) carried over by the frame's age. None on
+        other interfaces (their stamps come from the adapter's own clock, mapped to the host's
+        with an offset of their own), and when the stamp is not on the wall clock
+        (:data:`MAX_FRAME_AGE_S`)."""
+        if self.interface not in WALL_CLOCK_STAMPS or not timestamp or timestamp <= 0:
             return None
         age = time.time() - timestamp
         if not -0.001 <= age <= MAX_FRAME_AGE_S:

@@ -388,5 +388,7 @@ def test_a_tpdo_is_paired_with_the_sync_before_it_on_the_wire_however_late_it_is
                                                                      abs=50_000_000)
         assert bus.wire_ns(0.0, now) is None  # an interface without timestamps
         assert bus.wire_ns(time.time() - 3600.0, now) is None  # not on the wall clock
+        bus.interface = "kvaser"  # an adapter's stamps, on a clock of its own
+        assert bus.wire_ns(time.time() - 0.25, now) is None
     finally:
         bus.close()
