@@ -285,6 +285,12 @@ def _accuracy(m: dict[str, Any]) -> None:
               f"{m['large_cube']['edge_error_mm']:.3f} mm, passed={m['large_cube']['passed']}")
 
 
+def _recipe_of(args: argparse.Namespace, rev_dir: Path | None) -> Path:
+    """The recipe a measurement of this revision (``rev_dir`` None) or of the compared one
+    reads: ``--their-recipe`` for the compared one when given, else ``--recipe``."""
+    return Path(args.recipe if rev_dir is None else (args.their_recipe or args.recipe))
+
+
 def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[str, Any]:
     """One measurement in a fresh process, of this revision or of the one in ``rev_dir``."""
     env = dict(ENVIRONMENT)
@@ -295,7 +301,7 @@ def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[st
         env["PYTHONPATH"] = os.pathsep.join([str(rev_dir), *plugins, env.get("PYTHONPATH", "")])
         script = rev_dir / "benchmarks" / "calibration.py"
     found: dict[str, Any] = {}
-    recipe = args.recipe if rev_dir is None else (args.their_recipe or args.recipe)
+    recipe = _recipe_of(args, rev_dir)
     for mode in ("--json", "--json-station"):
         cmd = [sys.executable, str(script), mode, "--out", str(out),
                "--recipe", str(recipe)] + ([] if args.shape else ["--no-shape"])
@@ -323,7 +329,7 @@ def _large_cube(env: dict[str, str], rev_dir: Path | None, args: argparse.Namesp
     its own, with the engine of this revision or of the one in ``rev_dir`` (this script's
     measurement: the check's interface is the same)."""
     large = out.parent / f"{out.name}-large-cube"
-    recipe = args.recipe if rev_dir is None else (args.their_recipe or args.recipe)
+    recipe = _recipe_of(args, rev_dir)
     cmd = [sys.executable, str(Path(__file__).resolve()), "--json-large", "--out", str(large),
            "--recipe", str(recipe)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=rev_dir or REPO)

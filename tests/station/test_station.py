@@ -541,8 +541,8 @@ def test_a_cube_check_that_could_not_measure_the_perpendicularity_is_stored_as_n
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A cube scan that saw no two adjacent side faces has no perpendicularity: the check's end
-    is stored with it NULL (the column refused it, and the run was interrupted), and the report
-    and the history say it was not measured."""
+    is stored with it NULL (the column refused it, and the run was interrupted), and the run's
+    summary gives it as None beside the measures that were made."""
     import math
 
     from calstation.storage.report import run_summary
