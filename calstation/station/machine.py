@@ -57,7 +57,7 @@ from calstation.station.observers import (
 )
 from calstation.station.operator import Operator, publish
 from calstation.station.outcome import StepOutcome, plain
-from calstation.station.preload import preload_engine
+from calstation.station.preload import import_open3d_first, preload_engine
 from calstation.station.steps import REGISTRY, STEPS, run_steps
 from calstation.storage.db import Database, Run, RunStatus, StepStatus
 
@@ -186,6 +186,8 @@ class Station:
         persist.mark_running(self.db, self.run_id)
         notify(self.ui, "run_started",
                partial(plugins.run_started, stored.brief(self.db, self.run_id)))
+        # Open3D first, one thread at a time: a driver's module may import it
+        import_open3d_first()
         self.ctx.drivers = open_drivers(self.ctx.loaded)
         # after the drivers' own imports; the operator's placements overlap it
         self._preload = preload_engine()

@@ -44,4 +44,4 @@ def test_web_stations_starting_runs_together_under_load_all_reach_their_first_pr
     finally:
         burner.kill()
         burner.wait()
-    assert not failures, failures
+    assert not failures, json.dumps(failures, indent=1)  # each run's errors, whole
