@@ -136,7 +136,9 @@ def test_each_half_turn_carries_its_returns_own_platter_angle(sim_run) -> None: 
     scan = from_recording(rec)
     start6 = rec.truth.with_(rx=0.0).as_vector()
     radius = load_recipe("recipes/sim-periodicity.yaml").recipe.fixtures.platter.radius
-    halves, halves_all, _ = _split(scan, _whole_revolutions(scan), start6, radius)
+    halves, gathered, _ = _split(scan, _whole_revolutions(scan), start6, radius)
+    # the half-turns of every return, as the last stage gathers them
+    halves_all = [g.subset(None, np.random.default_rng(0)) for g in gathered]
     rows = np.ascontiguousarray(scan.p_L).view(np.dtype((np.void, 24))).ravel()
     order = np.argsort(rows)
     for pair in (halves, halves_all):
@@ -147,3 +149,55 @@ def test_each_half_turn_carries_its_returns_own_platter_angle(sim_run) -> None: 
             assert np.array_equal(half.phi, np.mod(scan.phi[at], 2 * math.pi))
             lo, hi = k * math.pi, (k + 1) * math.pi
             assert np.all((half.phi >= lo) & (half.phi < hi))
+
+
+def test_with_the_platters_level_free_its_returns_are_found_at_its_level() -> None:
+    """With the range model the platter's level is free (ty held): an outer iteration that moves
+    H along the axis moves the platter's level with it, and the samples follow the level. A
+    30° pitch run lost every platter return to a band held around x_P = 0."""
+    from calstation.engine.periodicity.cells import _rotation
+    from calstation.engine.periodicity.problem import _platter_samples
+
+    rng = np.random.default_rng(3)
+    x6 = np.array([0.01, 1.25, -0.015, 0.0, 0.0, -0.52, 0.0, 0.0, 0.0])
+    n = 2000
+    radius = 0.29
+    level = -0.018  # where this H puts the platter top (m)
+    r = radius * np.sqrt(rng.uniform(0.1, 1.0, n))
+    a = rng.uniform(0.0, 2 * np.pi, n)
+    top = np.column_stack([level + rng.normal(0.0, 0.001, n), r * np.cos(a), r * np.sin(a)])
+    # fewer static returns of something else over the platter, 30 mm above it, and more of the
+    # floor, 0.8 m below the platter
+    other = top[:300] + np.array([0.03, 0.0, 0.0])
+    floor = np.vstack([top, top]) - np.array([0.8, 0.0, 0.0])
+    q = np.vstack([top, other, floor])
+    p_static = q @ _rotation(x6).T + x6[:3]  # axis frame → lidar
+
+    held = _platter_samples(p_static, x6, 0.01, radius)
+    free = _platter_samples(p_static, x6, 0.01, radius, level_free=True)
+
+    assert held.shape[0] < 20  # no return within 10 mm of x_P = 0
+    assert free.shape[0] == n  # every platter return, none of the others
+    np.testing.assert_allclose(np.sort(free, axis=0), np.sort(p_static[:n], axis=0))
+
+
+def test_the_returns_near_the_platter_are_found_alike_a_chunk_at_a_time(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The region around the platter is tested a chunk of returns at a time (bounded memory):
+    the same returns as all at once, whatever the chunk."""
+    from calstation.engine.periodicity import cells
+
+    rng = np.random.default_rng(5)
+    n = 5000
+    p_L = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(0.2, 2.0, n), np.zeros(n)])
+    keep = rng.random(n) < 0.8
+    start6 = np.array([0.0, 1.2, 0.0, 0.0, 0.0, -0.5])
+    whole = cells._near_platter(p_L, keep, start6, 0.5)
+    assert 100 < whole.size < int(keep.sum())  # some returns in, some out
+    for chunk in (1, 7, 4096):
+        monkeypatch.setattr(cells, "REGION_CHUNK", chunk)
+        np.testing.assert_array_equal(cells._near_platter(p_L, keep, start6, 0.5), whole)
+    # and what it finds is what it says: within the radius, from 0.2 m below to 0.6 m above
+    R = cells._rotation(start6)
+    q = (p_L - start6[:3]) @ R
+    inside = keep & (q[:, 0] > -0.2) & (q[:, 0] < 0.6) & (np.hypot(q[:, 1], q[:, 2]) < 0.5)
+    np.testing.assert_array_equal(np.flatnonzero(inside), whole)

@@ -127,11 +127,31 @@ class _Half:
         return _Half(*sensor_cells(self.p_L, self.phi, size, polar=polar))
 
 
-def _subset(half: _Half, n: int | None, rng: np.random.Generator) -> _Half:
+def _subset(half: _Half | _Gathered, n: int | None, rng: np.random.Generator) -> _Half:
     """A random subset of at most ``n`` of the half-turn's returns, in their order (None: all)."""
+    if isinstance(half, _Gathered):
+        return half.subset(n, rng)
     if n is None or half.p_L.shape[0] <= n:
         return half
     return half.take(np.sort(rng.choice(half.p_L.shape[0], n, replace=False)))
+
+
+@dataclass(frozen=True)
+class _Gathered:
+    """One half-turn's returns as indices into the scan, gathered into a :class:`_Half` when a
+    stage needs them: the half-turns of every return (the last stage's) held as copies through
+    the whole fine-tuning were 120 MB of the station's peak memory on a 2-turn scan."""
+
+    scan: SpinScan
+    idx: NDArray[np.int64]
+
+    def subset(self, n: int | None, rng: np.random.Generator) -> _Half:
+        """:func:`_subset` of the gathered half (the same returns, drawn alike)."""
+        j = self.idx
+        if n is not None and j.shape[0] > n:
+            j = j[np.sort(rng.choice(j.shape[0], n, replace=False))]
+        scan = self.scan
+        return _Half(scan.p_L[j], np.mod(scan.phi[j], 2 * math.pi), scan.rng[j], scan.az[j])
 
 
 def static_samples(static: NDArray[np.int64], n: int = 150_000, seed: int = 0) -> NDArray[np.int64]:
@@ -165,23 +185,41 @@ def _whole_revolutions(scan: SpinScan) -> NDArray[np.bool_]:
     return out
 
 
+REGION_CHUNK = 1 << 20
+"""Returns tested at once by :func:`_near_platter` (its temporaries are a few times this)."""
+
+
+def _near_platter(
+    p_L: FloatArray, keep: NDArray[np.bool_], start6: FloatArray, radius: float
+) -> NDArray[np.int64]:
+    """Indices of the kept returns from 0.2 m below to 0.6 m above the platter and within
+    ``radius`` of the axis under ``start6``, tested a chunk at a time: the whole scan's
+    coordinates at once were 170 MB of temporaries, the station's peak memory."""
+    R = _rotation(start6)
+    t_P = start6[:3] @ R
+    found = []
+    for i0 in range(0, p_L.shape[0], REGION_CHUNK):
+        xy = p_L[i0:i0 + REGION_CHUNK, :2]  # the returns lie in the scan plane (z_L = 0)
+        # x_P first, then the radius on what is left
+        x_P = xy @ R[:2, 0] - t_P[0]
+        j = np.flatnonzero(keep[i0:i0 + REGION_CHUNK] & (x_P > -0.2) & (x_P < 0.6))
+        yz = xy[j] @ R[:2, 1:] - t_P[1:]
+        found.append(i0 + j[np.hypot(yz[:, 0], yz[:, 1]) < radius])
+    return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
+
+
 def _split(
     scan: SpinScan, keep: NDArray[np.bool_], start6: FloatArray, platter_radius: float
-) -> tuple[list[_Half], list[_Half], FloatArray]:
-    """The two half-turns of the moving returns, the two half-turns of all returns, and a
-    subset of the static returns, within a generous region around the platter under the start.
+) -> tuple[list[_Half], list[_Gathered], FloatArray]:
+    """The two half-turns of the moving returns, the two half-turns of all returns (gathered
+    when the last stage needs them), and a subset of the static returns, within a generous
+    region around the platter under the start.
 
     The last stage keeps the static returns too and drops the platter by the height of its
     cells: the static test decides per noisy return, and near the target's foot it would keep
     the returns whose noise moved them off the platter's range (a selection on the noise).
     """
-    R = _rotation(start6)
-    t_P = start6[:3] @ R
-    # x_P first, then the radius on what is left; the returns lie in the scan plane (z_L = 0)
-    x_P = scan.p_L[:, :2] @ R[:2, 0] - t_P[0]
-    idx = np.flatnonzero(keep & (x_P > -0.2) & (x_P < 0.6))
-    yz = scan.p_L[idx, :2] @ R[:2, 1:] - t_P[1:]
-    idx = idx[np.hypot(yz[:, 0], yz[:, 1]) < platter_radius + 0.25]
+    idx = _near_platter(scan.p_L, keep, start6, platter_radius + 0.25)
     phi_w = np.mod(scan.phi[idx], 2 * math.pi)
     first = phi_w < math.pi
     moving = ~scan.static[idx]
@@ -190,7 +228,7 @@ def _split(
         j = idx[sel]
         return _Half(scan.p_L[j], phi_w[sel], scan.rng[j], scan.az[j])
 
-    halves_all = [half(first), half(~first)]
+    halves_all = [_Gathered(scan, idx[first]), _Gathered(scan, idx[~first])]
     halves = [half(first & moving), half(~first & moving)]
     static_idx = np.flatnonzero(keep & scan.static)
     p_static = scan.p_L[static_samples(static_idx)]

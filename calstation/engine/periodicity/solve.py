@@ -14,6 +14,7 @@ from scipy.optimize import least_squares
 
 from calstation.engine.frames import Extrinsics, FloatArray
 from calstation.engine.periodicity.cells import (
+    _Gathered,
     _Half,
     _split,
     _subset,
@@ -218,7 +219,7 @@ def _run_stages(
     run: _Run,
     schedule_: list[Stage],
     halves: list[_Half],
-    halves_all: list[_Half],
+    halves_all: list[_Gathered],
     x6: FloatArray,
 ) -> tuple[FloatArray, dict[str, float]]:
     """Every stage of ``schedule_`` from ``x6``, each on its own cells: of the moving returns
@@ -236,7 +237,8 @@ def _run_stages(
     before = x6.copy()  # the H the previous stage started from
     for s_i, stage in enumerate(schedule_):
         t_stage = time.perf_counter()
-        source = halves if stage.hold_ry else halves_all
+        source: list[_Half] | list[_Gathered] = halves if stage.hold_ry else halves_all
+        # one half-turn gathered at a time: only its cells are kept
         stage_halves = [_subset(h, stage.max_points, rng).cells(stage.voxel) for h in source]
         run.timings["cells"] += time.perf_counter() - t_stage
         start_of_stage = x6.copy()
@@ -491,11 +493,13 @@ class _Run:
         # their noise, and by how much of it their ray's angle turns into height
         noise = self.noise if math.isfinite(self.noise) else 0.0
         tolerance = max(0.003, stage.voxel, 3.0 * noise)
-        platter = _platter_samples(self.p_static, x6, tolerance, self.platter_radius)
+        platter = _platter_samples(self.p_static, x6, tolerance, self.platter_radius,
+                                   self.level_free)
         if platter.shape[0] < 20:
+            level = "its level" if self.level_free else "x_P = 0"
             raise FineTuningError(
                 "gauge 'platter': the platter top is not visible in the spin scan "
-                f"({platter.shape[0]} static returns near x_P = 0 under the current estimate); "
+                f"({platter.shape[0]} static returns near {level} under the current estimate); "
                 "the start may be too far off (run the coarse stages, or start from the initial "
                 "calibration), or the platter is hidden (use gauge: ty)"
             )
