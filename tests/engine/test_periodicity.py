@@ -151,36 +151,6 @@ def test_each_half_turn_carries_its_returns_own_platter_angle(sim_run) -> None: 
             assert np.all((half.phi >= lo) & (half.phi < hi))
 
 
-def test_with_the_platters_level_free_its_returns_are_found_at_its_level() -> None:
-    """With the range model the platter's level is free (ty held): an outer iteration that moves
-    H along the axis moves the platter's level with it, and the samples follow the level. A
-    30° pitch run lost every platter return to a band held around x_P = 0."""
-    from calstation.engine.periodicity.cells import _rotation
-    from calstation.engine.periodicity.problem import _platter_samples
-
-    rng = np.random.default_rng(3)
-    x6 = np.array([0.01, 1.25, -0.015, 0.0, 0.0, -0.52, 0.0, 0.0, 0.0])
-    n = 2000
-    radius = 0.29
-    level = -0.018  # where this H puts the platter top (m)
-    r = radius * np.sqrt(rng.uniform(0.1, 1.0, n))
-    a = rng.uniform(0.0, 2 * np.pi, n)
-    top = np.column_stack([level + rng.normal(0.0, 0.001, n), r * np.cos(a), r * np.sin(a)])
-    # fewer static returns of something else over the platter, 30 mm above it, and more of the
-    # floor, 0.8 m below the platter
-    other = top[:300] + np.array([0.03, 0.0, 0.0])
-    floor = np.vstack([top, top]) - np.array([0.8, 0.0, 0.0])
-    q = np.vstack([top, other, floor])
-    p_static = q @ _rotation(x6).T + x6[:3]  # axis frame → lidar
-
-    held = _platter_samples(p_static, x6, 0.01, radius)
-    free = _platter_samples(p_static, x6, 0.01, radius, level_free=True)
-
-    assert held.shape[0] < 20  # no return within 10 mm of x_P = 0
-    assert free.shape[0] == n  # every platter return, none of the others
-    np.testing.assert_allclose(np.sort(free, axis=0), np.sort(p_static[:n], axis=0))
-
-
 def test_the_returns_near_the_platter_are_found_alike_a_chunk_at_a_time(monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """The region around the platter is tested a chunk of returns at a time (bounded memory):
     the same returns as all at once, whatever the chunk."""

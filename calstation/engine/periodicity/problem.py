@@ -434,41 +434,12 @@ def _bounds(
 
 
 def _platter_samples(
-    p_static: FloatArray, x6: FloatArray, tolerance: float, radius: float,
-    level_free: bool = False,
+    p_static: FloatArray, x6: FloatArray, tolerance: float, radius: float
 ) -> FloatArray:
-    """Static returns that lie on the platter top under H: inside ``radius`` and within
-    ``tolerance`` of the level x_P = 0, or, with ``level_free``, of the platter's level under H
-    (:func:`_platter_level`)."""
+    """Static returns that lie on the platter top under H (|x_P| ≤ tolerance, inside radius)."""
     if p_static.shape[0] == 0:
         return p_static
     q = (correct_vector(p_static, x6) - x6[:3]) @ _rotation(x6)
-    inside = np.hypot(q[:, 1], q[:, 2]) <= radius
-    level = _platter_level(q[inside, 0], tolerance) if level_free else 0.0
-    keep = (np.abs(q[:, 0] - level) <= tolerance) & inside
+    r = np.hypot(q[:, 1], q[:, 2])
+    keep = (np.abs(q[:, 0]) <= tolerance) & (r <= radius)
     return p_static[keep]
-
-
-PLATTER_LEVEL_WINDOW = 0.05
-"""How far (m) from x_P = 0 :func:`_platter_level` looks for the platter's level: beyond an outer
-iteration's move along the axis (20 mm seen), short of what else stands static over the
-platter's disc (the floor, 0.8 m below it, had more returns than the platter)."""
-
-
-def _platter_level(heights: FloatArray, tolerance: float) -> float:
-    """The platter's level x_P (m) among the heights of the static returns over it: the median
-    of the densest band 2·tolerance wide within :data:`PLATTER_LEVEL_WINDOW` of x_P = 0 (0 when
-    there are none).
-
-    With the platter's level free, ty is held and the platter gives the axis's direction, not
-    where along the axis its origin lies: an outer iteration that moves H along the axis moves
-    the platter's level with it (at 30° of pitch a 10 mm stage moved it 20 mm, and a band around
-    x_P = 0 then held none of its returns). The platter is the one flat thing the band finds.
-    """
-    h = np.sort(heights[np.abs(heights) <= PLATTER_LEVEL_WINDOW])
-    if h.size == 0:
-        return 0.0
-    # the densest window of 2·tolerance: for each return, how many lie within it above
-    ends = np.searchsorted(h, h + 2.0 * tolerance, side="right")
-    i = int(np.argmax(ends - np.arange(h.size)))
-    return float(np.median(h[i:ends[i]]))

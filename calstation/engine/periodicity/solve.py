@@ -493,13 +493,11 @@ class _Run:
         # their noise, and by how much of it their ray's angle turns into height
         noise = self.noise if math.isfinite(self.noise) else 0.0
         tolerance = max(0.003, stage.voxel, 3.0 * noise)
-        platter = _platter_samples(self.p_static, x6, tolerance, self.platter_radius,
-                                   self.level_free)
+        platter = _platter_samples(self.p_static, x6, tolerance, self.platter_radius)
         if platter.shape[0] < 20:
-            level = "its level" if self.level_free else "x_P = 0"
             raise FineTuningError(
                 "gauge 'platter': the platter top is not visible in the spin scan "
-                f"({platter.shape[0]} static returns near {level} under the current estimate); "
+                f"({platter.shape[0]} static returns near x_P = 0 under the current estimate); "
                 "the start may be too far off (run the coarse stages, or start from the initial "
                 "calibration), or the platter is hidden (use gauge: ty)"
             )
