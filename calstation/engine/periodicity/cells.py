@@ -126,14 +126,23 @@ class _Half:
         polar = None if self.rng is None or self.az is None else (self.rng, self.az)
         return _Half(*sensor_cells(self.p_L, self.phi, size, polar=polar))
 
+    def subset(self, n: int | None, rng: np.random.Generator) -> _Half:
+        """A random subset of at most ``n`` of the half-turn's returns, in their order (None:
+        all)."""
+        pick = _draw(self.p_L.shape[0], n, rng)
+        return self if pick is None else self.take(pick)
 
-def _subset(half: _Half | _Gathered, n: int | None, rng: np.random.Generator) -> _Half:
-    """A random subset of at most ``n`` of the half-turn's returns, in their order (None: all)."""
-    if isinstance(half, _Gathered):
-        return half.subset(n, rng)
-    if n is None or half.p_L.shape[0] <= n:
-        return half
-    return half.take(np.sort(rng.choice(half.p_L.shape[0], n, replace=False)))
+
+def _draw(size: int, n: int | None, rng: np.random.Generator) -> NDArray[np.int64] | None:
+    """Sorted random indices of at most ``n`` of ``size`` items (None: all of them)."""
+    if n is None or size <= n:
+        return None
+    return np.sort(rng.choice(size, n, replace=False))
+
+
+def _gather(scan: SpinScan, j: NDArray[np.int64]) -> _Half:
+    """The scan's returns ``j`` as a half-turn (their platter angles wrapped to [0, 2π))."""
+    return _Half(scan.p_L[j], np.mod(scan.phi[j], 2 * math.pi), scan.rng[j], scan.az[j])
 
 
 @dataclass(frozen=True)
@@ -146,12 +155,9 @@ class _Gathered:
     idx: NDArray[np.int64]
 
     def subset(self, n: int | None, rng: np.random.Generator) -> _Half:
-        """:func:`_subset` of the gathered half (the same returns, drawn alike)."""
-        j = self.idx
-        if n is not None and j.shape[0] > n:
-            j = j[np.sort(rng.choice(j.shape[0], n, replace=False))]
-        scan = self.scan
-        return _Half(scan.p_L[j], np.mod(scan.phi[j], 2 * math.pi), scan.rng[j], scan.az[j])
+        """:meth:`_Half.subset` of the gathered half (the same returns, drawn alike)."""
+        pick = _draw(self.idx.shape[0], n, rng)
+        return _gather(self.scan, self.idx if pick is None else self.idx[pick])
 
 
 def static_samples(static: NDArray[np.int64], n: int = 150_000, seed: int = 0) -> NDArray[np.int64]:
@@ -159,10 +165,8 @@ def static_samples(static: NDArray[np.int64], n: int = 150_000, seed: int = 0) -
 
     Raw returns rather than per-bin averages: grouping by noisy range would bias the averages.
     """
-    if static.shape[0] <= n:
-        return static
-    rng = np.random.default_rng(seed)
-    return static[np.sort(rng.choice(static.shape[0], n, replace=False))]
+    pick = _draw(static.shape[0], n, np.random.default_rng(seed))
+    return static if pick is None else static[pick]
 
 
 def _whole_revolutions(scan: SpinScan) -> NDArray[np.bool_]:
@@ -199,10 +203,11 @@ def _near_platter(
     t_P = start6[:3] @ R
     found = []
     for i0 in range(0, p_L.shape[0], REGION_CHUNK):
-        xy = p_L[i0:i0 + REGION_CHUNK, :2]  # the returns lie in the scan plane (z_L = 0)
+        chunk = slice(i0, i0 + REGION_CHUNK)
+        xy = p_L[chunk, :2]  # the returns lie in the scan plane (z_L = 0)
         # x_P first, then the radius on what is left
         x_P = xy @ R[:2, 0] - t_P[0]
-        j = np.flatnonzero(keep[i0:i0 + REGION_CHUNK] & (x_P > -0.2) & (x_P < 0.6))
+        j = np.flatnonzero(keep[chunk] & (x_P > -0.2) & (x_P < 0.6))
         yz = xy[j] @ R[:2, 1:] - t_P[1:]
         found.append(i0 + j[np.hypot(yz[:, 0], yz[:, 1]) < radius])
     return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
@@ -223,13 +228,8 @@ def _split(
     phi_w = np.mod(scan.phi[idx], 2 * math.pi)
     first = phi_w < math.pi
     moving = ~scan.static[idx]
-
-    def half(sel: NDArray[np.bool_]) -> _Half:
-        j = idx[sel]
-        return _Half(scan.p_L[j], phi_w[sel], scan.rng[j], scan.az[j])
-
     halves_all = [_Gathered(scan, idx[first]), _Gathered(scan, idx[~first])]
-    halves = [half(first & moving), half(~first & moving)]
+    halves = [_gather(scan, idx[first & moving]), _gather(scan, idx[~first & moving])]
     static_idx = np.flatnonzero(keep & scan.static)
     p_static = scan.p_L[static_samples(static_idx)]
     if min(h.p_L.shape[0] for h in halves) < 500:

@@ -17,7 +17,6 @@ from calstation.engine.periodicity.cells import (
     _Gathered,
     _Half,
     _split,
-    _subset,
     _whole_revolutions,
     to_dynamic,
 )
@@ -239,7 +238,7 @@ def _run_stages(
         t_stage = time.perf_counter()
         source: list[_Half] | list[_Gathered] = halves if stage.hold_ry else halves_all
         # one half-turn gathered at a time: only its cells are kept
-        stage_halves = [_subset(h, stage.max_points, rng).cells(stage.voxel) for h in source]
+        stage_halves = [h.subset(stage.max_points, rng).cells(stage.voxel) for h in source]
         run.timings["cells"] += time.perf_counter() - t_stage
         start_of_stage = x6.copy()
         try:
@@ -531,7 +530,7 @@ def _centre_halves(
     reconstructions coincide. Smooth, with a basin as wide as the target, it brings starts
     200 mm off within reach of the first matching stage. ty (gauge), ry and rz stay. The caller
     keeps the result only if it gives more first-stage matches than the start."""
-    sub = [_subset(h, 20_000, rng) for h in halves]
+    sub = [h.subset(20_000, rng) for h in halves]
     cs = [(np.cos(h.phi), np.sin(h.phi)) for h in sub]
     free = [IDX["tx"], IDX["tz"]]
 
