@@ -216,27 +216,13 @@ def combine_range_with_cube_scan(
     ``result`` when they could not be combined, with why in ``diagnostics["joint"]``; the cube
     check under it; why not, or None)."""
     from calstation.engine.cube import check_cube
-    from calstation.engine.cubefit import known_size_fit
     from calstation.engine.spinscan import from_recording
-    from calstation.errors import FineTuningError
 
-    model: RangeModelName = "offset+scale" if result.range_scale is not None else "offset"
     if progress is not None:
         progress("fitting the cube with the lidar's range model", 0.2)
-    failure: str | None = None
-    combined = result
-    residuals: Mapping[str, TrendRecord] = {}
-    try:
-        scan = prepared if prepared is not None else from_recording(cube)
-        fit = known_size_fit(scan, result.H, geometry,
-                             platter_radius=platter_radius, range_model=model,
-                             start_range=result.range_model,
-                             incidence=result.incidence_bias is not None)
-    except FineTuningError as exc:
-        failure = f"the cube could not add to the range model: {exc}"
-    else:
-        combined, failure = _combine_with_fit(result, fit, refit, progress)
-        residuals = fit.residuals
+    scan = prepared if prepared is not None else from_recording(cube)
+    combined, failure, residuals = combine_range_with_cube(
+        result, scan, geometry, platter_radius=platter_radius, refit=refit, progress=progress)
     if progress is not None:
         progress("measuring the cube", 0.8)
     check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
@@ -247,6 +233,34 @@ def combine_range_with_cube_scan(
             failure = ("the lidar's range error is not what its range model says, and may be "
                        f"what the cube check sees — on the cube's faces, {'; '.join(seen)}")
     return combined, check, failure
+
+
+def combine_range_with_cube(
+    result: CalibrationResult,
+    scan: SpinScan,
+    geometry: CubeGeometry,
+    *,
+    platter_radius: float,
+    refit: Callable[[CalibrationResult], CalibrationResult] | None = None,
+    progress: Callable[[str, float], None] | None = None,
+) -> tuple[CalibrationResult, str | None, Mapping[str, TrendRecord]]:
+    """The combination of :func:`combine_range_with_cube_scan` without the cube check: the
+    known-size cube fit with the range model on the cube's prepared returns ``scan`` (the whole
+    scan, or the turns so far), combined with ``result``. Returns (the combined result, or
+    ``result`` when they could not be combined; why not, or None; the fit's residual trends)."""
+    from calstation.engine.cubefit import known_size_fit
+    from calstation.errors import FineTuningError
+
+    model: RangeModelName = "offset+scale" if result.range_scale is not None else "offset"
+    try:
+        fit = known_size_fit(scan, result.H, geometry,
+                             platter_radius=platter_radius, range_model=model,
+                             start_range=result.range_model,
+                             incidence=result.incidence_bias is not None)
+    except FineTuningError as exc:
+        return result, f"the cube could not add to the range model: {exc}", {}
+    combined, failure = _combine_with_fit(result, fit, refit, progress)
+    return combined, failure, fit.residuals
 
 
 def _combine_with_fit(

@@ -45,8 +45,8 @@ class FitRecord(TypedDict):
 class TurnsSummary(TypedDict):
     """What a scan that went on turn by turn did (:meth:`~calstation.station.turns.TurnByTurn.
     summary`), stored as the scan step's ``turn_by_turn``: why it stopped (``budget``,
-    ``turns``, ``time``), the budget (m), the most turns, each fit and each failed one, and the
-    whole turns scanned once it ended."""
+    ``turns``, ``time``, ``fit``: a fit said more turns would not help), the budget (m), the
+    most turns, each fit and each failed one, and the whole turns scanned once it ended."""
 
     stopped: str
     budget_m: float

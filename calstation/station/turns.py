@@ -27,13 +27,21 @@ from calstation import display
 from calstation.engine.accuracy import PredictedError
 from calstation.engine.result import CalibrationResult
 from calstation.engine.spinscan import SpinScan, SpinScanBuilder
+from calstation.errors import FineTuningError
 from calstation.plugins.cost_strategies import RunsPrepared
+from calstation.recipes import Recipe
 from calstation.station.context import RunContext
 from calstation.station.operator import Operator, publish
 from calstation.station.prepared import FitRecord, ScanTurns, TurnFit, TurnsSummary
 
 Fit = Callable[[SpinScan], tuple[CalibrationResult, PredictedError]]
 """``fit(scan so far)``: the calibration from it and its predicted error."""
+
+
+class NoMoreTurns(Exception):
+    """Raised by a :data:`Fit` whose data so far say that more turns would not change the
+    outcome (two fixtures that disagree beyond chance): the scan stops, and the step after it
+    works on every whole turn of the recording and says why."""
 
 
 class TurnByTurn:
@@ -63,7 +71,9 @@ class TurnByTurn:
         self.met: TurnFit | None = None
         """the first fit within the budget: what the scan stopped on"""
         self.stopped: str = "turns"
-        """why the scan ended: ``budget`` (a fit within it), ``turns``, ``time``"""
+        """why the scan ended: ``budget`` (a fit within it), ``turns``, ``time``, or ``fit``
+        (a fit said more turns would not help: :class:`NoMoreTurns`)"""
+        self._hopeless = False
         self._pool = ThreadPoolExecutor(1, thread_name_prefix=f"calstation-{scan}-fit")
         self._queued: deque[tuple[int, Future[TurnFit]]] = deque()
         self._asked = 0
@@ -77,6 +87,9 @@ class TurnByTurn:
         self._collect()
         if self.met is not None:
             self.stopped = "budget"
+            return False
+        if self._hopeless:
+            self.stopped = "fit"
             return False
         if self.max_duration_s is not None and seconds >= self.max_duration_s:
             self.stopped = "time"
@@ -98,9 +111,16 @@ class TurnByTurn:
     def _collect(self, wait: bool = False) -> None:
         """Take the finished fits, in the order of their turns, and tell the operator what
         each predicts; the first within the budget is :attr:`met`."""
-        while self._queued and self.met is None and (wait or self._queued[0][1].done()):
+        while (self._queued and self.met is None and not self._hopeless
+               and (wait or self._queued[0][1].done())):
             turns, future = self._queued.popleft()
             exc = future.exception()
+            if isinstance(exc, NoMoreTurns):
+                self.failures.append(f"after {turns} turns: {exc}")
+                self._hopeless = True
+                self.ui.info(f"  after {display.count(turns, 'turn')}: {exc}; more turns would "
+                             "not change it")
+                continue
             if exc is not None:
                 # the data so far may not support a fit (too little of the target yet): the
                 # scan goes on; the step after it fine-tunes the whole recording and reports
@@ -133,6 +153,8 @@ class TurnByTurn:
             self._collect(wait=True)
             if self.met is not None:
                 self.stopped = "budget"
+            elif self._hopeless:
+                self.stopped = "fit"
         for _, future in self._queued:
             future.cancel()
         self._pool.shutdown(wait=True)
@@ -197,25 +219,66 @@ def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnBy
 
 
 def more_cube_turns(ctx: RunContext) -> Callable[[SpinScanBuilder], TurnByTurn] | None:
-    """How the cube scan goes on while it is what brings the budget within reach: for a
-    spin-target strategy whose fine calibration is above the budget on its own, the cube's side
-    faces measure ry; each whole revolution, their twist is combined with the spin target's
-    estimate (:func:`calstation.engine.joint.with_cube_ry`) and the combination's error is
-    predicted. None when the cube scan takes exactly its ``revolutions``."""
+    """How the cube scan goes on while it is what brings the budget within reach, for a
+    spin-target strategy. Each whole revolution, the cube so far is combined with the spin
+    target's estimate and the combination's error is predicted: with the lidar's range model,
+    the cube's known-size fit with the range terms (:func:`calstation.engine.joint.
+    combine_range_with_cube`; the spin target alone leaves them unmeasured, so the cube always
+    decides); without it, the cube's side faces' twist combined into ry (:func:`calstation.
+    engine.joint.with_cube_ry`), only when the fine calibration is above the budget on its own.
+    None when the cube scan takes exactly its ``revolutions``."""
     from calstation.recipes.validation import most_turns
 
     cfg = ctx.recipe.steps.cube_scan
     most = most_turns(ctx.recipe, "cube_scan")
     if most <= cfg.revolutions or ctx.strategy().fixture != "spin_target":
         return None
-    from calstation.engine.cube import check_cube_points
-    from calstation.engine.joint import with_cube_ry
     from calstation.pipeline.judgement import with_prediction
 
     recipe = ctx.recipe
     fine = ctx.stored_result("fine")
-    if with_prediction(fine, recipe)[1].max_m <= recipe.calibration.accuracy.max_error:
+    if fine.range_offset is not None:
+        fit = _range_turn_fit(recipe, fine)
+    elif with_prediction(fine, recipe)[1].max_m <= recipe.calibration.accuracy.max_error:
         return None
+    else:
+        fit = _twist_turn_fit(recipe, fine)
+
+    def controller(builder: SpinScanBuilder) -> TurnByTurn:
+        return TurnByTurn(builder, fit, budget_m=recipe.calibration.accuracy.max_error,
+                          max_revolutions=most, max_duration_s=cfg.max_duration_s, ui=ctx.ui,
+                          scan="cube_scan")
+
+    return controller
+
+
+def _range_turn_fit(recipe: Recipe, fine: CalibrationResult) -> Fit:
+    """The cube scan's :data:`Fit` with the lidar's range model: the cube so far fitted with the
+    range terms and combined with the spin target's ``fine`` (without the spin target's refits,
+    which the step runs on the turns kept). Spin target and cube that disagree beyond chance
+    stop the scan (:class:`NoMoreTurns`)."""
+    from calstation.engine.joint import combine_range_with_cube
+    from calstation.pipeline.judgement import with_prediction
+
+    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError]:
+        combined, failure, _ = combine_range_with_cube(
+            fine, so_far, recipe.fixtures.qa_cube, platter_radius=recipe.fixtures.platter.radius)
+        if failure is None:
+            return with_prediction(combined, recipe)
+        if combined is fine:  # the cube so far could not be fitted: more of it may be
+            raise FineTuningError(failure)
+        raise NoMoreTurns(failure)  # fitted, and the two disagree beyond chance
+
+    return fit
+
+
+def _twist_turn_fit(recipe: Recipe, fine: CalibrationResult) -> Fit:
+    """The cube scan's :data:`Fit` without a range model: the side faces' twist so far combined
+    into the spin target's ry."""
+    from calstation.engine.cube import check_cube_points
+    from calstation.engine.joint import with_cube_ry
+    from calstation.pipeline.judgement import with_prediction
+
     limit = recipe.calibration.max_sigma.ry_deg
 
     def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError]:
@@ -226,9 +289,4 @@ def more_cube_turns(ctx: RunContext) -> Callable[[SpinScanBuilder], TurnByTurn] 
         combined, _ = with_cube_ry(fine, check, None if limit is None else math.radians(limit))
         return with_prediction(combined, recipe)
 
-    def controller(builder: SpinScanBuilder) -> TurnByTurn:
-        return TurnByTurn(builder, fit, budget_m=recipe.calibration.accuracy.max_error,
-                          max_revolutions=most, max_duration_s=cfg.max_duration_s, ui=ctx.ui,
-                          scan="cube_scan")
-
-    return controller
+    return fit

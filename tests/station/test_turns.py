@@ -99,6 +99,43 @@ def test_an_unreachable_budget_turns_to_the_maximum_and_is_refused_with_what_wou
     assert refused["refused"]["predicted_error_m"] > 0.00005
 
 
+def test_with_the_range_model_the_cube_scan_turns_until_the_combination_meets_the_budget(
+    tmp_path: Path, db: Database
+) -> None:
+    """The spin target alone meets the budget with the range terms held; the cube that measures
+    them does not after one turn at 2 mm of noise (0.40 mm against 0.37), so the cube scan goes
+    on until the combination is within, and the run is accepted within 3σ of the true H."""
+    import math
+
+    from calstation.recordings.reader import read_recording
+
+    path = _recipe(tmp_path, 0.00037)
+    data = yaml.safe_load(path.read_text())
+    data["steps"]["cube_scan"]["max_revolutions"] = 4
+    data["simulation"]["lidar"]["range_noise"] = 0.002
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    ui = UnattendedOperator()
+    run_id, status = start_run(load_recipe(path), db, ui, operator="t", data_dir=tmp_path)
+    assert status == "passed", ui.failures
+    fine = last_step(db, run_id, "fine_tune").result
+    assert fine["predicted_error_m"] <= 0.00037
+    cube = last_step(db, run_id, "cube_scan").result
+    fits = cube["turn_by_turn"]["fits"]
+    assert cube["turn_by_turn"]["stopped"] == "budget"
+    assert fits[0]["predicted_error_m"] > 0.00037 >= fits[-1]["predicted_error_m"]
+    assert len(fits) >= 2
+    truth = read_recording(Path(cube["recording"])).truth
+    assert truth is not None
+    with db.session() as s:
+        accepted = s.query(Calibration).filter_by(run_id=run_id, accepted=True).one()
+        assert accepted.predicted_error_m is not None and accepted.predicted_error_m <= 0.00037
+        assert accepted.range_offset is not None
+        params, sigma = accepted.params(), accepted.result().sigma
+    for name in ("tx", "ty", "tz", "ry", "rz"):
+        error = params[name] - getattr(truth, name)
+        assert not math.isnan(sigma[name]) and abs(error) <= 3 * sigma[name], (name, error)
+
+
 def test_exactly_the_asked_turns_without_turn_by_turn(tmp_path: Path, db: Database) -> None:
     ui = UnattendedOperator()
     run_id, status = start_run(
@@ -145,3 +182,38 @@ def test_a_cube_fits_noise_bias_over_the_budget_is_told_what_would_help() -> Non
     result, predicted = with_prediction(result, spin, turns=1)
     error = budget_failure(result, predicted, spin, scan="spin_scan", turns=1)
     assert error is not None and "taller, off-centre" in error
+
+
+def test_a_fit_that_says_more_turns_would_not_help_stops_the_scan(sim_run: Any) -> None:
+    """Two fixtures that disagree beyond chance do not agree after more turns: the fit says so
+    (NoMoreTurns), the scan stops at once, and the step works on every whole turn (no fit is
+    kept) and is told why."""
+    from calstation.drivers import EncoderSample
+    from calstation.engine.spinscan import SpinScan, SpinScanBuilder
+    from calstation.recordings.reader import read_recording
+    from calstation.station.turns import NoMoreTurns, TurnByTurn, turns_fitted
+
+    rec = read_recording(sim_run()["spin"])
+    builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
+                              rec.encoder_latency_s)
+    builder.write_encoder(EncoderSample(int(t), int(c))
+                          for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True))
+    for line in rec.lines():
+        builder.write_line(line)
+    seen: list[int] = []
+
+    def fit(so_far: SpinScan) -> Any:
+        seen.append(so_far.n_points)
+        raise NoMoreTurns("the spin target and the QA cube disagree on the calibration")
+
+    ui = UnattendedOperator()
+    controller = TurnByTurn(builder, fit, budget_m=1e-3, max_revolutions=8,
+                            max_duration_s=None, ui=ui, scan="cube_scan")
+    assert controller(1.0, 3.0)  # the first whole turn: its fit is queued, the scan goes on
+    turns = controller.close(1)
+    assert len(seen) == 1 and seen[0] > 0
+    assert turns.fit is None and turns.summary["stopped"] == "fit"
+    assert turns_fitted(turns.summary) is None  # the step takes every whole turn
+    assert "disagree" in turns.summary["failed_fits"][0]
+    assert any("more turns would not change it" in m for m in ui.messages)
+    assert not controller(1.5, 4.5)  # and would not turn on
