@@ -15,6 +15,7 @@ from sqlalchemy import select
 
 from calstation.storage.db import Calibration, Run, Step, open_database
 from tests.support.clirun import run_cli
+from tests.support.recordings import fed_builder
 
 pytest.importorskip("calstation_sim")
 
@@ -85,18 +86,11 @@ def test_the_station_calibrate_run_and_reprocess_give_the_same_h_bit_for_bit(
 def test_a_scan_prepared_while_taken_serves_its_first_lines_as_the_file_does(sim_run) -> None:
     """The station cuts a scan that stopped on a fit to the lines that fit saw; its preparation
     made while scanning then gives what preparing the cut recording gives, bit for bit."""
-    from calstation.drivers import EncoderSample
-    from calstation.engine.spinscan import SpinScanBuilder
     from calstation.pipeline import turned
     from calstation.recordings.reader import read_recording
 
     rec = read_recording(sim_run()["spin"])
-    builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
-                              rec.encoder_latency_s)
-    builder.write_encoder(EncoderSample(int(t), int(c))
-                          for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True))
-    for line in rec.lines():
-        builder.write_line(line)
+    builder = fed_builder(rec)
     # the whole scan: the builder's own preparation, not one made again from the file
     assert turned(rec, builder=builder).prepared is builder.finish()
     lines = rec.n_lines * 2 // 3

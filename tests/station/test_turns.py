@@ -15,6 +15,7 @@ from calstation.recipes import load_recipe
 from calstation.station.reprocess import compute_reprocessing, plan_reprocessing
 from calstation.station.runs import start_run
 from calstation.storage.db import Calibration, Database, Run
+from tests.support.recordings import fed_builder
 from tests.support.station import UnattendedOperator, last_step, whole_turns
 
 pytest.importorskip("calstation_sim")
@@ -188,18 +189,11 @@ def test_a_fit_that_says_more_turns_would_not_help_stops_the_scan(sim_run: Any) 
     """Two fixtures that disagree beyond chance do not agree after more turns: the fit says so
     (NoMoreTurns), the scan stops at once, and the step works on every whole turn (no fit is
     kept) and is told why."""
-    from calstation.drivers import EncoderSample
-    from calstation.engine.spinscan import SpinScan, SpinScanBuilder
+    from calstation.engine.spinscan import SpinScan
     from calstation.recordings.reader import read_recording
     from calstation.station.turns import NoMoreTurns, TurnByTurn, turns_fitted
 
-    rec = read_recording(sim_run()["spin"])
-    builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
-                              rec.encoder_latency_s)
-    builder.write_encoder(EncoderSample(int(t), int(c))
-                          for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True))
-    for line in rec.lines():
-        builder.write_line(line)
+    builder = fed_builder(read_recording(sim_run()["spin"]))
     seen: list[int] = []
 
     def fit(so_far: SpinScan) -> Any:

@@ -1,14 +1,20 @@
 """Recordings written line by line with made-up, deterministic lines (the writer's tests, and the
-process that is killed while it writes one)."""
+process that is killed while it writes one), and a recording fed to a scan builder as a station
+feeds it."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from calstation.drivers import LidarInfo, LidarLine
 from calstation.recordings.writer import RecordingWriter
+
+if TYPE_CHECKING:
+    from calstation.engine.spinscan import SpinScanBuilder
+    from calstation.recordings.recorded import Recording
 
 T0 = 1_767_225_600_000_000_000
 
@@ -40,3 +46,18 @@ def writer(path: Path, **kw: object) -> RecordingWriter:
     }
     args.update(kw)
     return RecordingWriter(path, **args)  # type: ignore[arg-type]
+
+
+def fed_builder(rec: Recording) -> SpinScanBuilder:
+    """A :class:`SpinScanBuilder` fed a recording's encoder readings and then every line, as a
+    station feeds one while it scans."""
+    from calstation.drivers import EncoderSample
+    from calstation.engine.spinscan import SpinScanBuilder
+
+    builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
+                              rec.encoder_latency_s)
+    builder.write_encoder(EncoderSample(int(t), int(c))
+                          for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True))
+    for line in rec.lines():
+        builder.write_line(line)
+    return builder
