@@ -147,7 +147,9 @@ def periodicity_fine_tune_scan(
     ``range_model``: the lidar's range terms (``calibration.range_model``; with ``incidence``
     the incidence bias too) are held at ``start_range`` and every return corrected by them; the
     result carries them without a σ, and ``diagnostics["follows"]`` says how H would follow each
-    (the QA cube sets them: :func:`calstation.engine.joint.combine_range_with_cube_scan`)."""
+    (the QA cube sets them: :func:`calstation.engine.joint.combine_range_with_cube_scan`). ty
+    is held too, in the last stage, at the coarse stages' estimate (the platter's level held
+    there; a ``warm`` update holds it at ``start``'s)."""
     t_start = time.perf_counter()
     timings: dict[str, float] = {f"scan_{k}": v for k, v in scan.timings.items()}
     keep = _whole_revolutions(scan)
@@ -179,7 +181,8 @@ def periodicity_fine_tune_scan(
     timings["total"] = time.perf_counter() - t_start
     if progress is not None:
         progress("periodicity done", 1.0)
-    # ty too: the platter gives no origin here, the QA cube's top does
+    # ty too, where the coarse stages put it: the platter gives the last stage no origin, the
+    # QA cube's top does
     held = ([IDX["ty"]] if model else []) + [i for i in model if i not in terms]
     return _result(x6, start6, settings, scan, run, uncertainty, final_voxel, timings,
                    model, held)
@@ -403,7 +406,8 @@ class _Run:
         self.range_terms = list(range_terms or [])
         """the range terms the last stage frees (indices after H's)"""
         self.level_free = level_free
-        """ty held and the platter's level free (:class:`_Problem`'s ``platter_level_free``)"""
+        """in the last stage, ty held and the platter's level free (:class:`_Problem`'s
+        ``platter_level_free``); the coarse stages hold the level and estimate ty"""
         self.noise = noise
         """range noise σ (m) measured on the scan (NaN: unknown)"""
         self.start6 = start6
@@ -424,9 +428,13 @@ class _Run:
     def stage(self, s_i: int, stage: Stage, match: _Matcher, x6: FloatArray) -> FloatArray:
         """Iterate one stage from ``x6``; returns the H (as a vector) it ends on."""
         settings = self.settings
-        # with the lidar's range model the platter gives the axis's direction, not its origin
-        # (ty is held, and set with the range model by the QA cube's top)
-        gauge_ty = settings.gauge == "ty" or not stage.use_platter or self.level_free
+        level_free = self.level_free and not stage.hold_ry
+        # with the lidar's range model the platter gives the last stage the axis's direction,
+        # not its origin: ty is held there, where the coarse stages put it (set with the range
+        # model by the QA cube's top). The coarse stages hold the platter's level and estimate
+        # ty, as without the model: with ty held at the start and the level free, the 10 mm
+        # stage swung H along the axis by up to 20 mm an iteration and lost the platter
+        gauge_ty = settings.gauge == "ty" or not stage.use_platter or level_free
         # the range offset, as weakly seen as ry, is freed with it in the last stage
         terms = [] if stage.hold_ry else self.range_terms
         free = [i for i in _free(gauge_ty, terms) if not (stage.hold_ry and i == IDX["ry"])]
@@ -448,7 +456,7 @@ class _Run:
                     f"{stage.match_radius * 1e3:.0f} mm); the start is too far off or the spin "
                     "target is not seen in both half-turns"
                 )
-            problem = _Problem(matched, platter, 1.0, free, x6, self.noise, self.level_free)
+            problem = _Problem(matched, platter, 1.0, free, x6, self.noise, level_free)
             lo, hi = _bounds(x6, self.start6, free, settings)
             reduced = _Reduced(problem, x6[free])
             res = least_squares(
