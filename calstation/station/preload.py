@@ -11,9 +11,11 @@ ENGINE_MODULES = (
     "calstation.engine.periodicity",
     "calstation.engine.shape",
     "calstation.engine.cube",
+    "calstation.engine.joint",
+    "calstation.engine.fusion",
 )
 """What :func:`preload_engine` imports in the background, in order: the fine-tuning, the cube
-check."""
+check, and the combination of the spin target with the cube (the cube step)."""
 
 
 def import_open3d_first() -> None:

@@ -105,6 +105,8 @@ def test_a_run_preloads_the_engine_in_the_background() -> None:
         "calstation.engine.periodicity",
         "calstation.engine.shape",
         "calstation.engine.cube",
+        "calstation.engine.joint",
+        "calstation.engine.fusion",
     ]
 
 
