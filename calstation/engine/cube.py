@@ -34,6 +34,7 @@ from calstation.engine.geometry import (
 )
 from calstation.engine.rangemodel import (
     IDENTITY,
+    LEAST_COSINE,
     RangeModel,
     correct_points,
     incidence_shape,
@@ -611,23 +612,64 @@ def check_cube(
     from calstation.engine.spinscan import from_recording
 
     scan = prepared if prepared is not None else from_recording(recording)
-    p_L = scan.p_L
+    p_L, phi = scan.p_L, scan.phi
     memo: dict[str, object] | None = scan.memo
     if not (range_model.is_identity and range_model.incidence == 0.0):
         # the corrected returns have their own segmentation: a memo of their own
-        p_L = range_model.points(p_L)
-        if range_model.incidence != 0.0:
-            p_L = incidence_corrected(p_L, scan.phi, H, range_model.incidence, cube.edge,
-                                      platter_radius)
         own = scan.memo.setdefault(f"range {range_model.as_vector().tolist()!r}", {})
-        memo = own if isinstance(own, dict) else None
+        memo = own if isinstance(own, dict) else {}
+        # only the returns the check can use are corrected (a quarter of the default scan)
+        near = _returns_near_platter(scan, H, cube.edge, platter_radius, range_model, memo,
+                                     nearby)
+        p_L, phi = range_model.points(p_L[near]), phi[near]
+        if range_model.incidence != 0.0:
+            p_L = incidence_corrected(p_L, phi, H, range_model.incidence, cube.edge,
+                                      platter_radius)
     try:
         return check_cube_points(
-            p_L, scan.phi, H, cube, limits, platter_radius=platter_radius, memo=memo,
+            p_L, phi, H, cube, limits, platter_radius=platter_radius, memo=memo,
             nearby=nearby,
         )
     except VerificationError as exc:
         raise VerificationError(f"{recording.path}: {exc}") from None
+
+
+CHECK_MARGIN = 0.02
+"""How far (m) beyond the region the cube check reads (the platter's cylinder from
+:data:`PLATTER_WINDOW` below the platter to three cube edges above it) a return is still
+corrected for the lidar's range model before the check: a range correction moves a return along
+its ray by less than the largest correction, and a nearby H (``nearby``) by less than this."""
+
+
+def _returns_near_platter(
+    scan: SpinScan, H: Extrinsics, edge: float, platter_radius: float, model: RangeModel,
+    memo: dict[str, object], nearby: bool,
+) -> NDArray[np.intp]:
+    """Positions in ``scan``'s returns of those that the cube check under H can use once they
+    are corrected by ``model``: inside the platter's cylinder, from below its top to three cube
+    edges above it, with :data:`CHECK_MARGIN` and the largest correction to spare (the
+    background stays out, as in :func:`_cube_cloud`). Kept in ``memo`` (the corrected returns'
+    own), with the segmentation found in them: a check under a nearby H (``nearby``) reads the
+    same returns, so that the segmentation's positions stay valid."""
+    key = H.as_vector().tobytes()
+    found = memo.get("returns")
+    if isinstance(found, tuple) and (found[0] == key or nearby):
+        kept: NDArray[np.intp] = found[1]
+        return kept
+    largest = (abs(model.offset) + abs(model.incidence) * (1 / LEAST_COSINE - 1)
+               + abs(model.scale) * float(np.max(scan.rng, initial=0.0))) / (1 - abs(model.scale))
+    margin = CHECK_MARGIN + largest
+    t_P = H.t @ H.R
+    x = scan.p_L @ H.R[:, 0]
+    x -= t_P[0]
+    # the platter's level lies within PLATTER_WINDOW of x_P = 0
+    idx = np.flatnonzero((x > -PLATTER_WINDOW - margin) & (x < 3 * edge + PLATTER_WINDOW + margin))
+    yz = scan.p_L[idx] @ H.R[:, 1:]
+    yz -= t_P[1:]
+    out: NDArray[np.intp] = idx[np.einsum("ij,ij->i", yz, yz) < (platter_radius + margin) ** 2]
+    memo["returns"] = (key, out)
+    memo.pop("cube_cloud", None)  # its positions were in other returns
+    return out
 
 
 def incidence_corrected(
