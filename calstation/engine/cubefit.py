@@ -201,6 +201,9 @@ class _RangeSizeErrors:
         self.f, self.base, self.free, self.edge = faces, base, free, edge
         self.platter = platter
         self.platter_rays = unit_rays(platter)
+        # the ranges, corrected at every evaluation, are measured once
+        self.rho = np.linalg.norm(faces.p_L, axis=-1)
+        self.platter_rho = np.linalg.norm(platter, axis=-1)
         self.level_free = SCALE not in free
         """the platter's level free, unless the scale error is fitted: then the cube's height
         above the platter is the known length that sets it (the platter and the cube must read
@@ -238,11 +241,13 @@ class _RangeSizeErrors:
         size = self.edge if edge is None else edge
         cy, cz = x[len(self.free):len(self.free) + 2]
         ny, nz, cosine = self._normals(x, H)
-        q = _turned(correct_vector(f.p_L, v, incidence_shape(cosine)) - H.t, H, f.cos, f.sin)
+        q = _turned(correct_vector(f.p_L, v, incidence_shape(cosine), self.rho) - H.t, H,
+                    f.cos, f.sin)
         dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - 0.5 * size,
                         q[:, 0] - size)
         down = self.platter_rays @ H.R[:, 0]
-        on_platter = (correct_vector(self.platter, v, incidence_shape(down)) - H.t) @ H.R[:, 0]
+        on_platter = (correct_vector(self.platter, v, incidence_shape(down), self.platter_rho)
+                      - H.t) @ H.R[:, 0]
         platter = on_platter / away_from_grazing(down)
         if self.level_free:
             # about their mean: the platter gives the axis's direction; its level is free, as
@@ -417,11 +422,11 @@ def range_size_fit(
                        start.with_(rx=0.0), cube.edge, platter_radius, None)
     first = _label(cloud, start.with_(rx=0.0))
     pose, noise = first.pose[:3], first.noise
-    near = _near_platter(scan, base, platter_radius)
+    # the returns the rounds may label, with what does not change between them
+    returns = _Returns.of(scan, _near_platter(scan, base, platter_radius))
     res: OptimizeResult = None
     for _ in range(LABEL_ROUNDS):
-        faces, platter = model_labels(scan.p_L[near], scan.phi[near], base, pose, cube.edge,
-                                      platter_radius, noise)
+        faces, platter = model_labels(returns, base, pose, cube.edge, platter_radius, noise)
         errors = _RangeSizeErrors(faces, platter, base, free, cube.edge)
         x0 = np.concatenate([base[free], pose])
         res = least_squares(
@@ -443,19 +448,52 @@ def _near_platter(scan: SpinScan, v: FloatArray, radius: float) -> NDArray[np.in
     ``v``), or something above it: those :func:`model_labels` may use (the background stays
     out). Chosen by the ray alone."""
     H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
-    rays = unit_rays(scan.p_L) @ H.R  # in P
     origin = -(H.t @ H.R)
+    # first on the returns as they are (the ray's length does not move where it meets the
+    # plane): the few within a millimetre of the rim, or inside, are tested on their unit rays
+    q = scan.p_L @ H.R  # in P
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_hit = -origin[0] / q[:, 0]
+        y = origin[1] + s_hit * q[:, 1]
+        z = origin[2] + s_hit * q[:, 2]
+    candidates = np.flatnonzero((s_hit > 0) & (y * y + z * z < (radius + 0.051) ** 2))
+    rays = unit_rays(scan.p_L[candidates]) @ H.R
     with np.errstate(divide="ignore", invalid="ignore"):
         s_hit = -origin[0] / rays[:, 0]
     hit = origin + s_hit[:, None] * rays
-    out: NDArray[np.intp] = np.flatnonzero(
-        (s_hit > 0) & (np.hypot(hit[:, 1], hit[:, 2]) < radius + 0.05))
+    out: NDArray[np.intp] = candidates[
+        (s_hit > 0) & (np.hypot(hit[:, 1], hit[:, 2]) < radius + 0.05)]
     return out
 
 
+@dataclass(frozen=True)
+class _Returns:
+    """The returns :func:`model_labels` chooses from, with what does not depend on the
+    estimate: computed once for every round of a fit."""
+
+    p_L: FloatArray
+    """(N, 3) returns in L (as measured)"""
+    cos: FloatArray
+    """(N,) cosine of each return's platter angle"""
+    sin: FloatArray
+    """(N,) sine of each return's platter angle"""
+    rho: FloatArray
+    """(N,) ranges (m, as measured)"""
+    rays: FloatArray
+    """(N, 3) unit rays in L"""
+
+    @classmethod
+    def of(cls, scan: SpinScan, idx: NDArray[np.intp]) -> _Returns:
+        """The returns ``idx`` of ``scan``."""
+        p_L, phi = scan.p_L[idx], scan.phi[idx]
+        rho = np.linalg.norm(p_L, axis=1)
+        rays = p_L / np.maximum(rho, 1e-12)[:, None]  # unit_rays, from the ranges known
+        return cls(p_L, np.cos(phi), np.sin(phi), rho, rays)
+
+
 def model_labels(
-    p_L: FloatArray, phi: FloatArray, v: FloatArray, pose: FloatArray, edge: float,
-    platter_radius: float, noise: float,
+    returns: _Returns, v: FloatArray, pose: FloatArray, edge: float, platter_radius: float,
+    noise: float,
 ) -> tuple[_Faces, FloatArray]:
     """The returns of the cube's faces and of the platter top, chosen by casting each return's
     ray against the model (an upright cube of ``edge`` at ``pose`` = centre y, z and yaw in D,
@@ -466,8 +504,7 @@ def model_labels(
     the model: mixed pixels and strays out, no selection on the noise). Returns the faces and
     the platter's returns (as measured, in L)."""
     H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
-    rays = unit_rays(p_L)
-    cos, sin = np.cos(phi), np.sin(phi)
+    p_L, rays, cos, sin = returns.p_L, returns.rays, returns.cos, returns.sin
     o = _turned(np.broadcast_to(-H.t, p_L.shape), H, cos, sin)
     d = _turned(rays, H, cos, sin)
     cy, cz, yaw = (float(a) for a in pose[:3])
@@ -476,15 +513,14 @@ def model_labels(
     ol = np.column_stack([o[:, 0], c * (o[:, 1] - cy) + s * (o[:, 2] - cz),
                           -s * (o[:, 1] - cy) + c * (o[:, 2] - cz)])
     dl = np.column_stack([d[:, 0], c * d[:, 1] + s * d[:, 2], -s * d[:, 1] + c * d[:, 2]])
-    label, cube_range = _box_entry(ol, dl, edge, MARGIN)
-    _, shadow = _box_entry(ol, dl, edge + 2 * MARGIN, 0.0, floor=-MARGIN)
+    label, cube_range, shadow = _cube_entries(ol, dl, edge)
     with np.errstate(divide="ignore", invalid="ignore"):
         plate_range = -o[:, 0] / d[:, 0]
     at = o + plate_range[:, None] * d
     on_plate = ~np.isfinite(shadow) & (plate_range > 0) & (
         np.hypot(at[:, 1], at[:, 2]) <= platter_radius - MARGIN)
     predicted = np.where(label > 0, cube_range, plate_range)
-    measured = RangeModel.from_vector(v).ranges(np.linalg.norm(p_L, axis=1))
+    measured = RangeModel.from_vector(v).ranges(returns.rho)
     window = max(6.0 * noise if math.isfinite(noise) else 0.0, 0.005)
     close = np.abs(measured - predicted) <= window
     on_face = (label > 0) & close
@@ -511,6 +547,30 @@ def model_labels(
     )
     platter: FloatArray = p_L[plate_idx]
     return faces, platter
+
+
+def _cube_entries(
+    origin: FloatArray, direction: FloatArray, edge: float,
+) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+    """:func:`_box_entry` of the rays (in the cube's frame) into the cube of ``edge`` with
+    :data:`MARGIN` from its faces' edges (the face, the range), and the range into its shadow,
+    the cube grown by :data:`MARGIN` (inf when missed). Only the rays whose line passes the
+    shadow's circumscribed sphere are cast (about one in ten of those near the platter); the
+    rest miss both."""
+    lo = np.array([-MARGIN, -0.5 * edge - MARGIN, -0.5 * edge - MARGIN])
+    hi = np.array([edge + 2 * MARGIN, 0.5 * edge + MARGIN, 0.5 * edge + MARGIN])
+    to_centre = 0.5 * (lo + hi) - origin
+    along = np.einsum("ij,ij->i", to_centre, direction)
+    apart = np.einsum("ij,ij->i", to_centre, to_centre) - along**2 / np.einsum(
+        "ij,ij->i", direction, direction)
+    cast = np.flatnonzero(apart < (0.5 * float(np.linalg.norm(hi - lo)) + 0.001) ** 2)
+    label = np.zeros(origin.shape[0], dtype=np.int64)
+    cube_range = np.full(origin.shape[0], np.inf)
+    shadow = np.full(origin.shape[0], np.inf)
+    o, d = origin[cast], direction[cast]
+    label[cast], cube_range[cast] = _box_entry(o, d, edge, MARGIN)
+    shadow[cast] = _box_entry(o, d, edge + 2 * MARGIN, 0.0, floor=-MARGIN)[1]
+    return label, cube_range, shadow
 
 
 def _box_entry(

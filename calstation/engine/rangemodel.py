@@ -130,31 +130,37 @@ IDENTITY = RangeModel()
 
 
 def correct_points(
-    p_L: FloatArray, offset: float | FloatArray, scale: float
+    p_L: FloatArray, offset: float | FloatArray, scale: float, rho: FloatArray | None = None
 ) -> FloatArray:
     """(N, 3) returns in L moved along their rays: ``p·(1 − b/|p|)/(1 + k)``, ``offset`` b one
-    value or one per return. A return at the origin (no range) stays there."""
+    value or one per return. A return at the origin (no range) stays there. ``rho``: the (N,)
+    ranges |p| when already known (a fit that corrects the same returns at every evaluation)."""
     p = np.asarray(p_L, dtype=np.float64)
     b = np.asarray(offset, dtype=np.float64)
     if scale == 0.0 and not np.any(b):
         return p
-    rho = np.linalg.norm(p, axis=-1)
+    if rho is None:
+        rho = np.linalg.norm(p, axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
         factor = np.where(rho > 0, (1.0 - b / rho) / (1.0 + scale), 0.0)
     out: FloatArray = p * factor[..., None]
     return out
 
 
-def correct_vector(p_L: FloatArray, x: FloatArray, shape: FloatArray | None = None) -> FloatArray:
+def correct_vector(
+    p_L: FloatArray, x: FloatArray, shape: FloatArray | None = None,
+    rho: FloatArray | None = None,
+) -> FloatArray:
     """:func:`correct_points` with the range terms of an estimated vector ``x`` (none when it
     holds H alone): the offset, and the incidence bias times ``shape`` (each return's
-    :func:`incidence_shape`; none when None), then the scale error."""
+    :func:`incidence_shape`; none when None), then the scale error; ``rho`` the returns'
+    ranges |p| when known."""
     if x.size <= OFFSET:
         return p_L
     offset: float | FloatArray = float(x[OFFSET])
     if shape is not None and float(x[INCIDENCE]) != 0.0:
         offset = offset + float(x[INCIDENCE]) * shape
-    return correct_points(p_L, offset, float(x[SCALE]))
+    return correct_points(p_L, offset, float(x[SCALE]), rho)
 
 
 def unit_rays(p_L: FloatArray) -> FloatArray:
