@@ -214,22 +214,22 @@ def _cube_cloud(
     t_P = H.t @ H.R
     x = p_L @ H.R[:, 0]
     x -= t_P[0]
-
-    def within(idx: NDArray[np.intp], radius: float) -> NDArray[np.intp]:
-        """Those of ``idx`` closer than ``radius`` to the axis."""
-        yz = p_L[idx] @ H.R[:, 1:]
-        yz -= t_P[1:]
-        out: NDArray[np.intp] = idx[np.einsum("ij,ij->i", yz, yz) < radius**2]
-        return out
-
+    # the distance from the axis, once, of every return the three tests below may take (the
+    # platter's level lies within PLATTER_WINDOW of x_P = 0)
+    near = np.flatnonzero((x > -PLATTER_WINDOW - RING_BAND) & (x < 3 * s + PLATTER_WINDOW))
+    yz = p_L[near] @ H.R[:, 1:]
+    yz -= t_P[1:]
+    r2 = np.einsum("ij,ij->i", yz, yz)
+    x_near = x[near]
+    inside = r2 < (platter_radius - 0.005) ** 2
     # measure from the platter as seen, not from x_D = 0: a calibration's origin along the axis
     # is a gauge (the shape strategy holds ty), and a few millimetres there would otherwise
     # lift the platter itself above the segmentation cut
-    window = within(np.flatnonzero(np.abs(x) < PLATTER_WINDOW), platter_radius - 0.005)
+    window = near[(np.abs(x_near) < PLATTER_WINDOW) & inside]
     level = level_of_heights(x[window])
-    x -= level
-    above = within(np.flatnonzero((x > SEGMENT_MARGIN) & (x < 3 * s)), platter_radius)
-    ring = within(np.flatnonzero(np.abs(x) < RING_BAND), platter_radius - 0.005)
+    x_near -= level
+    above = near[(x_near > SEGMENT_MARGIN) & (x_near < 3 * s) & (r2 < platter_radius**2)]
+    ring = near[(np.abs(x_near) < RING_BAND) & inside]
     ring = ring[:: max(1, -(-ring.size // RING_POINTS))]
     p_ring = lidar_to_dynamic(p_L[ring], phi[ring], H)
     p_ring[:, 0] -= level

@@ -11,6 +11,9 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
+
+# imported with the engine, not at the first cube check (~0.05 s of the operator's wait)
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from calstation.engine.frames import FloatArray
@@ -43,8 +46,6 @@ def largest_cluster(points: FloatArray, voxel: float = 0.005) -> NDArray[np.bool
     Mixed pixels and spray that survive the radius filter in small dense clumps are cut off
     from the object; they would otherwise stretch a bounding box.
     """
-    from scipy import ndimage
-
     if points.shape[0] == 0:
         return np.zeros(0, dtype=bool)
     ijk = np.floor((points - points.min(axis=0)) / voxel).astype(np.int64)
