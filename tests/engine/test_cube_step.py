@@ -1,0 +1,137 @@
+"""The cube step with the lidar's range model reads only the returns it can use: the cube
+check corrects the returns near the platter, the known-size range fit casts the rays near the
+platter and the cube. Each gives what the whole scan gives, to the last bit, on a simulated
+lidar whose ranges read long and grow with the angle of incidence."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from calstation.engine.cube import check_cube, check_cube_points, incidence_corrected
+from calstation.engine.cubefit import (
+    MARGIN,
+    _box_entry,
+    _cube_entries,
+    _near_platter,
+    range_size_fit,
+)
+from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
+from calstation.engine.rangemodel import RangeModel, unit_rays
+from calstation.engine.spinscan import from_recording
+from calstation.recipes import load_recipe
+from calstation.recordings.reader import read_recording
+
+REPO = Path(__file__).resolve().parents[2]
+TRUE_RANGE = RangeModel(offset=0.008, incidence=0.0005)
+"""The simulated lidar's ranges: 8 mm long, and 0.5 mm more at 60° of incidence."""
+
+
+@pytest.fixture(scope="module")
+def biased(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """The cube scan of a lidar with :data:`TRUE_RANGE`, prepared; its truth and recipe."""
+    data = yaml.safe_load((REPO / "recipes/sim-periodicity.yaml").read_text())
+    data["simulation"]["sensor"] = {"range": {"offset": TRUE_RANGE.offset,
+                                              "incidence_bias": TRUE_RANGE.incidence}}
+    data["calibration"]["incidence_bias"] = "estimate"
+    path = tmp_path_factory.mktemp("biased") / "biased.yaml"
+    path.write_text(yaml.safe_dump(data))
+    rec = read_recording(sim_run(recipe=path)["cube"])
+    assert rec.truth is not None
+    return rec, from_recording(rec), rec.truth, load_recipe(path).recipe
+
+
+def _whole_scan(scan: Any, H: Extrinsics, model: RangeModel, edge: float,
+                radius: float) -> Any:
+    """Every return of ``scan`` corrected by ``model`` under H, as the check corrected them
+    before it read only those near the platter."""
+    return incidence_corrected(model.points(scan.p_L), scan.phi, H, model.incidence, edge,
+                               radius)
+
+
+def _same(a: Any, b: Any) -> None:
+    """The two checks' every figure, to the last bit (as JSON: NaN is NaN)."""
+    da, db = a.to_dict(), b.to_dict()
+    da.pop("timings")
+    db.pop("timings")
+    assert json.dumps(da, sort_keys=True) == json.dumps(db, sort_keys=True)
+
+
+def test_the_check_with_a_range_model_is_the_whole_scans_check(biased: Any) -> None:
+    """Under the truth and the lidar's true range model the cube passes; the check of the
+    returns near the platter is the check of the whole scan corrected, and so is the check
+    under a nearby H that turns the cube's returns found under the first."""
+    rec, scan, truth, recipe = biased
+    cube, qa, radius = recipe.fixtures.qa_cube, recipe.qa, recipe.fixtures.platter.radius
+    check = check_cube(rec, truth, cube, qa, platter_radius=radius, prepared=scan,
+                       range_model=TRUE_RANGE)
+    assert check.passed, check.failures
+    assert check.edge_error < 0.3e-3
+    memo: dict[str, object] = {}
+    whole = check_cube_points(_whole_scan(scan, truth, TRUE_RANGE, cube.edge, radius),
+                              scan.phi, truth, cube, qa, platter_radius=radius, memo=memo)
+    _same(check, whole)
+    # the station's second check, under an H a fraction of a millimetre away
+    near = truth.with_(tx=truth.tx + 0.0004, ry=truth.ry + math.radians(0.02))
+    moved = check_cube(rec, near, cube, qa, platter_radius=radius, prepared=scan,
+                       range_model=TRUE_RANGE, nearby=True)
+    whole_moved = check_cube_points(_whole_scan(scan, near, TRUE_RANGE, cube.edge, radius),
+                                    scan.phi, near, cube, qa, platter_radius=radius,
+                                    memo=memo, nearby=True)
+    _same(moved, whole_moved)
+    # a check under another H finds its own returns again
+    other = truth.with_(tz=truth.tz + 0.002)
+    _same(check_cube(rec, other, cube, qa, platter_radius=radius, prepared=scan,
+                     range_model=TRUE_RANGE),
+          check_cube_points(_whole_scan(scan, other, TRUE_RANGE, cube.edge, radius),
+                            scan.phi, other, cube, qa, platter_radius=radius))
+
+
+def test_the_range_fit_gives_the_lidars_offset_back_from_the_rays_near_the_platter(
+    biased: Any,
+) -> None:
+    """The rays the range fit may label are those of the whole scan that meet the platter's
+    plane inside its rim (found on the returns as they are, then on unit rays), and from them
+    the fit gives back the simulated offset and incidence bias within 3σ."""
+    _, scan, truth, recipe = biased
+    radius = recipe.fixtures.platter.radius
+    v = np.concatenate([truth.as_vector(), TRUE_RANGE.as_vector()])
+    H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
+    rays = unit_rays(scan.p_L) @ H.R
+    origin = -(H.t @ H.R)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_hit = -origin[0] / rays[:, 0]
+    hit = origin + s_hit[:, None] * rays
+    every = np.flatnonzero((s_hit > 0) & (np.hypot(hit[:, 1], hit[:, 2]) < radius + 0.05))
+    np.testing.assert_array_equal(_near_platter(scan, v, radius), every)
+    fit = range_size_fit(scan, truth, recipe.fixtures.qa_cube, platter_radius=radius,
+                         range_model="offset", incidence=True)
+    assert abs(fit.range_model.offset - TRUE_RANGE.offset) <= 3 * fit.sigma["range_offset"]
+    assert abs(fit.range_model.incidence - TRUE_RANGE.incidence) <= 3 * fit.sigma[
+        "incidence_bias"]
+
+
+def test_only_the_rays_that_can_meet_the_cube_are_cast_and_the_rest_miss_it() -> None:
+    """Rays from everywhere around the cube, many passing it, some along its axes: the cast of
+    those whose line passes the cube's circumscribed sphere is the cast of every ray."""
+    rng = np.random.default_rng(7)
+    n, edge = 20_000, 0.1
+    origin = rng.uniform(-0.6, 0.6, (n, 3)) + np.array([0.8, 0.0, 0.0])
+    target = rng.uniform(-0.15, 0.25, (n, 3))
+    direction = target - origin
+    direction[:500, 1:] = 0.0  # straight down
+    direction[500:1000, 0] = 0.0  # level
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    label, cube_range, shadow = _cube_entries(origin, direction, edge)
+    whole_label, whole_range = _box_entry(origin, direction, edge, MARGIN)
+    np.testing.assert_array_equal(label, whole_label)
+    np.testing.assert_array_equal(cube_range, whole_range)
+    np.testing.assert_array_equal(
+        shadow, _box_entry(origin, direction, edge + 2 * MARGIN, 0.0, floor=-MARGIN)[1])
+    assert np.count_nonzero(label) > 0 and np.count_nonzero(np.isfinite(shadow)) < n
