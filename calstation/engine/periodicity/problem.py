@@ -108,6 +108,7 @@ class _Problem:
         self.swa = np.sqrt(matched.wa)
         self.swb = np.sqrt(matched.wb)
         self._nq: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
+        self._corrections: dict[str, tuple[bytes, FloatArray]] = {}
         self.platter_dir = np.zeros((0, 3))
         self.point_dir = np.zeros((0, 3))
         if matched.one_sided:
@@ -136,6 +137,24 @@ class _Problem:
         b = incidence_shape(_rowdot(self.ray_b, (ab if self.m.one_sided else bb) @ R.T))
         return a, b
 
+    def _corrected(self, which: str, x6: FloatArray) -> FloatArray:
+        """The matches' points of ``which`` half (``"a"``, ``"b"``) or the platter's returns
+        (``"platter"``) corrected by the range terms of ``x6`` (:func:`~calstation.engine.
+        rangemodel.correct_vector`, with their incidence shapes), kept while those terms stay
+        the same: where the fine-tuning holds them (with the lidar's range model, its spin
+        target does), the points are corrected once per inner solve rather than at every
+        evaluation."""
+        key = x6[OFFSET:].tobytes()
+        kept = self._corrections.get(which)
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        points, shape = {"a": (self.m.pa, self.shape_a), "b": (self.m.pb, self.shape_b),
+                         "platter": (self.platter, self.shape_p)}[which]
+        assert points is not None
+        out = correct_vector(points, x6, shape)
+        self._corrections[which] = (key, out)
+        return out
+
     def _platter_scale(self, x6: FloatArray, noise: float) -> float:
         """Weight of the platter residuals (range errors, m) relative to the target's: the
         ratio of their noise, so that both groups count by their information. The target's
@@ -160,7 +179,7 @@ class _Problem:
         assert self.platter is not None
         a = _rotation(x6)[:, 0]
         cos_incidence = _clip_away_from_zero(self.platter_dir @ a, GRAZING_PLATTER)
-        corrected = correct_vector(self.platter, x6, self.shape_p)
+        corrected = self._corrected("platter", x6)
         out: FloatArray = ((corrected - x6[:3]) @ a) / cos_incidence
         return out
 
@@ -208,8 +227,8 @@ class _Problem:
         m = self.m
         R = _rotation(x6)
         aa, ab, ba, bb = self._normals_in_q()
-        ua = correct_vector(m.pa, x6, self.shape_a) - x6[:3]
-        ub = correct_vector(m.pb, x6, self.shape_b) - x6[:3]
+        ua = self._corrected("a", x6) - x6[:3]
+        ub = self._corrected("b", x6) - x6[:3]
         # point of B against A's local plane, and point of A against B's local plane
         ra = self.swa * (_rowdot(ua, aa @ R.T) - _rowdot(ub, ab @ R.T) + m.oa)
         if m.one_sided:
@@ -275,8 +294,8 @@ class _Problem:
         """The target's rows of :meth:`jacobian`, written into ``out``."""
         m = self.m
         aa, ab, ba, bb = self._normals_in_q()
-        pa = correct_vector(m.pa, x6, self.shape_a)
-        pb = correct_vector(m.pb, x6, self.shape_b)
+        pa = self._corrected("a", x6)
+        pb = self._corrected("b", x6)
         ua, ub = pa - x6[:3], pb - x6[:3]
         n = aa.shape[0]
         # ∂/∂t: the same three columns for every translation
@@ -328,7 +347,8 @@ class _Problem:
         platter = self.platter if self.platter is not None else np.zeros((0, 3))
         w = self.platter_weight
         a = R[:, 0]
-        corrected = correct_vector(platter, x6, self.shape_p)
+        corrected = (self._corrected("platter", x6) if self.platter is not None
+                     else correct_vector(platter, x6, self.shape_p))
         up = corrected - x6[:3]
         h = up @ a
         c_free = self.platter_dir @ a
