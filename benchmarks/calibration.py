@@ -13,7 +13,16 @@ Simulates one run (static, spin and cube scans) unless DIR already holds one, th
   two parts of the station's path: the per-line work done while the spin scan runs
   (:class:`calstation.engine.spinscan.SpinScanBuilder`), then what is left when the scan ends
   (finishing the preparation and fine-tuning), which is the operator's wait;
-- shape fine-tuning and the cube check.
+- shape fine-tuning and the cube check;
+- the station's cube step, in a process of its own: the pipeline's cube stage
+  (``calstation.pipeline.stages.with_cube``; with the shipped recipes' range model, the cube's
+  known-size fit with the range model combined with the spin target's fine-tuning and its
+  refits, then the cube check under the combination:
+  :func:`calstation.engine.joint.combine_with_cube_scan`), on scans prepared as a station has
+  them and with the engine preloaded as a station preloads it (``calstation.station.preload``):
+  the operator's wait after the last scan. Its accuracy (the combined H, the range offset and
+  the incidence bias against the simulator's truth, the check's edge error) is printed beside
+  it.
 
 It prints the peak memory (the process's peak resident set), the processing ÷ acquisition ratio
 (processing after the scans, as at a station, ÷ the scans' own duration; and the same with
@@ -63,6 +72,8 @@ TARGETS = {
     "station peak memory MB": 700.0,
 }
 STATION = "station (own process)"
+CUBE_STEP = "cube step after last scan"
+"""The stage that times the station's cube step with the range model (:func:`measure_cube_step`)."""
 LARGE_CUBE = {"fixtures.qa_cube.edge": 0.4, "fixtures.qa_cube.offset": [0.0, 0.0]}
 """The large cube a recipe validation accepts: 0.4 m, centred on the 585 mm platter."""
 SCALING = {0.5: (159.0, 20.0), 1.0: (317.0, 20.0), 2.0: (635.0, 20.0), 4.0: (1000.0, 15.75)}
@@ -219,6 +230,59 @@ def measure_station(recipe_path: Path, out: Path) -> dict[str, Any]:
     }
 
 
+def measure_cube_step(recipe_path: Path, out: Path) -> dict[str, Any]:
+    """The station's cube step in a process of its own: the recipe's strategy fine-tuned on its
+    prepared scan, then, timed, what the station runs after the last (cube) scan ends — the
+    pipeline's cube stage (``calstation.pipeline.stages.with_cube``: for a spin-target
+    strategy with the lidar's range model, :func:`calstation.engine.joint.
+    combine_with_cube_scan`'s known-size cube fit, combination and refits on the spin scan, then
+    the cube check under the combined H). The engine's modules are imported first as the
+    station preloads them (this revision's or the compared one's
+    ``calstation.station.preload.ENGINE_MODULES``); both scans are prepared before the wait, as
+    a station prepares them while it scans. Seconds, and the combined estimate's accuracy
+    against the simulator's truth."""
+    import importlib
+
+    from calstation import plugins
+    from calstation.engine.initial import initial_calibration
+    from calstation.engine.metrics import axis_errors
+    from calstation.pipeline import turned
+    from calstation.pipeline.stages import with_cube
+    from calstation.recipes import load_recipe
+    from calstation.recordings.reader import read_recording
+    from calstation.station.preload import ENGINE_MODULES
+
+    rc = load_recipe(recipe_path).recipe
+    _preload()
+    for name in ENGINE_MODULES:
+        importlib.import_module(name)
+    static = read_recording(out / "static.mcap")
+    start = initial_calibration(static, rc.fixtures.static_target, rc.calibration.initial).H
+    spin, cube = (turned(read_recording(out / f"{k}.mcap")) for k in ("spin", "cube"))
+    strategy = plugins.strategy(rc.calibration.strategy)
+    fixture = spin if strategy.fixture == "spin_target" else cube
+    fine = strategy.run_prepared(fixture.prepared, start, rc)
+    seconds, checked = _timed(lambda: with_cube(rc, strategy, fine, cube, spin=spin))
+    combined, check = checked.result, checked.check
+    assert cube.recording is not None
+    truth = cube.recording.truth
+    found: dict[str, Any] = {
+        "seconds": seconds, "strategy": combined.strategy, "failure": checked.ry_failure,
+        "edge_error_mm": check.edge_error * 1e3, "passed": bool(check.passed),
+        "twist_deg": check.twist_deg, "range": combined.range_fields(), "accuracy": None,
+        "peak_mb": peak_mb(),
+    }
+    if truth is not None:
+        e = axis_errors(combined.H, truth)
+        found["accuracy"] = {"offset_mm": e["axis_offset_m"] * 1e3,
+                             "direction_deg": math.degrees(e["axis_angle_rad"]),
+                             "ry_deg": math.degrees(e["ry_error"])}
+    sensor = json.loads((out / "truth.json").read_text()).get("sensor", {}).get("range", {})
+    found["range_truth"] = {"range_offset": sensor.get("offset"),
+                            "incidence_bias": sensor.get("incidence_bias")}
+    return found
+
+
 def _duration(rec: Any) -> float:
     """Seconds the scan took: its first to its last return."""
     return float(rec.t_ns[-1] - rec.t_ns[0]) * 1e-9 if rec.n_points else 0.0
@@ -227,7 +291,10 @@ def _duration(rec: Any) -> float:
 def processing(m: dict[str, Any]) -> dict[str, float]:
     """Processing after the scans (station) and from the files, and their ratios."""
     t = m["t"]
-    after = t["initial"] + t.get("periodicity after scan", t["periodicity"]) + t["cube check"]
+    # the station's cube step holds the cube check (with the range model, the known-size
+    # fit and the refits before it)
+    after = (t["initial"] + t.get("periodicity after scan", t["periodicity"])
+             + t.get(CUBE_STEP, t["cube check"]))
     files = t["read"] + t["initial"] + t["periodicity"] + t["cube check"]
     acq = m["acquisition_s"]
     return {"after scans": after, "from files": files, "acquisition": acq,
@@ -280,9 +347,29 @@ def _accuracy(m: dict[str, Any]) -> None:
               f"{a['direction_deg']:6.3f}°   ry {a['ry_deg']:+7.3f}°")
     print(f"    cube check (periodicity H): face-fit edge error {m['edge_error_mm']:.3f} mm, "
           f"passed={m['cube_passed']}")
+    if "cube_step" in m:
+        step = m["cube_step"]
+        print(f"    cube step (spin target + cube, {step['strategy']}): "
+              f"{_range_text(step)}; its cube check: face-fit edge error "
+              f"{step['edge_error_mm']:.3f} mm, twist {step['twist_deg']:+.3f}°, "
+              f"passed={step['passed']}"
+              + (f"; refused: {step['failure']}" if step["failure"] else ""))
     if "large_cube" in m:
         print(f"    cube check of the 0.4 m cube (true H): face-fit edge error "
               f"{m['large_cube']['edge_error_mm']:.3f} mm, passed={m['large_cube']['passed']}")
+
+
+def _range_text(step: dict[str, Any]) -> str:
+    """The cube step's range terms against the simulator's truth (mm, with their σ)."""
+    parts = []
+    for name, label in (("range_offset", "range offset"), ("incidence_bias", "incidence bias")):
+        value, truth = step["range"].get(name), step["range_truth"].get(name)
+        if value is None:
+            continue
+        sigma = step["range"].get(f"sigma_{name}") or math.nan
+        error = "" if truth is None else f" (error {(value - truth) * 1e3:+.3f} mm)"
+        parts.append(f"{label} {value * 1e3:+.3f} ± {sigma * 1e3:.3f} mm{error}")
+    return ", ".join(parts) or "no range model"
 
 
 def _recipe_of(args: argparse.Namespace, rev_dir: Path | None) -> Path:
@@ -315,6 +402,11 @@ def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[st
             large = _large_cube(env, rev_dir, args, out)
             found["t"]["cube check, 0.4 m cube"] = large["seconds"]
             found["large_cube"] = large
+            step = _own_process(env, rev_dir, args, out, "--json-cube-step")
+            found["t"][CUBE_STEP] = step["seconds"]
+            found["cube_step"] = step
+            if step["accuracy"] is not None:
+                found["accuracy"]["spin target + cube"] = step["accuracy"]
         elif part:
             found["t"].update(part["t"])
             found["mem"][STATION] = part["peak_mb"]
@@ -326,15 +418,22 @@ def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[st
 def _large_cube(env: dict[str, str], rev_dir: Path | None, args: argparse.Namespace,
                 out: Path) -> dict[str, Any]:
     """The cube check of the 0.4 m cube's recording (simulated beside ``out``) in a process of
-    its own, with the engine of this revision or of the one in ``rev_dir`` (this script's
-    measurement: the check's interface is the same)."""
-    large = out.parent / f"{out.name}-large-cube"
+    its own (:func:`_own_process`)."""
+    return _own_process(env, rev_dir, args, out.parent / f"{out.name}-large-cube",
+                        "--json-large")
+
+
+def _own_process(env: dict[str, str], rev_dir: Path | None, args: argparse.Namespace,
+                 out: Path, mode: str) -> dict[str, Any]:
+    """One of this script's measurements (``mode``: ``--json-large``, ``--json-cube-step``) on
+    the recordings in ``out``, in a process of its own, with the engine of this revision or of
+    the one in ``rev_dir`` (this script's measurement: the engine's interface is the same)."""
     recipe = _recipe_of(args, rev_dir)
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--json-large", "--out", str(large),
+    cmd = [sys.executable, str(Path(__file__).resolve()), mode, "--out", str(out),
            "--recipe", str(recipe)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=rev_dir or REPO)
     if proc.returncode != 0:
-        raise SystemExit(f"large-cube measurement failed ({rev_dir or 'this revision'}):\n"
+        raise SystemExit(f"{mode} measurement failed ({rev_dir or 'this revision'}):\n"
                          f"{proc.stderr[-2000:]}")
     return dict(json.loads(proc.stdout.strip().splitlines()[-1]))
 
@@ -424,6 +523,16 @@ def _same_estimates(mine: list[dict[str, Any]], theirs: list[dict[str, Any]], re
                for m, t in zip(mine, theirs, strict=True))
     print(f"  {'cube edge error':<22} " + ("identical" if edge == 0 else
                                           f"differs: up to {edge:.3g} mm"))
+    steps = [(m["cube_step"], t["cube_step"]) for m, t in zip(mine, theirs, strict=True)
+             if "cube_step" in m and "cube_step" in t]
+    if steps:
+        keys = ("range", "edge_error_mm", "twist_deg", "failure")
+        # as JSON: a σ not estimated (NaN) is the same as another
+        same = all(json.dumps([a[k] for k in keys]) == json.dumps([b[k] for k in keys])
+                   for a, b in steps)
+        print(f"  {'cube step range terms':<22} "
+              + ("identical" if same else "differ: " + "; ".join(
+                  f"{_range_text(a)} against {_range_text(b)}" for a, b in steps)))
 
 
 def scaling(args: argparse.Namespace, base: Path) -> None:
@@ -473,6 +582,7 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--json-station", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--json-large", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--json-cube-step", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--station-runs", type=Path, metavar="DIR", default=None,
                     help="also the wait at the station over the capability sweep's runs in DIR")
     args = ap.parse_args()
@@ -489,6 +599,9 @@ def main() -> None:
         return
     if args.json_large:
         print(json.dumps(measure_large_cube(args.recipe, out)))
+        return
+    if args.json_cube_step:
+        print(json.dumps(measure_cube_step(args.recipe, out)))
         return
     simulate(args.recipe, out, args.seed, args.range_m, args.pitch)
     simulate(args.recipe, out.parent / f"{out.name}-large-cube", args.seed, args.range_m,
