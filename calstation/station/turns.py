@@ -155,9 +155,9 @@ class TurnByTurn:
                 self.stopped = "budget"
             elif self._hopeless:
                 self.stopped = "fit"
-        for _, future in self._queued:
-            future.cancel()
-        self._pool.shutdown(wait=True)
+        # a later turn's fit already under way is not waited for: the step after the scan
+        # does not use it, and its thread ends with it
+        self._pool.shutdown(wait=False, cancel_futures=True)
         return ScanTurns(self.met, {**self.summary(), "whole_turns": whole_turns})
 
     def summary(self) -> TurnsSummary:
