@@ -248,19 +248,44 @@ def combine_range_with_cube(
     known-size cube fit with the range model on the cube's prepared returns ``scan`` (the whole
     scan, or the turns so far), combined with ``result``. Returns (the combined result, or
     ``result`` when they could not be combined; why not, or None; the fit's residual trends)."""
-    from calstation.engine.cubefit import known_size_fit
     from calstation.errors import FineTuningError
 
-    model: RangeModelName = "offset+scale" if result.range_scale is not None else "offset"
     try:
-        fit = known_size_fit(scan, result.H, geometry,
-                             platter_radius=platter_radius, range_model=model,
-                             start_range=result.range_model,
-                             incidence=result.incidence_bias is not None)
+        fit = _range_size_fit(result, scan, geometry, platter_radius)
     except FineTuningError as exc:
         return result, f"the cube could not add to the range model: {exc}", {}
     combined, failure = _combine_with_fit(result, fit, refit, progress)
     return combined, failure, fit.residuals
+
+
+def _range_size_fit(
+    result: CalibrationResult, scan: SpinScan, geometry: CubeGeometry, platter_radius: float
+) -> KnownSizeFit:
+    """The known-size cube fit with the range model from ``result`` on ``scan``, kept in the
+    scan's ``memo``: the cube scan's fit made while it turned (on the turns that met the budget)
+    is the one the step after it combines, not made again."""
+    from calstation.engine.cubefit import KnownSizeFit, known_size_fit
+    from calstation.errors import FineTuningError
+
+    model: RangeModelName = "offset+scale" if result.range_scale is not None else "offset"
+    incidence = result.incidence_bias is not None
+    key = (result.H.as_vector().tobytes(), result.range_model.as_vector().tobytes(), model,
+           incidence, repr(geometry), platter_radius)
+    kept = scan.memo.get("range_size_fit")
+    if isinstance(kept, tuple) and kept[0] == key:
+        if isinstance(kept[1], FineTuningError):
+            raise kept[1]
+        if isinstance(kept[1], KnownSizeFit):
+            return kept[1]
+    try:
+        fit = known_size_fit(scan, result.H, geometry, platter_radius=platter_radius,
+                             range_model=model, start_range=result.range_model,
+                             incidence=incidence)
+    except FineTuningError as exc:
+        scan.memo["range_size_fit"] = (key, exc)
+        raise
+    scan.memo["range_size_fit"] = (key, fit)
+    return fit
 
 
 def _combine_with_fit(

@@ -368,6 +368,10 @@ class SpinScanBuilder:
         self.during_s = 0.0
         """seconds of per-line work done while the scan ran"""
         self._done: SpinScan | None = None
+        self._handed: dict[int, SpinScan] = {}
+        """the scans :meth:`so_far` handed out, by their lines: :meth:`first_lines` gives the same
+        object back, so what a fit made while scanning kept in its ``memo`` reaches the step
+        after the scan"""
 
     def write_line(self, line: LineLike) -> None:
         t0 = time.perf_counter()
@@ -451,6 +455,7 @@ class SpinScanBuilder:
         (into new rows: a fit under way keeps the view it was handed)."""
         self._late = False
         self._enc_arrays = None
+        self._handed.clear()  # their angles were found without this reading
         phi = _Rows(np.float64, capacity=max(self._phi.data.shape[0], 1))
         if self._phi.n:
             phi.append(self._angle(self._t.data[: self._phi.n], *self._encoder_arrays()))
@@ -492,7 +497,9 @@ class SpinScanBuilder:
         keep = np.isfinite(phi)
         if not keep.all():
             phi, p_L, rng, az, b, c = phi[keep], p_L[keep], rng[keep], az[keep], b[keep], c[keep]
-        return SpinScan(p_L, phi, rng, az, {"during_scan": self.during_s}, cells=(b, c))
+        scan = SpinScan(p_L, phi, rng, az, {"during_scan": self.during_s}, cells=(b, c))
+        self._handed[lines] = scan
+        return scan
 
     @property
     def lines(self) -> int:
@@ -507,6 +514,8 @@ class SpinScanBuilder:
         done = self.finish()
         if lines >= len(self._line_ends):
             return done
+        if lines in self._handed:
+            return self._handed[lines]
         end = self._line_ends[lines - 1] if lines > 0 else 0
         phi, p_L = self._phi.view()[:end], self._p.view()[:end]
         rng, az = self._rng.view()[:end], self._az.view()[:end]

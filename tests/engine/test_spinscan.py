@@ -148,3 +148,43 @@ def test_lines_wait_for_the_platter_to_move_before_their_angles_are_found(sim_ru
     a, b = live.finish(), everything.finish()
     assert a.n_points == b.n_points
     assert np.array_equal(a.phi, b.phi)
+
+
+def test_the_first_lines_of_a_scan_are_the_scan_handed_out_at_those_lines(sim_run) -> None:
+    """What a fit made while scanning kept with the scan it was handed (its ``memo``) reaches
+    the step after the scan, which takes the same lines: the same object, until a late reading
+    finds their angles again."""
+    rec = read_recording(sim_run()["spin"])
+    samples = [EncoderSample(int(t), int(c))
+               for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)]
+    lines = list(rec.lines())
+    builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
+                              rec.encoder_latency_s)
+    builder.write_encoder(samples[: len(samples) // 2])
+    for line in lines[: len(lines) // 3]:
+        builder.write_line(line)
+    handed = builder.so_far()
+    assert handed is not None
+    ready = builder.lines_ready
+    handed.memo["kept"] = True
+    builder.write_encoder(samples[len(samples) // 2 :])
+    for line in lines[len(lines) // 3 :]:
+        builder.write_line(line)
+    assert builder.first_lines(ready) is handed
+    assert builder.first_lines(ready).memo["kept"] is True
+    again = from_recording(rec.first_lines(ready))
+    assert np.array_equal(handed.phi, again.phi) and np.array_equal(handed.p_L, again.p_L)
+
+    late = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
+                           rec.encoder_latency_s)
+    late.write_encoder(samples[: len(samples) // 2 : 2])
+    for line in lines[: len(lines) // 3]:
+        late.write_line(line)
+    first = late.so_far()
+    assert first is not None
+    at = late.lines_ready
+    late.write_encoder(samples[1 : len(samples) // 2 : 2])  # late: between those handed over
+    late.write_encoder(samples[len(samples) // 2 :])
+    for line in lines[len(lines) // 3 :]:
+        late.write_line(line)
+    assert late.first_lines(at) is not first

@@ -132,9 +132,18 @@ def test_with_the_range_model_the_cube_scan_turns_until_the_combination_meets_th
         assert accepted.predicted_error_m is not None and accepted.predicted_error_m <= 0.00037
         assert accepted.range_offset is not None
         params, sigma = accepted.params(), accepted.result().sigma
+        run = s.get(Run, run_id)
+        assert run is not None
+        job = plan_reprocessing(run)
     for name in ("tx", "ty", "tz", "ry", "rz"):
         error = params[name] - getattr(truth, name)
         assert not math.isnan(sigma[name]) and abs(error) <= 3 * sigma[name], (name, error)
+    # the step combined the cube's fit made while it turned; re-processed from the recordings
+    # (the fit made anew on the lines that met the budget) the run gives the same H
+    again = compute_reprocessing(job).result
+    assert again.range_offset == accepted.range_offset
+    for name, value in params.items():
+        assert again.H.as_dict()[name] == pytest.approx(value, abs=1e-12), name
 
 
 def test_exactly_the_asked_turns_without_turn_by_turn(tmp_path: Path, db: Database) -> None:
