@@ -538,25 +538,20 @@ def model_labels(
                           -s * (o[:, 1] - cy) + c * (o[:, 2] - cz)])
     dl = np.column_stack([d[:, 0], c * d[:, 1] + s * d[:, 2], -s * d[:, 1] + c * d[:, 2]])
     label, cube_range, shadow = _cube_entries(ol, dl, edge)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        plate_range = -o[:, 0] / d[:, 0]
-    at = o + plate_range[:, None] * d
-    on_plate = ~np.isfinite(shadow) & (plate_range > 0) & (
-        np.hypot(at[:, 1], at[:, 2]) <= platter_radius - MARGIN)
-    predicted = np.where(label > 0, cube_range, plate_range)
     measured = RangeModel.from_vector(v).ranges(returns.rho)
     window = max(6.0 * noise if math.isfinite(noise) else 0.0, 0.005)
-    close = np.abs(measured - predicted) <= window
-    on_face = (label > 0) & close
+    on_plate, plate_close = _platter_returns(o, d, measured, shadow, platter_radius, window)
+    predicted = np.where(label > 0, cube_range, np.inf)
+    on_face = (label > 0) & (np.abs(measured - predicted) <= window)
     faces_idx = np.flatnonzero(on_face)
     if faces_idx.size > FIT_POINTS:
         faces_idx = np.sort(np.random.default_rng(0).choice(faces_idx, FIT_POINTS, replace=False))
-    plate_idx = np.flatnonzero(on_plate & close)
+    plate_idx = np.flatnonzero(on_plate & plate_close)
     if plate_idx.size > PLATTER_POINTS:
         plate_idx = np.sort(
             np.random.default_rng(1).choice(plate_idx, PLATTER_POINTS, replace=False))
     found = [f for f in range(1, 6) if np.count_nonzero(label[faces_idx] == f) >= 30]
-    if len(found) < MIN_FACES or plate_idx.size < 200:
+    if len(found) < MIN_FACES or plate_idx.size < MIN_PLATTER:
         raise FineTuningError(
             f"the known-size cube fit with the range model needs {MIN_FACES} faces of the cube "
             f"with 30 returns and the platter around it: found {len(found)} faces and "
@@ -571,6 +566,47 @@ def model_labels(
     )
     platter: FloatArray = p_L[plate_idx]
     return faces, platter
+
+
+def _platter_returns(
+    o: FloatArray, d: FloatArray, measured: FloatArray, shadow: FloatArray,
+    platter_radius: float, window: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """The returns whose ray (from ``o`` along unit ``d``, in D) meets the platter top inside
+    its rim, the cube's shadow missed, and which of them read within ``window`` of the top.
+
+    The top is the plane x_D = 0 of the estimate; when fewer than :data:`MIN_PLATTER` of its
+    returns read within the window there, the estimate's level is off by more than the window
+    allows (at 30° of pitch the rays meet the platter at grazing angles, and 2 mm of level is
+    5 mm of range): the window is then centred on where the platter's returns read, the median
+    of their heights within :data:`LEVEL_SEARCH` of the plane, and the fit brings the estimate
+    there. The median is of every such return, so the window is still symmetric about a model
+    and chooses none by its noise."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        plate_range = -o[:, 0] / d[:, 0]
+        at = o + plate_range[:, None] * d
+    on_plate = ~np.isfinite(shadow) & (plate_range > 0) & (
+        np.hypot(at[:, 1], at[:, 2]) <= platter_radius - MARGIN)
+    close = np.abs(measured - plate_range) <= window
+    if np.count_nonzero(on_plate & close) >= MIN_PLATTER:
+        return on_plate, close
+    height = o[:, 0] + measured * d[:, 0]  # each return's height above the estimate's top
+    near = on_plate & (np.abs(height) <= LEVEL_SEARCH)
+    if not near.any():
+        return on_plate, close
+    level = float(np.median(height[near]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shifted = (level - o[:, 0]) / d[:, 0]
+    return on_plate, np.abs(measured - shifted) <= window
+
+
+MIN_PLATTER = 200
+"""Platter returns the known-size fit with a range model needs around the cube."""
+
+LEVEL_SEARCH = 0.03
+"""How far (m) from the estimate's platter top the platter's returns are looked for when too
+few read within the window there: a start's level is within millimetres (the box cost's, or
+the spin target's), the floor and the background far below."""
 
 
 def _cube_entries(
