@@ -70,13 +70,18 @@ def _interleaved(builder: SpinScanBuilder, samples: list[EncoderSample], lines: 
     return ready
 
 
-def test_readings_handed_over_late_are_put_in_their_place(sim_run) -> None:
-    rec = read_recording(sim_run()["spin"])
+def _unfed(rec: Any) -> tuple[list[EncoderSample], list[Any], SpinScanBuilder]:
+    """A recording's encoder readings and lines, and a builder for it that has been fed none."""
     samples = [EncoderSample(int(t), int(c))
                for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)]
-    lines = list(rec.lines())
     builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
                               rec.encoder_latency_s)
+    return samples, list(rec.lines()), builder
+
+
+def test_readings_handed_over_late_are_put_in_their_place(sim_run) -> None:
+    rec = read_recording(sim_run()["spin"])
+    samples, lines, builder = _unfed(rec)
     ready = _interleaved(builder, samples[: len(samples) // 2], lines[: len(lines) // 2],
                          hold_back_every=3)
     # the scan so far goes on growing through the late readings (it once stopped for good)
@@ -155,11 +160,7 @@ def test_the_first_lines_of_a_scan_are_the_scan_handed_out_at_those_lines(sim_ru
     the step after the scan, which takes the same lines: the same object, until a late reading
     finds their angles again."""
     rec = read_recording(sim_run()["spin"])
-    samples = [EncoderSample(int(t), int(c))
-               for t, c in zip(rec.encoder_t_ns, rec.encoder_count, strict=True)]
-    lines = list(rec.lines())
-    builder = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
-                              rec.encoder_latency_s)
+    samples, lines, builder = _unfed(rec)
     builder.write_encoder(samples[: len(samples) // 2])
     for line in lines[: len(lines) // 3]:
         builder.write_line(line)
@@ -175,8 +176,7 @@ def test_the_first_lines_of_a_scan_are_the_scan_handed_out_at_those_lines(sim_ru
     again = from_recording(rec.first_lines(ready))
     assert np.array_equal(handed.phi, again.phi) and np.array_equal(handed.p_L, again.p_L)
 
-    late = SpinScanBuilder(rec.counts_per_revolution, rec.encoder_direction,
-                           rec.encoder_latency_s)
+    late = _unfed(rec)[2]
     late.write_encoder(samples[: len(samples) // 2 : 2])
     for line in lines[: len(lines) // 3]:
         late.write_line(line)
