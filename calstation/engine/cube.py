@@ -210,23 +210,17 @@ def _cube_cloud(
 ) -> CubeCloud:
     """Find the platter and the cube's returns under H (the cube check's segmentation)."""
     # height along the axis and distance from it do not depend on the platter angle: find the
-    # platter and the returns the steps below can use before turning any by its angle
-    t_P = H.t @ H.R
-    x = p_L @ H.R[:, 0]
-    x -= t_P[0]
-    # the distance from the axis, once, of every return the three tests below may take (the
+    # platter and the returns the steps below can use before turning any by its angle; the
+    # distance from the axis once, of every return the three tests below may take (the
     # platter's level lies within PLATTER_WINDOW of x_P = 0)
-    near = np.flatnonzero((x > -PLATTER_WINDOW - RING_BAND) & (x < 3 * s + PLATTER_WINDOW))
-    yz = p_L[near] @ H.R[:, 1:]
-    yz -= t_P[1:]
-    r2 = np.einsum("ij,ij->i", yz, yz)
-    x_near = x[near]
+    near, x_near, r2 = _along_axis(p_L, H, -PLATTER_WINDOW - RING_BAND, 3 * s + PLATTER_WINDOW)
     inside = r2 < (platter_radius - 0.005) ** 2
     # measure from the platter as seen, not from x_D = 0: a calibration's origin along the axis
     # is a gauge (the shape strategy holds ty), and a few millimetres there would otherwise
     # lift the platter itself above the segmentation cut
-    window = near[(np.abs(x_near) < PLATTER_WINDOW) & inside]
-    level = level_of_heights(x[window])
+    in_window = (np.abs(x_near) < PLATTER_WINDOW) & inside
+    window = near[in_window]
+    level = level_of_heights(x_near[in_window])
     x_near -= level
     above = near[(x_near > SEGMENT_MARGIN) & (x_near < 3 * s) & (r2 < platter_radius**2)]
     ring = near[(np.abs(x_near) < RING_BAND) & inside]
@@ -240,6 +234,21 @@ def _cube_cloud(
     keep = np.flatnonzero(density_outlier_mask(p_D))
     keep = keep[largest_cluster(p_D[keep])]
     return CubeCloud(level, p_ring, p_L, phi, used[keep], p_D[keep], window, ring)
+
+
+def _along_axis(
+    p_L: FloatArray, H: Extrinsics, low: float, high: float
+) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
+    """The returns ((N, 3) in L) whose height along the axis under H lies between ``low`` and
+    ``high`` (m, from x_P = 0): their positions, their heights and their squared distances from
+    the axis. Neither depends on the platter angle, so no return is turned by it."""
+    t_P = H.t @ H.R
+    x = p_L @ H.R[:, 0]
+    x -= t_P[0]
+    idx = np.flatnonzero((x > low) & (x < high))
+    yz = p_L[idx] @ H.R[:, 1:]
+    yz -= t_P[1:]
+    return idx, x[idx], np.einsum("ij,ij->i", yz, yz)
 
 
 def _whole_lines(p_L: FloatArray, most: int) -> NDArray[np.intp]:
@@ -659,14 +668,10 @@ def _returns_near_platter(
     largest = (abs(model.offset) + abs(model.incidence) * (1 / LEAST_COSINE - 1)
                + abs(model.scale) * float(np.max(scan.rng, initial=0.0))) / (1 - abs(model.scale))
     margin = CHECK_MARGIN + largest
-    t_P = H.t @ H.R
-    x = scan.p_L @ H.R[:, 0]
-    x -= t_P[0]
     # the platter's level lies within PLATTER_WINDOW of x_P = 0
-    idx = np.flatnonzero((x > -PLATTER_WINDOW - margin) & (x < 3 * edge + PLATTER_WINDOW + margin))
-    yz = scan.p_L[idx] @ H.R[:, 1:]
-    yz -= t_P[1:]
-    out: NDArray[np.intp] = idx[np.einsum("ij,ij->i", yz, yz) < (platter_radius + margin) ** 2]
+    idx, _, r2 = _along_axis(scan.p_L, H, -PLATTER_WINDOW - margin,
+                             3 * edge + PLATTER_WINDOW + margin)
+    out: NDArray[np.intp] = idx[r2 < (platter_radius + margin) ** 2]
     memo["returns"] = (key, out)
     memo.pop("cube_cloud", None)  # its positions were in other returns
     return out

@@ -29,7 +29,6 @@ than the recipe says reads as an axis about 0.04 mm off.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -40,6 +39,7 @@ from scipy.optimize import least_squares
 from calstation.engine.cube import CubeCloud, cube_cloud
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import face_labels, upright_box
+from calstation.engine.kept import Kept
 from calstation.engine.periodicity.covariance import (
     CovarianceRecord,
     block_ids,
@@ -209,19 +209,10 @@ class _RangeSizeErrors:
         """the platter's level free, unless the scale error is fitted: then the cube's height
         above the platter is the known length that sets it (the platter and the cube must read
         alike: one finish)"""
-        self._kept: dict[str, tuple[bytes, tuple[FloatArray, ...]]] = {}
+        self._kept = Kept()
         """the last evaluation's turned rays (by H), faces (by the estimated vector and the
         yaw) and platter (by the estimated vector): a finite-difference step in the cube's
         centre, its yaw or a range term leaves some of them as they were"""
-
-    def _keep(self, name: str, key: bytes,
-              compute: Callable[[], tuple[FloatArray, ...]]) -> tuple[FloatArray, ...]:
-        """``compute()``, or what it gave for the same ``key`` at the last call."""
-        kept = self._kept.get(name)
-        if kept is None or kept[0] != key:
-            kept = (key, compute())
-            self._kept[name] = kept
-        return kept[1]
 
     def vector(self, x: FloatArray) -> FloatArray:
         v = self.base.copy()
@@ -235,7 +226,7 @@ class _RangeSizeErrors:
         """The side faces' normals (y, z in D) under the pose of ``x``, and each face return's
         cosine with its surface's normal."""
         f = self.f
-        r = self._keep("rays", H.as_vector().tobytes(),
+        r = self._kept.get("rays", H.as_vector().tobytes(),
                        lambda: (_turned(f.rays, H, f.cos, f.sin),))[0]
         yaw = float(x[len(self.free) + 2])
         c, s = math.cos(yaw), math.sin(yaw)
@@ -268,11 +259,11 @@ class _RangeSizeErrors:
                       - H.t) @ H.R[:, 0]
             return (height / away_from_grazing(down),)
 
-        ny, nz, cosine, q = self._keep("faces", v.tobytes() + x[len(self.free) + 2].tobytes(),
+        ny, nz, cosine, q = self._kept.get("faces", v.tobytes() + x[len(self.free) + 2].tobytes(),
                                        faces)
         dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - 0.5 * size,
                         q[:, 0] - size)
-        platter = self._keep("platter", v.tobytes(), on_platter)[0]
+        platter = self._kept.get("platter", v.tobytes(), on_platter)[0]
         if self.level_free:
             # about their mean: the platter gives the axis's direction; its level is free, as
             # a platter of another finish reads at another range than the cube (the cube's

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from calstation.engine.frames import FloatArray
+from calstation.engine.kept import Kept
 from calstation.engine.periodicity.cells import _rotation
 from calstation.engine.periodicity.covariance import SIGMA_BLOCK, block_ids
 from calstation.engine.rangemodel import (
@@ -108,7 +109,7 @@ class _Problem:
         self.swa = np.sqrt(matched.wa)
         self.swb = np.sqrt(matched.wb)
         self._nq: tuple[FloatArray, FloatArray, FloatArray, FloatArray] | None = None
-        self._corrections: dict[str, tuple[bytes, FloatArray]] = {}
+        self._corrections = Kept()
         self.platter_dir = np.zeros((0, 3))
         self.point_dir = np.zeros((0, 3))
         if matched.one_sided:
@@ -144,16 +145,11 @@ class _Problem:
         the same: where the fine-tuning holds them (with the lidar's range model, its spin
         target does), the points are corrected once per inner solve rather than at every
         evaluation."""
-        key = x6[OFFSET:].tobytes()
-        kept = self._corrections.get(which)
-        if kept is not None and kept[0] == key:
-            return kept[1]
         points, shape = {"a": (self.m.pa, self.shape_a), "b": (self.m.pb, self.shape_b),
                          "platter": (self.platter, self.shape_p)}[which]
         assert points is not None
-        out = correct_vector(points, x6, shape)
-        self._corrections[which] = (key, out)
-        return out
+        return self._corrections.get(which, x6[OFFSET:].tobytes(),
+                                     lambda: correct_vector(points, x6, shape))
 
     def _platter_scale(self, x6: FloatArray, noise: float) -> float:
         """Weight of the platter residuals (range errors, m) relative to the target's: the
