@@ -532,8 +532,7 @@ def model_labels(
     measured = RangeModel.from_vector(v).ranges(returns.rho)
     window = max(6.0 * noise if math.isfinite(noise) else 0.0, 0.005)
     on_plate, plate_close = _platter_returns(o, d, measured, shadow, platter_radius, window)
-    predicted = np.where(label > 0, cube_range, np.inf)
-    on_face = (label > 0) & (np.abs(measured - predicted) <= window)
+    on_face = (label > 0) & (np.abs(measured - cube_range) <= window)
     faces_idx = np.flatnonzero(on_face)
     if faces_idx.size > FIT_POINTS:
         faces_idx = np.sort(np.random.default_rng(0).choice(faces_idx, FIT_POINTS, replace=False))

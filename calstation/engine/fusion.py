@@ -100,6 +100,13 @@ class Fused:
     disagreement: Disagreement
 
     @property
+    def vector(self) -> FloatArray:
+        """(8,) H's parameters then the range terms (:data:`~calstation.engine.rangemodel.
+        ESTIMATED_NAMES`)."""
+        out: FloatArray = np.concatenate([self.H.as_vector(), self.range_model.as_vector()])
+        return out
+
+    @property
     def sigma(self) -> dict[str, float]:
         """1σ per estimated parameter (SI)."""
         return {n: math.sqrt(max(float(self.covariance[k, k]), 0.0))

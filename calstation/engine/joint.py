@@ -203,9 +203,7 @@ range term, is the last: the next moves it far less. On the default simulated ru
 def _moved(before: Fused, after: Fused) -> float:
     """How far ``after`` lies from ``before``: the largest difference of a parameter, in
     ``after``'s σ of it."""
-    a = np.concatenate([before.H.as_vector(), before.range_model.as_vector()])
-    b = np.concatenate([after.H.as_vector(), after.range_model.as_vector()])
-    sigma = after.sigma
+    a, b, sigma = before.vector, after.vector, after.sigma
     moved = [abs(b[ESTIMATED_NAMES.index(n)] - a[ESTIMATED_NAMES.index(n)]) / sigma[n]
              for n in after.names if sigma[n] > 0]
     return float(max(moved, default=0.0))
@@ -394,11 +392,10 @@ def _combined(result: CalibrationResult, fit: KnownSizeFit, fused: Fused) -> Cal
     }
     diagnostics = {**result.diagnostics, "joint": details, "covariance": fused.record(),
                    "bias_bound": {}}
-    vector = np.concatenate([fused.H.as_vector(), fused.range_model.as_vector()])
     terms = [ESTIMATED_NAMES.index(n) for n in fused.names if n in RANGE_NAMES]
     combined = replace(result, H=fused.H, sigma=sigma, strategy=f"{result.strategy}+cube",
                        diagnostics=diagnostics)
-    return combined.with_range(range_result_fields(vector, dict(fused_sigma), terms))
+    return combined.with_range(range_result_fields(fused.vector, dict(fused_sigma), terms))
 
 
 def with_cube_ry(
