@@ -578,6 +578,26 @@ def _failures(
     return failures
 
 
+FIGURES = ("perpendicularity_deg", "edge_error", "flatness_excess")
+"""The cube check's figures of the cube's shape (a :class:`CubeCheck`'s fields), each with a
+limit of ``qa``: ``perpendicularity_deg``, ``edge_error``, ``flatness_rms``."""
+
+
+def failed_figures(check: CubeCheck, limits: QALimits) -> dict[str, float]:
+    """The figures of :data:`FIGURES` that fail ``check`` (by its own tests: the
+    perpendicularity beyond its limit and 3σ, the edge error and the flatness beyond the noise
+    beyond theirs), each with its limit (metres or degrees)."""
+    out = {}
+    perp, sigma = check.perpendicularity_deg, check.perpendicularity_sigma_deg
+    if perp > limits.perpendicularity_deg and not perp <= 3 * sigma:
+        out["perpendicularity_deg"] = limits.perpendicularity_deg
+    if check.edge_error > limits.edge_error:
+        out["edge_error"] = limits.edge_error
+    if check.flatness_excess > limits.flatness_rms:
+        out["flatness_excess"] = limits.flatness_rms
+    return out
+
+
 def _height(
     p_D: FloatArray, top: _Face, centre: FloatArray, ext: FloatArray, platter_radius: float
 ) -> float:
@@ -611,12 +631,13 @@ def check_cube(
     prepared: SpinScan | None = None,
     nearby: bool = False,
     range_model: RangeModel = IDENTITY,
+    edges_only: bool = False,
 ) -> CubeCheck:
     """Cube check on a QA-cube spin-scan recording with the calibration H and the lidar's
     ``range_model``. ``prepared``: the recording's returns already prepared
     (:func:`calstation.engine.spinscan.from_recording`, or a
     :class:`~calstation.engine.spinscan.SpinScanBuilder` as the scan ran), else they are
-    prepared here. ``nearby``: see :func:`check_cube_points`."""
+    prepared here. ``nearby`` and ``edges_only``: see :func:`check_cube_points`."""
     from calstation.engine.spinscan import from_recording
 
     scan = prepared if prepared is not None else from_recording(recording)
@@ -636,7 +657,7 @@ def check_cube(
     try:
         return check_cube_points(
             p_L, phi, H, cube, limits, platter_radius=platter_radius, memo=memo,
-            nearby=nearby,
+            nearby=nearby, edges_only=edges_only,
         )
     except VerificationError as exc:
         raise VerificationError(f"{recording.path}: {exc}") from None

@@ -27,7 +27,7 @@ from calstation.engine.rangemodel import (
     RangeModelName,
     range_result_fields,
 )
-from calstation.engine.residuals import TrendRecord, unmodelled
+from calstation.engine.residuals import TermResponse, TrendRecord, in_check, unmodelled
 from calstation.engine.result import CalibrationResult
 
 if TYPE_CHECKING:
@@ -243,11 +243,80 @@ def combine_range_with_cube_scan(
     check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared, range_model=combined.range_model)
     if not check.passed and failure is None:
-        seen = unmodelled(residuals)
-        if seen:  # not the cube's shape alone: say what the lidar's ranges do
-            failure = ("the lidar's range error is not what its range model says, and may be "
-                       f"what the cube check sees — on the cube's faces, {'; '.join(seen)}")
+        if progress is not None:
+            progress("measuring the cube with the range terms moved by their uncertainty", 0.9)
+        failure = check_failure(cube, scan, combined, check, geometry, qa,
+                                platter_radius=platter_radius, residuals=residuals)
     return combined, check, failure
+
+
+def check_failure(
+    cube: Scan, scan: SpinScan, result: CalibrationResult, check: CubeCheck,
+    geometry: CubeGeometry, qa: QALimits, *, platter_radius: float,
+    residuals: Mapping[str, TrendRecord],
+) -> str | None:
+    """What the lidar's range error may do to ``check``, a cube check under ``result`` that
+    failed (:func:`calstation.engine.residuals.in_check`): how far its failed figures follow
+    the range terms' uncertainty (:func:`range_responses`, on ``scan``, the cube scan's
+    prepared returns), and the known-size fit's ``residuals`` trends; None when ``result``'s
+    range model has no clear term and the residuals no trend. The cube's shape alone is then
+    what the check names."""
+    return in_check(range_responses(cube, scan, result, check, geometry, qa,
+                                    platter_radius=platter_radius), residuals)
+
+
+SIGNIFICANT = 3.0
+"""A range term further than this many σ from zero is one the lidar clearly has: a failed cube
+check says what its uncertainty does to the check (:func:`range_responses`)."""
+
+_FIELDS = {"incidence_bias": "incidence", "range_offset": "offset", "range_scale": "scale"}
+"""The range terms' names in a result, and their :class:`~calstation.engine.rangemodel.
+RangeModel` fields."""
+
+
+def range_responses(
+    cube: Scan, scan: SpinScan, result: CalibrationResult, check: CubeCheck,
+    geometry: CubeGeometry, qa: QALimits, *, platter_radius: float,
+) -> list[TermResponse]:
+    """How far each figure that failed ``check`` (the cube check under ``result``,
+    :func:`calstation.engine.cube.failed_figures`) moves when each range term of ``result``
+    that is clearly not zero (beyond :data:`SIGNIFICANT` σ) moves by its uncertainty, either
+    way: its σ, and for the incidence bias :data:`INCIDENCE_MODEL` of it beside, the share of
+    its effect the bias's shape may miss. Each is the check again under the same H (its edges,
+    flatness and perpendicularity: no box, no twist) on ``scan``, the cube scan's prepared
+    returns, with a memo of its own. Empty when no figure failed or no term is clear; a term
+    under which the cube is no longer found (never seen) is left out."""
+    from calstation.engine.cube import check_cube, failed_figures
+    from calstation.errors import VerificationError
+
+    failed = failed_figures(check, qa)
+    if not failed:
+        return []
+    model = result.range_model
+    out: list[TermResponse] = []
+    for name, field in _FIELDS.items():
+        value, sigma = getattr(result, name), getattr(result, f"sigma_{name}")
+        if value is None or sigma is None or not (math.isfinite(sigma) and sigma > 0) \
+                or abs(value) <= SIGNIFICANT * sigma:
+            continue
+        model_error = INCIDENCE_MODEL * abs(value) if name == "incidence_bias" else 0.0
+        step = math.hypot(sigma, model_error)
+        try:
+            moved = [check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius,
+                                prepared=replace(scan, memo={}),
+                                range_model=replace(model, **{field: value + sign * step}),
+                                edges_only=True)
+                     for sign in (-1.0, 1.0)]
+        except VerificationError:
+            continue
+        out.append({
+            "name": name, "value": float(value), "sigma": float(sigma),
+            "model_error": model_error, "step": step,
+            "figures": {f: {"value": float(getattr(check, f)), "limit": limit,
+                            "at": [float(getattr(m, f)) for m in moved]}
+                        for f, limit in failed.items()},
+        })
+    return out
 
 
 def combine_range_with_cube(

@@ -17,6 +17,12 @@ incidence angle and azimuth. A trend against one of them is an error the model d
 median with its σ; a trend is **significant** when its bins differ by more than both
 :data:`FLOOR_M` and :data:`SIGNIFICANCE` times their σ. :func:`unmodelled` says the significant
 ones in words, for the refusal advice and the report.
+
+A range error the model does hold still has its uncertainty: when the cube check fails, what the
+estimated terms' σ (and the incidence bias's model error) can do to the failed figures
+(:func:`calstation.engine.joint.range_responses`) is said by :func:`in_check`, with the
+trends, so that a cube the lidar's ranges may have put out of square is not blamed on its
+squareness alone.
 """
 
 from __future__ import annotations
@@ -168,3 +174,113 @@ def _suggests(name: str, slope: float) -> str:
                 "estimate, or fixtures of one finish")
     return ("a range error that varies across the lidar's field of view, which no range model "
             "holds: check the lidar's window, or place the fixtures at the centre of its view")
+
+
+class FigureResponse(TypedDict):
+    """One failed figure of the cube check (``perpendicularity_deg`` in degrees,
+    ``edge_error`` or ``flatness_excess`` in metres): its ``value``, its ``limit``, and the
+    figure ``at`` the range term moved down and up by its step."""
+
+    value: float
+    limit: float
+    at: list[float]
+
+
+class TermResponse(TypedDict):
+    """How the cube check's failed figures follow one range term (``incidence_bias`` m at 60°,
+    ``range_offset`` m or ``range_scale``): its estimate ``value`` and ``sigma``, the
+    ``model_error`` beside its σ (the incidence bias's shape), the ``step`` it was moved by
+    (the two in quadrature) and each failed figure's response."""
+
+    name: str
+    value: float
+    sigma: float
+    model_error: float
+    step: float
+    figures: dict[str, FigureResponse]
+
+
+FIGURE_WORDS = {"perpendicularity_deg": ("the perpendicularity", "°", 1.0, 3),
+                "edge_error": ("the face-fit edge error", " mm", 1e3, 2),
+                "flatness_excess": ("the flatness beyond the noise", " mm", 1e3, 2)}
+"""A failed figure for people: its name, unit, factor from SI and decimals (as the check's
+failures give it)."""
+
+TERM_WORDS = {"incidence_bias": ("incidence bias", " mm", " at 60°", 1e3, 3),
+              "range_offset": ("range offset", " mm", "", 1e3, 3),
+              "range_scale": ("scale error", " ppm", "", 1e6, 0)}
+"""A range term for people: its name, unit, what its value is of, factor from SI and
+decimals."""
+
+
+def in_check(responses: list[TermResponse], trends: Mapping[str, TrendRecord]) -> str | None:
+    """What the lidar's range error may do to a cube check that failed, in words, or None when
+    there is nothing to say: each clear range term's uncertainty and how far it moves the
+    failed figures (:func:`calstation.engine.joint.range_responses`), whether that could bring
+    them within their limits, and what would tell the lidar's range error from the cube's
+    shape; and the significant residual trends (:func:`unmodelled`)."""
+    seen = unmodelled(trends)
+    if not responses:
+        if not seen:
+            return None
+        return ("the lidar's range error is not what its range model says, and may be what the "
+                f"cube check sees — on the cube's faces, {'; '.join(seen)}")
+    within = any(min(f["at"]) <= f["limit"] for r in responses for f in r["figures"].values())
+    verdict = ("within one range term's uncertainty the cube would pass, so the check cannot "
+               "tell the unit's shape from the lidar's range error" if within
+               else "no one term's uncertainty brings it within its limit")
+    said = (f"the lidar's range error may be part of what the cube check sees: "
+            f"{'; '.join(_term(r) for r in responses)} — {verdict}. {_separate(responses)}")
+    if seen:
+        said += (" Its range error is also not what its range model says — on the cube's "
+                 f"faces, {'; '.join(seen)}")
+    return said
+
+
+def _term(r: TermResponse) -> str:
+    """One range term's uncertainty and the failed figures' response to it."""
+    label, unit, of, factor, digits = TERM_WORDS[r["name"]]
+    why = "its σ"
+    if r["model_error"] > 0:
+        why = f"its σ and {r['model_error'] * factor:.{digits}f}{unit} for the bias's shape"
+    head = (f"its {label}, {r['value'] * factor:+.{digits}f} ± {r['sigma'] * factor:.{digits}f}"
+            f"{unit}{of}, moved by {r['step'] * factor:.{digits}f}{unit} ({why}),")
+    moves = []
+    for name, f in r["figures"].items():
+        what, funit, ffactor, fdigits = FIGURE_WORDS[name]
+        by = max(abs(a - f["value"]) for a in f["at"])
+        lower = 0 if f["at"][0] <= f["at"][1] else 1  # the term moved down, or up
+        if f["at"][lower] >= f["value"]:
+            moves.append(f"moves {what} by {by * ffactor:.{fdigits}f}{funit}, up either way")
+            continue
+        term_at = r["value"] + (2 * lower - 1) * r["step"]
+        state = "within" if f["at"][lower] <= f["limit"] else "still over"
+        moves.append(f"moves {what} by {by * ffactor:.{fdigits}f}{funit} (down to "
+                     f"{f['at'][lower] * ffactor:.{fdigits}f}{funit} at "
+                     f"{term_at * factor:+.{digits}f}{unit}, {state} its "
+                     f"{f['limit'] * ffactor:.{fdigits}f}{funit} limit)")
+    return f"{head} {' and '.join(moves)}"
+
+
+def _separate(responses: list[TermResponse]) -> str:
+    """What would tell the lidar's range terms from the cube's shape, from what each term's
+    uncertainty came from: more turns narrow a σ, not the incidence bias's shape (a model);
+    another placement of the cube meets its faces at other angles and ranges, which moves a
+    range error's effect on the check and not the cube's shape; the lidar's own figures
+    compare with the estimates."""
+    say = []
+    if any(r["sigma"] >= r["model_error"] for r in responses):
+        say.append("more cube turns (steps.cube_scan.max_revolutions), which narrow the σ")
+    say.append("the cube re-seated at another yaw, which meets its faces at other angles and "
+               "ranges: a range error's effect on the check moves with it, the cube's shape "
+               "does not")
+    names = {r["name"] for r in responses}
+    if "incidence_bias" in names:
+        say.append("the incidence bias from the lidar's datasheet, to compare with the estimate")
+    if names & {"range_offset", "range_scale"}:
+        say.append("the lidar's range offset and scale from its calibration certificate, to "
+                   "compare with the estimates")
+    shape = [r for r in responses if r["model_error"] > r["sigma"]]
+    head = ("More turns would not narrow the incidence bias's shape, most of its uncertainty. "
+            if shape else "")
+    return f"{head}What would tell them apart: " + "; ".join(say) + "."

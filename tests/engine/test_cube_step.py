@@ -243,3 +243,57 @@ def test_a_cube_seen_at_grazing_incidence_is_square_under_the_lidars_true_range_
     assert abs(biased.perpendicularity_deg - unbiased.perpendicularity_deg) < 0.05, (
         biased.perpendicularity_deg, unbiased.perpendicularity_deg)
     assert biased.edge_error < 0.05e-3, biased.face_edges
+
+
+def test_a_cube_check_failing_on_perpendicularity_names_the_lidars_range_error(
+    tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Run 62's cube, its lidar's incidence bias estimated (0.5 ± 0.03 mm at 60°, with the
+    offset and the scale), checked against a perpendicularity limit it fails: the failure
+    names the lidar's incidence bias and range terms with their figures — how far the
+    perpendicularity follows each within its uncertainty, computed by checking the cube again
+    — and what would tell them from the cube's shape. A range model with no clear term names
+    nothing: the cube's shape alone is then what the check names."""
+    from calstation.engine.joint import INCIDENCE_MODEL, check_failure
+    from calstation.engine.result import CalibrationResult
+
+    rec, recipe, model = _run_62_cube(tmp_path_factory.mktemp("run62-named"),
+                                      RUN_62["incidence_bias"])
+    assert rec.truth is not None
+    scan = from_recording(rec)
+    qa = recipe.qa.model_copy(update={"perpendicularity_deg": 0.1})
+    radius = recipe.fixtures.platter.radius
+    estimate = CalibrationResult(H=rec.truth, sigma={}, cost=0.0, iterations=0,
+                                 strategy="periodicity+cube").with_range({
+        "range_offset": model.offset, "sigma_range_offset": 3e-4,
+        "range_scale": model.scale, "sigma_range_scale": 1.5e-4,
+        "incidence_bias": model.incidence, "sigma_incidence_bias": 3e-5})
+    check = check_cube(rec, rec.truth, recipe.fixtures.qa_cube, qa, platter_radius=radius,
+                       prepared=scan, range_model=estimate.range_model)
+    assert [f.split(" ")[0] for f in check.failures] == ["perpendicularity"], check.failures
+    said = check_failure(rec, scan, estimate, check, recipe.fixtures.qa_cube, qa,
+                         platter_radius=radius, residuals={})
+    assert said is not None
+    step = math.hypot(3e-5, INCIDENCE_MODEL * model.incidence) * 1e3
+    assert (f"incidence bias, +0.500 ± 0.030 mm at 60°, moved by {step:.3f} mm (its σ and "
+            "0.100 mm for the bias's shape), moves the perpendicularity by") in said
+    assert "range offset, +10.000 ± 0.300 mm" in said and "scale error, +1000 ± 150 ppm" in said
+    moved = [float(part.split("°")[0]) for part in said.split("moves the perpendicularity by ")[1:]]
+    assert len(moved) == 3 and all(0.001 < m < 0.2 for m in moved), moved
+    assert "the incidence bias from the lidar's datasheet" in said
+    assert "re-seated at another yaw" in said and "more cube turns" in said
+    # the cube step says it beside the check's failures (its combination stood in for here)
+    import calstation.engine.joint as joint
+
+    monkeypatch.setattr(joint, "combine_range_with_cube",
+                        lambda result, *args, **kwargs: (result, None, {}))
+    _, stepped, failure = joint.combine_range_with_cube_scan(
+        estimate, rec, recipe.fixtures.qa_cube, qa, platter_radius=radius, prepared=scan)
+    assert stepped.failures == check.failures and failure == said
+    # a range model that the data do not set clearly apart from zero: nothing to name
+    unclear = estimate.with_range({"range_offset": None, "sigma_range_offset": None,
+                                   "range_scale": None, "sigma_range_scale": None,
+                                   "incidence_bias": model.incidence,
+                                   "sigma_incidence_bias": model.incidence})
+    assert check_failure(rec, scan, unclear, check, recipe.fixtures.qa_cube, qa,
+                         platter_radius=radius, residuals={}) is None
