@@ -100,6 +100,7 @@ QUANTITIES: dict[str, Quantity] = {q.name: q for q in (
     _degrees("perpendicularity_deg", "cube perpendicularity", 3, "perpendicularity"),
     _degrees("twist_deg", "cube side-face twist", 3, "twist"),
     _length("predicted_error", "predicted reconstruction error", 3, "predicted error"),
+    _length("axis_offset", "the axis's position across it", 3, "axis position"),
     _length("residual", "residual", 2),
     _length("distance", "distance", 0),
     Quantity("time_offset", "lidar–encoder time offset", "s", "ms", 1e3, 3),

@@ -231,6 +231,23 @@ def predicted_error(
     )
 
 
+def axis_offset_sigma(H: Extrinsics, covariance: CovarianceRecord | None) -> float:
+    """The σ of where the axis lies, across it at the platter centre (m): the RMS of the
+    distance DESIGN §8 measures between the estimated and the true axis lines, from the
+    covariance of (tx, ty, tz) — the platter centre is H's origin, so ry and rz only turn the
+    line about it. NaN when the covariance does not hold all three (ty held: the gauge along the
+    axis, which leaves the distance across it to tx and tz alone)."""
+    if covariance is None:
+        return math.nan
+    names = list(covariance.get("parameters", []))
+    if not all(n in names for n in ("tx", "ty", "tz")):
+        return math.nan
+    at = [names.index(n) for n in ("tx", "ty", "tz")]
+    C = np.asarray(covariance["matrix"], dtype=np.float64)[np.ix_(at, at)]
+    across = np.eye(3) - np.outer(H.axis_direction(), H.axis_direction())
+    return float(math.sqrt(max(float(np.trace(across @ C @ across)), 0.0)))
+
+
 def _bias_bound(
     M: FloatArray, names: tuple[str, ...], bias: Mapping[str, float] | None, m: int
 ) -> float:

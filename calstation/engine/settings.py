@@ -199,6 +199,13 @@ class AccuracySettings(Settings):
         None, gt=0, le=1.5, description="work volume radius, m (default: the platter's)"
     )
     level: float = Field(0.95, ge=0.5, le=0.999, description="the error's confidence level")
+    axis_sigma: float | None = Field(
+        0.0001, gt=0, le=0.01,
+        description="with a range model, the QA cube's scan also turns on (up to its "
+        "max_revolutions) while the σ of where the axis lies, across it at the platter centre, "
+        "is above this, m: H alone, as a URDF carries it without the range terms, is then within "
+        "3σ of it (null: the budget alone)",
+    )
 
     def work_radius(self, platter: PlatterGeometry) -> float:
         """The work volume's radius (m): this one's, else the platter's."""

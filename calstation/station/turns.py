@@ -58,9 +58,12 @@ class TurnByTurn:
         max_duration_s: float | None,
         ui: Operator,
         scan: str,
+        more: Callable[[TurnFit], str | None] | None = None,
     ) -> None:
         self.builder = builder
         self.fit = fit
+        self.more = more
+        """why to turn on though a fit is within the budget (None: it is enough)"""
         self.budget_m = budget_m
         self.max_revolutions = max_revolutions
         self.max_duration_s = max_duration_s
@@ -128,19 +131,22 @@ class TurnByTurn:
                 continue
             fit = future.result()
             self.fits.append(fit)
-            self._announce(fit)
-            if fit.predicted.max_m <= self.budget_m:
+            within = fit.predicted.max_m <= self.budget_m
+            more = None if not within or self.more is None else self.more(fit)
+            self._announce(fit, more)
+            if within and more is None:
                 self.met = fit
 
-    def _announce(self, fit: TurnFit) -> None:
+    def _announce(self, fit: TurnFit, more: str | None) -> None:
         publish(self.ui, "accuracy", scan=self.scan, turns=fit.turns,
                 predicted_error_m=fit.predicted.max_m, budget_m=self.budget_m,
-                sigma=dict(fit.result.sigma), fit_s=fit.seconds)
+                sigma=dict(fit.result.sigma), fit_s=fit.seconds, more=more)
         verdict = "within" if fit.predicted.max_m <= self.budget_m else "above"
         self.ui.info(f"  after {display.count(fit.turns, 'turn')}: predicted error "
                      f"{display.number('predicted_error', fit.predicted.max_m)}, {verdict} the "
                      f"budget of {display.number('predicted_error', self.budget_m)} "
-                     f"({display.duration(fit.seconds)} to fit)")
+                     f"({display.duration(fit.seconds)} to fit)"
+                     + ("" if more is None else f"; turning on: {more}"))
 
     def close(self, whole_turns: int) -> ScanTurns:
         """The scan has ended with ``whole_turns`` whole revolutions. A scan stopped by the
@@ -237,8 +243,10 @@ def more_cube_turns(ctx: RunContext) -> Callable[[SpinScanBuilder], TurnByTurn] 
 
     recipe = ctx.recipe
     fine = ctx.stored_result("fine")
+    more = None
     if fine.range_offset is not None:
         fit = _range_turn_fit(recipe, fine)
+        more = _axis_placed(recipe, most, ctx.ui)
     elif with_prediction(fine, recipe)[1].max_m <= recipe.calibration.accuracy.max_error:
         return None
     else:
@@ -247,9 +255,52 @@ def more_cube_turns(ctx: RunContext) -> Callable[[SpinScanBuilder], TurnByTurn] 
     def controller(builder: SpinScanBuilder) -> TurnByTurn:
         return TurnByTurn(builder, fit, budget_m=recipe.calibration.accuracy.max_error,
                           max_revolutions=most, max_duration_s=cfg.max_duration_s, ui=ctx.ui,
-                          scan="cube_scan")
+                          scan="cube_scan", more=more)
 
     return controller
+
+
+def _axis_placed(
+    recipe: Recipe, most: float, ui: Operator
+) -> Callable[[TurnFit], str | None] | None:
+    """Why the cube scan turns on though the budget holds (the turn-by-turn ``more``): with the
+    lidar's range model the cube's size sets where the lidar stands along its rays, and with it
+    where H puts the axis; the reconstruction, which applies the range terms, does not feel that
+    (the budget), but H used without them does — a URDF. So the scan also turns until the
+    axis's σ across it is within ``calibration.accuracy.axis_sigma``, while the turns left can
+    bring it there: σ² = floor + c/turns through the last two fits (the floor: what more data
+    of the cube cannot reduce — its stated tolerance, the range models' errors). None when the
+    limit is unset."""
+    from calstation.engine.accuracy import axis_offset_sigma
+
+    limit = recipe.calibration.accuracy.axis_sigma
+    if limit is None:
+        return None
+    seen: list[tuple[int, float]] = []
+
+    def more(fit: TurnFit) -> str | None:
+        sigma = axis_offset_sigma(fit.result.H, fit.result.diagnostics.get("covariance"))
+        if not sigma > limit:  # NaN: not measured, the budget alone decides
+            return None
+        shown = (f"the axis's position σ {display.number('axis_offset', sigma)} > "
+                 f"{display.number('axis_offset', limit)} (calibration.accuracy.axis_sigma)")
+        seen.append((fit.turns, sigma))
+        if len(seen) < 2:
+            return shown
+        (n1, s1), (n2, s2) = seen[-2:]
+        c = (s1**2 - s2**2) / (1.0 / n1 - 1.0 / n2)
+        floor = s2**2 - c / n2
+        needed = c / (limit**2 - floor) if c > 0 and limit**2 > floor else math.inf
+        if needed <= most:
+            return f"{shown}, about {math.ceil(needed):d} turns bring it within"
+        ui.info(f"  {shown}: the cube scan's {most:g} turns would not bring it within "
+                + ("(it no longer falls with the turns)" if not c > 0 else
+                   f"(it levels off at {display.number('axis_offset', math.sqrt(max(floor, 0)))}: "
+                   "what more turns of the cube cannot reduce — its stated tolerance and the "
+                   "range model's errors)"))
+        return None
+
+    return more
 
 
 def _range_turn_fit(recipe: Recipe, fine: CalibrationResult) -> Fit:

@@ -537,10 +537,11 @@ class WebOperator:
         elif event.kind == "accuracy":
             error, budget = float(d["predicted_error_m"]), float(d["budget_m"])
             point = {"scan": d["scan"], "turns": d["turns"], "predicted_error_m": error,
-                     "budget_m": budget, "within": error <= budget,
+                     "budget_m": budget, "within": error <= budget and not d.get("more"),
                      "budget_text": display.number("predicted_error", budget),
                      "text": f"{display.count(d['turns'], 'turn')}: "
-                             f"{display.number('predicted_error', error)}"}
+                             f"{display.number('predicted_error', error)}"
+                             + ("" if not d.get("more") else f" (turning on: {d['more']})")}
 
             def predicted(st: LiveState) -> None:
                 st.accuracy = [a for a in st.accuracy if a["scan"] == point["scan"]] + [point]
