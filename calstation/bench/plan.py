@@ -52,6 +52,9 @@ class RangeTerms(TypedDict):
 
     range_sigma: dict[str, float]
     range_problem: str | None
+    axis_sigma_m: float
+    """the σ of where the axis lies, across it (:func:`calstation.engine.accuracy.
+    axis_offset_sigma`; NaN without a range model, whose ty is the gauge)"""
 
 
 class Fit(TypedDict):
@@ -63,6 +66,7 @@ class Fit(TypedDict):
     with_cube_m: float
     range_sigma: dict[str, float]
     range_problem: str | None
+    axis_sigma_m: float
     seconds: float
 
 
@@ -75,6 +79,7 @@ class ByTurns(TypedDict):
     with_cube_m: float
     range_sigma: dict[str, float]
     range_problem: str | None
+    axis_sigma_m: float
 
 
 class Design(TypedDict):
@@ -97,6 +102,7 @@ class Plan(TypedDict):
 
     recipe: str
     budget_m: float
+    axis_sigma_limit_m: float | None
     work_volume: WorkVolume
     level: float
     strategy: str
@@ -481,11 +487,12 @@ def _fit(recipe: Recipe, recordings: dict[str, Recording], turns: int) -> Fit:
 def _range_terms(recipe: Recipe, done: Calibrated) -> RangeTerms:
     """The σ of the lidar's range terms the calibration estimated (``range_sigma``, SI; empty
     without a range model), and why they were not measured (``range_problem``, or None)."""
+    from calstation.engine.accuracy import axis_offset_sigma
     from calstation.engine.rangemodel import RANGE_NAMES
     from calstation.pipeline.judgement import range_model_unset
 
     if recipe.calibration.range_model == "none":
-        return {"range_sigma": {}, "range_problem": None}
+        return {"range_sigma": {}, "range_problem": None, "axis_sigma_m": math.nan}
     fields = done.result.range_fields()
     sigma = {n: _or_nan(fields.get(f"sigma_{n}")) for n in RANGE_NAMES
              if fields.get(n) is not None}
@@ -493,7 +500,8 @@ def _range_terms(recipe: Recipe, done: Calibrated) -> RangeTerms:
     # whose reason the cube stage gives)
     unset = range_model_unset(done.result)
     problem = (done.ry_failure or unset) if unset else None
-    return {"range_sigma": sigma, "range_problem": problem}
+    axis = axis_offset_sigma(done.result.H, done.result.diagnostics.get("covariance"))
+    return {"range_sigma": sigma, "range_problem": problem, "axis_sigma_m": axis}
 
 
 def _or_nan(value: float | None) -> float:
@@ -519,6 +527,7 @@ def _summary(
                                 for n in at[0]["range_sigma"]},
                 "range_problem": next((r["range_problem"] for r in at if r["range_problem"]),
                                       None),
+                "axis_sigma_m": _median([r["axis_sigma_m"] for r in at]),
             })
         designs.append({"name": trial.name, "change": trial.change, "by_turns": rows,
                         "turns_needed": _turns_needed(rows, budget) if rows else None,
@@ -526,6 +535,7 @@ def _summary(
     return {
         "recipe": recipe.name,
         "budget_m": budget,
+        "axis_sigma_limit_m": recipe.calibration.accuracy.axis_sigma,
         "work_volume": {"radius_m": recipe.calibration.accuracy.work_radius(
             recipe.fixtures.platter), "height_m": recipe.calibration.accuracy.height},
         "level": recipe.calibration.accuracy.level,

@@ -198,16 +198,17 @@ def _print(result: Plan) -> None:
                           display.number("predicted_error", row["predicted_error_m"], unit=False),
                           display.number("predicted_error", row["with_cube_m"], unit=False))
         console.print(table)
-        _print_range(console, design["by_turns"])
+        _print_range(console, design["by_turns"], result["axis_sigma_limit_m"])
         need = design["turns_needed"]
         console.print(f"  turns the budget needs: {'—' if need is None else need}")
     for line in result["recommendations"]:
         console.print(f"[green]→[/] {line}", highlight=False)
 
 
-def _print_range(console: Console, rows: list[ByTurns]) -> None:
+def _print_range(console: Console, rows: list[ByTurns], axis_limit: float | None) -> None:
     """The σ of the lidar's range terms (from the QA cube's scan) per number of turns, or why
-    the recipe cannot measure them."""
+    the recipe cannot measure them; and the σ of where the axis lies, which the cube scan turns
+    on for when it is above ``axis_limit`` (``calibration.accuracy.axis_sigma``)."""
     for row in rows:
         sigma = row.get("range_sigma") or {}
         if row.get("range_problem"):
@@ -217,6 +218,12 @@ def _print_range(console: Console, rows: list[ByTurns]) -> None:
             parts = [f"σ {name.replace('_', ' ')} "
                      + (f"{_ppm(v)} ppm" if name == "range_scale" else f"{_mm(v)} mm")
                      for name, v in sigma.items()]
+            axis = row.get("axis_sigma_m", math.nan)
+            if math.isfinite(axis):
+                parts.append(f"σ axis position {_mm(axis)} mm"
+                             + ("" if axis_limit is None or axis <= axis_limit else
+                                f" (above {_mm(axis_limit)} mm: the cube scan turns on, "
+                                "calibration.accuracy.axis_sigma)"))
             console.print(f"  lidar range model from the QA cube ({row['turns']} turns of the "
                           f"spin scan): {', '.join(parts)}", highlight=False)
 

@@ -52,6 +52,9 @@ def test_plan_reports_sigma_predicted_error_and_turns(
         # the lidar's range offset (the recipe's range model), measured by the QA cube
         assert row["range_problem"] is None
         assert 0 < row["range_sigma"]["range_offset"] < 0.5e-3
+        # and where that puts the axis, which the cube scan turns on for (axis_sigma)
+        assert 0 < row["axis_sigma_m"] < 1e-3
+    assert plan["axis_sigma_limit_m"] == 0.0001
     assert base["turns_needed"] >= 1
     # piped, the plan says what it does, how long it has taken and what is left
     lines = [line for line in err.splitlines() if line.startswith("planning: ")]
