@@ -34,6 +34,7 @@ from calstation.engine.geometry import (
 )
 from calstation.engine.rangemodel import (
     IDENTITY,
+    LEAST_COSINE_KNOWN,
     RangeModel,
     correct_points,
     incidence_shape,
@@ -685,7 +686,7 @@ def _returns_near_platter(
     if isinstance(found, tuple) and (found[0] == key or nearby):
         kept: NDArray[np.intp] = found[1]
         return kept
-    largest = (abs(model.offset) + abs(model.incidence) * (1 / CHECK_LEAST_COSINE - 1)
+    largest = (abs(model.offset) + abs(model.incidence) * (1 / LEAST_COSINE_KNOWN - 1)
                + abs(model.scale) * float(np.max(scan.rng, initial=0.0))) / (1 - abs(model.scale))
     margin = CHECK_MARGIN + largest
     # the platter's level lies within PLATTER_WINDOW of x_P = 0
@@ -695,18 +696,6 @@ def _returns_near_platter(
     memo["returns"] = (key, out)
     memo.pop("cube_cloud", None)  # its positions were in other returns
     return out
-
-
-CHECK_LEAST_COSINE = 0.05
-"""Least cosine of a ray with a cube face or the platter at which the cube check corrects the
-incidence bias (θ ≈ 87°; the fits stop at :data:`calstation.engine.rangemodel.LEAST_COSINE`,
-78°). The bias grows as c·(1/cos θ − 1) up to grazing (DESIGN §9; the simulator's does), and a
-side face that turns past the lidar is seen there: in the cube scan of the sensor sweep's run 62
-(0.5 mm at 60°, the recipe's placement) 3 % of the returns met their face beyond 78° and read up
-to 7 mm long, and corrected by at most 4c they tilted that face: 0.42° of perpendicularity under
-the true H and range model, 1.38° at 2 mm of bias, against 0.14° and 0.18° corrected to 87°
-(0.135° for the same lidar without the bias). The faces' normals come from the cube's box,
-within about 0.5°, which moves a return at 87° by a sixth of c along its face's normal."""
 
 
 def incidence_corrected(
@@ -746,7 +735,7 @@ def incidence_corrected(
         on_cube[idx] = True
     platter = near & ~on_cube & (np.abs(x) < PLATTER_WINDOW)
     cosine[platter] = rays[platter] @ H.R[:, 0]
-    shift = np.where(cosine != 0.0, incidence * incidence_shape(cosine, CHECK_LEAST_COSINE),
+    shift = np.where(cosine != 0.0, incidence * incidence_shape(cosine, LEAST_COSINE_KNOWN),
                      0.0)
     return correct_points(p_L, shift, 0.0)
 

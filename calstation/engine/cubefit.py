@@ -51,6 +51,7 @@ from calstation.engine.periodicity.covariance import (
 from calstation.engine.rangemodel import (
     ESTIMATED_NAMES,
     IDENTITY,
+    LEAST_COSINE_KNOWN,
     OFFSET,
     SCALE,
     RangeModel,
@@ -249,13 +250,14 @@ class _RangeSizeErrors:
 
         def faces() -> tuple[FloatArray, ...]:
             ny, nz, cosine = self._normals(x, H)
-            q = _turned(correct_vector(f.p_L, v, incidence_shape(cosine), self.rho) - H.t, H,
-                        f.cos, f.sin)
+            shape = incidence_shape(cosine, LEAST_COSINE_KNOWN)
+            q = _turned(correct_vector(f.p_L, v, shape, self.rho) - H.t, H, f.cos, f.sin)
             return ny, nz, cosine, q
 
         def on_platter() -> tuple[FloatArray, ...]:
             down = self.platter_rays @ H.R[:, 0]
-            height = (correct_vector(self.platter, v, incidence_shape(down), self.platter_rho)
+            height = (correct_vector(self.platter, v, incidence_shape(down, LEAST_COSINE_KNOWN),
+                                     self.platter_rho)
                       - H.t) @ H.R[:, 0]
             return (height / away_from_grazing(down),)
 

@@ -49,14 +49,23 @@ OFFSET, SCALE, INCIDENCE = (len(PARAMETER_NAMES) + i for i in range(3))
 """Indices of the range offset, the scale error and the incidence bias in an estimated vector."""
 
 LEAST_COSINE = 0.2
-"""Least cosine of a ray with a surface the fits compute the incidence bias at (θ ≈ 78°): a
-grazing return's bias is not extrapolated further. The bias of DESIGN §9 grows on (the
-simulator's does), so a fit reads the few returns beyond it as a larger bias: the known-size
-fit of the sensor sweep's run 62 cube scan (0.5 mm at 60°) under the true H gave 0.615 ± 0.030
-mm, and 0.499 ± 0.011 mm with the shape computed to 84°. Every estimate made with the incidence
-bias depends on this bound, a lidar's without the bias too (its estimated bias is not exactly
-0). The cube check corrects its returns further (:data:`calstation.engine.cube.
-CHECK_LEAST_COSINE`)."""
+"""Least cosine of a ray with a surface known only from local planes through its returns (the
+spin target's) at which the incidence bias is computed (θ ≈ 78°): such a grazing return's normal
+is too uncertain for the bias to be extrapolated further."""
+
+LEAST_COSINE_KNOWN = 0.05
+"""Least cosine of a ray with a surface known from its model — the QA cube's faces under the
+box fitted to them, the platter under H — at which the known-size fit and the cube check compute
+the incidence bias (θ ≈ 87°). The bias of DESIGN §9 grows as c·(1/cos θ − 1) up to grazing (the
+simulator's does), and a side face that turns past the lidar is seen there: in the cube scan of
+the sensor sweep's run 62 (0.5 mm at 60°) 3 % of the returns met their face beyond 78° and read
+up to 7 mm long. Held at 78° (:data:`LEAST_COSINE`) the known-size fit read them as a larger
+bias (0.615 ± 0.030 mm for 0.5 under the true H; 0.58 mm, 4.4σ high, in station runs, which
+moved tx and tz by 1.5–2σ and set the spin target and the cube apart beyond chance in a quarter
+of such runs), and the check's faces tilted (0.42° of perpendicularity under the true H and
+range model, 1.38° at 2 mm of bias); to 87°: 0.497 ± 0.005 mm, and 0.14° and 0.18° (0.135° for
+the same lidar without the bias). The faces' normals come from the cube's box, within about
+0.5°, which moves a return at 87° by a sixth of c along its face's normal."""
 
 
 def incidence_shape(
