@@ -623,7 +623,7 @@ def _height(
 
 
 def check_cube(
-    recording: Scan,
+    recording: Scan | None,
     H: Extrinsics,
     cube: CubeGeometry,
     limits: QALimits,
@@ -638,10 +638,16 @@ def check_cube(
     ``range_model``. ``prepared``: the recording's returns already prepared
     (:func:`calstation.engine.spinscan.from_recording`, or a
     :class:`~calstation.engine.spinscan.SpinScanBuilder` as the scan ran), else they are
-    prepared here. ``nearby`` and ``edges_only``: see :func:`check_cube_points`."""
+    prepared here (one of the two is needed). ``nearby`` and ``edges_only``: see
+    :func:`check_cube_points`."""
     from calstation.engine.spinscan import from_recording
 
-    scan = prepared if prepared is not None else from_recording(recording)
+    if prepared is not None:
+        scan = prepared
+    elif recording is not None:
+        scan = from_recording(recording)
+    else:
+        raise ValueError("check_cube needs the cube scan's recording or its prepared returns")
     p_L, phi = scan.p_L, scan.phi
     memo: dict[str, object] | None = scan.memo
     if not (range_model.is_identity and range_model.incidence == 0.0):
@@ -661,7 +667,8 @@ def check_cube(
             nearby=nearby, edges_only=edges_only,
         )
     except VerificationError as exc:
-        raise VerificationError(f"{recording.path}: {exc}") from None
+        where = "the cube scan so far" if recording is None else recording.path
+        raise VerificationError(f"{where}: {exc}") from None
 
 
 CHECK_MARGIN = 0.02

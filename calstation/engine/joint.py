@@ -150,7 +150,7 @@ def ry_with_cube(
 
 def combine_with_cube_scan(
     result: CalibrationResult,
-    cube: Scan,
+    cube: Scan | None,
     geometry: CubeGeometry,
     qa: QALimits,
     *,
@@ -211,7 +211,7 @@ def _moved(before: Fused, after: Fused) -> float:
 
 def combine_range_with_cube_scan(
     result: CalibrationResult,
-    cube: Scan,
+    cube: Scan | None,
     geometry: CubeGeometry,
     qa: QALimits,
     *,
@@ -235,7 +235,12 @@ def combine_range_with_cube_scan(
 
     if progress is not None:
         progress("fitting the cube with the lidar's range model", 0.2)
-    scan = prepared if prepared is not None else from_recording(cube)
+    if prepared is not None:
+        scan = prepared
+    elif cube is not None:
+        scan = from_recording(cube)
+    else:
+        raise ValueError("the cube scan's recording or its prepared returns are needed")
     combined, failure, residuals = combine_range_with_cube(
         result, scan, geometry, platter_radius=platter_radius, refit=refit, progress=progress)
     if progress is not None:
@@ -251,7 +256,7 @@ def combine_range_with_cube_scan(
 
 
 def check_failure(
-    cube: Scan, scan: SpinScan, result: CalibrationResult, check: CubeCheck,
+    cube: Scan | None, scan: SpinScan, result: CalibrationResult, check: CubeCheck,
     geometry: CubeGeometry, qa: QALimits, *, platter_radius: float,
     residuals: Mapping[str, TrendRecord],
 ) -> str | None:
@@ -275,7 +280,7 @@ RangeModel` fields."""
 
 
 def range_responses(
-    cube: Scan, scan: SpinScan, result: CalibrationResult, check: CubeCheck,
+    cube: Scan | None, scan: SpinScan, result: CalibrationResult, check: CubeCheck,
     geometry: CubeGeometry, qa: QALimits, *, platter_radius: float,
 ) -> list[TermResponse]:
     """How far each figure that failed ``check`` (the cube check under ``result``,

@@ -147,13 +147,12 @@ def with_cube(
     its side faces' twist combined into ry first (:func:`calstation.engine.joint.
     combine_with_cube_scan`, gated on ``calibration.max_sigma.ry_deg``), or with the lidar's
     range model, the cube's known-size fit combined with ``result`` — the strategy run again on
-    ``spin`` from the combination when it can (its ``refit``)."""
+    ``spin`` from the combination when it can (its ``refit``). A cube scan still being taken
+    (no recording) is checked on its lines so far: the cube scan's fits while it turns, whose
+    lines are those its recording is cut to after."""
     from calstation.engine.cube import check_cube
     from calstation.engine.joint import combine_with_cube_scan
 
-    if cube.recording is None:
-        raise FineTuningError("the cube is checked on its whole scan, not on the lines of one "
-                              "still being taken")
     rc = recipe
     if strategy.fixture != "spin_target":
         check = check_cube(cube.recording, result.H, rc.fixtures.qa_cube, rc.qa,

@@ -12,11 +12,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NotRequired, TypedDict
+from typing import TYPE_CHECKING, NotRequired, TypedDict
 
 from calstation.engine.accuracy import PredictedError
 from calstation.engine.result import CalibrationResult
 from calstation.engine.spinscan import SpinScanBuilder
+
+if TYPE_CHECKING:
+    from calstation.pipeline.stages import CubeChecked
 
 
 @dataclass(frozen=True)
@@ -30,6 +33,9 @@ class TurnFit:
     """how long the fit took"""
     lines: int | None = None
     """the recording's first lines the fit saw (those prepared when its turn was complete)"""
+    stage: CubeChecked | None = None
+    """the pipeline's cube stage the fit made (the cube scan's, with the lidar's range model):
+    the step after the scan takes it as it is"""
 
 
 class FitRecord(TypedDict):
@@ -54,6 +60,9 @@ class TurnsSummary(TypedDict):
     fits: list[FitRecord]
     failed_fits: list[str]
     whole_turns: NotRequired[int]
+    met_turns: NotRequired[int]
+    """the turns of the fit the scan stopped on (absent from a summary stored before it was
+    kept: its fits end with that one)"""
 
 
 @dataclass(frozen=True)

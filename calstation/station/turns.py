@@ -22,6 +22,8 @@ import time
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import replace
+from typing import TYPE_CHECKING
 
 from calstation import display
 from calstation.engine.accuracy import PredictedError
@@ -34,8 +36,13 @@ from calstation.station.context import RunContext
 from calstation.station.operator import Operator, publish
 from calstation.station.prepared import FitRecord, ScanTurns, TurnFit, TurnsSummary
 
-Fit = Callable[[SpinScan], tuple[CalibrationResult, PredictedError]]
-"""``fit(scan so far)``: the calibration from it and its predicted error."""
+if TYPE_CHECKING:
+    from calstation.pipeline.scans import Turned
+    from calstation.pipeline.stages import CubeChecked
+
+Fit = Callable[[SpinScan], tuple[CalibrationResult, PredictedError, "CubeChecked | None"]]
+"""``fit(scan so far)``: the calibration from it, its predicted error, and the cube stage it
+made (the cube scan's with the lidar's range model; else None)."""
 
 
 class NoMoreTurns(Exception):
@@ -72,7 +79,12 @@ class TurnByTurn:
         self.fits: list[TurnFit] = []
         self.failures: list[str] = []
         self.met: TurnFit | None = None
-        """the first fit within the budget: what the scan stopped on"""
+        """the first fit within the budget that is enough (``more`` asked for no more): what
+        the scan stopped on"""
+        self.kept: TurnFit | None = None
+        """the last fit within the budget for which ``more`` asked for more turns: what the
+        scan stops on when they do not come (the turns run out, the time, or a later fit above
+        the budget), so that turning on for ``more`` never costs the budget"""
         self.stopped: str = "turns"
         """why the scan ended: ``budget`` (a fit within it), ``turns``, ``time``, or ``fit``
         (a fit said more turns would not help: :class:`NoMoreTurns`)"""
@@ -108,8 +120,8 @@ class TurnByTurn:
 
     def _fit(self, scan: SpinScan, turns: int, lines: int) -> TurnFit:
         t0 = time.perf_counter()
-        result, predicted = self.fit(scan)
-        return TurnFit(turns, result, predicted, time.perf_counter() - t0, lines)
+        result, predicted, stage = self.fit(scan)
+        return TurnFit(turns, result, predicted, time.perf_counter() - t0, lines, stage)
 
     def _collect(self, wait: bool = False) -> None:
         """Take the finished fits, in the order of their turns, and tell the operator what
@@ -136,6 +148,12 @@ class TurnByTurn:
             self._announce(fit, more)
             if within and more is None:
                 self.met = fit
+            elif within:
+                self.kept = fit
+            elif self.kept is not None:  # above the budget after turning on for ``more``
+                self.ui.info(f"  the scan ends on the fit after "
+                             f"{display.count(self.kept.turns, 'turn')}, within the budget")
+                self.met = self.kept
 
     def _announce(self, fit: TurnFit, more: str | None) -> None:
         publish(self.ui, "accuracy", scan=self.scan, turns=fit.turns,
@@ -157,6 +175,10 @@ class TurnByTurn:
         turn of the recording."""
         if self.met is None:
             self._collect(wait=True)
+            if self.met is None and not self._hopeless and self.kept is not None:
+                self.ui.info(f"  the scan ends on the fit after "
+                             f"{display.count(self.kept.turns, 'turn')}, within the budget")
+                self.met = self.kept
             if self.met is not None:
                 self.stopped = "budget"
             elif self._hopeless:
@@ -168,7 +190,7 @@ class TurnByTurn:
 
     def summary(self) -> TurnsSummary:
         """What the scan did, for the step's stored result."""
-        return {
+        out: TurnsSummary = {
             "stopped": self.stopped,
             "budget_m": self.budget_m,
             "max_revolutions": self.max_revolutions,
@@ -176,20 +198,26 @@ class TurnByTurn:
                                seconds=f.seconds, lines=f.lines) for f in self.fits],
             "failed_fits": list(self.failures),
         }
+        if self.met is not None:
+            out["met_turns"] = self.met.turns
+        return out
 
 
 def turns_fitted(summary: TurnsSummary | None) -> tuple[int, int | None] | None:
     """(the whole turns, the recording's first lines) of the fit a scan stopped on, from its
-    stored ``turn_by_turn`` :meth:`TurnByTurn.summary` (its fits end with the one that met the
-    budget; the lines are None in a summary stored without them); None when the scan did not
-    stop on the budget (every whole turn of its recording counts)."""
+    stored ``turn_by_turn`` :meth:`TurnByTurn.summary` (its ``met_turns``; a summary stored
+    before it was kept ends its fits with that one; the lines are None in a summary stored
+    without them); None when the scan did not stop on the budget (every whole turn of its
+    recording counts)."""
     if summary is None:
         return None
     fits = summary.get("fits") or []
     if summary.get("stopped") != "budget" or not fits:
         return None
-    lines = fits[-1].get("lines")
-    return int(fits[-1]["turns"]), None if lines is None else int(lines)
+    met = summary.get("met_turns")
+    fit = next((f for f in fits if f["turns"] == met), fits[-1])
+    lines = fit.get("lines")
+    return int(fit["turns"]), None if lines is None else int(lines)
 
 
 def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnByTurn] | None:
@@ -212,9 +240,9 @@ def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnBy
     begun = Start.at(ctx.stored_result("initial"))
     recipe = ctx.recipe
 
-    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError]:
+    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError, None]:
         result = fine_tune(recipe, strategy, begun, lines_so_far(so_far)).result
-        return with_prediction(result, recipe)
+        return (*with_prediction(result, recipe), None)
 
     def controller(builder: SpinScanBuilder) -> TurnByTurn:
         return TurnByTurn(builder, fit, budget_m=recipe.calibration.accuracy.max_error,
@@ -245,7 +273,7 @@ def more_cube_turns(ctx: RunContext) -> Callable[[SpinScanBuilder], TurnByTurn] 
     fine = ctx.stored_result("fine")
     more = None
     if fine.range_offset is not None:
-        fit = _range_turn_fit(recipe, fine)
+        fit = _range_turn_fit(ctx, fine)
         more = _axis_placed(recipe, most, ctx.ui)
     elif with_prediction(fine, recipe)[1].max_m <= recipe.calibration.accuracy.max_error:
         return None
@@ -303,24 +331,51 @@ def _axis_placed(
     return more
 
 
-def _range_turn_fit(recipe: Recipe, fine: CalibrationResult) -> Fit:
-    """The cube scan's :data:`Fit` with the lidar's range model: the cube so far fitted with the
-    range terms and combined with the spin target's ``fine`` (without the spin target's refits,
-    which the step runs on the turns kept). Spin target and cube that disagree beyond chance
-    stop the scan (:class:`NoMoreTurns`)."""
-    from calstation.engine.joint import combine_range_with_cube
+def _range_turn_fit(ctx: RunContext, fine: CalibrationResult) -> Fit:
+    """The cube scan's :data:`Fit` with the lidar's range model: the pipeline's cube stage on
+    the cube so far (:func:`calstation.pipeline.stages.with_cube`: its known-size fit with the
+    range terms combined with the spin target's ``fine``, the spin target's fine-tuning run
+    again from the combination, the cube check under it), which the step after the scan takes
+    as it is from the fit that met the budget: the operator does not wait for it. Spin target
+    and cube that disagree beyond chance stop the scan (:class:`NoMoreTurns`)."""
     from calstation.pipeline.judgement import with_prediction
+    from calstation.pipeline.scans import so_far as lines_so_far
+    from calstation.pipeline.stages import with_cube
 
-    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError]:
-        combined, failure, _ = combine_range_with_cube(
-            fine, so_far, recipe.fixtures.qa_cube, platter_radius=recipe.fixtures.platter.radius)
-        if failure is None:
-            return with_prediction(combined, recipe)
-        if combined is fine:  # the cube so far could not be fitted: more of it may be
-            raise FineTuningError(failure)
-        raise NoMoreTurns(failure)  # fitted, and the two disagree beyond chance
+    recipe, strategy = ctx.recipe, ctx.strategy()
+    prepared = ctx.prepared.get(ctx.artifact_path("spin"))
+    read_spin = spin_fitted_later(ctx, None if prepared is None else prepared.builder)
+    spin: list[Turned] = []
+
+    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError, CubeChecked]:
+        if not spin:  # read once, in the fits' thread; its returns with a memo of the fits'
+            turned = read_spin()[1]
+            spin.append(replace(turned, prepared=replace(turned.prepared, memo={})))
+        cubed = with_cube(recipe, strategy, fine, lines_so_far(so_far), spin=spin[0])
+        if cubed.result is fine:  # the cube so far could not be fitted: more of it may be
+            raise FineTuningError(cubed.ry_failure or "the cube so far could not be fitted")
+        if cubed.result.strategy == fine.strategy:  # fitted, and the two disagree beyond chance
+            raise NoMoreTurns(cubed.ry_failure)
+        return (*with_prediction(cubed.result, recipe), cubed)
 
     return fit
+
+
+def spin_fitted_later(
+    ctx: RunContext, builder: SpinScanBuilder | None
+) -> Callable[[], tuple[tuple[int, int | None] | None, Turned]]:
+    """Read, when called, the stored spin scan as the run's fine-tuning uses it (its returns as
+    ``builder`` prepared them, when this process took it), cut to what a fit within the budget
+    made while scanning saw, as the uninterrupted run, a resumed one and a re-processing cut
+    it: (that fit's turns and lines, or None; the scan). What it asks the run's database is
+    asked now, so that the reading may be done in another thread."""
+    from calstation.pipeline import turned
+    from calstation.recordings.reader import read_recording
+    from calstation.station.stored import passed_result
+
+    met = turns_fitted(passed_result(ctx.db, ctx.run_id, "spin_scan").get("turn_by_turn"))
+    path = ctx.artifact_path("spin")
+    return lambda: (met, turned(read_recording(path), fitted=met, builder=builder))
 
 
 def _twist_turn_fit(recipe: Recipe, fine: CalibrationResult) -> Fit:
@@ -332,12 +387,12 @@ def _twist_turn_fit(recipe: Recipe, fine: CalibrationResult) -> Fit:
 
     limit = recipe.calibration.max_sigma.ry_deg
 
-    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError]:
+    def fit(so_far: SpinScan) -> tuple[CalibrationResult, PredictedError, None]:
         check = check_cube_points(
             so_far.p_L, so_far.phi, fine.H, recipe.fixtures.qa_cube, recipe.qa,
             platter_radius=recipe.fixtures.platter.radius, memo=so_far.memo,
         )
         combined, _ = with_cube_ry(fine, check, None if limit is None else math.radians(limit))
-        return with_prediction(combined, recipe)
+        return (*with_prediction(combined, recipe), None)
 
     return fit

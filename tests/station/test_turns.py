@@ -101,14 +101,28 @@ def test_an_unreachable_budget_turns_to_the_maximum_and_is_refused_with_what_wou
 
 
 def test_with_the_range_model_the_cube_scan_turns_until_the_combination_meets_the_budget(
-    tmp_path: Path, db: Database
+    tmp_path: Path, db: Database, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The spin target alone meets the budget with the range terms held; the cube that measures
     them does not after one turn at 2 mm of noise (0.40 mm against 0.37), so the cube scan goes
-    on until the combination is within, and the run is accepted within 3σ of the true H."""
+    on until the combination is within, and the run is accepted within 3σ of the true H. The
+    cube step takes the stage the fit within the budget made while the scan turned: the spin
+    target is fitted again from the combination only in the fits' thread, never after the
+    scan."""
     import math
+    import threading
 
+    from calstation.plugins.cost_strategies import PeriodicityStrategy
     from calstation.recordings.reader import read_recording
+
+    refits: list[str] = []
+    refit = PeriodicityStrategy.refit
+
+    def counted(self: PeriodicityStrategy, *args: Any, **kwargs: Any) -> Any:
+        refits.append(threading.current_thread().name)
+        return refit(self, *args, **kwargs)
+
+    monkeypatch.setattr(PeriodicityStrategy, "refit", counted)
 
     path = _recipe(tmp_path, 0.00037)
     data = yaml.safe_load(path.read_text())
@@ -126,6 +140,7 @@ def test_with_the_range_model_the_cube_scan_turns_until_the_combination_meets_th
     assert cube["turn_by_turn"]["stopped"] == "budget"
     assert fits[0]["predicted_error_m"] > 0.00037 >= fits[-1]["predicted_error_m"]
     assert len(fits) >= 2
+    assert refits and all(name.startswith("calstation-cube_scan-fit") for name in refits), refits
     truth = read_recording(Path(cube["recording"])).truth
     assert truth is not None
     with db.session() as s:
@@ -265,3 +280,61 @@ def test_a_fit_that_says_more_turns_would_not_help_stops_the_scan(sim_run: Any) 
     assert "disagree" in turns.summary["failed_fits"][0]
     assert any("more turns would not change it" in m for m in ui.messages)
     assert not controller(1.5, 4.5)  # and would not turn on
+
+
+class _Lines:
+    """The builder side of a scan under way, as the turn-by-turn controller reads it."""
+
+    def __init__(self) -> None:
+        self.lines_ready = 0
+
+    def so_far(self) -> object:
+        return object()
+
+
+def test_turning_on_for_more_never_costs_the_budget() -> None:
+    """A fit within the budget for which ``more`` asks for more turns is kept: when the next
+    fit is above the budget the scan ends on it, and the stored summary says so, so that the
+    step after the scan and a re-processing take the same turns."""
+    import time
+
+    import numpy as np
+
+    from calstation.engine.accuracy import PredictedError
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.result import CalibrationResult
+    from calstation.station.turns import TurnByTurn, turns_fitted
+
+    errors = {1: 0.0002, 2: 0.0004, 3: 0.0001}
+    told: list[int] = []
+
+    def fit(scan: object) -> tuple[CalibrationResult, PredictedError, None]:
+        turns = len(told) + 1
+        told.append(turns)
+        predicted = PredictedError(errors[turns], errors[turns], 0.0, 0.95, np.zeros((0, 3)),
+                                   np.zeros(0), ())
+        return (CalibrationResult(H=Extrinsics(), sigma={}, cost=0.0, iterations=0,
+                                  strategy="periodicity"), predicted, None)
+
+    lines = _Lines()
+    ui = UnattendedOperator()
+    controller = TurnByTurn(lines, fit, budget_m=0.0003, max_revolutions=8, max_duration_s=None,
+                            ui=ui, scan="cube_scan", more=lambda f: "the axis")
+    for turn in (1, 2):
+        lines.lines_ready = 100 * turn
+        assert controller(float(turn), float(turn))
+    # the scan goes on (no third fit is asked) until the second fit, above the budget, ends it
+    give_up = time.monotonic() + 120.0  # a bound on a failure, not a wait: it ends on the fit
+    while controller(2.5, 2.5):
+        assert time.monotonic() < give_up, "the scan did not end on the kept fit"
+    assert told == [1, 2]
+    done = controller.close(2)
+    assert done.fit is not None and done.fit.turns == 1 and done.fit.lines == 100
+    assert done.summary["stopped"] == "budget" and done.summary["met_turns"] == 1
+    assert [f["turns"] for f in done.summary["fits"]] == [1, 2]
+    assert turns_fitted(done.summary) == (1, 100)
+    assert any("the scan ends on the fit after 1 turn, within the budget" in m
+               for m in ui.messages)
+    # a summary stored before the kept fit was recorded ends its fits with the one it met
+    old = {k: v for k, v in done.summary.items() if k != "met_turns"}
+    assert turns_fitted(old) == (2, 200)

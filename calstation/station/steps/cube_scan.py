@@ -31,6 +31,7 @@ from calstation.storage.db import Calibration
 
 if TYPE_CHECKING:
     from calstation.engine.cube import CubeCheck
+    from calstation.pipeline.stages import CubeChecked
     from calstation.recordings.recorded import Recording
 
 CUBE_SECOND_PASS = second_pass("cube")
@@ -73,7 +74,10 @@ class CubeScan:
         assert recording is not None
         with ctx.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
-            check, joint, ry_failure = _check_cube_joint(ctx, cube_scan, fine, progress)
+            made = (prepared.turns.fit if prepared is not None and prepared.turns is not None
+                    else None)
+            check, joint, ry_failure = _check_cube_joint(
+                ctx, cube_scan, fine, progress, None if made is None else made.stage)
             if path2 is not None:
                 progress("measuring the cube from both passes", 0.8)
                 check = _check_cube_passes(ctx, recording, read_recording(path2), joint, fine)
@@ -171,15 +175,18 @@ def _check_cube_passes(
 
 
 def _check_cube_joint(
-    ctx: RunContext, cube_scan: Turned, fine: Calibration, progress: ProgressCallback
+    ctx: RunContext, cube_scan: Turned, fine: Calibration, progress: ProgressCallback,
+    made: CubeChecked | None = None,
 ) -> tuple[CubeCheck, CalibrationResult | None, str | None]:
     """The cube check, with ry combined from the spin target and the cube's side faces (the
     pipeline's cube stage, :func:`calstation.pipeline.stages.with_cube`).
 
     The twist of the side faces under the fine-tuned H measures ry; when the fine-tuning
     came from the spin target the two are combined (:mod:`calstation.engine.joint`) and the
-    cube is measured again with the combined H. Returns (the check, the combined calibration or
-    None, a failure when ry stays undetermined or the two disagree).
+    cube is measured again with the combined H. ``made``: the stage as the cube scan's fit
+    within the budget made it while the scan turned, on the turns ``cube_scan`` is cut to,
+    taken as it is. Returns (the check, the combined calibration or None, a failure when ry
+    stays undetermined or the two disagree).
     """
     from calstation.engine.joint import joint_summary
     from calstation.pipeline import turned
@@ -188,12 +195,15 @@ def _check_cube_joint(
 
     stored = fine.result()
     spin = None
-    if stored.range_offset is not None:  # the spin target may follow the cube's range model
-        prepared = ctx.prepared.get(ctx.artifact_path("spin"))
-        spin = spin_as_fitted(ctx, None if prepared is None else prepared.builder)[1]
-    cubed = with_cube(ctx.recipe, ctx.strategy(), stored, cube_scan, progress, spin=spin)
-    if not cubed.combined(stored):
-        return cubed.check, None, cubed.ry_failure
+    if made is not None:  # combined by the fit within the budget (it stopped the scan)
+        cubed = made
+    else:
+        if stored.range_offset is not None:  # the spin target may follow the cube's range model
+            prepared = ctx.prepared.get(ctx.artifact_path("spin"))
+            spin = spin_as_fitted(ctx, None if prepared is None else prepared.builder)[1]
+        cubed = with_cube(ctx.recipe, ctx.strategy(), stored, cube_scan, progress, spin=spin)
+        if not cubed.combined(stored):
+            return cubed.check, None, cubed.ry_failure
     result = cubed.result
     result.diagnostics["from_calibration"] = fine.id
     ctx.ui.info(f"  {joint_summary(result)}")

@@ -23,8 +23,7 @@ from calstation.station.context import RunContext
 from calstation.station.operator import ProgressCallback
 from calstation.station.outcome import StepOutcome, format_h, plain
 from calstation.station.steps.spin_scan import SECOND_PASS
-from calstation.station.stored import passed_result
-from calstation.station.turns import turns_fitted
+from calstation.station.turns import spin_fitted_later
 
 
 class FineTune:
@@ -119,11 +118,7 @@ def spin_as_fitted(
     prepared them, when this process took it): cut to what a fit within the budget made while
     scanning saw, as the uninterrupted run, a resumed one and a re-processing cut it. Returns
     (that fit's turns and lines, or None; the scan)."""
-    from calstation.pipeline import turned
-    from calstation.recordings.reader import read_recording
-
-    met = turns_fitted(passed_result(ctx.db, ctx.run_id, "spin_scan").get("turn_by_turn"))
-    return met, turned(read_recording(ctx.artifact_path("spin")), fitted=met, builder=builder)
+    return spin_fitted_later(ctx, builder)()
 
 
 def _fit(
