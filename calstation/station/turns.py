@@ -351,7 +351,11 @@ def _range_turn_fit(ctx: RunContext, fine: CalibrationResult) -> Fit:
         if not spin:  # read once, in the fits' thread; its returns with a memo of the fits'
             turned = read_spin()[1]
             spin.append(replace(turned, prepared=replace(turned.prepared, memo={})))
-        cubed = with_cube(recipe, strategy, fine, lines_so_far(so_far), spin=spin[0])
+        # a memo of this fit's own: what the stage keeps of the scan so far (its corrected
+        # returns, its segmentations) goes with the fit, not with every turn's scan the builder
+        # keeps (eight turns at 1000 lines/s held 11 GB)
+        cubed = with_cube(recipe, strategy, fine, lines_so_far(replace(so_far, memo={})),
+                          spin=spin[0])
         if cubed.result is fine:  # the cube so far could not be fitted: more of it may be
             raise FineTuningError(cubed.ry_failure or "the cube so far could not be fitted")
         if cubed.result.strategy == fine.strategy:  # fitted, and the two disagree beyond chance
