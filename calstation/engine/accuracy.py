@@ -244,7 +244,8 @@ def axis_offset_sigma(H: Extrinsics, covariance: CovarianceRecord | None) -> flo
         return math.nan
     at = [names.index(n) for n in ("tx", "ty", "tz")]
     C = np.asarray(covariance["matrix"], dtype=np.float64)[np.ix_(at, at)]
-    across = np.eye(3) - np.outer(H.axis_direction(), H.axis_direction())
+    axis = H.axis_direction()
+    across = np.eye(3) - np.outer(axis, axis)
     return float(math.sqrt(max(float(np.trace(across @ C @ across)), 0.0)))
 
 

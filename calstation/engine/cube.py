@@ -640,14 +640,9 @@ def check_cube(
     :class:`~calstation.engine.spinscan.SpinScanBuilder` as the scan ran), else they are
     prepared here (one of the two is needed). ``nearby`` and ``edges_only``: see
     :func:`check_cube_points`."""
-    from calstation.engine.spinscan import from_recording
+    from calstation.engine.spinscan import prepared_or_read
 
-    if prepared is not None:
-        scan = prepared
-    elif recording is not None:
-        scan = from_recording(recording)
-    else:
-        raise ValueError("check_cube needs the cube scan's recording or its prepared returns")
+    scan = prepared_or_read(recording, prepared)
     p_L, phi = scan.p_L, scan.phi
     memo: dict[str, object] | None = scan.memo
     if not (range_model.is_identity and range_model.incidence == 0.0):

@@ -231,16 +231,11 @@ def combine_range_with_cube_scan(
     ``result`` when they could not be combined, with why in ``diagnostics["joint"]``; the cube
     check under it; why not, or None)."""
     from calstation.engine.cube import check_cube
-    from calstation.engine.spinscan import from_recording
+    from calstation.engine.spinscan import prepared_or_read
 
     if progress is not None:
         progress("fitting the cube with the lidar's range model", 0.2)
-    if prepared is not None:
-        scan = prepared
-    elif cube is not None:
-        scan = from_recording(cube)
-    else:
-        raise ValueError("the cube scan's recording or its prepared returns are needed")
+    scan = prepared_or_read(cube, prepared)
     combined, failure, residuals = combine_range_with_cube(
         result, scan, geometry, platter_radius=platter_radius, refit=refit, progress=progress)
     if progress is not None:

@@ -280,6 +280,16 @@ def prepare(
     return SpinScan(p_L, phi, rng, az, {"polar": time.perf_counter() - t0})
 
 
+def prepared_or_read(recording: Scan | None, prepared: SpinScan | None) -> SpinScan:
+    """``prepared``, the returns of ``recording`` already prepared, else :func:`from_recording`
+    of ``recording`` (a cube scan still being taken has only the former)."""
+    if prepared is not None:
+        return prepared
+    if recording is None:
+        raise ValueError("the scan's recording or its prepared returns are needed")
+    return from_recording(recording)
+
+
 def from_recording(recording: Scan) -> SpinScan:
     """:class:`SpinScan` of a recording's valid returns with a known platter angle, prepared
     anew at each call: whoever fine-tunes one scan several times (the calibration pipeline's

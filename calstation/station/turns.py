@@ -151,9 +151,14 @@ class TurnByTurn:
             elif within:
                 self.kept = fit
             elif self.kept is not None:  # above the budget after turning on for ``more``
-                self.ui.info(f"  the scan ends on the fit after "
-                             f"{display.count(self.kept.turns, 'turn')}, within the budget")
-                self.met = self.kept
+                self._end_on_kept()
+
+    def _end_on_kept(self) -> None:
+        """The scan stops on :attr:`kept`, the last fit within the budget."""
+        assert self.kept is not None
+        self.ui.info(f"  the scan ends on the fit after "
+                     f"{display.count(self.kept.turns, 'turn')}, within the budget")
+        self.met = self.kept
 
     def _announce(self, fit: TurnFit, more: str | None) -> None:
         publish(self.ui, "accuracy", scan=self.scan, turns=fit.turns,
@@ -176,9 +181,7 @@ class TurnByTurn:
         if self.met is None:
             self._collect(wait=True)
             if self.met is None and not self._hopeless and self.kept is not None:
-                self.ui.info(f"  the scan ends on the fit after "
-                             f"{display.count(self.kept.turns, 'turn')}, within the budget")
-                self.met = self.kept
+                self._end_on_kept()
             if self.met is not None:
                 self.stopped = "budget"
             elif self._hopeless:
