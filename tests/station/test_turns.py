@@ -108,12 +108,15 @@ def test_with_the_range_model_the_cube_scan_turns_until_the_combination_meets_th
     on until the combination is within, and the run is accepted within 3σ of the true H. The
     cube step takes the stage the fit within the budget made while the scan turned: the spin
     target is fitted again from the combination only in the fits' thread, never after the
-    scan."""
+    scan, and the cube step does not read the cube's recording back (the wait after the
+    scan)."""
     import math
     import threading
 
+    import calstation.recordings.reader as reader
     from calstation.plugins.cost_strategies import PeriodicityStrategy
     from calstation.recordings.reader import read_recording
+    from calstation.station.steps.cube_scan import CubeScan
 
     refits: list[str] = []
     refit = PeriodicityStrategy.refit
@@ -122,7 +125,25 @@ def test_with_the_range_model_the_cube_scan_turns_until_the_combination_meets_th
         refits.append(threading.current_thread().name)
         return refit(self, *args, **kwargs)
 
+    step: list[str] = []  # the cube step while it runs
+    reads: list[tuple[str, str]] = []  # the recordings it read (not the fits' thread)
+    step_run = CubeScan.run
+
+    def stepped(self: CubeScan, *args: Any) -> Any:
+        step.append("cube_scan")
+        try:
+            return step_run(self, *args)
+        finally:
+            step.clear()
+
+    def read(path: str | Path) -> Any:
+        if step and threading.current_thread() is threading.main_thread():
+            reads.append(Path(path).name)
+        return read_recording(path)
+
     monkeypatch.setattr(PeriodicityStrategy, "refit", counted)
+    monkeypatch.setattr(CubeScan, "run", stepped)
+    monkeypatch.setattr(reader, "read_recording", read)
 
     path = _recipe(tmp_path, 0.00037)
     data = yaml.safe_load(path.read_text())
@@ -141,6 +162,7 @@ def test_with_the_range_model_the_cube_scan_turns_until_the_combination_meets_th
     assert fits[0]["predicted_error_m"] > 0.00037 >= fits[-1]["predicted_error_m"]
     assert len(fits) >= 2
     assert refits and all(name.startswith("calstation-cube_scan-fit") for name in refits), refits
+    assert "cube.mcap" not in reads, reads
     truth = read_recording(Path(cube["recording"])).truth
     assert truth is not None
     with db.session() as s:
@@ -148,9 +170,11 @@ def test_with_the_range_model_the_cube_scan_turns_until_the_combination_meets_th
         assert accepted.predicted_error_m is not None and accepted.predicted_error_m <= 0.00037
         assert accepted.range_offset is not None
         params, sigma = accepted.params(), accepted.result().sigma
+        turns = accepted.diagnostics["predicted_error"]["turns"]
         run = s.get(Run, run_id)
         assert run is not None
         job = plan_reprocessing(run)
+    assert turns == len(fits) == job.turns["cube"], (turns, fits, job.turns)
     for name in ("tx", "ty", "tz", "ry", "rz"):
         error = params[name] - getattr(truth, name)
         assert not math.isnan(sigma[name]) and abs(error) <= 3 * sigma[name], (name, error)

@@ -30,9 +30,12 @@ from calstation.station.turns import more_cube_turns
 from calstation.storage.db import Calibration
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from calstation.engine.cube import CubeCheck
     from calstation.pipeline.stages import CubeChecked
     from calstation.recordings.recorded import Recording
+    from calstation.station.prepared import PreparedScan
 
 CUBE_SECOND_PASS = second_pass("cube")
 """File stem and artifact kind of the cube scan's second pass, measured together with the first
@@ -49,9 +52,6 @@ class CubeScan:
         ``failure`` when the check failed. The result holds ``after_scan_s``, how long after the
         last scan ended the result was ready (the operator's wait), and ``cube_check_s``, the
         last cube check's time."""
-        from calstation.pipeline import turned
-        from calstation.recordings.reader import read_recording
-
         d = ctx.hardware()
         cfg = ctx.recipe.steps.cube_scan
         if ctx.retrying:  # the operator's retry: re-seat the cube, rescan
@@ -65,24 +65,21 @@ class CubeScan:
         scan_ended = time.perf_counter()  # the run's last scan: the operator waits from here
         fine = ctx.stored_calibration("fine")
         prepared = ctx.prepared.get(path)
-        # the turns that met the budget: the result does not depend on how many more the scan
-        # took while the fit was computed; the returns as they were prepared while it turned
-        cube_scan = (turned(read_recording(path)) if prepared is None else
-                     turned(read_recording(path), fitted=prepared.fitted(),
-                            builder=prepared.builder))
-        recording = cube_scan.recording
-        assert recording is not None
+        made = (prepared.turns.fit if prepared is not None and prepared.turns is not None
+                else None)
         with ctx.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
-            made = (prepared.turns.fit if prepared is not None and prepared.turns is not None
-                    else None)
-            check, joint, ry_failure = _check_cube_joint(
-                ctx, cube_scan, fine, progress, None if made is None else made.stage)
-            if path2 is not None:
-                progress("measuring the cube from both passes", 0.8)
-                check = _check_cube_passes(ctx, recording, read_recording(path2), joint, fine)
+            if made is not None and made.stage is not None and path2 is None:
+                # the stage made while the scan turned, on the turns that met the budget, as
+                # it is: nothing is read back (a re-processing reads the recording)
+                check, joint, ry_failure = _check_cube_joint(ctx, None, fine, progress,
+                                                             made.stage)
+                turns = float(made.turns)
+            else:
+                check, joint, ry_failure, turns = _read_and_check(
+                    ctx, (path, path2), fine, progress, prepared)
         cube = _cube_measurements(check)
-        joint, budget = _budget(ctx, fine, joint, cube_scan)
+        joint, budget = _budget(ctx, fine, joint, turns)
         ctx.ui.info(
             f"  cube: edge error {display.number('edge_error', check.edge_error)}, OBB error "
             f"{display.number('obb_error', check.obb_error)}, side-face twist "
@@ -110,16 +107,43 @@ class CubeScan:
         )
 
 
+def _read_and_check(
+    ctx: RunContext, paths: tuple[Path, Path | None], fine: Calibration,
+    progress: ProgressCallback, prepared: PreparedScan | None,
+) -> tuple[CubeCheck, CalibrationResult | None, str | None, float]:
+    """The cube check of the recordings at ``paths`` (the scan, its second pass or None),
+    read back: cut to the turns that met the budget (the result does not depend on how many
+    more the scan took while the fit was computed), with the returns as ``prepared`` while it
+    turned. Returns (the check, the combined calibration or None, a failure or None, the whole
+    turns used)."""
+    from calstation.pipeline import turned
+    from calstation.recordings.reader import read_recording
+
+    path, path2 = paths
+    cube_scan = (turned(read_recording(path)) if prepared is None else
+                 turned(read_recording(path), fitted=prepared.fitted(),
+                        builder=prepared.builder))
+    recording = cube_scan.recording
+    assert recording is not None
+    made = prepared.turns.fit if prepared is not None and prepared.turns is not None else None
+    check, joint, ry_failure = _check_cube_joint(
+        ctx, cube_scan, fine, progress, None if made is None else made.stage)
+    if path2 is not None:
+        progress("measuring the cube from both passes", 0.8)
+        check = _check_cube_passes(ctx, recording, read_recording(path2), joint, fine)
+    return check, joint, ry_failure, cube_scan.turns()
+
+
 def _budget(
-    ctx: RunContext, fine: Calibration, joint: CalibrationResult | None, cube_scan: Turned
+    ctx: RunContext, fine: Calibration, joint: CalibrationResult | None, turns: float
 ) -> tuple[CalibrationResult | None, str | None]:
     """The accuracy budget on the run's final calibration — the combination with the cube's
     faces, or the fine calibration when nothing was combined — for a spin-target strategy (a
-    cube-scan strategy was judged at its fine-tuning): (the combination with its predicted
-    error recorded, or None; the refusal, with what would help, or None)."""
+    cube-scan strategy was judged at its fine-tuning), on the cube scan's ``turns``: (the
+    combination with its predicted error recorded, or None; the refusal, with what would help,
+    or None)."""
     if ctx.strategy().fixture != "spin_target":
         return joint, None
-    turns = cube_scan.turns()
     final = joint if joint is not None else fine.result()
     final, predicted = with_prediction(final, ctx.recipe, turns=turns)
     ctx.ui.info(f"  {describe(predicted, ctx.recipe)}")
@@ -175,7 +199,7 @@ def _check_cube_passes(
 
 
 def _check_cube_joint(
-    ctx: RunContext, cube_scan: Turned, fine: Calibration, progress: ProgressCallback,
+    ctx: RunContext, cube_scan: Turned | None, fine: Calibration, progress: ProgressCallback,
     made: CubeChecked | None = None,
 ) -> tuple[CubeCheck, CalibrationResult | None, str | None]:
     """The cube check, with ry combined from the spin target and the cube's side faces (the
@@ -198,6 +222,7 @@ def _check_cube_joint(
     if made is not None:  # combined by the fit within the budget (it stopped the scan)
         cubed = made
     else:
+        assert cube_scan is not None, "the cube scan is read when no stage was made for it"
         if stored.range_offset is not None:  # the spin target may follow the cube's range model
             prepared = ctx.prepared.get(ctx.artifact_path("spin"))
             spin = spin_as_fitted(ctx, None if prepared is None else prepared.builder)[1]
