@@ -20,9 +20,11 @@ Simulates one run (static, spin and cube scans) unless DIR already holds one, th
   refits, then the cube check under the combination:
   :func:`calstation.engine.joint.combine_with_cube_scan`), on scans prepared as a station has
   them and with the engine preloaded as a station preloads it (``calstation.station.preload``):
-  the operator's wait after the last scan. Its accuracy (the combined H, the range offset and
-  the incidence bias against the simulator's truth, the check's edge error) is printed beside
-  it.
+  ``cube stage``; and the operator's wait after the last scan, ``cube step after last scan``:
+  the stage and the final H's judgement against the budget, or the judgement alone where the
+  station makes the stage in the cube scan's turn fits while the cube turns (with the range
+  model). Its accuracy (the combined H, the range offset and the incidence bias against the
+  simulator's truth, the check's edge error) is printed beside it.
 
 It prints the peak memory (the process's peak resident set), the processing ÷ acquisition ratio
 (processing after the scans, as at a station, ÷ the scans' own duration; and the same with
@@ -74,6 +76,8 @@ TARGETS = {
 STATION = "station (own process)"
 CUBE_STEP = "cube step after last scan"
 """The stage that times the station's cube step with the range model (:func:`measure_cube_step`)."""
+CUBE_STAGE = "cube stage"
+"""The pipeline's cube stage the cube step takes: made while the cube turns, or after the scan."""
 LARGE_CUBE = {"fixtures.qa_cube.edge": 0.4, "fixtures.qa_cube.offset": [0.0, 0.0]}
 """The large cube a recipe validation accepts: 0.4 m, centred on the 585 mm platter."""
 SCALING = {0.5: (159.0, 20.0), 1.0: (317.0, 20.0), 2.0: (635.0, 20.0), 4.0: (1000.0, 15.75)}
@@ -232,15 +236,17 @@ def measure_station(recipe_path: Path, out: Path) -> dict[str, Any]:
 
 def measure_cube_step(recipe_path: Path, out: Path) -> dict[str, Any]:
     """The station's cube step in a process of its own: the recipe's strategy fine-tuned on its
-    prepared scan, then, timed, what the station runs after the last (cube) scan ends — the
-    pipeline's cube stage (``calstation.pipeline.stages.with_cube``: for a spin-target
-    strategy with the lidar's range model, :func:`calstation.engine.joint.
-    combine_with_cube_scan`'s known-size cube fit, combination and refits on the spin scan, then
-    the cube check under the combined H). The engine's modules are imported first as the
-    station preloads them (this revision's or the compared one's
-    ``calstation.station.preload.ENGINE_MODULES``); both scans are prepared before the wait, as
-    a station prepares them while it scans. Seconds, and the combined estimate's accuracy
-    against the simulator's truth."""
+    prepared scan, then, timed, the pipeline's cube stage (``calstation.pipeline.stages.
+    with_cube``: for a spin-target strategy with the lidar's range model,
+    :func:`calstation.engine.joint.combine_with_cube_scan`'s known-size cube fit, combination
+    and refits on the spin scan, then the cube check under the combined H) and what the station
+    runs after the last (cube) scan ends, ``seconds``. A station that makes that stage in the
+    cube scan's turn fits, while the cube turns (:func:`stage_made_while_turning`), then only
+    predicts the final H's error and judges it against the budget; else it runs the stage
+    after the scan. The engine's modules are imported first as the station preloads them (this
+    revision's or the compared one's ``calstation.station.preload.ENGINE_MODULES``); both scans
+    are prepared before the wait, as a station prepares them while it scans. Seconds, and the
+    combined estimate's accuracy against the simulator's truth."""
     import importlib
 
     from calstation import plugins
@@ -262,12 +268,17 @@ def measure_cube_step(recipe_path: Path, out: Path) -> dict[str, Any]:
     strategy = plugins.strategy(rc.calibration.strategy)
     fixture = spin if strategy.fixture == "spin_target" else cube
     fine = strategy.run_prepared(fixture.prepared, start, rc)
-    seconds, checked = _timed(lambda: with_cube(rc, strategy, fine, cube, spin=spin))
+    stage_s, checked = _timed(lambda: with_cube(rc, strategy, fine, cube, spin=spin))
     combined, check = checked.result, checked.check
     assert cube.recording is not None
+    turns = cube.turns()
+    judged_s, _ = _timed(lambda: judged(combined, rc, turns))
+    made = stage_made_while_turning(rc, strategy.fixture, fine)
     truth = cube.recording.truth
     found: dict[str, Any] = {
-        "seconds": seconds, "strategy": combined.strategy, "failure": checked.ry_failure,
+        "seconds": judged_s if made else stage_s + judged_s, "stage_s": stage_s,
+        "made_while_turning": made,
+        "strategy": combined.strategy, "failure": checked.ry_failure,
         "edge_error_mm": check.edge_error * 1e3, "passed": bool(check.passed),
         "twist_deg": check.twist_deg, "range": combined.range_fields(), "accuracy": None,
         "peak_mb": peak_mb(),
@@ -281,6 +292,30 @@ def measure_cube_step(recipe_path: Path, out: Path) -> dict[str, Any]:
     found["range_truth"] = {"range_offset": sensor.get("offset"),
                             "incidence_bias": sensor.get("incidence_bias")}
     return found
+
+
+def stage_made_while_turning(rc: Any, fixture: str, fine: Any) -> bool:
+    """Whether this revision's station makes the cube stage in the cube scan's turn fits, while
+    the cube turns, and its cube step takes it as it is (``TurnFit.stage``): a spin-target
+    strategy with the lidar's range model, on a cube scan that may turn past its revolutions."""
+    try:
+        from calstation.recipes.validation import most_turns
+        from calstation.station import prepared
+    except ImportError:  # a revision before either
+        return False
+    if "stage" not in getattr(prepared.TurnFit, "__dataclass_fields__", {}):
+        return False  # a revision before it
+    return (fixture == "spin_target" and fine.range_offset is not None
+            and most_turns(rc, "cube_scan") > rc.steps.cube_scan.revolutions)
+
+
+def judged(result: Any, rc: Any, turns: float) -> Any:
+    """What the cube step does with the final H after the stage: its predicted error, judged
+    against the budget (``calstation.station.steps.cube_scan._budget``)."""
+    from calstation.pipeline.judgement import budget_failure, with_prediction
+
+    final, predicted = with_prediction(result, rc, turns=turns)
+    return budget_failure(final, predicted, rc, scan="cube_scan", turns=turns)
 
 
 def _duration(rec: Any) -> float:
@@ -349,7 +384,9 @@ def _accuracy(m: dict[str, Any]) -> None:
           f"passed={m['cube_passed']}")
     if "cube_step" in m:
         step = m["cube_step"]
-        print(f"    cube step (spin target + cube, {step['strategy']}): "
+        where = ("made while the cube turned" if step.get("made_while_turning")
+                 else "made after the scan")
+        print(f"    cube step (spin target + cube, {step['strategy']}; its stage {where}): "
               f"{_range_text(step)}; its cube check: face-fit edge error "
               f"{step['edge_error_mm']:.3f} mm, twist {step['twist_deg']:+.3f}°, "
               f"passed={step['passed']}"
@@ -404,6 +441,8 @@ def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[st
             found["large_cube"] = large
             step = _own_process(env, rev_dir, args, out, "--json-cube-step")
             found["t"][CUBE_STEP] = step["seconds"]
+            # the stage itself, after the scan or while the cube turns (made_while_turning)
+            found["t"][CUBE_STAGE] = step.get("stage_s", step["seconds"])
             found["cube_step"] = step
             if step["accuracy"] is not None:
                 found["accuracy"]["spin target + cube"] = step["accuracy"]
