@@ -106,8 +106,14 @@ def test_unattended_simulated_run_meets_thresholds(tmp_path: Path) -> None:
     assert steps == [(name, "passed") for name in STEPS]
     # `calstation run` prepared the spin scan as its lines arrived and says when H was ready
     assert fine["prepared_while_scanning"] and fine["after_scan_s"] > 0
-    # and how long after the last scan the result was ready, the cube check a part of it
-    assert 0 < cube_step["cube_check_s"] < cube_step["after_scan_s"]
+    # and how long after the last scan the result was ready: the cube stage the cube scan's fit
+    # made while the cube turned (the fit the scan stopped on) is taken as it is, its check not
+    # waited for; without such a fit the check is a part of the wait
+    assert cube_step["cube_check_s"] > 0 and cube_step["after_scan_s"] > 0
+    if (cube_step.get("turn_by_turn") or {}).get("met_turns"):
+        assert cube_step["after_scan_s"] < cube_step["cube_check_s"], cube_step
+    else:
+        assert cube_step["cube_check_s"] < cube_step["after_scan_s"], cube_step
     assert "after the scan ended" in proc.stdout
     # the lidar's range model, estimated with H, told at the end and in the report
     assert "lidar range model (fine): range offset " in proc.stdout
