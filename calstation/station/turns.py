@@ -66,11 +66,17 @@ class TurnByTurn:
         ui: Operator,
         scan: str,
         more: Callable[[TurnFit], str | None] | None = None,
+        paced: bool = False,
     ) -> None:
         self.builder = builder
         self.fit = fit
         self.more = more
         """why to turn on though a fit is within the budget (None: it is enough)"""
+        self.paced = paced
+        """the scan's time is simulated (a :class:`~calstation.clock.SimClock`: the lidar runs as
+        fast as the host computes it): each turn's fit is taken at the line that completes the
+        next turn, waited for there, as if it took one turn of the scan's time; so a simulated
+        run does not depend on the host's speed or load, and is the same from the same seed"""
         self.budget_m = budget_m
         self.max_revolutions = max_revolutions
         self.max_duration_s = max_duration_s
@@ -99,7 +105,9 @@ class TurnByTurn:
         Each whole turn's data is taken at the line that completes it, so what each fit sees
         does not depend on how fast the fits run; they are fitted in order, and the scan stops
         on the first within the budget, whatever turn the scan has reached by then."""
-        self._collect()
+        whole = math.floor(turns + 1e-9)
+        # paced: every fit asked at an earlier turn is taken now, at the turn after it
+        self._collect(wait=self.paced and whole > self._asked)
         if self.met is not None:
             self.stopped = "budget"
             return False
@@ -109,7 +117,6 @@ class TurnByTurn:
         if self.max_duration_s is not None and seconds >= self.max_duration_s:
             self.stopped = "time"
             return False
-        whole = math.floor(turns + 1e-9)
         if whole > self._asked:
             scan = self.builder.so_far()
             if scan is not None:
@@ -206,6 +213,15 @@ class TurnByTurn:
         return out
 
 
+def simulated_time(ctx: RunContext) -> bool:
+    """Whether the run's scans take simulated time (its drivers' clock is a
+    :class:`~calstation.clock.SimClock`): their turn-by-turn fits are then paced
+    (:attr:`TurnByTurn.paced`)."""
+    from calstation.clock import SimClock
+
+    return isinstance(ctx.hardware().clock, SimClock)
+
+
 def turns_fitted(summary: TurnsSummary | None) -> tuple[int, int | None] | None:
     """(the whole turns, the recording's first lines) of the fit a scan stopped on, from its
     stored ``turn_by_turn`` :meth:`TurnByTurn.summary` (its ``met_turns``; a summary stored
@@ -247,10 +263,12 @@ def more_turns(ctx: RunContext, scan: str) -> Callable[[SpinScanBuilder], TurnBy
         result = fine_tune(recipe, strategy, begun, lines_so_far(so_far)).result
         return (*with_prediction(result, recipe), None)
 
+    paced = simulated_time(ctx)
+
     def controller(builder: SpinScanBuilder) -> TurnByTurn:
         return TurnByTurn(builder, fit, budget_m=recipe.calibration.accuracy.max_error,
                           max_revolutions=most, max_duration_s=cfg.max_duration_s, ui=ctx.ui,
-                          scan=scan)
+                          scan=scan, paced=paced)
 
     return controller
 
@@ -283,10 +301,12 @@ def more_cube_turns(ctx: RunContext) -> Callable[[SpinScanBuilder], TurnByTurn] 
     else:
         fit = _twist_turn_fit(recipe, fine)
 
+    paced = simulated_time(ctx)
+
     def controller(builder: SpinScanBuilder) -> TurnByTurn:
         return TurnByTurn(builder, fit, budget_m=recipe.calibration.accuracy.max_error,
                           max_revolutions=most, max_duration_s=cfg.max_duration_s, ui=ctx.ui,
-                          scan="cube_scan", more=more)
+                          scan="cube_scan", more=more, paced=paced)
 
     return controller
 

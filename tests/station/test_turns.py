@@ -362,3 +362,43 @@ def test_turning_on_for_more_never_costs_the_budget() -> None:
     # a summary stored before the kept fit was recorded ends its fits with the one it met
     old = {k: v for k, v in done.summary.items() if k != "met_turns"}
     assert turns_fitted(old) == (2, 200)
+
+
+def test_a_simulated_run_is_the_same_from_the_same_seed_whatever_the_host_load(
+    tmp_path: Path, db: Database
+) -> None:
+    """On the simulator's clock the lidar runs as fast as the host computes it: the turn fits
+    are paced (each taken at the turn after the one it fitted), so how fast they run, and so
+    how many lines each scan takes, does not depend on the host. Two runs of one recipe, one of
+    them with the fits slowed down, give the same scans and the same H to the last bit."""
+    import time as clock
+
+    from calstation.station import turns
+
+    path = _recipe(tmp_path, 0.005, "offset")
+    data = yaml.safe_load(path.read_text())
+    data["steps"]["cube_scan"]["max_revolutions"] = 4
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    fit = turns.TurnByTurn._fit
+    seen = []
+    for slow in (0.0, 0.5):
+
+        def slowed(self: Any, *args: Any, _slow: float = slow) -> Any:
+            clock.sleep(_slow)  # a loaded host: the fit ends later in the host's time
+            return fit(self, *args)
+
+        turns.TurnByTurn._fit = slowed  # type: ignore[method-assign]
+        try:
+            ui = UnattendedOperator()
+            run_id, status = start_run(load_recipe(path), db, ui, operator="t",
+                                       data_dir=tmp_path / f"slow{slow}")
+        finally:
+            turns.TurnByTurn._fit = fit  # type: ignore[method-assign]
+        assert status == "passed", ui.failures
+        scans = {name: {k: v for k, v in (last_step(db, run_id, name).result["turn_by_turn"]
+                                          or {}).items() if k != "fits"}
+                 for name in ("spin_scan", "cube_scan")}
+        with db.session() as s:
+            accepted = s.query(Calibration).filter_by(run_id=run_id, accepted=True).one()
+            seen.append((scans, accepted.params(), accepted.range_offset))
+    assert seen[0] == seen[1]
