@@ -85,8 +85,13 @@ class PreparedScan:
     builder: SpinScanBuilder | None = None
     turns: ScanTurns | None = None
 
+    @property
+    def met(self) -> TurnFit | None:
+        """The fit within the budget the scan stopped on; None when it did not stop on one."""
+        return None if self.turns is None else self.turns.fit
+
     def fitted(self) -> tuple[int, int | None] | None:
         """(whole turns, the recording's first lines) the fit that met the budget saw; None
         when the scan did not stop on one."""
-        fit = None if self.turns is None else self.turns.fit
+        fit = self.met
         return None if fit is None else (fit.turns, fit.lines)

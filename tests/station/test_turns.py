@@ -381,7 +381,7 @@ def test_turning_on_for_more_never_costs_the_budget() -> None:
 
 
 def test_a_simulated_run_is_the_same_from_the_same_seed_whatever_the_host_load(
-    tmp_path: Path, db: Database
+    tmp_path: Path, db: Database, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """On the simulator's clock the lidar runs as fast as the host computes it: the turn fits
     are paced (each taken at the turn after the one it fitted), so how fast they run, and so
@@ -403,13 +403,10 @@ def test_a_simulated_run_is_the_same_from_the_same_seed_whatever_the_host_load(
             clock.sleep(_slow)  # a loaded host: the fit ends later in the host's time
             return fit(self, *args)
 
-        turns.TurnByTurn._fit = slowed  # type: ignore[method-assign]
-        try:
-            ui = UnattendedOperator()
-            run_id, status = start_run(load_recipe(path), db, ui, operator="t",
-                                       data_dir=tmp_path / f"slow{slow}")
-        finally:
-            turns.TurnByTurn._fit = fit  # type: ignore[method-assign]
+        monkeypatch.setattr(turns.TurnByTurn, "_fit", slowed)
+        ui = UnattendedOperator()
+        run_id, status = start_run(load_recipe(path), db, ui, operator="t",
+                                   data_dir=tmp_path / f"slow{slow}")
         assert status == "passed", ui.failures
         scans = {name: {k: v for k, v in (last_step(db, run_id, name).result["turn_by_turn"]
                                           or {}).items() if k != "fits"}

@@ -65,8 +65,7 @@ class CubeScan:
         scan_ended = time.perf_counter()  # the run's last scan: the operator waits from here
         fine = ctx.stored_calibration("fine")
         prepared = ctx.prepared.get(path)
-        made = (prepared.turns.fit if prepared is not None and prepared.turns is not None
-                else None)
+        made = None if prepared is None else prepared.met
         with ctx.ui.progress("cube check") as progress:
             progress("measuring the cube", 0.1)
             if made is not None and made.stage is not None and path2 is None:
@@ -77,7 +76,8 @@ class CubeScan:
                 turns = float(made.turns)
             else:
                 check, joint, ry_failure, turns = _read_and_check(
-                    ctx, (path, path2), fine, progress, prepared)
+                    ctx, (path, path2), fine, progress, prepared,
+                    None if made is None else made.stage)
         cube = _cube_measurements(check)
         joint, budget = _budget(ctx, fine, joint, turns)
         ctx.ui.info(
@@ -109,13 +109,13 @@ class CubeScan:
 
 def _read_and_check(
     ctx: RunContext, paths: tuple[Path, Path | None], fine: Calibration,
-    progress: ProgressCallback, prepared: PreparedScan | None,
+    progress: ProgressCallback, prepared: PreparedScan | None, made: CubeChecked | None,
 ) -> tuple[CubeCheck, CalibrationResult | None, str | None, float]:
     """The cube check of the recordings at ``paths`` (the scan, its second pass or None),
     read back: cut to the turns that met the budget (the result does not depend on how many
     more the scan took while the fit was computed), with the returns as ``prepared`` while it
-    turned. Returns (the check, the combined calibration or None, a failure or None, the whole
-    turns used)."""
+    turned, and the cube stage ``made`` while it turned when there is one. Returns (the check,
+    the combined calibration or None, a failure or None, the whole turns used)."""
     from calstation.pipeline import turned
     from calstation.recordings.reader import read_recording
 
@@ -125,9 +125,7 @@ def _read_and_check(
                         builder=prepared.builder))
     recording = cube_scan.recording
     assert recording is not None
-    made = prepared.turns.fit if prepared is not None and prepared.turns is not None else None
-    check, joint, ry_failure = _check_cube_joint(
-        ctx, cube_scan, fine, progress, None if made is None else made.stage)
+    check, joint, ry_failure = _check_cube_joint(ctx, cube_scan, fine, progress, made)
     if path2 is not None:
         progress("measuring the cube from both passes", 0.8)
         check = _check_cube_passes(ctx, recording, read_recording(path2), joint, fine)

@@ -97,7 +97,7 @@ def _fitted(ctx: RunContext, strategy: Strategy) -> tuple[CalibrationResult, flo
     path = ctx.artifact_path("spin")
     prepared = ctx.prepared.get(path)
     builder = None if prepared is None else prepared.builder
-    met = None if prepared is None or prepared.turns is None else prepared.turns.fit
+    met = None if prepared is None else prepared.met
     if met is not None:
         ctx.ui.info(f"  the fit made while scanning, on the first {met.turns} "
                     f"turn{'s' if met.turns > 1 else ''}, met the budget")
