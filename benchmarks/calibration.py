@@ -246,17 +246,21 @@ def measure_cube_step(recipe_path: Path, out: Path) -> dict[str, Any]:
     after the scan. The engine's modules are imported first as the station preloads them (this
     revision's or the compared one's ``calstation.station.preload.ENGINE_MODULES``); both scans
     are prepared before the wait, as a station prepares them while it scans. Seconds, and the
-    combined estimate's accuracy against the simulator's truth."""
+    combined estimate's accuracy against the simulator's truth. Empty when the compared
+    revision's engine has no such stage for this revision's pipeline to run."""
     import importlib
 
+    try:
+        from calstation.pipeline import turned
+        from calstation.pipeline.stages import with_cube
+        from calstation.station.preload import ENGINE_MODULES
+    except ImportError:
+        return {}
     from calstation import plugins
     from calstation.engine.initial import initial_calibration
     from calstation.engine.metrics import axis_errors
-    from calstation.pipeline import turned
-    from calstation.pipeline.stages import with_cube
     from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
-    from calstation.station.preload import ENGINE_MODULES
 
     rc = load_recipe(recipe_path).recipe
     _preload()
@@ -440,12 +444,13 @@ def _child(rev_dir: Path | None, args: argparse.Namespace, out: Path) -> dict[st
             found["t"]["cube check, 0.4 m cube"] = large["seconds"]
             found["large_cube"] = large
             step = _own_process(env, rev_dir, args, out, "--json-cube-step")
-            found["t"][CUBE_STEP] = step["seconds"]
-            # the stage itself, after the scan or while the cube turns (made_while_turning)
-            found["t"][CUBE_STAGE] = step.get("stage_s", step["seconds"])
-            found["cube_step"] = step
-            if step["accuracy"] is not None:
-                found["accuracy"]["spin target + cube"] = step["accuracy"]
+            if step:
+                found["t"][CUBE_STEP] = step["seconds"]
+                # the stage itself, after the scan or while the cube turns (made_while_turning)
+                found["t"][CUBE_STAGE] = step.get("stage_s", step["seconds"])
+                found["cube_step"] = step
+                if step["accuracy"] is not None:
+                    found["accuracy"]["spin target + cube"] = step["accuracy"]
         elif part:
             found["t"].update(part["t"])
             found["mem"][STATION] = part["peak_mb"]
@@ -569,9 +574,27 @@ def _same_estimates(mine: list[dict[str, Any]], theirs: list[dict[str, Any]], re
         # as JSON: a σ not estimated (NaN) is the same as another
         same = all(json.dumps([a[k] for k in keys]) == json.dumps([b[k] for k in keys])
                    for a, b in steps)
-        print(f"  {'cube step range terms':<22} "
-              + ("identical" if same else "differ: " + "; ".join(
-                  f"{_range_text(a)} against {_range_text(b)}" for a, b in steps)))
+        texts = [(_range_text(a), _range_text(b)) for a, b in steps]
+        if same:
+            said = "identical"
+        elif all(x == y for x, y in texts):
+            said = (f"differ: up to {_range_difference(steps) * 1e3:.3g} mm in a range term "
+                    "or its σ, the same to the printed digits")
+        else:
+            said = "differ: " + "; ".join(f"{x} against {y}" for x, y in texts)
+        print(f"  {'cube step range terms':<22} {said}")
+
+
+def _range_difference(steps: list[tuple[dict[str, Any], dict[str, Any]]]) -> float:
+    """The largest difference (m) between two revisions' cube-step range terms or their σ."""
+    out = 0.0
+    for a, b in steps:
+        for name in ("range_offset", "incidence_bias"):
+            for key in (name, f"sigma_{name}"):
+                x, y = a["range"].get(key), b["range"].get(key)
+                if x is not None and y is not None and math.isfinite(x - y):
+                    out = max(out, abs(x - y))
+    return out
 
 
 def scaling(args: argparse.Namespace, base: Path) -> None:

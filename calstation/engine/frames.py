@@ -62,6 +62,17 @@ def euler_to_matrix(rx: float, ry: float, rz: float) -> FloatArray:
     return rot_z(rz) @ rot_y(ry) @ rot_x(rx)
 
 
+def rotation_derivative(x6: FloatArray, i: int, h: float = 1e-6) -> FloatArray:
+    """∂R/∂x6[i] (i = 3, 4, 5: rx, ry, rz) of :func:`euler_to_matrix` at the (6,) vector
+    ``x6`` (tx … rz), by a central difference (exact to about 1e-10)."""
+    up, down = np.array(x6, dtype=np.float64), np.array(x6, dtype=np.float64)
+    up[i] += h
+    down[i] -= h
+    out: FloatArray = (euler_to_matrix(*(float(a) for a in up[3:6]))
+                       - euler_to_matrix(*(float(a) for a in down[3:6]))) / (2 * h)
+    return out
+
+
 def matrix_to_euler(R: ArrayLike) -> tuple[float, float, float]:
     """Inverse of :func:`euler_to_matrix`: (rx, ry, rz) in radians, ry in [-π/2, π/2]."""
     m = _check_rotation(R)

@@ -110,8 +110,13 @@ def test_the_range_fit_gives_the_lidars_offset_back_from_the_rays_near_the_platt
     hit = origin + s_hit[:, None] * rays
     every = np.flatnonzero((s_hit > 0) & (np.hypot(hit[:, 1], hit[:, 2]) < radius + 0.05))
     np.testing.assert_array_equal(_near_platter(scan, v, radius), every)
-    fit = range_size_fit(scan, truth, recipe.fixtures.qa_cube, platter_radius=radius,
+    # from where a fit without the range model leaves H: its ty holds the lidar's offset
+    start = truth.with_(ty=truth.ty + TRUE_RANGE.offset)
+    fit = range_size_fit(scan, start, recipe.fixtures.qa_cube, platter_radius=radius,
                          range_model="offset", incidence=True)
+    # a fit that lost the cube's faces reads millimetres of σ (4.2 mm from the truth's H with
+    # no offset, where the offset puts every return 8 mm beyond the labels' window)
+    assert fit.sigma["range_offset"] < 0.0005 and fit.sigma["incidence_bias"] < 0.0001
     assert abs(fit.range_model.offset - TRUE_RANGE.offset) <= 3 * fit.sigma["range_offset"]
     assert abs(fit.range_model.incidence - TRUE_RANGE.incidence) <= 3 * fit.sigma[
         "incidence_bias"]
@@ -297,3 +302,39 @@ def test_a_cube_check_failing_on_perpendicularity_names_the_lidars_range_error(
                                    "sigma_incidence_bias": model.incidence})
     assert check_failure(rec, scan, unclear, check, recipe.fixtures.qa_cube, qa,
                          platter_radius=radius, residuals={}) is None
+
+
+@pytest.mark.parametrize("model", ["offset", "offset+scale"])
+def test_the_range_fits_jacobian_is_the_derivative_of_its_residuals(
+    biased: Any, model: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The known-size range fit steps on its Jacobian in closed form; at a point away from its
+    solution it is the central difference of the residuals in every column — H, each range
+    term (the incidence bias's shape included), the cube's centre and yaw — with the platter's
+    level free (``offset``) and with the scale error (the residuals times 1 + k)."""
+    import calstation.engine.cubefit as cubefit
+
+    _, scan, truth, recipe = biased
+    seen: list[tuple[Any, np.ndarray, Any]] = []
+    solve = cubefit.least_squares
+
+    def watched(fun: Any, x0: np.ndarray, **kwargs: Any) -> Any:
+        seen.append((fun, np.array(x0), kwargs["jac"]))
+        return solve(fun, x0, **kwargs)
+
+    monkeypatch.setattr(cubefit, "least_squares", watched)
+    range_size_fit(scan, truth, recipe.fixtures.qa_cube,
+                   platter_radius=recipe.fixtures.platter.radius, range_model=model,  # type: ignore[arg-type]
+                   incidence=True, start_range=TRUE_RANGE)
+    assert len(seen) == cubefit.LABEL_ROUNDS
+    fun, x0, jac = seen[-1]
+    assert jac == fun.jac
+    x = x0 + np.random.default_rng(3).normal(0.0, 3e-4, x0.size)
+    J = jac(x)
+    step = 1e-7
+    for j in range(x.size):
+        up, down = x.copy(), x.copy()
+        up[j] += step
+        down[j] -= step
+        column = (fun(up) - fun(down)) / (2 * step)
+        np.testing.assert_allclose(J[:, j], column, rtol=0, atol=1e-6 * np.abs(column).max())

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from calstation.engine.frames import FloatArray
+from calstation.engine.frames import FloatArray, rotation_derivative
 from calstation.engine.kept import Kept
 from calstation.engine.periodicity.cells import _rotation
 from calstation.engine.periodicity.covariance import SIGMA_BLOCK, block_ids
@@ -327,7 +327,7 @@ class _Problem:
                     out[n:, col] = -self.swb * (
                         _rowdot(ba @ R.T, va) - _rowdot(bb @ R.T, vb)) / scale
                 continue
-            dR = _rotation_derivative(x6, i)
+            dR = rotation_derivative(x6, i)
             va, vb = ua @ dR, ub @ dR
             out[:n, col] = self.swa * (_rowdot(va, aa) - _rowdot(vb, ab))
             if m.one_sided:
@@ -360,7 +360,7 @@ class _Problem:
                          INCIDENCE: self.platter_dir * self.shape_p[:, None]}[i]
                 out[:, col] = -w * (along @ a) / (scale * c)
                 continue
-            da = _rotation_derivative(x6, i)[:, 0]
+            da = rotation_derivative(x6, i)[:, 0]
             out[:, col] = w * ((up @ da) * c - h * (self.platter_dir @ da) * turns) / c**2
 
 
@@ -405,15 +405,6 @@ def _unit(p: FloatArray) -> FloatArray:
 
 def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
     out: FloatArray = np.einsum("ij,ij->i", a, b)
-    return out
-
-
-def _rotation_derivative(x6: FloatArray, i: int, h: float = 1e-6) -> FloatArray:
-    """∂R/∂x6[i] (i = 3, 4, 5: rx, ry, rz) by a central difference."""
-    up, down = x6.copy(), x6.copy()
-    up[i] += h
-    down[i] -= h
-    out: FloatArray = (_rotation(up) - _rotation(down)) / (2 * h)
     return out
 
 
