@@ -47,6 +47,11 @@ def _recipe(tmp_path: Path, budget: float, max_revolutions: float, name: str = "
     # the platter, as it should for a dead host or drive: this test is about the turns
     data["station"]["turntable"]["settings"].update(master_heartbeat_s=0.5,
                                                     heartbeat_timeout_s=2.5)
+    # the emulated encoder answers every SYNC on the in-process virtual bus in Python: at the
+    # recipe's 2 ms it took so much of a slow host that the emulated lidar, starved, sent 25 of
+    # its 100 lines a second and the cube's faces had too few returns to fit; 10 ms is 1.8° of
+    # the platter at 30 rpm between samples, which the angles' interpolation follows exactly
+    data["station"]["encoder"]["settings"]["sync_period_s"] = 0.01
     # at 30 rpm the OBB extremes of the unsmoothed cloud reach ~9 mm, and 16 mm when a loaded
     # machine makes the emulated lidar skip scans; the face-fit edge error, the tight check,
     # stays ~0.05 mm: this test is about the turns, not the paper's noise-bound metric
