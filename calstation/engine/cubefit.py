@@ -33,10 +33,18 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from calstation.engine.cube import CubeCloud, cube_cloud
+from calstation.engine.cubecast import (
+    FIT_POINTS,
+    MIN_FACES,
+    _Faces,
+    _near_platter,
+    _Returns,
+    _turned,
+    model_labels,
+)
 from calstation.engine.frames import (
     PARAMETER_NAMES,
     Extrinsics,
@@ -83,46 +91,15 @@ from calstation.jsonvalue import JSONObject
 if TYPE_CHECKING:
     from scipy.optimize import OptimizeResult
 
-FIT_POINTS = 200_000
-"""Labelled returns the fit uses at most (a fixed random subset): 4 turns at 1000 lines/s."""
 LABEL_ROUNDS = 2
 """Fits, each on the faces labelled under the previous one's H (the first under the start)."""
 SIGMA_SCALE = 1.3
 """The sandwich σ's scale, as the periodicity cost's (docs/algorithms.md, the shape sweep)."""
 SIGMA_BLOCK = 0.02
 """Side of the blocks (m) whose returns' residuals the sandwich lets co-vary."""
-MIN_FACES = 3
-"""Side faces and top together the fit needs: two adjacent sides fix both directions across
-the axis; a third face ties the cube's centre."""
 MAX_NFEV = 100
 """Evaluations per fit."""
 RY = PARAMETER_NAMES.index("ry")
-
-
-@dataclass(frozen=True)
-class _Faces:
-    """The labelled returns of one round and the cube's pose they were labelled against."""
-
-    p_L: FloatArray
-    """(N, 3) returns in L"""
-    cos: FloatArray
-    """(N,) cosine of each return's platter angle"""
-    sin: FloatArray
-    """(N,) sine of each return's platter angle"""
-    rays: FloatArray
-    """(N, 3) unit rays in L"""
-    side: NDArray[np.bool_]
-    """(N,) on a side face (else on the top)"""
-    across_u: NDArray[np.bool_]
-    """(N,) a side face whose normal is the box's first horizontal axis (else its second)"""
-    sign: FloatArray
-    """(N,) +1 on the face at the axis's positive end, −1 at its negative end"""
-    pose: FloatArray
-    """(4,) the box's centre (y, z in D), yaw (rad) and top height (x in D) under the start"""
-    noise: float
-    """range noise (m) on the faces"""
-    faces: int
-    """faces labelled"""
 
 
 def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
@@ -404,14 +381,8 @@ class _RangeSizeErrors:
         return np.column_stack([*columns, pose])
 
 
-def _spun(q: FloatArray, cos: FloatArray, sin: FloatArray) -> FloatArray:
-    """(N, 3) vectors in P taken into D: Rx(φ)ᵀ·q (φ as its cosine and sine)."""
-    return np.column_stack([q[:, 0], cos * q[:, 1] + sin * q[:, 2],
-                            -sin * q[:, 1] + cos * q[:, 2]])
-
-
 def _unspun(q: FloatArray, cos: FloatArray, sin: FloatArray) -> FloatArray:
-    """(N, 3) vectors in D taken into P: Rx(φ)·q, the inverse of :func:`_spun`."""
+    """(N, 3) vectors in D taken into P: Rx(φ)·q (the inverse of ``cubecast._spun``)."""
     return np.column_stack([q[:, 0], cos * q[:, 1] - sin * q[:, 2],
                             sin * q[:, 1] + cos * q[:, 2]])
 
@@ -427,11 +398,6 @@ def _shape_slope(cosine: FloatArray, least: float) -> FloatArray:
     c = np.abs(cosine)
     out: FloatArray = np.where(c > least, -np.sign(cosine) / np.maximum(c, least) ** 2, 0.0)
     return out
-
-
-def _turned(v: FloatArray, H: Extrinsics, cos: FloatArray, sin: FloatArray) -> FloatArray:
-    """(N, 3) vectors in L taken into D: Rx(φ)ᵀ·Rᵀ·v (φ as its cosine and sine)."""
-    return _spun(v @ H.R, cos, sin)
 
 
 @dataclass(frozen=True)
@@ -550,10 +516,6 @@ def _details(res: OptimizeResult, faces: _Faces, cube: CubeGeometry) -> JSONObje
     }
 
 
-PLATTER_POINTS = 60_000
-"""Platter returns the fit with a range model uses at most (a fixed random subset)."""
-
-
 def range_size_fit(
     scan: SpinScan,
     start: Extrinsics,
@@ -599,228 +561,6 @@ def range_size_fit(
         )
         base, pose = errors.vector(res.x), res.x[len(free):]
     return _range_fit_result(res, errors, faces, free, cube, platter)
-
-
-MARGIN = 0.006
-"""How far (m) from a face's edges, and from the cube's footprint on the platter, a return's
-ray must meet its surface to be used: the beam's footprint and the mixed pixels of an edge
-stay out."""
-
-
-def _near_platter(scan: SpinScan, v: FloatArray, radius: float) -> NDArray[np.intp]:
-    """The returns whose ray meets the platter's top plane inside its rim (under the estimate
-    ``v``), or something above it: those :func:`model_labels` may use (the background stays
-    out). Chosen by the ray alone."""
-    H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
-    origin = -(H.t @ H.R)
-    # first on the returns as they are (the ray's length does not move where it meets the
-    # plane): the few within a millimetre of the rim, or inside, are tested on their unit rays
-    q = scan.p_L @ H.R  # in P
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_hit = -origin[0] / q[:, 0]
-        y = origin[1] + s_hit * q[:, 1]
-        z = origin[2] + s_hit * q[:, 2]
-    candidates = np.flatnonzero((s_hit > 0) & (y * y + z * z < (radius + 0.051) ** 2))
-    rays = unit_rays(scan.p_L[candidates]) @ H.R
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_hit = -origin[0] / rays[:, 0]
-    hit = origin + s_hit[:, None] * rays
-    out: NDArray[np.intp] = candidates[
-        (s_hit > 0) & (np.hypot(hit[:, 1], hit[:, 2]) < radius + 0.05)]
-    return out
-
-
-@dataclass(frozen=True)
-class _Returns:
-    """The returns :func:`model_labels` chooses from, with what does not depend on the
-    estimate: computed once for every round of a fit."""
-
-    p_L: FloatArray
-    """(N, 3) returns in L (as measured)"""
-    cos: FloatArray
-    """(N,) cosine of each return's platter angle"""
-    sin: FloatArray
-    """(N,) sine of each return's platter angle"""
-    rho: FloatArray
-    """(N,) ranges (m, as measured)"""
-    rays: FloatArray
-    """(N, 3) unit rays in L"""
-
-    @classmethod
-    def of(cls, scan: SpinScan, idx: NDArray[np.intp]) -> _Returns:
-        """The returns ``idx`` of ``scan``."""
-        p_L, phi = scan.p_L[idx], scan.phi[idx]
-        rho = np.linalg.norm(p_L, axis=1)
-        rays = p_L / np.maximum(rho, 1e-12)[:, None]  # unit_rays, from the ranges known
-        return cls(p_L, np.cos(phi), np.sin(phi), rho, rays)
-
-
-def model_labels(
-    returns: _Returns, v: FloatArray, pose: FloatArray, edge: float, platter_radius: float,
-    noise: float,
-) -> tuple[_Faces, FloatArray]:
-    """The returns of the cube's faces and of the platter top, chosen by casting each return's
-    ray against the model (an upright cube of ``edge`` at ``pose`` = centre y, z and yaw in D,
-    on the platter top x_D = 0, under the estimate ``v``): a face's returns are those whose ray
-    enters the cube through that face at least :data:`MARGIN` from its edges; the platter's,
-    those whose ray meets the platter inside its rim, the cube missed by :data:`MARGIN`. Of
-    them, those whose range is within max(6σ, 5 mm) of the model's (a window symmetric about
-    the model: mixed pixels and strays out, no selection on the noise). Returns the faces and
-    the platter's returns (as measured, in L)."""
-    H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
-    p_L, rays, cos, sin = returns.p_L, returns.rays, returns.cos, returns.sin
-    o = _spun(np.broadcast_to(-(H.t @ H.R), p_L.shape), cos, sin)  # the lidar, in D
-    d = _turned(rays, H, cos, sin)
-    cy, cz, yaw = (float(a) for a in pose[:3])
-    c, s = math.cos(yaw), math.sin(yaw)
-    # the cube's frame: x up, u = (cos yaw, sin yaw) and w = (−sin yaw, cos yaw) across
-    ol = np.column_stack([o[:, 0], c * (o[:, 1] - cy) + s * (o[:, 2] - cz),
-                          -s * (o[:, 1] - cy) + c * (o[:, 2] - cz)])
-    dl = np.column_stack([d[:, 0], c * d[:, 1] + s * d[:, 2], -s * d[:, 1] + c * d[:, 2]])
-    label, cube_range, shadow = _cube_entries(ol, dl, edge)
-    measured = RangeModel.from_vector(v).ranges(returns.rho)
-    window = max(6.0 * noise if math.isfinite(noise) else 0.0, 0.005)
-    on_plate, plate_close = _platter_returns(o, d, measured, shadow, platter_radius, window)
-    on_face = (label > 0) & (np.abs(measured - cube_range) <= window)
-    faces_idx = np.flatnonzero(on_face)
-    if faces_idx.size > FIT_POINTS:
-        faces_idx = np.sort(np.random.default_rng(0).choice(faces_idx, FIT_POINTS, replace=False))
-    plate_idx = np.flatnonzero(on_plate & plate_close)
-    if plate_idx.size > PLATTER_POINTS:
-        plate_idx = np.sort(
-            np.random.default_rng(1).choice(plate_idx, PLATTER_POINTS, replace=False))
-    found = [f for f in range(1, 6) if np.count_nonzero(label[faces_idx] == f) >= 30]
-    if len(found) < MIN_FACES or plate_idx.size < MIN_PLATTER:
-        raise FineTuningError(
-            f"the known-size cube fit with the range model needs {MIN_FACES} faces of the cube "
-            f"with 30 returns and the platter around it: found {len(found)} faces and "
-            f"{plate_idx.size} returns of the platter"
-        )
-    lab = label[faces_idx]
-    # the labels of :func:`_label`: 1 the top, 2/3 the −u/+u sides, 4/5 the −w/+w sides
-    faces = _Faces(
-        p_L=p_L[faces_idx], cos=cos[faces_idx], sin=sin[faces_idx], rays=rays[faces_idx],
-        side=lab >= 2, across_u=lab < 4, sign=np.where(lab % 2 == 1, 1.0, -1.0),
-        pose=np.array([cy, cz, yaw, edge]), noise=noise, faces=len(found),
-    )
-    platter: FloatArray = p_L[plate_idx]
-    return faces, platter
-
-
-def _platter_returns(
-    o: FloatArray, d: FloatArray, measured: FloatArray, shadow: FloatArray,
-    platter_radius: float, window: float,
-) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """The returns whose ray (from ``o`` along unit ``d``, in D) meets the platter top inside
-    its rim, the cube's shadow missed, and which of them read within ``window`` of the top.
-
-    The top is the plane x_D = 0 of the estimate; when fewer than :data:`MIN_PLATTER` of its
-    returns read within the window there, the estimate's level is off by more than the window
-    allows (at 30° of pitch the rays meet the platter at grazing angles, and 2 mm of level is
-    5 mm of range): the window is then centred on where the platter's returns read, the median
-    of their heights within :data:`LEVEL_SEARCH` of the plane, and the fit brings the estimate
-    there. The median is of every such return, so the window is still symmetric about a model
-    and chooses none by its noise."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        plate_range = -o[:, 0] / d[:, 0]
-        at = o + plate_range[:, None] * d
-    on_plate = ~np.isfinite(shadow) & (plate_range > 0) & (
-        np.hypot(at[:, 1], at[:, 2]) <= platter_radius - MARGIN)
-    close = np.abs(measured - plate_range) <= window
-    if np.count_nonzero(on_plate & close) >= MIN_PLATTER:
-        return on_plate, close
-    height = o[:, 0] + measured * d[:, 0]  # each return's height above the estimate's top
-    near = on_plate & (np.abs(height) <= LEVEL_SEARCH)
-    if not near.any():
-        return on_plate, close
-    level = float(np.median(height[near]))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shifted = (level - o[:, 0]) / d[:, 0]
-    return on_plate, np.abs(measured - shifted) <= window
-
-
-MIN_PLATTER = 200
-"""Platter returns the known-size fit with a range model needs around the cube."""
-
-LEVEL_SEARCH = 0.03
-"""How far (m) from the estimate's platter top the platter's returns are looked for when too
-few read within the window there: a start's level is within millimetres (the box cost's, or
-the spin target's), the floor and the background far below."""
-
-
-def _cube_entries(
-    origin: FloatArray, direction: FloatArray, edge: float,
-) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
-    """:func:`_box_entry` of the rays (in the cube's frame) into the cube of ``edge`` with
-    :data:`MARGIN` from its faces' edges (the face, the range), and the range into its shadow,
-    the cube grown by :data:`MARGIN` (inf when missed). Only the rays that can meet the shadow
-    are cast (:func:`_may_meet`, a fifth of those near the platter, tested in single
-    precision: a tenth of a micrometre against its millimetre to spare); the rest miss both."""
-    cast = _may_meet(origin.astype(np.float32), direction.astype(np.float32), edge)
-    label = np.zeros(origin.shape[0], dtype=np.int64)
-    cube_range = np.full(origin.shape[0], np.inf)
-    shadow = np.full(origin.shape[0], np.inf)
-    o, d = origin[cast], direction[cast]
-    label[cast], cube_range[cast] = _box_entry(o, d, edge, MARGIN)
-    shadow[cast] = _box_entry(o, d, edge + 2 * MARGIN, 0.0, floor=-MARGIN)[1]
-    return label, cube_range, shadow
-
-
-def _may_meet(
-    origin: NDArray[np.floating], direction: NDArray[np.floating], edge: float
-) -> NDArray[np.intp]:
-    """Positions of the rays (in the cube's frame) that may meet the cube of ``edge`` grown by
-    :data:`MARGIN` (``_box_entry(…, edge + 2·MARGIN, 0, floor=−MARGIN)``): the part of each ray
-    ahead of its origin within the box's heights passes within the circle round its footprint
-    (1 mm to spare). Level rays are all kept."""
-    low, high = -MARGIN, edge + 2 * MARGIN
-    radius = math.sqrt(2.0) * (0.5 * edge + MARGIN) + 0.001
-    up = direction[:, 0]
-    level = np.abs(up) < 1e-9
-    with np.errstate(divide="ignore", invalid="ignore"):  # a level ray's heights: ±inf
-        t_low = (low - origin[:, 0]) / up
-        t_high = (high - origin[:, 0]) / up
-        first = np.maximum(np.minimum(t_low, t_high), 0.0)
-        last = np.maximum(t_low, t_high)
-        # the segment's ends across the axis, and its point nearest the footprint's centre
-        a = origin[:, 1:] + first[:, None] * direction[:, 1:]
-        b = origin[:, 1:] + last[:, None] * direction[:, 1:]
-        ab = b - a
-        along = np.clip(-np.einsum("ij,ij->i", a, ab)
-                        / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-30), 0.0, 1.0)
-        nearest = a + along[:, None] * ab
-        near = (first <= last) & (np.einsum("ij,ij->i", nearest, nearest) < radius**2)
-    out: NDArray[np.intp] = np.flatnonzero(level | near)
-    return out
-
-
-def _box_entry(
-    origin: FloatArray, direction: FloatArray, edge: float, margin: float, floor: float = 0.0,
-) -> tuple[NDArray[np.int64], FloatArray]:
-    """Where rays (origin, direction (N, 3) in the cube's frame: x up, then across) enter the
-    box x ∈ [floor, edge], u, w ∈ [−edge/2, edge/2]: (N,) the face (1 the top, 2/3 −u/+u,
-    4/5 −w/+w; 0 when missed, through the bottom, or within ``margin`` of the face's edges)
-    and (N,) the range to it (inf when missed)."""
-    lo = np.array([floor, -0.5 * edge, -0.5 * edge])
-    hi = np.array([edge, 0.5 * edge, 0.5 * edge])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = (lo - origin) / direction
-        t2 = (hi - origin) / direction
-    near = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf)
-    far = np.nan_to_num(np.maximum(t1, t2), nan=np.inf)
-    enter, leave = near.max(axis=1), far.min(axis=1)
-    axis = near.argmax(axis=1)
-    rows = np.arange(origin.shape[0])
-    hit = (enter <= leave) & (enter > 0)
-    point = origin + enter[:, None] * direction
-    # entering through the face at the upper end of an axis means moving down along it
-    upper = direction[rows, axis] < 0
-    label = np.where(axis == 0, np.where(upper, 1, 0), 2 * axis + upper).astype(np.int64)
-    inside = np.ones(origin.shape[0], dtype=bool)
-    for k in range(3):
-        inside &= (axis == k) | ((point[:, k] >= lo[k] + margin) & (point[:, k] <= hi[k] - margin))
-    label = np.where(hit & inside, label, 0)
-    return label, np.where(hit, enter, np.inf)
 
 
 def start_range_points(p_L: FloatArray, model: RangeModel) -> FloatArray:

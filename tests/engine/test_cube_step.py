@@ -15,13 +15,8 @@ import pytest
 import yaml
 
 from calstation.engine.cube import check_cube, check_cube_points, incidence_corrected
-from calstation.engine.cubefit import (
-    MARGIN,
-    _box_entry,
-    _cube_entries,
-    _near_platter,
-    range_size_fit,
-)
+from calstation.engine.cubecast import MARGIN, _box_entry, _cube_entries, _near_platter
+from calstation.engine.cubefit import range_size_fit
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 from calstation.engine.rangemodel import RangeModel, unit_rays
 from calstation.engine.spinscan import from_recording
