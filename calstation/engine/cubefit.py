@@ -51,6 +51,7 @@ from calstation.engine.frames import (
     FloatArray,
     lidar_to_dynamic,
     rotation_derivative,
+    rowdot,
 )
 from calstation.engine.geometry import face_labels, upright_box
 from calstation.engine.kept import Kept
@@ -74,6 +75,7 @@ from calstation.engine.rangemodel import (
     correct_vector,
     estimated_indices,
     incidence_shape,
+    incidence_shape_slope,
     unit_rays,
 )
 from calstation.engine.residuals import TrendRecord, residual_trends
@@ -157,20 +159,14 @@ class _RangeErrors:
         v[self.free] = x[: len(self.free)]
         return Extrinsics.from_vector(v)
 
-    def _to_D(self, v: FloatArray, H: Extrinsics) -> FloatArray:
-        q = v @ H.R
-        c, s = self.f.cos, self.f.sin
-        return np.column_stack([q[:, 0], c * q[:, 1] + s * q[:, 2], -s * q[:, 1] + c * q[:, 2]])
-
     def __call__(self, x: FloatArray, edge: float | None = None) -> FloatArray:
         f = self.f
         H = self.H(x)
-        q = self._to_D(f.p_L - H.t, H)
-        r = self._to_D(f.rays, H)
+        q = _turned(f.p_L - H.t, H, f.cos, f.sin)
+        r = _turned(f.rays, H, f.cos, f.sin)
         cy, cz, yaw, top = x[len(self.free):]
         c, s = math.cos(yaw), math.sin(yaw)
-        ny = np.where(f.across_u, c, -s) * f.sign
-        nz = np.where(f.across_u, s, c) * f.sign
+        ny, nz = _side_normals(f, c, s)
         half = 0.5 * (self.edge if edge is None else edge)
         dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - half, q[:, 0] - top)
         cosine = np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
@@ -220,8 +216,7 @@ class _RangeSizeErrors:
                        lambda: (_turned(f.rays, H, f.cos, f.sin),))[0]
         yaw = float(x[len(self.free) + 2])
         c, s = math.cos(yaw), math.sin(yaw)
-        ny = np.where(f.across_u, c, -s) * f.sign
-        nz = np.where(f.across_u, s, c) * f.sign
+        ny, nz = _side_normals(f, c, s)
         return ny, nz, np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
 
     def cosines(self, x: FloatArray) -> FloatArray:
@@ -296,22 +291,21 @@ class _RangeSizeErrors:
         yaw = float(x[n_free + 2])
         cy, sy = math.cos(yaw), math.sin(yaw)
         side = f.side.astype(np.float64)
-        normal = np.column_stack([1.0 - side, side * np.where(f.across_u, cy, -sy) * f.sign,
-                                  side * np.where(f.across_u, sy, cy) * f.sign])
-        turned = np.column_stack([np.zeros_like(side),
-                                  side * np.where(f.across_u, -sy, -cy) * f.sign,
-                                  side * np.where(f.across_u, cy, -sy) * f.sign])
+        ny, nz = _side_normals(f, cy, sy)
+        normal = np.column_stack([1.0 - side, side * ny, side * nz])
+        ny, nz = _side_normals(f, -sy, cy)  # d/d yaw: the normals a quarter turn on
+        turned = np.column_stack([np.zeros_like(side), side * ny, side * nz])
         centre = normal[:, 1] * x[n_free] + normal[:, 2] * x[n_free + 1]
         normal_P = _unspun(normal, f.cos, f.sin)
         normal_L = normal_P @ R.T
         turned_L = _unspun(turned, f.cos, f.sin) @ R.T
-        cosine = _rowdot(normal_L, f.rays)
+        cosine = rowdot(normal_L, f.rays)
         shape = incidence_shape(cosine, LEAST_COSINE_KNOWN)
-        shape_slope = _shape_slope(cosine, LEAST_COSINE_KNOWN)
+        shape_slope = incidence_shape_slope(cosine, LEAST_COSINE_KNOWN)
         rho = (self.rho - v[OFFSET] - v[INCIDENCE] * shape) / k1
         corrected = f.rays * rho[:, None]
         from_origin = corrected - t
-        dist = (_rowdot(normal_L, from_origin) - centre
+        dist = (rowdot(normal_L, from_origin) - centre
                 - np.where(f.side, 0.5 * self.edge, self.edge))
         a = away_from_grazing(cosine)
         a_slope = (np.abs(cosine) > GRAZING_FACE).astype(np.float64)
@@ -323,9 +317,9 @@ class _RangeSizeErrors:
         def moved(d_normal_L: FloatArray) -> FloatArray:
             """the column of a parameter that turns the normals in L by ``d_normal_L``: the
             distance directly, and through the incidence bias's shape along the ray"""
-            d_cosine = _rowdot(d_normal_L, f.rays)
+            d_cosine = rowdot(d_normal_L, f.rays)
             d_rho = -v[INCIDENCE] * shape_slope * d_cosine / k1
-            return column(_rowdot(d_normal_L, from_origin) + cosine * d_rho, d_cosine)
+            return column(rowdot(d_normal_L, from_origin) + cosine * d_rho, d_cosine)
 
         columns = []
         for i in self.free:
@@ -339,7 +333,7 @@ class _RangeSizeErrors:
             elif i == INCIDENCE:
                 columns.append(column(-cosine * shape / k1))
             else:  # SCALE
-                columns.append(column(-_rowdot(normal_L, corrected) / k1))
+                columns.append(column(-rowdot(normal_L, corrected) / k1))
         columns.append(column(-normal[:, 1]))
         columns.append(column(-normal[:, 2]))
         # the yaw turns the side faces' normals, and with them the centre's share
@@ -354,7 +348,7 @@ class _RangeSizeErrors:
         R, t, w = H.R, H.t, self.platter_rays
         down = w @ R[:, 0]
         shape = incidence_shape(down, LEAST_COSINE_KNOWN)
-        shape_slope = _shape_slope(down, LEAST_COSINE_KNOWN)
+        shape_slope = incidence_shape_slope(down, LEAST_COSINE_KNOWN)
         rho = (self.platter_rho - v[OFFSET] - v[INCIDENCE] * shape) / k1
         corrected = w * rho[:, None]
         height = (corrected - t) @ R[:, 0]
@@ -387,17 +381,10 @@ def _unspun(q: FloatArray, cos: FloatArray, sin: FloatArray) -> FloatArray:
                             sin * q[:, 1] + cos * q[:, 2]])
 
 
-def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
-    out: FloatArray = np.einsum("ij,ij->i", a, b)
-    return out
-
-
-def _shape_slope(cosine: FloatArray, least: float) -> FloatArray:
-    """d/d cosine of :func:`~calstation.engine.rangemodel.incidence_shape` (0 where it is held
-    at ``least``)."""
-    c = np.abs(cosine)
-    out: FloatArray = np.where(c > least, -np.sign(cosine) / np.maximum(c, least) ** 2, 0.0)
-    return out
+def _side_normals(f: _Faces, c: float, s: float) -> tuple[FloatArray, FloatArray]:
+    """(N,) the y and z (in D) of each face return's side-face normal for a cube at the yaw
+    whose cosine and sine are ``c`` and ``s``."""
+    return np.where(f.across_u, c, -s) * f.sign, np.where(f.across_u, s, c) * f.sign
 
 
 @dataclass(frozen=True)

@@ -62,6 +62,12 @@ def euler_to_matrix(rx: float, ry: float, rz: float) -> FloatArray:
     return rot_z(rz) @ rot_y(ry) @ rot_x(rx)
 
 
+def rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
+    """(N,) the dot product of each row of ``a`` with the same row of ``b`` ((N, 3) each)."""
+    out: FloatArray = np.einsum("ij,ij->i", a, b)
+    return out
+
+
 def rotation_derivative(x6: FloatArray, i: int, h: float = 1e-6) -> FloatArray:
     """∂R/∂x6[i] (i = 3, 4, 5: rx, ry, rz) of :func:`euler_to_matrix` at the (6,) vector
     ``x6`` (tx … rz), by a central difference (exact to about 1e-10)."""

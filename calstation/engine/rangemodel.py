@@ -78,6 +78,16 @@ def incidence_shape(
     return out
 
 
+def incidence_shape_slope(
+    cosine: NDArray[np.float64], least: float = LEAST_COSINE
+) -> NDArray[np.float64]:
+    """d/d cosine of :func:`incidence_shape` (0 where it is held at ``least``)."""
+    c = np.abs(cosine)
+    out: NDArray[np.float64] = np.where(
+        c > least, -np.sign(cosine) / np.maximum(c, least) ** 2, 0.0)
+    return out
+
+
 def estimated_indices(model: RangeModelName, incidence: bool = False) -> list[int]:
     """The indices (in :data:`ESTIMATED_NAMES`) of the range terms ``model`` estimates, with
     the incidence bias when ``incidence`` (and a range model is estimated at all)."""

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from calstation.engine.frames import FloatArray, rotation_derivative
+from calstation.engine.frames import FloatArray, rotation_derivative, rowdot
 from calstation.engine.kept import Kept
 from calstation.engine.periodicity.cells import _rotation
 from calstation.engine.periodicity.covariance import SIGMA_BLOCK, block_ids
@@ -134,8 +134,8 @@ class _Problem:
         planes' normals do not move with t, and H turns them by less than a degree."""
         R = _rotation(x6)
         aa, ab, _, bb = self._normals_in_q()
-        a = incidence_shape(_rowdot(self.ray_a, aa @ R.T))
-        b = incidence_shape(_rowdot(self.ray_b, (ab if self.m.one_sided else bb) @ R.T))
+        a = incidence_shape(rowdot(self.ray_a, aa @ R.T))
+        b = incidence_shape(rowdot(self.ray_b, (ab if self.m.one_sided else bb) @ R.T))
         return a, b
 
     def _corrected(self, which: str, x6: FloatArray) -> FloatArray:
@@ -226,14 +226,14 @@ class _Problem:
         ua = self._corrected("a", x6) - x6[:3]
         ub = self._corrected("b", x6) - x6[:3]
         # point of B against A's local plane, and point of A against B's local plane
-        ra = self.swa * (_rowdot(ua, aa @ R.T) - _rowdot(ub, ab @ R.T) + m.oa)
+        ra = self.swa * (rowdot(ua, aa @ R.T) - rowdot(ub, ab @ R.T) + m.oa)
         if m.one_sided:
             # the range error of B's point against A's plane: its distance over the cosine of
             # its ray with the plane, which H turns (the noise's share of the distance)
-            c = _clip_away_from_zero(_rowdot(self.point_dir, ab @ R.T), GRAZING_TARGET)
+            c = _clip_away_from_zero(rowdot(self.point_dir, ab @ R.T), GRAZING_TARGET)
             out: FloatArray = ra / np.abs(c)
             return out
-        rb = self.swb * (_rowdot(ua, ba @ R.T) - _rowdot(ub, bb @ R.T) - m.ob)
+        rb = self.swb * (rowdot(ua, ba @ R.T) - rowdot(ub, bb @ R.T) - m.ob)
         return np.concatenate([ra, rb])
 
     def residuals(self, x: FloatArray) -> FloatArray:
@@ -300,8 +300,8 @@ class _Problem:
         if m.one_sided:
             # the residual r/|c| of _target_residuals: (J_r·|c| − r·∂|c|)/c², where a clipped
             # cosine does not move with H
-            r_plane = self.swa * (_rowdot(ua, aa @ R.T) - _rowdot(ub, ab @ R.T) + m.oa)
-            c_free = _rowdot(self.point_dir, ab @ R.T)
+            r_plane = self.swa * (rowdot(ua, aa @ R.T) - rowdot(ub, ab @ R.T) + m.oa)
+            c_free = rowdot(self.point_dir, ab @ R.T)
             c_pt = _clip_away_from_zero(c_free, GRAZING_TARGET)
             c_turns = c_free == c_pt
             s_pt = np.abs(c_pt)
@@ -319,22 +319,22 @@ class _Problem:
                 va, vb = {OFFSET: (self.ray_a, self.ray_b), SCALE: (pa, pb),
                           INCIDENCE: (self.ray_a * self.shape_a[:, None],
                                       self.ray_b * self.shape_b[:, None])}[i]
-                da = -self.swa * (_rowdot(aa @ R.T, va) - _rowdot(ab @ R.T, vb)) / scale
+                da = -self.swa * (rowdot(aa @ R.T, va) - rowdot(ab @ R.T, vb)) / scale
                 if m.one_sided:
                     out[:n, col] = da / s_pt
                 else:
                     out[:n, col] = da
                     out[n:, col] = -self.swb * (
-                        _rowdot(ba @ R.T, va) - _rowdot(bb @ R.T, vb)) / scale
+                        rowdot(ba @ R.T, va) - rowdot(bb @ R.T, vb)) / scale
                 continue
             dR = rotation_derivative(x6, i)
             va, vb = ua @ dR, ub @ dR
-            out[:n, col] = self.swa * (_rowdot(va, aa) - _rowdot(vb, ab))
+            out[:n, col] = self.swa * (rowdot(va, aa) - rowdot(vb, ab))
             if m.one_sided:
-                ds = _rowdot(self.point_dir, ab @ dR.T) * c_turns * c_pt / s_pt
+                ds = rowdot(self.point_dir, ab @ dR.T) * c_turns * c_pt / s_pt
                 out[:n, col] = (out[:n, col] * s_pt - r_plane * ds) / s_pt**2
             else:
-                out[n:, col] = self.swb * (_rowdot(va, ba) - _rowdot(vb, bb))
+                out[n:, col] = self.swb * (rowdot(va, ba) - rowdot(vb, bb))
 
     def _platter_jacobian(self, x6: FloatArray, R: FloatArray, out: FloatArray) -> None:
         """The platter's rows of :meth:`jacobian`, written into ``out``: of its range error
@@ -400,11 +400,6 @@ def _clip_away_from_zero(c: FloatArray, least: float) -> FloatArray:
 def _unit(p: FloatArray) -> FloatArray:
     """(N, 3) each row's unit vector: the ray of a return in L (the lidar at the origin)."""
     out: FloatArray = p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-9)
-    return out
-
-
-def _rowdot(a: FloatArray, b: FloatArray) -> FloatArray:
-    out: FloatArray = np.einsum("ij,ij->i", a, b)
     return out
 
 
