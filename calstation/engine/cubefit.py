@@ -302,8 +302,7 @@ class _RangeSizeErrors:
         cosine = rowdot(normal_L, f.rays)
         shape = incidence_shape(cosine, LEAST_COSINE_KNOWN)
         shape_slope = incidence_shape_slope(cosine, LEAST_COSINE_KNOWN)
-        rho = (self.rho - v[OFFSET] - v[INCIDENCE] * shape) / k1
-        corrected = f.rays * rho[:, None]
+        corrected = correct_vector(f.p_L, v, shape, self.rho)
         from_origin = corrected - t
         dist = (rowdot(normal_L, from_origin) - centre
                 - np.where(f.side, 0.5 * self.edge, self.edge))
@@ -349,8 +348,7 @@ class _RangeSizeErrors:
         down = w @ R[:, 0]
         shape = incidence_shape(down, LEAST_COSINE_KNOWN)
         shape_slope = incidence_shape_slope(down, LEAST_COSINE_KNOWN)
-        rho = (self.platter_rho - v[OFFSET] - v[INCIDENCE] * shape) / k1
-        corrected = w * rho[:, None]
+        corrected = correct_vector(self.platter, v, shape, self.platter_rho)
         height = (corrected - t) @ R[:, 0]
         a = away_from_grazing(down)
         a_slope = (np.abs(down) > GRAZING_FACE).astype(np.float64)
