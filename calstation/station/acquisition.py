@@ -34,6 +34,10 @@ SPEED_POLL_S = 0.05
 STATUS_PERIOD_S = 0.1
 """Turntable status is recorded at about this period during a spin scan."""
 
+LATE_LINES_FACTOR = 10
+"""A spin scan's lines may reach the station this many times slower than they were scanned (a
+loaded host works through the lidar's buffer) before the scan is stopped as stalled."""
+
 
 class Writer(Protocol):
     """What the acquisition loops need of a recording writer."""
@@ -247,8 +251,12 @@ def _scan_turns(
     cpr = encoder.counts_per_revolution
     start = _start_encoder(encoder, writer)
     most = revolutions if more is None else max(revolutions, more.max_revolutions)
-    # generous limit: twice the nominal time plus slack, so a stalled encoder cannot hang the scan
-    limit_ns = start.timestamp_ns + round((2.0 * most * 60.0 / abs(rpm) + 5.0) * 1e9)
+    # generous limits, so a stalled encoder cannot hang the scan: twice the nominal time plus
+    # slack of lines scanned (a loaded host that receives the lines late is not a fault), and
+    # ten times that on the clock (lines whose stamps do not advance are)
+    scanned_ns = round((2.0 * most * 60.0 / abs(rpm) + 5.0) * 1e9)
+    limit_ns = start.timestamp_ns + scanned_ns
+    waited_ns = clock.now_ns() + LATE_LINES_FACTOR * scanned_ns
     next_status = clock.now_ns()
     turns = 0.0
     count_at = _CountAt(start)
@@ -277,11 +285,18 @@ def _scan_turns(
                 or not more(turns, (now - start.timestamp_ns) * 1e-9)
             ):
                 break
-            if now > limit_ns:
+            if line.timestamp_ns > limit_ns:
                 raise DriverError(
                     f"the encoder covered only {turns:.3f} of {most:g} turns in "
-                    f"{(now - start.timestamp_ns) * 1e-9:.1f} s at {rpm:g} rpm: is the platter "
-                    f"turning and the encoder connected?"
+                    f"{(line.timestamp_ns - start.timestamp_ns) * 1e-9:.1f} s of lines at "
+                    f"{rpm:g} rpm: is the platter turning and the encoder connected?"
+                )
+            if now > waited_ns:
+                raise DriverError(
+                    f"the lidar's lines cover only {turns:.3f} of {most:g} turns after "
+                    f"{(now - start.timestamp_ns) * 1e-9:.1f} s: its line stamps lag the "
+                    f"station's clock by {(now - line.timestamp_ns) * 1e-9:.1f} s (are they "
+                    f"advancing, and can this computer keep up with the lidar?)"
                 )
     finally:
         lidar.stop()

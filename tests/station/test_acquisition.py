@@ -237,15 +237,90 @@ def test_acquire_spin_covers_the_turns_and_stops(tmp_path: Path) -> None:
     assert rec.turntable[-1].speed_rpm == 0.0 and len(rec.turntable) > 5
 
 
-class _FailingWriter:
-    """Accepts encoder and turntable data, fails on the 10th lidar line (a full disk, say)."""
+class _LateLidar:
+    """The simulated lidar's lines, each handed over ``lag`` line periods after the previous
+    one was (a loaded host working through the lidar's buffer): its stamps fall ever further
+    behind the station's clock, and none is lost."""
 
-    def __init__(self) -> None:
-        self.lines = 0
+    def __init__(self, station: Any, lag: int) -> None:
+        self.station, self.lag, self.running = station, lag, False
+
+    def start(self) -> None:
+        self.running, self.t0 = True, self.station.clock.now_ns()
+
+    def stop(self) -> None:
+        self.running = False
+
+    def lines(self) -> Iterable[LidarLine]:
+        period = self.station.line_period_ns
+        k = 0
+        while self.running:
+            times = self.t0 + np.round(np.arange(k, k + 100) * period).astype(np.int64)
+            for line in self.station.scan_lines(times):
+                now = self.station.clock.now_ns()
+                self.station.clock.advance_to(now + round(self.lag * period))
+                yield line
+            k += 100
+
+
+class _StuckEncoder:
+    """The simulated encoder, its count stuck where it was first read (a cable pulled)."""
+
+    def __init__(self, encoder: Any) -> None:
+        self.encoder, self.count = encoder, None
+        self.counts_per_revolution = encoder.counts_per_revolution
+
+    def _stuck(self, sample: EncoderSample) -> EncoderSample:
+        self.count = sample.count if self.count is None else self.count
+        return EncoderSample(timestamp_ns=sample.timestamp_ns, count=self.count)
+
+    def read(self) -> EncoderSample:
+        return self._stuck(self.encoder.read())
+
+    def samples(self) -> list[EncoderSample]:
+        return [self._stuck(x) for x in self.encoder.samples()]
+
+
+def test_a_spin_scan_whose_lines_come_late_still_covers_its_turns(tmp_path: Path) -> None:
+    """Lines handed over eight times slower than scanned take the scan eight times as long on
+    the clock, beyond the stalled-encoder limit's time: the turns count in the lines' own time,
+    so the scan ends with its turns rather than fail the encoder."""
+    from calstation_sim import SimEncoder, SimTurntable
+
+    station = small_station(tmp_path)
+    station.place("qa_cube")
+    tt, encoder = SimTurntable(station), SimEncoder(station)
+    with _writer(tmp_path / "spin.mcap", station) as writer:
+        acquire_spin(_LateLidar(station, lag=8), tt, encoder, writer, rpm=60.0,
+                     revolutions=1.05, settle_s=0.0, clock=station.clock)
+    rec = read_recording(tmp_path / "spin.mcap")
+    assert np.all(np.diff(rec.line_timestamp_ns) == 1_000_000)  # every line, none skipped
+    turns = np.ptp(rec.platter_angle(rec.line_timestamp_ns)) / (2 * math.pi)
+    assert 1.04 <= turns < 1.06
+    assert station.clock.now_ns() - rec.line_timestamp_ns[0] > 8e9  # past the 7.1 s limit
+
+
+def test_a_spin_scan_with_a_stuck_encoder_stops_and_names_it(tmp_path: Path) -> None:
+    from calstation_sim import SimEncoder, SimLidar, SimTurntable
+
+    station = small_station(tmp_path)
+    lidar, tt = SimLidar(station), SimTurntable(station)
+    with pytest.raises(DriverError, match=r"covered only 0\.000 of 1 turns in 7\.\d s of lines"):
+        acquire_spin(lidar, tt, _StuckEncoder(SimEncoder(station)), _FailingWriter(lines=None),
+                     rpm=60.0, revolutions=1.0, settle_s=0.0, clock=station.clock)
+    assert station.motion.commanded_speed() == 0.0
+
+
+class _FailingWriter:
+    """Accepts encoder and turntable data, fails on the 10th lidar line (a full disk, say), or
+    never with ``lines=None``."""
+
+    def __init__(self, lines: int | None = 10) -> None:
+        self.lines, self.fails_at = 0, lines
 
     def write_line(self, line: LidarLine) -> None:
         self.lines += 1
-        if self.lines == 10:
+        if self.lines == self.fails_at:
             raise OSError("disk full")
 
     def write_encoder(self, samples: Iterable[EncoderSample]) -> None:

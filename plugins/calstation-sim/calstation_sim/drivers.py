@@ -39,6 +39,11 @@ ENCODER_BUFFER_S = 60.0
 
 EMERGENCY_DECELERATION_FACTOR = 10.0
 
+REAL_TIME_BUFFER_S = 30.0
+"""On the host's clock, the lidar keeps the lines it has not handed over for this long (a network
+lidar's, the host's socket buffer): a consumer that falls behind, on a loaded host, gets every
+line late and in order, not a scan with holes; older lines are dropped."""
+
 
 def _wait_until(clock: Clock, t_ns: int) -> None:
     if isinstance(clock, SimClock):
@@ -55,7 +60,9 @@ class SimLidar:
     Lines lie on a fixed grid from :meth:`start`: line k starts at ``t_start + k·period``. On a
     SimClock, when the consumer lets simulated time pass (``clock.sleep``), lines that started in
     the past are skipped, as a device without a buffer would drop them; on a real-time clock the
-    lines are produced in order, each once real time has reached its end.
+    lines are produced in order, each once real time has reached its end, and one that could
+    not be computed in time (a loaded host) is handed over late rather than skipped, unless it
+    is older than :data:`REAL_TIME_BUFFER_S`.
     """
 
     def __init__(self, station: SimulatedStation) -> None:
@@ -88,8 +95,9 @@ class SimLidar:
             raise DriverError("sim lidar: lines() called before start()")
         period = self.station.line_period_ns
         simulated = isinstance(self.clock, SimClock)
+        kept_ns = 0.0 if simulated else REAL_TIME_BUFFER_S * 1e9
         while self._running:
-            behind = (self.clock.now_ns() - self._t_start) / period
+            behind = (self.clock.now_ns() - kept_ns - self._t_start) / period
             k0 = max(self._next, math.ceil(behind - 1e-9))
             revision = self.station.revision
             times = np.array([self._line_time(k) for k in range(k0, k0 + BATCH_LINES)])
