@@ -1,6 +1,7 @@
 """Fault injection, the long cases (``-m slow``): whole runs of the simulated station through the
-CLI, with a database locked for 30 s mid-run, two runs started together on a fresh database, a
-SIGKILL at every step, and recipes at the edges of the accepted ranges.
+CLI, with a database locked for 30 s mid-run, two runs started together on a fresh database (two
+stations, and one station twice), a SIGKILL at every step, and recipes at the edges of the
+accepted ranges.
 """
 
 from __future__ import annotations
@@ -79,16 +80,28 @@ def test_database_locked_for_30_s_mid_run_ends_pass_with_every_step(tmp_path: Pa
     db.dispose()
 
 
+def _station(recipe: Path, station_id: str) -> Path:
+    """``recipe`` for the station ``station_id``, written beside it."""
+    data = yaml.safe_load(recipe.read_text())
+    data["station"]["id"] = station_id
+    path = recipe.with_name(f"{station_id}.yaml")
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
 @pytest.mark.parametrize("fresh", [True, False], ids=["fresh database", "existing database"])
 def test_two_runs_started_together_both_end_stored(tmp_path: Path, fresh: bool) -> None:
+    """Two stations sharing one database (fresh: both create its schema at once) start a run
+    each at the same moment: both pass with every step stored."""
     url = f"sqlite:///{tmp_path / 'shared.db'}"
-    recipe = lean_recipe(tmp_path)
+    lean = lean_recipe(tmp_path)
     if not fresh:
         Database(url).ensure_schema()
     env = cli_env(tmp_path)
-    procs = [subprocess.Popen(cli_argv("run", str(recipe), "--yes", "--db", url), env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for _ in range(2)]
+    procs = [subprocess.Popen(cli_argv("run", str(_station(lean, f"sim-0{k}")), "--yes", "--db",
+                                       url), env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
+             for k in (1, 2)]
     outputs = [p.communicate(timeout=900) for p in procs]
     for p, (out, err) in zip(procs, outputs, strict=True):
         assert p.returncode == 0, out[-3000:] + err[-3000:]
@@ -96,6 +109,28 @@ def test_two_runs_started_together_both_end_stored(tmp_path: Path, fresh: bool) 
     db = Database(url)
     for run_id in (1, 2):
         _all_stored(db, run_id)
+    db.dispose()
+
+
+def test_two_runs_started_together_on_one_station_one_is_refused(tmp_path: Path) -> None:
+    """One station, two runs at once: one turntable, so one run passes and the other is refused
+    with a message that names the run holding the station, and stores no run."""
+    url = f"sqlite:///{tmp_path / 'shared.db'}"
+    recipe = lean_recipe(tmp_path)
+    procs = [subprocess.Popen(cli_argv("run", str(recipe), "--yes", "--db", url),
+                              env=cli_env(tmp_path), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    outputs = [p.communicate(timeout=900) for p in procs]
+    codes = sorted(p.returncode for p in procs)
+    assert codes == [0, 4], outputs
+    refused = next(out + err for p, (out, err) in zip(procs, outputs, strict=True)
+                   if p.returncode == 4)
+    assert "is in use: run 1" in refused and "Traceback" not in refused
+    db = Database(url)
+    _all_stored(db, 1)
+    with db.session() as s:
+        assert s.query(Run).count() == 1
     db.dispose()
 
 
