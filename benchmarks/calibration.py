@@ -216,7 +216,9 @@ def measure_station(recipe_path: Path, out: Path) -> dict[str, Any]:
     for line in spin.lines():
         builder.write_line(line)
     truth = spin.truth
-    del spin  # a station holds the lines it has prepared, not the recording
+    # a station holds the lines it has prepared, not the recording: the last line too (its
+    # arrays are views of the recording's, which it would keep)
+    del spin, line
 
     def after() -> Any:
         return periodicity_fine_tune_scan(builder.finish(), start, rc.calibration.periodicity,
