@@ -46,6 +46,12 @@ MAX_TPDO_DELAY_S = 0.05
 WALL_CLOCK_STAMPS = frozenset({"socketcan", "virtual"})
 """The python-can interfaces whose frame timestamps are the host's wall clock."""
 
+SYNC_SEND_S = 0.001
+"""A SYNC whose sending took longer than this has an uncertain time: the host's thread was held
+between reading the clock and the frame reaching the bus (a busy host), and the devices latched
+their inputs up to that long after the time on record. What they latched at it is dropped
+(:meth:`SharedBus.sync_time_certain`), not stamped that far off."""
+
 MAX_FRAME_AGE_S = 10.0
 """A received frame's timestamp older than this (or in the future) is not on the wall clock:
 the interface's timestamps are not used."""
@@ -80,6 +86,7 @@ class SharedBus:
             ) from exc
         self.users = 0
         self._sync_times: deque[int] = deque(maxlen=4096)
+        self._uncertain_syncs: deque[int] = deque(maxlen=64)
         self._sync_lock = threading.Lock()
         self._sync_stop = threading.Event()
         self._sync_thread: threading.Thread | None = None
@@ -122,8 +129,16 @@ class SharedBus:
             except can.CanError as exc:
                 log.warning("canopen: SYNC not sent: %s", exc)
                 return t
+            if self.clock.now_ns() - t > SYNC_SEND_S * 1e9:
+                self._uncertain_syncs.append(t)
             self._sync_times.append(t)
         return t
+
+    def sync_time_certain(self, t_ns: int) -> bool:
+        """Whether the SYNC sent at ``t_ns`` reached the bus within :data:`SYNC_SEND_S` of that
+        time (what a device latched at it is then stamped with it)."""
+        with self._sync_lock:
+            return t_ns not in self._uncertain_syncs
 
     def stop_sync(self) -> None:
         """Stop the SYNC producer."""

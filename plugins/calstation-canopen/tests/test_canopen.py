@@ -22,7 +22,7 @@ from calstation_canopen import (
     Unwrapper,
 )
 
-from calstation.clock import HostClock
+from calstation.clock import HostClock, SimClock
 from calstation.drivers import DriverContext, TurntableState
 
 _channels = itertools.count()
@@ -260,6 +260,38 @@ def test_encoder_on_sync_is_stamped_with_the_sync_time(
         assert tpdo and all(len(f) == 4 + 8 for f in tpdo)  # 0x6004 as 4 bytes
     finally:
         enc.close()
+
+
+class _StallingClock(SimClock):
+    """A SimClock that moves 3 ms on while a frame is sent when ``stall`` is set (a busy
+    host holding the SYNC producer's thread)."""
+
+    stall = False
+
+    def now_ns(self) -> int:
+        t = super().now_ns()
+        if self.stall:
+            self.stall = False
+            self.advance_to(t + 3_000_000)
+        return t
+
+
+def test_a_sync_whose_sending_stalled_gives_no_sample(channel: str) -> None:
+    """A SYNC that took longer than SYNC_SEND_S to reach the bus has an uncertain time: what the
+    encoder latched at it is dropped, not stamped up to the stall too early."""
+    from calstation_canopen.bus import SharedBus
+
+    clock = _StallingClock(0)
+    bus = SharedBus("virtual", channel, clock=clock)
+    try:
+        clock.advance_to(2_000_000)
+        steady = bus.send_sync()
+        clock.advance_to(4_000_000)
+        clock.stall = True
+        stalled = bus.send_sync()
+        assert bus.sync_time_certain(steady) and not bus.sync_time_certain(stalled)
+    finally:
+        bus.close()
 
 
 def test_encoder_cyclic_mode(
