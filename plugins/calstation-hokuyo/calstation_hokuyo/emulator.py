@@ -40,6 +40,15 @@ Scene = Callable[[int], LidarLine]
 NO_ECHO = 1
 """Range value the emulator reports for a step without a return (below DMIN: an error code)."""
 
+CATCH_UP_S = 10.0
+"""A streamed scan the emulator could not compute in time (its thread starved on a loaded host)
+is sent late, in order, if it is at most this old: the device it stands for measures every scan
+on time, so a late scan is the emulator's, not the sensor's. Older ones are skipped."""
+
+SCANS_PER_POLL = 25
+"""At most this many owed scans are computed in one :meth:`ScipSensor.poll` (the lock is held
+meanwhile); the rest follow in the next polls."""
+
 
 @dataclass(frozen=True)
 class ScipParameters:
@@ -194,11 +203,15 @@ class ScipSensor:
             out = b""
             now = self._now_ns()
             st = self._stream
-            # a scan is sent once the mirror has finished it; catch up at most 5 scans, then skip
+            # a scan is sent once the mirror has finished it; one owed for longer than
+            # CATCH_UP_S is skipped, on the request's grid of scans
             latest = self._scan_index_after(now) - 2
-            if latest - st.next_scan > 5:
-                st.next_scan = latest - ((latest - st.next_scan) % (st.skip + 1))
-            while self._stream is not None and st.next_scan <= latest:
+            oldest = latest - math.ceil(CATCH_UP_S / self.params.scan_period_s)
+            if st.next_scan < oldest:
+                st.next_scan += (oldest - st.next_scan + st.skip) // (st.skip + 1) * (st.skip + 1)
+            for _ in range(SCANS_PER_POLL):
+                if self._stream is None or st.next_scan > latest:
+                    break
                 out += self._stream_scan(st)
             return out
 

@@ -135,6 +135,39 @@ def test_over_a_pty(sensor: ScipSensor) -> None:
     assert len(lines) == 5 and all(line.valid.all() for line in lines)
 
 
+def _streamed_scans(reply: bytes) -> list[int]:
+    """The sensor timestamps (ms) of the streamed scans in ``reply``, in order."""
+    stamps = []
+    for block in reply.split(b"\n\n"):
+        lines = block.split(b"\n")
+        if len(lines) > 3 and lines[1].startswith(b"99"):
+            stamps.append(scip.decode_value(lines[2][:4]))
+    return stamps
+
+
+@pytest.mark.parametrize("skip", [0, 2])
+def test_scans_the_emulator_computed_late_are_sent_in_order(skip: int) -> None:
+    """An emulator starved for 0.3 s (30 scans) by a loaded host owes those scans: the sensor
+    measured them on time, so they come late and in order, on the request's grid; only scans
+    owed for longer than CATCH_UP_S are skipped."""
+    from calstation_hokuyo import emulator
+
+    now = [1_000_000_000_000]
+    sensor = ScipSensor(WallScene(2.0), now_ns=lambda: now[0])
+    assert sensor.receive(f"MD2000300000{skip}00\n".encode()).endswith(b"00P\n\n")
+    now[0] += 300_000_000
+    sent = b"".join(iter(sensor.poll, b""))
+    stamps = np.diff(_streamed_scans(sent))
+    assert len(stamps) >= 28 // (skip + 1) - 1
+    assert (stamps == 10 * (skip + 1)).all(), stamps
+    # a stall longer than the catch-up window: the scans older than it are skipped
+    now[0] += round((emulator.CATCH_UP_S + 1.0) * 1e9)
+    late = _streamed_scans(b"".join(iter(sensor.poll, b"")))
+    assert len(late) == pytest.approx(emulator.CATCH_UP_S * 100 / (skip + 1), abs=2)
+    assert (np.diff(late) == 10 * (skip + 1)).all()
+    assert (late[0] - _streamed_scans(sent)[-1]) % (10 * (skip + 1)) == 0
+
+
 def test_timestamps_across_the_24_bit_wrap() -> None:
     params = ScipParameters(sensor_clock_start_ms=scip.TIMESTAMP_WRAP_MS - 1000)
     sensor = ScipSensor(WallScene(), params)
