@@ -70,6 +70,7 @@ UNITS: dict[str, str] = display.units(CHART_PARAMS)
 """The unit each charted value is given in (the stored one: m, rad, deg)."""
 
 REASONS: tuple[tuple[str, str], ...] = (
+    ("lines were lost", "lidar lines lost"),
     ("face-fit edge error", "cube edge error (face fit)"),
     ("OBB edge error", "cube edge error (oriented box)"),
     ("face flatness", "cube face flatness"),

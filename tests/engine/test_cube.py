@@ -117,6 +117,28 @@ def test_a_smeared_cube_is_a_failed_check_not_an_error(sim_run) -> None:
     assert worse.edge_error > 10e-3 and np.all(np.isfinite(worse.face_edges))
 
 
+def test_a_scan_with_lost_lines_names_the_hole_not_the_cubes_shape(sim_run) -> None:
+    """The lines of 80° of the turn lost but one (a lidar stream with a gap): a side face is
+    then crossed by one line, along which its plane may turn at will (1.75° out of square under
+    the true H, failed as perpendicularity). The face is not fitted, and the failure names the
+    hole in the turn first."""
+    recipe, rec, truth = _cube_scan(sim_run)
+    scan = from_recording(rec)
+    into = np.mod(scan.phi - math.radians(30.0), 2.0 * math.pi)
+    kept = (into >= math.radians(80.0)) | (np.abs(into - math.radians(40.0)) < 0.002)
+    check = check_cube_points(scan.p_L[kept], scan.phi[kept], truth, recipe.fixtures.qa_cube,
+                              recipe.qa)
+    assert not check.passed
+    assert check.failures[0].startswith("the scan's lines leave a hole of 40° in the platter's "
+                                        "turn (from 30° to 70°): lines were lost"), check.failures
+    assert not any("perpendicularity" in f for f in check.failures), check.failures
+    assert any(f.startswith("faces 1+ have too few returns") for f in check.failures)
+    # the whole scan: no hole is named
+    assert not any("hole" in f for f in check_cube_points(
+        scan.p_L, scan.phi, truth.with_(tz=truth.tz + 0.01), recipe.fixtures.qa_cube,
+        recipe.qa).failures)
+
+
 @pytest.mark.parametrize("strays", [9, 12])
 def test_a_few_stray_returns_beyond_a_face_do_not_hide_it(sim_run, strays: int) -> None:
     """A small tight cluster of returns (mixed pixels at an edge, say; enough to pass the

@@ -137,6 +137,11 @@ def test_the_favicon_is_served(client: TestClient) -> None:
 def test_failure_reasons_and_periods() -> None:
     assert failure_reason("cube_scan", "QA cube check failed: perpendicularity 0.6° > 0.5°") \
         == ("cube_scan", "cube perpendicularity")
+    # a hole in the scan is the cause of the faces it hides: filed as the lines lost
+    assert failure_reason("cube_scan", "cube check failed: the scan's lines leave a hole of 40° "
+                          "in the platter's turn (from 30° to 70°): lines were lost between the "
+                          "lidar and the station …; faces 1+ have too few returns for a plane "
+                          "fit …") == ("cube_scan", "lidar lines lost")
     assert failure_reason("preflight", "lidar: no answer") == ("preflight", "lidar")
     assert failure_reason(None, None) == ("run", "no message")
     t = dt.datetime(2026, 11, 19, 10, tzinfo=dt.UTC)  # a Thursday
