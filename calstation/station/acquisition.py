@@ -15,6 +15,7 @@ import math
 from collections import deque
 from collections.abc import Callable, Iterable
 from contextlib import suppress
+from itertools import pairwise
 from typing import Protocol
 
 from calstation.clock import Clock
@@ -37,6 +38,52 @@ STATUS_PERIOD_S = 0.1
 LATE_LINES_FACTOR = 10
 """A spin scan's lines may reach the station this many times slower than they were scanned (a
 loaded host works through the lidar's buffer) before the scan is stopped as stalled."""
+
+
+LOST_LINES_WARN = 0.01
+"""A scan whose lidar stream lost more than this fraction of its lines is named to the operator
+(:class:`LineGaps`)."""
+
+
+class LineGaps:
+    """The lines a lidar's stream lost on the way to the station, counted from the gaps between
+    the stamps of the lines it delivered: the line period is their median spacing, and a gap
+    of k periods (beyond 1.5) lost k − 1 lines. A lidar whose lines do not reach the station
+    (a network that drops packets, a host that cannot keep up with a sensor that then drops
+    scans) leaves holes in the platter's turn that no fit can fill."""
+
+    def __init__(self) -> None:
+        self._stamps: list[int] = []
+
+    def add(self, timestamp_ns: int) -> None:
+        """Count a delivered line, stamped ``timestamp_ns``."""
+        self._stamps.append(timestamp_ns)
+
+    def lost(self) -> tuple[int, int, float]:
+        """(lines delivered, lines lost, the longest gap between two delivered lines in s)."""
+        stamps = self._stamps
+        if len(stamps) < 10:
+            return len(stamps), 0, 0.0
+        gaps = [b - a for a, b in pairwise(stamps)]
+        period = sorted(gaps)[len(gaps) // 2]
+        if period <= 0:
+            return len(stamps), 0, 0.0
+        lost = sum(round(g / period) - 1 for g in gaps if g > 1.5 * period)
+        return len(stamps), lost, max(gaps) * 1e-9
+
+    def warning(self, scan: str) -> str | None:
+        """What to tell the operator about the ``scan``'s lost lines, or None when the stream
+        lost at most :data:`LOST_LINES_WARN` of them."""
+        delivered, lost, longest = self.lost()
+        if lost <= LOST_LINES_WARN * (delivered + lost):
+            return None
+        return (
+            f"the {scan} scan lost {lost} of its {delivered + lost} lidar lines "
+            f"({100 * lost / (delivered + lost):.0f} %; the longest gap {longest:.2f} s): they "
+            "did not reach the station, and the platter angles they would have covered are "
+            "missing from the scan. Is the lidar's connection sound, and can this computer keep "
+            "up with it?"
+        )
 
 
 class Writer(Protocol):

@@ -79,11 +79,13 @@ class ScanTurns:
 class PreparedScan:
     """What was prepared while the recording at ``path`` was taken: its returns as they arrived
     (``builder``; None once a later scan needed the memory) and what it did turn by turn
-    (``turns``; None when it took exactly its revolutions)."""
+    (``turns``; None when it took exactly its revolutions), and the lidar lines its stream lost
+    (``lost_lines``, :class:`~calstation.station.acquisition.LineGaps`)."""
 
     path: Path
     builder: SpinScanBuilder | None = None
     turns: ScanTurns | None = None
+    lost_lines: int = 0
 
     @property
     def met(self) -> TurnFit | None:

@@ -25,7 +25,13 @@ from calstation.drivers import DriverContext, EncoderSample, LidarLine, Turntabl
 from calstation.engine.spinscan import SpinScanBuilder
 from calstation.jsonvalue import JSONObject
 from calstation.recordings.runfolder import RECORDING_OF
-from calstation.station.acquisition import MoreTurns, Writer, acquire_spin, acquire_static
+from calstation.station.acquisition import (
+    LineGaps,
+    MoreTurns,
+    Writer,
+    acquire_spin,
+    acquire_static,
+)
 from calstation.station.context import RunContext
 from calstation.station.hardware import Drivers
 from calstation.station.operator import Operator, ProgressCallback, publish
@@ -120,17 +126,20 @@ def record_scan(
         preview = (ScanPreview(ctx, kind, builder,
                                getattr(getattr(ctx.recipe.steps, step), "revolutions", 1.0))
                    if wants_previews(ctx.ui) else None)
+        publishing = PublishingWriter(writer, ctx.ui, kind, builder, preview)
         try:
-            acquire(PublishingWriter(writer, ctx.ui, kind, builder, preview), progress, more)
+            acquire(publishing, progress, more)
             if preview is not None:
                 preview.line(final=True)
         finally:
             turns = None if more is None else more.close(_whole_turns(builder))
+            if (lost := publishing.gaps.warning(stem)) is not None:
+                ctx.ui.warn(lost)
     ctx.scans.partial = []
     if kind == "spin":
         ctx.scans.scan_ended = time.monotonic()
     if builder is not None or turns is not None:
-        ctx.keep_prepared(PreparedScan(path, builder, turns))
+        ctx.keep_prepared(PreparedScan(path, builder, turns, publishing.gaps.lost()[1]))
     return path
 
 
@@ -213,10 +222,13 @@ class PublishingWriter:
                  preview: ScanPreview | None = None) -> None:
         self._inner, self._ui, self._kind, self._builder = inner, ui, kind, builder
         self._preview = preview
+        self.gaps = LineGaps()
+        """The lines the lidar's stream lost, from the gaps in those recorded."""
 
     def write_line(self, line: LidarLine) -> None:
         """Record ``line``, prepare it (spin scans) and publish it (``lidar_line``)."""
         self._inner.write_line(line)
+        self.gaps.add(line.timestamp_ns)
         if self._builder is not None:
             self._builder.write_line(line)
         publish(self._ui, "lidar_line", kind=self._kind, line=line)

@@ -20,7 +20,7 @@ from calstation.errors import DriverError
 from calstation.recipes import load_recipe
 from calstation.recordings.reader import read_recording
 from calstation.recordings.writer import RecordingWriter
-from calstation.station.acquisition import acquire_spin, acquire_static
+from calstation.station.acquisition import LineGaps, acquire_spin, acquire_static
 
 REPO = Path(__file__).resolve().parents[2]
 RECIPE = REPO / "recipes" / "sim-periodicity.yaml"
@@ -362,3 +362,26 @@ def test_acquire_rejects_bad_requests(tmp_path: Path) -> None:
         acquire_spin(
             lidar, tt, encoder, writer, rpm=0.0, revolutions=1, settle_s=0, clock=station.clock
         )
+
+
+def test_lost_lines_are_counted_from_the_gaps_and_jitter_is_not() -> None:
+    """2000 lines 10 ms apart whose stamps jitter by up to ±2 ms (a sensor clock's steps)
+    lost none; the same with 30 lines gone after the 500th lost 30, which the operator is
+    told (beyond 1 % of the scan's lines), and a single line gone is not worth a warning."""
+    rng = np.random.default_rng(0)
+    stamps = np.arange(2000) * 10_000_000 + rng.integers(-2_000_000, 2_000_001, 2000)
+
+    def gaps(kept: NDArray[np.int64]) -> LineGaps:
+        g = LineGaps()
+        for t in kept:
+            g.add(int(t))
+        return g
+
+    whole = gaps(stamps)
+    assert whole.lost()[:2] == (2000, 0) and whole.warning("spin") is None
+    holed = gaps(np.r_[stamps[:500], stamps[530:]])
+    delivered, lost, longest = holed.lost()
+    assert (delivered, lost) == (1970, 30) and longest == pytest.approx(0.31, abs=0.005)
+    said = holed.warning("spin")
+    assert said is not None and said.startswith("the spin scan lost 30 of its 2000 lidar lines")
+    assert gaps(np.r_[stamps[:500], stamps[501:]]).warning("spin") is None

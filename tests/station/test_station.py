@@ -558,3 +558,26 @@ def test_a_cube_check_that_could_not_measure_the_perpendicularity_is_stored_as_n
         cube = run_summary(run)["cube_check"]
     assert cube is not None and cube["perpendicularity_deg"] is None
     assert cube["edge_error"] is not None and math.isfinite(cube["edge_error"])
+
+
+def test_a_scan_whose_lidar_lost_lines_is_named_to_the_operator(
+    tmp_path: Path, db: Database, station_plugin: StationTestPlugin
+) -> None:
+    """A lidar stream that loses 150 lines of each spin scan (a network dropping packets): the
+    operator is told, per scan, how many of its lines never arrived and the longest gap; the
+    static scan, which lost none of its 40, is not named."""
+    path = toy_recipe(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["station"]["lidar"]["settings"] = {"lose_lines": [300, 150]}
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    ui = UnattendedOperator()
+    run_id, status = start_run(load_recipe(path), db, ui, operator="t",
+                               data_dir=tmp_path / "data")
+    with db.session() as s:
+        results = {st.name: st.result for st in s.query(Step).filter_by(run_id=run_id)}
+    assert results["spin_scan"]["lost_lines"] == results["cube_scan"]["lost_lines"] == 150
+    lost = [m for m in ui.messages if "lidar lines" in m]
+    assert [m.split(" lost ")[0] for m in lost] == ["the spin scan", "the cube scan"], lost
+    for message in lost:
+        assert " lost 150 of its " in message and "the longest gap 0.15" in message, message
+    assert status == "passed", ui.failures

@@ -135,6 +135,36 @@ class ToyStrategy:
                                  diagnostics={"note": "toy"})
 
 
+class LossyLidar:
+    """The sim lidar, its stream losing ``count`` lines after the first ``first`` of each scan
+    (a network that drops packets): the lines are scanned, and never reach the station."""
+
+    def __init__(self, inner: Any, first: int, count: int) -> None:
+        self.inner, self.first, self.count = inner, first, count
+        self.clock = inner.clock
+        self._n = 0
+
+    def start(self) -> None:
+        self._n = 0
+        self.inner.start()
+
+    def lines(self) -> Any:
+        for line in self.inner.lines():
+            self._n += 1
+            if not self.first < self._n <= self.first + self.count:
+                yield line
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+
+def _spy_lidar(settings: Any, context: Any) -> Any:
+    lidar = sim_drivers.lidar_factory(_paced(settings), context)
+    if "lose_lines" in settings:
+        return LossyLidar(lidar, *settings["lose_lines"])
+    return lidar
+
+
 def _paced(settings: Any) -> dict[str, Any]:
     return {"real_time": True} if settings.get("real_time") else {}
 
@@ -152,7 +182,8 @@ class StationTestPlugin:
     @hookimpl
     def calstation_register_drivers(self, register: Any) -> None:
         # ``real_time: true`` in a spy driver's settings runs the simulator on the host's clock
-        register("lidar", "spy", lambda s, c: sim_drivers.lidar_factory(_paced(s), c))
+        # ``lose_lines: [first, count]``: the lidar's stream loses lines (:class:`LossyLidar`)
+        register("lidar", "spy", _spy_lidar)
         register("turntable", "spy", lambda s, c: SpyTurntable(
             sim_drivers.turntable_factory(_paced(s), c), self.motor_calls))
         register("encoder", "spy", lambda s, c: (

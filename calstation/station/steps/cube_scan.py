@@ -98,6 +98,7 @@ class CubeScan:
              "after_scan_s": time.perf_counter() - scan_ended,
              "cube_check_s": float(check.timings.get("total", math.nan)),
              "joint_ry": None if joint is None else plain(joint.diagnostics["joint"]),
+             "lost_lines": 0 if prepared is None else prepared.lost_lines,
              **({"turn_by_turn": plain(prepared.turns.summary)}
                 if prepared is not None and prepared.turns is not None else {})},
             artifacts=artifacts,

@@ -33,6 +33,8 @@ class SpinScan:
         prepared = ctx.prepared.get(path)
         if prepared is not None and prepared.turns is not None:
             result["turn_by_turn"] = plain(prepared.turns.summary)
+        if prepared is not None:
+            result["lost_lines"] = prepared.lost_lines
         artifacts = [("spin", path)]
         # the same turns again at another speed: the fine-tune estimates the lidar–encoder time
         # offset from the two
