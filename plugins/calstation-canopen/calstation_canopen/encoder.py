@@ -8,7 +8,8 @@ transmission type 0x01 (sampled at every SYNC, ``mode: sync``) or 0xFE with cycl
 - ``mode: sync``: stamped with the host time at which the driver sent the SYNC that sampled it
   (the encoder latches its position at the SYNC; paired by the frame's time on the wire when
   the interface gives it, :meth:`~calstation_canopen.bus.SharedBus.pair_sync`); none from a
-  SYNC that took the host longer than ``SYNC_SEND_S`` to send (its time is uncertain);
+  SYNC that took the host longer than ``SYNC_SEND_S`` to send (its time is uncertain), and none
+  from a TPDO no SYNC of its own can be paired with (when it latched is not known);
 - ``mode: cyclic``: stamped with the host time of reception (on the wire, when the interface
   gives it).
 
@@ -137,10 +138,11 @@ class Cia406Encoder(BusNodeDriver):
         t = now if wire is None else wire
         if self.settings["mode"] == "sync":
             t_sync = self.bus.pair_sync(self._last_sync_ns, now, wire)
-            if t_sync is not None:
-                t = self._last_sync_ns = t_sync
-                if not self.bus.sync_time_certain(t_sync):
-                    return  # latched up to a host's stall after that time: not stamped with it
+            if t_sync is None:
+                return  # no SYNC of its own to be stamped with: when it latched is not known
+            t = self._last_sync_ns = t_sync
+            if not self.bus.sync_time_certain(t_sync):
+                return  # latched up to a host's stall after that time: not stamped with it
         t -= round(float(self.settings["latency_s"]) * 1e9)
         with self._new:
             sample = EncoderSample(timestamp_ns=t, count=self.unwrap(raw))

@@ -9,8 +9,10 @@ import math
 import struct
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import can
+import numpy as np
 import pytest
 from calstation_canopen import (
     CanopenError,
@@ -294,6 +296,43 @@ def test_a_sync_whose_sending_stalled_gives_no_sample(channel: str) -> None:
         bus.close()
 
 
+class _LateWakingClock(HostClock):
+    """The host's clock, 19.5 ms further on once the SYNC producer has sent three SYNCs (its
+    thread woke that late: a busy host)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.offset = 0
+        self.bus: Any = None
+
+    def now_ns(self) -> int:
+        if self.bus is not None and self.offset == 0 and len(self.bus._sync_times) >= 3:
+            self.offset = 19_500_000
+        return super().now_ns() + self.offset
+
+
+def test_a_sync_producer_that_falls_behind_sends_no_burst(channel: str) -> None:
+    """SYNCs every 10 ms, the producer waking 19.5 ms late once: it sends at once, then keeps
+    the next SYNC at least half a period away. Two SYNCs 0.5 ms apart (it once sent the next
+    on the old grid) cannot be told apart by their answers' time on the wire."""
+    from calstation_canopen.bus import SharedBus
+
+    clock = _LateWakingClock()
+    bus = SharedBus("virtual", channel, clock=clock)
+    clock.bus = bus
+    try:
+        bus.start_sync(0.01)
+        deadline = time.monotonic() + 10.0
+        while len(bus._sync_times) < 8 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        bus.stop_sync()
+        times = list(bus._sync_times)
+        assert len(times) >= 8 and clock.offset
+        assert min(np.diff(times)) >= 5_000_000, np.diff(times)
+    finally:
+        bus.close()
+
+
 def test_encoder_cyclic_mode(
     encoder_emulator: EncoderEmulator, channel: str, clock: HostClock
 ) -> None:
@@ -414,6 +453,10 @@ def test_a_tpdo_is_paired_with_the_sync_before_it_on_the_wire_however_late_it_is
         assert bus.pair_sync(syncs[0], late, 4_200_000) == syncs[2]
         # without the wire's time, in order when on time
         assert bus.pair_sync(syncs[0], 3_000_000) == syncs[1]
+        # a frame on the wire before any SYNC after the last pairing answers none: not the
+        # next SYNC, sent after it (that once shifted every answer after a burst of SYNCs)
+        assert bus.pair_sync(syncs[1], late, 2_200_000) is None
+        assert bus.pair_sync(syncs[1], late, 3_900_000) is None
         # a frame's time on the wire, from python-can's wall-clock stamp
         now = 10_000_000_000
         assert bus.wire_ns(time.time() - 0.25, now) == pytest.approx(now - 250_000_000,
