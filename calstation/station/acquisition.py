@@ -12,6 +12,7 @@ speed", "scanning"), ``fraction`` in [0, 1] for that phase.
 from __future__ import annotations
 
 import math
+from array import array
 from collections import deque
 from collections.abc import Callable, Iterable
 from contextlib import suppress
@@ -53,7 +54,7 @@ class LineGaps:
     scans) leaves holes in the platter's turn that no fit can fill."""
 
     def __init__(self) -> None:
-        self._stamps: list[int] = []
+        self._stamps = array("q")  # 8 bytes a line: 4 MB for 8 minutes at 1000 lines/s
 
     def add(self, timestamp_ns: int) -> None:
         """Count a delivered line, stamped ``timestamp_ns``."""
