@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from calstation.engine.cubefaces import FACE_SPREAD, Face, angle_deg, find_faces
 from calstation.engine.frames import Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import (
     density_outlier_mask,
@@ -126,72 +127,6 @@ class CubeCheck:
             "timings": dict(self.timings),
             "platter_level_m": float(self.platter_level),
         }
-
-
-@dataclass(frozen=True)
-class _Face:
-    centroid: FloatArray
-    normal: FloatArray
-    rms: float
-    n: int
-    members: NDArray[np.intp]
-    """indices of the face's returns in the cleaned cube cloud"""
-
-
-FACE_SPREAD = 0.025
-"""A face's returns fit a plane only if they spread over at least this fraction of the cube's
-edge (1σ) in both of the face's directions. A face crossed by one or two scan lines (lines lost
-in a gap of the lidar's stream) has returns along a line: its plane may turn about that line
-at will, and its angle to a neighbour is the fit's, not the cube's. On the default simulated
-cube a face crossed by two neighbouring lines spread 0.018 of the edge (1 mm of range noise), a
-face seen whole spreads ~0.23, and a sliver seen at grazing incidence 0.037."""
-
-
-def _faces(
-    cube: FloatArray,
-    axes: FloatArray,
-    lo: FloatArray,
-    hi: FloatArray,
-    band: float,
-    keep_out: float,
-    min_spread: float,
-) -> dict[str, _Face]:
-    local = cube @ axes
-    faces: dict[str, _Face] = {}
-    inner_top = local[:, 0] < hi[0] - keep_out
-    for j in (1, 2):
-        other = 3 - j
-        inner = (local[:, other] > lo[other] + keep_out) & (local[:, other] < hi[other] - keep_out)
-        for name, ref in ((f"{j}-", lo[j]), (f"{j}+", hi[j])):
-            sel = (np.abs(local[:, j] - ref) < band) & inner & inner_top
-            if (face := _plane_face(cube, sel, min_spread)) is not None:
-                faces[name] = face
-    inner = np.ones(local.shape[0], dtype=bool)
-    for j in (1, 2):
-        inner &= (local[:, j] > lo[j] + keep_out) & (local[:, j] < hi[j] - keep_out)
-    sel = inner & (np.abs(local[:, 0] - hi[0]) < band)
-    if (face := _plane_face(cube, sel, min_spread)) is not None:
-        faces["top"] = face
-    return faces
-
-
-def _plane_face(cube: FloatArray, sel: NDArray[np.bool_], min_spread: float) -> _Face | None:
-    """The plane through ``cube[sel]``, or None with fewer than 30 returns or returns that do not
-    spread ``min_spread`` (1σ, m) across the plane in both directions."""
-    count = int(sel.sum())
-    if count < 30:
-        return None
-    pts = cube[sel]
-    c, n, rms = fit_plane(pts)
-    q = pts - c
-    q -= np.outer(q @ n, n)
-    if math.sqrt(max(float(np.linalg.eigvalsh(q.T @ q / count)[1]), 0.0)) < min_spread:
-        return None
-    return _Face(c, n, rms, count, np.flatnonzero(sel))
-
-
-def _angle_deg(n1: FloatArray, n2: FloatArray) -> float:
-    return math.degrees(math.acos(min(1.0, abs(float(np.dot(n1, n2))))))
 
 
 PLATTER_WINDOW = 0.02
@@ -457,7 +392,7 @@ def _paper_obb(pts: FloatArray, s: float) -> tuple[FloatArray, float]:
 class _Dimensions:
     """The cube dimensioned by planes on its faces (metres, degrees)."""
 
-    faces: dict[str, _Face]
+    faces: dict[str, Face]
     """the faces with enough returns for a plane fit, by name (``1-``, ``1+``, ``2-``, ``2+``,
     ``top``)"""
     missing: list[str]
@@ -494,7 +429,7 @@ def _face_dimensions(cloud: CubeCloud, s: float, platter_radius: float) -> _Dime
     hi = axes.T @ centre + 0.5 * ext
     band = min(0.008, 0.1 * s)
     keep_out = min(0.01, 0.1 * s)
-    faces = _faces(pts, axes, lo, hi, band, keep_out, FACE_SPREAD * s)
+    faces = find_faces(pts, axes, lo, hi, band, keep_out, FACE_SPREAD * s)
     missing = [n for n in ("1-", "1+", "2-", "2+", "top") if n not in faces]
     edges = []
     for j in (1, 2):
@@ -522,7 +457,7 @@ def _face_dimensions(cloud: CubeCloud, s: float, platter_radius: float) -> _Dime
     )
 
 
-def _perpendicularity(faces: dict[str, _Face], pts: FloatArray) -> tuple[float, float]:
+def _perpendicularity(faces: dict[str, Face], pts: FloatArray) -> tuple[float, float]:
     """The worst deviation from 90° between adjacent faces and its 1σ (degrees; NaN, NaN
     without an adjacent pair).
 
@@ -533,7 +468,7 @@ def _perpendicularity(faces: dict[str, _Face], pts: FloatArray) -> tuple[float, 
         if a not in faces or b not in faces:
             continue
         fa, fb = faces[a], faces[b]
-        deviation = abs(90.0 - _angle_deg(fa.normal, fb.normal))
+        deviation = abs(90.0 - angle_deg(fa.normal, fb.normal))
         if math.isfinite(worst) and deviation <= worst:
             continue
         tilt = 0.0
@@ -658,7 +593,7 @@ def failed_figures(check: CubeCheck, limits: QALimits) -> dict[str, float]:
 
 
 def _height(
-    p_D: FloatArray, top: _Face, centre: FloatArray, ext: FloatArray, platter_radius: float
+    p_D: FloatArray, top: Face, centre: FloatArray, ext: FloatArray, platter_radius: float
 ) -> float:
     """Top face above the platter plane fitted in a ring around the cube (x_D = 0 if none)."""
     r_cube = 0.5 * float(np.hypot(ext[1], ext[2]))

@@ -255,7 +255,7 @@ def test_flatness_is_judged_beyond_the_range_noise(tmp_path) -> None:
 def _side_faces(n: int, noise: float, rng: np.random.Generator, skew_deg: float = 0.0) -> Any:
     """Two adjacent side faces of a 100 mm cube (returns in D, noisy across each face), the
     second turned by ``skew_deg`` about the vertical, fitted as the check fits them."""
-    from calstation.engine.cube import _Face
+    from calstation.engine.cubefaces import Face
 
     s = 0.1
     a = np.column_stack([rng.uniform(0.01, s, n), np.full(n, -s / 2), rng.uniform(-0.04, 0.04, n)])
@@ -268,7 +268,7 @@ def _side_faces(n: int, noise: float, rng: np.random.Generator, skew_deg: float 
     faces = {}
     for name, idx in (("1-", np.arange(n)), ("2-", np.arange(n, 2 * n))):
         c, normal, rms = fit_plane(pts[idx])
-        faces[name] = _Face(c, normal, rms, n, idx)
+        faces[name] = Face(c, normal, rms, n, idx)
     return faces, pts
 
 
