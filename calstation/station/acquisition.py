@@ -72,19 +72,19 @@ class LineGaps:
         lost = sum(round(g / period) - 1 for g in gaps if g > 1.5 * period)
         return len(stamps), lost, max(gaps) * 1e-9
 
-    def warning(self, scan: str) -> str | None:
-        """What to tell the operator about the ``scan``'s lost lines, or None when the stream
-        lost at most :data:`LOST_LINES_WARN` of them."""
-        delivered, lost, longest = self.lost()
-        if lost <= LOST_LINES_WARN * (delivered + lost):
-            return None
-        return (
-            f"the {scan} scan lost {lost} of its {delivered + lost} lidar lines "
-            f"({100 * lost / (delivered + lost):.0f} %; the longest gap {longest:.2f} s): they "
-            "did not reach the station, and the platter angles they would have covered are "
-            "missing from the scan. Is the lidar's connection sound, and can this computer keep "
-            "up with it?"
-        )
+
+def lost_lines_warning(scan: str, delivered: int, lost: int, longest_s: float) -> str | None:
+    """What to tell the operator about the lines the ``scan``'s lidar stream lost (the counts
+    of :meth:`LineGaps.lost`), or None when it lost at most :data:`LOST_LINES_WARN` of them."""
+    if lost <= LOST_LINES_WARN * (delivered + lost):
+        return None
+    return (
+        f"the {scan} scan lost {lost} of its {delivered + lost} lidar lines "
+        f"({100 * lost / (delivered + lost):.0f} %; the longest gap {longest_s:.2f} s): they "
+        "did not reach the station, and the platter angles they would have covered are "
+        "missing from the scan. Is the lidar's connection sound, and can this computer keep "
+        "up with it?"
+    )
 
 
 class Writer(Protocol):

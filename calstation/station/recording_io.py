@@ -31,6 +31,7 @@ from calstation.station.acquisition import (
     Writer,
     acquire_spin,
     acquire_static,
+    lost_lines_warning,
 )
 from calstation.station.context import RunContext
 from calstation.station.hardware import Drivers
@@ -133,13 +134,14 @@ def record_scan(
                 preview.line(final=True)
         finally:
             turns = None if more is None else more.close(_whole_turns(builder))
-            if (lost := publishing.gaps.warning(stem)) is not None:
-                ctx.ui.warn(lost)
+            delivered, lost, longest_s = publishing.gaps.lost()
+            if (warning := lost_lines_warning(stem, delivered, lost, longest_s)) is not None:
+                ctx.ui.warn(warning)
     ctx.scans.partial = []
     if kind == "spin":
         ctx.scans.scan_ended = time.monotonic()
     if builder is not None or turns is not None:
-        ctx.keep_prepared(PreparedScan(path, builder, turns, publishing.gaps.lost()[1]))
+        ctx.keep_prepared(PreparedScan(path, builder, turns, lost))
     return path
 
 

@@ -20,7 +20,12 @@ from calstation.errors import DriverError
 from calstation.recipes import load_recipe
 from calstation.recordings.reader import read_recording
 from calstation.recordings.writer import RecordingWriter
-from calstation.station.acquisition import LineGaps, acquire_spin, acquire_static
+from calstation.station.acquisition import (
+    LineGaps,
+    acquire_spin,
+    acquire_static,
+    lost_lines_warning,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 RECIPE = REPO / "recipes" / "sim-periodicity.yaml"
@@ -378,10 +383,10 @@ def test_lost_lines_are_counted_from_the_gaps_and_jitter_is_not() -> None:
         return g
 
     whole = gaps(stamps)
-    assert whole.lost()[:2] == (2000, 0) and whole.warning("spin") is None
+    assert whole.lost()[:2] == (2000, 0) and lost_lines_warning("spin", *whole.lost()) is None
     holed = gaps(np.r_[stamps[:500], stamps[530:]])
     delivered, lost, longest = holed.lost()
     assert (delivered, lost) == (1970, 30) and longest == pytest.approx(0.31, abs=0.005)
-    said = holed.warning("spin")
+    said = lost_lines_warning("spin", delivered, lost, longest)
     assert said is not None and said.startswith("the spin scan lost 30 of its 2000 lidar lines")
-    assert gaps(np.r_[stamps[:500], stamps[501:]]).warning("spin") is None
+    assert lost_lines_warning("spin", *gaps(np.r_[stamps[:500], stamps[501:]]).lost()) is None
