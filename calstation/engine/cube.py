@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from calstation.engine.blocks import by_blocks, stacked
 from calstation.engine.cubefaces import FACE_SPREAD, Face, angle_deg, find_faces
 from calstation.engine.frames import Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import (
@@ -204,14 +205,22 @@ def _along_axis(
 ) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
     """The returns ((N, 3) in L) whose height along the axis under H lies between ``low`` and
     ``high`` (m, from x_P = 0): their positions, their heights and their squared distances from
-    the axis. Neither depends on the platter angle, so no return is turned by it."""
+    the axis. Neither depends on the platter angle, so no return is turned by it. A block of
+    returns at a time (:mod:`calstation.engine.blocks`)."""
     t_P = H.t @ H.R
-    x = p_L @ H.R[:, 0]
-    x -= t_P[0]
-    idx = np.flatnonzero((x > low) & (x < high))
-    yz = p_L[idx] @ H.R[:, 1:]
-    yz -= t_P[1:]
-    return idx, x[idx], np.einsum("ij,ij->i", yz, yz)
+
+    def block(rows: slice) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
+        x = p_L[rows] @ H.R[:, 0]
+        x -= t_P[0]
+        idx = np.flatnonzero((x > low) & (x < high))
+        yz = p_L[rows][idx] @ H.R[:, 1:]
+        yz -= t_P[1:]
+        return idx + rows.start, x[idx], np.einsum("ij,ij->i", yz, yz)
+
+    if p_L.shape[0] == 0:
+        return np.zeros(0, dtype=np.intp), np.zeros(0), np.zeros(0)
+    idx, x, r2 = stacked(by_blocks(block, p_L.shape[0]))
+    return idx.astype(np.intp, copy=False), x, r2
 
 
 def _whole_lines(p_L: FloatArray, most: int) -> NDArray[np.intp]:
@@ -702,20 +711,41 @@ def incidence_corrected(
     on the platter top by its ray's angle with the axis, each return of the cube by its ray's
     angle with the nearest face of the cube's upright box found under H; the rest (the
     background) as they are. The surfaces' normals come from this scan, as a reconstruction
-    knows none."""
+    knows none. A block of returns at a time (:mod:`calstation.engine.blocks`)."""
     cloud = _cube_cloud(p_L, phi, H, edge, platter_radius)
+    box = upright_box(cloud.pts, strays=True) if cloud.pts.shape[0] >= 8 else None
+
+    def block(rows: slice) -> FloatArray:
+        cosine = _incidence_cosines(p_L[rows], phi[rows], H, cloud.level, box, platter_radius)
+        shift = np.where(cosine != 0.0,
+                         incidence * incidence_shape(cosine, LEAST_COSINE_KNOWN), 0.0)
+        return correct_points(p_L[rows], shift, 0.0)
+
+    if p_L.shape[0] == 0:
+        return p_L
+    return np.concatenate(by_blocks(block, p_L.shape[0]))
+
+
+def _incidence_cosines(
+    p_L: FloatArray, phi: FloatArray, H: Extrinsics, level: float,
+    box: tuple[FloatArray, FloatArray, FloatArray] | None, platter_radius: float,
+) -> FloatArray:
+    """(N,) the cosine of each return's ray (``p_L``, (N, 3) in L) with the surface it meets
+    (:func:`incidence_corrected`): the nearest face of the cube's upright ``box`` (centre, axes
+    and extents in D, None when the cube was not found), or the platter top at ``level``; 0
+    for the rest."""
     t_P = H.t @ H.R
-    x = p_L @ H.R[:, 0] - t_P[0] - cloud.level
+    x = p_L @ H.R[:, 0] - t_P[0] - level
     yz = p_L @ H.R[:, 1:] - t_P[1:]
     near = np.einsum("ij,ij->i", yz, yz) < platter_radius**2
     rays = unit_rays(p_L)
     cosine = np.zeros(p_L.shape[0])
     on_cube = np.zeros(p_L.shape[0], dtype=bool)
-    if cloud.pts.shape[0] >= 8:
-        centre, axes, ext = upright_box(cloud.pts, strays=True)
+    if box is not None:
+        centre, axes, ext = box
         close = np.flatnonzero(near & (x > -PLATTER_WINDOW))
         p_D = lidar_to_dynamic(p_L[close], phi[close], H)
-        p_D[:, 0] -= cloud.level
+        p_D[:, 0] -= level
         local = (p_D - centre) @ axes
         # over the cube's footprint (and a little around it): the nearest of its faces
         inside = np.all(np.abs(local[:, 1:]) <= 0.5 * ext[1:] + PLATTER_WINDOW, axis=1) & (
@@ -730,9 +760,7 @@ def incidence_corrected(
         on_cube[idx] = True
     platter = near & ~on_cube & (np.abs(x) < PLATTER_WINDOW)
     cosine[platter] = rays[platter] @ H.R[:, 0]
-    shift = np.where(cosine != 0.0, incidence * incidence_shape(cosine, LEAST_COSINE_KNOWN),
-                     0.0)
-    return correct_points(p_L, shift, 0.0)
+    return cosine
 
 
 def check_cube_passes(

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from calstation.engine.blocks import by_blocks, positions, stacked
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray
 from calstation.engine.rangemodel import RangeModel, unit_rays
 from calstation.engine.spinscan import SpinScan
@@ -72,24 +73,31 @@ stay out."""
 def _near_platter(scan: SpinScan, v: FloatArray, radius: float) -> NDArray[np.intp]:
     """The returns whose ray meets the platter's top plane inside its rim (under the estimate
     ``v``), or something above it: those :func:`model_labels` may use (the background stays
-    out). Chosen by the ray alone."""
+    out). Chosen by the ray alone, a block of returns at a time
+    (:mod:`calstation.engine.blocks`)."""
     H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
     origin = -(H.t @ H.R)
-    # first on the returns as they are (the ray's length does not move where it meets the
-    # plane): the few within a millimetre of the rim, or inside, are tested on their unit rays
-    q = scan.p_L @ H.R  # in P
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_hit = -origin[0] / q[:, 0]
-        y = origin[1] + s_hit * q[:, 1]
-        z = origin[2] + s_hit * q[:, 2]
-    candidates = np.flatnonzero((s_hit > 0) & (y * y + z * z < (radius + 0.051) ** 2))
-    rays = unit_rays(scan.p_L[candidates]) @ H.R
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s_hit = -origin[0] / rays[:, 0]
-    hit = origin + s_hit[:, None] * rays
-    out: NDArray[np.intp] = candidates[
-        (s_hit > 0) & (np.hypot(hit[:, 1], hit[:, 2]) < radius + 0.05)]
-    return out
+
+    def block(rows: slice) -> NDArray[np.intp]:
+        p_L = scan.p_L[rows]
+        # first on the returns as they are (the ray's length does not move where it meets the
+        # plane): the few within a millimetre of the rim, or inside, are tested on their unit
+        # rays
+        q = p_L @ H.R  # in P
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_hit = -origin[0] / q[:, 0]
+            y = origin[1] + s_hit * q[:, 1]
+            z = origin[2] + s_hit * q[:, 2]
+        candidates = np.flatnonzero((s_hit > 0) & (y * y + z * z < (radius + 0.051) ** 2))
+        rays = unit_rays(p_L[candidates]) @ H.R
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_hit = -origin[0] / rays[:, 0]
+        hit = origin + s_hit[:, None] * rays
+        out: NDArray[np.intp] = candidates[
+            (s_hit > 0) & (np.hypot(hit[:, 1], hit[:, 2]) < radius + 0.05)]
+        return out
+
+    return positions(block, scan.p_L.shape[0])
 
 
 @dataclass(frozen=True)
@@ -129,25 +137,19 @@ def model_labels(
     them, those whose range is within max(6σ, 5 mm) of the model's (a window symmetric about
     the model: mixed pixels and strays out, no selection on the noise). Returns the faces and
     the platter's returns (as measured, in L)."""
-    H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
-    p_L, rays, cos, sin = returns.p_L, returns.rays, returns.cos, returns.sin
-    o = _spun(np.broadcast_to(-(H.t @ H.R), p_L.shape), cos, sin)  # the lidar, in D
-    d = _turned(rays, H, cos, sin)
-    cy, cz, yaw = (float(a) for a in pose[:3])
-    c, s = math.cos(yaw), math.sin(yaw)
-    # the cube's frame: x up, u = (cos yaw, sin yaw) and w = (−sin yaw, cos yaw) across
-    ol = np.column_stack([o[:, 0], c * (o[:, 1] - cy) + s * (o[:, 2] - cz),
-                          -s * (o[:, 1] - cy) + c * (o[:, 2] - cz)])
-    dl = np.column_stack([d[:, 0], c * d[:, 1] + s * d[:, 2], -s * d[:, 1] + c * d[:, 2]])
-    label, cube_range, shadow = _cube_entries(ol, dl, edge)
-    measured = RangeModel.from_vector(v).ranges(returns.rho)
     window = max(6.0 * noise if math.isfinite(noise) else 0.0, 0.005)
-    on_plate, plate_close = _platter_returns(o, d, measured, shadow, platter_radius, window)
-    on_face = (label > 0) & (np.abs(measured - cube_range) <= window)
+    cast = _Cast(returns, v, pose, edge, platter_radius, window)
+    n = returns.p_L.shape[0]
+    label, on_face, on_plate, close, heights = stacked(by_blocks(cast, n))
+    if np.count_nonzero(on_plate & close) < MIN_PLATTER and heights.size:
+        # the estimate's level is off by more than the window allows: centre the window on
+        # where the platter's returns read (:meth:`_Cast.platter`)
+        level = float(np.median(heights))
+        close = np.concatenate(by_blocks(lambda rows: cast.close_to(rows, level), n))
     faces_idx = np.flatnonzero(on_face)
     if faces_idx.size > FIT_POINTS:
         faces_idx = np.sort(np.random.default_rng(0).choice(faces_idx, FIT_POINTS, replace=False))
-    plate_idx = np.flatnonzero(on_plate & plate_close)
+    plate_idx = np.flatnonzero(on_plate & close)
     if plate_idx.size > PLATTER_POINTS:
         plate_idx = np.sort(
             np.random.default_rng(1).choice(plate_idx, PLATTER_POINTS, replace=False))
@@ -159,46 +161,87 @@ def model_labels(
             f"{plate_idx.size} returns of the platter"
         )
     lab = label[faces_idx]
+    cy, cz, yaw = (float(a) for a in pose[:3])
     # the labels of :func:`_label`: 1 the top, 2/3 the −u/+u sides, 4/5 the −w/+w sides
     faces = _Faces(
-        p_L=p_L[faces_idx], cos=cos[faces_idx], sin=sin[faces_idx], rays=rays[faces_idx],
-        side=lab >= 2, across_u=lab < 4, sign=np.where(lab % 2 == 1, 1.0, -1.0),
-        pose=np.array([cy, cz, yaw, edge]), noise=noise, faces=len(found),
+        p_L=returns.p_L[faces_idx], cos=returns.cos[faces_idx], sin=returns.sin[faces_idx],
+        rays=returns.rays[faces_idx], side=lab >= 2, across_u=lab < 4,
+        sign=np.where(lab % 2 == 1, 1.0, -1.0), pose=np.array([cy, cz, yaw, edge]),
+        noise=noise, faces=len(found),
     )
-    platter: FloatArray = p_L[plate_idx]
+    platter: FloatArray = returns.p_L[plate_idx]
     return faces, platter
 
 
-def _platter_returns(
-    o: FloatArray, d: FloatArray, measured: FloatArray, shadow: FloatArray,
-    platter_radius: float, window: float,
-) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """The returns whose ray (from ``o`` along unit ``d``, in D) meets the platter top inside
-    its rim, the cube's shadow missed, and which of them read within ``window`` of the top.
+class _Cast:
+    """:func:`model_labels`'s casting of the returns' rays against the model, a block of
+    returns at a time (:func:`calstation.engine.blocks.by_blocks`)."""
 
-    The top is the plane x_D = 0 of the estimate; when fewer than :data:`MIN_PLATTER` of its
-    returns read within the window there, the estimate's level is off by more than the window
-    allows (at 30° of pitch the rays meet the platter at grazing angles, and 2 mm of level is
-    5 mm of range): the window is then centred on where the platter's returns read, the median
-    of their heights within :data:`LEVEL_SEARCH` of the plane, and the fit brings the estimate
-    there. The median is of every such return, so the window is still symmetric about a model
-    and chooses none by its noise."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        plate_range = -o[:, 0] / d[:, 0]
-        at = o + plate_range[:, None] * d
-    on_plate = ~np.isfinite(shadow) & (plate_range > 0) & (
-        np.hypot(at[:, 1], at[:, 2]) <= platter_radius - MARGIN)
-    close = np.abs(measured - plate_range) <= window
-    if np.count_nonzero(on_plate & close) >= MIN_PLATTER:
-        return on_plate, close
-    height = o[:, 0] + measured * d[:, 0]  # each return's height above the estimate's top
-    near = on_plate & (np.abs(height) <= LEVEL_SEARCH)
-    if not near.any():
-        return on_plate, close
-    level = float(np.median(height[near]))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shifted = (level - o[:, 0]) / d[:, 0]
-    return on_plate, np.abs(measured - shifted) <= window
+    def __init__(self, returns: _Returns, v: FloatArray, pose: FloatArray, edge: float,
+                 platter_radius: float, window: float) -> None:
+        self.returns, self.edge, self.radius, self.window = returns, edge, platter_radius, window
+        self.H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
+        self.model = RangeModel.from_vector(v)
+        self.centre = (float(pose[0]), float(pose[1]))
+        self.yaw = float(pose[2])
+
+    def rays(self, rows: slice) -> tuple[FloatArray, FloatArray]:
+        """The lidar's position and the unit rays of the returns ``rows``, in D."""
+        r, H = self.returns, self.H
+        cos, sin = r.cos[rows], r.sin[rows]
+        o = _spun(np.broadcast_to(-(H.t @ H.R), (cos.shape[0], 3)), cos, sin)
+        return o, _turned(r.rays[rows], H, cos, sin)
+
+    def __call__(self, rows: slice) -> tuple[NDArray[np.int64], NDArray[np.bool_],
+                                             NDArray[np.bool_], NDArray[np.bool_], FloatArray]:
+        """Of the returns ``rows``: the face each ray enters (:func:`_box_entry`'s label),
+        which are a face's returns within the window, which meet the platter, which of them
+        read within the window of its top, and the heights of those that may be the
+        platter's (:meth:`platter`)."""
+        o, d = self.rays(rows)
+        cy, cz = self.centre
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        # the cube's frame: x up, u = (cos yaw, sin yaw) and w = (−sin yaw, cos yaw) across
+        ol = np.column_stack([o[:, 0], c * (o[:, 1] - cy) + s * (o[:, 2] - cz),
+                              -s * (o[:, 1] - cy) + c * (o[:, 2] - cz)])
+        dl = np.column_stack([d[:, 0], c * d[:, 1] + s * d[:, 2], -s * d[:, 1] + c * d[:, 2]])
+        label, cube_range, shadow = _cube_entries(ol, dl, self.edge)
+        measured = self.model.ranges(self.returns.rho[rows])
+        on_face = (label > 0) & (np.abs(measured - cube_range) <= self.window)
+        return (label, on_face, *self.platter(o, d, measured, shadow))
+
+    def platter(
+        self, o: FloatArray, d: FloatArray, measured: FloatArray, shadow: FloatArray,
+    ) -> tuple[NDArray[np.bool_], NDArray[np.bool_], FloatArray]:
+        """The returns whose ray (from ``o`` along unit ``d``, in D) meets the platter top
+        inside its rim, the cube's shadow missed; which of them read within the window of the
+        top; and the heights above the top of those within :data:`LEVEL_SEARCH` of it.
+
+        The top is the plane x_D = 0 of the estimate; when fewer than :data:`MIN_PLATTER` of
+        its returns read within the window there, the estimate's level is off by more than the
+        window allows (at 30° of pitch the rays meet the platter at grazing angles, and 2 mm of
+        level is 5 mm of range): the window is then centred on where the platter's returns
+        read, the median of those heights (:meth:`close_to`), and the fit brings the estimate
+        there. The median is of every such return, so the window is still symmetric about a
+        model and chooses none by its noise."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            plate_range = -o[:, 0] / d[:, 0]
+            at = o + plate_range[:, None] * d
+        on_plate = ~np.isfinite(shadow) & (plate_range > 0) & (
+            np.hypot(at[:, 1], at[:, 2]) <= self.radius - MARGIN)
+        close = np.abs(measured - plate_range) <= self.window
+        height = o[:, 0] + measured * d[:, 0]  # each return's height above the estimate's top
+        return on_plate, close, height[on_plate & (np.abs(height) <= LEVEL_SEARCH)]
+
+    def close_to(self, rows: slice, level: float) -> NDArray[np.bool_]:
+        """Which of the returns ``rows`` read within the window of the platter top at
+        ``level`` (m above the estimate's)."""
+        o, d = self.rays(rows)
+        measured = self.model.ranges(self.returns.rho[rows])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            shifted = (level - o[:, 0]) / d[:, 0]
+        out: NDArray[np.bool_] = np.abs(measured - shifted) <= self.window
+        return out
 
 
 MIN_PLATTER = 200

@@ -10,26 +10,25 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from calstation.engine.blocks import pool
 from calstation.engine.frames import FloatArray
 
 WORKERS = -1
 """Threads for the KD-tree queries (-1: every core)."""
 
 T = TypeVar("T")
-_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="calstation-pair")
 
 
 def pair(fn: Callable[..., T], a: tuple[object, ...], b: tuple[object, ...]) -> tuple[T, T]:
     """``(fn(*a), fn(*b))``, the two calls side by side: NumPy and the KD-tree release the GIL,
     so the two half-turns of a spin scan are processed on two cores."""
-    second = _POOL.submit(fn, *b)
+    second = pool("pair", 2).submit(fn, *b)
     return fn(*a), second.result()
 
 

@@ -333,3 +333,52 @@ def test_the_range_fits_jacobian_is_the_derivative_of_its_residuals(
         down[j] -= step
         column = (fun(up) - fun(down)) / (2 * step)
         np.testing.assert_allclose(J[:, j], column, rtol=0, atol=1e-6 * np.abs(column).max())
+
+
+def test_the_passes_over_the_scans_returns_give_the_same_a_block_at_a_time(
+    biased: Any, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The cube step's passes over every return of the scan (the rays near the platter, their
+    cast against the model, with its level found again when the start reads the platter off
+    level, the heights along the axis, the incidence correction) run a block of returns at a
+    time on every core: to the last bit what the whole scan in one block gives."""
+    from functools import partial
+
+    from calstation.engine import blocks
+    from calstation.engine.blocks import stacked
+    from calstation.engine.cube import _along_axis, cube_cloud
+    from calstation.engine.cubecast import _Cast, _Returns, model_labels
+    from calstation.engine.cubefit import _label
+    from calstation.errors import FineTuningError
+
+    _, scan, truth, recipe = biased
+    radius, edge = recipe.fixtures.platter.radius, recipe.fixtures.qa_cube.edge
+    pose = _label(cube_cloud(TRUE_RANGE.points(scan.p_L), scan.phi, truth, edge, radius, None),
+                  truth).pose[:3]
+
+    def passes() -> list[Any]:
+        out: list[Any] = []
+        for dty in (0.0, 0.012):  # the second reads the platter 12 mm off the window
+            v = np.concatenate([truth.with_(ty=truth.ty + dty).as_vector(),
+                                TRUE_RANGE.as_vector()])
+            near = _near_platter(scan, v, radius)
+            returns = _Returns.of(scan, near)
+            try:
+                faces, platter = model_labels(returns, v, pose, edge, radius, 0.001)
+                out += [near, faces.p_L, faces.side, faces.sign, faces.across_u, platter]
+            except FineTuningError as exc:  # the faces are off the window too
+                out += [near, np.array(str(exc))]
+            # the window centred where the platter reads (the second's)
+            cast = _Cast(returns, v, pose, edge, radius, 0.006)
+            out += [*stacked(blocks.by_blocks(cast, near.size)),
+                    np.concatenate(blocks.by_blocks(partial(cast.close_to, level=-dty),
+                                                    near.size))]
+        out += list(_along_axis(scan.p_L, truth, -0.03, 0.33))
+        out.append(incidence_corrected(scan.p_L, scan.phi, truth, 0.0005, edge, radius))
+        return out
+
+    monkeypatch.setattr(blocks, "BLOCK", 1 << 40)
+    whole = passes()
+    monkeypatch.setattr(blocks, "BLOCK", 4099)
+    for a, b in zip(whole, passes(), strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -151,9 +151,10 @@ def test_each_half_turn_carries_its_returns_own_platter_angle(sim_run) -> None: 
             assert np.all((half.phi >= lo) & (half.phi < hi))
 
 
-def test_the_returns_near_the_platter_are_found_alike_a_chunk_at_a_time(monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """The region around the platter is tested a chunk of returns at a time (bounded memory):
-    the same returns as all at once, whatever the chunk."""
+def test_the_returns_near_the_platter_are_found_alike_a_block_at_a_time(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The region around the platter is tested a block of returns at a time (bounded memory,
+    on every core): the same returns as all at once, whatever the block."""
+    from calstation.engine import blocks
     from calstation.engine.periodicity import cells
 
     rng = np.random.default_rng(5)
@@ -163,8 +164,8 @@ def test_the_returns_near_the_platter_are_found_alike_a_chunk_at_a_time(monkeypa
     start6 = np.array([0.0, 1.2, 0.0, 0.0, 0.0, -0.5])
     whole = cells._near_platter(p_L, keep, start6, 0.5)
     assert 100 < whole.size < int(keep.sum())  # some returns in, some out
-    for chunk in (1, 7, 4096):
-        monkeypatch.setattr(cells, "REGION_CHUNK", chunk)
+    for block in (1, 7, 4096, n):
+        monkeypatch.setattr(blocks, "BLOCK", block)
         np.testing.assert_array_equal(cells._near_platter(p_L, keep, start6, 0.5), whole)
     # and what it finds is what it says: within the radius, from 0.2 m below to 0.6 m above
     R = cells._rotation(start6)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from calstation.engine.blocks import positions
 from calstation.engine.frames import FloatArray, euler_to_matrix, lidar_to_polar
 from calstation.engine.rangemodel import correct_vector
 from calstation.engine.spinscan import SpinScan
@@ -189,28 +190,26 @@ def _whole_revolutions(scan: SpinScan) -> NDArray[np.bool_]:
     return out
 
 
-REGION_CHUNK = 1 << 20
-"""Returns tested at once by :func:`_near_platter` (its temporaries are a few times this)."""
-
-
 def _near_platter(
     p_L: FloatArray, keep: NDArray[np.bool_], start6: FloatArray, radius: float
-) -> NDArray[np.int64]:
+) -> NDArray[np.intp]:
     """Indices of the kept returns from 0.2 m below to 0.6 m above the platter and within
-    ``radius`` of the axis under ``start6``, tested a chunk at a time: the whole scan's
-    coordinates at once were 170 MB of temporaries, the station's peak memory."""
+    ``radius`` of the axis under ``start6``, tested a block at a time
+    (:mod:`calstation.engine.blocks`): the whole scan's coordinates at once were 170 MB of
+    temporaries, the station's peak memory."""
     R = _rotation(start6)
     t_P = start6[:3] @ R
-    found = []
-    for i0 in range(0, p_L.shape[0], REGION_CHUNK):
-        chunk = slice(i0, i0 + REGION_CHUNK)
-        xy = p_L[chunk, :2]  # the returns lie in the scan plane (z_L = 0)
+
+    def block(rows: slice) -> NDArray[np.intp]:
+        xy = p_L[rows, :2]  # the returns lie in the scan plane (z_L = 0)
         # x_P first, then the radius on what is left
         x_P = xy @ R[:2, 0] - t_P[0]
-        j = np.flatnonzero(keep[chunk] & (x_P > -0.2) & (x_P < 0.6))
+        j = np.flatnonzero(keep[rows] & (x_P > -0.2) & (x_P < 0.6))
         yz = xy[j] @ R[:2, 1:] - t_P[1:]
-        found.append(i0 + j[np.hypot(yz[:, 0], yz[:, 1]) < radius])
-    return np.concatenate(found) if found else np.zeros(0, dtype=np.int64)
+        out: NDArray[np.intp] = j[np.hypot(yz[:, 0], yz[:, 1]) < radius]
+        return out
+
+    return positions(block, p_L.shape[0])
 
 
 def _split(
