@@ -108,6 +108,8 @@ def inside_neighbourhoods(
     normal: FloatArray,
     query: FloatArray,
     limit: float = 1.0,
+    *,
+    plane_of: NDArray[np.int64] | None = None,
 ) -> NDArray[np.bool_]:
     """(Q,) whether each (Q, 3) ``query`` point lies within the neighbourhood ``points[idx]``
     ((Q, k) indices into the (N, 3) ``points``, with its (Q, 3) ``centroid`` and unit
@@ -118,10 +120,17 @@ def inside_neighbourhoods(
     A point outside its matched neighbourhood has no counterpart there (the other half-turn did
     not see that part of the surface, or the plane ends at an edge): its distance to the plane
     measures the extrapolation, not H.
+
+    ``plane_of``: (Q,) the neighbourhood (row of ``idx``, ``centroid`` and ``normal``, given
+    once each) of each query point, when several share one; else the query's own row.
     """
     k = idx.shape[1]
-    off = query - centroid
-    off -= np.einsum("ij,ij->i", off, normal)[:, None] * normal
+    if plane_of is not None:
+        centroid_q, normal_q = centroid[plane_of], normal[plane_of]
+    else:
+        centroid_q, normal_q = centroid, normal
+    off = query - centroid_q
+    off -= np.einsum("ij,ij->i", off, normal_q)[:, None] * normal_q
     c = [points[:, a][idx] - centroid[:, a : a + 1] for a in range(3)]
     cov = np.empty((idx.shape[0], 3, 3))
     for a in range(3):
@@ -133,6 +142,8 @@ def inside_neighbourhoods(
     spread = np.trace(cov, axis1=1, axis2=2)
     cov += spread[:, None, None] * np.einsum("qi,qj->qij", normal, normal)
     cov += 1e-18 * np.eye(3)  # a degenerate patch (all on a line) stays solvable
+    if plane_of is not None:
+        cov = cov[plane_of]
     d2 = np.einsum("qi,qi->q", off, np.linalg.solve(cov, off[:, :, None])[:, :, 0])
     out: NDArray[np.bool_] = d2 <= limit**2
     return out

@@ -83,3 +83,27 @@ def test_periodicity_jacobian_matches_finite_differences() -> None:
     x = x6[free] + rng.normal(0, 1e-2, len(free))
     numeric = approx_derivative(problem.residuals, x, method="3-point")
     assert np.allclose(problem.jacobian(x), numeric, atol=1e-7)
+
+
+def test_planes_shared_by_several_points_are_fitted_once_to_the_same_figures() -> None:
+    """The one-sided matching fits each plane once however many points it is matched to
+    (``plane_of``): each point's test, and each plane's normal, weight and centroid, are to the
+    last bit those of the plane fitted again for every point."""
+    from calstation.engine.neighbours import inside_neighbourhoods, knn, tree
+
+    rng = np.random.default_rng(11)
+    n = 4000
+    points = np.column_stack([rng.uniform(0, 0.2, n), rng.uniform(0, 0.2, n),
+                              rng.normal(0.0, 0.001, n)]) + np.array([0.3, -1.1, 0.7])
+    hoods = knn(tree(points), points[:300], 16)
+    plane_of = rng.integers(0, 300, 2000)  # many points per plane, some planes unused
+    query = points[hoods[plane_of, 0]] + rng.normal(0.0, 0.01, (2000, 3))
+    normal, weight, centroid = local_planes(points, hoods)
+    each = local_planes(points, hoods[plane_of])
+    for once, again in zip((normal, weight, centroid), each, strict=True):
+        np.testing.assert_array_equal(once[plane_of], again)
+    shared = inside_neighbourhoods(points, hoods, centroid, normal, query, plane_of=plane_of)
+    own = inside_neighbourhoods(points, hoods[plane_of], centroid[plane_of], normal[plane_of],
+                                query)
+    np.testing.assert_array_equal(shared, own)
+    assert 0 < np.count_nonzero(shared) < shared.size  # some points in, some out

@@ -170,15 +170,12 @@ class _Matcher:
         plane_half = [1, 0]
         plane_pos = [near_b[a_ok], near_a[b_ok]]  # positions in kept[1], kept[0]
         points = [ka[a_ok], kb[b_ok]]  # cells (indices into the halves) matched to them
-        planes = pair(
-            lambda h, pos: local_planes(d_all[h], self._neighbourhoods(h, kept[h][pos])),
-            (plane_half[0], plane_pos[0]),
-            (plane_half[1], plane_pos[1]),
-        )
-        sides = [
-            self._inside(d_all, kept, plane_half[side], plane_pos[side], points[side], planes[side])
-            for side in (0, 1)
-        ]
+        # each plane once: about two cells of the other half share each nearest cell
+        sides = list(pair(
+            lambda side: self._inside(d_all, kept, plane_half[side], plane_pos[side],
+                                      points[side]),
+            (0,), (1,),
+        ))
         return self._one_sided_matches(sides, d_all), int(da.shape[0] + db.shape[0])
 
     def _inside(
@@ -188,21 +185,20 @@ class _Matcher:
         h: int,
         plane_pos: NDArray[np.int64],
         points: NDArray[np.int64],
-        plane: tuple[FloatArray, FloatArray, FloatArray],
     ) -> _OneSide:
         """The matches of the other half's cells ``points`` against the planes of half ``h``
         around its cells at ``plane_pos`` (positions in ``kept[h]``) whose point lies within
-        the plane's neighbourhood along the surface."""
-        normal, weight, centroid = plane
-        cell = self.candidates[h][kept[h][plane_pos]]
+        the plane's neighbourhood along the surface. Each plane is fitted once, however many
+        points it is matched to (each plane's figures depend on its neighbourhood alone)."""
+        unique, plane_of = np.unique(plane_pos, return_inverse=True)
+        hood = self._neighbourhoods(h, kept[h][unique])
+        normal, weight, centroid = local_planes(d_all[h], hood)
         q = d_all[1 - h][points]
-        inside = inside_neighbourhoods(
-            d_all[h], self._neighbourhoods(h, kept[h][plane_pos]), centroid, normal, q
-        )
-        return _OneSide(
-            h, cell[inside], points[inside], normal[inside], weight[inside], centroid[inside],
-            q[inside],
-        )
+        inside = inside_neighbourhoods(d_all[h], hood, centroid, normal, q, plane_of=plane_of)
+        at = plane_of[inside]
+        cell = self.candidates[h][kept[h][unique]]
+        return _OneSide(h, cell[at], points[inside], normal[at], weight[at], centroid[at],
+                        q[inside])
 
     def _one_sided_matches(self, sides: list[_OneSide], d_all: list[FloatArray]) -> _Matched:
         """Both sides' one-sided matches as one :class:`_Matched`: each plane's cell in A's
@@ -266,3 +262,4 @@ class _OneSide:
 def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched, int]:
     """Match the two half-turns' cells once under H (:class:`_Matcher`)."""
     return _Matcher(halves, stage)(x6)
+

@@ -381,12 +381,22 @@ class _Reduced:
         self.Q, _ = np.linalg.qr(J0)
         rest = r0 - self.Q @ (self.Q.T @ r0)
         self.rest = float(np.sqrt(rest @ rest))
+        # TRF evaluates both at x0 first, and the stage its cost where TRF ended: the last
+        # full evaluation of each is kept with its x
+        self._last = Kept()
+        self._last.get("residuals", x0.tobytes(), lambda: r0)
+        self._last.get("jacobian", x0.tobytes(), lambda: J0)
+
+    def full_residuals(self, x: FloatArray) -> FloatArray:
+        """The problem's residuals at ``x`` (the last evaluation's when at the same x)."""
+        return self._last.get("residuals", x.tobytes(), lambda: self.problem.residuals(x))
 
     def residuals(self, x: FloatArray) -> FloatArray:
-        return np.append(self.Q.T @ self.problem.residuals(x), self.rest)
+        return np.append(self.Q.T @ self.full_residuals(x), self.rest)
 
     def jacobian(self, x: FloatArray) -> FloatArray:
-        J = self.Q.T @ self.problem.jacobian(x)
+        full = self._last.get("jacobian", x.tobytes(), lambda: self.problem.jacobian(x))
+        J = self.Q.T @ full
         return np.vstack([J, np.zeros((1, J.shape[1]))])
 
 

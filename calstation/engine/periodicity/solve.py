@@ -476,7 +476,7 @@ class _Run:
             step = np.abs(new6 - x6)
             x6 = new6
             self.outer += 1
-            self.cost = float(np.mean(problem.residuals(res.x) ** 2))
+            self.cost = float(np.mean(reduced.full_residuals(res.x) ** 2))
             self.last = (res.x, problem)
             self.history.append(
                 Iteration(
