@@ -214,7 +214,10 @@ def predicted_error(
     w, v = np.linalg.eigh(0.5 * (cov + cov.T))
     root = v * np.sqrt(np.clip(w, 0.0, None))
     draws = root @ np.random.default_rng(seed).standard_normal((len(names), samples))
-    disp = np.linalg.norm((M @ draws).reshape(index.size, 3, samples), axis=1)  # (M, S)
+    # (M, S) each sighting's displacement per draw: its three components' squares summed in
+    # order, as numpy.linalg.norm would, without its two temporaries of (3M, S)
+    d = (M @ draws).reshape(index.size, 3, samples)
+    disp = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)
     bias_m = _bias_bound(M, names, bias, index.size)
     per_sighting = np.quantile(disp, level, axis=1)
     per_point = np.zeros(points.shape[0])
