@@ -50,8 +50,9 @@ def pool(name: str, workers: int | None = None) -> ThreadPoolExecutor:
 
 def by_blocks(fn: Callable[[slice], T], n: int) -> list[T]:
     """``[fn(s) for s in the slices of range(n), BLOCK by BLOCK]``, in order, the blocks on
-    every core. ``fn`` must not depend on the other blocks, nor call this function."""
-    slices = [slice(i, min(i + BLOCK, n)) for i in range(0, n, BLOCK)]
+    every core; one empty block when n is 0, so that a pass over no returns gives its own
+    empty results. ``fn`` must not depend on the other blocks, nor call this function."""
+    slices = [slice(i, min(i + BLOCK, n)) for i in range(0, max(n, 1), BLOCK)]
     if len(slices) <= 1:
         return [fn(s) for s in slices]
     futures = [pool("blocks").submit(fn, s) for s in slices]
@@ -62,13 +63,11 @@ def positions(fn: Callable[[slice], NDArray[np.intp]], n: int) -> NDArray[np.int
     """The positions (in range(n)) ``fn`` finds block by block, ``fn(s)`` returning them
     within its block ``s`` (0 at ``s.start``), in increasing order."""
     parts = by_blocks(lambda s: fn(s) + s.start, n)
-    if not parts:
-        return np.zeros(0, dtype=np.intp)
     out: NDArray[np.intp] = np.concatenate(parts).astype(np.intp, copy=False)
     return out
 
 
 def stacked(parts: Sequence[tuple[NDArray[Any], ...]]) -> tuple[NDArray[Any], ...]:
     """The blocks' tuples of arrays joined, array by array (``parts`` from
-    :func:`by_blocks`; at least one)."""
+    :func:`by_blocks`)."""
     return tuple(np.concatenate(column) for column in zip(*parts, strict=True))

@@ -217,8 +217,6 @@ def _along_axis(
         yz -= t_P[1:]
         return idx + rows.start, x[idx], np.einsum("ij,ij->i", yz, yz)
 
-    if p_L.shape[0] == 0:
-        return np.zeros(0, dtype=np.intp), np.zeros(0), np.zeros(0)
     idx, x, r2 = stacked(by_blocks(block, p_L.shape[0]))
     return idx.astype(np.intp, copy=False), x, r2
 
@@ -721,8 +719,6 @@ def incidence_corrected(
                          incidence * incidence_shape(cosine, LEAST_COSINE_KNOWN), 0.0)
         return correct_points(p_L[rows], shift, 0.0)
 
-    if p_L.shape[0] == 0:
-        return p_L
     return np.concatenate(by_blocks(block, p_L.shape[0]))
 
 

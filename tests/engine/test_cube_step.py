@@ -382,3 +382,21 @@ def test_the_passes_over_the_scans_returns_give_the_same_a_block_at_a_time(
     monkeypatch.setattr(blocks, "BLOCK", 4099)
     for a, b in zip(whole, passes(), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_passes_over_no_returns_give_empty_results_and_the_fit_says_what_it_lacks() -> None:
+    """A start so far off that no ray meets the platter leaves the passes nothing to read:
+    their results are empty, and the range fit's labelling says what it did not find."""
+    from calstation.engine.cube import _along_axis
+    from calstation.engine.cubecast import _Returns, model_labels
+    from calstation.errors import FineTuningError
+
+    H = Extrinsics.from_vector(np.array([0.0, 1.25, 0.0, 0.0, 0.0, -0.8]))
+    none3, none1 = np.zeros((0, 3)), np.zeros(0)
+    idx, x, r2 = _along_axis(none3, H, -0.03, 0.33)
+    assert idx.size == x.size == r2.size == 0
+    assert incidence_corrected(none3, none1, H, 0.0005, 0.1, 0.3).shape == (0, 3)
+    empty = _Returns(none3, none1, none1, none1, none3)
+    v = np.concatenate([H.as_vector(), RangeModel().as_vector()])
+    with pytest.raises(FineTuningError, match="found 0 faces and 0 returns of the platter"):
+        model_labels(empty, v, np.array([0.0, 0.0, 0.0]), 0.1, 0.3, 0.001)

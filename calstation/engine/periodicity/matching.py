@@ -262,4 +262,3 @@ class _OneSide:
 def _match(halves: list[_Half], x6: FloatArray, stage: Stage) -> tuple[_Matched, int]:
     """Match the two half-turns' cells once under H (:class:`_Matcher`)."""
     return _Matcher(halves, stage)(x6)
-
