@@ -189,7 +189,8 @@ def _print_range_model(console: Console, calibrations: list[Stored]) -> None:
 
     final = next((c for c in calibrations if c["accepted"]), None) or (
         calibrations[-1] if calibrations else None)
-    text = None if final is None else describe(final)
+    text = None if final is None else describe(
+        final, (final.get("diagnostics") or {}).get("certificate"))
     if final is not None and text:
         console.print(f"lidar range model ({final['stage']}): {text}; every range is corrected "
                       "by it", highlight=False)

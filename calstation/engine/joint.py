@@ -31,6 +31,7 @@ from calstation.engine.residuals import TermResponse, TrendRecord, in_check, unm
 from calstation.engine.result import CalibrationResult
 
 if TYPE_CHECKING:
+    from calstation.engine.certificate import Certificate
     from calstation.engine.cube import CubeCheck
     from calstation.engine.cubefit import KnownSizeFit
     from calstation.engine.fusion import Disagreement, Fused
@@ -159,6 +160,7 @@ def combine_with_cube_scan(
     progress: Callable[[str, float], None] | None = None,
     prepared: SpinScan | None = None,
     refit: Callable[[CalibrationResult], CalibrationResult] | None = None,
+    certificate: Certificate | None = None,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` with ry combined from the cube scan ``cube``, as
     the station does at its cube step: (the combined result, strategy ``<name>+cube``, with
@@ -167,13 +169,15 @@ def combine_with_cube_scan(
     ``geometry`` and ``qa`` are the cube's and the check's settings, ``max_sigma_ry`` the ry
     gate (rad); ``prepared`` the cube scan's returns already prepared
     (:func:`calstation.engine.cube.check_cube`). A ``result`` that holds the lidar's range model
-    is combined with it instead (:func:`combine_range_with_cube_scan`, ``refit``)."""
+    is combined with it instead (:func:`combine_range_with_cube_scan`, ``refit``,
+    ``certificate``)."""
     from calstation.engine.cube import check_cube
 
     if result.range_offset is not None:
         return combine_range_with_cube_scan(result, cube, geometry, qa,
                                             platter_radius=platter_radius, progress=progress,
-                                            prepared=prepared, refit=refit)
+                                            prepared=prepared, refit=refit,
+                                            certificate=certificate)
     check = check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared)
     combined, failure = with_cube_ry(result, check, max_sigma_ry)
@@ -219,6 +223,7 @@ def combine_range_with_cube_scan(
     progress: Callable[[str, float], None] | None = None,
     prepared: SpinScan | None = None,
     refit: Callable[[CalibrationResult], CalibrationResult] | None = None,
+    certificate: Certificate | None = None,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` that holds the lidar's range model, combined with
     the cube scan as the station does at its cube step: the known-size cube fit with the range
@@ -227,9 +232,11 @@ def combine_range_with_cube_scan(
     offset and the incidence bias the cube's edge and square faces, the scale error the cube's
     size, ty the cube's top, and ry the cube's side faces. ``refit(start)``: the spin target's
     fine-tuning run again from a combined estimate, holding its range terms and ty
-    (:data:`REFITS` times). Returns (the combined result, strategy ``<name>+cube``, or
-    ``result`` when they could not be combined, with why in ``diagnostics["joint"]``; the cube
-    check under it; why not, or None)."""
+    (:data:`REFITS` times). The lidar's ``certificate`` is combined with the result
+    (:func:`calstation.engine.certificate.with_certificate`) before the check. Returns (the
+    combined result, strategy ``<name>+cube``, or ``result`` when they could not be combined,
+    with why in ``diagnostics["joint"]``; the cube check under it; why not, or None)."""
+    from calstation.engine.certificate import with_certificate
     from calstation.engine.cube import check_cube
     from calstation.engine.spinscan import prepared_or_read
 
@@ -238,6 +245,8 @@ def combine_range_with_cube_scan(
     scan = prepared_or_read(cube, prepared)
     combined, failure, residuals = combine_range_with_cube(
         result, scan, geometry, platter_radius=platter_radius, refit=refit, progress=progress)
+    if failure is None:
+        combined, failure = with_certificate(combined, certificate)
     if progress is not None:
         progress("measuring the cube", 0.8)
     check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
@@ -510,7 +519,8 @@ def range_summary(result: CalibrationResult) -> str:
     combined (millimetres, degrees)."""
     from calstation.engine.rangemodel import describe
 
-    parts = [describe(result.range_fields()) or "no range model"]
+    parts = [describe(result.range_fields(), result.diagnostics.get("certificate"))
+             or "no range model"]
     parts.append(f"ry {math.degrees(result.H.ry):.3f}° ± "
                  f"{math.degrees(result.sigma.get('ry', math.nan)):.3f}°")
     return "the spin target and the QA cube combined: " + ", ".join(parts)

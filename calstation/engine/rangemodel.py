@@ -211,11 +211,15 @@ def range_result_fields(
     return out
 
 
-def describe(fields: Mapping[str, float | None]) -> str | None:
+def describe(
+    fields: Mapping[str, float | None], certificate: Mapping[str, object] | None = None
+) -> str | None:
     """The lidar's range model for people, from a calibration's range fields (SI, None where not
     estimated; ``sigma_<name>`` beside each): "range offset +3.120 ± 0.100 mm, scale error
     +1240 ± 73 ppm, incidence bias +0.500 ± 0.020 mm at 60°", the terms not estimated left out;
-    None when the calibration has no range model."""
+    None when the calibration has no range model. With the ``certificate`` it combined (its
+    ``diagnostics["certificate"]``, :mod:`calstation.engine.certificate`), the offset says where
+    it came from."""
     def term(name: str, label: str, unit: float, digits: int, suffix: str) -> str | None:
         value = fields.get(name)
         if value is None:
@@ -231,6 +235,12 @@ def describe(fields: Mapping[str, float | None]) -> str | None:
     parts = [term("range_offset", "range offset", 1e3, 3, "mm"),
              term("range_scale", "scale error", 1e6, 0, "ppm"),
              term("incidence_bias", "incidence bias", 1e3, 3, "mm at 60°")]
+    if certificate and certificate.get("combined"):
+        said = {k: float(certificate[k])  # type: ignore[arg-type]
+                for k in ("measured", "sigma_measured", "offset", "sigma")}
+        parts[0] = (f"{parts[0]} (measured {said['measured'] * 1e3:+.3f} ± "
+                    f"{said['sigma_measured'] * 1e3:.3f} mm, with the lidar's certificate "
+                    f"{said['offset'] * 1e3:+.3f} ± {said['sigma'] * 1e3:.3f} mm)")
     return ", ".join(p for p in parts if p is not None)
 
 

@@ -16,7 +16,15 @@ from typing import TYPE_CHECKING
 
 from calstation.pipeline.judgement import judge
 from calstation.pipeline.scans import Turned
-from calstation.pipeline.stages import Progress, fine_tune, part, start, time_offset, with_cube
+from calstation.pipeline.stages import (
+    Progress,
+    certified,
+    fine_tune,
+    part,
+    start,
+    time_offset,
+    with_cube,
+)
 from calstation.recipes import Recipe
 
 if TYPE_CHECKING:
@@ -88,6 +96,8 @@ def calibrate(
         cubed = with_cube(recipe, strategy, result, scans.cube, part(progress, 0.85, 0.95),
                           spin=scans.spin)
         result, check, ry_failure = cubed.result, cubed.check, cubed.ry_failure
+    elif strategy.fixture != "spin_target":  # the cube is its own scan: no check, a certificate
+        result, ry_failure = certified(recipe, result)
     if scans.spin_pass2 is not None:  # under the final H (it moves a little with ry)
         say("lidar–encoder time offset", 0.95)
         result = time_offset(recipe, result, scans.spin, scans.spin_pass2)

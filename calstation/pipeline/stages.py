@@ -21,6 +21,7 @@ from calstation.plugins.cost_strategies import Refits, Strategy, run_strategy
 from calstation.recipes import Recipe
 
 if TYPE_CHECKING:
+    from calstation.engine.certificate import Certificate
     from calstation.engine.cube import CubeCheck
     from calstation.engine.frames import Extrinsics
     from calstation.engine.result import CalibrationResult
@@ -155,10 +156,11 @@ def with_cube(
 
     rc = recipe
     if strategy.fixture != "spin_target":
+        result, failure = certified(rc, result)
         check = check_cube(cube.recording, result.H, rc.fixtures.qa_cube, rc.qa,
                            platter_radius=rc.fixtures.platter.radius, prepared=cube.prepared,
                            range_model=result.range_model)
-        return CubeChecked(result, check)
+        return CubeChecked(result, check, failure)
     limit = rc.calibration.max_sigma.ry_deg
     refit = strategy.refit if isinstance(strategy, Refits) else None
     combined, check, failure = combine_with_cube_scan(
@@ -168,8 +170,30 @@ def with_cube(
         progress=progress, prepared=cube.prepared,
         refit=None if spin is None or refit is None else (
             lambda start: refit(spin.prepared, start, rc)),
+        certificate=certificate(rc),
     )
     return CubeChecked(combined, check, failure)
+
+
+def certificate(recipe: Recipe) -> Certificate | None:
+    """The lidar's range offset certificate of ``recipe`` (``calibration.
+    range_offset_certificate``), or None."""
+    from calstation.engine.certificate import Certificate
+
+    said = recipe.calibration.range_offset_certificate
+    return None if said is None else Certificate(said.offset, said.sigma)
+
+
+def certified(recipe: Recipe, result: CalibrationResult) -> tuple[CalibrationResult, str | None]:
+    """``result`` of a strategy that measured the range offset itself (the cube's), with the
+    recipe's certificate combined into it (:func:`calstation.engine.certificate.
+    with_certificate`): (the result, why it disagrees or None). Once: a result already combined
+    is returned as it is."""
+    from calstation.engine.certificate import with_certificate
+
+    if "certificate" in result.diagnostics:
+        return result, None
+    return with_certificate(result, certificate(recipe))
 
 
 def time_offset(

@@ -25,6 +25,22 @@ from calstation.recipes.base import Model
 from calstation.recipes.problems import Problem, error_message
 
 
+class RangeOffsetCertificate(Model):
+    """``calibration.range_offset_certificate``: the lidar's range offset as measured on a range
+    bench (its calibration certificate, or the plant's own characterisation), combined with the
+    station's measurement of it (:mod:`calstation.engine.certificate`)."""
+
+    offset: float = Field(
+        ..., ge=-0.5, le=0.5,
+        description="the lidar's range offset, metres (> 0: it reads long; DESIGN §9)",
+    )
+    sigma: float = Field(
+        ..., gt=0.0, le=0.1,
+        description="its uncertainty as a standard deviation, metres (a certificate's expanded "
+        "uncertainty at k = 2 is twice this)",
+    )
+
+
 class CalibrationSettings(Model):
     """Which fine-tuning strategy to run, where it starts, and each stage's settings."""
 
@@ -53,6 +69,13 @@ class CalibrationSettings(Model):
         "lidar's clock with margin): H's σ and the predicted error carry it (a scale error "
         "moves where the lidar seems to stand by that fraction of its distance). 0 for a "
         "lidar whose scale is known exactly",
+    )
+    range_offset_certificate: RangeOffsetCertificate | None = Field(
+        None,
+        description="with a range model, the lidar's range offset from its calibration "
+        "certificate: combined with the offset the station measures, it narrows H's σ along "
+        "the lidar's boresight; a certificate that disagrees with the measurement beyond "
+        "chance refuses the run",
     )
     initial: InitialSettings = InitialSettings()
     shape: ShapeSettings = ShapeSettings()

@@ -62,6 +62,11 @@ def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[P
         )
     problems += _simulation_problems(recipe)
     problems += _scan_problems(recipe)
+    if (recipe.calibration.range_offset_certificate is not None
+            and recipe.calibration.range_model == "none"):
+        problems.append((("calibration", "range_offset_certificate"),
+                         "needs a range model to combine with (calibration.range_model: offset "
+                         "or offset+scale); with range_model: none the offset is taken as zero"))
     for name, model in BUILTIN_OPTIONS.items():
         if name in recipe.calibration.options:
             problems += options_problems(name, model, recipe.calibration.options[name])

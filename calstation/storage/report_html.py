@@ -289,6 +289,12 @@ def _histogram_figure(clouds: list[View]) -> Figure | None:
     }
 
 
+def _certificate(calibration: CalibrationRecord) -> dict[str, JSONValue] | None:
+    """The lidar's range offset certificate the calibration combined, as stored; None."""
+    said = _diagnostic(calibration, "certificate")
+    return said if isinstance(said, dict) else None
+
+
 def _diagnostic(calibration: CalibrationRecord | None, key: str) -> JSONValue:
     """``key`` of the calibration's stored diagnostics; None when absent."""
     diagnostics = calibration["diagnostics"] if calibration is not None else None
@@ -496,7 +502,7 @@ def calibration_rows(calibrations: list[CalibrationRecord]) -> list[CalibrationR
             "gauge": _diagnostic(c, "gauge_note"),
             "time_offset_s": c["encoder_latency_s"],
             "time_offset_sigma_s": c["sigma_encoder_latency_s"],
-            "range_model": describe(range_fields(c)),
+            "range_model": describe(range_fields(c), _certificate(c)),
             "timings": _diagnostic(c, "timings") or {},
         })
     return rows

@@ -120,6 +120,14 @@ INVALID: list[tuple[str, tuple[str, str], str, str]] = [
     ("unknown shape box", ("  strategy: fake-strategy\n", "  strategy: fake-strategy\n"
                            "  options:\n    shape:\n      box: round\n"),
      "calibration.options.shape.box", "box:"),
+    ("a certificate without a range model",
+     ("  strategy: fake-strategy\n", "  strategy: fake-strategy\n  range_model: none\n"
+      "  range_offset_certificate: {offset: 0.001, sigma: 0.0001}\n"),
+     "calibration.range_offset_certificate", "range_offset_certificate:"),
+    ("a certificate without its sigma",
+     ("  strategy: fake-strategy\n", "  strategy: fake-strategy\n"
+      "  range_offset_certificate:\n    offset: 0.001\n"),
+     "calibration.range_offset_certificate.sigma", "range_offset_certificate:"),
     ("revolutions below one turn", ("    lines: 100", "    lines: 100\n  spin_scan:\n"
                                      "    revolutions: 0.5"), "steps.spin_scan.revolutions",
      "revolutions:"),
