@@ -101,6 +101,7 @@ QUANTITIES: dict[str, Quantity] = {q.name: q for q in (
     _degrees("twist_deg", "cube side-face twist", 3, "twist"),
     _length("predicted_error", "predicted reconstruction error", 3, "predicted error"),
     _length("axis_offset", "the axis's position across it", 3, "axis position"),
+    _length("range_offset", "the lidar's range offset", 3, "range offset"),
     _length("residual", "residual", 2),
     _length("distance", "distance", 0),
     Quantity("time_offset", "lidar–encoder time offset", "s", "ms", 1e3, 3),

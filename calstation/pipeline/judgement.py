@@ -93,7 +93,8 @@ def _scale_advice(
             "fraction of its distance, and more turns do not reduce it. What would help (each "
             "alone): the lidar's scale from its calibration certificate, as a smaller "
             "calibration.range_scale_sigma; or measure it with H (calibration.range_model: "
-            "offset+scale, from the QA cube's known size)")
+            "offset+scale, from the QA cube's known size)"
+            + "".join(f"; or {said}" for said in _certificate_advice(result, recipe)))
 
 
 def advice(
@@ -127,7 +128,26 @@ def advice(
     else:
         say.append(f"a lidar line rate {factor:.1f} times higher")
     say += _geometry_advice(result, recipe, on_cube, factor)
+    say += _certificate_advice(result, recipe)
     return "What would help (each alone): " + "; ".join(say) + "."
+
+
+def _certificate_advice(result: CalibrationResult, recipe: Recipe) -> list[str]:
+    """When the range offset the station measured (and no certificate gave) is what keeps the
+    prediction over the budget, the lidar's certificate (:mod:`calstation.engine.
+    certificate`), with what the error would be with the offset known."""
+    sigma = result.sigma_range_offset
+    if (result.range_offset is None or sigma is None or not math.isfinite(sigma)
+            or "certificate" in result.diagnostics):
+        return []
+    accuracy = recipe.calibration.accuracy
+    known = predict(result, accuracy, recipe.fixtures.platter, known=("range_offset",))
+    if not known.max_m <= accuracy.max_error:
+        return []
+    return [f"the lidar's range offset from its calibration certificate "
+            f"(calibration.range_offset_certificate; measured here to ± "
+            f"{display.number('range_offset', sigma)}): with it known the predicted error would "
+            f"be {display.number('predicted_error', known.max_m)}"]
 
 
 def _fits_the_cube(recipe: Recipe) -> bool:

@@ -155,3 +155,31 @@ def test_a_certificate_of_another_lidar_refuses_the_run_naming_both_offsets(
     assert len(done.refused) == 1, done.refused
     assert "range offset reads +4.0" in done.refused[0] and "+0.000 ± 0.050 mm" in done.refused[0]
     assert not done.result.diagnostics["certificate"]["combined"]
+
+
+def test_a_budget_the_measured_offset_keeps_out_of_reach_names_the_certificate(
+    offset_run: Any,
+) -> None:
+    """The lidar 4 mm long calibrated on the cube alone predicts 0.10 mm; with its offset known,
+    0.09 mm: against a budget between the two, the refusal says what a certificate would
+    give."""
+    from calstation.pipeline.judgement import judge, with_prediction
+    from calstation.recipes import parse_recipe
+
+    _, alone, path = offset_run
+    data = yaml.safe_load(path.read_text())
+    recipe = parse_recipe(yaml.safe_dump(data), str(path))
+    measured = with_prediction(alone.result, recipe)[1].max_m
+    from calstation.engine.observability import predict
+
+    known = predict(alone.result, recipe.calibration.accuracy, recipe.fixtures.platter,
+                    known=("range_offset",)).max_m
+    assert known < 0.95 * measured, (known, measured)
+    data["calibration"]["accuracy"] = {"max_error": (known + measured) / 2}
+    _, refused = judge(alone.result, parse_recipe(yaml.safe_dump(data), str(path)))
+    assert len(refused) == 1 and "calibration.range_offset_certificate" in refused[0], refused
+    assert f"would be {known * 1e3:.3f} mm" in refused[0]
+    # a budget the known offset would not meet either does not offer it
+    data["calibration"]["accuracy"] = {"max_error": known * 0.9}
+    _, refused = judge(alone.result, parse_recipe(yaml.safe_dump(data), str(path)))
+    assert refused and "range_offset_certificate" not in refused[0]
