@@ -12,6 +12,10 @@ turned) — the combinations taken in a fixed shuffled order, so that any first 
 level of every factor about evenly. The recipe's ``calibration.range_model`` (``--range-model``
 replaces it) is what is estimated; the QA cube is a certified one (``--edge-tolerance``, 5 µm).
 
+With ``--certificate SIGMA`` each lidar also has a range offset certificate
+(``calibration.range_offset_certificate``) of that σ, its value the lidar's true offset plus an
+error drawn from it, as a range bench would state it.
+
 Printed, over the runs and per condition: how many were accepted; of the accepted, whether tx,
 ty, tz, ry, rz are within 3σ of the physical H and the range offset within 3σ of its truth (the
 lidar's offset plus what its scale error adds at the platter's range when the scale is not
@@ -63,8 +67,10 @@ def condition(k: int) -> dict[str, Any]:
 
 
 def sensor_recipe(k: int, recipe: Path, range_model: str | None,
-                  edge_tolerance: float) -> LoadedRecipe:
-    """``recipe`` with run ``k``'s lidar, placement and seed."""
+                  edge_tolerance: float, certificate: float | None = None) -> LoadedRecipe:
+    """``recipe`` with run ``k``'s lidar, placement and seed; with ``certificate`` (m), the
+    lidar's range offset certificate of that σ, its value the lidar's offset plus an error
+    drawn from it (seeded by ``k``), as a range bench would state it."""
     c = condition(k)
     data = copy.deepcopy(yaml.safe_load(recipe.read_text()))
     sim = data["simulation"]
@@ -77,16 +83,20 @@ def sensor_recipe(k: int, recipe: Path, range_model: str | None,
     data["fixtures"]["qa_cube"]["edge_tolerance"] = edge_tolerance
     if range_model is not None:
         data.setdefault("calibration", {})["range_model"] = range_model
+    if certificate is not None:
+        stated = c["offset"] + float(np.random.default_rng(9000 + k).normal(0.0, certificate))
+        data.setdefault("calibration", {})["range_offset_certificate"] = {
+            "offset": stated, "sigma": certificate}
     text = yaml.safe_dump(data)
     return LoadedRecipe(parse_recipe(text, f"sensor sweep run {k}"), None, text)
 
 
 def station_run(k: int, out: Path, recipe: Path, range_model: str | None,
-                edge_tolerance: float) -> dict[str, Any]:
+                edge_tolerance: float, certificate: float | None = None) -> dict[str, Any]:
     """Run ``k`` as a whole simulated station run; its row (SI units)."""
     from ry_sweep import unattended_run  # as the capability sweep runs its station runs
 
-    row = unattended_run(sensor_recipe(k, recipe, range_model, edge_tolerance),
+    row = unattended_run(sensor_recipe(k, recipe, range_model, edge_tolerance, certificate),
                          out / f"run{k}", _row)
     row.update(k=k, **condition(k))
     return row
@@ -217,6 +227,9 @@ def main() -> None:
     ap.add_argument("--recipe", type=Path, default=REPO / "recipes/sim-periodicity.yaml")
     ap.add_argument("--range-model", default=None, choices=("none", "offset", "offset+scale"))
     ap.add_argument("--edge-tolerance", type=float, default=5e-6)
+    ap.add_argument("--certificate", type=float, default=None, metavar="SIGMA",
+                    help="give each lidar a range offset certificate of this σ (m), its value "
+                    "drawn about the true offset")
     ap.add_argument("--out", type=Path, default=REPO / "out" / "sensor-sweep")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -225,7 +238,8 @@ def main() -> None:
         import sys
 
         sys.path.insert(0, str(Path(__file__).resolve().parent))
-        jobs = [(k, args.out, args.recipe, args.range_model, args.edge_tolerance)
+        jobs = [(k, args.out, args.recipe, args.range_model, args.edge_tolerance,
+                 args.certificate)
                 for k in range(args.first, args.first + args.runs)]
         with log.open("a") as f, ProcessPoolExecutor(args.jobs) as pool:
             for row in pool.map(station_run, *zip(*jobs, strict=True)):

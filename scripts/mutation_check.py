@@ -183,6 +183,22 @@ MUTATIONS = (
         "out[:, :, k] = 0.0",
         ("tests/engine/test_rangemodel.py",),
     ),
+    Mutation(
+        "certificate-unweighed",
+        "the lidar's range offset certificate combined as if exact, whatever its σ",
+        "calstation/engine/certificate.py",
+        "gain = C[:, i] / (C[i, i] + certificate.sigma**2)",
+        "gain = C[:, i] / C[i, i]",
+        ("tests/engine/test_certificate.py",),
+    ),
+    Mutation(
+        "certificate-disagreement-ignored",
+        "a certificate far from the station's measured range offset combined all the same",
+        "calstation/engine/certificate.py",
+        "if float(chdtrc(1, apart**2)) < CONSISTENCY_P:",
+        "if False:",
+        ("tests/engine/test_certificate.py",),
+    ),
     # the operator's and the QA engineer's pages, the terminal's prompts
     Mutation(
         "prompt-any-answer",
