@@ -33,6 +33,7 @@ from calstation.errors import CalstationError
 from calstation.jsonvalue import JSONObject
 
 if TYPE_CHECKING:
+    from calstation.engine.result import CalibrationResult
     from calstation.pipeline import Calibrated
     from calstation.recipes import LoadedRecipe, Recipe
     from calstation.recordings.recorded import Recording
@@ -42,6 +43,9 @@ OFF_CENTRE_M = 0.06
 """Where the spin target stands off the axis in the placement the plan tries."""
 TALLER = 1.5
 """How much taller the spin target the plan tries is."""
+
+CERTIFICATE_M = 5e-5
+"""The σ of the lidar's range offset certificate the plan tries (m): a range bench's."""
 
 Progress = Callable[[str, float], None]
 _T = TypeVar("_T")
@@ -55,6 +59,11 @@ class RangeTerms(TypedDict):
     axis_sigma_m: float
     """the σ of where the axis lies, across it (:func:`calstation.engine.accuracy.
     axis_offset_sigma`; NaN without a range model, whose ty is the gauge)"""
+    certified_m: float
+    """the predicted error with a certificate of the lidar's range offset of σ
+    :data:`CERTIFICATE_M` combined (NaN: the recipe has one, or the offset was not measured)"""
+    certified_axis_sigma_m: float
+    """the axis's σ with that certificate (NaN likewise)"""
 
 
 class Fit(TypedDict):
@@ -67,6 +76,8 @@ class Fit(TypedDict):
     range_sigma: dict[str, float]
     range_problem: str | None
     axis_sigma_m: float
+    certified_m: float
+    certified_axis_sigma_m: float
     seconds: float
 
 
@@ -80,6 +91,8 @@ class ByTurns(TypedDict):
     range_sigma: dict[str, float]
     range_problem: str | None
     axis_sigma_m: float
+    certified_m: float
+    certified_axis_sigma_m: float
 
 
 class Design(TypedDict):
@@ -492,7 +505,8 @@ def _range_terms(recipe: Recipe, done: Calibrated) -> RangeTerms:
     from calstation.pipeline.judgement import range_model_unset
 
     if recipe.calibration.range_model == "none":
-        return {"range_sigma": {}, "range_problem": None, "axis_sigma_m": math.nan}
+        return {"range_sigma": {}, "range_problem": None, "axis_sigma_m": math.nan,
+                "certified_m": math.nan, "certified_axis_sigma_m": math.nan}
     fields = done.result.range_fields()
     sigma = {n: _or_nan(fields.get(f"sigma_{n}")) for n in RANGE_NAMES
              if fields.get(n) is not None}
@@ -501,7 +515,28 @@ def _range_terms(recipe: Recipe, done: Calibrated) -> RangeTerms:
     unset = range_model_unset(done.result)
     problem = (done.ry_failure or unset) if unset else None
     axis = axis_offset_sigma(done.result.H, done.result.diagnostics.get("covariance"))
-    return {"range_sigma": sigma, "range_problem": problem, "axis_sigma_m": axis}
+    certified, certified_axis = _certified(recipe, done.result)
+    return {"range_sigma": sigma, "range_problem": problem, "axis_sigma_m": axis,
+            "certified_m": certified, "certified_axis_sigma_m": certified_axis}
+
+
+def _certified(recipe: Recipe, result: CalibrationResult) -> tuple[float, float]:
+    """The predicted error and the axis's σ of ``result`` with a certificate of the lidar's
+    range offset of σ :data:`CERTIFICATE_M` combined (:mod:`calstation.engine.certificate`; its
+    value the measured one, so only the σ narrow); NaN when the recipe states one already or the
+    offset was not measured."""
+    from calstation.engine.accuracy import axis_offset_sigma
+    from calstation.engine.certificate import Certificate, with_certificate
+    from calstation.pipeline.judgement import with_prediction
+
+    none = (math.nan, math.nan)
+    if recipe.calibration.range_offset_certificate is not None or result.range_offset is None:
+        return none
+    certified, _ = with_certificate(result, Certificate(result.range_offset, CERTIFICATE_M))
+    if "certificate" not in certified.diagnostics:
+        return none
+    return (with_prediction(certified, recipe)[1].max_m,
+            axis_offset_sigma(certified.H, certified.diagnostics.get("covariance")))
 
 
 def _or_nan(value: float | None) -> float:
@@ -528,6 +563,8 @@ def _summary(
                 "range_problem": next((r["range_problem"] for r in at if r["range_problem"]),
                                       None),
                 "axis_sigma_m": _median([r["axis_sigma_m"] for r in at]),
+                "certified_m": _median([r["certified_m"] for r in at]),
+                "certified_axis_sigma_m": _median([r["certified_axis_sigma_m"] for r in at]),
             })
         designs.append({"name": trial.name, "change": trial.change, "by_turns": rows,
                         "turns_needed": _turns_needed(rows, budget) if rows else None,
@@ -579,6 +616,14 @@ def _recommend(designs: list[Design], budget: float) -> list[str]:
     elif need is not None:
         out.append(f"as designed, about {need} turns meet the budget of {budget * 1e3:.3f} mm: "
                    f"set steps.spin_scan.max_revolutions to at least {need}")
+    certified, axis = first["certified_axis_sigma_m"], first["axis_sigma_m"]
+    if math.isfinite(certified) and certified < 0.8 * axis:
+        out.append(f"the lidar's range offset from a certificate of ±{CERTIFICATE_M * 1e3:.2f} "
+                   "mm (calibration.range_offset_certificate): the axis placed to σ "
+                   f"{certified * 1e3:.3f} mm instead of {axis * 1e3:.3f} mm after one turn, "
+                   f"predicted {first['certified_m'] * 1e3:.3f} mm instead of "
+                   f"{first['with_cube_m'] * 1e3:.3f} mm (the cube measures the offset only as "
+                   "far as its size tells it from where the lidar stands)")
     for alt in designs[1:]:
         if not alt["by_turns"]:
             continue

@@ -76,14 +76,19 @@ def with_certificate(
     sigma.update({n: getattr(result, f"sigma_{n}") for n in RANGE_NAMES
                   if getattr(result, n) is not None})
     for k, name in enumerate(names):
-        x[name] = float(x[name] + gain[k] * difference)
+        # a term the covariance carries but the result does not estimate (the scale error it
+        # did not measure, about zero: rangemodel.with_unmeasured_scale) keeps its value
+        if name in x:
+            x[name] = float(x[name] + gain[k] * difference)
         # the σ beyond the covariance (a bias bound in quadrature) stays as it was
-        sigma[name] = math.sqrt(max(float(sigma[name]) ** 2 - float(narrowed[k]), 0.0))
+        before = float(sigma.get(name, math.sqrt(max(float(C[k, k]), 0.0))))
+        sigma[name] = math.sqrt(max(before**2 - float(narrowed[k]), 0.0))
     H = Extrinsics.from_vector(np.array([x[n] for n in PARAMETER_NAMES]))
     fields: dict[str, float | None] = {}
     for name in RANGE_NAMES:
+        held = sigma.pop(name, None)
         if getattr(result, name) is not None:
-            fields[name], fields[f"sigma_{name}"] = x[name], sigma.pop(name)
+            fields[name], fields[f"sigma_{name}"] = x[name], held
     diagnostics = {**result.diagnostics,
                    "covariance": {"parameters": names, "matrix": covariance.tolist()},
                    "certificate": {**said, "combined": True}}

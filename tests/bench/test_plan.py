@@ -54,7 +54,11 @@ def test_plan_reports_sigma_predicted_error_and_turns(
         assert 0 < row["range_sigma"]["range_offset"] < 0.5e-3
         # and where that puts the axis, which the cube scan turns on for (axis_sigma)
         assert 0 < row["axis_sigma_m"] < 1e-3
+        # a certificate of the offset would place it better, and the error with it is said
+        assert 0 < row["certified_axis_sigma_m"] < row["axis_sigma_m"]
+        assert 0 < row["certified_m"] <= row["with_cube_m"]
     assert plan["axis_sigma_limit_m"] == 0.0001
+    assert any("calibration.range_offset_certificate" in r for r in plan["recommendations"])
     assert base["turns_needed"] >= 1
     # piped, the plan says what it does, how long it has taken and what is left
     lines = [line for line in err.splitlines() if line.startswith("planning: ")]

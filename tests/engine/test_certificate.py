@@ -63,6 +63,24 @@ def test_the_certificate_is_combined_as_the_product_of_the_two_gaussians() -> No
     assert combined.H.rx == result.H.rx and combined.diagnostics["certificate"]["combined"]
 
 
+def test_a_judged_result_carrying_an_unmeasured_scale_is_combined_too() -> None:
+    """After the judgement a result's covariance carries the scale error it did not measure
+    (rangemodel.with_unmeasured_scale, as `calstation plan` combines a certificate): that term
+    stays a covariance column, not an estimate."""
+    from calstation.engine.rangemodel import with_unmeasured_scale
+
+    result = _measured()
+    sigma, record = with_unmeasured_scale(result.H.t, result.sigma,
+                                          result.diagnostics["covariance"], 1e-4)
+    judged = replace(result, sigma=sigma, diagnostics={"covariance": record})
+    combined, failure = with_certificate(judged, Certificate(0.0021, 2e-5))
+    assert failure is None and combined.range_scale is None
+    assert "range_scale" not in combined.sigma
+    names = combined.diagnostics["covariance"]["parameters"]
+    assert "range_scale" in names and combined.sigma_range_offset < 2e-5
+    assert combined.sigma["ty"] < judged.sigma["ty"]
+
+
 def test_a_certificate_apart_beyond_chance_refuses_and_moves_nothing() -> None:
     result = _measured()
     far = Certificate(offset=result.range_offset - 5 * result.sigma_range_offset, sigma=1e-5)
