@@ -15,6 +15,7 @@ import yaml
 from calstation.engine.certificate import Certificate, with_certificate
 from calstation.engine.frames import Extrinsics
 from calstation.engine.result import CalibrationResult
+from tests.support.rangemodel import run_scans, sensor_recipe
 
 NAMES = ["tx", "ty", "tz", "ry", "rz", "range_offset"]
 
@@ -125,12 +126,11 @@ def offset_run(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
     from calstation import plugins
     from calstation.pipeline import calibrate
     from calstation.recipes import load_recipe
-    from tests.engine.test_rangemodel import _recipe, _scans
 
-    path = _recipe(tmp_path_factory.mktemp("offset"), {"range": {"offset": 0.004}},
+    path = sensor_recipe(tmp_path_factory.mktemp("offset"), {"range": {"offset": 0.004}},
                    "offset.yaml")
     run = sim_run(recipe=path)
-    done = calibrate(load_recipe(path).recipe, _scans(run), plugins.strategy("periodicity"))
+    done = calibrate(load_recipe(path).recipe, run_scans(run), plugins.strategy("periodicity"))
     return run, done, path
 
 

@@ -23,6 +23,8 @@ from calstation.engine.rangemodel import (
 )
 from calstation.engine.result import CalibrationResult
 from calstation.errors import CalibrationError
+from calstation.recipes import load_recipe
+from tests.support.rangemodel import run_scans, sensor_recipe
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -109,26 +111,6 @@ def test_two_estimates_combine_as_their_gaussians_and_a_held_term_is_followed() 
     assert not consistent(fuse(spin, far))
 
 
-def _recipe(tmp_path: Path, sensor: dict[str, Any], name: str) -> Path:
-    data = yaml.safe_load((REPO / "recipes/sim-periodicity.yaml").read_text())
-    data["simulation"]["sensor"] = sensor
-    data["fixtures"]["qa_cube"]["edge_tolerance"] = 0.000005
-    data["steps"]["cube_scan"]["revolutions"] = 2.05
-    path = tmp_path / name
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
-def _scans(run: dict[str, Path]) -> Any:
-    """The static, spin and cube scans of a simulated run, as the pipeline takes them."""
-    from calstation.pipeline import Scans, turned
-    from calstation.recordings.reader import read_recording
-
-    return Scans(spin=turned(read_recording(run["spin"])),
-                 static=read_recording(run["static"]),
-                 cube=turned(read_recording(run["cube"])))
-
-
 def _one_cube_turn(path: Path, seed: int, noise: float, **calibration: str) -> None:
     """``path``'s recipe at ``seed``, ``noise`` metres of range noise and 180 lines/s, its cube
     scanned for one turn, with the ``calibration`` settings given."""
@@ -145,14 +127,13 @@ def offset_run(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
     """A simulated run of a lidar whose ranges read 4 mm long, calibrated as a run does."""
     from calstation import plugins
     from calstation.pipeline import calibrate
-    from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
-    path = _recipe(tmp_path_factory.mktemp("offset"), {"range": {"offset": 0.004}},
+    path = sensor_recipe(tmp_path_factory.mktemp("offset"), {"range": {"offset": 0.004}},
                    "offset.yaml")
     run = sim_run(recipe=path)
     recipe = load_recipe(path).recipe
-    scans = _scans(run)
+    scans = run_scans(run)
     done = calibrate(recipe, scans, plugins.strategy("periodicity"))
     truth = read_recording(run["cube"]).truth
     return done, truth, read_recording(run["cube"]), recipe
@@ -261,12 +242,11 @@ def test_a_scale_error_the_recipe_does_not_measure_is_in_sigma_and_refused_with_
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
     from calstation.pipeline import calibrate
-    from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
-    path = _recipe(tmp_path, {"range": {"scale": 0.001}}, "scale.yaml")
+    path = sensor_recipe(tmp_path, {"range": {"scale": 0.001}}, "scale.yaml")
     run = sim_run(recipe=path)
-    scans = _scans(run)
+    scans = run_scans(run)
     truth = read_recording(run["cube"]).truth
     for stated in (0.001, 0.0):
         data = yaml.safe_load(path.read_text())
@@ -292,13 +272,12 @@ def test_the_scale_error_is_not_leaned_on_by_the_range_noise(sim_run: Any, tmp_p
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
     from calstation.pipeline import calibrate
-    from calstation.recipes import load_recipe
     from calstation.recordings.reader import read_recording
 
-    path = _recipe(tmp_path, {}, "noisy.yaml")
+    path = sensor_recipe(tmp_path, {}, "noisy.yaml")
     _one_cube_turn(path, 600, 0.001, range_model="offset+scale")
     run = sim_run(recipe=path)
-    scans = _scans(run)
+    scans = run_scans(run)
     done = calibrate(load_recipe(path).recipe, scans, plugins.strategy("periodicity"))
     result = done.result
     assert result.range_scale is not None and result.sigma_range_scale is not None
@@ -337,12 +316,12 @@ def test_a_disagreement_from_an_unmodelled_incidence_bias_is_named(
     bias with the incidence angle from the cube's residuals, not the fixtures' placement."""
     from calstation import plugins
     from calstation.pipeline import calibrate
-    from calstation.recipes import load_recipe
 
-    path = _recipe(tmp_path, {"range": {"offset": 0.002, "incidence_bias": 0.001}}, "inc.yaml")
+    path = sensor_recipe(tmp_path, {"range": {"offset": 0.002, "incidence_bias": 0.001}},
+                         "inc.yaml")
     _one_cube_turn(path, 601, 0.0005, incidence_bias="none")
     run = sim_run(recipe=path)
-    scans = _scans(run)
+    scans = run_scans(run)
     done = calibrate(load_recipe(path).recipe, scans, plugins.strategy("periodicity"))
     said = " ".join(done.refused)
     assert "disagree" in said
