@@ -27,7 +27,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
-from calstation.engine.fusion import CONSISTENCY_P
+from calstation.engine.fusion import CONSISTENCY_P, kalman_update
 from calstation.engine.rangemodel import RANGE_NAMES
 from calstation.engine.result import CalibrationResult
 
@@ -67,9 +67,8 @@ def with_certificate(
     if float(chdtrc(1, apart**2)) < CONSISTENCY_P:
         diagnostics = {**result.diagnostics, "certificate": {**said, "combined": False}}
         return replace(result, diagnostics=diagnostics), disagreement(said)
-    gain = C[:, i] / (C[i, i] + certificate.sigma**2)
+    gain, covariance = kalman_update(C, i, certificate.sigma**2)
     narrowed = gain * C[i, :]  # each variance's fall: C_kk − (C − gain·C_i)_kk
-    covariance = C - np.outer(gain, C[i, :])
     x = {n: v for n, v in zip(PARAMETER_NAMES, result.H.as_vector(), strict=True)}
     x.update({n: getattr(result, n) for n in RANGE_NAMES if getattr(result, n) is not None})
     sigma = dict(result.sigma)

@@ -139,6 +139,15 @@ def fuse(first: Estimate, second: Estimate) -> Fused:
     return Fused(H, RangeModel.from_vector(vector), names, cov, _disagreement(first, second))
 
 
+def kalman_update(C: FloatArray, i: int, variance: float) -> tuple[FloatArray, FloatArray]:
+    """The Kalman update of the covariance ``C`` by one measurement of its parameter ``i`` with
+    ``variance``: (the gain, how far each parameter moves per unit of the measurement's
+    difference from the estimate; the covariance after it)."""
+    gain: FloatArray = C[:, i] / (C[i, i] + variance)
+    after: FloatArray = C - np.outer(gain, C[i, :])
+    return gain, after
+
+
 def _constraint(est: Estimate, names: Sequence[str]) -> tuple[FloatArray, FloatArray]:
     """The linear constraint ``A·y = z`` (with ``est``'s covariance) that ``est`` puts on the
     combined parameters ``y`` (``names``): its own parameters, moved along ``follows`` for the

@@ -94,11 +94,12 @@ def combine_with_cube(
     }
     if z > CONSISTENCY_SIGMA:
         return None
-    gain = C[:, i] / (var_ry + twist_sigma**2)
+    from calstation.engine.fusion import kalman_update
+
+    gain, C_new = kalman_update(C, i, twist_sigma**2)
     x = H.as_vector()
     for k, name in enumerate(names):
         x[PARAMETER_NAMES.index(name)] += gain[k] * twist
-    C_new = C - np.outer(gain, C[i, :])
     sigma = {n: math.nan for n in PARAMETER_NAMES}
     for k, name in enumerate(names):
         sigma[name] = math.sqrt(max(float(C_new[k, k]), 0.0))
