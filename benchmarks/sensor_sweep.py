@@ -11,6 +11,10 @@ combination of the sweep's conditions — range offset (−10, −3, 0, +3, +10 
 turned) — the combinations taken in a fixed shuffled order, so that any first N runs cover every
 level of every factor about evenly. The recipe's ``calibration.range_model`` (``--range-model``
 replaces it) is what is estimated; the QA cube is a certified one (``--edge-tolerance``, 5 µm).
+The recipe's other sensor errors stay: with ``--recipe recipes/sim-realistic.yaml`` each run also
+has its reflectivities, mixed pixels, warm-up drift, encoder, axis and platter errors, and the
+range offset is judged against the one the lidar has on the QA cube (its offset, its drift at the
+time and the cube's reflectivity bias).
 
 With ``--certificate SIGMA`` each lidar also has a range offset certificate
 (``calibration.range_offset_certificate``) of that σ, its value the lidar's true offset plus an
@@ -76,7 +80,10 @@ def sensor_recipe(k: int, recipe: Path, range_model: str | None,
     sim = data["simulation"]
     sim["seed"] = 500 + k
     sim["lidar"].update(range_noise=c["noise"], line_rate_hz=c["line_rate"])
-    sim["sensor"] = {"range": {"offset": c["offset"], "scale": c["scale"],
+    # the recipe's other errors (reflectivity, mixed pixels, warm-up, encoder, axis, platter:
+    # recipes/sim-realistic.yaml) stay; the run's range terms replace its own
+    sim["sensor"] = {**(sim.get("sensor") or {}),
+                     "range": {"offset": c["offset"], "scale": c["scale"],
                                "incidence_bias": c["incidence"]}}
     for fixture, values in PLACEMENTS[c["placement"]].items():
         data["fixtures"][fixture].update(values)
@@ -127,7 +134,8 @@ def _row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dict[str, A
     cube = read_recording(paths["cube"])
     truth, meta = cube.truth, cube.metadata["truth"]
     assert truth is not None
-    true_range = RangeModel(meta["range_offset"], meta["range_scale"])
+    on_cube = _on_cube(meta["sensor"])
+    true_range = RangeModel(meta["range_offset"] + on_cube, meta["range_scale"])
     accuracy = recipe.calibration.accuracy
     check = check_cube(cube, result.H, recipe.fixtures.qa_cube, recipe.qa,
                        platter_radius=recipe.fixtures.platter.radius,
@@ -137,7 +145,8 @@ def _row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dict[str, A
         sigma={p: result.sigma.get(p) for p in PARAMS},
         ranges=result.range_fields(),
         true_range={"offset": true_range.offset, "scale": true_range.scale,
-                    "incidence_bias": meta["sensor"]["range"]["incidence_bias"]},
+                    "incidence_bias": meta["sensor"]["range"]["incidence_bias"],
+                    "on_cube": on_cube},
         predicted_error_m=final.predicted_error_m if final is not None else None,
         true_distortion_m=true_distortion(
             result.H, truth, radius=accuracy.work_radius(recipe.fixtures.platter),
@@ -149,13 +158,25 @@ def _row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dict[str, A
     return row
 
 
+def _on_cube(sensor: dict[str, Any]) -> float:
+    """What the lidar adds to its constant offset on the QA cube while the cube turns: its
+    warm-up drift then and the cube's reflectivity bias (docs/simulator.md). The range offset
+    the station measures is the one its fixtures show; 0 on a lidar without either."""
+    reflectivity = sensor.get("reflectivity") or {}
+    bias = float(reflectivity.get("bias") or 0.0)
+    cube = float(reflectivity.get("qa_cube", 0.9))
+    return float(sensor.get("warmup_drift_now_m") or 0.0) + bias * (0.9 - cube) / 0.8
+
+
 def _offset_truth(r: dict[str, Any]) -> float:
-    """The range offset the estimate is judged against: the lidar's, plus what its scale error
-    adds at the platter's range when the scale is not estimated (the offset it has there)."""
+    """The range offset the estimate is judged against: the lidar's on the QA cube (its offset,
+    warm-up drift and the cube's reflectivity bias), plus what its scale error adds at the
+    platter's range when the scale is not estimated (the offset it has there)."""
     t = r["true_range"]
+    offset = t["offset"] + t.get("on_cube", 0.0)
     if r["ranges"].get("range_scale") is None:
-        return float(t["offset"] + t["scale"] * r["platter_range_m"])
-    return float(t["offset"])
+        return float(offset + t["scale"] * r["platter_range_m"])
+    return float(offset)
 
 
 def _covered(r: dict[str, Any]) -> bool:
