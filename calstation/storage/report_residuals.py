@@ -37,7 +37,7 @@ def range_residuals_text(residuals: dict[str, TrendRecord]) -> str:
     seen = unmodelled(residuals)
     if not seen:
         return ("The cube's faces show no range error the lidar's range model does not hold: "
-                "their residuals are level against range, incidence angle and azimuth.")
+                "their residuals show no trend against range, incidence angle or azimuth.")
     return ("The cube's faces show a range error the lidar's range model does not hold: "
             + "; ".join(seen) + ".")
 
