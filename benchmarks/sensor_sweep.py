@@ -87,7 +87,13 @@ def sensor_recipe(k: int, recipe: Path, range_model: str | None,
                                "incidence_bias": c["incidence"]}}
     for fixture, values in PLACEMENTS[c["placement"]].items():
         data["fixtures"][fixture].update(values)
-    data["fixtures"]["qa_cube"]["edge_tolerance"] = edge_tolerance
+    # the simulated cube and platter read alike unless the recipe gives them reflectivities
+    # of their own (offset+scale needs them alike; sim-realistic.yaml's do not)
+    reflectivity = sim["sensor"].get("reflectivity") or {}
+    same = (not reflectivity.get("bias")
+            or reflectivity.get("platter", 0.9) == reflectivity.get("qa_cube", 0.9))
+    data["fixtures"]["qa_cube"].update(edge_tolerance=edge_tolerance,
+                                       same_finish_as_platter=bool(same))
     if range_model is not None:
         data.setdefault("calibration", {})["range_model"] = range_model
     if certificate is not None:

@@ -87,6 +87,13 @@ class CubeGeometry(Settings):
         description="± how well the edge is known, metres (the cube's certificate): the shape "
         "strategy's known-size fit carries it in its σ",
     )
+    same_finish_as_platter: bool = Field(
+        False,
+        description="the cube and the platter's top are of one material and finish, so that "
+        "the lidar reads their ranges alike (a reflectivity difference moves a lidar's ranges "
+        "by up to millimetres): the cube's height above the platter is then a known length, "
+        "which calibration.range_model: offset+scale needs to measure the range scale error",
+    )
     offset: tuple[Coordinate, Coordinate] = (0.08, 0.05)
     yaw_deg: Yaw = 20.0
     mesh: str | None = None

@@ -67,10 +67,24 @@ def cross_field_problems(recipe: Recipe, base_dir: Path | None = None) -> list[P
         problems.append((("calibration", "range_offset_certificate"),
                          "needs a range model to combine with (calibration.range_model: offset "
                          "or offset+scale); with range_model: none the offset is taken as zero"))
+    if (recipe.calibration.range_model == "offset+scale"
+            and not fixtures.qa_cube.same_finish_as_platter):
+        problems.append((("calibration", "range_model"), SCALE_NEEDS_ONE_FINISH))
     for name, model in BUILTIN_OPTIONS.items():
         if name in recipe.calibration.options:
             problems += options_problems(name, model, recipe.calibration.options[name])
     return problems
+
+
+SCALE_NEEDS_ONE_FINISH = (
+    "offset+scale measures the lidar's range scale error from the QA cube's height above the "
+    "platter, a known length only when the lidar reads the two alike: a platter of another "
+    "finish reads at another range (a few tenths of a millimetre between a dark and a light "
+    "surface read as thousands of ppm of scale, and H's ty off by as much). State "
+    "fixtures.qa_cube.same_finish_as_platter: true for a cube and platter top of one material "
+    "and finish, or use range_model: offset, which carries the scale error as the uncertainty "
+    "calibration.range_scale_sigma states (from the lidar's datasheet or certificate)")
+"""Why ``range_model: offset+scale`` needs the cube and the platter of one finish."""
 
 
 SECOND_PASS_CONTRAST = 0.5

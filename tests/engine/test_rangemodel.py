@@ -287,6 +287,40 @@ def test_the_scale_error_is_not_leaned_on_by_the_range_noise(sim_run: Any, tmp_p
     assert axis_errors(result.H, read_recording(run["cube"]).truth)["axis_offset_m"] < 0.3e-3
 
 
+def test_the_realistic_lidar_is_calibrated_within_its_sigma(sim_run: Any) -> None:
+    """recipes/sim-realistic.yaml: a lidar 6 mm and 100 ppm long, 0.5 mm more at 60° of
+    incidence, warming up by 1.7 mm, with a platter that reads 0.31 mm longer than the cube
+    (reflectivities 0.6 and 0.85), mixed pixels, encoder, axis and platter errors. With its
+    range_model: offset the run is accepted, every parameter of H within 3σ of the physical
+    one and the offset within 3σ of the one the lidar has on the cube. (With offset+scale, the
+    cube's height above the platter took the platter's reflectivity for 2400 ppm of scale: ty
+    2.8 mm off, 24σ, accepted; recipe validation now refuses offset+scale unless the cube and
+    the platter are stated to be of one finish.)"""
+    from calstation import plugins
+    from calstation.engine.metrics import axis_errors
+    from calstation.pipeline import calibrate
+    from calstation.recordings.reader import read_recording
+
+    run = sim_run(seed=3, recipe="recipes/sim-realistic.yaml")
+    recipe = load_recipe(REPO / "recipes/sim-realistic.yaml").recipe
+    done = calibrate(recipe, run_scans(run), plugins.strategy("periodicity"))
+    cube = read_recording(run["cube"])
+    truth, sensor = cube.truth, cube.metadata["truth"]["sensor"]
+    assert truth is not None
+    assert not done.refused, done.refused
+    result = done.result
+    errors = axis_errors(result.H, truth)
+    for name in ("tx", "ty", "tz", "ry", "rz"):
+        assert abs(errors[f"{name}_error"]) <= 3 * result.sigma[name], (name, errors)
+    reflectivity = sensor["reflectivity"]
+    on_cube = (sensor["range"]["offset"] + sensor["warmup_drift_now_m"]
+               + reflectivity["bias"] * (0.9 - reflectivity["qa_cube"]) / 0.8
+               + sensor["range"]["scale"] * float(np.linalg.norm(truth.t)))
+    assert result.range_offset is not None and result.sigma_range_offset is not None
+    assert abs(result.range_offset - on_cube) <= 3 * result.sigma_range_offset
+    assert errors["axis_offset_m"] < 0.3e-3
+
+
 def test_residual_trends_name_an_error_the_range_model_does_not_hold() -> None:
     """Range errors that grow with the incidence angle as c·(1/cos θ − 1) are a significant
     trend against incidence, said in words with what would help; white noise is none."""

@@ -128,6 +128,9 @@ INVALID: list[tuple[str, tuple[str, str], str, str]] = [
      ("  strategy: fake-strategy\n", "  strategy: fake-strategy\n"
       "  range_offset_certificate:\n    offset: 0.001\n"),
      "calibration.range_offset_certificate.sigma", "range_offset_certificate:"),
+    ("the scale error without a cube of the platter's finish",
+     ("  strategy: fake-strategy\n", "  strategy: fake-strategy\n  range_model: offset+scale\n"),
+     "calibration.range_model", "range_model:"),
     ("revolutions below one turn", ("    lines: 100", "    lines: 100\n  spin_scan:\n"
                                      "    revolutions: 0.5"), "steps.spin_scan.revolutions",
      "revolutions:"),
@@ -261,3 +264,18 @@ def test_the_shipped_recipes_come_from_the_package_listed_and_copied(
         code, _, err = cli("recipes", "copy", name, str(target))
         assert code == 2 and says in " ".join(err.split()) and "Traceback" not in err
     assert not list(tmp_path.glob(".*.part"))
+
+
+def test_the_scale_error_with_a_cube_of_the_platters_finish(tmp_path: Path) -> None:
+    """offset+scale reads the scale error from the cube's height above the platter: valid once
+    the recipe states that the two are of one finish, and the refusal says what to do."""
+    text = BASE.replace("  strategy: fake-strategy\n",
+                        "  strategy: fake-strategy\n  range_model: offset+scale\n", 1)
+    with pytest.raises(RecipeError) as info:
+        load_recipe(_write(tmp_path, text))
+    assert "same_finish_as_platter: true" in str(info.value)
+    assert "range_model: offset" in str(info.value)
+    stated = text.replace("  qa_cube:\n", "  qa_cube:\n    same_finish_as_platter: true\n", 1)
+    recipe = load_recipe(_write(tmp_path, stated)).recipe
+    assert recipe.calibration.range_model == "offset+scale"
+    assert recipe.fixtures.qa_cube.same_finish_as_platter

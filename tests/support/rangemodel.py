@@ -13,10 +13,11 @@ REPO = Path(__file__).resolve().parents[2]
 
 def sensor_recipe(folder: Path, sensor: dict[str, Any], name: str) -> Path:
     """recipes/sim-periodicity.yaml with the simulated lidar's ``sensor`` errors, a certified
-    cube (5 µm) and two cube turns, written to ``folder / name``."""
+    cube (5 µm) of the platter's finish (the simulated platter and cube read alike unless
+    ``sensor`` gives them reflectivities) and two cube turns, written to ``folder / name``."""
     data = yaml.safe_load((REPO / "recipes/sim-periodicity.yaml").read_text())
     data["simulation"]["sensor"] = sensor
-    data["fixtures"]["qa_cube"]["edge_tolerance"] = 0.000005
+    data["fixtures"]["qa_cube"].update(edge_tolerance=0.000005, same_finish_as_platter=True)
     data["steps"]["cube_scan"]["revolutions"] = 2.05
     path = folder / name
     path.write_text(yaml.safe_dump(data))
