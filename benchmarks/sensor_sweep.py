@@ -63,19 +63,21 @@ ORDER = np.random.default_rng(2026).permutation(len(CONDITIONS)).tolist()
 PARAMS = ("tx", "ty", "tz", "ry", "rz")
 
 
-def condition(k: int) -> dict[str, Any]:
-    """The conditions of run ``k``."""
+def condition(k: int, scale_level: float = SCALES[-1]) -> dict[str, Any]:
+    """The conditions of run ``k``; its scale error ``scale_level`` times its level (−1, 0,
+    +1), so that a recipe's stated scale σ can bound the lidars it is swept over."""
     offset, scale, incidence, noise, rate, place = CONDITIONS[ORDER[k % len(CONDITIONS)]]
-    return {"offset": offset, "scale": scale, "incidence": incidence, "noise": noise,
-            "line_rate": rate, "placement": place}
+    return {"offset": offset, "scale": scale / SCALES[-1] * scale_level,
+            "incidence": incidence, "noise": noise, "line_rate": rate, "placement": place}
 
 
 def sensor_recipe(k: int, recipe: Path, range_model: str | None,
-                  edge_tolerance: float, certificate: float | None = None) -> LoadedRecipe:
+                  edge_tolerance: float, certificate: float | None = None,
+                  scale_level: float = SCALES[-1]) -> LoadedRecipe:
     """``recipe`` with run ``k``'s lidar, placement and seed; with ``certificate`` (m), the
     lidar's range offset certificate of that σ, its value the lidar's offset plus an error
     drawn from it (seeded by ``k``), as a range bench would state it."""
-    c = condition(k)
+    c = condition(k, scale_level)
     data = copy.deepcopy(yaml.safe_load(recipe.read_text()))
     sim = data["simulation"]
     sim["seed"] = 500 + k
@@ -105,13 +107,14 @@ def sensor_recipe(k: int, recipe: Path, range_model: str | None,
 
 
 def station_run(k: int, out: Path, recipe: Path, range_model: str | None,
-                edge_tolerance: float, certificate: float | None = None) -> dict[str, Any]:
+                edge_tolerance: float, certificate: float | None = None,
+                scale_level: float = SCALES[-1]) -> dict[str, Any]:
     """Run ``k`` as a whole simulated station run; its row (SI units)."""
     from ry_sweep import unattended_run  # as the capability sweep runs its station runs
 
-    row = unattended_run(sensor_recipe(k, recipe, range_model, edge_tolerance, certificate),
-                         out / f"run{k}", _row)
-    row.update(k=k, **condition(k))
+    row = unattended_run(sensor_recipe(k, recipe, range_model, edge_tolerance, certificate,
+                                       scale_level), out / f"run{k}", _row)
+    row.update(k=k, **condition(k, scale_level))
     return row
 
 
@@ -220,7 +223,8 @@ def table(rows: list[dict[str, Any]]) -> None:
               f"{covered}/{len(pred)}")
 
     summary(rows, "all")
-    for key, levels in (("offset", OFFSETS), ("scale", SCALES), ("incidence", INCIDENCE),
+    scales = sorted({float(r["scale"]) for r in rows})
+    for key, levels in (("offset", OFFSETS), ("scale", scales), ("incidence", INCIDENCE),
                         ("noise", NOISES), ("line_rate", RATES),
                         ("placement", range(len(PLACEMENTS)))):
         for v in levels:
@@ -257,6 +261,8 @@ def main() -> None:
     ap.add_argument("--certificate", type=float, default=None, metavar="SIGMA",
                     help="give each lidar a range offset certificate of this σ (m), its value "
                     "drawn about the true offset")
+    ap.add_argument("--scale-level", type=float, default=SCALES[-1], metavar="K",
+                    help="the scale errors swept: −K, 0 and +K (default 0.001)")
     ap.add_argument("--out", type=Path, default=REPO / "out" / "sensor-sweep")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -266,7 +272,7 @@ def main() -> None:
 
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         jobs = [(k, args.out, args.recipe, args.range_model, args.edge_tolerance,
-                 args.certificate)
+                 args.certificate, args.scale_level)
                 for k in range(args.first, args.first + args.runs)]
         with log.open("a") as f, ProcessPoolExecutor(args.jobs) as pool:
             for row in pool.map(station_run, *zip(*jobs, strict=True)):
