@@ -5,11 +5,12 @@ range errors (DESIGN §9), each decided as the station decides it, against the p
     .venv/bin/python benchmarks/sensor_sweep.py table --out DIR
 
 Each run is a ``calstation run`` of recipes/sim-periodicity.yaml (``--recipe``) with one
-combination of the sweep's conditions — range offset (−10, −3, 0, +3, +10 mm), scale error
-(−0.1 %, 0, +0.1 %), incidence bias (none, 0.5 mm at 60°), range noise (0.5, 1 mm), line rate
-(180, 1000 lines/s) and placement (the recipe's; the spin target and the cube elsewhere and
-turned) — the combinations taken in a fixed shuffled order, so that any first N runs cover every
-level of every factor about evenly. The recipe's ``calibration.range_model`` (``--range-model``
+combination of the sweep's conditions — range offset (−10, −3, 0, +3, +10 mm), scale error (−0.1
+%, 0, +0.1 %; −K, 0, +K with ``--scale-level K``), incidence bias (none, 0.5 mm at 60°), range
+noise (0.5, 1 mm), line rate (180, 1000 lines/s) and placement (the recipe's; the spin target
+and the cube elsewhere and turned) — the combinations taken in a fixed shuffled order, so that
+any first N runs cover every level of every factor about evenly.
+The recipe's ``calibration.range_model`` (``--range-model``
 replaces it) is what is estimated; the QA cube is a certified one (``--edge-tolerance``, 5 µm).
 The recipe's other sensor errors stay: with ``--recipe recipes/sim-realistic.yaml`` each run also
 has its reflectivities, mixed pixels, warm-up drift, encoder, axis and platter errors, and the
@@ -235,7 +236,7 @@ def table(rows: list[dict[str, Any]]) -> None:
 
 
 def _line(r: dict[str, Any]) -> str:
-    head = (f"run {r['k']}: offset {r['offset'] * 1e3:+.0f} mm, scale {r['scale'] * 100:+.1f} %, "
+    head = (f"run {r['k']}: offset {r['offset'] * 1e3:+.0f} mm, scale {r['scale'] * 1e6:+.0f} ppm, "
             f"incidence {r['incidence'] * 1e3:.1f} mm, {r['noise'] * 1e3:.1f} mm, "
             f"{r['line_rate']:.0f} lines/s, placement {r['placement']}: "
             f"{'accepted' if r['accepted'] else 'refused'}")
