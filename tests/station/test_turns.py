@@ -33,6 +33,8 @@ def _recipe(tmp_path: Path, budget: float, range_model: str = "offset", **spin: 
                      "cube_scan": {"rpm": 60, "revolutions": 1.02, "settle_s": 0.1,
                                    "max_revolutions": 1.02}}
     data["calibration"] = {"accuracy": {"max_error": budget}, "range_model": range_model}
+    # the simulated platter and cube read alike (offset+scale needs them to)
+    data["fixtures"]["qa_cube"]["same_finish_as_platter"] = True
     path = tmp_path / "turns.yaml"
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
