@@ -154,7 +154,7 @@ def _row(db: Any, run_id: int, status: str, loaded: LoadedRecipe) -> dict[str, A
         err=axis_errors(result.H, truth),
         sigma={p: result.sigma.get(p) for p in PARAMS},
         ranges=result.range_fields(),
-        true_range={"offset": true_range.offset, "scale": true_range.scale,
+        true_range={"offset": meta["range_offset"], "scale": true_range.scale,
                     "incidence_bias": meta["sensor"]["range"]["incidence_bias"],
                     "on_cube": on_cube},
         predicted_error_m=final.predicted_error_m if final is not None else None,

@@ -451,7 +451,9 @@ def range_disagreement(
                 "range in the report; use fixtures of one finish, or re-seat the cube so its "
                 "faces meet the rays less obliquely")
     return (f"{head}: re-place the spin target off-centre and re-seat the cube, then re-run the "
-            "calibration")
+            "calibration; if they disagree again, check the turntable's encoder: a code disc "
+            "mounted off-centre reads the platter's angle with an error once per turn, which "
+            "moves the spin target's estimate and the cube's differently")
 
 
 def _combined(result: CalibrationResult, fit: KnownSizeFit, fused: Fused) -> CalibrationResult:
