@@ -45,6 +45,7 @@ import numpy as np
 import yaml
 
 from calstation.recipes import LoadedRecipe, parse_recipe
+from calstation.recipes.simulation import Reflectivity
 
 REPO = Path(__file__).resolve().parents[1]
 OFFSETS = (-0.010, -0.003, 0.0, 0.003, 0.010)
@@ -92,11 +93,10 @@ def sensor_recipe(k: int, recipe: Path, range_model: str | None,
         data["fixtures"][fixture].update(values)
     # the simulated cube and platter read alike unless the recipe gives them reflectivities
     # of their own (offset+scale needs them alike; sim-realistic.yaml's do not)
-    reflectivity = sim["sensor"].get("reflectivity") or {}
-    same = (not reflectivity.get("bias")
-            or reflectivity.get("platter", 0.9) == reflectivity.get("qa_cube", 0.9))
+    reflectivity = Reflectivity.model_validate(sim["sensor"].get("reflectivity") or {})
+    same = reflectivity.range_bias("platter") == reflectivity.range_bias("qa_cube")
     data["fixtures"]["qa_cube"].update(edge_tolerance=edge_tolerance,
-                                       same_finish_as_platter=bool(same))
+                                       same_finish_as_platter=same)
     if range_model is not None:
         data.setdefault("calibration", {})["range_model"] = range_model
     if certificate is not None:
@@ -172,10 +172,8 @@ def _on_cube(sensor: dict[str, Any]) -> float:
     """What the lidar adds to its constant offset on the QA cube while the cube turns: its
     warm-up drift then and the cube's reflectivity bias (docs/simulator.md). The range offset
     the station measures is the one its fixtures show; 0 on a lidar without either."""
-    reflectivity = sensor.get("reflectivity") or {}
-    bias = float(reflectivity.get("bias") or 0.0)
-    cube = float(reflectivity.get("qa_cube", 0.9))
-    return float(sensor.get("warmup_drift_now_m") or 0.0) + bias * (0.9 - cube) / 0.8
+    reflectivity = Reflectivity.model_validate(sensor.get("reflectivity") or {})
+    return float(sensor.get("warmup_drift_now_m") or 0.0) + reflectivity.range_bias("qa_cube")
 
 
 def _offset_truth(r: dict[str, Any]) -> float:

@@ -299,6 +299,7 @@ def test_the_realistic_lidar_is_calibrated_within_its_sigma(sim_run: Any) -> Non
     from calstation import plugins
     from calstation.engine.metrics import axis_errors
     from calstation.pipeline import calibrate
+    from calstation.recipes.simulation import Reflectivity
     from calstation.recordings.reader import read_recording
 
     run = sim_run(seed=3, recipe="recipes/sim-realistic.yaml")
@@ -312,9 +313,9 @@ def test_the_realistic_lidar_is_calibrated_within_its_sigma(sim_run: Any) -> Non
     errors = axis_errors(result.H, truth)
     for name in ("tx", "ty", "tz", "ry", "rz"):
         assert abs(errors[f"{name}_error"]) <= 3 * result.sigma[name], (name, errors)
-    reflectivity = sensor["reflectivity"]
+    reflectivity = Reflectivity.model_validate(sensor["reflectivity"])
     on_cube = (sensor["range"]["offset"] + sensor["warmup_drift_now_m"]
-               + reflectivity["bias"] * (0.9 - reflectivity["qa_cube"]) / 0.8
+               + reflectivity.range_bias("qa_cube")
                + sensor["range"]["scale"] * float(np.linalg.norm(truth.t)))
     assert result.range_offset is not None and result.sigma_range_offset is not None
     assert abs(result.range_offset - on_cube) <= 3 * result.sigma_range_offset
