@@ -9,13 +9,13 @@ combination of the sweep's conditions — range offset (−10, −3, 0, +3, +10 
 %, 0, +0.1 %; −K, 0, +K with ``--scale-level K``), incidence bias (none, 0.5 mm at 60°), range
 noise (0.5, 1 mm), line rate (180, 1000 lines/s) and placement (the recipe's; the spin target
 and the cube elsewhere and turned) — the combinations taken in a fixed shuffled order, so that
-any first N runs cover every level of every factor about evenly.
-The recipe's ``calibration.range_model`` (``--range-model``
-replaces it) is what is estimated; the QA cube is a certified one (``--edge-tolerance``, 5 µm).
-The recipe's other sensor errors stay: with ``--recipe recipes/sim-realistic.yaml`` each run also
-has its reflectivities, mixed pixels, warm-up drift, encoder, axis and platter errors, and the
-range offset is judged against the one the lidar has on the QA cube (its offset, its drift at the
-time and the cube's reflectivity bias).
+any first N runs cover every level of every factor about evenly. The recipe's
+``calibration.range_model`` (``--range-model`` replaces it) is what is estimated; the QA cube is
+a certified one (``--edge-tolerance``, 5 µm). The recipe's other sensor errors stay: with
+``--recipe recipes/sim-realistic.yaml`` each run also has its reflectivities, mixed pixels,
+warm-up drift, encoder, axis and platter errors, and the range offset is judged against the one
+the lidar has on the QA cube (its offset, its drift at the time and the cube's reflectivity
+bias).
 
 With ``--certificate SIGMA`` each lidar also has a range offset certificate
 (``calibration.range_offset_certificate``) of that σ, its value the lidar's true offset plus an
