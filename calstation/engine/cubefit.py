@@ -29,7 +29,7 @@ than the recipe says reads as an axis about 0.04 mm off.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -406,6 +406,9 @@ class KnownSizeFit:
     """per free parameter, how far (m, rad) a cube larger than the recipe's edge by its
     tolerance moves it, with its sign: the bias bound's part that moves every parameter at once
     (None when not computed)"""
+    encoder_direction: dict[str, dict[str, float]] | None = None
+    """per coefficient of the encoder's angle error (:data:`~calstation.engine.encoder.
+    HARMONICS`), how far each free parameter moves per radian of it (None when not computed)"""
     residuals: dict[str, TrendRecord] = field(default_factory=dict)
     """the range fit's residuals on the faces against range, incidence angle and azimuth
     (:func:`calstation.engine.residuals.residual_trends`; empty for a fit without the range
@@ -583,7 +586,34 @@ def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Fac
         details={**_details(res, faces, cube), "platter_returns": int(platter.shape[0]),
                  "range_model": [ESTIMATED_NAMES[i] for i in free if i >= OFFSET]},
         range_model=RangeModel.from_vector(v), residuals=_residuals(res, errors, faces.p_L),
+        encoder_direction=_encoder_direction(res, errors, free),
     )
+
+
+def _encoder_direction(
+    res: OptimizeResult, errors: _RangeSizeErrors, free: list[int]
+) -> dict[str, dict[str, float]]:
+    """Per coefficient of the encoder's angle error (:mod:`calstation.engine.encoder`), how far
+    each free parameter moves per radian of it: dx = −J⁺·∂r/∂c, the residuals' response by
+    central differences of the faces' platter angles (the platter's residuals do not turn
+    with them)."""
+    from calstation.engine.encoder import HARMONICS, STEP, basis
+
+    f = errors.f
+    phi = np.arctan2(f.sin, f.cos)
+    b = basis(phi)
+    columns = np.zeros((np.asarray(res.fun).size, len(HARMONICS)))
+    for k in range(len(HARMONICS)):
+        moved = []
+        for sign in (1.0, -1.0):
+            turned = phi + sign * STEP * b[:, k]
+            moved.append(_RangeSizeErrors(replace(f, cos=np.cos(turned), sin=np.sin(turned)),
+                                          errors.platter, errors.base, errors.free,
+                                          errors.edge)(res.x))
+        columns[:, k] = (moved[0] - moved[1]) / (2.0 * STEP)
+    dx = -np.linalg.lstsq(np.asarray(res.jac), columns, rcond=None)[0][: len(free)]
+    return {h: {ESTIMATED_NAMES[i]: float(dx[k, j]) for k, i in enumerate(free)}
+            for j, h in enumerate(HARMONICS)}
 
 
 def _residuals(

@@ -17,13 +17,19 @@ The cube's bias bound (what its edge tolerance moves, fully correlated across th
 part of its covariance here, as the rank-one term it is, so the combination leans on the cube
 only as far as its tolerance allows. The spin target's incidence correction is a model: what it
 may miss is an independent variance on each parameter (:meth:`Estimate.with_model_error`).
+
+Both fixtures turn on one encoder, whose angle error neither fit models: it moves both
+estimates, each its own way (:mod:`calstation.engine.encoder`). Its four coefficients are
+estimated beside H, each held by the encoder's stated accuracy as a prior
+(:meth:`Estimate.with_encoder`): what the fixtures' difference says of them corrects both, and
+the rest stays in the combined σ.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
@@ -53,6 +59,9 @@ class Estimate:
     names: tuple[str, ...]
     covariance: FloatArray
     follows: Mapping[str, Mapping[str, float]]
+    consider: FloatArray | None = None
+    """(n, m) how the estimate moves per 1σ of each of m parameters that neither estimate
+    models and both share (the encoder's angle error, :meth:`with_encoder`); None: m = 0"""
 
     @classmethod
     def of(cls, H: Extrinsics, model: RangeModel, record: CovarianceRecord,
@@ -79,7 +88,28 @@ class Estimate:
         if not direction or size == 0.0:
             return self
         v = np.array([float(direction.get(n, 0.0)) * size for n in self.names])
-        return Estimate(self.vector, self.names, self.covariance + np.diag(v * v), self.follows)
+        return replace(self, covariance=self.covariance + np.diag(v * v))
+
+    def with_encoder(self, directions: Mapping[str, Mapping[str, float]] | None,
+                     sigma: float) -> Estimate:
+        """The estimate with the encoder's angle error as the shared parameters it is
+        (:mod:`calstation.engine.encoder`): ``directions`` how it moves per radian of each
+        coefficient (:data:`~calstation.engine.encoder.HARMONICS`; missing: it does not), each
+        coefficient of 1σ ``sigma`` (rad). Itself when ``sigma`` is zero."""
+        from calstation.engine.encoder import HARMONICS
+
+        if sigma <= 0.0:
+            return self
+        given = directions or {}
+        G = np.array([[float(given.get(h, {}).get(n, 0.0)) * sigma for h in HARMONICS]
+                      for n in self.names])
+        return replace(self, consider=G)
+
+    def shared(self, m: int) -> FloatArray:
+        """(n, m) :attr:`consider`, zeros when the estimate has none."""
+        if self.consider is None or self.consider.shape[1] == 0:
+            return np.zeros((len(self.names), m))
+        return self.consider
 
 
 class Disagreement(TypedDict):
@@ -128,15 +158,20 @@ def fuse(first: Estimate, second: Estimate) -> Fused:
     moves ``first``'s constraint along its ``follows`` direction (the range scale error the spin
     scan cannot see). Parameters neither estimated keep ``first``'s value."""
     names = tuple(n for n in ESTIMATED_NAMES if n in first.names or n in second.names)
-    info = np.zeros((len(names), len(names)))
-    eta = np.zeros(len(names))
+    size, m = len(names), _shared_count(first, second)
+    # the shared parameters (in σ) are estimated beside the others, each held by its prior
+    info = np.zeros((size + m, size + m))
+    info[size:, size:] = np.eye(m)
+    eta = np.zeros(size + m)
     for est in (first, second):
         A, z = _constraint(est, names)
+        A = np.hstack([A, est.shared(m)])
         inv = np.linalg.inv(0.5 * (est.covariance + est.covariance.T))
         info += A.T @ inv @ A
         eta += A.T @ inv @ z
-    cov: FloatArray = np.asarray(np.linalg.inv(info), dtype=np.float64)
-    y = cov @ eta
+    full = np.linalg.inv(info)
+    y = (full @ eta)[:size]
+    cov: FloatArray = np.asarray(full[:size, :size], dtype=np.float64)
     vector = first.vector.copy()
     for k, n in enumerate(names):
         vector[ESTIMATED_NAMES.index(n)] = y[k]
@@ -151,6 +186,12 @@ def kalman_update(C: FloatArray, i: int, variance: float) -> tuple[FloatArray, F
     gain: FloatArray = C[:, i] / (C[i, i] + variance)
     after: FloatArray = C - np.outer(gain, C[i, :])
     return gain, after
+
+
+def _shared_count(first: Estimate, second: Estimate) -> int:
+    """How many shared parameters the two estimates carry (:attr:`Estimate.consider`)."""
+    return max((e.consider.shape[1] for e in (first, second) if e.consider is not None),
+               default=0)
 
 
 def _constraint(est: Estimate, names: Sequence[str]) -> tuple[FloatArray, FloatArray]:
@@ -191,7 +232,10 @@ def _disagreement(first: Estimate, second: Estimate) -> Disagreement:
         delta = float(second.vector[ESTIMATED_NAMES.index(held)]
                       - first.vector[ESTIMATED_NAMES.index(held)])
         d += np.array([float(direction.get(n, 0.0)) * delta for n in common])
-    C = first.covariance[np.ix_(i1, i1)] + second.covariance[np.ix_(i2, i2)]
+    m = _shared_count(first, second)
+    # what the shared parameters move the two by differently
+    G = first.shared(m)[i1] - second.shared(m)[i2]
+    C = first.covariance[np.ix_(i1, i1)] + second.covariance[np.ix_(i2, i2)] + G @ G.T
     value = float(d @ np.linalg.solve(C, d))
     sigmas = {n: float(d[k] / math.sqrt(max(C[k, k], 1e-300))) for k, n in enumerate(common)}
     # the χ² survival function (scipy.stats.chi2.sf computes exactly this), without

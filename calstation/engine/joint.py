@@ -162,6 +162,7 @@ def combine_with_cube_scan(
     prepared: SpinScan | None = None,
     refit: Callable[[CalibrationResult], CalibrationResult] | None = None,
     certificate: Certificate | None = None,
+    encoder_accuracy: float = 0.0,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` with ry combined from the cube scan ``cube``, as
     the station does at its cube step: (the combined result, strategy ``<name>+cube``, with
@@ -171,14 +172,15 @@ def combine_with_cube_scan(
     gate (rad); ``prepared`` the cube scan's returns already prepared
     (:func:`calstation.engine.cube.check_cube`). A ``result`` that holds the lidar's range model
     is combined with it instead (:func:`combine_range_with_cube_scan`, ``refit``,
-    ``certificate``)."""
+    ``certificate``, ``encoder_accuracy``)."""
     from calstation.engine.cube import check_cube
 
     if result.range_offset is not None:
         return combine_range_with_cube_scan(result, cube, geometry, qa,
                                             platter_radius=platter_radius, progress=progress,
                                             prepared=prepared, refit=refit,
-                                            certificate=certificate)
+                                            certificate=certificate,
+                                            encoder_accuracy=encoder_accuracy)
     check = check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared)
     combined, failure = with_cube_ry(result, check, max_sigma_ry)
@@ -225,6 +227,7 @@ def combine_range_with_cube_scan(
     prepared: SpinScan | None = None,
     refit: Callable[[CalibrationResult], CalibrationResult] | None = None,
     certificate: Certificate | None = None,
+    encoder_accuracy: float = 0.0,
 ) -> tuple[CalibrationResult, CubeCheck, str | None]:
     """A spin-target fine-tuning ``result`` that holds the lidar's range model, combined with
     the cube scan as the station does at its cube step: the known-size cube fit with the range
@@ -234,7 +237,9 @@ def combine_range_with_cube_scan(
     size, ty the cube's top, and ry the cube's side faces. ``refit(start)``: the spin target's
     fine-tuning run again from a combined estimate, holding its range terms and ty
     (:data:`REFITS` times). The lidar's ``certificate`` is combined with the result
-    (:func:`calstation.engine.certificate.with_certificate`) before the check. Returns (the
+    (:func:`calstation.engine.certificate.with_certificate`) before the check; the turntable
+    encoder's stated ``encoder_accuracy`` (rad) is carried through the combination
+    (:mod:`calstation.engine.encoder`). Returns (the
     combined result, strategy ``<name>+cube``, or ``result`` when they could not be combined,
     with why in ``diagnostics["joint"]``; the cube check under it; why not, or None)."""
     from calstation.engine.certificate import with_certificate
@@ -245,7 +250,8 @@ def combine_range_with_cube_scan(
         progress("fitting the cube with the lidar's range model", 0.2)
     scan = prepared_or_read(cube, prepared)
     combined, failure, residuals = combine_range_with_cube(
-        result, scan, geometry, platter_radius=platter_radius, refit=refit, progress=progress)
+        result, scan, geometry, platter_radius=platter_radius, refit=refit, progress=progress,
+        encoder_accuracy=encoder_accuracy)
     if failure is None:
         combined, failure = with_certificate(combined, certificate)
     if progress is not None:
@@ -337,6 +343,7 @@ def combine_range_with_cube(
     platter_radius: float,
     refit: Callable[[CalibrationResult], CalibrationResult] | None = None,
     progress: Callable[[str, float], None] | None = None,
+    encoder_accuracy: float = 0.0,
 ) -> tuple[CalibrationResult, str | None, Mapping[str, TrendRecord]]:
     """The combination of :func:`combine_range_with_cube_scan` without the cube check: the
     known-size cube fit with the range model on the cube's prepared returns ``scan`` (the whole
@@ -348,7 +355,7 @@ def combine_range_with_cube(
         fit = _range_size_fit(result, scan, geometry, platter_radius)
     except FineTuningError as exc:
         return result, f"the cube could not add to the range model: {exc}", {}
-    combined, failure = _combine_with_fit(result, fit, refit, progress)
+    combined, failure = _combine_with_fit(result, fit, refit, progress, encoder_accuracy)
     return combined, failure, fit.residuals
 
 
@@ -386,23 +393,31 @@ def _combine_with_fit(
     result: CalibrationResult, fit: KnownSizeFit,
     refit: Callable[[CalibrationResult], CalibrationResult] | None,
     progress: Callable[[str, float], None] | None,
+    encoder_accuracy: float = 0.0,
 ) -> tuple[CalibrationResult, str | None]:
     """``result`` (the spin target's) and the cube's ``fit`` combined, the spin target's
     fine-tuning run again from the combination (``refit``) in between: (the combined result,
-    or ``result`` with the reason in its diagnostics; the failure or None)."""
+    or ``result`` with the reason in its diagnostics; the failure or None). The encoder's
+    angle error, of stated ``encoder_accuracy`` (rad), moves both; the combination carries it
+    (:meth:`calstation.engine.fusion.Estimate.with_encoder`)."""
+    from calstation.engine.encoder import coefficient_sigma
     from calstation.engine.fusion import Estimate, consistent, fuse
 
     total = fit.total_covariance()
     if total is None:
         return result, "the cube's fit has no covariance: its faces do not fix the calibration"
-    cube = Estimate.of(fit.H, fit.range_model, total)
+    sigma_encoder = coefficient_sigma(encoder_accuracy)
+    cube = Estimate.of(fit.H, fit.range_model, total).with_encoder(fit.encoder_direction,
+                                                                   sigma_encoder)
     spin = result
     shape_error = INCIDENCE_MODEL * abs(fit.range_model.incidence)
     before: Fused | None = None
     for k in range(REFITS + 1):
         fused = fuse(Estimate.of(spin.H, spin.range_model, spin.diagnostics["covariance"],
                                  spin.diagnostics.get("follows", {}))
-                     .with_model_error("incidence_bias", shape_error), cube)
+                     .with_model_error("incidence_bias", shape_error)
+                     .with_encoder(spin.diagnostics.get("follows_encoder"), sigma_encoder),
+                     cube)
         if refit is None or k == REFITS or (before is not None
                                             and _moved(before, fused) < REFIT_SETTLED):
             break

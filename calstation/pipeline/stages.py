@@ -171,6 +171,7 @@ def with_cube(
         refit=None if spin is None or refit is None else (
             lambda start: refit(spin.prepared, start, rc)),
         certificate=certificate(rc),
+        encoder_accuracy=math.radians(rc.station.encoder.accuracy_deg),
     )
     return CubeChecked(combined, check, failure)
 

@@ -27,6 +27,12 @@ class EncoderConfig(DriverConfig):
     latency_s: float = Field(
         0.0, ge=-1.0, le=1.0, description="encoder time minus lidar time, compensated"
     )
+    accuracy_deg: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="the encoder's stated accuracy: the largest error of the angle it reads "
+        "over a turn (its datasheet, or the rotary stage's certificate); carried in the σ of "
+        "every calibration that combines the spin target with the QA cube",
+    )
 
 
 class StationConfig(Model):

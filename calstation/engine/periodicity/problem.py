@@ -286,6 +286,36 @@ class _Problem:
                                      for k, i in enumerate(free)}
                 for j, h in enumerate(held)}
 
+    def encoder_follows(self, x: FloatArray) -> dict[str, dict[str, float]]:
+        """How the solution ``x`` would move per radian of each coefficient of the encoder's
+        angle error (:data:`~calstation.engine.encoder.HARMONICS`): dx = −J⁺·∂r/∂c, the
+        residuals' response by central differences of the matches' platter angles (the
+        platter's residuals do not turn with them)."""
+        from dataclasses import replace
+
+        from calstation.engine.encoder import HARMONICS, STEP, basis
+
+        m = self.m
+        phi_a, phi_b = np.arctan2(m.sa, m.ca), np.arctan2(m.sb, m.cb)
+        ba, bb = basis(phi_a), basis(phi_b)
+        kept, nq = self.m, self._nq
+        columns = np.zeros((self.residuals(x).size, len(HARMONICS)))
+        try:
+            for k in range(len(HARMONICS)):
+                moved = []
+                for sign in (1.0, -1.0):
+                    a, b = phi_a + sign * STEP * ba[:, k], phi_b + sign * STEP * bb[:, k]
+                    self.m = replace(kept, ca=np.cos(a), sa=np.sin(a), cb=np.cos(b),
+                                     sb=np.sin(b))
+                    self._nq = None
+                    moved.append(self.residuals(x))
+                columns[:, k] = (moved[0] - moved[1]) / (2.0 * STEP)
+        finally:
+            self.m, self._nq = kept, nq
+        dx = -np.linalg.lstsq(self.jacobian(x), columns, rcond=None)[0]
+        return {h: {ESTIMATED_NAMES[i]: float(dx[k, j]) for k, i in enumerate(self.free)}
+                for j, h in enumerate(HARMONICS)}
+
     def _target_jacobian(self, x6: FloatArray, R: FloatArray, out: FloatArray) -> None:
         """The target's rows of :meth:`jacobian`, written into ``out``."""
         m = self.m

@@ -360,9 +360,21 @@ def _result(
             "ry_bound_rad": [ry_lo, ry_hi],
             "rms_m": math.sqrt(run.cost),
             **({"range_model": [ESTIMATED_NAMES[i] for i in terms],
-                "follows": _follows(run, x6, held or [])} if terms else {}),
+                "follows": _follows(run, x6, held or []),
+                "follows_encoder": _follows_encoder(run)} if terms else {}),
         },
     ).with_range(ranges)
+
+
+def _follows_encoder(run: _Run) -> dict[str, dict[str, float]]:
+    """How the estimate follows the encoder's angle error, per radian of each of its
+    coefficients (:meth:`~calstation.engine.periodicity.problem._Problem.encoder_follows`):
+    the spin target's share of what the combination with the QA cube carries
+    (:mod:`calstation.engine.encoder`)."""
+    if run.last is None:
+        return {}
+    x_last, problem = run.last
+    return problem.encoder_follows(x_last)
 
 
 def _follows(run: _Run, x: FloatArray, held: list[int]) -> dict[str, dict[str, float]]:
