@@ -465,7 +465,7 @@ def known_size_fit(
         errors = _RangeErrors(faces, base, free, cube.edge)
         x0 = np.concatenate([base[free], faces.pose])
         res = least_squares(
-            errors, x0, method="trf", loss="soft_l1", f_scale=max(0.002, 3.0 * faces.noise),
+            errors, x0, method="trf", loss="soft_l1", f_scale=_f_scale(faces.noise),
             diff_step=1e-4, x_scale=np.full(x0.size, 1e-3), max_nfev=MAX_NFEV,
         )
         H = errors.H(res.x)
@@ -545,7 +545,7 @@ def range_size_fit(
         x0 = np.concatenate([base[free], pose])
         res = least_squares(
             errors, x0, jac=errors.jac, method="trf", loss="soft_l1",
-            f_scale=max(0.002, 3.0 * noise), x_scale=_scales(free, 3), max_nfev=MAX_NFEV,
+            f_scale=_f_scale(noise), x_scale=_scales(free, 3), max_nfev=MAX_NFEV,
         )
         base, pose = errors.vector(res.x), res.x[len(free):]
     return _range_fit_result(res, errors, faces, free, cube, platter)
@@ -611,7 +611,7 @@ def _encoder_direction(
                                           errors.platter, errors.base, errors.free,
                                           errors.edge)(res.x))
         columns[:, k] = (moved[0] - moved[1]) / (2.0 * STEP)
-    dx = -np.linalg.lstsq(np.asarray(res.jac), columns, rcond=None)[0][: len(free)]
+    dx = _response(res, columns, errors.f.noise)[: len(free)]
     return {h: {ESTIMATED_NAMES[i]: float(dx[k, j]) for k, i in enumerate(free)}
             for j, h in enumerate(HARMONICS)}
 
@@ -656,6 +656,24 @@ def _block_covariance(res: OptimizeResult, where: FloatArray, free: list[int]) -
     return out
 
 
+def _f_scale(noise: float) -> float:
+    """The soft-L1 loss's scale (m) of a fit on faces of range ``noise``: residuals beyond it
+    (mixed pixels, strays) count less and less."""
+    return max(0.002, 3.0 * noise)
+
+
+def _response(res: OptimizeResult, columns: FloatArray, noise: float) -> FloatArray:
+    """(n, k) how the fit ``res`` (soft-L1, :func:`_f_scale` of ``noise``) moves per unit of
+    each of k things that move its residuals by ``columns`` (m, k): dx = −J⁺·w·∂r, with ``J``
+    the loss's Jacobian (``res.jac``, each row scaled by √w) and w its Gauss–Newton weights,
+    ρ′(z) + 2z·ρ″(z) at z = (r/f_scale)² (scipy's own scaling)."""
+    z = (np.asarray(res.fun) / _f_scale(noise)) ** 2
+    weight = np.sqrt(np.maximum((1.0 + z) ** -0.5 - z * (1.0 + z) ** -1.5, 1e-12))
+    dx: FloatArray = -np.linalg.lstsq(np.asarray(res.jac), columns * weight[:, None],
+                                      rcond=None)[0]
+    return dx
+
+
 def _edge_direction(
     res: OptimizeResult, errors: _RangeErrors | _RangeSizeErrors, free: list[int], tolerance: float
 ) -> dict[str, float]:
@@ -665,7 +683,7 @@ def _edge_direction(
         return {ESTIMATED_NAMES[i]: 0.0 for i in free}
     step = 1e-5
     dr = (errors(res.x, errors.edge + step) - errors(res.x)) / step
-    dx = -np.linalg.lstsq(np.asarray(res.jac), dr, rcond=None)[0][: len(free)]
+    dx = _response(res, dr[:, None], errors.f.noise)[: len(free), 0]
     return {ESTIMATED_NAMES[i]: float(dx[k]) * tolerance for k, i in enumerate(free)}
 
 
