@@ -257,6 +257,8 @@ def _calibration_table(console: Console, s: Stored) -> None:
 
 def _print_cube(console: Console, cube: Stored) -> None:
     edges = ", ".join(display.number("edge", e, unit=False) for e in cube["face_edges"])
+    if cube.get("height_judged") is False:
+        edges += " (the height from a platter of another finish: not judged)"
     excess = cube.get("flatness_excess")
     beyond = ("" if excess is None or excess != excess
               else f" ({display.number('flatness_excess', excess)} beyond the range noise)")

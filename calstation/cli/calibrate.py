@@ -182,9 +182,12 @@ def register(app: typer.Typer) -> None:
             typer.echo(json.dumps(check.to_dict(), indent=2))
         else:
             s = check.edge
+            height = ("" if check.height_judged
+                      else "; the height, from a platter of another finish, not judged")
             typer.echo(
                 f"face-fit edges {', '.join(f'{v * 1e3:.2f}' for v in check.face_edges)} mm "
-                f"(error {check.edge_error * 1e3:.2f} mm, limit {rc.qa.edge_error * 1e3:.2f})"
+                f"(error {check.edge_error * 1e3:.2f} mm, limit {rc.qa.edge_error * 1e3:.2f}"
+                f"{height})"
             )
             typer.echo(
                 f"OBB edges {', '.join(f'{v * 1e3:.2f}' for v in check.obb_edges)} mm "

@@ -70,7 +70,10 @@ class CubeCheck:
       of it the range noise's extremes do not explain (the limit ``qa.obb_edge_error`` applies
       to it, see :func:`obb_noise`);
     - ``face_edges`` (3,) face-fit edges (height, then the two horizontal edges),
-      ``edge_error`` ``max_i |ŝ_i − s|`` of those;
+      ``edge_error`` ``max_i |ŝ_i − s|`` of those it judges: the height only when
+      ``height_judged`` — it is measured from the platter, and a platter of another finish
+      than the cube (``fixtures.qa_cube.same_finish_as_platter`` false) reads at another range
+      (the lidar's reflectivity bias), which the height would take for the cube's;
     - ``flatness_rms`` the worst face's plane-fit RMS; ``flatness_excess`` the worst face's
       RMS beyond what the range noise explains (the limit ``qa.flatness_rms`` applies to it:
       a sensor's noise is not a distortion of the cube), ``range_noise`` that noise (1σ along
@@ -105,6 +108,7 @@ class CubeCheck:
     range_noise: float = math.nan
     perpendicularity_sigma_deg: float = math.nan
     obb_excess: float = math.nan
+    height_judged: bool = True
 
     def to_dict(self) -> dict[str, object]:
         """A plain mapping (YAML/JSON ready), metres and degrees."""
@@ -115,6 +119,7 @@ class CubeCheck:
             "obb_excess_m": float(self.obb_excess),
             "face_edges_m": [float(v) for v in self.face_edges],
             "edge_error_m": float(self.edge_error),
+            "height_judged": bool(self.height_judged),
             "flatness_rms_m": float(self.flatness_rms),
             "flatness_excess_m": float(self.flatness_excess),
             "perpendicularity_sigma_deg": float(self.perpendicularity_sigma_deg),
@@ -282,7 +287,7 @@ def check_cube_points(
     if not edges_only:
         obb_edges, obb_error = _paper_obb(cloud.pts, s)
     t2 = time.perf_counter()
-    dims = _face_dimensions(cloud, s, platter_radius)
+    dims = _face_dimensions(cloud, s, platter_radius, cube.same_finish_as_platter)
     twist, twist_sigma = math.nan, math.nan
     if not edges_only:
         twist, twist_sigma = _side_twist(cloud, dims, H)
@@ -313,6 +318,7 @@ def check_cube_points(
         failures=failures,
         points=int(cloud.pts.shape[0]),
         platter_level=cloud.level,
+        height_judged=dims.height_judged,
         timings={"segment": t1 - t0, "obb": t2 - t1, "faces": t3 - t2, "total": t3 - t0},
     )
 
@@ -411,6 +417,8 @@ class _Dimensions:
     perpendicularity_deg: float
     perpendicularity_sigma_deg: float = math.nan
     """1σ of the worst pair's deviation, from the two plane fits"""
+    height_judged: bool = True
+    """whether ``edge_error`` counts the height"""
 
 
 ADJACENT_FACES = (
@@ -426,10 +434,12 @@ ADJACENT_FACES = (
 """The pairs of faces whose angle the perpendicularity measures."""
 
 
-def _face_dimensions(cloud: CubeCloud, s: float, platter_radius: float) -> _Dimensions:
+def _face_dimensions(cloud: CubeCloud, s: float, platter_radius: float,
+                     judge_height: bool = True) -> _Dimensions:
     """Robust dimensioning: planes on the faces of the robust upright box of the cube's
     returns; an edge is the distance between opposite faces, the height the top face's above
-    the platter beside the cube."""
+    the platter beside the cube, which the edge error counts when ``judge_height`` (the
+    platter of the cube's finish)."""
     pts = cloud.pts
     centre, axes, ext = upright_box(pts, strays=True)
     lo = axes.T @ centre - 0.5 * ext
@@ -457,7 +467,8 @@ def _face_dimensions(cloud: CubeCloud, s: float, platter_radius: float) -> _Dime
         faces=faces,
         missing=missing,
         face_edges=face_edges,
-        edge_error=float(np.max(np.abs(face_edges - s))),
+        edge_error=float(np.max(np.abs(face_edges[0 if judge_height else 1:] - s))),
+        height_judged=judge_height,
         flatness=max((f.rms for f in faces.values()), default=math.nan),
         perpendicularity_deg=perp,
         perpendicularity_sigma_deg=perp_sigma,

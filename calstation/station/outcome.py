@@ -29,6 +29,7 @@ class CubeMeasurements(TypedDict):
     obb_excess: float | None
     face_edges: list[float | None]
     edge_error: float | None
+    height_judged: bool
     flatness_rms: float | None
     flatness_excess: float | None
     range_noise: float | None

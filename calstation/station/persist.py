@@ -178,6 +178,7 @@ def cube_row(
         obb_error=number("obb_error"),
         face_edges=list(c.get("face_edges") or []),
         edge_error=number("edge_error"),
+        height_judged=bool(c.get("height_judged", True)),
         flatness_rms=number("flatness_rms"),
         perpendicularity_deg=number("perpendicularity_deg"),
         twist_deg=number("twist_deg"),

@@ -72,6 +72,7 @@ class CubeRecord(TypedDict):
     obb_error: float | None
     face_edges: list[float]
     edge_error: float | None
+    height_judged: bool
     flatness_rms: float | None
     flatness_excess: float | None
     range_noise: float | None
@@ -215,6 +216,7 @@ def cube_dict(c: CubeCheckRecord) -> CubeRecord:
         "obb_error": c.obb_error,
         "face_edges": c.face_edges,
         "edge_error": c.edge_error,
+        "height_judged": bool(c.height_judged),
         "flatness_rms": c.flatness_rms,
         "flatness_excess": c.flatness_excess,
         "range_noise": c.range_noise,

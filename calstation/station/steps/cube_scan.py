@@ -158,6 +158,7 @@ def _cube_measurements(check: CubeCheck) -> CubeMeasurements:
         obb_excess=plain(check.obb_excess),
         face_edges=_numbers(check.face_edges),
         edge_error=plain(check.edge_error),
+        height_judged=bool(check.height_judged),
         flatness_rms=plain(check.flatness_rms),
         flatness_excess=plain(check.flatness_excess),
         range_noise=plain(check.range_noise),

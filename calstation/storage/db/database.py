@@ -259,7 +259,7 @@ def alembic_config(connection: Connection | None = None, url: str | None = None)
     return cfg
 
 
-SCHEMA_HEAD = "0013_cube_check_unmeasured"
+SCHEMA_HEAD = "0014_cube_height_judged"
 """The newest migration's revision id, as written in ``migrations/versions`` beside this module
 (a test checks that they agree). Opening a database that is at it needs no Alembic, which takes
 ~0.1 s to import; only a new, older or unknown database loads it."""

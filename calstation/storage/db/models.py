@@ -24,6 +24,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    true,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship, validates
 
@@ -294,6 +295,10 @@ class CubeCheckRecord(Base):
     obb_error: Mapped[float | None] = mapped_column(Float)
     face_edges: Mapped[list[float]] = mapped_column(JSON)
     edge_error: Mapped[float | None] = mapped_column(Float)
+    height_judged: Mapped[bool] = mapped_column(Boolean, default=True, server_default=true())
+    """whether ``edge_error`` counts the height (``face_edges[0]``): only for a cube of the
+    platter's finish (``fixtures.qa_cube.same_finish_as_platter``), the height being measured
+    from the platter"""
     flatness_rms: Mapped[float | None] = mapped_column(Float)
     perpendicularity_deg: Mapped[float | None] = mapped_column(Float)
     twist_deg: Mapped[float | None] = mapped_column(Float)
