@@ -442,17 +442,19 @@ def known_size_fit(
     range_model: RangeModelName = "none",
     start_range: RangeModel = IDENTITY,
     incidence: bool = False,
+    encoder: bool = False,
 ) -> KnownSizeFit:
     """Fit H's tx, tz, rz (and ry) with an upright cube of the recipe's edge to the cube scan's
     returns, from ``start`` (within a few millimetres: the box cost's result). Raises
     :class:`FineTuningError` when the cube's faces cannot be labelled.
 
     ``range_model`` other than ``none``: the lidar's range terms are fitted too (and the
-    incidence bias with ``incidence``), from ``start_range`` (:func:`range_size_fit`)."""
+    incidence bias with ``incidence``), from ``start_range`` (:func:`range_size_fit`; with
+    ``encoder``, how it follows the encoder's angle error too)."""
     if range_model != "none":
         return range_size_fit(scan, start, cube, platter_radius=platter_radius,
                               estimate_ry=estimate_ry, range_model=range_model,
-                              start_range=start_range, incidence=incidence)
+                              start_range=start_range, incidence=incidence, encoder=encoder)
     names = ("tx", "tz", "ry", "rz") if estimate_ry else ("tx", "tz", "rz")
     free = [PARAMETER_NAMES.index(n) for n in names]
     H = start.with_(rx=0.0)
@@ -514,6 +516,7 @@ def range_size_fit(
     range_model: RangeModelName = "offset",
     start_range: RangeModel = IDENTITY,
     incidence: bool = False,
+    encoder: bool = False,
 ) -> KnownSizeFit:
     """The known-size cube fit with the lidar's range model (DESIGN §9): H's tx, ty, tz, rz
     (and ry) and the range terms of ``range_model`` fitted to the cube's faces — the cube's
@@ -527,7 +530,8 @@ def range_size_fit(
     offset (a static mask or a band around a face keeps the returns whose noise moved them in).
 
     σ as :func:`known_size_fit`'s; the bias bound carries the edge tolerance (which now also
-    moves the scale error and the offset) and the faces' noise bias in ry."""
+    moves the scale error and the offset) and the faces' noise bias in ry. With ``encoder``,
+    the result says how it follows the encoder's angle error (``encoder_direction``)."""
     names = ["tx", "ty", "tz", "ry", "rz"] if estimate_ry else ["tx", "ty", "tz", "rz"]
     free = [PARAMETER_NAMES.index(n) for n in names] + estimated_indices(range_model,
                                                                           incidence)
@@ -548,7 +552,7 @@ def range_size_fit(
             f_scale=_f_scale(noise), x_scale=_scales(free, 3), max_nfev=MAX_NFEV,
         )
         base, pose = errors.vector(res.x), res.x[len(free):]
-    return _range_fit_result(res, errors, faces, free, cube, platter)
+    return _range_fit_result(res, errors, faces, free, cube, platter, encoder)
 
 
 def start_range_points(p_L: FloatArray, model: RangeModel) -> FloatArray:
@@ -563,7 +567,7 @@ def _scales(free: list[int], pose: int) -> FloatArray:
 
 
 def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Faces, free: list[int],
-                      cube: CubeGeometry, platter: FloatArray) -> KnownSizeFit:
+                      cube: CubeGeometry, platter: FloatArray, encoder: bool) -> KnownSizeFit:
     """The :class:`KnownSizeFit` of :func:`range_size_fit`: σ from the block sandwich of the
     faces and the platter (× :data:`SIGMA_SCALE`, with the model floor), the bias bound in
     quadrature."""
@@ -586,7 +590,7 @@ def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Fac
         details={**_details(res, faces, cube), "platter_returns": int(platter.shape[0]),
                  "range_model": [ESTIMATED_NAMES[i] for i in free if i >= OFFSET]},
         range_model=RangeModel.from_vector(v), residuals=_residuals(res, errors, faces.p_L),
-        encoder_direction=_encoder_direction(res, errors, free),
+        encoder_direction=_encoder_direction(res, errors, free) if encoder else None,
     )
 
 
@@ -594,23 +598,24 @@ def _encoder_direction(
     res: OptimizeResult, errors: _RangeSizeErrors, free: list[int]
 ) -> dict[str, dict[str, float]]:
     """Per coefficient of the encoder's angle error (:mod:`calstation.engine.encoder`), how far
-    each free parameter moves per radian of it: dx = −J⁺·∂r/∂c, the residuals' response by
-    central differences of the faces' platter angles (the platter's residuals do not turn
-    with them)."""
+    each free parameter moves per radian of it: dx = −J⁺·∂r/∂c. A face return's residual
+    depends on its own platter angle alone, so ∂r/∂c is ∂r/∂φ (one central difference of
+    every angle turned alike) times the coefficient's harmonic at the return's angle; the
+    platter's residuals do not turn with the angles."""
     from calstation.engine.encoder import HARMONICS, STEP, basis
 
     f = errors.f
     phi = np.arctan2(f.sin, f.cos)
-    b = basis(phi)
-    columns = np.zeros((np.asarray(res.fun).size, len(HARMONICS)))
-    for k in range(len(HARMONICS)):
-        moved = []
-        for sign in (1.0, -1.0):
-            turned = phi + sign * STEP * b[:, k]
-            moved.append(_RangeSizeErrors(replace(f, cos=np.cos(turned), sin=np.sin(turned)),
-                                          errors.platter, errors.base, errors.free,
-                                          errors.edge)(res.x))
-        columns[:, k] = (moved[0] - moved[1]) / (2.0 * STEP)
+    moved = []
+    for sign in (1.0, -1.0):
+        turned = phi + sign * STEP
+        moved.append(_RangeSizeErrors(replace(f, cos=np.cos(turned), sin=np.sin(turned)),
+                                      errors.platter, errors.base, errors.free,
+                                      errors.edge)(res.x))
+    by_angle = (moved[0] - moved[1]) / (2.0 * STEP)
+    columns = np.zeros((by_angle.size, len(HARMONICS)))
+    n = phi.size
+    columns[:n] = by_angle[:n, None] * basis(phi)
     dx = _response(res, columns, errors.f.noise)[: len(free)]
     return {h: {ESTIMATED_NAMES[i]: float(dx[k, j]) for k, i in enumerate(free)}
             for j, h in enumerate(HARMONICS)}

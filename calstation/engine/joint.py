@@ -352,7 +352,7 @@ def combine_range_with_cube(
     from calstation.errors import FineTuningError
 
     try:
-        fit = _range_size_fit(result, scan, geometry, platter_radius)
+        fit = _range_size_fit(result, scan, geometry, platter_radius, encoder_accuracy > 0)
     except FineTuningError as exc:
         return result, f"the cube could not add to the range model: {exc}", {}
     combined, failure = _combine_with_fit(result, fit, refit, progress, encoder_accuracy)
@@ -360,7 +360,8 @@ def combine_range_with_cube(
 
 
 def _range_size_fit(
-    result: CalibrationResult, scan: SpinScan, geometry: CubeGeometry, platter_radius: float
+    result: CalibrationResult, scan: SpinScan, geometry: CubeGeometry, platter_radius: float,
+    encoder: bool = False,
 ) -> KnownSizeFit:
     """The known-size cube fit with the range model from ``result`` on ``scan``, kept in the
     scan's ``memo``: the cube scan's fit made while it turned (on the turns that met the budget)
@@ -371,7 +372,7 @@ def _range_size_fit(
     model: RangeModelName = "offset+scale" if result.range_scale is not None else "offset"
     incidence = result.incidence_bias is not None
     key = (result.H.as_vector().tobytes(), result.range_model.as_vector().tobytes(), model,
-           incidence, repr(geometry), platter_radius)
+           incidence, repr(geometry), platter_radius, encoder)
     kept = scan.memo.get("range_size_fit")
     if isinstance(kept, tuple) and kept[0] == key:
         if isinstance(kept[1], FineTuningError):
@@ -381,7 +382,7 @@ def _range_size_fit(
     try:
         fit = known_size_fit(scan, result.H, geometry, platter_radius=platter_radius,
                              range_model=model, start_range=result.range_model,
-                             incidence=incidence)
+                             incidence=incidence, encoder=encoder)
     except FineTuningError as exc:
         scan.memo["range_size_fit"] = (key, exc)
         raise

@@ -72,7 +72,7 @@ def test_the_cube_fit_moves_as_it_says_it_follows_the_encoder(scenes: dict[str, 
     truth = scenes["exact"]["cube"].recording.truth
     fits = [known_size_fit(scenes[k]["cube"].prepared, truth, recipe.fixtures.qa_cube,
                            platter_radius=recipe.fixtures.platter.radius, range_model="offset",
-                           start_range=RangeModel(offset=OFFSET))
+                           start_range=RangeModel(offset=OFFSET), encoder=True)
             for k in ("exact", "eccentric")]
     names = ("tx", "ty", "tz", "rz")
     moved = _moved(fits[0], fits[1], names)

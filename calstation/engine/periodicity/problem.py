@@ -288,28 +288,34 @@ class _Problem:
 
     def encoder_follows(self, x: FloatArray) -> dict[str, dict[str, float]]:
         """How the solution ``x`` would move per radian of each coefficient of the encoder's
-        angle error (:data:`~calstation.engine.encoder.HARMONICS`): dx = −J⁺·∂r/∂c, the
-        residuals' response by central differences of the matches' platter angles (the
-        platter's residuals do not turn with them)."""
+        angle error (:data:`~calstation.engine.encoder.HARMONICS`): dx = −J⁺·∂r/∂c. A
+        match's residuals depend on its two points' platter angles alone, so ∂r/∂c is
+        ∂r/∂φa·e_c(φa) + ∂r/∂φb·e_c(φb), each ∂r/∂φ one central difference of that half's
+        angles turned alike (the platter's residuals do not turn with them)."""
         from dataclasses import replace
 
         from calstation.engine.encoder import HARMONICS, STEP, basis
 
         m = self.m
         phi_a, phi_b = np.arctan2(m.sa, m.ca), np.arctan2(m.sb, m.cb)
-        ba, bb = basis(phi_a), basis(phi_b)
         kept, nq = self.m, self._nq
         columns = np.zeros((self.residuals(x).size, len(HARMONICS)))
+        rows = phi_a.size if m.one_sided else 2 * phi_a.size
         try:
-            for k in range(len(HARMONICS)):
+            for half, phi in (("a", phi_a), ("b", phi_b)):
                 moved = []
                 for sign in (1.0, -1.0):
-                    a, b = phi_a + sign * STEP * ba[:, k], phi_b + sign * STEP * bb[:, k]
-                    self.m = replace(kept, ca=np.cos(a), sa=np.sin(a), cb=np.cos(b),
-                                     sb=np.sin(b))
+                    turned = phi + sign * STEP
+                    c, s = np.cos(turned), np.sin(turned)
+                    self.m = (replace(kept, ca=c, sa=s) if half == "a"
+                              else replace(kept, cb=c, sb=s))
                     self._nq = None
-                    moved.append(self.residuals(x))
-                columns[:, k] = (moved[0] - moved[1]) / (2.0 * STEP)
+                    moved.append(self.residuals(x)[:rows])
+                by_angle = (moved[0] - moved[1]) / (2.0 * STEP)
+                harmonics = basis(phi)
+                if not m.one_sided:
+                    harmonics = np.vstack([harmonics, harmonics])
+                columns[:rows] += by_angle[:, None] * harmonics
         finally:
             self.m, self._nq = kept, nq
         dx = -np.linalg.lstsq(self.jacobian(x), columns, rcond=None)[0]
