@@ -65,7 +65,12 @@ def largest_cluster(points: FloatArray, voxel: float = 0.005) -> NDArray[np.bool
 
 
 def minimal_obb(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Open3D's minimum-volume oriented box: (centre (3,), axes (3, 3) as columns, extents (3,))."""
+    """The minimum-volume oriented box: (centre (3,), axes (3, 3) as columns, extents (3,)).
+
+    Open3D's (``create_from_points_minimal``), unless what it returns is not a box: axes that
+    are not orthonormal (Open3D then warns "Invalid oriented bounding box", and its extents
+    mean nothing). The upright box around every point (:func:`upright_box`, not robust) stands
+    in for it then: the cube's, within the calibration's tilt of the smallest."""
     import open3d as o3d
 
     if points.shape[0] < 8:
@@ -75,7 +80,10 @@ def minimal_obb(points: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]
         box = o3d.geometry.OrientedBoundingBox.create_from_points_minimal(pc, robust=True)
     except RuntimeError as exc:
         raise FineTuningError(f"the minimal bounding box failed: {exc}") from None
-    return np.asarray(box.center).copy(), np.asarray(box.R).copy(), np.asarray(box.extent).copy()
+    axes = np.asarray(box.R).copy()
+    if not np.allclose(axes.T @ axes, np.eye(3), atol=1e-6):
+        return upright_box(points, robust=False)
+    return np.asarray(box.center).copy(), axes, np.asarray(box.extent).copy()
 
 
 def upright_box(

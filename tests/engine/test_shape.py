@@ -57,6 +57,27 @@ def test_upright_box_measures_a_noisy_cube_without_the_noise_inflation() -> None
     assert np.sort(obb)[-1] > 0.1 + 0.003
 
 
+def test_an_invalid_open3d_box_gives_way_to_the_upright_box(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Open3D's minimal box sometimes comes back with axes that are not orthonormal (it warns
+    "Invalid oriented bounding box"), its extents meaningless: the upright box stands in."""
+    import open3d as o3d
+
+    cloud = _cube_surface(0.1, math.radians(25), 3000, 0.0005)
+
+    def skewed(points: object, robust: bool = False) -> object:
+        box = o3d.geometry.OrientedBoundingBox(np.zeros(3), np.eye(3), np.full(3, 0.13))
+        box.R = np.array([[1.0, 0.2, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+        return box
+
+    monkeypatch.setattr(o3d.geometry.OrientedBoundingBox, "create_from_points_minimal", skewed)
+    _, axes, ext = minimal_obb(cloud)
+    np.testing.assert_allclose(axes.T @ axes, np.eye(3), atol=1e-9)
+    _, _, upright = upright_box(cloud, robust=False)
+    np.testing.assert_allclose(ext, upright)
+
+
 def test_face_labels_keep_faces_and_drop_edges_and_strays() -> None:
     cloud = _cube_surface(0.1, 0.3, 2000, 0.0005)
     centre, axes, ext = upright_box(cloud)
