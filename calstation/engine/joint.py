@@ -181,6 +181,7 @@ def combine_with_cube_scan(
                                             prepared=prepared, refit=refit,
                                             certificate=certificate,
                                             encoder_accuracy=encoder_accuracy)
+    result = with_encoder_error(result, encoder_accuracy)
     check = check_cube(cube, result.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared)
     combined, failure = with_cube_ry(result, check, max_sigma_ry)
@@ -193,6 +194,32 @@ def combine_with_cube_scan(
     check = check_cube(cube, combined.H, geometry, qa, platter_radius=platter_radius,
                        prepared=prepared, nearby=True)
     return combined, check, failure
+
+
+def with_encoder_error(result: CalibrationResult, accuracy: float) -> CalibrationResult:
+    """``result`` (a spin target's, without the lidar's range model) with what the encoder's
+    angle error of stated ``accuracy`` (rad) may move it by in its covariance and σ: its
+    ``diagnostics["follows_encoder"]`` (per radian of each coefficient) times each
+    coefficient's σ (:func:`calstation.engine.encoder.coefficient_sigma`), as the covariance
+    it is. With the cube alone to set ry, nothing tells the encoder's error apart; itself when
+    the accuracy is zero, the result says nothing of how it follows, or it was added once."""
+    from calstation.engine.encoder import HARMONICS, coefficient_sigma
+
+    follows = result.diagnostics.get("follows_encoder")
+    record = result.diagnostics.get("covariance")
+    if accuracy <= 0 or not follows or record is None or "encoder_sigma" in result.diagnostics:
+        return result
+    names = [str(n) for n in record["parameters"]]
+    sigma_c = coefficient_sigma(accuracy)
+    G = np.array([[float(follows.get(h, {}).get(n, 0.0)) * sigma_c for h in HARMONICS]
+                  for n in names])
+    C = np.asarray(record["matrix"], dtype=np.float64) + G @ G.T
+    sigma = dict(result.sigma)
+    sigma.update({n: math.sqrt(max(float(C[k, k]), 0.0)) for k, n in enumerate(names)
+                  if n in PARAMETER_NAMES})
+    diagnostics = {**result.diagnostics, "encoder_sigma": sigma_c,
+                   "covariance": {"parameters": names, "matrix": C.tolist()}}
+    return replace(result, sigma=sigma, diagnostics=diagnostics)
 
 
 REFITS = 2

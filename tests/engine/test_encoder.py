@@ -140,3 +140,27 @@ def test_the_combination_covers_what_the_encoder_moves() -> None:
     for n in ("tx", "tz"):
         assert abs(fused.vector[ESTIMATED_NAMES.index(n)]) <= 3 * fused.sigma[n], n
     assert spin.with_encoder(SPIN, 0.0) is spin
+
+
+def test_without_the_range_model_the_encoder_widens_the_spin_targets_sigma() -> None:
+    """Without the lidar's range model nothing tells the encoder's error apart: what it may do
+    (``follows_encoder`` × each coefficient's σ) is added to the spin target's covariance."""
+    from calstation.engine.frames import Extrinsics
+    from calstation.engine.joint import with_encoder_error
+    from calstation.engine.result import CalibrationResult
+
+    names = ["tx", "tz"]
+    result = CalibrationResult(
+        H=Extrinsics.from_vector(np.zeros(6)), sigma={"tx": 9e-6, "tz": 1e-5}, cost=0.0,
+        iterations=1, strategy="periodicity",
+        diagnostics={"covariance": {"parameters": names,
+                                    "matrix": np.diag([9e-6**2, 1e-5**2]).tolist()},
+                     "follows_encoder": SPIN})
+    accuracy = math.radians(0.025)
+    widened = with_encoder_error(result, accuracy)
+    sigma_c = coefficient_sigma(accuracy)
+    for n, own in (("tx", 9e-6), ("tz", 1e-5)):
+        extra = sum((SPIN[h][n] * sigma_c) ** 2 for h in HARMONICS)
+        assert math.isclose(widened.sigma[n], math.sqrt(own**2 + extra), rel_tol=1e-12)
+    assert with_encoder_error(widened, accuracy) is widened
+    assert with_encoder_error(result, 0.0) is result

@@ -359,9 +359,9 @@ def _result(
             "ry_at_bound": bool(at_bound),
             "ry_bound_rad": [ry_lo, ry_hi],
             "rms_m": math.sqrt(run.cost),
+            "follows_encoder": _follows_encoder(run),
             **({"range_model": [ESTIMATED_NAMES[i] for i in terms],
-                "follows": _follows(run, x6, held or []),
-                "follows_encoder": _follows_encoder(run)} if terms else {}),
+                "follows": _follows(run, x6, held or [])} if terms else {}),
         },
     ).with_range(ranges)
 
