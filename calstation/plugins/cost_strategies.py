@@ -149,6 +149,7 @@ class PeriodicityStrategy:
             progress=progress,
             range_model=recipe.calibration.range_model,
             incidence=recipe.calibration.incidence_bias == "estimate",
+            encoder=recipe.station.encoder.accuracy_deg > 0,
         )
 
     def run_prepared(
@@ -162,6 +163,7 @@ class PeriodicityStrategy:
             platter_radius=recipe.fixtures.platter.radius, progress=progress,
             range_model=recipe.calibration.range_model,
             incidence=recipe.calibration.incidence_bias == "estimate",
+            encoder=recipe.station.encoder.accuracy_deg > 0,
         )
 
 
@@ -180,6 +182,7 @@ class PeriodicityStrategy:
             platter_radius=recipe.fixtures.platter.radius, progress=progress, warm=True,
             range_model=recipe.calibration.range_model,
             incidence=recipe.calibration.incidence_bias == "estimate",
+            encoder=recipe.station.encoder.accuracy_deg > 0,
             start_range=start.range_model,
         )
 

@@ -94,7 +94,7 @@ def test_the_spin_target_moves_as_it_says_it_follows_the_encoder(
     results = [periodicity_fine_tune_scan(scenes[k]["spin"].prepared, truth,
                                           platter_radius=recipe.fixtures.platter.radius,
                                           warm=True, range_model="offset",
-                                          start_range=RangeModel(offset=OFFSET))
+                                          start_range=RangeModel(offset=OFFSET), encoder=True)
                for k in ("exact", "eccentric")]
     names = ("tx", "tz", "rz")
     moved = _moved(results[0], results[1], names)

@@ -294,31 +294,33 @@ class _Problem:
         angles turned alike (the platter's residuals do not turn with them)."""
         from dataclasses import replace
 
-        from calstation.engine.encoder import HARMONICS, STEP, basis
+        from calstation.engine.encoder import HARMONICS, STEP
 
         m = self.m
-        phi_a, phi_b = np.arctan2(m.sa, m.ca), np.arctan2(m.sb, m.cb)
         kept, nq = self.m, self._nq
+        rows = m.pa.shape[0] if m.one_sided else 2 * m.pa.shape[0]
         columns = np.zeros((self.residuals(x).size, len(HARMONICS)))
-        rows = phi_a.size if m.one_sided else 2 * phi_a.size
+        turn_c, turn_s = math.cos(STEP), math.sin(STEP)
         try:
-            for half, phi in (("a", phi_a), ("b", phi_b)):
+            for c, s in ((m.ca, m.sa), (m.cb, m.sb)):
                 moved = []
                 for sign in (1.0, -1.0):
-                    turned = phi + sign * STEP
-                    c, s = np.cos(turned), np.sin(turned)
-                    self.m = (replace(kept, ca=c, sa=s) if half == "a"
-                              else replace(kept, cb=c, sb=s))
+                    # the angles turned by ±STEP: cos(φ ± h), sin(φ ± h)
+                    c2, s2 = c * turn_c - sign * s * turn_s, s * turn_c + sign * c * turn_s
+                    self.m = (replace(kept, ca=c2, sa=s2) if c is m.ca
+                              else replace(kept, cb=c2, sb=s2))
                     self._nq = None
                     moved.append(self.residuals(x)[:rows])
                 by_angle = (moved[0] - moved[1]) / (2.0 * STEP)
-                harmonics = basis(phi)
+                # sin φ, cos φ, sin 2φ, cos 2φ from the cosines and sines kept
+                harmonics = np.column_stack([s, c, 2.0 * s * c, c * c - s * s])
                 if not m.one_sided:
                     harmonics = np.vstack([harmonics, harmonics])
                 columns[:rows] += by_angle[:, None] * harmonics
         finally:
             self.m, self._nq = kept, nq
-        dx = -np.linalg.lstsq(self.jacobian(x), columns, rcond=None)[0]
+        J = self.jacobian(x)
+        dx = -np.linalg.solve(J.T @ J, J.T @ columns)
         return {h: {ESTIMATED_NAMES[i]: float(dx[k, j]) for k, i in enumerate(self.free)}
                 for j, h in enumerate(HARMONICS)}
 

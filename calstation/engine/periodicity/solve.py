@@ -70,6 +70,7 @@ def periodicity_fine_tune(
     range_model: RangeModelName = "none",
     start_range: RangeModel = IDENTITY,
     incidence: bool = False,
+    encoder: bool = False,
 ) -> CalibrationResult:
     """Periodicity fine-tuning on a spin-scan
     :class:`~calstation.engine.scan.Scan`."""
@@ -83,6 +84,7 @@ def periodicity_fine_tune(
             range_model=range_model,
             start_range=start_range,
             incidence=incidence,
+            encoder=encoder,
         )
     except FineTuningError as exc:
         raise FineTuningError(f"{recording.path}: {exc}") from None
@@ -134,6 +136,7 @@ def periodicity_fine_tune_scan(
     range_model: RangeModelName = "none",
     start_range: RangeModel = IDENTITY,
     incidence: bool = False,
+    encoder: bool = False,
 ) -> CalibrationResult:
     """Periodicity fine-tuning on a prepared :class:`~calstation.engine.spinscan.SpinScan`: as
     :func:`periodicity_fine_tune_points`, without the per-scan preparation (done as the lines
@@ -149,7 +152,9 @@ def periodicity_fine_tune_scan(
     result carries them without a σ, and ``diagnostics["follows"]`` says how H would follow each
     (the QA cube sets them: :func:`calstation.engine.joint.combine_range_with_cube_scan`). ty
     is held too, in the last stage, at the coarse stages' estimate (the platter's level held
-    there; a ``warm`` update holds it at ``start``'s)."""
+    there; a ``warm`` update holds it at ``start``'s). ``encoder``: the result says how it
+    follows the encoder's angle error (``diagnostics["follows_encoder"]``), for a station
+    whose encoder's accuracy is stated."""
     t_start = time.perf_counter()
     timings: dict[str, float] = {f"scan_{k}": v for k, v in scan.timings.items()}
     keep = _whole_revolutions(scan)
@@ -185,7 +190,7 @@ def periodicity_fine_tune_scan(
     # QA cube's top does
     held = ([IDX["ty"]] if model else []) + [i for i in model if i not in terms]
     return _result(x6, start6, settings, scan, run, uncertainty, final_voxel, timings,
-                   model, held)
+                   model, held, encoder)
 
 
 def _final_cell(halves: list[_Half], noise: float) -> float:
@@ -320,6 +325,7 @@ def _result(
     timings: dict[str, float],
     terms: list[int] | None = None,
     held: list[int] | None = None,
+    encoder: bool = False,
 ) -> CalibrationResult:
     """The :class:`CalibrationResult` of the run, with its diagnostics; ``terms`` the range
     terms of the recipe's model, ``held`` those of them held (their start, with no σ; how the
@@ -359,7 +365,7 @@ def _result(
             "ry_at_bound": bool(at_bound),
             "ry_bound_rad": [ry_lo, ry_hi],
             "rms_m": math.sqrt(run.cost),
-            "follows_encoder": _follows_encoder(run),
+            **({"follows_encoder": _follows_encoder(run)} if encoder else {}),
             **({"range_model": [ESTIMATED_NAMES[i] for i in terms],
                 "follows": _follows(run, x6, held or [])} if terms else {}),
         },
