@@ -197,12 +197,13 @@ def combine_with_cube_scan(
 
 
 def with_encoder_error(result: CalibrationResult, accuracy: float) -> CalibrationResult:
-    """``result`` (a spin target's, without the lidar's range model) with what the encoder's
-    angle error of stated ``accuracy`` (rad) may move it by in its covariance and σ: its
-    ``diagnostics["follows_encoder"]`` (per radian of each coefficient) times each
-    coefficient's σ (:func:`calstation.engine.encoder.coefficient_sigma`), as the covariance
-    it is. With the cube alone to set ry, nothing tells the encoder's error apart; itself when
-    the accuracy is zero, the result says nothing of how it follows, or it was added once."""
+    """``result`` (one fixture's: a spin target's without the lidar's range model, or the
+    shape strategy's cube fit) with what the encoder's angle error of stated ``accuracy``
+    (rad) may move it by in its covariance and σ: its ``diagnostics["follows_encoder"]`` (per
+    radian of each coefficient) times each coefficient's σ (:func:`calstation.engine.encoder.
+    coefficient_sigma`), as the covariance it is. With one fixture, nothing tells the
+    encoder's error apart; itself when the accuracy is zero, the result says nothing of how it
+    follows, or it was added once."""
     from calstation.engine.encoder import HARMONICS, coefficient_sigma
 
     follows = result.diagnostics.get("follows_encoder")
@@ -213,10 +214,12 @@ def with_encoder_error(result: CalibrationResult, accuracy: float) -> Calibratio
     sigma_c = coefficient_sigma(accuracy)
     G = np.array([[float(follows.get(h, {}).get(n, 0.0)) * sigma_c for h in HARMONICS]
                   for n in names])
-    C = np.asarray(record["matrix"], dtype=np.float64) + G @ G.T
+    extra = G @ G.T
+    C = np.asarray(record["matrix"], dtype=np.float64) + extra
+    # in quadrature with the σ as it was (which may hold a bias bound beside the covariance)
     sigma = dict(result.sigma)
-    sigma.update({n: math.sqrt(max(float(C[k, k]), 0.0)) for k, n in enumerate(names)
-                  if n in PARAMETER_NAMES})
+    sigma.update({n: math.hypot(sigma[n], math.sqrt(max(float(extra[k, k]), 0.0)))
+                  for k, n in enumerate(names) if n in PARAMETER_NAMES and n in sigma})
     diagnostics = {**result.diagnostics, "encoder_sigma": sigma_c,
                    "covariance": {"parameters": names, "matrix": C.tolist()}}
     return replace(result, sigma=sigma, diagnostics=diagnostics)

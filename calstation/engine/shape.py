@@ -541,6 +541,7 @@ def shape_fine_tune_points(
     scan: SpinScan | None = None,
     range_model: RangeModelName = "none",
     incidence: bool = False,
+    encoder: bool = False,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on the returns of the QA cube's spin scan.
 
@@ -556,8 +557,10 @@ def shape_fine_tune_points(
     ``estimate_ry``, ry; σ from that fit). ``scan``: the same returns already prepared
     (:mod:`calstation.engine.spinscan`). ``range_model``: the lidar's range terms the
     known-size fit estimates with H (:func:`calstation.engine.cubefit.range_size_fit`; the box
-    cost before it reads the ranges as measured), and the incidence bias with ``incidence``.
-    Returns a :class:`CalibrationResult` with strategy ``"shape"`` and cost ``C1 + C2`` (m²).
+    cost before it reads the ranges as measured), and the incidence bias with ``incidence``;
+    with ``encoder``, how that fit follows the encoder's angle error
+    (``diagnostics["follows_encoder"]``). Returns a :class:`CalibrationResult` with strategy
+    ``"shape"`` and cost ``C1 + C2`` (m²).
     """
     t0 = time.perf_counter()
     p_L = np.asarray(p_L, dtype=np.float64)
@@ -576,7 +579,7 @@ def shape_fine_tune_points(
     # nothing but the time (docs/performance.md); they run when it cannot label the faces
     flatness = not (known_size and estimate_ry and box == "upright")
     result = _finish(_box_passes(one_pass, start, coarse, flatness), prepared, cube,
-                     platter_radius, estimate_ry, known_size, range_model, incidence)
+                     platter_radius, estimate_ry, known_size, range_model, incidence, encoder)
     if not flatness and not result.diagnostics["known_size"]["used"]:
         reason = result.diagnostics["known_size"]
         result = _finish(_box_passes(one_pass, start, coarse, True), prepared, cube,
@@ -610,6 +613,7 @@ def _finish(
     known_size: bool,
     range_model: RangeModelName = "none",
     incidence: bool = False,
+    encoder: bool = False,
 ) -> CalibrationResult:
     """The box cost's ``result`` finished: the known-size cube fit (when asked), the σ floors
     of the box cost (without it), and the origin moved onto the platter top (the gauge; the
@@ -617,7 +621,7 @@ def _finish(
     fitted = None
     if known_size or range_model != "none":
         result, fitted = _known_size(result, prepared, cube, platter_radius, estimate_ry,
-                                     range_model, incidence)
+                                     range_model, incidence, encoder)
     if fitted is not None and range_model != "none":
         return result
     if range_model != "none":
@@ -658,6 +662,7 @@ def _known_size(
     estimate_ry: bool,
     range_model: RangeModelName = "none",
     incidence: bool = False,
+    encoder: bool = False,
 ) -> tuple[CalibrationResult, KnownSizeFit | None]:
     """``result`` after the known-size cube fit (:mod:`calstation.engine.cubefit`) from its
     H: the fit's H, σ and covariance, ``diagnostics.known_size`` (and the range model it
@@ -666,7 +671,7 @@ def _known_size(
     try:
         fit = known_size_fit(
             scan, result.H, cube, platter_radius=platter_radius, estimate_ry=estimate_ry,
-            range_model=range_model, incidence=incidence,
+            range_model=range_model, incidence=incidence, encoder=encoder,
         )
     except FineTuningError as exc:
         result.diagnostics["known_size"] = {"used": False, "reason": str(exc)}
@@ -676,6 +681,8 @@ def _known_size(
                        covariance=fit.covariance, bias_bound=fit.bias)
     if estimate_ry:
         diagnostics["ry_source"] = "known-size cube"
+    if fit.encoder_direction is not None:
+        diagnostics["follows_encoder"] = fit.encoder_direction
     sigma = dict(result.sigma)
     sigma.update({n: v for n, v in fit.sigma.items() if math.isfinite(v) and n in sigma})
     result = replace(result, H=fit.H, sigma=sigma, diagnostics=diagnostics)
@@ -746,6 +753,7 @@ def shape_fine_tune(
     progress: Progress | None = None,
     range_model: RangeModelName = "none",
     incidence: bool = False,
+    encoder: bool = False,
 ) -> CalibrationResult:
     """Shape-constrained fine-tuning on a QA-cube spin-scan recording."""
     scan = from_recording(recording)
@@ -765,6 +773,7 @@ def shape_fine_tune(
             scan=scan,
             range_model=range_model,
             incidence=incidence,
+            encoder=encoder,
         )
     except FineTuningError as exc:
         raise FineTuningError(f"{recording.path}: {exc}") from None

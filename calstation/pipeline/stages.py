@@ -156,6 +156,9 @@ def with_cube(
 
     rc = recipe
     if strategy.fixture != "spin_target":
+        from calstation.engine.joint import with_encoder_error
+
+        result = with_encoder_error(result, math.radians(rc.station.encoder.accuracy_deg))
         result, failure = certified(rc, result)
         check = check_cube(cube.recording, result.H, rc.fixtures.qa_cube, rc.qa,
                            platter_radius=rc.fixtures.platter.radius, prepared=cube.prepared,

@@ -225,6 +225,7 @@ class ShapeStrategy:
             progress=progress,
             range_model=recipe.calibration.range_model,
             incidence=recipe.calibration.incidence_bias == "estimate",
+            encoder=recipe.station.encoder.accuracy_deg > 0,
         )
 
     def run_prepared(
@@ -241,6 +242,7 @@ class ShapeStrategy:
             known_size=options.known_size, progress=progress, scan=scan,
             range_model=recipe.calibration.range_model,
             incidence=recipe.calibration.incidence_bias == "estimate",
+            encoder=recipe.station.encoder.accuracy_deg > 0,
         )
 
 

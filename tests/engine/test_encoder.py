@@ -103,6 +103,32 @@ def test_the_spin_target_moves_as_it_says_it_follows_the_encoder(
     assert np.allclose(moved, predicted, rtol=0.25, atol=5e-6), (moved, predicted)
 
 
+def test_the_shape_strategys_sigma_carries_the_encoder(scenes: dict[str, Any]) -> None:
+    """The shape strategy (the cube alone) on the eccentric scene: its known-size fit says how
+    it follows the encoder, and with the encoder's accuracy (0.13°, what ENCODER's harmonics
+    add to at most) carried, every parameter is within 3σ of the physical H; without, tz is
+    not (the error moves it ~0.2 mm at σ ~5 µm)."""
+    from calstation.engine.joint import with_encoder_error
+    from calstation.engine.metrics import axis_errors
+    from calstation.engine.shape import shape_fine_tune_points
+
+    recipe = scenes["recipe"]
+    turned = scenes["eccentric"]["cube"]
+    truth = turned.recording.truth
+    scan = turned.prepared
+    result = shape_fine_tune_points(
+        scan.p_L, scan.phi, truth, recipe.fixtures.qa_cube,
+        platter_radius=recipe.fixtures.platter.radius, scan=scan, range_model="offset",
+        encoder=True)
+    assert set(result.diagnostics["follows_encoder"]) == set(HARMONICS)
+    names = ("tx", "tz", "ry", "rz")
+    errors = axis_errors(result.H, truth)
+    assert any(abs(errors[f"{n}_error"]) > 3 * result.sigma[n] for n in names), errors
+    widened = with_encoder_error(result, math.radians(0.13))
+    for n in names:
+        assert abs(errors[f"{n}_error"]) <= 3 * widened.sigma[n], (n, errors, widened.sigma)
+
+
 MM_PER_DEGREE = 1e-3 * 180.0 / math.pi
 """m/rad per mm/°."""
 SPIN = {h: {n: v * MM_PER_DEGREE for n, v in d.items()} for h, d in {
