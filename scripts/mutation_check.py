@@ -176,6 +176,22 @@ MUTATIONS = (
         ("tests/engine/test_rangemodel.py",),
     ),
     Mutation(
+        "encoder-ignored",
+        "the encoder's stated accuracy not carried through the spin target and cube's combination",
+        "calstation/engine/fusion.py",
+        "        return replace(self, consider=G)",
+        "        return self",
+        ("tests/engine/test_encoder.py",),
+    ),
+    Mutation(
+        "encoder-harmonic-wrong",
+        "the spin target's encoder response taken at the first half-turn's angles for both",
+        "calstation/engine/periodicity/problem.py",
+        "harmonics = np.column_stack([s, c, 2.0 * s * c, c * c - s * s])",
+        "harmonics = np.column_stack([m.sa, m.ca, 2.0 * m.sa * m.ca, m.ca**2 - m.sa**2])",
+        ("tests/engine/test_encoder.py",),
+    ),
+    Mutation(
         "range-sigma-dropped",
         "the range terms' σ left out of the predicted error",
         "calstation/engine/accuracy.py",
