@@ -152,3 +152,20 @@ def test_the_report_of_a_run_without_recordings_says_so(tmp_path: Path) -> None:
     html = render_report(data, plotly_src="../plotly.min.js")
     assert 'id="no-plotly"' in html and "plotly-" in html
     db.dispose()
+
+
+def test_the_report_says_when_the_cubes_height_was_not_judged(tmp_path: Path) -> None:
+    """A cube of another finish than the platter: its height, measured from the platter, is
+    left out of the edge error, and the report says so beside the face-fit edges."""
+    from calstation.storage.db import CubeCheckRecord
+    from calstation.storage.report_html import render_report, report_data
+
+    db = open_database(f"sqlite:///{tmp_path / 'one.db'}")
+    seed_history(db, ["solo"], 1, 3, end=END, seed=1)
+    note = "the edge error leaves it out"
+    assert note not in render_report(report_data(db, 1), plotly_src="../plotly.min.js")
+    with db.session() as s:
+        for check in s.scalars(select(CubeCheckRecord).where(CubeCheckRecord.run_id == 1)):
+            check.height_judged = False
+    assert note in render_report(report_data(db, 1), plotly_src="../plotly.min.js")
+    db.dispose()
