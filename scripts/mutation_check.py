@@ -187,8 +187,8 @@ MUTATIONS = (
         "encoder-harmonic-wrong",
         "the spin target's encoder response taken at the first half-turn's angles for both",
         "calstation/engine/periodicity/problem.py",
-        "harmonics = np.column_stack([s, c, 2.0 * s * c, c * c - s * s])",
-        "harmonics = np.column_stack([m.sa, m.ca, 2.0 * m.sa * m.ca, m.ca**2 - m.sa**2])",
+        "harmonics = basis(c, s)",
+        "harmonics = basis(m.ca, m.sa)",
         ("tests/engine/test_encoder.py",),
     ),
     Mutation(

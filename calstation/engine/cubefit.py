@@ -602,20 +602,18 @@ def _encoder_direction(
     depends on its own platter angle alone, so ∂r/∂c is ∂r/∂φ (one central difference of
     every angle turned alike) times the coefficient's harmonic at the return's angle; the
     platter's residuals do not turn with the angles."""
-    from calstation.engine.encoder import HARMONICS, STEP, basis
+    from calstation.engine.encoder import HARMONICS, STEP, basis, turned
 
     f = errors.f
-    phi = np.arctan2(f.sin, f.cos)
     moved = []
     for sign in (1.0, -1.0):
-        turned = phi + sign * STEP
-        moved.append(_RangeSizeErrors(replace(f, cos=np.cos(turned), sin=np.sin(turned)),
-                                      errors.platter, errors.base, errors.free,
-                                      errors.edge)(res.x))
+        cos, sin = turned(f.cos, f.sin, sign * STEP)
+        moved.append(_RangeSizeErrors(replace(f, cos=cos, sin=sin), errors.platter, errors.base,
+                                      errors.free, errors.edge)(res.x))
     by_angle = (moved[0] - moved[1]) / (2.0 * STEP)
     columns = np.zeros((by_angle.size, len(HARMONICS)))
-    n = phi.size
-    columns[:n] = by_angle[:n, None] * basis(phi)
+    n = f.cos.size
+    columns[:n] = by_angle[:n, None] * basis(f.cos, f.sin)
     dx = _response(res, columns, errors.f.noise)[: len(free)]
     return {h: {ESTIMATED_NAMES[i]: float(dx[k, j]) for k, i in enumerate(free)}
             for j, h in enumerate(HARMONICS)}

@@ -17,6 +17,7 @@ the coefficients as parameters of their own, held by the encoder's stated accura
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -30,10 +31,26 @@ STEP = 1e-4
 in e over far more than an encoder's error."""
 
 
-def basis(phi: FloatArray) -> FloatArray:
-    """(N, 4) sin φ, cos φ, sin 2φ, cos 2φ of the angles ``phi`` (rad): e(φ) is basis times
-    the coefficients."""
-    return np.column_stack([np.sin(phi), np.cos(phi), np.sin(2.0 * phi), np.cos(2.0 * phi)])
+def basis(cos: FloatArray, sin: FloatArray) -> FloatArray:
+    """(N, 4) sin φ, cos φ, sin 2φ, cos 2φ of the angles whose cosines and sines are given (the
+    fits keep them, not the angles): e(φ) is basis times the coefficients."""
+    return np.column_stack([sin, cos, 2.0 * sin * cos, cos * cos - sin * sin])
+
+
+def turned(cos: FloatArray, sin: FloatArray, step: float) -> tuple[FloatArray, FloatArray]:
+    """The cosines and sines of the angles turned by ``step`` (rad): cos(φ + h), sin(φ + h)."""
+    c, s = math.cos(step), math.sin(step)
+    return cos * c - sin * s, sin * c + cos * s
+
+
+def columns(directions: Mapping[str, Mapping[str, float]] | None, names: Sequence[str],
+            sigma: float) -> FloatArray:
+    """(n, 4) how an estimate of the parameters ``names`` moves per 1σ (``sigma``, rad) of each
+    coefficient, from how it follows each per radian (``directions``, by :data:`HARMONICS`;
+    missing: it does not)."""
+    given = directions or {}
+    return np.array([[float(given.get(h, {}).get(n, 0.0)) * sigma for h in HARMONICS]
+                     for n in names])
 
 
 def coefficient_sigma(accuracy: float) -> float:

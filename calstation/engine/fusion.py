@@ -96,14 +96,11 @@ class Estimate:
         (:mod:`calstation.engine.encoder`): ``directions`` how it moves per radian of each
         coefficient (:data:`~calstation.engine.encoder.HARMONICS`; missing: it does not), each
         coefficient of 1σ ``sigma`` (rad). Itself when ``sigma`` is zero."""
-        from calstation.engine.encoder import HARMONICS
+        from calstation.engine.encoder import columns
 
         if sigma <= 0.0:
             return self
-        given = directions or {}
-        G = np.array([[float(given.get(h, {}).get(n, 0.0)) * sigma for h in HARMONICS]
-                      for n in self.names])
-        return replace(self, consider=G)
+        return replace(self, consider=columns(directions, self.names, sigma))
 
     def shared(self, m: int) -> FloatArray:
         """(n, m) :attr:`consider`, zeros when the estimate has none."""

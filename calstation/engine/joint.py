@@ -204,7 +204,7 @@ def with_encoder_error(result: CalibrationResult, accuracy: float) -> Calibratio
     coefficient_sigma`), as the covariance it is. With one fixture, nothing tells the
     encoder's error apart; itself when the accuracy is zero, the result says nothing of how it
     follows, or it was added once."""
-    from calstation.engine.encoder import HARMONICS, coefficient_sigma
+    from calstation.engine.encoder import coefficient_sigma, columns
 
     follows = result.diagnostics.get("follows_encoder")
     record = result.diagnostics.get("covariance")
@@ -212,8 +212,7 @@ def with_encoder_error(result: CalibrationResult, accuracy: float) -> Calibratio
         return result
     names = [str(n) for n in record["parameters"]]
     sigma_c = coefficient_sigma(accuracy)
-    G = np.array([[float(follows.get(h, {}).get(n, 0.0)) * sigma_c for h in HARMONICS]
-                  for n in names])
+    G = columns(follows, names, sigma_c)
     extra = G @ G.T
     C = np.asarray(record["matrix"], dtype=np.float64) + extra
     # in quadrature with the σ as it was (which may hold a bias bound beside the covariance)

@@ -294,32 +294,29 @@ class _Problem:
         angles turned alike (the platter's residuals do not turn with them)."""
         from dataclasses import replace
 
-        from calstation.engine.encoder import HARMONICS, STEP
+        from calstation.engine.encoder import HARMONICS, STEP, basis, turned
 
         m = self.m
-        kept, nq = self.m, self._nq
         rows = m.pa.shape[0] if m.one_sided else 2 * m.pa.shape[0]
-        columns = np.zeros((self.residuals(x).size, len(HARMONICS)))
-        turn_c, turn_s = math.cos(STEP), math.sin(STEP)
+        J = self.jacobian(x)
+        kept, nq = self.m, self._nq
+        columns = np.zeros((J.shape[0], len(HARMONICS)))
         try:
             for c, s in ((m.ca, m.sa), (m.cb, m.sb)):
                 moved = []
                 for sign in (1.0, -1.0):
-                    # the angles turned by ±STEP: cos(φ ± h), sin(φ ± h)
-                    c2, s2 = c * turn_c - sign * s * turn_s, s * turn_c + sign * c * turn_s
+                    c2, s2 = turned(c, s, sign * STEP)
                     self.m = (replace(kept, ca=c2, sa=s2) if c is m.ca
                               else replace(kept, cb=c2, sb=s2))
                     self._nq = None
                     moved.append(self.residuals(x)[:rows])
                 by_angle = (moved[0] - moved[1]) / (2.0 * STEP)
-                # sin φ, cos φ, sin 2φ, cos 2φ from the cosines and sines kept
-                harmonics = np.column_stack([s, c, 2.0 * s * c, c * c - s * s])
+                harmonics = basis(c, s)
                 if not m.one_sided:
                     harmonics = np.vstack([harmonics, harmonics])
                 columns[:rows] += by_angle[:, None] * harmonics
         finally:
             self.m, self._nq = kept, nq
-        J = self.jacobian(x)
         dx = -np.linalg.solve(J.T @ J, J.T @ columns)
         return {h: {ESTIMATED_NAMES[i]: float(dx[k, j]) for k, i in enumerate(self.free)}
                 for j, h in enumerate(HARMONICS)}
