@@ -179,7 +179,7 @@ MUTATIONS = (
         "encoder-ignored",
         "the encoder's stated accuracy not carried through the spin target and cube's combination",
         "calstation/engine/fusion.py",
-        "        return replace(self, consider=G)",
+        "        return replace(self, consider=columns(directions, self.names, sigma))",
         "        return self",
         ("tests/engine/test_encoder.py",),
     ),
