@@ -124,15 +124,10 @@ class _Returns:
         rays = p_L / np.maximum(rho, 1e-12)[:, None]  # unit_rays, from the ranges known
         return cls(p_L, np.cos(phi), np.sin(phi), rho, rays)
 
-    def every(self, k: int) -> _Returns:
-        """Every ``k``-th of these returns (views, no copy)."""
-        return _Returns(self.p_L[::k], self.cos[::k], self.sin[::k], self.rho[::k],
-                        self.rays[::k])
-
 
 def model_labels(
     returns: _Returns, v: FloatArray, pose: FloatArray, edge: float, platter_radius: float,
-    noise: float, *, most: tuple[int, int] = (FIT_POINTS, PLATTER_POINTS),
+    noise: float,
 ) -> tuple[_Faces, FloatArray]:
     """The returns of the cube's faces and of the platter top, chosen by casting each return's
     ray against the model (an upright cube of ``edge`` at ``pose`` = centre y, z and yaw in D,
@@ -141,8 +136,7 @@ def model_labels(
     those whose ray meets the platter inside its rim, the cube missed by :data:`MARGIN`. Of
     them, those whose range is within max(6σ, 5 mm) of the model's (a window symmetric about
     the model: mixed pixels and strays out, no selection on the noise). Returns the faces and
-    the platter's returns (as measured, in L): at most ``most`` of each, fixed random subsets
-    (:data:`FIT_POINTS`, :data:`PLATTER_POINTS`)."""
+    the platter's returns (as measured, in L)."""
     window = max(6.0 * noise if math.isfinite(noise) else 0.0, 0.005)
     cast = _Cast(returns, v, pose, edge, platter_radius, window)
     n = returns.p_L.shape[0]
@@ -153,13 +147,12 @@ def model_labels(
         level = float(np.median(heights))
         close = np.concatenate(by_blocks(lambda rows: cast.close_to(rows, level), n))
     faces_idx = np.flatnonzero(on_face)
-    most_faces, most_platter = most
-    if faces_idx.size > most_faces:
-        faces_idx = np.sort(np.random.default_rng(0).choice(faces_idx, most_faces, replace=False))
+    if faces_idx.size > FIT_POINTS:
+        faces_idx = np.sort(np.random.default_rng(0).choice(faces_idx, FIT_POINTS, replace=False))
     plate_idx = np.flatnonzero(on_plate & close)
-    if plate_idx.size > most_platter:
+    if plate_idx.size > PLATTER_POINTS:
         plate_idx = np.sort(
-            np.random.default_rng(1).choice(plate_idx, most_platter, replace=False))
+            np.random.default_rng(1).choice(plate_idx, PLATTER_POINTS, replace=False))
     found = [f for f in range(1, 6) if np.count_nonzero(label[faces_idx] == f) >= 30]
     if len(found) < MIN_FACES or plate_idx.size < MIN_PLATTER:
         raise FineTuningError(
