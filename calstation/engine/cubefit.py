@@ -39,6 +39,7 @@ from calstation.engine.cube import CubeCloud, cube_cloud
 from calstation.engine.cubecast import (
     FIT_POINTS,
     MIN_FACES,
+    PLATTER_POINTS,
     _Faces,
     _near_platter,
     _Returns,
@@ -95,6 +96,9 @@ if TYPE_CHECKING:
 
 LABEL_ROUNDS = 2
 """Fits, each on the faces labelled under the previous one's H (the first under the start)."""
+FIRST_ROUNDS_STRIDE = 4
+"""The known-size fit with the range model labels and fits every this-many-th return in the
+rounds before its last (:func:`range_size_fit`); the last round uses them all."""
 SIGMA_SCALE = 1.3
 """The sandwich σ's scale, as the periodicity cost's (docs/algorithms.md, the shape sweep)."""
 SIGMA_BLOCK = 0.02
@@ -543,8 +547,15 @@ def range_size_fit(
     # the returns the rounds may label, with what does not change between them
     returns = _Returns.of(scan, _near_platter(scan, base, platter_radius))
     res: OptimizeResult = None
-    for _ in range(LABEL_ROUNDS):
-        faces, platter = model_labels(returns, base, pose, cube.edge, platter_radius, noise)
+    for last in (i == LABEL_ROUNDS - 1 for i in range(LABEL_ROUNDS)):
+        # a round before the last only moves the model its labels are chosen against: a part
+        # of the returns does that within a fraction of the last round's σ, in a fraction of
+        # the time
+        faces, platter = (
+            model_labels(returns, base, pose, cube.edge, platter_radius, noise) if last else
+            model_labels(returns.every(FIRST_ROUNDS_STRIDE), base, pose, cube.edge,
+                         platter_radius, noise, most=(FIT_POINTS // FIRST_ROUNDS_STRIDE,
+                                                      PLATTER_POINTS // FIRST_ROUNDS_STRIDE)))
         errors = _RangeSizeErrors(faces, platter, base, free, cube.edge)
         x0 = np.concatenate([base[free], pose])
         res = least_squares(
