@@ -127,13 +127,17 @@ class _Returns:
         p_L, phi = scan.p_L[idx], scan.phi[idx]
         rho = np.linalg.norm(p_L, axis=1)
         rays = p_L / np.maximum(rho, 1e-12)[:, None]  # unit_rays, from the ranges known
-        key = np.asarray(np.random.default_rng(0).random(idx.shape[0]), dtype=np.float64)
-        return cls(p_L, np.cos(phi), np.sin(phi), rho, rays, key)
+        return cls(p_L, np.cos(phi), np.sin(phi), rho, rays, fixed_keys(idx.shape[0]))
 
     def every(self, k: int) -> _Returns:
         """Every ``k``-th of these returns (views, no copy)."""
         return _Returns(self.p_L[::k], self.cos[::k], self.sin[::k], self.rho[::k],
                         self.rays[::k], self.key[::k])
+
+
+def fixed_keys(n: int) -> FloatArray:
+    """(n,) the fixed random key of each of n returns (:func:`_kept`)."""
+    return np.asarray(np.random.default_rng(0).random(n), dtype=np.float64)
 
 
 def _kept(idx: NDArray[np.intp], key: FloatArray, most: int) -> NDArray[np.intp]:

@@ -41,9 +41,11 @@ from calstation.engine.cubecast import (
     MIN_FACES,
     PLATTER_POINTS,
     _Faces,
+    _kept,
     _near_platter,
     _Returns,
     _turned,
+    fixed_keys,
     model_labels,
 )
 from calstation.engine.frames import (
@@ -126,9 +128,10 @@ def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
             f"the known-size cube fit needs {MIN_FACES} faces of the cube with 30 returns, "
             f"found {len(found)}"
         )
-    keep = np.flatnonzero(np.isin(labels, found))
-    if keep.size > FIT_POINTS:
-        keep = np.sort(np.random.default_rng(0).choice(keep, FIT_POINTS, replace=False))
+    # the same returns' keys in every round (the cloud is found once): rounds that label nearly
+    # the same returns keep nearly the same ones (cubecast._kept)
+    keep = _kept(np.flatnonzero(np.isin(labels, found)), fixed_keys(cloud.p_L.shape[0]),
+                 FIT_POINTS)
     p_L, phi, lab = cloud.p_L[keep], cloud.phi[keep], labels[keep]
     noise = face_range_noise(
         [p_L[lab == f] for f in found], [phi[lab == f] for f in found], H
