@@ -550,15 +550,13 @@ def range_size_fit(
     # the returns the rounds may label, with what does not change between them
     returns = _Returns.of(scan, _near_platter(scan, base, platter_radius))
     res: OptimizeResult = None
-    for last in (i == LABEL_ROUNDS - 1 for i in range(LABEL_ROUNDS)):
+    for i in range(LABEL_ROUNDS):
         # a round before the last only moves the model its labels are chosen against: a part
         # of the returns does that within a fraction of the last round's σ, in a fraction of
         # the time
-        faces, platter = (
-            model_labels(returns, base, pose, cube.edge, platter_radius, noise) if last else
-            model_labels(returns.every(FIRST_ROUNDS_STRIDE), base, pose, cube.edge,
-                         platter_radius, noise, most=(FIT_POINTS // FIRST_ROUNDS_STRIDE,
-                                                      PLATTER_POINTS // FIRST_ROUNDS_STRIDE)))
+        k = 1 if i == LABEL_ROUNDS - 1 else FIRST_ROUNDS_STRIDE
+        faces, platter = model_labels(returns.every(k), base, pose, cube.edge, platter_radius,
+                                      noise, most=(FIT_POINTS // k, PLATTER_POINTS // k))
         errors = _RangeSizeErrors(faces, platter, base, free, cube.edge)
         x0 = np.concatenate([base[free], pose])
         res = least_squares(
