@@ -3,7 +3,8 @@
 Two measurements of the same cleaned cloud in frame D:
 
 - the paper's metric ``e = max_i(ŝ_i − s)`` from Open3D's minimum-volume oriented bounding box
-  of the unsmoothed cloud (comparable with the paper's tables; biased upward by the noise);
+  of the unsmoothed cloud without its veil of mixed pixels (comparable with the paper's tables;
+  biased upward by the noise);
 - a robust dimensioning: planes fitted (SVD, trimmed at 3σ) to the four side faces and the top,
   the platter plane next to the cube as the bottom; edge = distance between opposite faces (the
   top face to the platter for the height); face flatness (RMS of the plane residuals) and
@@ -30,9 +31,10 @@ from calstation.engine.geometry import (
     fit_plane,
     largest_cluster,
     level_of_heights,
-    line_ids,
     minimal_obb,
     upright_box,
+    veil_mask,
+    whole_lines,
 )
 from calstation.engine.rangemodel import (
     IDENTITY,
@@ -172,6 +174,8 @@ class CubeCloud:
     """positions in the scan's returns of those the platter's level was found from"""
     ring: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
     """positions in the scan's returns of ``p_ring``"""
+    veil: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    """(n,) True for those of ``pts`` on a veil (:func:`calstation.engine.geometry.veil_mask`)"""
 
 
 def _cube_cloud(
@@ -196,13 +200,14 @@ def _cube_cloud(
     ring = ring[:: max(1, -(-ring.size // RING_POINTS))]
     p_ring = lidar_to_dynamic(p_L[ring], phi[ring], H)
     p_ring[:, 0] -= level
-    p_L, phi = p_L[above], phi[above]
-    used = _whole_lines(p_L, CUBE_RETURNS)
-    p_D = lidar_to_dynamic(p_L[used], phi[used], H)
+    used = whole_lines(p_L[above], CUBE_RETURNS)
+    p_D = lidar_to_dynamic(p_L[above[used]], phi[above[used]], H)
     p_D[:, 0] -= level
     keep = np.flatnonzero(density_outlier_mask(p_D))
     keep = keep[largest_cluster(p_D[keep])]
-    return CubeCloud(level, p_ring, p_L, phi, used[keep], p_D[keep], window, ring)
+    veil = veil_mask(p_L, above[used[keep]])
+    return CubeCloud(level, p_ring, p_L[above], phi[above], used[keep], p_D[keep], window, ring,
+                     veil)
 
 
 def _along_axis(
@@ -224,18 +229,6 @@ def _along_axis(
 
     idx, x, r2 = stacked(by_blocks(block, p_L.shape[0]))
     return idx.astype(np.intp, copy=False), x, r2
-
-
-def _whole_lines(p_L: FloatArray, most: int) -> NDArray[np.intp]:
-    """Positions of at most about ``most`` of the returns ((N, 3) in L, in scan order): all of
-    them, or every k-th scan line's (a line ends where the azimuth jumps back,
-    :func:`calstation.engine.geometry.line_ids`), so that a line's returns stay together."""
-    if p_L.shape[0] <= most:
-        return np.arange(p_L.shape[0])
-    stride = -(-p_L.shape[0] // most)
-    lines = line_ids(np.arctan2(p_L[:, 0], p_L[:, 1]))
-    out: NDArray[np.intp] = np.flatnonzero(lines % stride == 0)
-    return out
 
 
 def moved_cloud(cloud: CubeCloud, p_L: FloatArray, phi: FloatArray, H: Extrinsics) -> CubeCloud:
@@ -285,7 +278,7 @@ def check_cube_points(
     t1 = time.perf_counter()
     obb_edges, obb_error = np.full(3, math.nan), math.nan
     if not edges_only:
-        obb_edges, obb_error = _paper_obb(cloud.pts, s)
+        obb_edges, obb_error = _paper_obb(cloud.pts[~cloud.veil], s)
     t2 = time.perf_counter()
     dims = _face_dimensions(cloud, s, platter_radius, cube.same_finish_as_platter)
     twist, twist_sigma = math.nan, math.nan
@@ -392,7 +385,8 @@ def obb_noise(noise: float, points: int) -> float:
 
 def _paper_obb(pts: FloatArray, s: float) -> tuple[FloatArray, float]:
     """The paper's metric: the sorted edges of the minimum-volume OBB of the unsmoothed cloud
-    (its height with the segmentation margin added back) and ``max_i(ŝ_i − s)``."""
+    ``pts``, its veil returns left out (its height with the segmentation margin added back) and
+    ``max_i(ŝ_i − s)``."""
     _, obb_axes, obb_ext = minimal_obb(pts)
     vertical = int(np.argmax(np.abs(obb_axes[0, :])))
     obb_ext = obb_ext.copy()
@@ -441,7 +435,7 @@ def _face_dimensions(cloud: CubeCloud, s: float, platter_radius: float,
     the platter beside the cube, which the edge error counts when ``judge_height`` (the
     platter of the cube's finish)."""
     pts = cloud.pts
-    centre, axes, ext = upright_box(pts, strays=True)
+    centre, axes, ext = upright_box(pts[~cloud.veil], strays=True)
     lo = axes.T @ centre - 0.5 * ext
     hi = axes.T @ centre + 0.5 * ext
     band = min(0.008, 0.1 * s)

@@ -288,6 +288,18 @@ def line_ids(az: FloatArray) -> NDArray[np.int64]:
     return out
 
 
+def whole_lines(p_L: FloatArray, most: int) -> NDArray[np.intp]:
+    """Positions of at most about ``most`` of the returns ((N, 3) in L, in scan order): all of
+    them, or every k-th scan line's (a line ends where the azimuth jumps back,
+    :func:`line_ids`), so that a line's returns stay together."""
+    if p_L.shape[0] <= most:
+        return np.arange(p_L.shape[0])
+    stride = -(-p_L.shape[0] // most)
+    lines = line_ids(np.arctan2(p_L[:, 0], p_L[:, 1]))
+    out: NDArray[np.intp] = np.flatnonzero(lines % stride == 0)
+    return out
+
+
 def kth_neighbour_distance(p: FloatArray, k: int, upper: float = math.inf) -> FloatArray:
     """(N,) distance (m) from each of the (N, 3) points to its ``k``-th nearest other point;
     inf where that point is ``upper`` or farther.
@@ -311,6 +323,43 @@ def density_outlier_mask(p: FloatArray, neighbours: int = 8) -> NDArray[np.bool_
     far = kth_neighbour_distance(p, neighbours)
     radius = 3.0 * float(np.median(far))
     out: NDArray[np.bool_] = far <= radius
+    return out
+
+
+VEIL_DEG = 10.0
+"""A return whose segment to an adjacent return of its scan line lies within this angle of its
+ray is on a veil (degrees): a mixed pixel between a depth edge's near and far surfaces, or a
+surface seen this close to grazing. ROS laser_filters' shadow filter takes the same 10°."""
+
+ADJACENT_STEPS = 2.5
+"""Returns whose rays are at most this many of the scan's beam steps apart are adjacent (a
+dropped return between them included)."""
+
+
+def veil_mask(p_L: FloatArray, idx: NDArray[np.intp]) -> NDArray[np.bool_]:
+    """(K,) True for the returns at positions ``idx`` of a scan's returns ``p_L`` ((N, 3) in L,
+    the lidar at the origin, in the order taken) that lie on a veil (:data:`VEIL_DEG`) with
+    the return before or after them, when it is adjacent (:data:`ADJACENT_STEPS`).
+
+    A footprint across a depth edge returns a range between the two surfaces; over a turn such
+    returns gather at an object's edges in clumps dense enough to pass a density filter, and
+    they stretch a bounding box by up to the depth of the edge."""
+    out = np.zeros(idx.shape[0], dtype=bool)
+    if p_L.shape[0] < 2 or idx.shape[0] == 0:
+        return out
+    rays = p_L[idx] / np.linalg.norm(p_L[idx], axis=1)[:, None]
+    pairs = []
+    for side in (-1, 1):
+        j = np.clip(idx + side, 0, p_L.shape[0] - 1)
+        d = p_L[j] - p_L[idx]
+        length = np.linalg.norm(d, axis=1)
+        other = p_L[j] / np.maximum(np.linalg.norm(p_L[j], axis=1), 1e-12)[:, None]
+        apart = np.arccos(np.clip(np.einsum("ij,ij->i", rays, other), -1.0, 1.0))
+        along = np.abs(np.einsum("ij,ij->i", rays, d)) / np.maximum(length, 1e-12)
+        pairs.append((apart, along, (j != idx) & (length > 0)))
+    step = float(np.median(np.concatenate([apart[real] for apart, _, real in pairs])))
+    for apart, along, real in pairs:
+        out |= real & (apart <= ADJACENT_STEPS * step) & (along > math.cos(math.radians(VEIL_DEG)))
     return out
 
 
