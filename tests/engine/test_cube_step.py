@@ -20,6 +20,7 @@ from calstation.engine.cubefit import range_size_fit
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics
 from calstation.engine.rangemodel import RangeModel, unit_rays
 from calstation.engine.spinscan import from_recording
+from calstation.errors import FineTuningError
 from calstation.recipes import load_recipe
 from calstation.recordings.reader import read_recording
 
@@ -332,6 +333,17 @@ def test_a_cube_check_failing_on_perpendicularity_names_the_lidars_range_error(
                                    "sigma_incidence_bias": model.incidence})
     assert check_failure(rec, scan, unclear, check, recipe.fixtures.qa_cube, qa,
                          platter_radius=radius, residuals={}) is None
+
+
+def test_the_scale_is_not_fitted_from_a_platter_of_another_finish(biased: Any) -> None:
+    """offset+scale reads the scale from the cube's height above the platter: an engine caller
+    asking for it on a cube not stated to be of the platter's finish gets an error naming the
+    setting, not a platter's reflectivity taken for a scale error."""
+    _, scan, truth, recipe = biased
+    other = recipe.fixtures.qa_cube.model_copy(update={"same_finish_as_platter": False})
+    with pytest.raises(FineTuningError, match="same_finish_as_platter"):
+        range_size_fit(scan, truth, other, platter_radius=recipe.fixtures.platter.radius,
+                       range_model="offset+scale")
 
 
 @pytest.mark.parametrize("model", ["offset", "offset+scale"])
