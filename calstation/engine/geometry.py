@@ -347,19 +347,24 @@ def veil_mask(p_L: FloatArray, idx: NDArray[np.intp]) -> NDArray[np.bool_]:
     out = np.zeros(idx.shape[0], dtype=bool)
     if p_L.shape[0] < 2 or idx.shape[0] == 0:
         return out
-    rays = p_L[idx] / np.linalg.norm(p_L[idx], axis=1)[:, None]
+    p = p_L[idx]
+    pp = np.einsum("ij,ij->i", p, p)
     pairs = []
     for side in (-1, 1):
         j = np.clip(idx + side, 0, p_L.shape[0] - 1)
-        d = p_L[j] - p_L[idx]
-        length = np.linalg.norm(d, axis=1)
-        other = p_L[j] / np.maximum(np.linalg.norm(p_L[j], axis=1), 1e-12)[:, None]
-        apart = np.arccos(np.clip(np.einsum("ij,ij->i", rays, other), -1.0, 1.0))
-        along = np.abs(np.einsum("ij,ij->i", rays, d)) / np.maximum(length, 1e-12)
-        pairs.append((apart, along, (j != idx) & (length > 0)))
-    step = float(np.median(np.concatenate([apart[real] for apart, _, real in pairs])))
+        q = p_L[j]
+        qq = np.einsum("ij,ij->i", q, q)
+        pq = np.einsum("ij,ij->i", p, q)
+        # the rays' angle's cosine, and (ray · (q − p))² against cos²(VEIL_DEG)·|q − p|²
+        apart = pq / np.sqrt(pp * qq)
+        along = (pq - pp) ** 2 / pp
+        d2 = qq - 2.0 * pq + pp
+        pairs.append((apart, along > math.cos(math.radians(VEIL_DEG))**2 * d2, j != idx))
+    step = math.acos(min(1.0, float(np.median(np.concatenate(
+        [apart[real] for apart, _, real in pairs])))))
+    least = math.cos(ADJACENT_STEPS * step)
     for apart, along, real in pairs:
-        out |= real & (apart <= ADJACENT_STEPS * step) & (along > math.cos(math.radians(VEIL_DEG)))
+        out |= real & (apart >= least) & along
     return out
 
 
