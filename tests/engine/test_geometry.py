@@ -14,6 +14,7 @@ from calstation.engine.geometry import (
     platter_level,
     radius_outlier_mask,
     upright_box,
+    veil_mask,
 )
 
 
@@ -135,3 +136,39 @@ def test_radius_outlier_mask_counts_neighbours_within_the_radius(
     d = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=2)
     others = (d <= radius).sum(axis=1) - 1
     assert np.array_equal(radius_outlier_mask(pts, radius, neighbours), others >= neighbours)
+
+
+def _line_on(distance: np.ndarray, az: np.ndarray) -> np.ndarray:
+    """A scan line's returns in L at ``distance`` (m) along azimuths ``az`` (rad)."""
+    return np.column_stack([distance * np.sin(az), distance * np.cos(az), np.zeros(az.size)])
+
+
+def test_veil_mask_marks_the_returns_between_a_depth_edges_surfaces() -> None:
+    """A wall 1 m away for half the line and one 1.3 m away for the rest, with a return half-way
+    between them at the edge (a mixed pixel), the return before it dropped: the mixed pixel and
+    the returns either side of it are on the veil (the one before the dropped return is still
+    adjacent), the walls' other returns are not; nor are the returns where the next line, at
+    another range, begins."""
+    az = np.radians(np.linspace(-10.0, 10.0, 401))
+    rho = np.where(az < 0, 1.0, 1.3)
+    edge = int(np.argmax(az >= 0))
+    rho[edge] = 1.15
+    keep = np.ones(az.size, dtype=bool)
+    keep[edge - 1] = False
+    first = _line_on(rho[keep], az[keep])
+    p_L = np.vstack([first, _line_on(np.full(az.size, 2.0), az)])
+    marked = np.flatnonzero(veil_mask(p_L, np.arange(p_L.shape[0])))
+    at = edge - 1  # the mixed pixel's position among the kept returns
+    assert set(marked) == {at - 1, at, at + 1}, marked
+
+
+def test_veil_mask_marks_a_surface_only_near_grazing() -> None:
+    """A flat wall seen at 60° of incidence is no veil; the same wall at 85° is."""
+    az = np.radians(np.linspace(-2.0, 2.0, 81))
+    for incidence, veiled in ((60.0, False), (85.0, True)):
+        # the wall's normal at `incidence` from the ray at az = 0, in the scan plane
+        n = np.array([np.sin(np.radians(incidence)), np.cos(np.radians(incidence)), 0.0])
+        rays = _line_on(np.ones(az.size), az)
+        p_L = rays * (1.0 / (rays @ n))[:, None]
+        mask = veil_mask(p_L, np.arange(az.size))
+        assert mask.all() if veiled else not mask.any(), (incidence, mask.sum())
