@@ -355,13 +355,18 @@ def veil_mask(p_L: FloatArray, idx: NDArray[np.intp]) -> NDArray[np.bool_]:
         q = p_L[j]
         qq = np.einsum("ij,ij->i", q, q)
         pq = np.einsum("ij,ij->i", p, q)
-        # the rays' angle's cosine, and (ray · (q − p))² against cos²(VEIL_DEG)·|q − p|²
-        apart = pq / np.sqrt(pp * qq)
-        along = (pq - pp) ** 2 / pp
+        # the rays' angle's cosine, and (ray · (q − p))² against cos²(VEIL_DEG)·|q − p|²; a
+        # return at the origin is no ray (NaN: on no veil)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            apart = pq / np.sqrt(pp * qq)
+            along = (pq - pp) ** 2 / pp
         d2 = qq - 2.0 * pq + pp
         pairs.append((apart, along > math.cos(math.radians(VEIL_DEG))**2 * d2, j != idx))
-    step = math.acos(min(1.0, float(np.median(np.concatenate(
-        [apart[real] for apart, _, real in pairs])))))
+    cosines = np.concatenate([apart[real] for apart, _, real in pairs])
+    cosines = cosines[np.isfinite(cosines)]
+    if cosines.size == 0:
+        return out
+    step = math.acos(min(1.0, float(np.median(cosines))))
     least = math.cos(ADJACENT_STEPS * step)
     for apart, along, real in pairs:
         out |= real & (apart >= least) & along
