@@ -97,10 +97,23 @@ if TYPE_CHECKING:
     from scipy.optimize import OptimizeResult
 
 LABEL_ROUNDS = 2
-"""Fits, each on the faces labelled under the previous one's H (the first under the start)."""
+"""Fits, each on the faces labelled under the previous one's H (the first under the start), of
+the known-size fit without the range model (with it, until they settle: :data:`SETTLED_M`)."""
 FIRST_ROUNDS_STRIDE = 4
 """The known-size fit with the range model labels and fits every this-many-th return in the
 rounds before its last (:func:`range_size_fit`); the last round uses them all."""
+SETTLED_M, SETTLED_RAD = 0.1e-3, 0.1e-3
+"""The known-size fit with the range model has settled when a round on every
+:data:`FIRST_ROUNDS_STRIDE`-th return, after one on the same returns, moved H's translation by
+less than this (m) and its rotation by less than this (rad): its labels no longer change. Then
+one round on all of them. From where the box cost left two bench starts on a 30° station
+(5–9 mm and up to 1.2° off: it stopped on its evaluations, ry held at the start's), a round on a
+part and one on all moved ty by 6 mm in the second and ended 4 mm off, one with σ_tx 0.05 mm
+for a tx 1.1 mm off; settled after four rounds, within 0.1 mm. From a start within a few
+millimetres, two or three rounds on a part."""
+RANGE_ROUNDS = 10
+"""At most this many rounds of the known-size fit with the range model: one that has not
+settled by then raises :class:`FineTuningError` (its start was too far off)."""
 SIGMA_SCALE = 1.3
 """The sandwich σ's scale, as the periodicity cost's (docs/algorithms.md, the shape sweep)."""
 SIGMA_BLOCK = 0.02
@@ -560,12 +573,14 @@ def range_size_fit(
     pose, noise = first.pose[:3], first.noise
     # the returns the rounds may label, with what does not change between them
     returns = _Returns.of(scan, _near_platter(scan, base, platter_radius))
-    res: OptimizeResult = None
-    for i in range(LABEL_ROUNDS):
-        # a round before the last only moves the model its labels are chosen against: a part
-        # of the returns does that within a fraction of the last round's σ, in a fraction of
-        # the time
-        k = 1 if i == LABEL_ROUNDS - 1 else FIRST_ROUNDS_STRIDE
+    # a round on a part of the returns only moves the model the labels are chosen against: it
+    # does that within a fraction of the last round's σ, in a fraction of the time. Rounds on
+    # the same part go on until one moves H by less than SETTLED_M and SETTLED_RAD (two rounds
+    # on a part and two on all of them differ by the part's own noise, up to 0.7 mm in ty);
+    # then one round on all of them
+    settled, moved = False, (math.inf, math.inf)
+    for i in range(RANGE_ROUNDS):
+        k = 1 if settled else FIRST_ROUNDS_STRIDE
         faces, platter = model_labels(returns.every(k), base, pose, cube.edge, platter_radius,
                                       noise, most=(FIT_POINTS // k, PLATTER_POINTS // k))
         errors = _RangeSizeErrors(faces, platter, base, free, cube.edge)
@@ -574,8 +589,22 @@ def range_size_fit(
             errors, x0, jac=errors.jac, method="trf", loss="soft_l1",
             f_scale=_f_scale(noise), x_scale=_scales(free, 3), max_nfev=MAX_NFEV,
         )
+        if settled:
+            return _range_fit_result(res, errors, faces, free, cube, platter, encoder)
+        moved = _moved(base, errors.vector(res.x))
         base, pose = errors.vector(res.x), res.x[len(free):]
-    return _range_fit_result(res, errors, faces, free, cube, platter, encoder)
+        settled = i > 0 and moved[0] < SETTLED_M and moved[1] < SETTLED_RAD
+    raise FineTuningError(
+        f"the known-size cube fit did not settle in {RANGE_ROUNDS} rounds: its last moved the "
+        f"axis by {moved[0] * 1e3:.2f} mm and {math.degrees(moved[1]):.3f}°; its start (the box "
+        "cost's result) is too far off, see the recipe's start or the fixtures' placement")
+
+
+def _moved(before: FloatArray, after: FloatArray) -> tuple[float, float]:
+    """How far a round moved H (its parameter vectors before and after, the range terms beside
+    them): the largest change of a translation (m) and of a rotation (rad)."""
+    change = np.abs(after[: len(PARAMETER_NAMES)] - before[: len(PARAMETER_NAMES)])
+    return float(np.max(change[:3])), float(np.max(change[3:]))
 
 
 def start_range_points(p_L: FloatArray, model: RangeModel) -> FloatArray:
