@@ -175,7 +175,7 @@ class CubeCloud:
     ring: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
     """positions in the scan's returns of ``p_ring``"""
     veil: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    """(K,) True for those of ``p_L`` on a veil (:func:`calstation.engine.geometry.veil_mask`)"""
+    """(n,) True for those of ``pts`` on a veil (:func:`calstation.engine.geometry.veil_mask`)"""
 
 
 def _cube_cloud(
@@ -206,7 +206,7 @@ def _cube_cloud(
     keep = np.flatnonzero(density_outlier_mask(p_D))
     keep = keep[largest_cluster(p_D[keep])]
     return CubeCloud(level, p_ring, p_L[above], phi[above], used[keep], p_D[keep], window, ring,
-                     veil_mask(p_L, above))
+                     veil_mask(p_L, above[used[keep]]))
 
 
 def _along_axis(
@@ -277,7 +277,7 @@ def check_cube_points(
     t1 = time.perf_counter()
     obb_edges, obb_error = np.full(3, math.nan), math.nan
     if not edges_only:
-        obb_edges, obb_error = _paper_obb(cloud.pts[~cloud.veil[cloud.idx]], s)
+        obb_edges, obb_error = _paper_obb(cloud.pts[~cloud.veil], s)
     t2 = time.perf_counter()
     dims = _face_dimensions(cloud, s, platter_radius, cube.same_finish_as_platter)
     twist, twist_sigma = math.nan, math.nan
@@ -434,7 +434,7 @@ def _face_dimensions(cloud: CubeCloud, s: float, platter_radius: float,
     the platter beside the cube, which the edge error counts when ``judge_height`` (the
     platter of the cube's finish)."""
     pts = cloud.pts
-    centre, axes, ext = upright_box(pts[~cloud.veil[cloud.idx]], strays=True)
+    centre, axes, ext = upright_box(pts[~cloud.veil], strays=True)
     lo = axes.T @ centre - 0.5 * ext
     hi = axes.T @ centre + 0.5 * ext
     band = min(0.008, 0.1 * s)

@@ -56,7 +56,7 @@ from calstation.engine.frames import (
     rotation_derivative,
     rowdot,
 )
-from calstation.engine.geometry import face_labels, upright_box
+from calstation.engine.geometry import face_labels, upright_box, veil_mask
 from calstation.engine.kept import Kept
 from calstation.engine.periodicity.covariance import (
     CovarianceRecord,
@@ -133,7 +133,7 @@ def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
         )
     p_D = lidar_to_dynamic(cloud.p_L, cloud.phi, H)
     p_D[:, 0] -= cloud.level
-    centre, axes, extents = upright_box(p_D[cloud.idx[~cloud.veil[cloud.idx]]], strays=True)
+    centre, axes, extents = upright_box(p_D[cloud.idx[~cloud.veil]], strays=True)
     labels = face_labels(p_D, centre, axes, extents)
     found = [f for f in np.unique(labels) if f >= 1 and np.count_nonzero(labels == f) >= 30]
     if len(found) < MIN_FACES:
@@ -143,8 +143,9 @@ def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
         )
     # the same returns' keys in every round (the cloud is found once): rounds that label nearly
     # the same returns keep nearly the same ones (cubecast._kept)
-    keep = _kept(np.flatnonzero(np.isin(labels, found) & ~cloud.veil),
-                 fixed_keys(cloud.p_L.shape[0]), FIT_POINTS)
+    keep = _kept(np.flatnonzero(np.isin(labels, found)), fixed_keys(cloud.p_L.shape[0]),
+                 FIT_POINTS)
+    keep = keep[~veil_mask(cloud.p_L, keep)]  # neighbours among the returns above the platter
     p_L, phi, lab = cloud.p_L[keep], cloud.phi[keep], labels[keep]
     noise = face_range_noise(
         [p_L[lab == f] for f in found], [phi[lab == f] for f in found], H
