@@ -200,12 +200,13 @@ def _cube_cloud(
     ring = ring[:: max(1, -(-ring.size // RING_POINTS))]
     p_ring = lidar_to_dynamic(p_L[ring], phi[ring], H)
     p_ring[:, 0] -= level
-    used = whole_lines(p_L[above], CUBE_RETURNS)
-    p_D = lidar_to_dynamic(p_L[above[used]], phi[above[used]], H)
+    p_above, phi_above = p_L[above], phi[above]
+    used = whole_lines(p_above, CUBE_RETURNS)
+    p_D = lidar_to_dynamic(p_above[used], phi_above[used], H)
     p_D[:, 0] -= level
     keep = np.flatnonzero(density_outlier_mask(p_D))
     keep = keep[largest_cluster(p_D[keep])]
-    return CubeCloud(level, p_ring, p_L[above], phi[above], used[keep], p_D[keep], window, ring,
+    return CubeCloud(level, p_ring, p_above, phi_above, used[keep], p_D[keep], window, ring,
                      veil_mask(p_L, above[used[keep]]))
 
 

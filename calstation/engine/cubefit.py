@@ -558,7 +558,7 @@ def range_size_fit(
     platter's finish (``cube.same_finish_as_platter``): the scale is read from the cube's height
     above the platter, and a platter that reads at another range (its reflectivity) would be
     taken for a scale error (2400 ppm, ty 2.8 mm off, on recipes/sim-realistic.yaml's)."""
-    if "scale" in range_model and not cube.same_finish_as_platter:
+    if range_model == "offset+scale" and not cube.same_finish_as_platter:
         raise FineTuningError(
             "the known-size cube fit cannot measure the lidar's range scale error "
             "(range_model: offset+scale) with this cube: its height is read from the platter, "
@@ -597,8 +597,9 @@ def range_size_fit(
         settled = i > 0 and moved[0] < SETTLED_M and moved[1] < SETTLED_RAD
     raise FineTuningError(
         f"the known-size cube fit did not settle in {RANGE_ROUNDS} rounds: its last moved the "
-        f"axis by {moved[0] * 1e3:.2f} mm and {math.degrees(moved[1]):.3f}°; its start (the box "
-        "cost's result) is too far off, see the recipe's start or the fixtures' placement")
+        f"axis by {moved[0] * 1e3:.2f} mm and {math.degrees(moved[1]):.3f}°; its start (the "
+        "shape strategy's box result, or the spin target's estimate at the cube stage) is too "
+        "far off, see the recipe's start or the fixtures' placement")
 
 
 def _moved(before: FloatArray, after: FloatArray) -> tuple[float, float]:

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from calstation.engine.frames import FloatArray
+from calstation.engine.frames import FloatArray, rowdot
 from calstation.errors import FineTuningError, VerificationError
 
 
@@ -348,13 +348,12 @@ def veil_mask(p_L: FloatArray, idx: NDArray[np.intp]) -> NDArray[np.bool_]:
     if p_L.shape[0] < 2 or idx.shape[0] == 0:
         return out
     p = p_L[idx]
-    pp = np.einsum("ij,ij->i", p, p)
+    pp = rowdot(p, p)
     pairs = []
     for side in (-1, 1):
         j = np.clip(idx + side, 0, p_L.shape[0] - 1)
         q = p_L[j]
-        qq = np.einsum("ij,ij->i", q, q)
-        pq = np.einsum("ij,ij->i", p, q)
+        qq, pq = rowdot(q, q), rowdot(p, q)
         # the rays' angle's cosine, and (ray · (q − p))² against cos²(VEIL_DEG)·|q − p|²; a
         # return at the origin is no ray (NaN: on no veil)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -368,8 +367,8 @@ def veil_mask(p_L: FloatArray, idx: NDArray[np.intp]) -> NDArray[np.bool_]:
         return out
     step = math.acos(min(1.0, float(np.median(cosines))))
     least = math.cos(ADJACENT_STEPS * step)
-    for apart, along, real in pairs:
-        out |= real & (apart >= least) & along
+    for apart, on_ray, real in pairs:
+        out |= real & (apart >= least) & on_ray
     return out
 
 
