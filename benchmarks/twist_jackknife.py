@@ -53,7 +53,8 @@ def refit_sigma(faces: list[tuple[FloatArray, FloatArray]], H: Extrinsics, x: fl
 def side_faces(scan: object, H: Extrinsics, edge: float,
                radius: float) -> list[tuple[FloatArray, FloatArray]]:
     """The side faces' returns and platter angles as the cube check passes them to the twist."""
-    from calstation.engine.cube import _face_dimensions, cube_cloud
+    from calstation.engine.cube import _face_dimensions
+    from calstation.engine.cubecloud import cube_cloud
 
     cloud = cube_cloud(scan.p_L, scan.phi, H, edge, radius, None)  # type: ignore[attr-defined]
     dims = _face_dimensions(cloud, edge, radius)

@@ -35,7 +35,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.optimize import least_squares
 
-from calstation.engine.cube import CubeCloud, cube_cloud
 from calstation.engine.cubecast import (
     FIT_POINTS,
     MIN_FACES,
@@ -48,6 +47,7 @@ from calstation.engine.cubecast import (
     fixed_keys,
     model_labels,
 )
+from calstation.engine.cubecloud import CubeCloud, cube_cloud, segment_cube
 from calstation.engine.frames import (
     PARAMETER_NAMES,
     Extrinsics,
@@ -111,6 +111,11 @@ one round on all of them. From where the box cost left two bench starts on a 30Â
 part and one on all moved ty by 6 mm in the second and ended 4 mm off, one with Ïƒ_tx 0.05 mm
 for a tx 1.1 mm off; settled after four rounds, within 0.1 mm. From a start within a few
 millimetres, two or three rounds on a part."""
+FIRST_CLOUD = 50_000
+"""The cube's returns the range fit's first labelling finds the cube's upright box in are
+looked for among at most about this many returns above the platter (whole scan lines): the
+box only places the model the later rounds cast their labels against, and every return above
+the platter is labelled against it."""
 RANGE_ROUNDS = 10
 """At most this many rounds of the known-size fit with the range model: one that has not
 settled by then raises :class:`FineTuningError` (its start was too far off)."""
@@ -568,8 +573,8 @@ def range_size_fit(
     free = [PARAMETER_NAMES.index(n) for n in names] + estimated_indices(range_model,
                                                                           incidence)
     base = np.concatenate([start.with_(rx=0.0).as_vector(), start_range.as_vector()])
-    cloud = cube_cloud(start_range_points(scan.p_L, start_range), scan.phi,
-                       start.with_(rx=0.0), cube.edge, platter_radius, None)
+    cloud = segment_cube(start_range_points(scan.p_L, start_range), scan.phi,
+                         start.with_(rx=0.0), cube.edge, platter_radius, most=FIRST_CLOUD)
     first = _label(cloud, start.with_(rx=0.0))
     pose, noise = first.pose[:3], first.noise
     # the returns the rounds may label, with what does not change between them

@@ -146,7 +146,7 @@ def test_a_few_stray_returns_beyond_a_face_do_not_hide_it(sim_run, strays: int) 
     density filter) 11 mm outside a face, past the band the face is looked for in: the face is
     still measured where its returns are (the box's side was once taken at the strays, the face
     went missing and the check failed with an 11 mm error under the true H)."""
-    from calstation.engine.cube import _cube_cloud
+    from calstation.engine.cubecloud import segment_cube
     from calstation.engine.frames import dynamic_to_lidar
     from calstation.engine.geometry import upright_box
 
@@ -154,7 +154,7 @@ def test_a_few_stray_returns_beyond_a_face_do_not_hide_it(sim_run, strays: int) 
     cube, qa = recipe.fixtures.qa_cube, recipe.qa
     scan = from_recording(rec)
     radius = recipe.fixtures.platter.radius
-    cloud = _cube_cloud(scan.p_L, scan.phi, truth, cube.edge, radius)
+    cloud = segment_cube(scan.p_L, scan.phi, truth, cube.edge, radius)
     centre, axes, ext = upright_box(cloud.pts)
     local = cloud.pts @ axes
     lo = axes.T @ centre - 0.5 * ext
@@ -207,10 +207,11 @@ def _bow_face(p_L: np.ndarray, phi: np.ndarray, H: Extrinsics, recipe: Recipe,
               amplitude: float) -> np.ndarray:
     """The returns with one side face of the cube bowed: each of its returns moved along its
     ray by ``amplitude``·sin(π·u), u its height across the face (0 … 1)."""
-    from calstation.engine.cube import _cube_cloud, _face_dimensions
+    from calstation.engine.cube import _face_dimensions
+    from calstation.engine.cubecloud import segment_cube
 
     radius = recipe.fixtures.platter.radius
-    cloud = _cube_cloud(p_L, phi, H, recipe.fixtures.qa_cube.edge, radius)
+    cloud = segment_cube(p_L, phi, H, recipe.fixtures.qa_cube.edge, radius)
     face = _face_dimensions(cloud, recipe.fixtures.qa_cube.edge, radius).faces["1+"]
     rows = cloud.p_L[cloud.idx[face.members]]
     h = cloud.pts[face.members][:, 0]
@@ -293,7 +294,8 @@ def test_the_perpendicularity_sigma_is_its_spread_over_noise_draws() -> None:
 
 
 def test_perpendicularity_fails_only_beyond_its_limit_and_3_sigma() -> None:
-    from calstation.engine.cube import CubeCloud, _Dimensions, _failures
+    from calstation.engine.cube import _Dimensions, _failures
+    from calstation.engine.cubecloud import CubeCloud
     from calstation.engine.settings import QALimits
 
     limits = QALimits(perpendicularity_deg=0.5)
@@ -321,13 +323,14 @@ def test_the_twist_jackknife_by_gauss_newton_steps_is_the_one_by_refits(
     group's planes re-fitted in two evaluations) gives the σ that 16 refits by TRF gave, under
     the true H and with ry 0.1° off."""
     from calstation.engine import twist
-    from calstation.engine.cube import _cube_cloud, _face_dimensions
+    from calstation.engine.cube import _face_dimensions
+    from calstation.engine.cubecloud import segment_cube
 
     recipe, rec, truth = _cube_scan(sim_run)
     scan = from_recording(rec)
     edge, radius = recipe.fixtures.qa_cube.edge, recipe.fixtures.platter.radius
     for H in (truth, truth.with_(ry=truth.ry + math.radians(0.1))):
-        cloud = _cube_cloud(scan.p_L, scan.phi, H, edge, radius)
+        cloud = segment_cube(scan.p_L, scan.phi, H, edge, radius)
         dims = _face_dimensions(cloud, edge, radius)
         faces = twist._twist_faces(
             *zip(*[(cloud.p_L[cloud.idx[f.members]], cloud.phi[cloud.idx[f.members]])
@@ -361,18 +364,18 @@ def test_the_check_uses_at_most_cube_returns_in_whole_scan_lines(sim_run, monkey
     segmentation and everything after it take every k-th scan line's returns: the cost stays
     bounded, the lines stay whole (the twist's jackknife groups lines), and the check still
     measures the cube."""
-    from calstation.engine import cube as cube_module
+    from calstation.engine import cubecloud as cube_module
     from calstation.engine.geometry import line_ids
 
     recipe, rec, truth = _cube_scan(sim_run)
     scan = from_recording(rec)
     edge, radius = recipe.fixtures.qa_cube.edge, recipe.fixtures.platter.radius
-    full = cube_module._cube_cloud(scan.p_L, scan.phi, truth, edge, radius)
+    full = cube_module.segment_cube(scan.p_L, scan.phi, truth, edge, radius)
     assert full.p_L.shape[0] < cube_module.CUBE_RETURNS  # the default scene is whole
     whole = check_cube_points(scan.p_L, scan.phi, truth, recipe.fixtures.qa_cube, recipe.qa,
                               platter_radius=radius)
     monkeypatch.setattr(cube_module, "CUBE_RETURNS", 30_000)
-    part = cube_module._cube_cloud(scan.p_L, scan.phi, truth, edge, radius)
+    part = cube_module.segment_cube(scan.p_L, scan.phi, truth, edge, radius)
     assert part.p_L.shape[0] == full.p_L.shape[0]  # the known-size fit labels them all
     assert 0.5 * 30_000 < part.idx.size <= 30_000
     lines = line_ids(np.arctan2(part.p_L[:, 0], part.p_L[:, 1]))
@@ -390,7 +393,7 @@ def test_a_check_near_the_kept_segmentation_turns_it_to_its_h(sim_run) -> None:
     """``nearby``: a segmentation kept under an H within a millimetre is turned to the new H
     (the shape strategy's result after its known-size fit) and measures what a segmentation of
     its own measures."""
-    from calstation.engine.cube import moved_cloud
+    from calstation.engine.cubecloud import moved_cloud
 
     recipe, rec, truth = _cube_scan(sim_run)
     cube, qa = recipe.fixtures.qa_cube, recipe.qa
@@ -435,7 +438,8 @@ def test_a_veil_of_mixed_pixels_behind_the_cubes_edges_does_not_stretch_the_box(
     cube. The paper's box and the box the faces are looked for from leave the veil out and read
     as on the clean scan. With the veil in, the paper's box was 28 mm longer, and the faces were
     looked for at the sheet (an edge 13 mm off)."""
-    from calstation.engine.cube import _cube_cloud, _paper_obb
+    from calstation.engine.cube import _paper_obb
+    from calstation.engine.cubecloud import segment_cube
 
     recipe, rec, truth = _cube_scan(sim_run)
     cube, qa, radius = recipe.fixtures.qa_cube, recipe.qa, recipe.fixtures.platter.radius
@@ -445,7 +449,7 @@ def test_a_veil_of_mixed_pixels_behind_the_cubes_edges_does_not_stretch_the_box(
     veiled = check_cube_points(p_L, scan.phi, truth, cube, qa, platter_radius=radius)
     assert abs(veiled.obb_error - clean.obb_error) < 0.5e-3, (veiled.obb_error, clean.obb_error)
     assert np.all(np.abs(veiled.face_edges - clean.face_edges) < 0.05e-3)
-    cloud = _cube_cloud(p_L, scan.phi, truth, cube.edge, radius)
+    cloud = segment_cube(p_L, scan.phi, truth, cube.edge, radius)
     assert cloud.veil.sum() > 1000
     _, with_veil = _paper_obb(cloud.pts, cube.edge)
     assert with_veil > clean.obb_error + 10e-3, (with_veil, clean.obb_error)

@@ -44,11 +44,17 @@ def biased(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
 
 
 def _whole_scan(scan: Any, H: Extrinsics, model: RangeModel, edge: float,
-                radius: float) -> Any:
+                radius: float) -> tuple[Any, dict[str, object]]:
     """Every return of ``scan`` corrected by ``model`` under H, as the check corrected them
-    before it read only those near the platter."""
-    return incidence_corrected(model.points(scan.p_L), scan.phi, H, model.incidence, edge,
-                               radius)
+    before it read only those near the platter, and a memo holding the cube's returns the
+    incidence correction found them by (the check's segmentation)."""
+    from calstation.engine.cube import _incidence_corrected
+    from calstation.engine.cubecloud import MEMO_KEY, cloud_key, moved_cloud
+
+    points, found = _incidence_corrected(model.points(scan.p_L), scan.phi, H, model.incidence,
+                                         edge, radius)
+    cloud = moved_cloud(found, points, scan.phi, H, corrected=True)
+    return points, {MEMO_KEY: (cloud_key(H, edge, radius), cloud)}
 
 
 def _same(a: Any, b: Any) -> None:
@@ -59,34 +65,52 @@ def _same(a: Any, b: Any) -> None:
     assert json.dumps(da, sort_keys=True) == json.dumps(db, sort_keys=True)
 
 
-def test_the_check_with_a_range_model_is_the_whole_scans_check(biased: Any) -> None:
+def test_the_check_with_a_range_model_is_the_whole_scans_check(
+    biased: Any, monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """Under the truth and the lidar's true range model the cube passes; the check of the
-    returns near the platter is the check of the whole scan corrected, and so is the check
-    under a nearby H that turns the cube's returns found under the first."""
+    returns near the platter is the check of the whole scan corrected, under the truth, under
+    a nearby H and under another; each finds the cube's returns once, as it corrects them for
+    the incidence bias."""
+    from calstation.engine import cube as cube_module, cubecloud
+
     rec, scan, truth, recipe = biased
     cube, qa, radius = recipe.fixtures.qa_cube, recipe.qa, recipe.fixtures.platter.radius
+    segmented: list[Extrinsics] = []
+    found = cubecloud.segment_cube
+
+    def counted(*a: Any) -> Any:
+        segmented.append(a[2])
+        return found(*a)
+
+    monkeypatch.setattr(cubecloud, "segment_cube", counted)
+    monkeypatch.setattr(cube_module, "segment_cube", counted)
     check = check_cube(rec, truth, cube, qa, platter_radius=radius, prepared=scan,
                        range_model=TRUE_RANGE)
+    assert segmented == [truth]
     assert check.passed, check.failures
     assert check.edge_error < 0.3e-3
-    memo: dict[str, object] = {}
-    whole = check_cube_points(_whole_scan(scan, truth, TRUE_RANGE, cube.edge, radius),
-                              scan.phi, truth, cube, qa, platter_radius=radius, memo=memo)
-    _same(check, whole)
-    # the station's second check, under an H a fraction of a millimetre away
+    points, memo = _whole_scan(scan, truth, TRUE_RANGE, cube.edge, radius)
+    _same(check, check_cube_points(points, scan.phi, truth, cube, qa, platter_radius=radius,
+                                   memo=memo))
+    # the station's second check, under an H a fraction of a millimetre away, and a check
+    # under another H
     near = truth.with_(tx=truth.tx + 0.0004, ry=truth.ry + math.radians(0.02))
-    moved = check_cube(rec, near, cube, qa, platter_radius=radius, prepared=scan,
-                       range_model=TRUE_RANGE, nearby=True)
-    whole_moved = check_cube_points(_whole_scan(scan, near, TRUE_RANGE, cube.edge, radius),
-                                    scan.phi, near, cube, qa, platter_radius=radius,
-                                    memo=memo, nearby=True)
-    _same(moved, whole_moved)
-    # a check under another H finds its own returns again
     other = truth.with_(tz=truth.tz + 0.002)
-    _same(check_cube(rec, other, cube, qa, platter_radius=radius, prepared=scan,
-                     range_model=TRUE_RANGE),
-          check_cube_points(_whole_scan(scan, other, TRUE_RANGE, cube.edge, radius),
-                            scan.phi, other, cube, qa, platter_radius=radius))
+    for H, nearby in ((near, True), (other, False)):
+        segmented.clear()
+        again = check_cube(rec, H, cube, qa, platter_radius=radius, prepared=scan,
+                           range_model=TRUE_RANGE, nearby=nearby)
+        assert segmented == [H]
+        points, memo = _whole_scan(scan, H, TRUE_RANGE, cube.edge, radius)
+        _same(again, check_cube_points(points, scan.phi, H, cube, qa, platter_radius=radius,
+                                       memo=memo))
+    # segmented again after the correction, the same returns give the same figures within
+    # a fraction of their limits: the correction moves a return by a millimetre at most
+    anew = check_cube_points(points, scan.phi, other, cube, qa, platter_radius=radius)
+    assert abs(anew.edge_error - again.edge_error) < 0.01e-3
+    assert abs(anew.perpendicularity_deg - again.perpendicularity_deg) < 0.01
+    assert abs(anew.points - again.points) < 0.005 * anew.points
 
 
 def test_the_range_fit_gives_the_lidars_offset_back_from_the_rays_near_the_platter(
@@ -421,8 +445,8 @@ def test_the_passes_over_the_scans_returns_give_the_same_a_block_at_a_time(
 
     from calstation.engine import blocks
     from calstation.engine.blocks import stacked
-    from calstation.engine.cube import _along_axis, cube_cloud
     from calstation.engine.cubecast import _Cast, _Returns, model_labels
+    from calstation.engine.cubecloud import along_axis, cube_cloud
     from calstation.engine.cubefit import _label
     from calstation.errors import FineTuningError
 
@@ -448,7 +472,7 @@ def test_the_passes_over_the_scans_returns_give_the_same_a_block_at_a_time(
             out += [*stacked(blocks.by_blocks(cast, near.size)),
                     np.concatenate(blocks.by_blocks(partial(cast.close_to, level=-dty),
                                                     near.size))]
-        out += list(_along_axis(scan.p_L, truth, -0.03, 0.33))
+        out += list(along_axis(scan.p_L, truth, -0.03, 0.33))
         out.append(incidence_corrected(scan.p_L, scan.phi, truth, 0.0005, edge, radius))
         return out
 
@@ -462,13 +486,13 @@ def test_the_passes_over_the_scans_returns_give_the_same_a_block_at_a_time(
 def test_passes_over_no_returns_give_empty_results_and_the_fit_says_what_it_lacks() -> None:
     """A start so far off that no ray meets the platter leaves the passes nothing to read:
     their results are empty, and the range fit's labelling says what it did not find."""
-    from calstation.engine.cube import _along_axis
     from calstation.engine.cubecast import _Returns, model_labels
+    from calstation.engine.cubecloud import along_axis
     from calstation.errors import FineTuningError
 
     H = Extrinsics.from_vector(np.array([0.0, 1.25, 0.0, 0.0, 0.0, -0.8]))
     none3, none1 = np.zeros((0, 3)), np.zeros(0)
-    idx, x, r2 = _along_axis(none3, H, -0.03, 0.33)
+    idx, x, r2 = along_axis(none3, H, -0.03, 0.33)
     assert idx.size == x.size == r2.size == 0
     assert incidence_corrected(none3, none1, H, 0.0005, 0.1, 0.3).shape == (0, 3)
     empty = _Returns(none3, none1, none1, none1, none3, none1)

@@ -219,19 +219,41 @@ def test_the_coarse_alignment_runs_only_for_a_start_the_cube_does_not_confirm(si
     assert math.degrees(e["axis_angle_rad"]) <= 0.3
 
 
+def test_before_the_known_size_fit_the_box_cost_stops_once_it_settles(
+        sim_run, monkeypatch) -> None:
+    """Before the known-size fit, the box cost's solves stop once one moves the estimate by
+    less than ``START_SETTLED_M`` and ``START_SETTLED_RAD``: far fewer evaluations than its
+    whole budget, and the fit from there ends within 0.1σ of the fit from the budget's end,
+    within 3σ of the truth."""
+    from calstation.engine import shape as shape_module
+
+    recipe, initial, rec = _from_initial(sim_run)
+    truth = rec.truth
+    assert truth is not None
+    cube, settings = recipe.fixtures.qa_cube, recipe.calibration.shape
+    quick = shape_fine_tune(rec, initial.H, cube, settings)
+    monkeypatch.setattr(shape_module, "START_SETTLED_M", 0.0)
+    whole = shape_fine_tune(rec, initial.H, cube, settings)
+    assert quick.diagnostics["evaluations"] < 0.7 * whole.diagnostics["evaluations"]
+    for name in ("tx", "tz", "ry", "rz"):
+        sigma = whole.sigma[name]
+        assert abs(getattr(quick.H, name) - getattr(whole.H, name)) <= 0.1 * sigma, name
+        assert abs(getattr(quick.H, name) - getattr(truth, name)) <= 3 * quick.sigma[name], name
+
+
 def test_before_the_known_size_fit_the_faces_flatness_rounds_are_left_out(
         sim_run, monkeypatch) -> None:
     """The known-size fit estimates ry from the cube's faces itself: the box cost before it
     holds ry (no flatness rounds), and the one segmentation the fit found serves the platter's
     level. When the fit cannot label the faces, the rounds run after all and give ry."""
-    from calstation.engine import cube, cubefit
+    from calstation.engine import cubecloud, cubefit
 
     recipe, initial, rec = _from_initial(sim_run)
     truth = rec.truth
     assert truth is not None
     segmented = []
-    found = cube._cube_cloud
-    monkeypatch.setattr(cube, "_cube_cloud", lambda *a: segmented.append(a[2]) or found(*a))
+    found = cubecloud.segment_cube
+    monkeypatch.setattr(cubecloud, "segment_cube", lambda *a: segmented.append(a[2]) or found(*a))
     res = shape_fine_tune(rec, initial.H, recipe.fixtures.qa_cube, recipe.calibration.shape)
     assert res.diagnostics["ry_rounds"] == [] and res.diagnostics["known_size"]["used"]
     assert res.diagnostics["box_H"]["ry"] == initial.H.ry
