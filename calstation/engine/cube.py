@@ -30,8 +30,8 @@ from calstation.engine.cubecloud import (
     SEGMENT_MARGIN,
     CubeCloud,
     along_axis,
-    cloud_key,
     cube_cloud,
+    keep_cloud,
     moved_cloud,
     segment_cube,
 )
@@ -64,7 +64,6 @@ from calstation.errors import VerificationError
 if TYPE_CHECKING:
     from calstation.engine.scan import Scan
     from calstation.engine.spinscan import SpinScan
-
 
 
 @dataclass(frozen=True)
@@ -530,8 +529,8 @@ def check_cube(
                                               platter_radius)
             # the check takes the cube's returns the correction found (it moved them along
             # their rays by a few millimetres at most) instead of segmenting them again
-            memo[MEMO_KEY] = (cloud_key(H, cube.edge, platter_radius),
-                            moved_cloud(found, p_L, phi, H, corrected=True))
+            keep_cloud(memo, moved_cloud(found, p_L, phi, H, corrected=True), H, cube.edge,
+                       platter_radius)
     try:
         return check_cube_points(
             p_L, phi, H, cube, limits, platter_radius=platter_radius, memo=memo,
@@ -569,7 +568,7 @@ def _returns_near_platter(
     margin = CHECK_MARGIN + largest
     # the platter's level lies within PLATTER_WINDOW of x_P = 0
     idx, _, r2 = along_axis(scan.p_L, H, -PLATTER_WINDOW - margin,
-                             3 * edge + PLATTER_WINDOW + margin)
+                            3 * edge + PLATTER_WINDOW + margin)
     out: NDArray[np.intp] = idx[r2 < (platter_radius + margin) ** 2]
     memo["returns"] = (key, out)
     memo.pop(MEMO_KEY, None)  # its positions were in other returns

@@ -144,6 +144,22 @@ def moved_cloud(
     return replace(cloud, level=level, p_ring=p_ring, pts=pts)
 
 
+MEMO_KEY = "cube_cloud"
+"""The key of a scan's memo under which :func:`cube_cloud` keeps its last segmentation."""
+
+
+def _cloud_key(H: Extrinsics, s: float, platter_radius: float) -> tuple[bytes, float, float]:
+    return H.as_vector().tobytes(), s, platter_radius
+
+
+def keep_cloud(
+    memo: dict[str, object], cloud: CubeCloud, H: Extrinsics, s: float, platter_radius: float
+) -> None:
+    """Keep ``cloud``, the cube's returns under H (cube edge ``s``), in ``memo`` as
+    :func:`cube_cloud` keeps the one it finds."""
+    memo[MEMO_KEY] = (_cloud_key(H, s, platter_radius), cloud)
+
+
 def cube_cloud(
     p_L: FloatArray,
     phi: FloatArray,
@@ -157,7 +173,7 @@ def cube_cloud(
     """:func:`segment_cube`, taken from ``memo`` when it holds the one under the same H, cube
     and platter (with ``nearby``, under any H: :func:`moved_cloud` turns it to this one), and
     kept there."""
-    key = cloud_key(H, s, platter_radius)
+    key = _cloud_key(H, s, platter_radius)
     found = memo.get(MEMO_KEY) if memo is not None else None
     kept_key, kept = found if isinstance(found, tuple) else (None, None)
     if isinstance(kept, CubeCloud) and kept_key == key:
@@ -168,14 +184,6 @@ def cube_cloud(
     else:
         cloud = segment_cube(p_L, phi, H, s, platter_radius)
     if memo is not None:
-        memo[MEMO_KEY] = (key, cloud)
+        keep_cloud(memo, cloud, H, s, platter_radius)
     return cloud
 
-
-MEMO_KEY = "cube_cloud"
-"""The key of a scan's memo under which :func:`cube_cloud` keeps its last segmentation."""
-
-
-def cloud_key(H: Extrinsics, s: float, platter_radius: float) -> tuple[bytes, float, float]:
-    """What :func:`cube_cloud` keeps its segmentation under, beside it."""
-    return H.as_vector().tobytes(), s, platter_radius

@@ -49,12 +49,13 @@ def _whole_scan(scan: Any, H: Extrinsics, model: RangeModel, edge: float,
     before it read only those near the platter, and a memo holding the cube's returns the
     incidence correction found them by (the check's segmentation)."""
     from calstation.engine.cube import _incidence_corrected
-    from calstation.engine.cubecloud import MEMO_KEY, cloud_key, moved_cloud
+    from calstation.engine.cubecloud import keep_cloud, moved_cloud
 
     points, found = _incidence_corrected(model.points(scan.p_L), scan.phi, H, model.incidence,
                                          edge, radius)
-    cloud = moved_cloud(found, points, scan.phi, H, corrected=True)
-    return points, {MEMO_KEY: (cloud_key(H, edge, radius), cloud)}
+    memo: dict[str, object] = {}
+    keep_cloud(memo, moved_cloud(found, points, scan.phi, H, corrected=True), H, edge, radius)
+    return points, memo
 
 
 def _same(a: Any, b: Any) -> None:
