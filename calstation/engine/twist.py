@@ -50,11 +50,16 @@ from G groups is itself uncertain by about 1/√(2(G − 1)): 27 % with 8 groups
 of 72 station sweep runs (0.5 mm, 180 lines/s, one turn) through at 0.35 of its error; 18 % with
 16."""
 JACOBIAN_STEP = 1e-3
-"""The step (rad) of the jackknife's forward-difference derivative: the twist fit's own
+"""The step (rad) of the linearised faces' forward-difference derivative: the TRF fit's own
 (``diff_step`` 1e-3 at a correction below 1 rad)."""
 GAUSS_NEWTON_STEPS = 2
-"""Gauss–Newton steps per jackknife group from the full solution: on the default scene the
-second moves the groups' estimates by < 1e-8 rad, a third by < 1e-17."""
+"""Gauss–Newton steps per fit on the linearised faces: on the default scene the second moves
+the groups' estimates by < 1e-8 rad, a third by < 1e-17."""
+LINEARISATIONS = 3
+"""Linearisations of the twist's fit (:func:`_linearised_twist`) before it is left to TRF."""
+RELINEARISE_DEG = 0.1
+"""A twist found further than this from where the faces were linearised (degrees) is found
+again from the faces linearised at it."""
 GRAZING_FACE = 0.2
 """Least |cosine| of a return's ray with its face its range error is divided by (and in the
 1/c² weights of the face's plane)."""
@@ -148,9 +153,10 @@ def face_twist(
     ``faces_L`` holds each side face's returns ((N_f, 3) in L) and ``faces_phi`` their platter
     angles. Each face's plane is re-fitted at every evaluation (soft-L1 against mixed pixels).
     With the range noise measured on the faces, the residuals are range errors along the rays
-    (:class:`FaceFlatness`), σ is the spread of a delete-one-group jackknife
-    (:func:`_jackknife_sigma`) with :data:`RANGE_TWIST_BIAS_DEG`·(σ_noise / 1 mm)² in
-    quadrature for the bias they leave; without it, perpendicular distances with the
+    (:class:`FaceFlatness`), the twist and its σ (the spread of a delete-one-group jackknife)
+    come from the faces linearised in the correction (:func:`_linearised_twist`), with
+    :data:`RANGE_TWIST_BIAS_DEG`·(σ_noise / 1 mm)² in quadrature for the bias they leave;
+    without it, perpendicular distances with the
     cluster-robust sandwich (:func:`flatness_ry_sigma`). (NaN, NaN) with fewer than two faces of
     30 returns.
     """
@@ -159,13 +165,14 @@ def face_twist(
         return math.nan, math.nan
     faces_L, faces_phi = [p for p, _ in faces], [f for _, f in faces]
     noise = face_range_noise(faces_L, faces_phi, H)
-    flat = FaceFlatness(faces_L, faces_phi, noise if math.isfinite(noise) else None)
-    f_scale = max(0.002, FSCALE_NOISE * noise) if math.isfinite(noise) else 0.002
-    res = _fit_twist(flat, H, 0.0, f_scale, max_nfev=50)
-    twist = float(res.x[0])
-    if flat.noise is None:
+    if not math.isfinite(noise):
+        flat = FaceFlatness(faces_L, faces_phi)
+        res = _fit_twist(flat, H, 0.0, 0.002, max_nfev=50)
+        twist = float(res.x[0])
         return twist, flatness_ry_sigma(res, [4], faces_L, faces_phi, H.with_(ry=H.ry + twist))
-    spread = _jackknife_sigma(faces, H, twist, f_scale, noise)
+    f_scale = max(0.002, FSCALE_NOISE * noise)
+    grouped = _GroupedFaces(faces, _line_groups(faces), noise)
+    twist, spread = _linearised_twist(grouped, H, f_scale)
     return twist, float(math.hypot(spread, range_twist_bias(noise)))
 
 
@@ -203,40 +210,55 @@ def _fit_twist(flat: FaceFlatness, H: Extrinsics, x0: float, f_scale: float, max
     )
 
 
-def _jackknife_sigma(
-    faces: list[tuple[FloatArray, FloatArray]],
-    H: Extrinsics,
-    x: float,
-    f_scale: float,
-    noise: float,
-) -> float:
-    """1σ (rad) of the twist from a delete-one-group jackknife over :data:`JACKKNIFE_GROUPS`
-    random groups of each face's returns: the fit repeated without each group.
+def _linearised_twist(grouped: _GroupedFaces, H: Extrinsics, f_scale: float
+                      ) -> tuple[float, float]:
+    """The twist (rad) of the faces ``grouped`` holds, and its delete-one-group jackknife
+    spread (rad): the fit without each of :data:`JACKKNIFE_GROUPS` random groups of each
+    face's returns.
+
+    The faces are linearised in the correction (:func:`_minima`) at none, and again at the
+    twist found while it moves by more than :data:`RELINEARISE_DEG`; the groups' minima come
+    from the last linearisation. Where that does not settle within ±:data:`TWIST_BOUND_DEG` in
+    :data:`LINEARISATIONS`, the twist is fitted by TRF and the groups are linearised at it.
 
     The returns' noise is independent, so the spread of the refits is the estimate's own:
     neither the linearised σ (0.5× the spread over seeds on the simulator: the noise also moves
     the planes and the rays' cosines, which the Jacobian holds fixed) nor the block sandwich
     (5–8×: each face's plane, re-fitted with H, correlates the blocks) measured it.
-
-    Each group's refit starts at the full solution ``x``, a few hundredths of a degree from
-    its own: every group's planes are re-fitted under ``x`` and one step beyond it
-    (:class:`_GroupedFaces`, all groups in two evaluations, where 16 refits by TRF took ~85),
-    which gives each group's residuals and their derivative in the correction; Gauss–Newton
-    steps on those, with the soft-L1 weights of the fit, find each group's minimum. On 51 of
-    52 of the capability sweep's cube scans the σ so found is the one of full refits to
-    within 0.34 %; on the 52nd a TRF refit had stopped short of its group's minimum (its first
-    trust region is the size of its start) and understated σ (docs/performance.md).
     """
-    grouped = _GroupedFaces(faces, _line_groups(faces), noise)
+    bound = math.radians(TWIST_BOUND_DEG)
+    x = 0.0
+    for _ in range(LINEARISATIONS):
+        e = _minima(grouped, H, x, f_scale)
+        twist = float(e[-1])
+        if not abs(twist) < bound:
+            break
+        if abs(twist - x) <= math.radians(RELINEARISE_DEG):
+            return twist, _spread(e[:-1])
+        x = twist
+    res = _fit_twist(grouped.flat, H, 0.0, f_scale, max_nfev=50)
+    twist = float(res.x[0])
+    return twist, _spread(_minima(grouped, H, twist, f_scale)[:-1])
+
+
+def _minima(grouped: _GroupedFaces, H: Extrinsics, x: float, f_scale: float) -> FloatArray:
+    """(G + 1,) the minima of the soft-L1 cost (scale ``f_scale``) of each jackknife group's
+    fit, then of the fit on every return, from the faces linearised in the correction at
+    ``x`` (rad): every group's planes are re-fitted under ``x`` and one step beyond it
+    (:class:`_GroupedFaces`, all of them in two evaluations), which gives each fit's residuals
+    and their derivative in the correction; Gauss–Newton steps on those, with the soft-L1
+    weights, find each minimum. Where 16 refits by TRF took ~85 evaluations, on 51 of 52 of the
+    capability sweep's cube scans the σ so found was theirs to within 0.34 %; on the 52nd a TRF
+    refit had stopped short of its group's minimum (docs/performance.md)."""
     r0 = grouped(H.with_(ry=H.ry + x))
     r1 = grouped(H.with_(ry=H.ry + x + JACOBIAN_STEP))
     # a group's own returns are left out of its fit: zero residual and derivative add nothing
     jac = [(b - a) / JACOBIAN_STEP * keep for a, b, keep in zip(r0, r1, grouped.keep, strict=True)]
     r0 = [a * keep for a, keep in zip(r0, grouped.keep, strict=True)]
-    step = np.zeros(JACKKNIFE_GROUPS)
+    step = np.zeros(JACKKNIFE_GROUPS + 1)
     for _ in range(GAUSS_NEWTON_STEPS):
-        gradient = np.zeros(JACKKNIFE_GROUPS)
-        curvature = np.zeros(JACKKNIFE_GROUPS)
+        gradient = np.zeros(JACKKNIFE_GROUPS + 1)
+        curvature = np.zeros(JACKKNIFE_GROUPS + 1)
         for a, j in zip(r0, jac, strict=True):
             r = a + j * step
             # soft-L1 with z = 1 + (r/f)²: ρ' = z^-½ weighs the gradient, ρ' + 2ρ''·(r/f)² =
@@ -245,8 +267,13 @@ def _jackknife_sigma(
             gradient += np.einsum("ij,ij->j", r / root, j)
             curvature += np.einsum("ij,ij->j", j / root**3, j)
         step -= gradient / np.maximum(curvature, 1e-300)
-    e = x + step
-    k = JACKKNIFE_GROUPS
+    out: FloatArray = x + step
+    return out
+
+
+def _spread(e: FloatArray) -> float:
+    """The delete-one-group jackknife's σ from the groups' estimates ``e``."""
+    k = e.shape[0]
     return float(math.sqrt((k - 1) / k * np.sum((e - e.mean()) ** 2)))
 
 
@@ -269,10 +296,11 @@ class _GroupedFaces:
         self.flat = FaceFlatness([p for p, _ in faces], [f for _, f in faces], noise)
         self.noise = noise
         self.keep = [
-            (lab[:, None] != np.arange(JACKKNIFE_GROUPS)[None, :]).astype(np.float64)
+            (lab[:, None] != np.arange(JACKKNIFE_GROUPS + 1)[None, :]).astype(np.float64)
             for lab in labels
         ]
-        """per face, (N_f, G) 1 where a return belongs to a group's fit, else 0"""
+        """per face, (N_f, G + 1) 1 where a return belongs to a group's fit, else 0: the last
+        column the fit on every return"""
 
     def __call__(self, H: Extrinsics) -> list[FloatArray]:
         """Per face, (N_f, G) each return's range error (m) against each group's plane (the

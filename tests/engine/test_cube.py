@@ -317,11 +317,12 @@ def test_perpendicularity_fails_only_beyond_its_limit_and_3_sigma() -> None:
     assert perp == pytest.approx(1.5, abs=4 * sigma) and perp > 3 * sigma
 
 
-def test_the_twist_jackknife_by_gauss_newton_steps_is_the_one_by_refits(
+def test_the_linearised_twist_and_its_jackknife_are_those_of_refits(
         sim_run, monkeypatch) -> None:
-    """Each jackknife group's twist from two Gauss–Newton steps at the full solution (every
-    group's planes re-fitted in two evaluations) gives the σ that 16 refits by TRF gave, under
-    the true H and with ry 0.1° off."""
+    """The twist from the faces linearised in the correction is TRF's fit, and each jackknife
+    group's twist from Gauss–Newton steps on the linearised faces gives the σ that 16 refits by
+    TRF gave: under the true H, with ry 0.1° off (one linearisation, at no correction) and
+    0.5° off (linearised again at the twist found)."""
     from calstation.engine import twist
     from calstation.engine.cube import _face_dimensions
     from calstation.engine.cubecloud import segment_cube
@@ -329,7 +330,8 @@ def test_the_twist_jackknife_by_gauss_newton_steps_is_the_one_by_refits(
     recipe, rec, truth = _cube_scan(sim_run)
     scan = from_recording(rec)
     edge, radius = recipe.fixtures.qa_cube.edge, recipe.fixtures.platter.radius
-    for H in (truth, truth.with_(ry=truth.ry + math.radians(0.1))):
+    for off_deg in (0.0, 0.1, 0.5):
+        H = truth.with_(ry=truth.ry + math.radians(off_deg))
         cloud = segment_cube(scan.p_L, scan.phi, H, edge, radius)
         dims = _face_dimensions(cloud, edge, radius)
         faces = twist._twist_faces(
@@ -349,14 +351,16 @@ def test_the_twist_jackknife_by_gauss_newton_steps_is_the_one_by_refits(
             refits.append(float(twist._fit_twist(flat, H, x, f_scale, 15).x[0]))
         k = twist.JACKKNIFE_GROUPS
         by_refits = math.sqrt((k - 1) / k * np.sum((np.array(refits) - np.mean(refits)) ** 2))
-        assert twist._jackknife_sigma(faces, H, x, f_scale, noise) == pytest.approx(
-            by_refits, rel=0.01)
+        grouped = twist._GroupedFaces(faces, labels, noise)
+        found, spread = twist._linearised_twist(grouped, H, f_scale)
+        assert found == pytest.approx(x, abs=0.005 * by_refits)
+        assert spread == pytest.approx(by_refits, rel=0.01)
     # a face all of whose returns fall in one group (a face seen in one scan line) is left out
     # of that group's refit, as a refit without it leaves it out
     one_group = [np.full(lab.shape, 3) if i == 0 else lab for i, lab in enumerate(labels)]
-    monkeypatch.setattr(twist, "_line_groups", lambda faces: one_group)
-    sigma = twist._jackknife_sigma(faces, H, x, f_scale, noise)
-    assert math.isfinite(sigma) and sigma > 0
+    grouped = twist._GroupedFaces(faces, one_group, noise)
+    found, spread = twist._linearised_twist(grouped, H, f_scale)
+    assert math.isfinite(found) and math.isfinite(spread) and spread > 0
 
 
 def test_the_check_uses_at_most_cube_returns_in_whole_scan_lines(sim_run, monkeypatch) -> None:
