@@ -36,8 +36,7 @@ def radius_outlier_mask(points: FloatArray, radius: float, neighbours: int) -> N
         return np.ones(points.shape[0], dtype=bool)
     if points.shape[0] <= neighbours:
         return np.zeros(points.shape[0], dtype=bool)
-    out: NDArray[np.bool_] = np.isfinite(kth_neighbour_distance(points, neighbours, radius))
-    return out
+    return neighbours_within(points, neighbours, radius)
 
 
 def largest_cluster(points: FloatArray, voxel: float = 0.005) -> NDArray[np.bool_]:
@@ -300,29 +299,78 @@ def whole_lines(p_L: FloatArray, most: int) -> NDArray[np.intp]:
     return out
 
 
-def kth_neighbour_distance(p: FloatArray, k: int, upper: float = math.inf) -> FloatArray:
-    """(N,) distance (m) from each of the (N, 3) points to its ``k``-th nearest other point;
-    inf where that point is ``upper`` or farther.
-
-    Exact; the tree is built unbalanced and queried in its own order (neighbours in memory),
-    ~25 % quicker than the defaults on a scan's cloud."""
-    tree = cKDTree(p, balanced_tree=False, compact_nodes=False)
-    order = tree.indices
-    dist, _ = tree.query(p[order], k=k + 1, distance_upper_bound=upper, workers=-1)
-    out = np.empty(p.shape[0])
-    out[order] = dist[:, -1]
-    return out
+DENSITY_SAMPLE = 16_384
+"""Points whose distance to their 8th neighbour sets :func:`density_outlier_mask`'s radius,
+in a cloud of more than 4 times as many (every k-th in the tree's order, spread over the
+cloud): the median of 18 700 of the default cube's 112 000 moved the radius by 0.06 % and kept
+the same returns. A smaller cloud's radius is found from all of its points, in one search."""
 
 
 def density_outlier_mask(p: FloatArray, neighbours: int = 8) -> NDArray[np.bool_]:
     """Radius outlier removal with the radius scaled to the cloud's density (3× the median
-    distance to the 8th neighbour): (N,) True for the returns kept; isolated returns (mixed
-    pixels, spray) go."""
-    if p.shape[0] <= neighbours + 1:
-        return np.ones(p.shape[0], dtype=bool)
-    far = kth_neighbour_distance(p, neighbours)
-    radius = 3.0 * float(np.median(far))
-    out: NDArray[np.bool_] = far <= radius
+    distance to the 8th neighbour; of :data:`DENSITY_SAMPLE` of the points in a large cloud):
+    (N,) True for the returns kept; isolated returns (mixed pixels, spray) go."""
+    n = p.shape[0]
+    if n <= neighbours + 1:
+        return np.ones(n, dtype=bool)
+    tree = cKDTree(p, balanced_tree=False, compact_nodes=False)
+    if n <= 4 * DENSITY_SAMPLE:
+        far = _kth_distance(tree, p, np.arange(n), neighbours, math.inf)
+        out: NDArray[np.bool_] = far <= 3.0 * float(np.median(far))
+        return out
+    sample = tree.indices[:: n // DENSITY_SAMPLE]
+    dist, _ = tree.query(p[sample], k=neighbours + 1, workers=-1)
+    return neighbours_within(p, neighbours, 3.0 * float(np.median(dist[:, -1])), tree)
+
+
+def neighbours_within(
+    p: FloatArray, k: int, radius: float, tree: cKDTree | None = None
+) -> NDArray[np.bool_]:
+    """(N,) True for the (N, 3) points with at least ``k`` others within ``radius`` (m).
+
+    Points that share a cell of a grid of edge radius/√3 are within the radius of each other,
+    so a cell of k + 1 points or more keeps all of them without a search (about half the
+    returns of a cube scan at the cube check's radius); the others are searched in ``tree``
+    (built on ``p`` when not given)."""
+    out = _crowded_cells(p, k, radius)
+    rest = np.flatnonzero(~out)
+    if rest.size:
+        if tree is None:
+            tree = cKDTree(p, balanced_tree=False, compact_nodes=False)
+        out[rest] = _kth_distance(tree, p, rest, k, np.nextafter(radius, np.inf)) <= radius
+    return out
+
+
+def _kth_distance(
+    tree: cKDTree, p: FloatArray, which: NDArray[np.intp], k: int, upper: float
+) -> FloatArray:
+    """(len(which),) the distance from each of the points ``p[which]`` to its ``k``-th nearest
+    other point in ``tree`` (built on ``p``); inf where that is ``upper`` or farther. Searched
+    in the tree's order (neighbours in memory): ~25 % quicker than in the cloud's."""
+    rank = np.empty(p.shape[0], dtype=np.intp)
+    rank[tree.indices] = np.arange(p.shape[0])
+    order = np.argsort(rank[which])
+    dist, _ = tree.query(p[which[order]], k=k + 1, distance_upper_bound=upper, workers=-1)
+    out = np.empty(which.shape[0])
+    out[order] = dist[:, -1]
+    return out
+
+
+def _crowded_cells(p: FloatArray, k: int, radius: float) -> NDArray[np.bool_]:
+    """(N,) True for the points in a cell of more than ``k`` points, the cells cubes of edge
+    just under radius/√3 (their diagonal within the radius); all False for a grid too fine to
+    number in 63 bits or a cloud that is not finite."""
+    edge = radius / math.sqrt(3.0) * (1.0 - 1e-9)
+    none = np.zeros(p.shape[0], dtype=bool)
+    if not edge > 0 or p.shape[0] <= k or not np.isfinite(p).all():
+        return none
+    cell = ((p - p.min(axis=0)) / edge).astype(np.int64)
+    dims = cell.max(axis=0) + 1
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) >= 2.0**62:
+        return none
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    out: NDArray[np.bool_] = counts[inverse.reshape(-1)] > k
     return out
 
 

@@ -172,3 +172,44 @@ def test_veil_mask_marks_a_surface_only_near_grazing() -> None:
         p_L = rays * (1.0 / (rays @ n))[:, None]
         mask = veil_mask(p_L, np.arange(az.size))
         assert mask.all() if veiled else not mask.any(), (incidence, mask.sum())
+
+
+def test_density_outlier_mask_of_a_large_cloud_is_the_one_of_every_point() -> None:
+    """Beyond 4 × ``DENSITY_SAMPLE`` points the radius comes from a sample and crowded grid
+    cells keep their points without a search: the same returns kept as by every point's own
+    distance to its 8th neighbour, the strays dropped."""
+    from scipy.spatial import cKDTree
+
+    from calstation.engine import geometry
+
+    rng = np.random.default_rng(5)
+    n = 5 * geometry.DENSITY_SAMPLE
+    face = np.column_stack([rng.uniform(0, 0.3, n), rng.uniform(0, 0.3, n),
+                            rng.normal(0, 0.0005, n)])
+    strays = rng.uniform(-0.5, 0.8, (300, 3))
+    p = np.concatenate([face, strays])
+    far = cKDTree(p).query(p, k=9)[0][:, -1]
+    radius = 3.0 * float(np.median(far))
+    keep = geometry.density_outlier_mask(p)
+    assert np.array_equal(keep, far <= radius)
+    assert keep[:n].all() and keep[n:].mean() < 0.05
+    # the grid did keep most of the face without a search
+    assert geometry._crowded_cells(p, 8, radius)[:n].mean() > 0.2
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(1, 10), scale=st.floats(0.6, 1.6))
+def test_neighbours_within_counts_as_a_search_of_every_point(seed: int, k: int,
+                                                             scale: float) -> None:
+    """Crowded grid cells keep their points without a search, and only when every point of
+    the cell is within the radius: at a density where a point has about ``k`` neighbours
+    within the radius, the counts of a search of every point decide the same."""
+    from scipy.spatial import cKDTree
+
+    from calstation.engine.geometry import neighbours_within
+
+    n = 8000
+    p = np.random.default_rng(seed).uniform(0.0, 1.0, (n, 3))
+    radius = scale * (3.0 * k / (4.0 * np.pi * n)) ** (1.0 / 3.0)
+    others = cKDTree(p).query_ball_point(p, radius, return_length=True) - 1
+    assert np.array_equal(neighbours_within(p, k, radius), others >= k)
