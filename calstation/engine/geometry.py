@@ -250,8 +250,9 @@ def face_labels(
 
 
 def fit_plane(points: FloatArray, trim_sigma: float = 3.0) -> tuple[FloatArray, FloatArray, float]:
-    """Plane through (N, 3) points by SVD, refitted once without residuals beyond
-    ``trim_sigma``·RMS: (centroid (3,), unit normal (3,), RMS of the kept residuals)."""
+    """Plane through (N, 3) points (the smallest eigenvector of their scatter), refitted once
+    without residuals beyond ``trim_sigma``·RMS: (centroid (3,), unit normal (3,), RMS of the
+    kept residuals)."""
     if points.shape[0] < 3:
         raise VerificationError(f"a plane needs at least 3 points, got {points.shape[0]}")
     keep = np.ones(points.shape[0], dtype=bool)
@@ -259,9 +260,10 @@ def fit_plane(points: FloatArray, trim_sigma: float = 3.0) -> tuple[FloatArray, 
     n = np.array([1.0, 0.0, 0.0])
     rms = 0.0
     for _ in range(2):
-        c = points[keep].mean(axis=0)
-        _, _, vt = np.linalg.svd(points[keep] - c, full_matrices=False)
-        n = vt[2]
+        kept = points[keep]
+        c = kept.mean(axis=0)
+        d = kept - c
+        n = np.linalg.eigh(d.T @ d)[1][:, 0]
         res = (points - c) @ n
         rms = float(np.sqrt(np.mean(res[keep] ** 2)))
         keep = np.abs(res) <= trim_sigma * max(rms, 1e-6)

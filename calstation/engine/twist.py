@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from calstation.engine.frames import Extrinsics, FloatArray, lidar_to_dynamic
+from calstation.engine.frames import Extrinsics, FloatArray, lidar_to_dynamic, platform_to_dynamic
 from calstation.engine.geometry import fit_plane, line_ids
 
 if TYPE_CHECKING:
@@ -420,9 +420,8 @@ def ray_gain(p_L: FloatArray, phi: FloatArray, H: Extrinsics, normal: FloatArray
     """RMS over the returns ((N, 3) in L, (N,) φ) of the component along ``normal`` (in D) of
     a unit step along each return's ray: how much of the range noise a plane with that normal
     shows (1 facing the lidar, 0 at grazing incidence)."""
-    q = lidar_to_dynamic(p_L, phi, H)
     unit = p_L / np.linalg.norm(p_L, axis=1, keepdims=True)
-    a = (lidar_to_dynamic(p_L + unit, phi, H) - q) @ normal
+    a = platform_to_dynamic(unit @ H.R, phi) @ normal  # a step turns, it does not translate
     return float(np.sqrt(np.mean(a**2)))
 
 
