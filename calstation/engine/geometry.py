@@ -317,7 +317,7 @@ def density_outlier_mask(p: FloatArray, neighbours: int = 8) -> NDArray[np.bool_
         return np.ones(n, dtype=bool)
     tree = cKDTree(p, balanced_tree=False, compact_nodes=False)
     if n <= 4 * DENSITY_SAMPLE:
-        far = _kth_distance(tree, p, np.arange(n), neighbours, math.inf)
+        far = _kth_distance(tree, p, np.ones(n, dtype=bool), neighbours, math.inf)
         out: NDArray[np.bool_] = far <= 3.0 * float(np.median(far))
         return out
     sample = tree.indices[:: n // DENSITY_SAMPLE]
@@ -335,25 +335,23 @@ def neighbours_within(
     returns of a cube scan at the cube check's radius); the others are searched in ``tree``
     (built on ``p`` when not given)."""
     out = _crowded_cells(p, k, radius)
-    rest = np.flatnonzero(~out)
-    if rest.size:
+    if not out.all():
         if tree is None:
             tree = cKDTree(p, balanced_tree=False, compact_nodes=False)
-        out[rest] = _kth_distance(tree, p, rest, k, np.nextafter(radius, np.inf)) <= radius
+        out |= _kth_distance(tree, p, ~out, k, np.nextafter(radius, np.inf)) <= radius
     return out
 
 
 def _kth_distance(
-    tree: cKDTree, p: FloatArray, which: NDArray[np.intp], k: int, upper: float
+    tree: cKDTree, p: FloatArray, which: NDArray[np.bool_], k: int, upper: float
 ) -> FloatArray:
-    """(len(which),) the distance from each of the points ``p[which]`` to its ``k``-th nearest
-    other point in ``tree`` (built on ``p``); inf where that is ``upper`` or farther. Searched
-    in the tree's order (neighbours in memory): ~25 % quicker than in the cloud's."""
-    rank = np.empty(p.shape[0], dtype=np.intp)
-    rank[tree.indices] = np.arange(p.shape[0])
-    order = np.argsort(rank[which])
-    dist, _ = tree.query(p[which[order]], k=k + 1, distance_upper_bound=upper, workers=-1)
-    out = np.empty(which.shape[0])
+    """(N,) the distance from each of the points ``p`` marked in ``which`` to its ``k``-th
+    nearest other point in ``tree`` (built on ``p``); inf where that is ``upper`` or farther,
+    and where not marked. Searched in the tree's order (neighbours in memory): ~25 % quicker
+    than in the cloud's."""
+    order = tree.indices[which[tree.indices]]
+    dist, _ = tree.query(p[order], k=k + 1, distance_upper_bound=upper, workers=-1)
+    out = np.full(p.shape[0], np.inf)
     out[order] = dist[:, -1]
     return out
 

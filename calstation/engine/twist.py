@@ -303,7 +303,7 @@ class _GroupedFaces:
         column the fit on every return"""
 
     def __call__(self, H: Extrinsics) -> list[FloatArray]:
-        """Per face, (N_f, G) each return's range error (m) against each group's plane (the
+        """Per face, (N_f, G + 1) each return's range error (m) against each group's plane (the
         entries of a group's own returns are not used)."""
         flat = self.flat
         q_all = flat._to_D(flat.p_L - H.t, H)
