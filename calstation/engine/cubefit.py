@@ -210,8 +210,10 @@ class _RangeSizeErrors:
     of :data:`~calstation.engine.rangemodel.ESTIMATED_NAMES`; centre y, centre z, yaw)."""
 
     def __init__(self, faces: _Faces, platter: FloatArray, base: FloatArray, free: list[int],
-                 edge: float) -> None:
+                 edge: float, dish: bool = False) -> None:
         self.f, self.base, self.free, self.edge = faces, base, free, edge
+        self.dish = dish
+        """the platter's dish fitted, last in x (else flat): see :func:`range_size_fit`"""
         self.platter = platter
         self.platter_rays = unit_rays(platter)
         # the ranges, corrected at every evaluation, are measured once
@@ -266,16 +268,19 @@ class _RangeSizeErrors:
 
         def on_platter() -> tuple[FloatArray, ...]:
             down = self.platter_rays @ H.R[:, 0]
-            height = (correct_vector(self.platter, v, incidence_shape(down, LEAST_COSINE_KNOWN),
-                                     self.platter_rho)
-                      - H.t) @ H.R[:, 0]
-            return (height / away_from_grazing(down),)
+            q = (correct_vector(self.platter, v, incidence_shape(down, LEAST_COSINE_KNOWN),
+                                self.platter_rho) - H.t) @ H.R
+            a = away_from_grazing(down)
+            return q[:, 0] / a, (q[:, 1] ** 2 + q[:, 2] ** 2) / a, 1.0 / a
 
         ny, nz, cosine, q = self._kept.get("faces", v.tobytes() + x[len(self.free) + 2].tobytes(),
                                        faces)
         dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - 0.5 * size,
                         q[:, 0] - size)
-        platter = self._kept.get("platter", v.tobytes(), on_platter)[0]
+        height, across, inverse = self._kept.get("platter", v.tobytes(), on_platter)
+        # the platter's dish: its height c·(r² − r_c²), r from the axis, r_c the cube's centre's
+        dish = float(x[len(self.free) + 3]) if self.dish else 0.0
+        platter = height - dish * (across - (cy * cy + cz * cz) * inverse)
         if self.level_free:
             # about their mean: the platter gives the axis's direction; its level is free, as
             # a platter of another finish reads at another range than the cube (the cube's
@@ -297,7 +302,7 @@ class _RangeSizeErrors:
         H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
         k = float(v[SCALE])
         faces = self._face_columns(x, v, H)
-        platter = self._platter_columns(v, H)
+        platter = self._platter_columns(x, v, H)
         if self.level_free:
             platter -= platter.mean(axis=0)
         out: FloatArray = np.vstack([faces, platter])
@@ -365,38 +370,53 @@ class _RangeSizeErrors:
         yawed = moved(turned_L)
         yawed -= (turned[:, 1] * x[n_free] + turned[:, 2] * x[n_free + 1]) / a
         columns.append(yawed)
+        if self.dish:
+            columns.append(np.zeros_like(a))
         return np.column_stack(columns)
 
-    def _platter_columns(self, v: FloatArray, H: Extrinsics) -> FloatArray:
-        """(M, n) ∂(height/a)/∂x of the platter's returns (before the level and 1 + k)."""
-        k1 = 1.0 + float(v[SCALE])
+    def _platter_columns(self, x: FloatArray, v: FloatArray, H: Extrinsics) -> FloatArray:
+        """(M, n) ∂(height/a)/∂x of the platter's returns (before the level and 1 + k): the
+        height along the axis less the dish's, c·(r² − r_c²), each return in P."""
+        n_free, k1 = len(self.free), 1.0 + float(v[SCALE])
+        cy, cz = float(x[n_free]), float(x[n_free + 1])
+        dish = float(x[n_free + 3]) if self.dish else 0.0
         R, t, w = H.R, H.t, self.platter_rays
         down = w @ R[:, 0]
         shape = incidence_shape(down, LEAST_COSINE_KNOWN)
         shape_slope = incidence_shape_slope(down, LEAST_COSINE_KNOWN)
         corrected = correct_vector(self.platter, v, shape, self.platter_rho)
-        height = (corrected - t) @ R[:, 0]
+        q = (corrected - t) @ R
+        across = q[:, 1] ** 2 + q[:, 2] ** 2 - (cy * cy + cz * cz)
+        height = q[:, 0] - dish * across
         a = away_from_grazing(down)
         a_slope = (np.abs(down) > GRAZING_FACE).astype(np.float64)
+        ray = w @ R  # each return's ray in P: a range change moves it along that
+
+        def column(dq: FloatArray, d_down: FloatArray | float = 0.0) -> FloatArray:
+            d_height = dq[:, 0] - 2.0 * dish * (q[:, 1] * dq[:, 1] + q[:, 2] * dq[:, 2])
+            out: FloatArray = d_height / a - height * a_slope * d_down / a**2
+            return out
+
         columns = []
         for i in self.free:
-            d_down: FloatArray | float = 0.0
             if i < 3:
-                d_height = np.full(down.shape, -R[i, 0])
+                columns.append(column(np.broadcast_to(-R[i], q.shape)))
             elif i < len(PARAMETER_NAMES):
                 dR = rotation_derivative(v[: len(PARAMETER_NAMES)], i)
                 d_down = w @ dR[:, 0]
-                d_height = ((corrected - t) @ dR[:, 0]
-                            - down * v[INCIDENCE] * shape_slope * d_down / k1)
+                d_rho = -v[INCIDENCE] * shape_slope * d_down / k1
+                columns.append(column((corrected - t) @ dR + ray * d_rho[:, None], d_down))
             elif i == OFFSET:
-                d_height = -down / k1
+                columns.append(column(-ray / k1))
             elif i == INCIDENCE:
-                d_height = -down * shape / k1
+                columns.append(column(-ray * (shape / k1)[:, None]))
             else:  # SCALE
-                d_height = -(corrected @ R[:, 0]) / k1
-            columns.append(d_height / a - height * a_slope * d_down / a**2)
-        pose = np.zeros((down.shape[0], 3))
-        return np.column_stack([*columns, pose])
+                columns.append(column(-(corrected @ R) / k1))
+        centre = 2.0 * dish / a
+        columns += [centre * cy, centre * cz, np.zeros_like(a)]
+        if self.dish:
+            columns.append(-across / a)
+        return np.column_stack(columns)
 
 
 def _unspun(q: FloatArray, cos: FloatArray, sin: FloatArray) -> FloatArray:
@@ -589,16 +609,19 @@ def range_size_fit(
         k = 1 if settled else FIRST_ROUNDS_STRIDE
         faces, platter = model_labels(returns.every(k), base, pose, cube.edge, platter_radius,
                                       noise, most=(FIT_POINTS // k, PLATTER_POINTS // k))
-        errors = _RangeSizeErrors(faces, platter, base, free, cube.edge)
-        x0 = np.concatenate([base[free], pose])
+        # the platter's dish is fitted in the last round only, from a settled H: in the first
+        # rounds, far from it, its curvature would take up the error of the axis's tilt
+        errors = _RangeSizeErrors(faces, platter, base, free, cube.edge, dish=settled)
+        x0 = np.concatenate([base[free], pose, [0.0] if settled else []])
         res = least_squares(
             errors, x0, jac=errors.jac, method="trf", loss="soft_l1",
-            f_scale=_f_scale(noise), x_scale=_scales(free, 3), max_nfev=MAX_NFEV,
+            f_scale=_f_scale(noise), x_scale=_scales(free, x0.size - len(free)), max_nfev=MAX_NFEV,
         )
         if settled:
-            return _range_fit_result(res, errors, faces, free, cube, platter, encoder)
+            return _range_fit_result(res, errors, faces, free, cube, platter, encoder,
+                                         platter_radius)
         moved = _moved(base, errors.vector(res.x))
-        base, pose = errors.vector(res.x), res.x[len(free):]
+        base, pose = errors.vector(res.x), res.x[len(free):len(free) + 3]
         settled = i > 0 and moved[0] < SETTLED_M and moved[1] < SETTLED_RAD
     raise FineTuningError(
         f"the known-size cube fit did not settle in {RANGE_ROUNDS} rounds: its last moved the "
@@ -626,7 +649,8 @@ def _scales(free: list[int], pose: int) -> FloatArray:
 
 
 def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Faces, free: list[int],
-                      cube: CubeGeometry, platter: FloatArray, encoder: bool) -> KnownSizeFit:
+                      cube: CubeGeometry, platter: FloatArray, encoder: bool,
+                      platter_radius: float) -> KnownSizeFit:
     """The :class:`KnownSizeFit` of :func:`range_size_fit`: σ from the block sandwich of the
     faces and the platter (× :data:`SIGMA_SCALE`, with the model floor), the bias bound in
     quadrature."""
@@ -640,17 +664,27 @@ def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Fac
     n_faces = faces.p_L.shape[0]
     # faces in D (what turns with the cube), the platter in P (what stays with the lidar's rays)
     where = np.vstack([lidar_to_dynamic(model[:n_faces], phi, H), (model[n_faces:] - H.t) @ H.R])
-    cov = _block_covariance(res, where, free)
+    full = _block_covariance(res, where, free)
+    cov = None if full is None else full[: len(free), : len(free)]
     edge = _edge_direction(res, errors, free, cube.edge_tolerance)
     bias = _bias_bound(res, errors, faces, free, cube.edge_tolerance, edge)
     return KnownSizeFit(
         H=H, sigma=_sigma_with_bias(cov, free, bias), covariance=covariance_record(cov, free),
         bias=bias, edge_direction=edge,
         details={**_details(res, faces, cube), "platter_returns": int(platter.shape[0]),
+                 **_flatness(res, full, platter_radius),
                  "range_model": [ESTIMATED_NAMES[i] for i in free if i >= OFFSET]},
         range_model=RangeModel.from_vector(v), residuals=_residuals(res, errors, faces.p_L),
         encoder_direction=_encoder_direction(res, errors, free) if encoder else None,
     )
+
+
+def _flatness(res: OptimizeResult, cov: FloatArray | None, radius: float) -> JSONObject:
+    """The platter's flatness the fit measured (m, its dish's depth from the axis to the rim
+    of ``radius``: positive, the rim higher) with its 1σ (NaN without a covariance)."""
+    sigma = math.nan if cov is None else math.sqrt(max(float(cov[-1, -1]), 0.0))
+    return {"platter_flatness_m": float(res.x[-1]) * radius**2,
+            "sigma_platter_flatness_m": sigma * radius**2}
 
 
 def _encoder_direction(
@@ -668,7 +702,7 @@ def _encoder_direction(
     for sign in (1.0, -1.0):
         cos, sin = turned(f.cos, f.sin, sign * STEP)
         moved.append(_RangeSizeErrors(replace(f, cos=cos, sin=sin), errors.platter, errors.base,
-                                      errors.free, errors.edge)(res.x))
+                                      errors.free, errors.edge, errors.dish)(res.x))
     by_angle = (moved[0] - moved[1]) / (2.0 * STEP)
     columns = np.zeros((by_angle.size, len(HARMONICS)))
     n = f.cos.size
@@ -703,18 +737,21 @@ def _covariance(
     block sandwich × :data:`SIGMA_SCALE` and the model floor."""
     H = errors.H(res.x)
     p_D = lidar_to_dynamic(faces.p_L, np.arctan2(faces.sin, faces.cos), H)
-    return _block_covariance(res, p_D, free)
+    full = _block_covariance(res, p_D, free)
+    return None if full is None else full[: len(free), : len(free)]
 
 
 def _block_covariance(res: OptimizeResult, where: FloatArray, free: list[int]) -> FloatArray | None:
-    """(n, n) covariance of the ``free`` parameters from the fit ``res``, its residuals
-    correlated within the spatial blocks of the points ``where`` (the block sandwich) ×
-    :data:`SIGMA_SCALE`, with the model floor; None when it cannot be computed."""
+    """(m, m) covariance of every parameter of the fit ``res`` (the ``free`` ones of H and the
+    range model first, then the cube's pose and the rest), its residuals correlated within the
+    spatial blocks of the points ``where`` (the block sandwich) × :data:`SIGMA_SCALE`, with the
+    model floor on the ``free`` ones; None when it cannot be computed."""
     full = parameter_covariance(res, list(range(res.x.size)), blocks=block_ids(where, SIGMA_BLOCK))
     if full is None:
         return None
     n = len(free)
-    out: FloatArray = full[:n, :n] * SIGMA_SCALE**2 + model_floor(free)
+    out: FloatArray = full * SIGMA_SCALE**2
+    out[:n, :n] += model_floor(free)
     return out
 
 
