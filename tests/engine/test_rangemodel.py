@@ -369,43 +369,54 @@ def test_a_disagreement_from_an_unmodelled_incidence_bias_is_named(
     assert "re-place the spin target" not in said
 
 
-@pytest.fixture(scope="module")
-def dished_scan(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
-    """The cube scan of a lidar 4 mm long over a platter dished by 0.2 mm (its rim higher),
-    its truth and its recipe."""
+def _cube_scan(sim_run: Any, folder: Path, flatness: float) -> Any:
+    """The cube scan (seed 5) of a lidar 4 mm long over a platter dished by ``flatness`` (its
+    rim higher), its truth and its recipe."""
     from calstation.engine.spinscan import from_recording
     from calstation.recordings.reader import read_recording
 
-    path = sensor_recipe(tmp_path_factory.mktemp("dished"),
-                         {"range": {"offset": 0.004}, "platter": {"flatness": 0.0002}},
-                         "dished.yaml")
+    path = sensor_recipe(folder, {"range": {"offset": 0.004}, "platter": {"flatness": flatness}},
+                         f"dished-{flatness:g}.yaml")
     cube = read_recording(sim_run(recipe=path, seed=5)["cube"])
     assert cube.truth is not None
     return from_recording(cube), cube.truth, load_recipe(path).recipe
 
 
-def test_a_dished_platter_is_measured_and_does_not_tilt_the_axis(dished_scan: Any) -> None:
-    """The lidar sees the platter along one line, off the axis: a dish there reads as a tilt of
-    the axis, which moved tx (the axis's height at the lidar) by about 15 µm at 0.2 mm of dish,
-    2.5σ, when the known-size fit with the range model took the platter for a plane (and by
-    4 µm on recipes/sim-realistic.yaml's 0.05 mm platter, the mean over 24 runs). It fits the
-    dish, and gives back its depth within 3σ."""
-    from calstation.engine.cubefit import known_size_fit
-    from calstation.engine.metrics import axis_errors
+@pytest.fixture(scope="module")
+def dished_scan(sim_run: Any, tmp_path_factory: pytest.TempPathFactory) -> Any:
+    """:func:`_cube_scan` of a platter dished by 0.2 mm."""
+    return _cube_scan(sim_run, tmp_path_factory.mktemp("dished"), 0.0002)
 
-    scan, truth, recipe = dished_scan
-    start = truth.with_(tx=truth.tx + 3e-4, ty=truth.ty - 5e-4, rz=truth.rz + 2e-4)
-    fit = known_size_fit(scan, start, recipe.fixtures.qa_cube, range_model="offset",
-                         platter_radius=recipe.fixtures.platter.radius,
-                         start_range=RangeModel(offset=0.0035))
-    flatness = fit.details["platter_flatness_m"]
-    sigma = fit.details["sigma_platter_flatness_m"]
-    assert isinstance(flatness, float) and isinstance(sigma, float)
-    assert abs(flatness - 0.0002) <= 3 * sigma and sigma < 0.05e-3
-    e = axis_errors(fit.H, truth)
-    for name in ("tx", "ty", "tz", "ry", "rz"):
-        assert abs(e[f"{name}_error"]) <= 3 * fit.sigma[name], (name, e)
-    assert abs(e["tx_error"]) <= 1.5 * fit.sigma["tx"], (e["tx_error"], fit.sigma["tx"])
+
+def test_a_dished_platter_is_measured_and_does_not_tilt_the_axis(
+    sim_run: Any, dished_scan: Any, tmp_path: Path,
+) -> None:
+    """The lidar sees the platter along one line, off the axis: a dish there reads as a tilt of
+    the axis. Fitted as a flat plane, 0.2 mm of dish moved tx (the axis's height at the lidar)
+    by 6.5 µm (0.9σ) and the range offset by 0.16 mm against the same scan over a flat platter
+    (and tx by 4 µm on recipes/sim-realistic.yaml's 0.05 mm, the mean over 24 runs). The known-
+    size fit with the range model fits the dish: the two scans give the same H and offset, and
+    the dish's depth comes back within 3σ."""
+    from calstation.engine.cubefit import known_size_fit
+
+    fits = []
+    for scan, truth, recipe in (dished_scan, _cube_scan(sim_run, tmp_path, 0.0)):
+        start = truth.with_(tx=truth.tx + 3e-4, ty=truth.ty - 5e-4, rz=truth.rz + 2e-4)
+        fits.append(known_size_fit(scan, start, recipe.fixtures.qa_cube, range_model="offset",
+                                   platter_radius=recipe.fixtures.platter.radius,
+                                   start_range=RangeModel(offset=0.0035)))
+    dished, flat = fits
+    # rz still moves by 0.43σ at this dish (by −0.58σ fitted flat), by what the fit does not
+    # model; tx by 0.12σ and ty by 0.06σ (0.93σ and 1.2σ fitted flat)
+    for name, within in (("tx", 0.3), ("ty", 0.3), ("tz", 0.3), ("ry", 0.3), ("rz", 0.5)):
+        moved = getattr(dished.H, name) - getattr(flat.H, name)
+        assert abs(moved) <= within * flat.sigma[name], (name, moved, flat.sigma[name])
+    assert abs(dished.range_model.offset - flat.range_model.offset) < 0.05e-3
+    depth = dished.details["platter_flatness_m"]
+    sigma = dished.details["sigma_platter_flatness_m"]
+    assert isinstance(depth, float) and isinstance(sigma, float)
+    assert abs(depth - 0.0002) <= 3 * sigma and sigma < 0.05e-3
+    assert abs(flat.details["platter_flatness_m"]) <= 3 * sigma  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("model", ["offset", "offset+scale"])
