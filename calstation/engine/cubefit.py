@@ -43,21 +43,18 @@ from calstation.engine.cubecast import (
     _kept,
     _near_platter,
     _Returns,
-    _turned,
     fixed_keys,
     model_labels,
 )
 from calstation.engine.cubecloud import CubeCloud, cube_cloud, segment_cube
+from calstation.engine.cuberesiduals import RangeErrors, RangeSizeErrors
 from calstation.engine.frames import (
     PARAMETER_NAMES,
     Extrinsics,
     FloatArray,
     lidar_to_dynamic,
-    rotation_derivative,
-    rowdot,
 )
 from calstation.engine.geometry import face_labels, upright_box, veil_mask
-from calstation.engine.kept import Kept
 from calstation.engine.periodicity.covariance import (
     CovarianceRecord,
     block_ids,
@@ -69,24 +66,18 @@ from calstation.engine.periodicity.covariance import (
 from calstation.engine.rangemodel import (
     ESTIMATED_NAMES,
     IDENTITY,
-    INCIDENCE,
-    LEAST_COSINE_KNOWN,
     OFFSET,
     SCALE,
     RangeModel,
     RangeModelName,
     correct_vector,
     estimated_indices,
-    incidence_shape,
-    incidence_shape_slope,
     unit_rays,
 )
 from calstation.engine.residuals import TrendRecord, residual_trends
 from calstation.engine.settings import CubeGeometry
 from calstation.engine.spinscan import SpinScan
 from calstation.engine.twist import (
-    GRAZING_FACE,
-    away_from_grazing,
     face_range_noise,
     range_twist_bias,
 )
@@ -173,264 +164,6 @@ def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
     )
 
 
-class _RangeErrors:
-    """Range errors of the labelled returns against an upright cube of edge ``edge``, as a
-    function of x = (H's free parameters, centre y, centre z, yaw, top height)."""
-
-    def __init__(self, faces: _Faces, base: FloatArray, free: list[int], edge: float) -> None:
-        self.f, self.base, self.free, self.edge = faces, base, free, edge
-
-    def H(self, x: FloatArray) -> Extrinsics:
-        v = self.base.copy()
-        v[self.free] = x[: len(self.free)]
-        return Extrinsics.from_vector(v)
-
-    def __call__(self, x: FloatArray, edge: float | None = None) -> FloatArray:
-        f = self.f
-        H = self.H(x)
-        q = _turned(f.p_L - H.t, H, f.cos, f.sin)
-        r = _turned(f.rays, H, f.cos, f.sin)
-        cy, cz, yaw, top = x[len(self.free):]
-        c, s = math.cos(yaw), math.sin(yaw)
-        ny, nz = _side_normals(f, c, s)
-        half = 0.5 * (self.edge if edge is None else edge)
-        dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - half, q[:, 0] - top)
-        cosine = np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
-        out: FloatArray = dist / away_from_grazing(cosine)
-        return out
-
-
-class _RangeSizeErrors:
-    """The range errors of the known-size fit when the lidar's range model is estimated too:
-    the labelled returns against an upright cube of edge ``edge`` standing on the platter (its
-    top at ``edge`` above the origin), and the platter's returns against a plane perpendicular
-    to the axis — at a level of their own, or with the scale error at the origin (the cube's
-    height, a known length, is what sets the scale) — every return first corrected along its
-    ray by the range terms. x = (the free parameters of the estimated vector, indices ``free``
-    of :data:`~calstation.engine.rangemodel.ESTIMATED_NAMES`; centre y, centre z, yaw)."""
-
-    def __init__(self, faces: _Faces, platter: FloatArray, base: FloatArray, free: list[int],
-                 edge: float, dish: bool = False) -> None:
-        self.f, self.base, self.free, self.edge = faces, base, free, edge
-        self.dish = dish
-        """the platter's dish fitted, last in x (else flat): see :func:`range_size_fit`"""
-        self.platter = platter
-        self.platter_rays = unit_rays(platter)
-        # the ranges, corrected at every evaluation, are measured once
-        self.rho = np.linalg.norm(faces.p_L, axis=-1)
-        self.platter_rho = np.linalg.norm(platter, axis=-1)
-        self.level_free = SCALE not in free
-        """the platter's level free, unless the scale error is fitted: then the cube's height
-        above the platter is the known length that sets it (the platter and the cube must read
-        alike: one finish)"""
-        self._kept = Kept()
-        """the last evaluation's turned rays (by H), faces (by the estimated vector and the
-        yaw) and platter (by the estimated vector): a finite-difference step in the cube's
-        centre, its yaw or a range term leaves some of them as they were"""
-
-    def vector(self, x: FloatArray) -> FloatArray:
-        v = self.base.copy()
-        v[self.free] = x[: len(self.free)]
-        return v
-
-    def H(self, x: FloatArray) -> Extrinsics:
-        return Extrinsics.from_vector(self.vector(x)[: len(PARAMETER_NAMES)])
-
-    def _normals(self, x: FloatArray, H: Extrinsics) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """The side faces' normals (y, z in D) under the pose of ``x``, and each face return's
-        cosine with its surface's normal."""
-        f = self.f
-        r = self._kept.get("rays", H.as_vector().tobytes(),
-                       lambda: (_turned(f.rays, H, f.cos, f.sin),))[0]
-        yaw = float(x[len(self.free) + 2])
-        c, s = math.cos(yaw), math.sin(yaw)
-        ny, nz = _side_normals(f, c, s)
-        return ny, nz, np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
-
-    def cosines(self, x: FloatArray) -> FloatArray:
-        """(N,) each return's cosine with its surface's normal: the faces', then the
-        platter's."""
-        H = self.H(x)
-        return np.concatenate([self._normals(x, H)[2], self.platter_rays @ H.R[:, 0]])
-
-    def __call__(self, x: FloatArray, edge: float | None = None) -> FloatArray:
-        f = self.f
-        v = self.vector(x)
-        H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
-        size = self.edge if edge is None else edge
-        cy, cz = x[len(self.free):len(self.free) + 2]
-
-        def faces() -> tuple[FloatArray, ...]:
-            ny, nz, cosine = self._normals(x, H)
-            shape = incidence_shape(cosine, LEAST_COSINE_KNOWN)
-            q = _turned(correct_vector(f.p_L, v, shape, self.rho) - H.t, H, f.cos, f.sin)
-            return ny, nz, cosine, q
-
-        def on_platter() -> tuple[FloatArray, ...]:
-            down = self.platter_rays @ H.R[:, 0]
-            q = (correct_vector(self.platter, v, incidence_shape(down, LEAST_COSINE_KNOWN),
-                                self.platter_rho) - H.t) @ H.R
-            a = away_from_grazing(down)
-            return q[:, 0] / a, (q[:, 1] ** 2 + q[:, 2] ** 2) / a, 1.0 / a
-
-        ny, nz, cosine, q = self._kept.get("faces", v.tobytes() + x[len(self.free) + 2].tobytes(),
-                                       faces)
-        dist = np.where(f.side, ny * (q[:, 1] - cy) + nz * (q[:, 2] - cz) - 0.5 * size,
-                        q[:, 0] - size)
-        height, across, inverse = self._kept.get("platter", v.tobytes(), on_platter)
-        # the platter's dish: its height c·(r² − r_c²), r from the axis, r_c the cube's centre's
-        dish = float(x[len(self.free) + 3]) if self.dish else 0.0
-        platter = height - dish * (across - (cy * cy + cz * cz) * inverse)
-        if self.level_free:
-            # about their mean: the platter gives the axis's direction; its level is free, as
-            # a platter of another finish reads at another range than the cube (the cube's
-            # top, at its edge above the origin, gives the origin)
-            platter = platter - platter.mean()
-        out: FloatArray = np.concatenate([dist / away_from_grazing(cosine), platter])
-        if not self.level_free:
-            # in the lidar's own units: a corrected return is its measured range over 1 + k,
-            # so residuals of corrected returns would shrink the range noise as k grows, and
-            # least squares would lean k up by about (noise / the fixtures' depth)² — 400 ppm
-            # at 1 mm of noise; times 1 + k, the noise's share no longer depends on k
-            out *= 1.0 + float(v[SCALE])
-        return out
-
-    def jac(self, x: FloatArray) -> FloatArray:
-        """(m, n) the derivatives of the residuals of :meth:`__call__` by ``x``, in closed
-        form: a finite difference cost an evaluation of every residual per parameter."""
-        v = self.vector(x)
-        H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
-        k = float(v[SCALE])
-        faces = self._face_columns(x, v, H)
-        platter = self._platter_columns(x, v, H)
-        if self.level_free:
-            platter -= platter.mean(axis=0)
-        out: FloatArray = np.vstack([faces, platter])
-        if not self.level_free:
-            # residuals times 1 + k: the scale error's column gains the residuals themselves
-            out *= 1.0 + k
-            out[:, self.free.index(SCALE)] += self(x) / (1.0 + k)
-        return out
-
-    def _face_columns(self, x: FloatArray, v: FloatArray, H: Extrinsics) -> FloatArray:
-        """(N, n) ∂(distance along the ray to the face)/∂x of the face returns, before the
-        factor 1 + k: d(dist/a) = d dist/a − dist·a′·d cosine/a². Worked in L: each return's
-        face normal is taken there (by its platter angle and H), so that the distance and
-        the cosine are dot products with vectors in L."""
-        f, n_free, k1 = self.f, len(self.free), 1.0 + float(v[SCALE])
-        R, t = H.R, H.t
-        yaw = float(x[n_free + 2])
-        cy, sy = math.cos(yaw), math.sin(yaw)
-        side = f.side.astype(np.float64)
-        ny, nz = _side_normals(f, cy, sy)
-        normal = np.column_stack([1.0 - side, side * ny, side * nz])
-        ny, nz = _side_normals(f, -sy, cy)  # d/d yaw: the normals a quarter turn on
-        turned = np.column_stack([np.zeros_like(side), side * ny, side * nz])
-        centre = normal[:, 1] * x[n_free] + normal[:, 2] * x[n_free + 1]
-        normal_P = _unspun(normal, f.cos, f.sin)
-        normal_L = normal_P @ R.T
-        turned_L = _unspun(turned, f.cos, f.sin) @ R.T
-        cosine = rowdot(normal_L, f.rays)
-        shape = incidence_shape(cosine, LEAST_COSINE_KNOWN)
-        shape_slope = incidence_shape_slope(cosine, LEAST_COSINE_KNOWN)
-        corrected = correct_vector(f.p_L, v, shape, self.rho)
-        from_origin = corrected - t
-        dist = (rowdot(normal_L, from_origin) - centre
-                - np.where(f.side, 0.5 * self.edge, self.edge))
-        a = away_from_grazing(cosine)
-        a_slope = (np.abs(cosine) > GRAZING_FACE).astype(np.float64)
-
-        def column(d_dist: FloatArray, d_cosine: FloatArray | float = 0.0) -> FloatArray:
-            out: FloatArray = d_dist / a - dist * a_slope * d_cosine / a**2
-            return out
-
-        def moved(d_normal_L: FloatArray) -> FloatArray:
-            """the column of a parameter that turns the normals in L by ``d_normal_L``: the
-            distance directly, and through the incidence bias's shape along the ray"""
-            d_cosine = rowdot(d_normal_L, f.rays)
-            d_rho = -v[INCIDENCE] * shape_slope * d_cosine / k1
-            return column(rowdot(d_normal_L, from_origin) + cosine * d_rho, d_cosine)
-
-        columns = []
-        for i in self.free:
-            if i < 3:  # tx, ty, tz
-                columns.append(column(-normal_L[:, i]))
-            elif i < len(PARAMETER_NAMES):
-                columns.append(moved(normal_P @ rotation_derivative(
-                    v[: len(PARAMETER_NAMES)], i).T))
-            elif i == OFFSET:
-                columns.append(column(-cosine / k1))
-            elif i == INCIDENCE:
-                columns.append(column(-cosine * shape / k1))
-            else:  # SCALE
-                columns.append(column(-rowdot(normal_L, corrected) / k1))
-        columns.append(column(-normal[:, 1]))
-        columns.append(column(-normal[:, 2]))
-        # the yaw turns the side faces' normals, and with them the centre's share
-        yawed = moved(turned_L)
-        yawed -= (turned[:, 1] * x[n_free] + turned[:, 2] * x[n_free + 1]) / a
-        columns.append(yawed)
-        if self.dish:
-            columns.append(np.zeros_like(a))
-        return np.column_stack(columns)
-
-    def _platter_columns(self, x: FloatArray, v: FloatArray, H: Extrinsics) -> FloatArray:
-        """(M, n) ∂(height/a)/∂x of the platter's returns (before the level and 1 + k): the
-        height along the axis less the dish's, c·(r² − r_c²), each return in P."""
-        n_free, k1 = len(self.free), 1.0 + float(v[SCALE])
-        cy, cz = float(x[n_free]), float(x[n_free + 1])
-        dish = float(x[n_free + 3]) if self.dish else 0.0
-        R, t, w = H.R, H.t, self.platter_rays
-        down = w @ R[:, 0]
-        shape = incidence_shape(down, LEAST_COSINE_KNOWN)
-        shape_slope = incidence_shape_slope(down, LEAST_COSINE_KNOWN)
-        corrected = correct_vector(self.platter, v, shape, self.platter_rho)
-        q = (corrected - t) @ R
-        across = q[:, 1] ** 2 + q[:, 2] ** 2 - (cy * cy + cz * cz)
-        height = q[:, 0] - dish * across
-        a = away_from_grazing(down)
-        a_slope = (np.abs(down) > GRAZING_FACE).astype(np.float64)
-        ray = w @ R  # each return's ray in P: a range change moves it along that
-
-        def column(dq: FloatArray, d_down: FloatArray | float = 0.0) -> FloatArray:
-            d_height = dq[:, 0] - 2.0 * dish * (q[:, 1] * dq[:, 1] + q[:, 2] * dq[:, 2])
-            out: FloatArray = d_height / a - height * a_slope * d_down / a**2
-            return out
-
-        columns = []
-        for i in self.free:
-            if i < 3:
-                columns.append(column(np.broadcast_to(-R[i], q.shape)))
-            elif i < len(PARAMETER_NAMES):
-                dR = rotation_derivative(v[: len(PARAMETER_NAMES)], i)
-                d_down = w @ dR[:, 0]
-                d_rho = -v[INCIDENCE] * shape_slope * d_down / k1
-                columns.append(column((corrected - t) @ dR + ray * d_rho[:, None], d_down))
-            elif i == OFFSET:
-                columns.append(column(-ray / k1))
-            elif i == INCIDENCE:
-                columns.append(column(-ray * (shape / k1)[:, None]))
-            else:  # SCALE
-                columns.append(column(-(corrected @ R) / k1))
-        centre = 2.0 * dish / a
-        columns += [centre * cy, centre * cz, np.zeros_like(a)]
-        if self.dish:
-            columns.append(-across / a)
-        return np.column_stack(columns)
-
-
-def _unspun(q: FloatArray, cos: FloatArray, sin: FloatArray) -> FloatArray:
-    """(N, 3) vectors in D taken into P: Rx(φ)·q (the inverse of ``cubecast._spun``)."""
-    return np.column_stack([q[:, 0], cos * q[:, 1] - sin * q[:, 2],
-                            sin * q[:, 1] + cos * q[:, 2]])
-
-
-def _side_normals(f: _Faces, c: float, s: float) -> tuple[FloatArray, FloatArray]:
-    """(N,) the y and z (in D) of each face return's side-face normal for a cube at the yaw
-    whose cosine and sine are ``c`` and ``s``."""
-    return np.where(f.across_u, c, -s) * f.sign, np.where(f.across_u, s, c) * f.sign
-
-
 @dataclass(frozen=True)
 class KnownSizeFit:
     """The known-size cube fit's estimate."""
@@ -510,7 +243,7 @@ def known_size_fit(
     for _ in range(LABEL_ROUNDS):
         faces = _label(cloud, H)
         base = H.as_vector()
-        errors = _RangeErrors(faces, base, free, cube.edge)
+        errors = RangeErrors(faces, base, free, cube.edge)
         x0 = np.concatenate([base[free], faces.pose])
         res = least_squares(
             errors, x0, method="trf", loss="soft_l1", f_scale=_f_scale(faces.noise),
@@ -609,17 +342,17 @@ def range_size_fit(
         k = 1 if settled else FIRST_ROUNDS_STRIDE
         faces, platter = model_labels(returns.every(k), base, pose, cube.edge, platter_radius,
                                       noise, most=(FIT_POINTS // k, PLATTER_POINTS // k))
-        # the platter's dish is fitted in the last round only, from a settled H: in the first
-        # rounds, far from it, its curvature would take up the error of the axis's tilt
-        errors = _RangeSizeErrors(faces, platter, base, free, cube.edge, dish=settled)
-        x0 = np.concatenate([base[free], pose, [0.0] if settled else []])
+        # the platter's shape is fitted in the last round only, from a settled H: in the first
+        # rounds, far from it, its dish would take up the error of the axis's tilt
+        errors = RangeSizeErrors(faces, platter, base, free, cube.edge, dish=settled)
+        x0 = np.concatenate([base[free], pose, np.zeros(errors.shape)])
         res = least_squares(
             errors, x0, jac=errors.jac, method="trf", loss="soft_l1",
             f_scale=_f_scale(noise), x_scale=_scales(free, x0.size - len(free)), max_nfev=MAX_NFEV,
         )
         if settled:
             return _range_fit_result(res, errors, faces, free, cube, platter, encoder,
-                                         platter_radius)
+                                     platter_radius)
         moved = _moved(base, errors.vector(res.x))
         base, pose = errors.vector(res.x), res.x[len(free):len(free) + 3]
         settled = i > 0 and moved[0] < SETTLED_M and moved[1] < SETTLED_RAD
@@ -648,7 +381,7 @@ def _scales(free: list[int], pose: int) -> FloatArray:
     return np.array([1e-4 if i == SCALE else 1e-3 for i in free] + [1e-3] * pose)
 
 
-def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Faces, free: list[int],
+def _range_fit_result(res: OptimizeResult, errors: RangeSizeErrors, faces: _Faces, free: list[int],
                       cube: CubeGeometry, platter: FloatArray, encoder: bool,
                       platter_radius: float) -> KnownSizeFit:
     """The :class:`KnownSizeFit` of :func:`range_size_fit`: σ from the block sandwich of the
@@ -672,23 +405,24 @@ def _range_fit_result(res: OptimizeResult, errors: _RangeSizeErrors, faces: _Fac
         H=H, sigma=_sigma_with_bias(cov, free, bias), covariance=covariance_record(cov, free),
         bias=bias, edge_direction=edge,
         details={**_details(res, faces, cube), "platter_returns": int(platter.shape[0]),
-                 **_flatness(res, full, platter_radius),
+                 **_flatness(res, full, len(free) + 3, platter_radius),
                  "range_model": [ESTIMATED_NAMES[i] for i in free if i >= OFFSET]},
         range_model=RangeModel.from_vector(v), residuals=_residuals(res, errors, faces.p_L),
         encoder_direction=_encoder_direction(res, errors, free) if encoder else None,
     )
 
 
-def _flatness(res: OptimizeResult, cov: FloatArray | None, radius: float) -> JSONObject:
-    """The platter's flatness the fit measured (m, its dish's depth from the axis to the rim
-    of ``radius``: positive, the rim higher) with its 1σ (NaN without a covariance)."""
-    sigma = math.nan if cov is None else math.sqrt(max(float(cov[-1, -1]), 0.0))
-    return {"platter_flatness_m": float(res.x[-1]) * radius**2,
+def _flatness(res: OptimizeResult, cov: FloatArray | None, at: int, radius: float) -> JSONObject:
+    """The platter's flatness the fit measured (m, the depth of its dish, x[``at``], from the
+    axis to the rim of ``radius``: positive, the rim higher) with its 1σ (NaN without a
+    covariance)."""
+    sigma = math.nan if cov is None else math.sqrt(max(float(cov[at, at]), 0.0))
+    return {"platter_flatness_m": float(res.x[at]) * radius**2,
             "sigma_platter_flatness_m": sigma * radius**2}
 
 
 def _encoder_direction(
-    res: OptimizeResult, errors: _RangeSizeErrors, free: list[int]
+    res: OptimizeResult, errors: RangeSizeErrors, free: list[int]
 ) -> dict[str, dict[str, float]]:
     """Per coefficient of the encoder's angle error (:mod:`calstation.engine.encoder`), how far
     each free parameter moves per radian of it: dx = −J⁺·∂r/∂c. A face return's residual
@@ -701,7 +435,7 @@ def _encoder_direction(
     moved = []
     for sign in (1.0, -1.0):
         cos, sin = turned(f.cos, f.sin, sign * STEP)
-        moved.append(_RangeSizeErrors(replace(f, cos=cos, sin=sin), errors.platter, errors.base,
+        moved.append(RangeSizeErrors(replace(f, cos=cos, sin=sin), errors.platter, errors.base,
                                       errors.free, errors.edge, errors.dish)(res.x))
     by_angle = (moved[0] - moved[1]) / (2.0 * STEP)
     columns = np.zeros((by_angle.size, len(HARMONICS)))
@@ -713,7 +447,7 @@ def _encoder_direction(
 
 
 def _residuals(
-    res: OptimizeResult, errors: _RangeSizeErrors, p_L: FloatArray
+    res: OptimizeResult, errors: RangeSizeErrors, p_L: FloatArray
 ) -> dict[str, TrendRecord]:
     """The range fit's residuals on the cube's faces as range errors (m, positive: the return
     reads long) against each return's range, incidence angle and azimuth
@@ -731,7 +465,7 @@ def _residuals(
 
 
 def _covariance(
-    res: OptimizeResult, errors: _RangeErrors, faces: _Faces, free: list[int]
+    res: OptimizeResult, errors: RangeErrors, faces: _Faces, free: list[int]
 ) -> FloatArray | None:
     """(n, n) covariance of the free parameters of H, the part that falls with more data: the
     block sandwich × :data:`SIGMA_SCALE` and the model floor."""
@@ -774,7 +508,7 @@ def _response(res: OptimizeResult, columns: FloatArray, noise: float) -> FloatAr
 
 
 def _edge_direction(
-    res: OptimizeResult, errors: _RangeErrors | _RangeSizeErrors, free: list[int], tolerance: float
+    res: OptimizeResult, errors: RangeErrors | RangeSizeErrors, free: list[int], tolerance: float
 ) -> dict[str, float]:
     """Per free parameter, the signed move (m, rad) of a cube ``tolerance`` larger than the
     recipe's edge: dx = −J⁺·∂r/∂edge·tolerance."""
@@ -787,7 +521,7 @@ def _edge_direction(
 
 
 def _bias_bound(
-    res: OptimizeResult, errors: _RangeErrors | _RangeSizeErrors, faces: _Faces, free: list[int],
+    res: OptimizeResult, errors: RangeErrors | RangeSizeErrors, faces: _Faces, free: list[int],
     tolerance: float, edge: dict[str, float] | None = None,
 ) -> dict[str, float]:
     """Per parameter, a bound on what more data does not remove (m, rad): the edge tolerance

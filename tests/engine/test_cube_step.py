@@ -405,8 +405,9 @@ def test_the_range_fits_jacobian_is_the_derivative_of_its_residuals(
 ) -> None:
     """The known-size range fit steps on its Jacobian in closed form; at a point away from its
     solution it is the central difference of the residuals in every column — H, each range
-    term (the incidence bias's shape included), the cube's centre and yaw — with the platter's
-    level free (``offset``) and with the scale error (the residuals times 1 + k)."""
+    term (the incidence bias's shape included), the cube's centre and yaw, the platter's dish
+    and its height at the cube — with the platter's level free (``offset``) and with the scale
+    error (the residuals times 1 + k)."""
     import calstation.engine.cubefit as cubefit
 
     _, scan, truth, recipe = biased

@@ -406,42 +406,12 @@ def test_a_dished_platter_is_measured_and_does_not_tilt_the_axis(
                                    platter_radius=recipe.fixtures.platter.radius,
                                    start_range=RangeModel(offset=0.0035)))
     dished, flat = fits
-    # rz still moves by 0.43σ at this dish (by −0.58σ fitted flat), by what the fit does not
-    # model; tx by 0.12σ and ty by 0.06σ (0.93σ and 1.2σ fitted flat)
-    for name, within in (("tx", 0.3), ("ty", 0.3), ("tz", 0.3), ("ry", 0.3), ("rz", 0.5)):
+    for name in ("tx", "ty", "tz", "ry", "rz"):
         moved = getattr(dished.H, name) - getattr(flat.H, name)
-        assert abs(moved) <= within * flat.sigma[name], (name, moved, flat.sigma[name])
+        assert abs(moved) <= 0.2 * flat.sigma[name], (name, moved, flat.sigma[name])
     assert abs(dished.range_model.offset - flat.range_model.offset) < 0.05e-3
     depth = dished.details["platter_flatness_m"]
     sigma = dished.details["sigma_platter_flatness_m"]
     assert isinstance(depth, float) and isinstance(sigma, float)
     assert abs(depth - 0.0002) <= 3 * sigma and sigma < 0.05e-3
     assert abs(flat.details["platter_flatness_m"]) <= 3 * sigma  # type: ignore[arg-type]
-
-
-@pytest.mark.parametrize("model", ["offset", "offset+scale"])
-def test_the_range_fits_jacobian_is_its_residuals_derivative(dished_scan: Any, model: str) -> None:
-    """The known-size fit's closed-form Jacobian against central differences of its residuals,
-    at a point with every term away from zero: the range terms, the cube's pose and the
-    platter's dish; with the platter's level free (offset) and held (offset+scale)."""
-    from calstation.engine.cubecast import _near_platter, _Returns, model_labels
-    from calstation.engine.cubecloud import segment_cube
-    from calstation.engine.cubefit import _label, _RangeSizeErrors
-
-    scan, truth, recipe = dished_scan
-    free = [0, 1, 2, 4, 5, *estimated_indices(model, True)]  # type: ignore[arg-type]
-    base = np.concatenate([truth.as_vector(), RangeModel(0.004, 1e-4, 5e-4).as_vector()])
-    radius = recipe.fixtures.platter.radius
-    x_cube = recipe.fixtures.qa_cube
-    pose = _label(segment_cube(scan.p_L, scan.phi, truth, x_cube.edge, radius), truth).pose[:3]
-    faces, platter = model_labels(_Returns.of(scan, _near_platter(scan, base, radius)), base,
-                                  pose, x_cube.edge, radius, 0.001, most=(4000, 1000))
-    errors = _RangeSizeErrors(faces, platter, base, free, x_cube.edge, dish=True)
-    x = np.concatenate([base[free] + 1e-4, pose + 1e-3, [2e-3]])
-    J = errors.jac(x)
-    for j in range(x.size):
-        step = np.zeros_like(x)
-        step[j] = 1e-7
-        numeric = (errors(x + step) - errors(x - step)) / 2e-7
-        scale = max(float(np.max(np.abs(numeric))), 1e-9)
-        assert np.max(np.abs(J[:, j] - numeric)) <= 1e-5 * scale, j
