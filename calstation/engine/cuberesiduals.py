@@ -116,6 +116,11 @@ class RangeSizeErrors:
         ny, nz = side_normals(f, c, s)
         return ny, nz, np.where(f.side, ny * r[:, 1] + nz * r[:, 2], r[:, 0])
 
+    def _platter_shape(self, x: FloatArray) -> tuple[float, float]:
+        """The platter's dish c and its height at the cube in ``x`` (0 where not fitted)."""
+        shape = [float(v) for v in x[len(self.free) + 3:]] + [0.0, 0.0]
+        return shape[0], shape[1]
+
     def cosines(self, x: FloatArray) -> FloatArray:
         """(N,) each return's cosine with its surface's normal: the faces', then the
         platter's."""
@@ -148,10 +153,8 @@ class RangeSizeErrors:
                         q[:, 0] - size)
         height, across, inverse = self._kept.get("platter", v.tobytes(), on_platter)
         # the platter's shape (:attr:`dish`), heights turned into ranges along the rays
-        dish = float(x[len(self.free) + 3]) if self.dish else 0.0
-        platter = height - dish * (across - (cy * cy + cz * cz) * inverse)
-        if self.shape == 2:  # its height at the cube
-            platter = platter - float(x[len(self.free) + 4]) * inverse
+        dish, level = self._platter_shape(x)
+        platter = height - dish * (across - (cy * cy + cz * cz) * inverse) - level * inverse
         if self.level_free:
             # about their mean: the platter gives the axis's direction; its level is free, as
             # a platter of another finish reads at another range than the cube (the cube's
@@ -249,7 +252,7 @@ class RangeSizeErrors:
         height along the axis less the dish's, c·(r² − r_c²), each return in P."""
         n_free, k1 = len(self.free), 1.0 + float(v[SCALE])
         cy, cz = float(x[n_free]), float(x[n_free + 1])
-        dish = float(x[n_free + 3]) if self.dish else 0.0
+        dish, level = self._platter_shape(x)
         R, t, w = H.R, H.t, self.platter_rays
         down = w @ R[:, 0]
         shape = incidence_shape(down, LEAST_COSINE_KNOWN)
@@ -257,7 +260,6 @@ class RangeSizeErrors:
         corrected = correct_vector(self.platter, v, shape, self.platter_rho)
         q = (corrected - t) @ R
         across = q[:, 1] ** 2 + q[:, 2] ** 2 - (cy * cy + cz * cz)
-        level = float(x[n_free + 4]) if self.shape == 2 else 0.0
         height = q[:, 0] - dish * across - level  # the numerator of the residual
         a = away_from_grazing(down)
         a_slope = (np.abs(down) > GRAZING_FACE).astype(np.float64)
