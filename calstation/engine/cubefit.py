@@ -76,6 +76,7 @@ from calstation.engine.rangemodel import (
 )
 from calstation.engine.residuals import TrendRecord, residual_trends
 from calstation.engine.settings import CubeGeometry
+from calstation.engine.softl1 import soft_l1_fit
 from calstation.engine.spinscan import SpinScan
 from calstation.engine.twist import (
     face_range_noise,
@@ -346,10 +347,9 @@ def range_size_fit(
         # rounds, far from it, its dish would take up the error of the axis's tilt
         errors = RangeSizeErrors(faces, platter, base, free, cube.edge, dish=settled)
         x0 = np.concatenate([base[free], pose, np.zeros(errors.shape)])
-        res = least_squares(
-            errors, x0, jac=errors.jac, method="trf", loss="soft_l1",
-            f_scale=_f_scale(noise), x_scale=_scales(free, x0.size - len(free)), max_nfev=MAX_NFEV,
-        )
+        # TRF's steps, from the normal equations (calstation.engine.softl1)
+        res = soft_l1_fit(errors, errors.jac, x0, f_scale=_f_scale(noise),
+                          x_scale=_scales(free, x0.size - len(free)), max_nfev=MAX_NFEV)
         if settled:
             return _range_fit_result(res, errors, faces, free, cube, platter, encoder,
                                      platter_radius)

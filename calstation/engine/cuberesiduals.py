@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 
+from calstation.engine.blocks import pool
 from calstation.engine.cubecast import _Faces, _turned
 from calstation.engine.frames import (
     PARAMETER_NAMES,
@@ -175,22 +176,28 @@ class RangeSizeErrors:
         v = self.vector(x)
         H = Extrinsics.from_vector(v[: len(PARAMETER_NAMES)])
         k = float(v[SCALE])
-        faces = self._face_columns(x, v, H)
-        platter = self._platter_columns(x, v, H)
+        n_faces = self.f.p_L.shape[0]
+        # each column written where it lies: stacking them cost a copy of the whole matrix
+        out: FloatArray = np.empty((n_faces + self.platter.shape[0], x.size))
+        platter = out[n_faces:]
+        # the platter's rows beside the faces', on another core (NumPy's loops let go of the GIL)
+        side = pool("jacobian", 1).submit(self._platter_columns, x, v, H, platter)
+        self._face_columns(x, v, H, out[:n_faces])
+        side.result()
         if self.level_free:
             platter -= platter.mean(axis=0)
-        out: FloatArray = np.vstack([faces, platter])
         if not self.level_free:
             # residuals times 1 + k: the scale error's column gains the residuals themselves
             out *= 1.0 + k
             out[:, self.free.index(SCALE)] += self(x) / (1.0 + k)
         return out
 
-    def _face_columns(self, x: FloatArray, v: FloatArray, H: Extrinsics) -> FloatArray:
-        """(N, n) ∂(distance along the ray to the face)/∂x of the face returns, before the
-        factor 1 + k: d(dist/a) = d dist/a − dist·a′·d cosine/a². Worked in L: each return's
-        face normal is taken there (by its platter angle and H), so that the distance and
-        the cosine are dot products with vectors in L."""
+    def _face_columns(self, x: FloatArray, v: FloatArray, H: Extrinsics, out: FloatArray
+                      ) -> None:
+        """Into ``out`` (N, n): ∂(distance along the ray to the face)/∂x of the face returns,
+        before the factor 1 + k: d(dist/a) = d dist/a − dist·a′·d cosine/a². Worked in L:
+        each return's face normal is taken there (by its platter angle and H), so that the
+        distance and the cosine are dot products with vectors in L."""
         f, n_free, k1 = self.f, len(self.free), 1.0 + float(v[SCALE])
         R, t = H.R, H.t
         yaw = float(x[n_free + 2])
@@ -225,31 +232,28 @@ class RangeSizeErrors:
             d_rho = -v[INCIDENCE] * shape_slope * d_cosine / k1
             return column(rowdot(d_normal_L, from_origin) + cosine * d_rho, d_cosine)
 
-        columns = []
-        for i in self.free:
+        for j, i in enumerate(self.free):
             if i < 3:  # tx, ty, tz
-                columns.append(column(-normal_L[:, i]))
+                out[:, j] = column(-normal_L[:, i])
             elif i < len(PARAMETER_NAMES):
-                columns.append(moved(normal_P @ rotation_derivative(
-                    v[: len(PARAMETER_NAMES)], i).T))
+                out[:, j] = moved(normal_P @ rotation_derivative(v[: len(PARAMETER_NAMES)], i).T)
             elif i == OFFSET:
-                columns.append(column(-cosine / k1))
+                out[:, j] = column(-cosine / k1)
             elif i == INCIDENCE:
-                columns.append(column(-cosine * shape / k1))
+                out[:, j] = column(-cosine * shape / k1)
             else:  # SCALE
-                columns.append(column(-rowdot(normal_L, corrected) / k1))
-        columns.append(column(-normal[:, 1]))
-        columns.append(column(-normal[:, 2]))
+                out[:, j] = column(-rowdot(normal_L, corrected) / k1)
+        out[:, n_free] = column(-normal[:, 1])
+        out[:, n_free + 1] = column(-normal[:, 2])
         # the yaw turns the side faces' normals, and with them the centre's share
-        yawed = moved(turned_L)
-        yawed -= (turned[:, 1] * x[n_free] + turned[:, 2] * x[n_free + 1]) / a
-        columns.append(yawed)
-        columns += [np.zeros_like(a)] * self.shape
-        return np.column_stack(columns)
+        out[:, n_free + 2] = moved(turned_L)
+        out[:, n_free + 2] -= (turned[:, 1] * x[n_free] + turned[:, 2] * x[n_free + 1]) / a
+        out[:, n_free + 3:] = 0.0
 
-    def _platter_columns(self, x: FloatArray, v: FloatArray, H: Extrinsics) -> FloatArray:
-        """(M, n) ∂(height/a)/∂x of the platter's returns (before the level and 1 + k): the
-        height along the axis less the dish's, c·(r² − r_c²), each return in P."""
+    def _platter_columns(self, x: FloatArray, v: FloatArray, H: Extrinsics, out: FloatArray
+                         ) -> None:
+        """Into ``out`` (M, n): ∂(height/a)/∂x of the platter's returns (before the level and
+        1 + k): the height along the axis less the dish's, c·(r² − r_c²), each return in P."""
         n_free, k1 = len(self.free), 1.0 + float(v[SCALE])
         cy, cz = float(x[n_free]), float(x[n_free + 1])
         dish, level = self._platter_shape(x)
@@ -270,25 +274,27 @@ class RangeSizeErrors:
             out: FloatArray = d_height / a - height * a_slope * d_down / a**2
             return out
 
-        columns = []
-        for i in self.free:
+        for j, i in enumerate(self.free):
             if i < 3:
-                columns.append(column(np.broadcast_to(-R[i], q.shape)))
+                out[:, j] = column(np.broadcast_to(-R[i], q.shape))
             elif i < len(PARAMETER_NAMES):
                 dR = rotation_derivative(v[: len(PARAMETER_NAMES)], i)
                 d_down = w @ dR[:, 0]
                 d_rho = -v[INCIDENCE] * shape_slope * d_down / k1
-                columns.append(column((corrected - t) @ dR + ray * d_rho[:, None], d_down))
+                out[:, j] = column((corrected - t) @ dR + ray * d_rho[:, None], d_down)
             elif i == OFFSET:
-                columns.append(column(-ray / k1))
+                out[:, j] = column(-ray / k1)
             elif i == INCIDENCE:
-                columns.append(column(-ray * (shape / k1)[:, None]))
+                out[:, j] = column(-ray * (shape / k1)[:, None])
             else:  # SCALE
-                columns.append(column(-(corrected @ R) / k1))
+                out[:, j] = column(-(corrected @ R) / k1)
         centre = 2.0 * dish / a
-        columns += [centre * cy, centre * cz, np.zeros_like(a)]
-        columns += [-across / a, -1.0 / a][: self.shape]
-        return np.column_stack(columns)
+        out[:, n_free] = centre * cy
+        out[:, n_free + 1] = centre * cz
+        out[:, n_free + 2] = 0.0
+        shape_columns = [-across / a, -1.0 / a][: self.shape]
+        for j, c in enumerate(shape_columns):
+            out[:, n_free + 3 + j] = c
 
 
 def unspun(q: FloatArray, cos: FloatArray, sin: FloatArray) -> FloatArray:

@@ -412,13 +412,13 @@ def test_the_range_fits_jacobian_is_the_derivative_of_its_residuals(
 
     _, scan, truth, recipe = biased
     seen: list[tuple[Any, np.ndarray, Any]] = []
-    solve = cubefit.least_squares
+    solve = cubefit.soft_l1_fit
 
-    def watched(fun: Any, x0: np.ndarray, **kwargs: Any) -> Any:
-        seen.append((fun, np.array(x0), kwargs["jac"]))
-        return solve(fun, x0, **kwargs)
+    def watched(fun: Any, jac: Any, x0: np.ndarray, **kwargs: Any) -> Any:
+        seen.append((fun, np.array(x0), jac))
+        return solve(fun, jac, x0, **kwargs)
 
-    monkeypatch.setattr(cubefit, "least_squares", watched)
+    monkeypatch.setattr(cubefit, "soft_l1_fit", watched)
     range_size_fit(scan, truth, recipe.fixtures.qa_cube,
                    platter_radius=recipe.fixtures.platter.radius, range_model=model,  # type: ignore[arg-type]
                    incidence=True, start_range=TRUE_RANGE)

@@ -1,0 +1,128 @@
+"""Soft-L1 least squares by Gauss–Newton steps on the normal equations, for fits of many
+residuals and few parameters (calstation; docs/performance.md).
+
+SciPy's ``least_squares(method="trf")`` solves each step's trust-region problem from the
+singular value decomposition of the (m, n) Jacobian. With m of 150 000 residuals and n of a
+dozen parameters, that decomposition cost about as much as the Jacobian itself (31 ms against
+40 ms on the known-size cube fit's last round). Near its minimum, which is where the fits
+this module serves start, TRF's trust region does not bind: each step is the Gauss–Newton step
+of the loss-scaled problem. :func:`soft_l1_fit` takes the same step from the (n, n) normal
+equations, accepts it by the same tests (``ftol``, ``xtol``, ``gtol`` as TRF's, in its scaled
+variables), and hands the fit to TRF, from where it stands, on the first step that does not
+lower the cost: from a far start, a step may overshoot, and the trust region then matters.
+
+The result is a :class:`scipy.optimize.OptimizeResult` as TRF's: ``x``; ``fun`` the residuals;
+``jac`` the Jacobian scaled by the loss (each row by √(ρ′ + 2zρ″), so that JᵀJ is the
+Gauss–Newton Hessian, as TRF returns it); ``cost``; ``nfev``, ``njev``, ``status``,
+``message``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from scipy.optimize import OptimizeResult, least_squares
+
+from calstation.engine.frames import FloatArray
+
+TOL = 1e-8
+"""``ftol``, ``xtol`` and ``gtol``: TRF's defaults."""
+EPS = float(np.finfo(np.float64).eps)
+
+_MESSAGES = {
+    1: "`gtol` termination condition is satisfied.",
+    2: "`ftol` termination condition is satisfied.",
+    3: "`xtol` termination condition is satisfied.",
+    4: "Both `ftol` and `xtol` termination conditions are satisfied.",
+    0: "The maximum number of function evaluations is exceeded.",
+}
+
+
+def _scaled(
+    f: FloatArray, J: FloatArray, f_scale: float
+) -> tuple[float, FloatArray, FloatArray]:
+    """The soft-L1 cost of residuals ``f`` and the Jacobian and residuals scaled for it
+    (scipy's ``scale_for_robust_loss_function``: J·√w, f·ρ′/√w, w = ρ′ + 2zρ″)."""
+    z = (f / f_scale) ** 2
+    t = 1.0 + z
+    cost = float(np.sum(t**0.5 - 1.0)) * f_scale**2
+    rho1 = t**-0.5
+    weight = np.maximum(rho1 - z * t**-1.5, EPS) ** 0.5
+    return cost, J * weight[:, None], f * (rho1 / weight)
+
+
+def _cost(f: FloatArray, f_scale: float) -> float:
+    return float(np.sum((1.0 + (f / f_scale) ** 2) ** 0.5 - 1.0)) * f_scale**2
+
+
+def soft_l1_fit(
+    fun: Callable[[FloatArray], FloatArray],
+    jac: Callable[[FloatArray], FloatArray],
+    x0: FloatArray,
+    *,
+    f_scale: float,
+    x_scale: FloatArray,
+    max_nfev: int,
+) -> OptimizeResult:
+    """``least_squares(fun, x0, jac=jac, method="trf", loss="soft_l1", f_scale=f_scale,
+    x_scale=x_scale, max_nfev=max_nfev)``, by Gauss–Newton steps on the normal equations while
+    each lowers the cost, by TRF from there when one does not (see the module)."""
+    x = np.asarray(x0, dtype=np.float64).copy()
+    d = np.asarray(x_scale, dtype=np.float64)
+    f = np.asarray(fun(x), dtype=np.float64)
+    J = np.asarray(jac(x), dtype=np.float64)
+    nfev = njev = 1
+    cost, Js, fs = _scaled(f, J, f_scale)
+    status = None
+    while True:
+        g = Js.T @ fs
+        if float(np.max(np.abs(g))) < TOL:
+            status = 1
+            break
+        if nfev >= max_nfev:
+            status = 0
+            break
+        g_h = g * d
+        Jh = Js * d
+        A = Jh.T @ Jh
+        try:
+            step_h = -np.linalg.solve(A, g_h)
+        except np.linalg.LinAlgError:
+            return _trf(fun, jac, x, f_scale, d, max_nfev, nfev, njev)
+        predicted = -float(g_h @ step_h + 0.5 * step_h @ A @ step_h)
+        x_new = x + d * step_h
+        f_new = np.asarray(fun(x_new), dtype=np.float64)
+        nfev += 1
+        if not np.all(np.isfinite(f_new)):
+            return _trf(fun, jac, x, f_scale, d, max_nfev, nfev, njev)
+        cost_new = _cost(f_new, f_scale)
+        reduction = cost - cost_new
+        if reduction <= 0:
+            return _trf(fun, jac, x, f_scale, d, max_nfev, nfev, njev)
+        ratio = reduction / predicted if predicted > 0 else 0.0
+        ftol_met = reduction < TOL * cost and ratio > 0.25
+        xtol_met = float(np.linalg.norm(d * step_h)) < TOL * (TOL + float(np.linalg.norm(x)))
+        x, f = x_new, f_new
+        J = np.asarray(jac(x), dtype=np.float64)
+        njev += 1
+        cost, Js, fs = _scaled(f, J, f_scale)
+        if ftol_met or xtol_met:
+            status = 4 if ftol_met and xtol_met else 2 if ftol_met else 3
+            break
+    return OptimizeResult(
+        x=x, fun=f, jac=Js, cost=cost, grad=Js.T @ fs, nfev=nfev, njev=njev, status=status,
+        message=_MESSAGES[status], success=status > 0,
+    )
+
+
+def _trf(
+    fun: Callable[[FloatArray], FloatArray], jac: Callable[[FloatArray], FloatArray],
+    x: FloatArray, f_scale: float, d: FloatArray, max_nfev: int, nfev: int, njev: int,
+) -> OptimizeResult:
+    """TRF from ``x``, with the evaluations left; its counts include those made before."""
+    res = least_squares(fun, x, jac=jac, method="trf", loss="soft_l1", f_scale=f_scale,
+                        x_scale=d, max_nfev=max(max_nfev - nfev, 1))
+    res.nfev += nfev
+    res.njev = int(res.njev or 0) + njev
+    return res

@@ -1,0 +1,85 @@
+"""The soft-L1 fit by Gauss–Newton steps on the normal equations (calstation.engine.softl1):
+the minimum, the scaled Jacobian and the evaluations of SciPy's TRF, whose steps it takes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from calstation.engine.softl1 import soft_l1_fit
+
+
+class Circles:
+    """Range-like residuals of many points against a few circles (centre, radius each): a
+    nonlinear problem of many residuals and few parameters, with 3 % of the points strays
+    that the soft-L1 loss must discount."""
+
+    def __init__(self, seed: int) -> None:
+        rng = np.random.default_rng(seed)
+        self.truth = np.array([0.1, -0.2, 0.5, 0.7, 0.3, 0.25])
+        k = rng.integers(0, 2, 20_000)
+        angle = rng.uniform(0.0, 2 * np.pi, k.size)
+        cx, cy, r = (self.truth.reshape(2, 3)[k, j] for j in range(3))
+        noise = rng.normal(0.0, 1e-3, k.size)
+        noise[rng.random(k.size) < 0.03] += rng.uniform(0.01, 0.05, k.size)[:1]
+        self.k, self.x = k, cx + (r + noise) * np.cos(angle)
+        self.y = cy + (r + noise) * np.sin(angle)
+        self.evaluations = 0
+
+    def __call__(self, p: np.ndarray) -> np.ndarray:
+        self.evaluations += 1
+        c = p.reshape(2, 3)[self.k]
+        out: np.ndarray = np.hypot(self.x - c[:, 0], self.y - c[:, 1]) - c[:, 2]
+        return out
+
+    def jac(self, p: np.ndarray) -> np.ndarray:
+        c = p.reshape(2, 3)[self.k]
+        dx, dy = self.x - c[:, 0], self.y - c[:, 1]
+        d = np.hypot(dx, dy)
+        out = np.zeros((self.k.size, 6))
+        rows = np.arange(self.k.size)
+        out[rows, 3 * self.k] = -dx / d
+        out[rows, 3 * self.k + 1] = -dy / d
+        out[rows, 3 * self.k + 2] = -1.0
+        return out
+
+
+def _both(problem: Circles, x0: np.ndarray) -> tuple[Any, Any]:
+    options: dict[str, Any] = {"f_scale": 3e-3, "x_scale": np.full(6, 1e-3), "max_nfev": 100}
+    trf = least_squares(problem, x0, jac=problem.jac, method="trf", loss="soft_l1", **options)
+    return trf, soft_l1_fit(problem, problem.jac, x0, **options)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_from_near_its_minimum_the_fit_is_trfs(seed: int) -> None:
+    """From a start a few millimetres off, the fit's minimum and its loss-scaled Jacobian (what
+    the covariances are computed from) are TRF's, and so are its evaluations but for the one
+    of each it makes again when a step did not lower the cost (TRF starts from there)."""
+    problem = Circles(seed)
+    x0 = problem.truth + np.random.default_rng(seed).normal(0.0, 3e-3, 6)
+    trf, fit = _both(problem, x0)
+    sigma = np.sqrt(np.diag(np.linalg.inv(trf.jac.T @ trf.jac)) * np.mean(trf.fun**2))
+    assert np.max(np.abs(fit.x - trf.x) / sigma) < 1e-6
+    np.testing.assert_allclose(fit.jac, trf.jac, rtol=0, atol=1e-9 * np.abs(trf.jac).max())
+    np.testing.assert_allclose(fit.fun, trf.fun, rtol=0, atol=1e-12)
+    assert fit.cost == pytest.approx(trf.cost, rel=1e-12)
+    again = int(trf.nfev > trf.njev)
+    assert (fit.nfev, fit.njev) == (trf.nfev + 2 * again, trf.njev + again)
+    assert fit.success
+    # the strays are discounted, not fitted: the radii within a few σ of the truth
+    assert np.max(np.abs(fit.x - problem.truth) / sigma) < 5
+
+
+def test_a_step_that_overshoots_hands_the_fit_to_trf() -> None:
+    """From a start far off (the circles' centres 5 cm out), where a Gauss–Newton step
+    raises the cost, the fit goes on by TRF from where it stands and ends where TRF does."""
+    problem = Circles(4)
+    x0 = problem.truth + np.array([0.05, -0.05, -0.2, -0.05, 0.05, 0.2])
+    trf, fit = _both(problem, x0)
+    assert trf.success and fit.success
+    sigma = np.sqrt(np.diag(np.linalg.inv(trf.jac.T @ trf.jac)) * np.mean(trf.fun**2))
+    assert np.max(np.abs(fit.x - trf.x) / sigma) < 1e-3
+    assert fit.nfev <= 100
