@@ -124,6 +124,11 @@ def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
     """The returns on the cube's faces under H, labelled against its upright box; ``cloud``
     the cube's returns found under H or an H within a millimetre of it (the labels' bands are
     several millimetres wide)."""
+    return _label_in_box(cloud, H)[0]
+
+
+def _label_in_box(cloud: CubeCloud, H: Extrinsics) -> tuple[_Faces, FloatArray]:
+    """:func:`_label`, and the upright box's extents (3,: its height, then across)."""
     if cloud.pts.shape[0] < 500:
         raise FineTuningError(
             f"the known-size cube fit found {cloud.pts.shape[0]} returns of the cube"
@@ -162,7 +167,7 @@ def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
         pose=np.array([centre[1], centre[2], yaw, top]),
         noise=noise,
         faces=len(found),
-    )
+    ), extents
 
 
 @dataclass(frozen=True)
@@ -223,6 +228,7 @@ def known_size_fit(
     start_range: RangeModel = IDENTITY,
     incidence: bool = False,
     encoder: bool = False,
+    gate: float | None = None,
 ) -> KnownSizeFit:
     """Fit H's tx, tz, rz (and ry) with an upright cube of the recipe's edge to the cube scan's
     returns, from ``start`` (within a few millimetres: the box cost's result). Raises
@@ -230,11 +236,12 @@ def known_size_fit(
 
     ``range_model`` other than ``none``: the lidar's range terms are fitted too (and the
     incidence bias with ``incidence``), from ``start_range`` (:func:`range_size_fit`; with
-    ``encoder``, how it follows the encoder's angle error too)."""
+    ``encoder``, how it follows the encoder's angle error too; ``gate``, see there)."""
     if range_model != "none":
         return range_size_fit(scan, start, cube, platter_radius=platter_radius,
                               estimate_ry=estimate_ry, range_model=range_model,
-                              start_range=start_range, incidence=incidence, encoder=encoder)
+                              start_range=start_range, incidence=incidence, encoder=encoder,
+                              gate=gate)
     names = ("tx", "tz", "ry", "rz") if estimate_ry else ("tx", "tz", "rz")
     free = [PARAMETER_NAMES.index(n) for n in names]
     H = start.with_(rx=0.0)
@@ -297,6 +304,7 @@ def range_size_fit(
     start_range: RangeModel = IDENTITY,
     incidence: bool = False,
     encoder: bool = False,
+    gate: float | None = None,
 ) -> KnownSizeFit:
     """The known-size cube fit with the lidar's range model (DESIGN §9): H's tx, ty, tz, rz
     (and ry) and the range terms of ``range_model`` fitted to the cube's faces — the cube's
@@ -316,7 +324,12 @@ def range_size_fit(
     Raises :class:`FineTuningError` for ``offset+scale`` on a cube not stated to be of the
     platter's finish (``cube.same_finish_as_platter``): the scale is read from the cube's height
     above the platter, and a platter that reads at another range (its reflectivity) would be
-    taken for a scale error (2400 ppm, ty 2.8 mm off, on recipes/sim-realistic.yaml's)."""
+    taken for a scale error (2400 ppm, ty 2.8 mm off, on recipes/sim-realistic.yaml's).
+
+    ``gate`` (m): raise :class:`FineTuningError` unless the cube's box under ``start`` is
+    within this plus 6σ of range noise of the recipe's edge across (an axis offset δ widens it
+    by about 2δ): the shape strategy fits from its start only a start that close, else from the
+    box cost's result (:func:`calstation.engine.shape.shape_fine_tune_points`)."""
     if range_model == "offset+scale" and not cube.same_finish_as_platter:
         raise FineTuningError(
             "the known-size cube fit cannot measure the lidar's range scale error "
@@ -329,8 +342,14 @@ def range_size_fit(
     base = np.concatenate([start.with_(rx=0.0).as_vector(), start_range.as_vector()])
     cloud = segment_cube(start_range_points(scan.p_L, start_range), scan.phi,
                          start.with_(rx=0.0), cube.edge, platter_radius, most=FIRST_CLOUD)
-    first = _label(cloud, start.with_(rx=0.0))
+    first, extents = _label_in_box(cloud, start.with_(rx=0.0))
     pose, noise = first.pose[:3], first.noise
+    across = float(np.max(np.abs(extents[1:] - cube.edge)))
+    if gate is not None and not across <= gate + 6.0 * noise:
+        raise FineTuningError(
+            f"the cube's box under the start is {across * 1e3:.1f} mm off its edge across, "
+            f"beyond {(gate + 6.0 * noise) * 1e3:.1f} mm: the start is too far for the known-size "
+            "fit alone")
     # the returns the rounds may label, with what does not change between them
     returns = _Returns.of(scan, _near_platter(scan, base, platter_radius))
     # a round on a part of the returns only moves the model the labels are chosen against: it

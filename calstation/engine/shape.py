@@ -37,11 +37,10 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from calstation.engine.cube import check_cube_points
-from calstation.engine.cubefit import KnownSizeFit, known_size_fit
 from calstation.engine.frames import PARAMETER_NAMES, Extrinsics, FloatArray, lidar_to_dynamic
 from calstation.engine.geometry import face_labels, minimal_obb, upright_box
 from calstation.engine.periodicity import block_ids, parameter_sigma, periodicity_fine_tune_scan
-from calstation.engine.rangemodel import RangeModelName, estimated_indices, range_result_fields
+from calstation.engine.rangemodel import RangeModelName
 from calstation.engine.result import CalibrationResult
 from calstation.engine.settings import (
     DEFAULT_PLATTER_RADIUS,
@@ -55,6 +54,7 @@ from calstation.engine.shapecost import (  # ShapeCost lived here; still importa
     near_cube,
     subsample,
 )
+from calstation.engine.shapesize import from_start, with_known_size
 from calstation.engine.spinscan import SpinScan, from_recording, prepare
 from calstation.engine.twist import FaceFlatness, face_range_noise, flatness_ry_sigma
 from calstation.errors import FineTuningError, VerificationError
@@ -577,8 +577,11 @@ def shape_fine_tune_points(
     known-size fit estimates with H (:func:`calstation.engine.cubefit.range_size_fit`; the box
     cost before it reads the ranges as measured), and the incidence bias with ``incidence``;
     with ``encoder``, how that fit follows the encoder's angle error
-    (``diagnostics["follows_encoder"]``). Returns a :class:`CalibrationResult` with strategy
-    ``"shape"`` and cost ``C1 + C2`` (m²).
+    (``diagnostics["follows_encoder"]``); with it, a start whose cube is within the coarse gate
+    (:data:`COARSE_GATE_M`) is fitted from itself, without the box cost
+    (:func:`calstation.engine.shapesize.from_start`). Returns a :class:`CalibrationResult` with
+    strategy ``"shape"`` and cost ``C1 + C2`` (m²), or with the range model the known-size
+    fit's mean squared range error (m²).
     """
     t0 = time.perf_counter()
     p_L = np.asarray(p_L, dtype=np.float64)
@@ -596,6 +599,13 @@ def shape_fine_tune_points(
     # the known-size fit estimates ry itself: the faces' flatness rounds before it changed
     # nothing but the time (docs/performance.md); they run when it cannot label the faces
     flatness = not (known_size and estimate_ry and box == "upright")
+    if not flatness and range_model != "none" and coarse:
+        # a start close enough: the known-size fit from it, without the box cost
+        direct = from_start(prepared, start, cube, platter_radius, COARSE_GATE_M, range_model,
+                            incidence, encoder)
+        if direct is not None:
+            direct.timings["total"] = time.perf_counter() - t0
+            return direct
     result = _finish(_box_passes(one_pass, start, coarse, flatness), prepared, cube,
                      platter_radius, estimate_ry, known_size, range_model, incidence, encoder)
     if not flatness and not result.diagnostics["known_size"]["used"]:
@@ -638,8 +648,8 @@ def _finish(
     fit with a range model fixes it itself, from the platter's returns)."""
     fitted = None
     if known_size or range_model != "none":
-        result, fitted = _known_size(result, prepared, cube, platter_radius, estimate_ry,
-                                     range_model, incidence, encoder)
+        result, fitted = with_known_size(result, prepared, cube, platter_radius, estimate_ry,
+                                          range_model, incidence, encoder)
     if fitted is not None and range_model != "none":
         return result
     if range_model != "none":
@@ -670,48 +680,6 @@ def _finish(
     if math.isfinite(level):
         result = _platter_gauge(result, level)
     return result
-
-
-def _known_size(
-    result: CalibrationResult,
-    scan: SpinScan,
-    cube: CubeGeometry,
-    platter_radius: float,
-    estimate_ry: bool,
-    range_model: RangeModelName = "none",
-    incidence: bool = False,
-    encoder: bool = False,
-) -> tuple[CalibrationResult, KnownSizeFit | None]:
-    """``result`` after the known-size cube fit (:mod:`calstation.engine.cubefit`) from its
-    H: the fit's H, σ and covariance, ``diagnostics.known_size`` (and the range model it
-    estimated); unchanged but for the reason in the diagnostics (and None) when the cube's faces
-    could not be labelled."""
-    try:
-        fit = known_size_fit(
-            scan, result.H, cube, platter_radius=platter_radius, estimate_ry=estimate_ry,
-            range_model=range_model, incidence=incidence, encoder=encoder,
-        )
-    except FineTuningError as exc:
-        result.diagnostics["known_size"] = {"used": False, "reason": str(exc)}
-        return result, None
-    diagnostics = dict(result.diagnostics)
-    diagnostics.update(box_H=result.H.as_dict(), known_size=fit.details,
-                       covariance=fit.covariance, bias_bound=fit.bias)
-    if estimate_ry:
-        diagnostics["ry_source"] = "known-size cube"
-    if fit.encoder_direction is not None:
-        diagnostics["follows_encoder"] = fit.encoder_direction
-    sigma = dict(result.sigma)
-    sigma.update({n: v for n, v in fit.sigma.items() if math.isfinite(v) and n in sigma})
-    result = replace(result, H=fit.H, sigma=sigma, diagnostics=diagnostics)
-    if range_model != "none":
-        diagnostics.update(range_model=range_model, gauge="platter", gauge_note=(
-            "origin along the axis fixed by the platter top in the cube scan (x_P = 0)"))
-        terms = estimated_indices(range_model, incidence)
-        sigma_all = dict(fit.sigma)
-        result = result.with_range(range_result_fields(
-            np.concatenate([fit.H.as_vector(), fit.range_model.as_vector()]), sigma_all, terms))
-    return result, fit
 
 
 PLATTER_LEVEL_SIGMA = 0.00005

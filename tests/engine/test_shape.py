@@ -267,3 +267,42 @@ def test_before_the_known_size_fit_the_faces_flatness_rounds_are_left_out(
         "face flatness")
     e = axis_errors(fallback.H, truth)
     assert abs(e["ry_error"]) <= 3 * fallback.sigma["ry"]
+
+
+def test_with_the_range_model_a_start_the_cube_confirms_skips_the_box_cost(sim_run) -> None:
+    """With the lidar's range model, a start from the L-target, whose cube is within the coarse
+    gate of its edge, is fitted by the known-size cube fit itself, without the box cost: every
+    parameter and the range offset within 3σ of the truth, and within σ of what the box
+    cost's path gives from a start 10 mm off in tx and tz, which the gate sends that way."""
+    from calstation.engine.metrics import axis_errors as errors
+
+    recipe, initial, rec = _from_initial(sim_run)
+    truth = rec.truth
+    assert truth is not None
+    cube, settings = recipe.fixtures.qa_cube, recipe.calibration.shape
+    direct = shape_fine_tune(rec, initial.H, cube, settings, range_model="offset")
+    assert direct.diagnostics["box"] == "none" and "box_H" not in direct.diagnostics
+    assert direct.diagnostics["known_size"]["used"] is True
+    far = initial.H.with_(tx=initial.H.tx + 0.01, tz=initial.H.tz - 0.01)
+    boxed = shape_fine_tune(rec, far, cube, settings, range_model="offset")
+    assert boxed.diagnostics["box"] == "upright" and "box_H" in boxed.diagnostics
+    for res in (direct, boxed):
+        e = errors(res.H, truth)
+        for name in ("tx", "ty", "tz", "ry", "rz"):
+            assert abs(e[f"{name}_error"]) <= 3 * res.sigma[name], name
+        assert res.range_offset is not None and res.sigma_range_offset is not None
+        assert abs(res.range_offset) <= 3 * res.sigma_range_offset
+        # the cost is the known-size fit's on either path: starts compare alike
+        rms = res.diagnostics["known_size"]["rms_range_error_m"]
+        assert res.cost == pytest.approx(rms**2)
+    for name in ("tx", "ty", "tz", "ry", "rz"):
+        gap = abs(getattr(direct.H, name) - getattr(boxed.H, name))
+        assert gap <= direct.sigma[name], name
+    # the gate itself: the fit refuses the far start before its rounds, not after them
+    from calstation.engine.cubefit import known_size_fit
+    from calstation.engine.shape import COARSE_GATE_M
+    from calstation.engine.spinscan import from_recording
+
+    with pytest.raises(FineTuningError, match="too far for the known-size fit alone"):
+        known_size_fit(from_recording(rec), far, cube, range_model="offset", gate=COARSE_GATE_M,
+                       platter_radius=recipe.fixtures.platter.radius)
