@@ -8,7 +8,8 @@ the σ the strategy states, the predicted reconstruction error over the recipe's
 (with the cube's faces added to ry, for a spin-target strategy), how it falls with the turns,
 and the turns the budget needs: the random part of the error falls as 1/√turns, which the
 measured 1 → N turns checks. It also tries the spin target's placement and height where they
-matter (centred against 60 mm off-centre, and 1.5 times taller), and recommends.
+matter (centred against 60 mm off-centre, and 1.5 times taller), a QA cube three times larger
+where the lidar's range offset is measured on it, and recommends.
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ OFF_CENTRE_M = 0.06
 """Where the spin target stands off the axis in the placement the plan tries."""
 TALLER = 1.5
 """How much taller the spin target the plan tries is."""
+LARGER_CUBE = 3.0
+"""How much larger the QA cube the plan tries is, with the lidar's range model (centred)."""
 
 CERTIFICATE_M = 5e-5
 """The σ of the lidar's range offset certificate the plan tries (m): a range bench's."""
@@ -191,6 +194,8 @@ class _Run:
     patch: JSONObject
     seed: int
     turns: int
+    scans: tuple[str, ...] = ()
+    """the scans an alternative changes, simulated for it (the others are the design's)"""
 
 
 def _plan(
@@ -200,12 +205,12 @@ def _plan(
     """:func:`plan` with its folder for the simulated recordings: every run simulated, then
     every fit, each on :data:`PLAN_WORKERS` processes."""
     recipe = loaded.recipe
-    designs: list[tuple[str, str, JSONObject]] = [("as designed", "the recipe", {})]
+    designs: list[Alternative] = [("as designed", "the recipe", {}, ())]
     if alternatives:
         designs += _alternatives(recipe)
     t0 = time.perf_counter()
-    runs = [_Run(name, change, patch, seed, turns if not patch else 1)
-            for name, change, patch in designs
+    runs = [_Run(name, change, patch, seed, turns if not patch else 1, scans)
+            for name, change, patch, scans in designs
             for seed in range(1, (seeds if not patch else 1) + 1)]
     trials = {r.name: Trial(r.name, r.change) for r in runs}
     # the work in turns of scan: each run's simulation (an alternative's spin scan alone), then
@@ -250,13 +255,13 @@ def _simulate_all(
     cache: Path | None, trials: dict[str, Trial], share: _Shares,
 ) -> dict[int, Made]:
     """Every run simulated (or taken from ``cache``) at once: {run's index: (the recipe as
-    simulated, its recordings)}. An alternative changes the spin target only
-    (:func:`_alternatives`): its spin scan is simulated and the static and cube scans are the
-    design's (seed 1), which show the same station with the same truth — else the whole run is
-    simulated. An alternative the recipe's geometry does not allow gets its error."""
+    simulated, its recordings)}. An alternative changes one fixture (:func:`_alternatives`):
+    the scan of it is simulated and the other scans are the design's (seed 1), which show the
+    same station with the same truth — else the whole run is simulated. An alternative the
+    recipe's geometry does not allow gets its error."""
     share("simulating the scans")
     futures = {pool.submit(_simulate_job, loaded, r.patch, r.seed, r.turns, work / f"{k}",
-                           cache, ("spin",) if r.patch else None): k
+                           cache, r.scans if r.patch else None): k
                for k, r in enumerate(runs)}
     made: dict[int, Made] = {}
     for future in _as_completed(futures):
@@ -274,14 +279,15 @@ def _simulate_all(
     for k, run in enumerate(runs):
         if not run.patch or k not in made:
             continue
-        recipe, spin = made[k]
-        if _truth(designed) != _truth(spin):
+        recipe, own = made[k]
+        if _truth(designed) != _truth(own):
             made[k] = _simulate_job(loaded, run.patch, run.seed, run.turns, work / f"{k}",
                                     cache, None)
         else:
-            shared: dict[str, Path] = {
-                name: designed[name] for name in ("static", "cube") if name in designed}
-            made[k] = (recipe, {**shared, "spin": spin["spin"], "truth": spin["truth"]})
+            shared: dict[str, Path] = {name: designed[name] for name in ("static", "spin", "cube")
+                                       if name in designed and name not in run.scans}
+            made[k] = (recipe, {**shared, **{name: own[name] for name in run.scans},
+                                "truth": own["truth"]})
     return made
 
 
@@ -340,26 +346,52 @@ def _fit_job(recipe: Recipe, files: dict[str, Path], turns: int) -> Fit:
                 turns)
 
 
-def _alternatives(recipe: Recipe) -> list[tuple[str, str, JSONObject]]:
-    """The spin target's placement and height, tried where the strategy scans it."""
+Alternative = tuple[str, str, JSONObject, tuple[str, ...]]
+"""A design the plan tries: its name, the change in words, the recipe's patch and the scans
+the change is seen in (simulated for it; the others are the design's)."""
+
+
+def _alternatives(recipe: Recipe) -> list[Alternative]:
+    """The spin target's placement and height, tried where the strategy scans it, and, where the
+    lidar's range offset is measured on the QA cube, a larger cube (:func:`_larger_cube`)."""
     from calstation import plugins
 
-    if plugins.strategy(recipe.calibration.strategy).fixture != "spin_target":
-        return []
+    out: list[Alternative] = []
+    if plugins.strategy(recipe.calibration.strategy).fixture == "spin_target":
+        out += _spin_target_alternatives(recipe)
+    if recipe.calibration.range_model != "none":
+        out += _larger_cube(recipe)
+    return out
+
+
+def _spin_target_alternatives(recipe: Recipe) -> list[Alternative]:
+    """The spin target centred (or off-centre) and 1.5 times taller."""
     target = recipe.fixtures.spin_target
     offset = tuple(getattr(target, "offset", (0.0, 0.0)))
-    out: list[tuple[str, str, JSONObject]] = []
+    out: list[Alternative] = []
     if math.hypot(*offset) < 0.03:
         out.append(("off-centre", f"spin target {OFF_CENTRE_M * 1e3:.0f} mm off the axis",
-                    {"fixtures": {"spin_target": {"offset": [OFF_CENTRE_M, 0.0]}}}))
+                    {"fixtures": {"spin_target": {"offset": [OFF_CENTRE_M, 0.0]}}}, ("spin",)))
     else:
         out.append(("centred", "spin target on the axis",
-                    {"fixtures": {"spin_target": {"offset": [0.0, 0.0]}}}))
+                    {"fixtures": {"spin_target": {"offset": [0.0, 0.0]}}}, ("spin",)))
     height = getattr(target, "height", None)
     if height is not None:
         out.append(("taller", f"spin target {TALLER:g} × taller ({height * TALLER * 1e3:.0f} mm)",
-                    {"fixtures": {"spin_target": {"height": height * TALLER}}}))
+                    {"fixtures": {"spin_target": {"height": height * TALLER}}}, ("spin",)))
     return out
+
+
+def _larger_cube(recipe: Recipe) -> list[Alternative]:
+    """A QA cube :data:`LARGER_CUBE` times the recipe's edge, centred on the platter, where it
+    fits (its footprint's diagonal within the platter): the range offset is told from where the
+    lidar stands only by how the rays' directions spread over the cube (docs/algorithms.md,
+    *The lidar's certificate*), so a wider cube measures it, and the axis with it, better."""
+    edge = recipe.fixtures.qa_cube.edge * LARGER_CUBE
+    if edge * math.sqrt(2.0) > 2.0 * recipe.fixtures.platter.radius - 0.02:
+        return []
+    return [("larger cube", f"a QA cube of {edge * 1e3:.0f} mm, centred",
+             {"fixtures": {"qa_cube": {"edge": edge, "offset": [0.0, 0.0]}}}, ("cube",))]
 
 
 def _patched(loaded: LoadedRecipe, patch: Mapping[str, object], seed: int = 1,
@@ -627,8 +659,15 @@ def _recommend(designs: list[Design], budget: float) -> list[str]:
     for alt in designs[1:]:
         if not alt["by_turns"]:
             continue
-        e = alt["by_turns"][0]["with_cube_m"]
+        row = alt["by_turns"][0]
+        e = row["with_cube_m"]
         if math.isfinite(e) and e < 0.8 * first["with_cube_m"]:
             out.append(f"{alt['change']}: predicted {e * 1e3:.3f} mm after one turn instead of "
                        f"{first['with_cube_m'] * 1e3:.3f} mm")
+        elif math.isfinite(row["axis_sigma_m"]) and row["axis_sigma_m"] < 0.8 * axis:
+            b, b_first = (r["range_sigma"].get("range_offset", math.nan) for r in (row, first))
+            out.append(f"{alt['change']}: the axis placed to σ {row['axis_sigma_m'] * 1e3:.3f} "
+                       f"mm instead of {axis * 1e3:.3f} mm after one turn (the lidar's range "
+                       f"offset to ±{b * 1e3:.3f} mm instead of ±{b_first * 1e3:.3f} mm), "
+                       f"predicted {e * 1e3:.3f} mm instead of {first['with_cube_m'] * 1e3:.3f} mm")
     return out

@@ -77,6 +77,14 @@ def test_plan_reports_sigma_predicted_error_and_turns(
     names = {d["name"]: d for d in alternatives}
     assert "centred" in names and names["centred"]["by_turns"][0]["turns"] == 1
     assert "taller" in names and "inset" in names["taller"]["error"]
+    # and, the range offset being measured on the cube, a cube three times larger, centred:
+    # the rays spread wider over it, which tells the offset better from where the lidar stands
+    # (the shipped recipe: ±0.080 mm against ±0.214 mm, the axis's σ 0.105 against 0.177 mm)
+    larger = names["larger cube"]["by_turns"][0]
+    assert names["larger cube"]["change"] == "a QA cube of 300 mm, centred"
+    assert 0 < larger["range_sigma"]["range_offset"] < 0.7 * one["range_sigma"]["range_offset"]
+    assert 0 < larger["axis_sigma_m"] < one["axis_sigma_m"]
+    assert any(r.startswith("a QA cube of 300 mm, centred: ") for r in plan["recommendations"])
     assert plan["recommendations"]
 
 
@@ -192,7 +200,8 @@ def test_a_plan_again_takes_its_simulated_scans_from_the_cache(tmp_path: Path) -
     """The simulated scans are kept by the hash of the recipe as simulated: the same plan
     again simulates nothing and gives the same figures; another station simulates again. An
     alternative placement of the spin target simulates its spin scan alone (the static and cube
-    scans are the design's), and the progress runs from 0 to 1."""
+    scans are the design's), a larger cube its cube scan alone, and the progress runs from 0
+    to 1."""
     from calstation.bench.plan import CACHE_ENTRIES, plan
     from calstation.recipes import load_recipe
 
@@ -206,8 +215,9 @@ def test_a_plan_again_takes_its_simulated_scans_from_the_cache(tmp_path: Path) -
     said: list[float] = []
     first = plan(loaded, turns=1, cache=cache, progress=lambda m, f: said.append(f))
     runs = kept()
+    # the design; the larger cube's cube scan; centred's spin scan
     assert sorted(files for files, _ in runs.values()) == [
-        ["cube", "spin", "static", "truth"], ["spin", "truth"]]  # the design; centred's spin
+        ["cube", "spin", "static", "truth"], ["cube", "truth"], ["spin", "truth"]]
     assert said == sorted(said) and said[0] == 0.0 and said[-1] == 1.0
     again = plan(loaded, turns=1, cache=cache)
     assert kept() == runs and again["designs"] == first["designs"]
