@@ -71,7 +71,12 @@ def _campaign(url: str, workers: int, limit: int | None, report: Path) -> dict:
     wall = time.perf_counter() - t0
     if done.returncode != 0:
         raise SystemExit(f"reprocess --workers {workers} failed:\n{done.stderr[-3000:]}")
-    data = json.loads(done.stdout)
+    try:
+        data = json.loads(done.stdout)
+    except ValueError:
+        raise SystemExit(f"reprocess --workers {workers} printed no JSON "
+                         f"({len(done.stdout)} characters):\n{done.stdout[-1000:]}\n"
+                         f"{done.stderr[-3000:]}") from None
     data["wall_s"] = wall
     return data
 

@@ -69,8 +69,8 @@ def stall_timeout_s() -> float:
 def dask_client(workers: int | None = None, scheduler: str | None = None
                 ) -> Iterator[DaskClient]:
     """A ``distributed.Client`` on a new local cluster of ``workers`` processes (default: one
-    per core), or on the cluster whose scheduler is at ``scheduler``; closed (and the local
-    cluster stopped) on leaving."""
+    per core; their standard output is this process's standard error), or on the cluster whose
+    scheduler is at ``scheduler``; closed (and the local cluster stopped) on leaving."""
     import distributed
 
     dist: ModuleType = distributed  # untyped: its attributes are not checked
@@ -88,10 +88,16 @@ def dask_client(workers: int | None = None, scheduler: str | None = None
         finally:
             client.close()
         return
+    from calstation.quiet import stdout_to_stderr
+
     n = workers or os.cpu_count() or 1
-    cluster = dist.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address=None,
-                           silence_logs=logging.ERROR)
+    # the worker processes inherit descriptor 1 as it is when they start: standard error, so
+    # that what the engine's libraries print there (Open3D's C++ warnings) never lands in this
+    # process's standard output (a --json)
+    with stdout_to_stderr():
+        cluster = dist.LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                    host="127.0.0.1", dashboard_address=None,
+                                    silence_logs=logging.ERROR)
     try:
         client = dist.Client(cluster)
         try:

@@ -280,3 +280,23 @@ def test_bad_campaign_options_are_one_sentence(
     ]:
         code, _, err = run_cli(["reprocess", "--db", url, *argv], capsys)
         assert code == 2 and expected in err and "Traceback" not in err, (argv, err)
+
+
+def test_a_campaigns_json_holds_nothing_its_workers_print(
+    fleet_sim: FleetRecordings, tmp_path: Path
+) -> None:
+    """The engine's libraries in the Dask workers write to descriptor 1 (Open3D's C++
+    warnings, on a cube whose box it finds invalid): the workers' descriptor 1 is standard
+    error, so `reprocess --json` prints its JSON alone."""
+    url = f"sqlite:///{tmp_path / 'fleet.db'}"
+    _, ids = _seed(url, fleet_sim)
+    noisy = tmp_path / "noisy_worker.py"  # run by each worker as it starts (a Dask preload)
+    noisy.write_text("import os\nos.write(1, b'[a library in a worker on descriptor 1]\\n')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path),
+           "DASK_DISTRIBUTED__WORKER__PRELOAD": json.dumps([str(noisy)])}
+    done = subprocess.run([sys.executable, "-c", "from calstation.cli import main; main()",
+                           "reprocess", "--db", url, "--workers", "1", "--json"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "a library in a worker" in done.stderr, done.stdout[:300]  # it did print: there
+    assert json.loads(done.stdout)["totals"]["done_now"] == len(ids)
