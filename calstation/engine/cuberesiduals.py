@@ -186,7 +186,7 @@ class RangeSizeErrors:
         side.result()
         if self.level_free:
             platter -= platter.mean(axis=0)
-        if not self.level_free:
+        else:
             # residuals times 1 + k: the scale error's column gains the residuals themselves
             out *= 1.0 + k
             out[:, self.free.index(SCALE)] += self(x) / (1.0 + k)

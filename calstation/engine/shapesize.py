@@ -49,7 +49,7 @@ def with_known_size(
     except FineTuningError as exc:
         result.diagnostics["known_size"] = {"used": False, "reason": str(exc)}
         return result, None
-    return with_fit(result, fit, estimate_ry, range_model, incidence), fit
+    return with_fit(result, fit, estimate_ry, range_model, incidence, from_box=True), fit
 
 
 def from_start(
@@ -88,18 +88,18 @@ def from_start(
             "start_H": start.as_dict(),
         },
     )
-    return with_fit(begun, fit, True, range_model, incidence)
+    return with_fit(begun, fit, True, range_model, incidence, from_box=False)
 
 
 def with_fit(
     result: CalibrationResult, fit: KnownSizeFit, estimate_ry: bool,
-    range_model: RangeModelName, incidence: bool,
+    range_model: RangeModelName, incidence: bool, *, from_box: bool,
 ) -> CalibrationResult:
-    """``result`` (the box cost's, or the start's) with the known-size fit's H, σ, covariance
-    and details (and the range model it estimated)."""
+    """``result`` (the box cost's, ``from_box``, or the start's) with the known-size fit's H,
+    σ, covariance and details (and the range model it estimated)."""
     diagnostics = dict(result.diagnostics)
     diagnostics.update(known_size=fit.details, covariance=fit.covariance, bias_bound=fit.bias)
-    if "start_H" not in diagnostics:
+    if from_box:
         diagnostics["box_H"] = result.H.as_dict()
     if estimate_ry:
         diagnostics["ry_source"] = "known-size cube"
