@@ -254,8 +254,11 @@ def _inflate(buf: memoryview, pos: int, end: int, limits: ReadLimits) -> bytes:
 
 
 AHEAD = 3
-"""Chunks decompressed ahead, on a worker thread, while the current one's records are read
+"""Chunks decompressed ahead, on worker threads, while the current one's records are read
 (decompression and the CRC release the GIL; the records are read in Python)."""
+
+WORKERS = 2
+"""Worker threads: the chunks ahead, and the data section's CRC beside them."""
 
 _WORKER: ThreadPoolExecutor | None = None
 
@@ -265,7 +268,8 @@ class _ChunksAhead:
 
     The chunk records are found by their headers alone, up to the first record that runs past
     the end of the file; the reader still walks every record itself and meets any damage where
-    it is.
+    it is. Where that finds the data-end record, the CRC of every byte before it is computed
+    beside the chunks (:meth:`data_crc`), for the walk to compare when it gets there.
     """
 
     def __init__(self, buf: memoryview, pos: int, budget: _Budget) -> None:
@@ -273,6 +277,7 @@ class _ChunksAhead:
         self.buf = buf
         self.budget = budget
         self.spans: list[tuple[int, int]] = []
+        data_end = -1
         total = len(buf)
         while pos + _RECORD.size <= total:
             op, length = _RECORD.unpack_from(buf, pos)
@@ -281,13 +286,20 @@ class _ChunksAhead:
                 break
             if op == OP_CHUNK:
                 self.spans.append((start, start + length))
+            elif op == OP_DATA_END:
+                data_end = pos
+                break
             pos = start + length
         self.pending: dict[int, Future[bytes]] = {}
         self.next = 0
+        self._crc: tuple[int, Future[int]] | None = None
         if len(self.spans) > 1:
             if _WORKER is None:
-                _WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="calstation-mcap")
+                _WORKER = ThreadPoolExecutor(max_workers=WORKERS,
+                                             thread_name_prefix="calstation-mcap")
             self._top_up()
+            if data_end >= 0:
+                self._crc = (data_end, _WORKER.submit(zlib.crc32, buf[:data_end]))
 
     def _top_up(self) -> None:
         assert _WORKER is not None
@@ -308,10 +320,19 @@ class _ChunksAhead:
         self.budget.chunk(end - start, len(raw))
         return raw
 
+    def data_crc(self, pos: int) -> int:
+        """The CRC of ``buf[:pos]``: computed beside the chunks where ``pos`` is the data-end
+        record the headers led to, else here."""
+        if self._crc is not None and self._crc[0] == pos:
+            return self._crc[1].result()
+        return zlib.crc32(self.buf[:pos])
+
     def cancel(self) -> None:
         for future in self.pending.values():
             future.cancel()
         self.pending.clear()
+        if self._crc is not None:
+            self._crc[1].cancel()
 
 
 @dataclass
@@ -374,7 +395,7 @@ def _records(
         elif op == OP_ATTACHMENT and not inner:
             _attachment(buf, start, end, on)
         elif op == OP_DATA_END and not inner and walk is not None:
-            _check_data_crc(buf, pos, start, end, walk)
+            _check_data_crc(buf, pos, start, end, walk, chunks)
         elif op == OP_FOOTER and not inner:
             return ScanResult(True)
         pos = end
@@ -398,7 +419,9 @@ def _attachment(buf: memoryview, start: int, end: int, on: Handlers) -> None:
     on.attachment(name, data)
 
 
-def _check_data_crc(buf: memoryview, pos: int, start: int, end: int, walk: _Walk) -> None:
+def _check_data_crc(
+    buf: memoryview, pos: int, start: int, end: int, walk: _Walk, chunks: _ChunksAhead
+) -> None:
     """The data section's CRC (every byte before the data-end record), when the writer
     computed one (0: none)."""
     if end - start < 4:
@@ -406,7 +429,7 @@ def _check_data_crc(buf: memoryview, pos: int, start: int, end: int, walk: _Walk
     (crc,) = _U32.unpack_from(buf, start)
     if crc:
         walk.data_crc_checked = True
-        if zlib.crc32(buf[:pos]) != crc:
+        if chunks.data_crc(pos) != crc:
             raise Damaged("the data section's CRC does not match its bytes")
 
 

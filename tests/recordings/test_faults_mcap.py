@@ -189,6 +189,21 @@ def test_a_crc_mismatch_is_damage_and_a_cut_file_is_a_killed_writer(tmp_path: Pa
     assert rec.truncated and 0 < rec.n_lines < 1200
 
 
+def test_a_changed_byte_outside_the_chunks_fails_the_data_sections_crc(tmp_path: Path) -> None:
+    """A metadata record lies outside the chunks: a byte changed in it leaves the record
+    readable, and only the data section's CRC (computed beside the chunks) can tell."""
+    path = recording(tmp_path / "r.mcap", lines=1200)  # several chunks: the CRC on a worker
+    data = bytearray(path.read_bytes())
+    at = data.index(b"counts_per_revolution")
+    assert at < data.index(b"zstd")  # the metadata is written ahead of the first chunk
+    data[at] ^= 0x20  # c -> C: still a valid record, of other text
+    changed = tmp_path / "changed.mcap"
+    changed.write_bytes(bytes(data))
+    with pytest.raises(RecordingError, match=r"changed\.mcap is damaged: .*the data section's "
+                                             r"CRC does not match its bytes"):
+        read_recording(changed)
+
+
 # --- timing --------------------------------------------------------------------------------
 def test_line_times_that_go_backwards_are_refused_naming_the_line(tmp_path: Path) -> None:
     path = recording(tmp_path / "back.mcap",
