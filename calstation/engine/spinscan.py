@@ -14,7 +14,7 @@ import math
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Generic, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -97,29 +97,48 @@ def static_of_cells(
     """:func:`static_mask` from the returns' azimuth bins and range cells (:func:`static_cells`)."""
     if b.size == 0:
         return np.zeros(0, dtype=bool)
-    b = b - b.min()
-    c = c - c.min()
+    bmin, cmin = int(b.min()), int(c.min())
     # two empty cells either side of each bin's range cells keep the windows inside the bin
-    ncell = int(c.max()) + 5
-    size = (int(b.max()) + 1) * ncell
-    small = size + 8 < 2**31 and b.size < 2**31
-    key = b.astype(np.int64) * ncell
+    ncell = int(c.max()) - cmin + 5
+    nbin = int(b.max()) - bmin + 1
+    size = nbin * ncell
+    if size > DENSE_LIMIT:
+        return _static_of_sparse_cells(b.astype(np.int64) - bmin, c - cmin, ncell, fraction)
+    # int32 when the cells and the counts fit: half the memory to write and gather from
+    key: NDArray[np.signedinteger[Any]] = b.astype(np.int32 if size + 8 < 2**31 else np.int64)
+    key -= bmin
+    key *= ncell
+    key += c
+    key += 2 - cmin
+    # each cell's count in the window cell − 2 … cell + 2 from a running sum (no sort of the
+    # returns), judged once per cell; each return then reads its cell's verdict
+    running: NDArray[np.signedinteger[Any]] = np.zeros(
+        size + 5, dtype=np.int32 if b.size < 2**31 else np.int64)
+    np.cumsum(np.bincount(key, minlength=size), out=running[3 : size + 3])
+    running[size + 3 :] = running[size + 2]
+    per_bin = running[3 + ncell - 1 : size + 3 : ncell].copy()  # the returns up to each bin's end
+    per_bin[1:] -= per_bin[:-1].copy()
+    window = (running[5:] - running[:-5]).reshape(nbin, ncell)
+    static_cell = window >= fraction * np.maximum(per_bin, 1)[:, None]
+    out: NDArray[np.bool_] = static_cell.reshape(-1)[key]
+    return out
+
+
+def _static_of_sparse_cells(
+    b: NDArray[np.int64], c: NDArray[np.int32], ncell: int, fraction: float
+) -> NDArray[np.bool_]:
+    """:func:`static_of_cells` for a grid too large to count densely: the occupied cells
+    sorted, each window's count found by search (``b``, ``c`` from 0)."""
+    key = b * ncell
     key += c
     key += 2
-    if size <= DENSE_LIMIT:
-        # the count in the window key − 2 … key + 2 from a running sum: no sort of the returns
-        # int32 when the counts fit: half the memory to gather from
-        running: NDArray[np.int64] = np.zeros(size + 1, dtype=np.int32 if small else np.int64)
-        np.cumsum(np.bincount(key, minlength=size), out=running[1:])
-        near = running[key + 3] - running[key - 2]
-    else:
-        uniq, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
-        near_u = np.zeros_like(cnt)
-        for k in (-2, -1, 0, 1, 2):
-            pos = np.searchsorted(uniq, uniq + k)
-            hit = (pos < uniq.size) & (uniq[np.minimum(pos, uniq.size - 1)] == uniq + k)
-            near_u[hit] += cnt[pos[hit]]
-        near = near_u[inv]
+    uniq, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    near_u = np.zeros_like(cnt)
+    for k in (-2, -1, 0, 1, 2):
+        pos = np.searchsorted(uniq, uniq + k)
+        hit = (pos < uniq.size) & (uniq[np.minimum(pos, uniq.size - 1)] == uniq + k)
+        near_u[hit] += cnt[pos[hit]]
+    near = near_u[inv]
     per_bin = np.bincount(b)
     out: NDArray[np.bool_] = near >= fraction * np.maximum(per_bin[b], 1)
     return out

@@ -1,4 +1,5 @@
-"""A spin scan prepared as its lines arrive equals the one prepared from its recording."""
+"""A spin scan prepared as its lines arrive equals the one prepared from its recording; the
+static test against its definition."""
 
 from __future__ import annotations
 
@@ -7,9 +8,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from calstation.drivers import EncoderSample
-from calstation.engine.spinscan import SpinScanBuilder, from_recording
+from calstation.engine import spinscan
+from calstation.engine.spinscan import SpinScanBuilder, from_recording, static_of_cells
 from calstation.recordings.reader import read_recording
 
 
@@ -188,3 +191,26 @@ def test_the_first_lines_of_a_scan_are_the_scan_handed_out_at_those_lines(sim_ru
     for line in lines[len(lines) // 3 :]:
         late.write_line(line)
     assert late.first_lines(at) is not first
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_the_static_test_counts_each_returns_bin_and_window(
+    dense: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Against the definition, return by return: static when at least 60 % of its azimuth
+    bin's returns lie within two range cells of its own; the dense count and the sparse one
+    (a grid past DENSE_LIMIT) alike, on bins and cells that do not start at 0."""
+    rng = np.random.default_rng(3)
+    n = 4000
+    b = rng.integers(-7, 5, n).astype(np.int32)
+    c = np.where(rng.random(n) < 0.7, 500 + rng.integers(-2, 2, n),
+                 rng.integers(300, 900, n)).astype(np.int32)
+    c[b == 4] = rng.integers(300, 900, int((b == 4).sum()))  # a bin with nothing static
+    if not dense:
+        monkeypatch.setattr(spinscan, "DENSE_LIMIT", 0)
+    got = static_of_cells(b, c)
+    same_bin = b[:, None] == b[None, :]
+    near = (same_bin & (np.abs(c[:, None] - c[None, :]) <= 2)).sum(axis=1)
+    want = near >= 0.6 * same_bin.sum(axis=1)
+    assert 0.3 < want.mean() < 0.9 and not want[b == 4].any()
+    assert np.array_equal(got, want)
