@@ -76,7 +76,7 @@ from calstation.engine.rangemodel import (
 )
 from calstation.engine.residuals import TrendRecord, residual_trends
 from calstation.engine.settings import CubeGeometry
-from calstation.engine.softl1 import soft_l1_fit
+from calstation.engine.softl1 import gauss_newton_weight, soft_l1_fit
 from calstation.engine.spinscan import SpinScan
 from calstation.engine.twist import (
     face_range_noise,
@@ -519,8 +519,7 @@ def _response(res: OptimizeResult, columns: FloatArray, noise: float) -> FloatAr
     each of k things that move its residuals by ``columns`` (m, k): dx = −J⁺·w·∂r, with ``J``
     the loss's Jacobian (``res.jac``, each row scaled by √w) and w its Gauss–Newton weights,
     ρ′(z) + 2z·ρ″(z) at z = (r/f_scale)² (scipy's own scaling)."""
-    z = (np.asarray(res.fun) / _f_scale(noise)) ** 2
-    weight = np.sqrt(np.maximum((1.0 + z) ** -0.5 - z * (1.0 + z) ** -1.5, 1e-12))
+    weight = gauss_newton_weight((np.asarray(res.fun) / _f_scale(noise)) ** 2)
     dx: FloatArray = -np.linalg.lstsq(np.asarray(res.jac), columns * weight[:, None],
                                       rcond=None)[0]
     return dx

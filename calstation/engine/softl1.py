@@ -52,8 +52,22 @@ def _scaled(
     t = 1.0 + z
     cost = float(np.sum(t**0.5 - 1.0)) * f_scale**2
     rho1 = t**-0.5
-    weight = np.maximum(rho1 - z * t**-1.5, EPS) ** 0.5
+    weight = _weight(z, t, rho1)
     return cost, J * weight[:, None], f * (rho1 / weight)
+
+
+def gauss_newton_weight(z: FloatArray) -> FloatArray:
+    """√w of soft-L1's Gauss–Newton weights w = ρ′(z) + 2z·ρ″(z) at z = (r/f_scale)², floored
+    at machine ε as scipy's ``scale_for_robust_loss_function`` floors them: the weights a
+    soft-L1 fit's rows carry (in ``OptimizeResult.jac``, each row scaled by √w)."""
+    t = 1.0 + z
+    return _weight(z, t, t**-0.5)
+
+
+def _weight(z: FloatArray, t: FloatArray, rho1: FloatArray) -> FloatArray:
+    """:func:`gauss_newton_weight` from z, t = 1 + z and ρ′ = t^-½ already computed."""
+    out: FloatArray = np.maximum(rho1 - z * t**-1.5, EPS) ** 0.5
+    return out
 
 
 def _small(step: FloatArray, x: FloatArray) -> bool:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from calstation.engine.softl1 import soft_l1_fit
+from calstation.engine.softl1 import gauss_newton_weight, soft_l1_fit
 
 
 class Circles:
@@ -96,3 +96,17 @@ def test_a_step_that_overshoots_is_damped_and_ends_where_trf_does(
     sigma = np.sqrt(np.diag(np.linalg.inv(trf.jac.T @ trf.jac)) * np.mean(trf.fun**2))
     assert np.max(np.abs(fit.x - trf.x) / sigma) < 1e-3
     assert fit.nfev <= 100
+
+
+def test_the_gauss_newton_weights_are_those_trf_scales_its_rows_by() -> None:
+    """The weights a soft-L1 fit's rows carry (the cube fit's responses read them back out of
+    its Jacobian): TRF's own, row by row, at every size of residual."""
+    f_scale = 2e-3
+    r = np.array([0.0, 1e-4, -2e-3, 5e-3, -0.05, 1.0, 1e3])
+    fit = least_squares(lambda x: r * x[0], np.array([1.0]), lambda x: r[:, None],
+                        loss="soft_l1", f_scale=f_scale,
+                        max_nfev=1)
+    # at x = 1 the unscaled Jacobian is r itself: TRF's rows are r·√w
+    got = gauss_newton_weight((fit.fun / f_scale) ** 2)
+    assert np.allclose(fit.jac[:, 0], fit.fun * got, rtol=1e-12, atol=0.0)
+    assert got[0] == 1.0 and np.all(np.diff(got[1:4]) < 0) and got[-1] > 0.0
