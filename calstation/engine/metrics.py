@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -67,20 +68,24 @@ def kabsch(source: FloatArray, target: FloatArray) -> tuple[FloatArray, FloatArr
     return R, ct - R @ cs
 
 
-def distortion_points(
-    p_L: FloatArray,
-    phi: FloatArray,
-    estimate: Extrinsics,
-    truth: Extrinsics,
-    *,
-    margin: float = 0.005,
-    platter_radius: float = DEFAULT_PLATTER_RADIUS,
-) -> dict[str, float]:
-    """Reconstruction distortion on the object above the platter ((N, 3) returns in L, (N,) φ).
+OBJECT_MARGIN = 0.005
+"""The distortion's object is the returns more than this above the platter (m)."""
 
-    The object is the returns more than ``margin`` above the platter (under the true H) and
-    inside the platter. Returns ``rms_m``, ``max_m`` after Kabsch alignment, ``points``.
-    """
+
+@dataclass(frozen=True)
+class _Object:
+    """A recording's object above the platter, found under the true H: its returns in L,
+    their platter angles, and where the true H puts them in D."""
+
+    p_L: FloatArray
+    phi: FloatArray
+    true_D: FloatArray
+
+
+def _object(
+    p_L: FloatArray, phi: FloatArray, truth: Extrinsics, margin: float, platter_radius: float
+) -> _Object:
+    """The returns more than ``margin`` above the platter and inside it, under ``truth``."""
     # height along the axis and distance from it need no platter angle: select in P first
     q = p_L @ truth.R
     q -= truth.t @ truth.R
@@ -90,25 +95,56 @@ def distortion_points(
         raise CalibrationError(
             f"only {sel.size} returns above the platter: no object to measure distortion on"
         )
-    est_D = lidar_to_dynamic(p_L[sel], phi[sel], estimate)
-    true_D = lidar_to_dynamic(p_L[sel], phi[sel], truth)
-    R, t = kabsch(est_D, true_D)
-    d = np.linalg.norm(est_D @ R.T + t - true_D, axis=1)
+    return _Object(p_L[sel], phi[sel], lidar_to_dynamic(p_L[sel], phi[sel], truth))
+
+
+def _distortion(obj: _Object, estimate: Extrinsics) -> dict[str, float]:
+    est_D = lidar_to_dynamic(obj.p_L, obj.phi, estimate)
+    R, t = kabsch(est_D, obj.true_D)
+    d = np.linalg.norm(est_D @ R.T + t - obj.true_D, axis=1)
     return {
         "rms_m": float(np.sqrt(np.mean(d**2))),
         "max_m": float(np.max(d)),
-        "points": float(sel.size),
+        "points": float(obj.p_L.shape[0]),
     }
 
 
+def distortion_points(
+    p_L: FloatArray,
+    phi: FloatArray,
+    estimate: Extrinsics,
+    truth: Extrinsics,
+    *,
+    margin: float = OBJECT_MARGIN,
+    platter_radius: float = DEFAULT_PLATTER_RADIUS,
+) -> dict[str, float]:
+    """Reconstruction distortion on the object above the platter ((N, 3) returns in L, (N,) φ).
+
+    The object is the returns more than ``margin`` above the platter (under the true H) and
+    inside the platter. Returns ``rms_m``, ``max_m`` after Kabsch alignment, ``points``.
+    """
+    return _distortion(_object(p_L, phi, truth, margin, platter_radius), estimate)
+
+
 def reconstruction_distortion(
-    recording: Scan, estimate: Extrinsics, truth: Extrinsics, *, prepared: SpinScan | None = None
+    recording: Scan | None,
+    estimate: Extrinsics,
+    truth: Extrinsics,
+    *,
+    prepared: SpinScan | None = None,
 ) -> dict[str, float]:
     """Distortion of a recording's object (e.g. the QA cube) reconstructed with ``estimate``
     instead of ``truth``: ``rms_m``, ``max_m`` (metres) after the best rigid alignment.
     ``prepared``: the recording's returns already prepared
-    (:func:`calstation.engine.spinscan.from_recording`), else they are prepared here."""
-    from calstation.engine.spinscan import from_recording
+    (:func:`calstation.engine.spinscan.from_recording`), else they are prepared here (one of
+    the two is needed); its object, found under ``truth``, is kept in its memo for the next
+    estimate (the bench measures every start's estimate on one scan)."""
+    from calstation.engine.spinscan import prepared_or_read
 
-    scan = prepared if prepared is not None else from_recording(recording)
-    return distortion_points(scan.p_L, scan.phi, estimate, truth)
+    scan = prepared_or_read(recording, prepared)
+    key = f"distortion object {truth.as_vector().tobytes().hex()}"
+    obj = scan.memo.get(key)
+    if not isinstance(obj, _Object):
+        obj = _object(scan.p_L, scan.phi, truth, OBJECT_MARGIN, DEFAULT_PLATTER_RADIUS)
+        scan.memo[key] = obj
+    return _distortion(obj, estimate)

@@ -64,3 +64,27 @@ def test_distortion_zero_for_truth_and_positive_for_an_error() -> None:
     assert d0["rms_m"] == pytest.approx(0.0, abs=1e-12)
     d1 = distortion_points(p_L, phi, TRUTH.with_(tz=TRUTH.tz + 0.002), TRUTH)
     assert d1["rms_m"] > 5e-4 and d1["max_m"] >= d1["rms_m"]
+
+
+def test_the_distortion_of_each_estimate_on_one_prepared_scan_is_its_own() -> None:
+    """The object found under the truth is kept with the prepared scan: every estimate's
+    distortion on it equals the distortion computed afresh, and another truth finds its own."""
+    from calstation.engine.frames import dynamic_to_lidar
+    from calstation.engine.metrics import reconstruction_distortion
+    from calstation.engine.spinscan import prepare
+
+    rng = np.random.default_rng(2)
+    n = 4000
+    p_D = np.column_stack(
+        [rng.uniform(-0.02, 0.1, n), rng.uniform(-0.05, 0.05, n), rng.uniform(-0.05, 0.05, n)]
+    )
+    phi = rng.uniform(0, 2 * math.pi, n)
+    p_L = dynamic_to_lidar(p_D, phi, TRUTH)
+    scan = prepare(p_L, phi)
+    other = TRUTH.with_(tx=TRUTH.tx + 0.01)
+    for estimate in (TRUTH.with_(tz=TRUTH.tz + 0.002), TRUTH.with_(ry=TRUTH.ry + 0.01), TRUTH):
+        for truth in (TRUTH, other):
+            got = reconstruction_distortion(None, estimate, truth, prepared=scan)
+            assert got == distortion_points(p_L, phi, estimate, truth)  # exactly
+    assert reconstruction_distortion(None, TRUTH, other, prepared=scan)["points"] != \
+        reconstruction_distortion(None, TRUTH, TRUTH, prepared=scan)["points"]
