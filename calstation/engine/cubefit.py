@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from calstation.engine.cubecast import (
@@ -127,6 +128,18 @@ def _label(cloud: CubeCloud, H: Extrinsics) -> _Faces:
     return _label_in_box(cloud, H)[0]
 
 
+def _faces_found(labels: NDArray[np.int_]) -> list[int]:
+    """The face labels (1–5) held by 30 returns or more of ``labels``;
+    :class:`FineTuningError` when fewer than :data:`MIN_FACES` are."""
+    found = [int(f) for f in np.unique(labels) if f >= 1 and np.count_nonzero(labels == f) >= 30]
+    if len(found) < MIN_FACES:
+        raise FineTuningError(
+            f"the known-size cube fit needs {MIN_FACES} faces of the cube with 30 returns, "
+            f"found {len(found)}"
+        )
+    return found
+
+
 def _label_in_box(cloud: CubeCloud, H: Extrinsics) -> tuple[_Faces, FloatArray]:
     """:func:`_label`, and the upright box's extents (3,: its height, then across)."""
     if cloud.pts.shape[0] < 500:
@@ -137,18 +150,15 @@ def _label_in_box(cloud: CubeCloud, H: Extrinsics) -> tuple[_Faces, FloatArray]:
     p_D[:, 0] -= cloud.level
     centre, axes, extents = upright_box(p_D[cloud.idx[~cloud.veil]], strays=True)
     labels = face_labels(p_D, centre, axes, extents)
-    found = [f for f in np.unique(labels) if f >= 1 and np.count_nonzero(labels == f) >= 30]
-    if len(found) < MIN_FACES:
-        raise FineTuningError(
-            f"the known-size cube fit needs {MIN_FACES} faces of the cube with 30 returns, "
-            f"found {len(found)}"
-        )
+    found = _faces_found(labels)
     # the same returns' keys in every round (the cloud is found once): rounds that label nearly
     # the same returns keep nearly the same ones (cubecast._kept)
     keep = _kept(np.flatnonzero(np.isin(labels, found)), fixed_keys(cloud.p_L.shape[0]),
                  FIT_POINTS)
     keep = keep[~veil_mask(cloud.p_L, keep)]  # neighbours among the returns above the platter
     p_L, phi, lab = cloud.p_L[keep], cloud.phi[keep], labels[keep]
+    # a face labelled under a start far off may lie on the veils alone: counted again
+    found = _faces_found(lab)
     noise = face_range_noise(
         [p_L[lab == f] for f in found], [phi[lab == f] for f in found], H
     )

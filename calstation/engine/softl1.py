@@ -7,10 +7,9 @@ dozen parameters, that decomposition cost about as much as the Jacobian itself (
 40 ms on the known-size cube fit's last round). Near its minimum, which is where the fits
 this module serves start, TRF's trust region does not bind: each step is the Gauss–Newton step
 of the loss-scaled problem. :func:`soft_l1_fit` takes the same step from the (n, n) normal
-equations and accepts it by the same tests (``ftol``, ``xtol``, ``gtol`` as TRF's, in its scaled
-variables). From a far start a step may overshoot: one that does not lower the cost is damped
-(Levenberg–Marquardt) until it does, as TRF shrinks its trust region, and a step that damping
-cannot save (or a singular system) hands the fit to TRF from where it stands.
+equations, accepts it by the same tests (``ftol``, ``xtol``, ``gtol`` as TRF's, in its scaled
+variables), and hands the fit to TRF, from where it stands, on the first step that does not
+lower the cost: from a far start, a step may overshoot, and the trust region then matters.
 
 The result is a :class:`scipy.optimize.OptimizeResult` as TRF's: ``x``; ``fun`` the residuals;
 ``jac`` the Jacobian scaled by the loss (each row by √(ρ′ + 2zρ″), so that JᵀJ is the
@@ -20,7 +19,6 @@ Gauss–Newton Hessian, as TRF returns it); ``cost``; ``nfev``, ``njev``, ``stat
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -30,8 +28,6 @@ from calstation.engine.frames import FloatArray
 
 TOL = 1e-8
 """``ftol``, ``xtol`` and ``gtol``: TRF's defaults."""
-MOST_DAMPING = 1e6
-"""The largest Marquardt damping of a step before the fit is handed to TRF."""
 EPS = float(np.finfo(np.float64).eps)
 
 _MESSAGES = {
@@ -70,11 +66,6 @@ def _weight(z: FloatArray, t: FloatArray, rho1: FloatArray) -> FloatArray:
     return out
 
 
-def _small(step: FloatArray, x: FloatArray) -> bool:
-    """TRF's ``xtol`` test of a step from ``x``."""
-    return float(np.linalg.norm(step)) < TOL * (TOL + float(np.linalg.norm(x)))
-
-
 def _cost(f: FloatArray, f_scale: float) -> float:
     return float(np.sum((1.0 + (f / f_scale) ** 2) ** 0.5 - 1.0)) * f_scale**2
 
@@ -89,8 +80,8 @@ def soft_l1_fit(
     max_nfev: int,
 ) -> OptimizeResult:
     """``least_squares(fun, x0, jac=jac, method="trf", loss="soft_l1", f_scale=f_scale,
-    x_scale=x_scale, max_nfev=max_nfev)``, by Gauss–Newton steps on the normal equations,
-    damped where one does not lower the cost (see the module)."""
+    x_scale=x_scale, max_nfev=max_nfev)``, by Gauss–Newton steps on the normal equations while
+    each lowers the cost, by TRF from there when one does not (see the module)."""
     x = np.asarray(x0, dtype=np.float64).copy()
     d = np.asarray(x_scale, dtype=np.float64)
     f = np.asarray(fun(x), dtype=np.float64)
@@ -109,33 +100,23 @@ def soft_l1_fit(
         g_h = g * d
         Jh = Js * d
         A = Jh.T @ Jh
-        # the Gauss–Newton step; one that does not lower the cost is damped (Marquardt:
-        # A + λ·diag A, λ growing fourfold), as TRF shrinks its trust region
-        damping = 0.0
-        while True:
-            try:
-                step_h = -np.linalg.solve(A + damping * np.diag(np.diag(A)), g_h)
-            except np.linalg.LinAlgError:
-                return _trf(fun, jac, x, f_scale, d, max_nfev, nfev, njev)
-            if damping and _small(d * step_h, x):
-                break  # damped to nothing: TRF's xtol
-            x_new = x + d * step_h
-            f_new = np.asarray(fun(x_new), dtype=np.float64)
-            nfev += 1
-            cost_new = _cost(f_new, f_scale) if np.all(np.isfinite(f_new)) else math.inf
-            if cost_new < cost:
-                break
-            if nfev >= max_nfev or damping >= MOST_DAMPING:
-                return _trf(fun, jac, x, f_scale, d, max_nfev, nfev, njev)
-            damping = max(4.0 * damping, 1.0)
-        if cost_new >= cost:
-            status = 3
-            break
+        try:
+            step_h = -np.linalg.solve(A, g_h)
+        except np.linalg.LinAlgError:
+            return _trf(fun, jac, x, f_scale, d, max_nfev, nfev, njev)
         predicted = -float(g_h @ step_h + 0.5 * step_h @ A @ step_h)
+        x_new = x + d * step_h
+        f_new = np.asarray(fun(x_new), dtype=np.float64)
+        nfev += 1
+        if not np.all(np.isfinite(f_new)):
+            return _trf(fun, jac, x, f_scale, d, max_nfev, nfev, njev)
+        cost_new = _cost(f_new, f_scale)
         reduction = cost - cost_new
+        if reduction <= 0:
+            return _trf(fun, jac, x, f_scale, d, max_nfev, nfev, njev)
         ratio = reduction / predicted if predicted > 0 else 0.0
         ftol_met = reduction < TOL * cost and ratio > 0.25
-        xtol_met = _small(d * step_h, x)
+        xtol_met = float(np.linalg.norm(d * step_h)) < TOL * (TOL + float(np.linalg.norm(x)))
         x, f = x_new, f_new
         J = np.asarray(jac(x), dtype=np.float64)
         njev += 1

@@ -406,9 +406,12 @@ def face_range_noise(
 ) -> float:
     """Range noise (m, 1σ along the ray) seen on plane faces: each face's residual RMS about
     its plane over the RMS of the normal component of a unit step along the ray, the median
-    over the faces (a face seen at grazing incidence shows little of the noise)."""
+    over the faces (a face seen at grazing incidence shows little of the noise, and one of
+    fewer than 3 returns holds no plane); NaN when no face shows it."""
     estimates = []
     for p, f in zip(faces_L, faces_phi, strict=True):
+        if p.shape[0] < 3:
+            continue
         _, n, rms = fit_plane(lidar_to_dynamic(p, f, H))
         gain = ray_gain(p, f, H, n)
         if gain > 0.1:
