@@ -49,6 +49,24 @@ class Collected:
     turntable: list[TurntableStatus] = field(default_factory=list)
     clean: bool = False
     problem: str = ""
+    timing_parts: list[tuple[Any, ...]] = field(default_factory=list)  # Any: the parts' types
+    """version 2: each ``LidarLineTiming``'s parts, as one tuple (``line_*``, ``azimuth``,
+    ``valid``, ``invalid_range``)"""
+    scan_parts: list[tuple[Any, ...]] = field(default_factory=list)
+    """version 2: each ``LaserScan``'s parts, as one tuple (``scan_ts``, ``range_``,
+    ``intensity``)"""
+
+    def spread_parts(self) -> None:
+        """Spread the version-2 messages' tuples over the line lists, field by field (one
+        append per message while reading, one transposition here)."""
+        if self.timing_parts:
+            (self.line_ts, self.line_period, self.line_count, self.azimuth, self.valid,
+             self.line_offsets, self.invalid_range) = map(list, zip(*self.timing_parts,
+                                                                    strict=True))
+        if self.scan_parts:
+            self.scan_ts, self.range_, self.intensity = map(list, zip(*self.scan_parts,
+                                                                      strict=True))
+        self.timing_parts, self.scan_parts = [], []
 
 
 

@@ -112,11 +112,6 @@ def _collect(p: Path, f: IO[bytes]) -> Collected:
         else:  # transforms and clouds are derived data: the arrays come from the raw channels
             readers.pop(channel_id, None)
 
-    def on_message(channel_id: int, payload: memoryview) -> None:
-        read = readers.get(channel_id)
-        if read is not None:
-            read(payload)
-
     def on_metadata(name: str, values: dict[str, str]) -> None:
         col.metadata[name] = decode_metadata(p, name, values)
 
@@ -124,7 +119,8 @@ def _collect(p: Path, f: IO[bytes]) -> Collected:
         col.attachments[name] = payload
 
     try:
-        result = scan(data, Handlers(on_channel, on_message, on_metadata, on_attachment))
+        result = scan(data, Handlers(on_channel, _no_message, on_metadata, on_attachment,
+                                     routes=readers))
     except Refused as exc:
         raise RecordingError(f"recording {p} is refused: {exc}") from None
     if not result.clean and result.complete:
@@ -134,34 +130,29 @@ def _collect(p: Path, f: IO[bytes]) -> Collected:
             "its shared copy or a backup instead"
         )
     col.clean, col.problem = result.clean, result.problem
+    col.spread_parts()
     return col
 
 
 _READ_TOPICS = (SCAN_TOPIC, LIDAR_TOPIC, ENCODER_TOPIC, TURNTABLE_TOPIC)
 
 
+def _no_message(channel_id: int, payload: memoryview) -> None:
+    """Every message goes by its channel's route (the channels the reader does not read have
+    none)."""
+
+
 def _line_reader(p: Path, col: Collected, topic: str) -> Callable[[Buffer], None]:
     """The reader of a protobuf ``/lidar/scan`` or ``/lidar/line`` channel: :func:`_message`
-    for one topic, its appends bound once (two of these messages per lidar line)."""
+    for one topic (two of these messages per lidar line), each message's parts kept as one
+    tuple (:meth:`Collected.spread_parts` spreads them over the line lists)."""
     if topic == SCAN_TOPIC:
-        # Any: each part goes to its own list's append, of its own type
+        # Any: the parts of one message, of their own types
         decode: Callable[[Buffer], tuple[Any, ...]] = pb.laser_scan_parts
-        appends: list[Callable[[Any], None]] = [
-            col.scan_ts.append,
-            col.range_.append,
-            col.intensity.append,
-        ]
+        keep = col.scan_parts.append
     else:
         decode = pb.line_timing_parts
-        appends = [
-            col.line_ts.append,
-            col.line_period.append,
-            col.line_count.append,
-            col.azimuth.append,
-            col.valid.append,
-            col.line_offsets.append,
-            col.invalid_range.append,
-        ]
+        keep = col.timing_parts.append
 
     def read(data: Buffer) -> None:
         if col.v2 is not True:
@@ -169,13 +160,11 @@ def _line_reader(p: Path, col: Collected, topic: str) -> Callable[[Buffer], None
                 raise RecordingError(f"recording {p}: {topic} mixes JSON and protobuf messages")
             col.v2 = True
         try:
-            parts = decode(data)
+            keep(decode(data))
         except RecordingError:
             raise
         except (KeyError, TypeError, ValueError) as exc:
             raise RecordingError(f"recording {p}: malformed message on {topic}: {exc!r}") from exc
-        for append, value in zip(appends, parts, strict=True):
-            append(value)
 
     return read
 
