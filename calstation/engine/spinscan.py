@@ -116,8 +116,7 @@ def static_of_cells(
         size + 5, dtype=np.int32 if b.size < 2**31 else np.int64)
     np.cumsum(np.bincount(key, minlength=size), out=running[3 : size + 3])
     running[size + 3 :] = running[size + 2]
-    per_bin = running[3 + ncell - 1 : size + 3 : ncell].copy()  # the returns up to each bin's end
-    per_bin[1:] -= per_bin[:-1].copy()
+    per_bin = np.diff(running[2 : size + 3 : ncell])  # running[2 + j·ncell]: before bin j
     window = (running[5:] - running[:-5]).reshape(nbin, ncell)
     static_cell = window >= fraction * np.maximum(per_bin, 1)[:, None]
     out: NDArray[np.bool_] = static_cell.reshape(-1)[key]

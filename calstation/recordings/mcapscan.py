@@ -413,9 +413,8 @@ def _chunk_records(buf: memoryview, on: Handlers, budget: _Budget) -> None:
     record count kept in locals (a chunk holds thousands of messages)."""
     total = len(buf)
     unpack = _RECORD.unpack_from
-    routes = on.routes
-    message = on.message if routes is None else None
-    get = routes.get if routes is not None else None
+    message = on.message
+    get = on.routes.get if on.routes is not None else None  # Handlers.route, inlined
     count, most = budget.records, budget.limits.max_records
     pos = 0
     try:
@@ -435,11 +434,10 @@ def _chunk_records(buf: memoryview, on: Handlers, budget: _Budget) -> None:
                 if length < _MESSAGE.size:
                     raise Damaged("a message record is too short")
                 channel_id = buf[start] | buf[start + 1] << 8
-                if get is not None:
-                    if (read := get(channel_id)) is not None:
-                        read(buf[start + _MESSAGE.size : pos])
-                elif message is not None:
+                if get is None:
                     message(channel_id, buf[start + _MESSAGE.size : pos])
+                elif (read := get(channel_id)) is not None:
+                    read(buf[start + _MESSAGE.size : pos])
             elif op == OP_CHANNEL:
                 _channel(buf, start, pos, on)
     finally:
