@@ -71,12 +71,12 @@ def test_too_little_data_is_a_clear_error() -> None:
 
 
 def _default_scene_off(sim_run):  # type: ignore[no-untyped-def]
-    """The default scenario's spin scan (1.25 m, 45°) and a start 4 mm and 3 mm off in tx and
-    tz, ry at 0 and rz 0.2° off its truth."""
+    """The default scenario's spin scan (1.25 m, 45°), its truth, and a start 4 mm and 3 mm off
+    in tx and tz, ry at 0 and rz 0.2° off the truth."""
     rec = read_recording(sim_run()["spin"])
     truth = rec.truth
     assert truth is not None
-    return rec, truth.with_(
+    return rec, truth, truth.with_(
         tx=truth.tx + 0.004, tz=truth.tz - 0.003, ry=0.0, rz=truth.rz + math.radians(0.2)
     )
 
@@ -85,9 +85,7 @@ def test_simulated_spin_scan_from_the_initial_calibration(sim_run) -> None:
     """The default scenario (1.25 m, 45°) from a perturbed start: within 2× the documented p95
     of the default station (docs/algorithms.md, *Measured*: axis offset 0.07 mm, direction
     0.021°) and within 3σ in every parameter."""
-    rec, start = _default_scene_off(sim_run)
-    truth = rec.truth
-    assert truth is not None
+    rec, truth, start = _default_scene_off(sim_run)
     recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
     res = periodicity_fine_tune(rec, start, recipe.calibration.periodicity)
     e = axis_errors(res.H, truth)
@@ -237,9 +235,7 @@ def test_the_inner_solves_chord_steps_end_where_steps_on_the_jacobian_at_each_x_
     parameter; σ is the same (it comes from the Jacobian at the solution)."""
     from calstation.engine.periodicity import problem
 
-    rec, start = _default_scene_off(sim_run)
-    truth = rec.truth
-    assert truth is not None
+    rec, _, start = _default_scene_off(sim_run)
     recipe = load_recipe("recipes/sim-periodicity.yaml").recipe
     chord = periodicity_fine_tune(rec, start, recipe.calibration.periodicity)
 
